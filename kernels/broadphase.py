@@ -1,0 +1,693 @@
+"""Broad phase: candidate body pairs from bounding spheres, with a Verlet skin.
+
+A pair (a, b), a < b, is a candidate when at least one of the two bodies is free and
+
+    |x_a - x_b| < r_a + r_b + skin
+
+with x the body centre and r the radius of the bounding sphere about it. The list stays valid
+(it holds every pair whose bounding spheres overlap) until some body has moved by more than
+skin/2 since the build, see :meth:`BroadPhase.needs_rebuild`.
+
+Design (mixed sizes, millions of bodies)
+----------------------------------------
+One Warp BVH over the sphere boxes ``x -+ (r + skin/2)``, built as a *grouped* BVH:
+
+* every free body goes to a size class ``c = floor(log(r / r_min) / log(class_ratio))`` (r_min:
+  the smallest free radius), clamped to ``MAX_CLASSES - 1``; each class is one group (subtree);
+* all fixed and kinematic bodies share the group ``NONFREE_GROUP``.
+
+Only free bodies query. A free body of class c runs one sphere query (centre x_i, radius
+r_i + skin/2) from the root of each group c, c+1, ..., c_max and of the non-free group, so it never
+walks over the bodies smaller than its own class. Each pair is emitted exactly once:
+
+* free i, non-free j: only i queries (non-free bodies never query);
+* free i, free j of a higher class: only i meets j (j does not look at lower classes);
+* free i, free j of the same class: both meet, the lower index emits.
+
+The work of one thread is thus bounded by the number of bodies of its own size or larger near it;
+a large body (a free boulder, a container wall) does not walk over the thousands of small grains
+around it, which keeps the warps of a GPU balanced whatever the radius ratio. A uniform grid would
+need a cell of the largest diameter (or a hierarchy of grids) for the same result.
+
+Threads append the int64 key ``a * num_bodies + b`` through one atomic counter. Past the capacity
+nothing is written but the counter keeps counting, so the host build knows the true count, grows
+the buffers and runs the query again: no pair is ever dropped silently. A radix sort of the keys
+(only the bits that ``num_bodies**2`` needs) then gives the strictly increasing order, identical
+on every run and every device for the same set of pairs; ``pair_a``/``pair_b`` are unpacked from
+the sorted keys.
+
+Two ways to drive it:
+
+* host: :meth:`BroadPhase.build` (exact, grows on overflow; synchronises once to read the count)
+  and :meth:`BroadPhase.update` (reads the rebuild flag, rebuilds when needed);
+* device only, usable inside a CUDA graph capture: :meth:`BroadPhase.update_on_device` computes the
+  rebuild flag and branches on it with ``wp.capture_if`` (Warp 1.19, CUDA 12.4+ for a conditional
+  graph node) into :meth:`BroadPhase.rebuild_on_device`, which never leaves the device (in-place
+  LBVH rebuild, a sort over the whole capacity with padded keys). It cannot grow the buffers: an
+  overflow raises the sticky device flag ``overflow``, which the host checks between graph
+  launches (:meth:`BroadPhase.check_overflow`) before calling :meth:`BroadPhase.build` and
+  capturing again.
+
+Layout of this file: constants, ``@wp.func`` helpers, the kernels, then the plain numpy
+reference :func:`all_pairs` and the host class :class:`BroadPhase`.
+"""
+
+import numpy as np
+import warp as wp
+
+FLAG_FREE = wp.constant(0)
+FLAG_FIXED = wp.constant(1)
+FLAG_KINEMATIC = wp.constant(2)
+
+# Number of size classes of free bodies; the non-free bodies take the group after them.
+MAX_CLASSES = wp.constant(16)
+NONFREE_GROUP = wp.constant(16)
+NUM_GROUPS = 17
+
+# Relative padding of the BVH boxes and query spheres against float32 rounding: a box a few
+# ulp too small could hide a pair that the exact test accepts. Extra candidates of the BVH are
+# harmless, the exact sphere test below decides.
+BOX_PAD = wp.constant(1.0e-5)
+
+# Default capacity in pairs per body (dense packings of equal spheres with a small skin have
+# 6 to 8 candidate pairs per body).
+DEFAULT_PAIRS_PER_BODY = 8
+MIN_CAPACITY = 1024
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers
+
+
+@wp.func
+def padded_extent(r: float, half_skin: float, x: wp.vec3):
+    # Half extent of a body's box (and radius of its query sphere): r + skin/2, padded by a
+    # relative amount and by the rounding of coordinates of the size of x.
+    m = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
+    return (r + half_skin) * (1.0 + BOX_PAD) + BOX_PAD * m
+
+
+@wp.func
+def make_pair_key(i: int, j: int, num_bodies: int):
+    # int64 key a * num_bodies + b of the unordered pair {i, j}, a < b.
+    a = wp.min(i, j)
+    b = wp.max(i, j)
+    return wp.int64(a) * wp.int64(num_bodies) + wp.int64(b)
+
+
+@wp.func
+def rotation_angle(q: wp.quat, q0: wp.quat):
+    # Angle [rad] in [0, pi] of the rotation taking q0 to q (not assumed normalised).
+    r = q * wp.quat_inverse(q0)
+    s = wp.length(wp.vec3(r[0], r[1], r[2]))
+    return 2.0 * wp.atan2(s, wp.abs(r[3]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Kernels
+
+
+@wp.kernel(enable_backward=False)
+def reset_build_kernel(
+    # Out
+    radius_min: wp.array(dtype=float),
+    class_max: wp.array(dtype=int),
+):
+    radius_min[0] = 3.0e38
+    class_max[0] = 0
+
+
+@wp.kernel(enable_backward=False)
+def radius_min_kernel(
+    # State in
+    body_radius: wp.array(dtype=float),
+    body_flags: wp.array(dtype=int),
+    # Out
+    radius_min: wp.array(dtype=float),
+):
+    """Smallest positive radius [m] of the free bodies, into ``radius_min[0]``. Launch dim: bodies."""
+    i = wp.tid()
+    r = body_radius[i]
+    if body_flags[i] == FLAG_FREE and r > 0.0:
+        wp.atomic_min(radius_min, 0, r)
+
+
+@wp.kernel(enable_backward=False)
+def bounds_kernel(
+    # Model
+    half_skin: float,
+    inv_log_class_ratio: float,
+    # State in
+    body_q: wp.array(dtype=wp.transform),
+    body_radius: wp.array(dtype=float),
+    body_flags: wp.array(dtype=int),
+    radius_min: wp.array(dtype=float),
+    # Out
+    box_lower: wp.array(dtype=wp.vec3),
+    box_upper: wp.array(dtype=wp.vec3),
+    body_group: wp.array(dtype=int),
+    class_max: wp.array(dtype=int),
+    q_build: wp.array(dtype=wp.transform),
+    radius_build: wp.array(dtype=float),
+    flags_build: wp.array(dtype=int),
+):
+    """Boxes and groups of the BVH; remembers the build state. Launch dim: bodies.
+
+    Args:
+        half_skin: skin / 2 [m].
+        inv_log_class_ratio: 1 / ln(class_ratio) [-].
+        body_q: (N,) body poses, position [m] and unit quaternion xyzw.
+        body_radius: (N,) bounding-sphere radii about the body centres [m].
+        body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
+        radius_min: (1,) smallest positive free radius [m].
+        box_lower, box_upper: (N,) out: corners of the sphere boxes inflated by skin/2 [m].
+        body_group: (N,) out: size class of a free body, ``NONFREE_GROUP`` otherwise.
+        class_max: (1,) out: largest size class of a free body (atomic max).
+        q_build, radius_build, flags_build: (N,) out: copies of the inputs at build time.
+    """
+    i = wp.tid()
+    q = body_q[i]
+    r = body_radius[i]
+    f = body_flags[i]
+    x = wp.transform_get_translation(q)
+    e = padded_extent(r, half_skin, x)
+    ev = wp.vec3(e, e, e)
+    box_lower[i] = x - ev
+    box_upper[i] = x + ev
+    q_build[i] = q
+    radius_build[i] = r
+    flags_build[i] = f
+    if f == FLAG_FREE:
+        c = int(0)
+        r0 = radius_min[0]
+        if r > r0:
+            c = wp.min(int(wp.floor(wp.log(r / r0) * inv_log_class_ratio)), MAX_CLASSES - 1)
+            c = wp.max(c, 0)
+        body_group[i] = c
+        wp.atomic_max(class_max, 0, c)
+    else:
+        body_group[i] = NONFREE_GROUP
+
+
+@wp.kernel(enable_backward=False)
+def group_root_kernel(
+    # Model
+    bvh_id: wp.uint64,
+    # Out
+    group_root: wp.array(dtype=int),
+):
+    """Root node of each group's subtree, -1 for an empty group. Launch dim: ``NUM_GROUPS``."""
+    g = wp.tid()
+    group_root[g] = wp.bvh_get_group_root(bvh_id, g)
+
+
+@wp.kernel(enable_backward=False)
+def query_pairs_kernel(
+    # Model
+    bvh_id: wp.uint64,
+    num_bodies: int,
+    capacity: int,
+    half_skin: float,
+    skin: float,
+    # State in
+    body_q: wp.array(dtype=wp.transform),
+    body_radius: wp.array(dtype=float),
+    body_flags: wp.array(dtype=int),
+    body_group: wp.array(dtype=int),
+    group_root: wp.array(dtype=int),
+    class_max: wp.array(dtype=int),
+    # Out
+    pair_key: wp.array(dtype=wp.int64),
+    pair_counter: wp.array(dtype=int),
+):
+    """Appends the key of every candidate pair, each exactly once (see the module docstring).
+
+    Launch dim: bodies.
+
+    Args:
+        num_bodies: N.
+        capacity: length of ``pair_key`` that may be written.
+        half_skin, skin: skin / 2 and skin [m].
+        body_group: (N,) group of each body as written by ``bounds_kernel``.
+        group_root: (NUM_GROUPS,) subtree roots, -1 for an empty group.
+        class_max: (1,) largest size class of a free body.
+        pair_key: (capacity,) out: keys ``a * N + b`` in arbitrary order.
+        pair_counter: (1,) in/out: number of pairs found (may exceed ``capacity``).
+    """
+    i = wp.tid()
+    if body_flags[i] != FLAG_FREE:
+        return
+    xi = wp.transform_get_translation(body_q[i])
+    ri = body_radius[i]
+    ci = body_group[i]
+    query_radius = padded_extent(ri, half_skin, xi)
+    last = class_max[0] + 1
+    for k in range(ci, last + 1):
+        g = k
+        if k == last:
+            g = NONFREE_GROUP
+        root = group_root[g]
+        if root >= 0:
+            query = wp.bvh_query_sphere(bvh_id, xi, query_radius, root)
+            j = int(0)
+            while wp.bvh_query_next(query, j):
+                # Within the own class both bodies meet each other: the lower index emits.
+                if g == ci and j <= i:
+                    continue
+                d = wp.transform_get_translation(body_q[j]) - xi
+                cut = ri + body_radius[j] + skin
+                if wp.dot(d, d) < cut * cut:
+                    slot = wp.atomic_add(pair_counter, 0, 1)
+                    if slot < capacity:
+                        pair_key[slot] = make_pair_key(i, j, num_bodies)
+
+
+@wp.kernel(enable_backward=False)
+def finish_count_kernel(
+    # Model
+    capacity: int,
+    # State in
+    pair_counter: wp.array(dtype=int),
+    # Out
+    pair_count: wp.array(dtype=int),
+    overflow: wp.array(dtype=int),
+):
+    """``pair_count = min(counter, capacity)``; raises the sticky ``overflow`` flag. Launch dim: 1."""
+    n = pair_counter[0]
+    if n > capacity:
+        overflow[0] = 1
+        n = capacity
+    pair_count[0] = n
+
+
+@wp.kernel(enable_backward=False)
+def pad_keys_kernel(
+    # Model
+    sentinel: wp.int64,
+    # State in
+    pair_count: wp.array(dtype=int),
+    # Out
+    pair_key: wp.array(dtype=wp.int64),
+):
+    """Unused slots get a key above every real key so a sort over the capacity leaves them last.
+
+    Launch dim: capacity.
+    """
+    k = wp.tid()
+    if k >= pair_count[0]:
+        pair_key[k] = sentinel
+
+
+@wp.kernel(enable_backward=False)
+def unpack_pairs_kernel(
+    # Model
+    num_bodies: int,
+    # State in
+    pair_key: wp.array(dtype=wp.int64),
+    pair_count: wp.array(dtype=int),
+    # Out
+    pair_a: wp.array(dtype=int),
+    pair_b: wp.array(dtype=int),
+):
+    """Body indices from the sorted keys; -1 past the count. Launch dim: count or capacity."""
+    k = wp.tid()
+    if k < pair_count[0]:
+        key = pair_key[k]
+        n = wp.int64(num_bodies)
+        a = key / n
+        pair_a[k] = int(a)
+        pair_b[k] = int(key - a * n)
+    else:
+        pair_a[k] = -1
+        pair_b[k] = -1
+
+
+@wp.kernel(enable_backward=False)
+def needs_rebuild_kernel(
+    # Model
+    half_skin: float,
+    rotation_term: int,
+    # State in
+    body_q: wp.array(dtype=wp.transform),
+    body_radius: wp.array(dtype=float),
+    body_flags: wp.array(dtype=int),
+    q_build: wp.array(dtype=wp.transform),
+    radius_build: wp.array(dtype=float),
+    flags_build: wp.array(dtype=int),
+    # Out
+    rebuild_flag: wp.array(dtype=int),
+):
+    """Raises ``rebuild_flag[0]`` (atomic max) when a body may have left its skin. Launch dim: bodies.
+
+    A body's motion since the build is ``|x - x_0| + r * angle(q q_0^-1) + max(r - r_0, 0)`` [m]; past
+    skin / 2 a pair could be missed. A change of flags also asks for a rebuild.
+    """
+    i = wp.tid()
+    q = body_q[i]
+    q0 = q_build[i]
+    r = body_radius[i]
+    move = wp.length(wp.transform_get_translation(q) - wp.transform_get_translation(q0))
+    move += wp.max(r - radius_build[i], 0.0)
+    if rotation_term != 0:
+        move += r * rotation_angle(wp.transform_get_rotation(q), wp.transform_get_rotation(q0))
+    if move > half_skin or body_flags[i] != flags_build[i]:
+        wp.atomic_max(rebuild_flag, 0, 1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reference and host code
+
+
+def all_pairs(positions, radii, flags, skin):
+    """Every candidate pair by brute force in float64 (O(N^2)); the reference of the tests.
+
+    Args:
+        positions: (N, 3) body centres [m].
+        radii: (N,) bounding-sphere radii [m].
+        flags: (N,) 0 free, 1 fixed, 2 kinematic.
+        skin: Verlet skin [m].
+
+    Returns:
+        (a, b): int64 arrays of the pairs with a < b, at least one free and
+        ``|x_a - x_b| < r_a + r_b + skin``, sorted by (a, b).
+    """
+    x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(radii, dtype=np.float64).reshape(-1)
+    free = np.asarray(flags).reshape(-1) == 0
+    out_a, out_b = [], []
+    for a in range(len(x) - 1):
+        d = np.linalg.norm(x[a + 1 :] - x[a], axis=1)
+        ok = d < r[a] + r[a + 1 :] + skin
+        ok &= free[a] | free[a + 1 :]
+        b = np.nonzero(ok)[0] + a + 1
+        out_a.append(np.full(len(b), a, dtype=np.int64))
+        out_b.append(b.astype(np.int64))
+    if not out_a:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    return np.concatenate(out_a), np.concatenate(out_b)
+
+
+class BroadPhase:
+    """Candidate pairs of bounding spheres with a Verlet skin (see the module docstring).
+
+    Attributes (device arrays, replaced by new ones when the capacity grows):
+        pair_a, pair_b: (capacity,) int32 body indices, a < b, of the first ``pair_count[0]``
+            entries; -1 after them.
+        pair_key: (capacity,) int64 keys ``a * num_bodies + b``, strictly increasing over the first
+            ``pair_count[0]`` entries (a view of the sort buffer; entries past the count are
+            unspecified).
+        pair_count: (1,) int32 number of pairs.
+        rebuild_flag: (1,) int32, written by :meth:`needs_rebuild`.
+        overflow: (1,) int32, sticky: 1 once :meth:`rebuild_on_device` ran out of capacity.
+        num_pairs: host int, the count of the last host :meth:`build`.
+        capacity: host int.
+        num_builds: host int, number of host :meth:`build` calls so far.
+    """
+
+    def __init__(
+        self,
+        num_bodies: int,
+        device=None,
+        skin: float = 0.0,
+        capacity: int | None = None,
+        class_ratio: float = 2.0,
+        rotation_term: bool = True,
+    ):
+        """
+        Args:
+            num_bodies: N, fixed for the life of the object.
+            device: Warp device of every array.
+            skin: Verlet skin [m], >= 0.
+            capacity: initial pair capacity (default ``max(1024, 8 N)``); grows on overflow.
+            class_ratio: radius ratio of one size class (> 1).
+            rotation_term: count ``radius * rotation angle`` in the motion of a body. Bounding
+                spheres about the centre do not move under rotation, so the candidate set never
+                needs it; it makes the rebuild test conservative for later uses of the list.
+        """
+        if num_bodies < 0:
+            raise ValueError("num_bodies must be >= 0")
+        if skin < 0.0:
+            raise ValueError("skin must be >= 0")
+        if class_ratio <= 1.0:
+            raise ValueError("class_ratio must be > 1")
+        self.num_bodies = int(num_bodies)
+        self.device = wp.get_device(device)
+        self.skin = float(skin)
+        self.class_ratio = float(class_ratio)
+        self.rotation_term = bool(rotation_term)
+        n = max(self.num_bodies, 1)
+        # Keys up to N*N (the padding sentinel) fit in this many bits.
+        self.sentinel = self.num_bodies * self.num_bodies
+        self.key_bits = max(1, int(self.sentinel).bit_length())
+
+        dev = self.device
+        self.box_lower = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.box_upper = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.body_group = wp.zeros(n, dtype=int, device=dev)
+        self.q_build = wp.zeros(n, dtype=wp.transform, device=dev)
+        self.radius_build = wp.zeros(n, dtype=float, device=dev)
+        self.flags_build = wp.zeros(n, dtype=int, device=dev)
+        self.group_root = wp.full(NUM_GROUPS, -1, dtype=int, device=dev)
+        self.radius_min = wp.zeros(1, dtype=float, device=dev)
+        self.class_max = wp.zeros(1, dtype=int, device=dev)
+        self.pair_counter = wp.zeros(1, dtype=int, device=dev)
+        self.pair_count = wp.zeros(1, dtype=int, device=dev)
+        self.rebuild_flag = wp.ones(1, dtype=int, device=dev)
+        self.overflow = wp.zeros(1, dtype=int, device=dev)
+        self.bvh = None
+        self.built = False
+        self.num_pairs = 0
+        self.num_builds = 0
+        if capacity is None:
+            capacity = max(MIN_CAPACITY, DEFAULT_PAIRS_PER_BODY * self.num_bodies)
+        self._allocate(int(capacity))
+
+    # -- buffers -----------------------------------------------------------------------------
+
+    def _allocate(self, capacity: int):
+        capacity = max(int(capacity), 1)
+        dev = self.device
+        self.capacity = capacity
+        # radix_sort_pairs needs 2 * count of keys and values (the upper half is scratch).
+        self._key_buffer = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
+        self._sort_values = wp.zeros(2 * capacity, dtype=int, device=dev)
+        self.pair_key = self._key_buffer[:capacity]
+        self.pair_a = wp.full(capacity, -1, dtype=int, device=dev)
+        self.pair_b = wp.full(capacity, -1, dtype=int, device=dev)
+
+    def _check_inputs(self, body_q, body_radius, body_flags=None):
+        for name, arr in (("body_q", body_q), ("body_radius", body_radius), ("body_flags", body_flags)):
+            if arr is None:
+                continue
+            if len(arr) != self.num_bodies:
+                raise ValueError(f"{name} has {len(arr)} entries, expected {self.num_bodies}")
+            if arr.device != self.device:
+                raise ValueError(f"{name} lives on {arr.device}, expected {self.device}")
+
+    # -- build -------------------------------------------------------------------------------
+
+    def _prepare(self, body_q, body_radius, body_flags):
+        # Boxes, groups and the BVH; device only (capture-safe once the BVH exists on CUDA).
+        n = self.num_bodies
+        dev = self.device
+        half_skin = 0.5 * self.skin
+        wp.launch(reset_build_kernel, dim=1, outputs=[self.radius_min, self.class_max], device=dev)
+        wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags], outputs=[self.radius_min], device=dev)
+        wp.launch(
+            bounds_kernel,
+            dim=n,
+            inputs=[half_skin, 1.0 / float(np.log(self.class_ratio)), body_q, body_radius, body_flags, self.radius_min],
+            outputs=[
+                self.box_lower,
+                self.box_upper,
+                self.body_group,
+                self.class_max,
+                self.q_build,
+                self.radius_build,
+                self.flags_build,
+            ],
+            device=dev,
+        )
+        if self.bvh is None:
+            self.bvh = wp.Bvh(self.box_lower, self.box_upper, groups=self.body_group)
+        else:
+            self.bvh.rebuild()
+        wp.launch(group_root_kernel, dim=NUM_GROUPS, inputs=[self.bvh.id], outputs=[self.group_root], device=dev)
+
+    def _query(self, body_q, body_radius, body_flags):
+        self.pair_counter.zero_()
+        wp.launch(
+            query_pairs_kernel,
+            dim=self.num_bodies,
+            inputs=[
+                self.bvh.id,
+                self.num_bodies,
+                self.capacity,
+                0.5 * self.skin,
+                self.skin,
+                body_q,
+                body_radius,
+                body_flags,
+                self.body_group,
+                self.group_root,
+                self.class_max,
+            ],
+            outputs=[self.pair_key, self.pair_counter],
+            device=self.device,
+        )
+
+    def _finish_count(self):
+        wp.launch(
+            finish_count_kernel,
+            dim=1,
+            inputs=[self.capacity, self.pair_counter],
+            outputs=[self.pair_count, self.overflow],
+            device=self.device,
+        )
+
+    def _unpack(self, dim):
+        wp.launch(
+            unpack_pairs_kernel,
+            dim=dim,
+            inputs=[self.num_bodies, self.pair_key, self.pair_count],
+            outputs=[self.pair_a, self.pair_b],
+            device=self.device,
+        )
+
+    def build(self, body_q, body_radius, body_flags):
+        """Find every candidate pair; grow the buffers and query again until all fit.
+
+        Synchronises with the device once per query pass (to read the pair count).
+
+        Args:
+            body_q: (N,) wp.transform body poses: position [m], unit quaternion xyzw.
+            body_radius: (N,) float32 bounding-sphere radii about the body centres [m].
+            body_flags: (N,) int32 flags: 0 free, 1 fixed, 2 kinematic.
+
+        Returns:
+            The number of pairs (also in ``num_pairs`` and ``pair_count``).
+        """
+        self._check_inputs(body_q, body_radius, body_flags)
+        self.num_builds += 1
+        self.overflow.zero_()
+        self.rebuild_flag.zero_()
+        if self.num_bodies == 0:
+            self.pair_count.zero_()
+            self.num_pairs = 0
+            self.built = True
+            return 0
+        self._prepare(body_q, body_radius, body_flags)
+        while True:
+            self._query(body_q, body_radius, body_flags)
+            count = int(self.pair_counter.numpy()[0])
+            if count <= self.capacity:
+                break
+            # The true count is known: grow with some headroom and query again.
+            self._allocate(max(count + count // 4, 2 * self.capacity))
+        self._finish_count()
+        if count > 0:
+            wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, count, 0, self.key_bits)
+        self._unpack(self.capacity)
+        self.num_pairs = count
+        self.built = True
+        return count
+
+    def rebuild_on_device(self, body_q, body_radius, body_flags):
+        """Rebuild without any host synchronisation or allocation (CUDA-graph capturable).
+
+        Needs a previous :meth:`build` (it creates the BVH and sizes the buffers). The pairs are
+        sorted over the whole capacity with padded keys. It cannot grow: when the pairs exceed the
+        capacity, ``pair_count`` is clamped, the kept pairs are an arbitrary subset and the
+        sticky ``overflow`` flag is raised; see :meth:`check_overflow`.
+        """
+        if not self.built:
+            raise RuntimeError("rebuild_on_device needs a previous host build()")
+        if self.num_bodies == 0:
+            return
+        self._prepare(body_q, body_radius, body_flags)
+        self._query(body_q, body_radius, body_flags)
+        self._finish_count()
+        wp.launch(
+            pad_keys_kernel,
+            dim=self.capacity,
+            inputs=[wp.int64(self.sentinel), self.pair_count],
+            outputs=[self.pair_key],
+            device=self.device,
+        )
+        wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, self.capacity, 0, self.key_bits)
+        self._unpack(self.capacity)
+
+    # -- Verlet test -------------------------------------------------------------------------
+
+    def needs_rebuild(self, body_q, body_radius, body_flags=None):
+        """Device flag (1,) int32: 1 when some body may have left its skin since the last build.
+
+        A body counts as moved by ``|x - x_build| + r * angle + max(r - r_build, 0)`` (the angle of
+        the rotation since the build, when ``rotation_term``); the flag is raised when that
+        exceeds skin / 2 for any body, or when ``body_flags`` (optional) differ from the build's.
+        Before the first build the flag is 1. No host synchronisation.
+        """
+        if not self.built:
+            self.rebuild_flag.fill_(1)
+            return self.rebuild_flag
+        self._check_inputs(body_q, body_radius, body_flags)
+        self.rebuild_flag.zero_()
+        if self.num_bodies == 0:
+            return self.rebuild_flag
+        flags = self.flags_build if body_flags is None else body_flags
+        wp.launch(
+            needs_rebuild_kernel,
+            dim=self.num_bodies,
+            inputs=[
+                0.5 * self.skin,
+                int(self.rotation_term),
+                body_q,
+                body_radius,
+                flags,
+                self.q_build,
+                self.radius_build,
+                self.flags_build,
+            ],
+            outputs=[self.rebuild_flag],
+            device=self.device,
+        )
+        return self.rebuild_flag
+
+    def update(self, body_q, body_radius, body_flags):
+        """Host convenience: rebuild only when needed; returns True when it rebuilt."""
+        if self.built:
+            flag = self.needs_rebuild(body_q, body_radius, body_flags)
+            if int(flag.numpy()[0]) == 0:
+                return False
+        self.build(body_q, body_radius, body_flags)
+        return True
+
+    def update_on_device(self, body_q, body_radius, body_flags):
+        """Rebuild test and conditional :meth:`rebuild_on_device`, all on the device.
+
+        Branches on the device flag with ``wp.capture_if``, so it can be recorded inside
+        ``wp.ScopedCapture`` (a conditional graph node; CUDA 12.4+). Outside a capture Warp reads
+        the flag on the host and runs the branch directly. Needs a previous :meth:`build`.
+        Check :meth:`check_overflow` now and then outside the graph.
+        """
+        if not self.built:
+            raise RuntimeError("update_on_device needs a previous host build()")
+        self.needs_rebuild(body_q, body_radius, body_flags)
+        wp.capture_if(
+            self.rebuild_flag,
+            on_true=self.rebuild_on_device,
+            body_q=body_q,
+            body_radius=body_radius,
+            body_flags=body_flags,
+        )
+
+    def check_overflow(self):
+        """Host: True when a device rebuild ran out of capacity (then call :meth:`build`)."""
+        return bool(int(self.overflow.numpy()[0]))
+
+    # -- host views --------------------------------------------------------------------------
+
+    def pairs_numpy(self):
+        """(a, b, key) numpy copies of the current pairs (synchronises)."""
+        n = int(self.pair_count.numpy()[0])
+        return self.pair_a.numpy()[:n], self.pair_b.numpy()[:n], self.pair_key.numpy()[:n]

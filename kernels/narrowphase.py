@@ -1,0 +1,441 @@
+"""Narrow phase: the exact energy-based contact geometry of two convex polyhedra.
+
+For a candidate pair (A, B) one thread clips every face polygon of A by the face planes of B and
+every face of B by the planes of A. The surviving pieces are the facets of the overlap polyhedron
+A n B. Summed over A's facets k (area A_k, A's outward normal n_k, centroid c_k):
+
+    S_A = sum A_k n_k              (= gradient of the overlap volume V under translation of A)
+    M_A = sum A_k (c_k x n_k)      (about A's centre; = gradient of V under rotation of A)
+
+and V with the overlap centroid come from the divergence theorem over all facets.
+
+All clipping happens in A's body frame, so the numbers that meet in a subtraction are of the size
+of the shapes whatever the distance from the world origin.
+
+Coincident facets: when a face f of A and a face g of B lie in one plane (every vertex of both
+faces within ``tol = tol_rel * (radius_A + radius_B)`` of the other face's plane) the pair is
+decided once, by one function evaluated identically from both sides:
+
+* same outward normal: f is not clipped by g (nor g by f) and both pieces count with weight 1/2,
+  so the shared region is split half to each body and S_A + S_B = 0 holds to rounding;
+* opposite outward normals: the bodies merely touch through that plane; both pieces are dropped
+  (the overlap there has zero thickness, and the linear law would otherwise give a finite force
+  at zero overlap).
+
+Layout of this file: ``@wp.func`` helpers inside the factory :func:`make_narrowphase`, the
+kernels it returns, then the launch function used by the host code.
+"""
+
+import functools
+
+import warp as wp
+
+# Relative tolerance of the coincident-face test, per precision (see the module docstring).
+COINCIDENT_TOL = {wp.float32: 2.0e-5, wp.float64: 1.0e-10}
+
+# A pair whose |S_A| falls below this fraction of V^(2/3) is "enclosed": one body (nearly) inside
+# the other, or two identical bodies on top of each other. The gradient of V vanishes there.
+ENCLOSED_RATIO = 1.0e-4
+
+
+@functools.cache
+def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None):
+    """Build the narrow-phase functions and kernels for one precision and polygon capacity.
+
+    Args:
+        scalar: ``wp.float32`` or ``wp.float64``.
+        max_poly: capacity of the per-thread polygon buffer (vertices of one clipped facet). A
+            facet that would exceed it raises the ``overflow`` flag of the launch; the host then
+            rebuilds with a larger capacity and runs again.
+        coincident_tol: relative tolerance of the coincident-face test (default per precision).
+
+    Returns:
+        A namespace with ``pair_geometry`` (the ``@wp.func``) and ``overlap_kernel``.
+    """
+    vec3 = wp.types.vector(3, scalar)
+    vec4 = wp.types.vector(4, scalar)
+    mat33 = wp.types.matrix(shape=(3, 3), dtype=scalar)
+    quat = wp.types.quaternion(scalar)
+    transform = wp.types.transformation(scalar)
+    poly_t = wp.types.matrix(shape=(2 * max_poly, 3), dtype=scalar)
+    tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
+    # Cheap pre-filter before the exact coincidence test: normals within about 2.5 degrees.
+    parallel_cos = 0.999
+
+    @wp.func
+    def plane_in_a(plane: vec4, rot: mat33, pos: vec3):
+        # A plane n.x = d of B, expressed in A's frame where B's points are rot x + pos.
+        n = rot * vec3(plane[0], plane[1], plane[2])
+        return n, plane[3] + wp.dot(n, pos)
+
+    @wp.func
+    def coplanar_relation(
+        fa: int,
+        gb: int,
+        face_plane: wp.array(dtype=vec4),
+        face_loop_start: wp.array(dtype=int),
+        face_loop: wp.array(dtype=int),
+        vert: wp.array(dtype=vec3),
+        rot: mat33,
+        pos: vec3,
+        tol: scalar,
+    ):
+        # Decides whether face fa of A and face gb of B share a plane: +1 same outward normal,
+        # -1 opposite normals, 0 otherwise. Evaluated in A's frame with the same expressions
+        # whichever side calls it, so both sides reach the same decision bit for bit.
+        pa = face_plane[fa]
+        na = vec3(pa[0], pa[1], pa[2])
+        nb, db = plane_in_a(face_plane[gb], rot, pos)
+        c = wp.dot(na, nb)
+        if wp.abs(c) < scalar(parallel_cos):
+            return 0
+        for k in range(face_loop_start[fa], face_loop_start[fa + 1]):
+            if wp.abs(wp.dot(nb, vert[face_loop[k]]) - db) > tol:
+                return 0
+        for k in range(face_loop_start[gb], face_loop_start[gb + 1]):
+            if wp.abs(wp.dot(na, rot * vert[face_loop[k]] + pos) - pa[3]) > tol:
+                return 0
+        if c > scalar(0.0):
+            return 1
+        return -1
+
+    @wp.func
+    def clip_face(
+        face: int,
+        face_is_a: bool,
+        plane_begin: int,
+        plane_end: int,
+        face_plane: wp.array(dtype=vec4),
+        face_sphere: wp.array(dtype=vec4),
+        face_loop_start: wp.array(dtype=int),
+        face_loop: wp.array(dtype=int),
+        vert: wp.array(dtype=vec3),
+        rot: mat33,
+        pos: vec3,
+        origin: vec3,
+        tol: scalar,
+    ):
+        # Clips one face polygon by the planes [plane_begin, plane_end) of the other body and
+        # integrates the surviving piece. Everything is in A's frame: B's points map by rot, pos.
+        # Returns (weighted area, weighted area * centroid, volume of the cone from `origin`,
+        # first moment of that cone, overflow flag).
+        zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        poly = poly_t()
+        begin = face_loop_start[face]
+        count = face_loop_start[face + 1] - begin
+        sph = face_sphere[face]
+        centre = vec3(sph[0], sph[1], sph[2])
+        if not face_is_a:
+            centre = rot * centre + pos
+        for k in range(count):
+            v = vert[face_loop[begin + k]]
+            if not face_is_a:
+                v = rot * v + pos
+            poly[k] = v
+        weight = scalar(scalar(1.0))
+        cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
+        for g in range(plane_begin, plane_end):
+            pl = face_plane[g]
+            n = vec3(pl[0], pl[1], pl[2])
+            d = pl[3]
+            if face_is_a:
+                n, d = plane_in_a(pl, rot, pos)
+            dist = wp.dot(n, centre) - d
+            if dist <= -sph[3]:
+                continue  # the whole face lies inside this plane
+            if dist > sph[3]:
+                return scalar(0.0), zero3, scalar(0.0), zero3, 0
+            pf = face_plane[face]
+            nf = vec3(pf[0], pf[1], pf[2])
+            if not face_is_a:
+                nf = rot * nf
+            if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
+                rel = int(0)
+                if face_is_a:
+                    rel = coplanar_relation(face, g, face_plane, face_loop_start, face_loop, vert, rot, pos, tol)
+                else:
+                    rel = coplanar_relation(g, face, face_plane, face_loop_start, face_loop, vert, rot, pos, tol)
+                if rel == 1:
+                    weight = scalar(0.5)
+                    continue
+                if rel == -1:
+                    return scalar(0.0), zero3, scalar(0.0), zero3, 0
+            # Sutherland-Hodgman against n.x <= d, from rows [cur, cur+count) into the other half.
+            out = max_poly - cur
+            n_out = int(0)
+            prev = poly[cur + count - 1]
+            s_prev = wp.dot(n, prev) - d
+            for k in range(count):
+                v = poly[cur + k]
+                s = wp.dot(n, v) - d
+                if (s <= scalar(0.0)) != (s_prev <= scalar(0.0)):
+                    if n_out >= max_poly:
+                        return scalar(0.0), zero3, scalar(0.0), zero3, 1
+                    t = s_prev / (s_prev - s)
+                    poly[out + n_out] = prev + t * (v - prev)
+                    n_out += 1
+                if s <= scalar(0.0):
+                    if n_out >= max_poly:
+                        return scalar(0.0), zero3, scalar(0.0), zero3, 1
+                    poly[out + n_out] = v
+                    n_out += 1
+                prev = v
+                s_prev = s
+            if n_out < 3:
+                return scalar(0.0), zero3, scalar(0.0), zero3, 0
+            cur = out
+            count = n_out
+        # Fan triangulation: facet area and centroid, and the cone from `origin` for V.
+        pf = face_plane[face]
+        nf = vec3(pf[0], pf[1], pf[2])
+        if not face_is_a:
+            nf = rot * nf
+        p0 = poly[cur]
+        area = scalar(0.0)
+        area_c = zero3
+        vol6 = scalar(0.0)
+        vol_c = zero3
+        e0 = p0 - origin
+        for k in range(1, count - 1):
+            p1 = poly[cur + k]
+            p2 = poly[cur + k + 1]
+            a2 = wp.dot(wp.cross(p1 - p0, p2 - p0), nf)  # twice the signed triangle area
+            area += a2
+            area_c += a2 * (p0 + p1 + p2)
+            t6 = wp.dot(e0, wp.cross(p1 - origin, p2 - origin))  # six times the tetrahedron volume
+            vol6 += t6
+            vol_c += t6 * (e0 + (p1 - origin) + (p2 - origin))
+        area = weight * scalar(0.5) * area
+        area_c = (weight * scalar(0.5) / scalar(3.0)) * area_c
+        vol = weight * vol6 / scalar(6.0)
+        vol_c = (weight / scalar(24.0)) * vol_c + vol * origin
+        return area, area_c, vol, vol_c, 0
+
+    @wp.func
+    def pair_geometry(
+        # Shapes
+        shape_vert_start: wp.array(dtype=int),
+        shape_face_start: wp.array(dtype=int),
+        shape_radius: wp.array(dtype=scalar),
+        face_plane: wp.array(dtype=vec4),
+        face_sphere: wp.array(dtype=vec4),
+        face_loop_start: wp.array(dtype=int),
+        face_loop: wp.array(dtype=int),
+        vert: wp.array(dtype=vec3),
+        # Pair
+        sa: int,
+        sb: int,
+        xa: transform,
+        xb: transform,
+    ):
+        """Overlap geometry of shape ``sa`` at pose ``xa`` and shape ``sb`` at pose ``xb``.
+
+        Returns ``(V, first moment of V, S_A, M_A, S_B, M_B, overflow)``, with vectors in world
+        axes and every position relative to A's centre (the first moment is V times the overlap
+        centroid; M_A and M_B are about A's centre).
+        """
+        zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        ra = shape_radius[sa]
+        rb = shape_radius[sb]
+        qa = wp.transform_get_rotation(xa)
+        qa_inv = wp.quat_inverse(qa)
+        pos = wp.quat_rotate(qa_inv, wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
+        if wp.length_sq(pos) >= (ra + rb) * (ra + rb):
+            return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+        rot = wp.quat_to_matrix(qa_inv * wp.transform_get_rotation(xb))
+        rot_t = wp.transpose(rot)
+        pos_b = -(rot_t * pos)  # A's centre in B's frame
+        tol = scalar(tol_rel) * (ra + rb)
+        fa0 = shape_face_start[sa]
+        fa1 = shape_face_start[sa + 1]
+        fb0 = shape_face_start[sb]
+        fb1 = shape_face_start[sb + 1]
+        # Separating planes, by bounding spheres first and exactly (all of the other body's
+        # vertices outside) only for planes the other body's centre lies outside of.
+        # Meanwhile find where the line of centres leaves A (tau_a, as a fraction of the way from
+        # A's centre to B's) and enters B (tau_b): the cones that integrate V start from the
+        # middle of that stretch, inside the overlap whenever the line crosses it, so the cone
+        # volumes do not cancel and V and its centroid keep their precision for shallow overlaps.
+        tau_a = scalar(1.0)
+        tau_b = scalar(0.0)
+        for f in range(fa0, fa1):
+            pl = face_plane[f]
+            n = vec3(pl[0], pl[1], pl[2])
+            sigma = wp.dot(n, pos)
+            if sigma > pl[3] * tau_a:
+                tau_a = pl[3] / sigma
+            s = sigma - pl[3]
+            if s > rb:
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+            if s > scalar(0.0):
+                nb = rot_t * n
+                db = pl[3] - wp.dot(n, pos)
+                sep = bool(True)
+                for iv in range(shape_vert_start[sb], shape_vert_start[sb + 1]):
+                    if wp.dot(nb, vert[iv]) <= db:
+                        sep = False
+                        break
+                if sep:
+                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+        for g in range(fb0, fb1):
+            pl = face_plane[g]
+            n = vec3(pl[0], pl[1], pl[2])
+            sigma = wp.dot(n, pos_b)
+            if sigma > pl[3] * (scalar(1.0) - tau_b):
+                tau_b = scalar(1.0) - pl[3] / sigma
+            s = sigma - pl[3]
+            if s > ra:
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+            if s > scalar(0.0):
+                na = rot * n
+                da = pl[3] + wp.dot(na, pos)
+                sep = bool(True)
+                for iv in range(shape_vert_start[sa], shape_vert_start[sa + 1]):
+                    if wp.dot(na, vert[iv]) <= da:
+                        sep = False
+                        break
+                if sep:
+                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+        origin = pos * (scalar(0.5) * (tau_a + tau_b))
+        vol = scalar(0.0)
+        vol_c = zero3
+        s_a = zero3
+        m_a = zero3
+        s_b = zero3
+        m_b = zero3
+        overflow = int(0)
+        for f in range(fa0, fa1):
+            pl = face_plane[f]
+            n = vec3(pl[0], pl[1], pl[2])
+            if wp.dot(n, pos) - pl[3] <= -rb:
+                continue  # B lies wholly inside this face's plane: the face cannot reach B
+            sph = face_sphere[f]
+            if wp.length(vec3(sph[0], sph[1], sph[2]) - pos) > sph[3] + rb:
+                continue
+            area, area_c, dv, dv_c, of = clip_face(
+                f, True, fb0, fb1, face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol
+            )
+            overflow = overflow | of
+            s_a += area * n
+            m_a += wp.cross(area_c, n)
+            vol += dv
+            vol_c += dv_c
+        for g in range(fb0, fb1):
+            pl = face_plane[g]
+            n = vec3(pl[0], pl[1], pl[2])
+            if wp.dot(n, pos_b) - pl[3] <= -ra:
+                continue
+            sph = face_sphere[g]
+            if wp.length(vec3(sph[0], sph[1], sph[2]) - pos_b) > sph[3] + ra:
+                continue
+            area, area_c, dv, dv_c, of = clip_face(
+                g, False, fa0, fa1, face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol
+            )
+            overflow = overflow | of
+            na = rot * n
+            s_b += area * na
+            m_b += wp.cross(area_c, na)
+            vol += dv
+            vol_c += dv_c
+        rot_a = wp.quat_to_matrix(qa)
+        return vol, rot_a * vol_c, rot_a * s_a, rot_a * m_a, rot_a * s_b, rot_a * m_b, overflow
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def overlap_kernel(
+        # Shapes
+        shape_vert_start: wp.array(dtype=int),
+        shape_face_start: wp.array(dtype=int),
+        shape_radius: wp.array(dtype=scalar),
+        face_plane: wp.array(dtype=vec4),
+        face_sphere: wp.array(dtype=vec4),
+        face_loop_start: wp.array(dtype=int),
+        face_loop: wp.array(dtype=int),
+        vert: wp.array(dtype=vec3),
+        # Pairs in
+        pair_shape_a: wp.array(dtype=int),
+        pair_shape_b: wp.array(dtype=int),
+        pair_pose_a: wp.array(dtype=transform),
+        pair_pose_b: wp.array(dtype=transform),
+        # Out
+        pair_volume: wp.array(dtype=scalar),
+        pair_volume_moment: wp.array(dtype=vec3),
+        pair_area_a: wp.array(dtype=vec3),
+        pair_moment_a: wp.array(dtype=vec3),
+        pair_area_b: wp.array(dtype=vec3),
+        pair_moment_b: wp.array(dtype=vec3),
+        overflow: wp.array(dtype=int),
+    ):
+        i = wp.tid()
+        vol, vol_c, s_a, m_a, s_b, m_b, of = pair_geometry(
+            shape_vert_start,
+            shape_face_start,
+            shape_radius,
+            face_plane,
+            face_sphere,
+            face_loop_start,
+            face_loop,
+            vert,
+            pair_shape_a[i],
+            pair_shape_b[i],
+            pair_pose_a[i],
+            pair_pose_b[i],
+        )
+        if of != 0:
+            wp.atomic_add(overflow, 0, 1)
+        pair_volume[i] = vol
+        pair_volume_moment[i] = vol_c
+        pair_area_a[i] = s_a
+        pair_moment_a[i] = m_a
+        pair_area_b[i] = s_b
+        pair_moment_b[i] = m_b
+
+    class Narrowphase:
+        pass
+
+    ns = Narrowphase()
+    ns.scalar = scalar
+    ns.vec3 = vec3
+    ns.vec4 = vec4
+    ns.transform = transform
+    ns.quat = quat
+    ns.max_poly = max_poly
+    ns.tol_rel = tol_rel
+    ns.pair_geometry = pair_geometry
+    ns.overlap_kernel = overlap_kernel
+    return ns
+
+
+def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, out, max_poly=None):
+    """Run the overlap kernel over all pairs; grow the polygon buffer and redo on overflow.
+
+    ``shapes`` is a :class:`polydem.shapeset.ShapeSet`; ``out`` a dict of output arrays named as
+    the kernel's ``# Out`` arguments. Returns the narrow-phase namespace that ran.
+    """
+    n = len(pair_shape_a)
+    capacity = shapes.default_poly_capacity if max_poly is None else max_poly
+    while True:
+        nphase = make_narrowphase(shapes.scalar, capacity)
+        overflow = wp.zeros(1, dtype=int, device=shapes.device)
+        wp.launch(
+            nphase.overlap_kernel,
+            dim=n,
+            inputs=[*shapes.kernel_args(), pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b],
+            outputs=[
+                out["pair_volume"],
+                out["pair_volume_moment"],
+                out["pair_area_a"],
+                out["pair_moment_a"],
+                out["pair_area_b"],
+                out["pair_moment_b"],
+                overflow,
+            ],
+            device=shapes.device,
+        )
+        if n == 0 or int(overflow.numpy()[0]) == 0:
+            return nphase
+        if capacity >= shapes.max_poly_bound:
+            raise RuntimeError(
+                f"polygon buffer of {capacity} vertices overflowed although it holds the largest possible "
+                "clipped facet; this is a bug in polydem, please report it with the shapes involved"
+            )
+        capacity = min(2 * capacity, shapes.max_poly_bound)

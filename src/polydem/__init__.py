@@ -1,0 +1,21 @@
+"""polydem: GPU discrete element simulation of rigid convex polyhedra with NVIDIA Warp.
+
+Contacts follow the energy-based volume model of Feng, Han and Owen: the contact energy is a
+function W(V) of the overlap volume V of two polyhedra, and forces and torques are its exact
+gradients, computed by clipping the two hulls against each other.
+"""
+
+from polydem.contact import ContactForces, ContactLaw, OverlapResult, contact_forces, overlap
+from polydem.shapes import ConvexShape
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConvexShape",
+    "ContactLaw",
+    "ContactForces",
+    "OverlapResult",
+    "contact_forces",
+    "overlap",
+    "__version__",
+]

@@ -1,0 +1,95 @@
+"""Shapes packed into flat device arrays, as the narrow-phase kernels read them."""
+
+import numpy as np
+import warp as wp
+
+PRECISIONS = {"float32": wp.float32, "float64": wp.float64}
+
+
+def scalar_type(precision):
+    """The Warp scalar type for a precision name ("float32" or "float64")."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
+    return PRECISIONS[precision]
+
+
+class ShapeSet:
+    """A list of :class:`~polydem.ConvexShape` packed for the kernels, all in body frames.
+
+    Attributes:
+        shape_vert_start: (S+1,) int32, first vertex of each shape in ``vert``.
+        shape_face_start: (S+1,) int32, first face of each shape in ``face_plane``.
+        shape_radius: (S,) bounding radius about the centroid [m].
+        face_plane: (F,) vec4 ``(nx, ny, nz, d)``, outward unit normal and offset, n.x = d [m].
+        face_sphere: (F,) vec4 ``(cx, cy, cz, r)``, a sphere around the face's vertices [m].
+        face_loop_start: (F+1,) int32, first entry of each face in ``face_loop``.
+        face_loop: (L,) int32, global vertex indices of each face, counter-clockwise from outside.
+        vert: (V,) vec3 vertex positions [m].
+    """
+
+    def __init__(self, shapes, device=None, precision="float32"):
+        shapes = list(shapes)
+        if not shapes:
+            raise ValueError("a ShapeSet needs at least one shape")
+        self.shapes = shapes
+        self.precision = precision
+        self.scalar = scalar_type(precision)
+        self.device = wp.get_device(device)
+        np_scalar = np.float32 if self.scalar == wp.float32 else np.float64
+        vec3 = wp.types.vector(3, self.scalar)
+        vec4 = wp.types.vector(4, self.scalar)
+
+        vert_start = [0]
+        face_start = [0]
+        loop_start = [0]
+        loops, verts, planes, spheres = [], [], [], []
+        for shape in shapes:
+            base = vert_start[-1]
+            verts.append(np.asarray(shape.vertices, dtype=np.float64))
+            for loop in shape.faces:
+                loops.append(np.asarray(loop, dtype=np.int64) + base)
+                loop_start.append(loop_start[-1] + len(loop))
+            planes.append(np.column_stack([shape.face_normals, shape.face_offsets]))
+            spheres.append(np.column_stack([shape.face_centers, shape.face_radii]))
+            vert_start.append(base + len(shape.vertices))
+            face_start.append(face_start[-1] + len(shape.faces))
+
+        # The culling spheres are padded so that rounding in the float32 tests cannot cull a face
+        # that touches.
+        spheres = np.concatenate(spheres)
+        radii = np.array([s.radius for s in shapes])
+        spheres[:, 3] *= 1.0 + 1e-5
+        spheres[:, 3] += 1e-6 * radii.max()
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=self.device)
+
+        self.shape_vert_start = arr(np.array(vert_start, dtype=np.int32), int)
+        self.shape_face_start = arr(np.array(face_start, dtype=np.int32), int)
+        self.shape_radius = arr(radii.astype(np_scalar), self.scalar)
+        self.face_plane = arr(np.concatenate(planes).astype(np_scalar), vec4)
+        self.face_sphere = arr(spheres.astype(np_scalar), vec4)
+        self.face_loop_start = arr(np.array(loop_start, dtype=np.int32), int)
+        self.face_loop = arr(np.concatenate(loops).astype(np.int32), int)
+        self.vert = arr(np.concatenate(verts).astype(np_scalar), vec3)
+
+        max_face_verts = max(s.max_face_vertices for s in shapes)
+        max_faces = max(s.num_faces for s in shapes)
+        # Clipping a convex polygon by k planes adds at most one vertex per plane.
+        self.max_poly_bound = max_face_verts + max_faces
+        # Pieces met in practice are far below the bound for shapes with many faces; start small
+        # and let an overflow grow the buffer (see kernels.narrowphase.launch_overlap).
+        self.default_poly_capacity = min(self.max_poly_bound, max_face_verts + 16)
+
+    def kernel_args(self):
+        """The ``# Shapes`` arguments of the narrow-phase kernels, in order."""
+        return [
+            self.shape_vert_start,
+            self.shape_face_start,
+            self.shape_radius,
+            self.face_plane,
+            self.face_sphere,
+            self.face_loop_start,
+            self.face_loop,
+            self.vert,
+        ]

@@ -1,0 +1,24 @@
+"""Shared test set-up: every device test runs on the CPU and on the first GPU where there is one."""
+
+import os
+import sys
+
+import pytest
+import warp as wp
+
+sys.path.insert(0, os.path.dirname(__file__))  # the float64 reference lives beside the tests
+
+wp.config.quiet = True
+wp.init()
+
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+
+
+def pytest_generate_tests(metafunc):
+    if "device" in metafunc.fixturenames:
+        metafunc.parametrize("device", DEVICES)
+
+
+@pytest.fixture(scope="session")
+def devices():
+    return DEVICES

@@ -1,0 +1,416 @@
+"""The pair kernel against an independent float64 reference, finite differences and hard cases."""
+
+import functools
+
+import numpy as np
+import pytest
+from polydem.kernels.narrowphase import COINCIDENT_TOL
+from reference_geometry import reference_overlap
+from scipy.spatial.transform import Rotation
+
+from polydem import ContactLaw, ConvexShape, contact_forces, overlap
+from polydem.shapeset import ShapeSet, scalar_type
+
+TOL = {"float64": 1e-9, "float32": 1e-4}
+IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def pose(position, rotation=None):
+    q = IDENTITY if rotation is None else Rotation.as_quat(rotation)
+    return np.concatenate([np.asarray(position, dtype=np.float64), q])
+
+
+def world_vertices(shape, p):
+    return Rotation.from_quat(p[3:]).apply(np.array(shape.vertices)) + p[:3]
+
+
+def scale_of(a, b):
+    return 2.0 * max(a.radius, b.radius)
+
+
+def compare(res, i, ref, scale, tol):
+    """Largest error of row i against the reference, each quantity relative to its power of the scale."""
+    err = {
+        "volume": abs(res.volume[i] - ref["volume"]) / scale**3,
+        "area_vector": np.abs(res.area_vector[i] - ref["area_vector"]).max() / scale**2,
+        "area_vector_b": np.abs(res.area_vector_b[i] - ref["area_vector_b"]).max() / scale**2,
+        "moment": np.abs(
+            (res.moment[i] - ref["moment"]) - np.cross(res.position_a[i], res.area_vector[i] - ref["area_vector"])
+        ).max()
+        / scale**3,
+        # The centroid is V-weighted: alone it is ill-conditioned as V -> 0.
+        "first_moment": np.abs(
+            res.volume[i] * (res.centroid[i] - res.position_a[i])
+            - ref["volume"] * (ref["centroid"] - res.position_a[i])
+        ).max()
+        / scale**4
+        if ref["volume"] > 0
+        else 0.0,
+    }
+    return max(err.items(), key=lambda kv: kv[1])
+
+
+@functools.cache
+def random_pairs(n_pairs=1000, seed=7):
+    """Random pairs of random convex shapes and poses, most overlapping, with their reference."""
+    rng = np.random.default_rng(seed)
+    library = [
+        ConvexShape.rock(n_points=int(rng.integers(6, 40)), size=float(rng.uniform(0.5, 2.0)), seed=s) for s in range(8)
+    ]
+    library += [
+        ConvexShape.box(1.0, 0.5, 0.3),
+        ConvexShape.tetrahedron(1.0),
+        ConvexShape.prism(5),
+        ConvexShape.octahedron(),
+    ]
+    groups = []
+    per = 50
+    for _ in range(n_pairs // per):
+        a = library[int(rng.integers(len(library)))]
+        b = library[int(rng.integers(len(library)))]
+        qa = Rotation.random(per, random_state=rng.integers(1 << 30)).as_quat()
+        qb = Rotation.random(per, random_state=rng.integers(1 << 30)).as_quat()
+        pa = rng.uniform(-3.0, 3.0, size=(per, 3))
+        d = rng.normal(size=(per, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        pb = pa + d * rng.uniform(0.1, 1.05, size=(per, 1)) * (a.radius + b.radius)
+        poses_a = np.hstack([pa, qa])
+        poses_b = np.hstack([pb, qb])
+        refs = [reference_overlap(world_vertices(a, poses_a[i]), world_vertices(b, poses_b[i])) for i in range(per)]
+        groups.append((a, b, poses_a, poses_b, refs))
+    return groups
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_random_pairs_against_reference(device, precision):
+    worst = ("", 0.0)
+    touching = 0
+    for a, b, poses_a, poses_b, refs in random_pairs():
+        res = overlap(a, poses_a, b, poses_b, device=device, precision=precision)
+        scale = scale_of(a, b)
+        for i, ref in enumerate(refs):
+            touching += ref["volume"] > 0
+            name, e = compare(res, i, ref, scale, TOL[precision])
+            if e > worst[1]:
+                worst = (name, e)
+    assert touching > 500
+    assert worst[1] < TOL[precision], f"largest error {worst[1]:.3g} in {worst[0]}"
+
+
+def _volume(a, pa, b, pb, device):
+    return overlap(a, pa, b, pb, device=device, precision="float64").volume
+
+
+def small_rotation(axis, angle):
+    return Rotation.from_rotvec(np.asarray(axis, dtype=np.float64) * angle)
+
+
+def test_finite_differences(device):
+    a = ConvexShape.rock(n_points=24, size=1.0, seed=3)
+    b = ConvexShape.rock(n_points=16, size=1.3, seed=4)
+    rng = np.random.default_rng(2)
+    h = 1e-6
+    checked = 0
+    for _ in range(12):
+        pa = pose(rng.uniform(-1, 1, 3), Rotation.random(random_state=rng.integers(1 << 30)))
+        pb = pose(pa[:3] + rng.normal(size=3) * 0.35, Rotation.random(random_state=rng.integers(1 << 30)))
+        res = overlap(a, pa, b, pb, device=device, precision="float64")
+        if res.volume[0] < 1e-4:
+            continue
+        checked += 1
+        shifted = []
+        for axis in np.eye(3):
+            for sign in (1.0, -1.0):
+                p = pa.copy()
+                p[:3] += sign * h * axis
+                shifted.append(p)
+        rotated = []
+        for axis in np.eye(3):
+            for sign in (1.0, -1.0):
+                p = pa.copy()
+                p[3:] = (small_rotation(axis, sign * h) * Rotation.from_quat(pa[3:])).as_quat()
+                rotated.append(p)
+        v = _volume(a, np.array(shifted + rotated), b, np.repeat(pb[None], 12, axis=0), device)
+        grad_t = (v[0:6:2] - v[1:6:2]) / (2 * h)
+        grad_r = (v[6:12:2] - v[7:12:2]) / (2 * h)
+        s = res.area_vector[0]
+        rot_grad = res.moment[0] - np.cross(pa[:3], s)
+        np.testing.assert_allclose(grad_t, s, atol=2e-6)
+        np.testing.assert_allclose(grad_r, rot_grad, atol=2e-6)
+    assert checked >= 6
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_action_reaction(device, precision):
+    a, b, poses_a, poses_b, _ = random_pairs()[3]
+    res = overlap(a, poses_a, b, poses_b, device=device, precision=precision)
+    tol = 50 * TOL[precision] * scale_of(a, b) ** 2
+    np.testing.assert_allclose(res.area_vector + res.area_vector_b, 0.0, atol=tol)
+    np.testing.assert_allclose(res.moment + res.moment_b, 0.0, atol=tol * 5)
+    f = contact_forces(res, ContactLaw("hertz", k=1e5))
+    np.testing.assert_array_equal(f.force_a, -f.force_b)
+    # The pair's total moment about the origin vanishes.
+    total = np.cross(res.position_a, f.force_a) + f.torque_a + np.cross(res.position_b, f.force_b) + f.torque_b
+    np.testing.assert_allclose(total, 0.0, atol=1e-9 * np.abs(f.torque_a).max() + 1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# Hard cases
+
+
+CUBE = None
+
+
+def cube():
+    global CUBE
+    if CUBE is None:
+        CUBE = ConvexShape.box(1.0)
+    return CUBE
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_aligned_stacked_cubes(device, precision):
+    c = cube()
+    depth = 0.01
+    offsets = [(0.0, 0.0), (0.3, 0.0), (0.0, -0.25), (0.2, 0.1)]
+    pa = np.array([pose([0, 0, 0])] * len(offsets))
+    pb = np.array([pose([x, y, 1.0 - depth]) for x, y in offsets])
+    res = overlap(c, pa, c, pb, device=device, precision=precision)
+    tol = TOL[precision]
+    for i, (x, y) in enumerate(offsets):
+        np.testing.assert_allclose(res.volume[i], (1 - abs(x)) * (1 - abs(y)) * depth, atol=tol)
+        # A's top face piece only: sideways components come only from the non-coincident sides.
+        expected = np.array(
+            [np.sign(x) * (1 - abs(y)) * depth, np.sign(y) * (1 - abs(x)) * depth, (1 - abs(x)) * (1 - abs(y))]
+        )
+        np.testing.assert_allclose(res.area_vector[i], expected, atol=tol)
+        np.testing.assert_allclose(res.area_vector[i] + res.area_vector_b[i], 0.0, atol=tol * 1e-2)
+    f = contact_forces(res, ContactLaw("linear", k=1e6))
+    # Perfectly aligned stack: no sideways force at all.
+    assert np.abs(f.force_a[0, :2]).max() <= 1e-6 * np.abs(f.force_a[0, 2])
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_face_on_face_tilted_through_alignment(device, precision):
+    c = cube()
+    size = 2 * c.radius
+    tol = COINCIDENT_TOL[scalar_type(precision)]
+    depth = 0.02
+    # B stands on A, aligned in x, its +-x faces in A's planes; tilt it about the y axis.
+    inside = 0.01 * tol * size
+    outside = 200 * tol * size if precision == "float64" else 0.02
+    angles = [0.0, inside, -inside, outside, -outside]
+    pa = np.array([pose([0, 0, 0])] * len(angles))
+    pb = np.array([pose([0, 0, 1.0 - depth], Rotation.from_rotvec([0, a, 0])) for a in angles])
+    res = overlap(c, pa, c, pb, device=device, precision=precision)
+    err = TOL[precision]
+    # V is continuous through alignment.
+    np.testing.assert_allclose(res.volume[:3], depth, atol=err)
+    # Within the tolerance the result is the aligned one, on both sides.
+    for i in (1, 2):
+        np.testing.assert_allclose(res.area_vector[i], res.area_vector[0], atol=err)
+    # Well outside it the geometry is exact and mirror-symmetric; S_A moved by at most the
+    # coincident area (2 side strips of 1 x depth), the same way on both sides.
+    for i in (3, 4):
+        ref = reference_overlap(world_vertices(c, pa[i]), world_vertices(c, pb[i]))
+        np.testing.assert_allclose(res.area_vector[i], ref["area_vector"], atol=err)
+        np.testing.assert_allclose(res.volume[i], ref["volume"], atol=err)
+        assert np.linalg.norm(res.area_vector[i] - res.area_vector[0]) <= 2 * depth + 2 * abs(angles[i]) + err
+    np.testing.assert_allclose(res.area_vector[3] * [-1, 1, 1], res.area_vector[4], atol=err)
+    np.testing.assert_allclose(res.area_vector + res.area_vector_b, 0.0, atol=err)
+
+
+def _against_reference(a, pa, b, pb, device, precision):
+    res = overlap(a, pa, b, pb, device=device, precision=precision)
+    ref = reference_overlap(world_vertices(a, pa), world_vertices(b, pb))
+    name, e = compare(res, 0, ref, scale_of(a, b), TOL[precision])
+    assert e < TOL[precision], f"{name} off by {e:.3g}"
+    assert np.isfinite(res.normal).all() and np.isfinite(res.contact_point).all()
+    return res, ref
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_edge_across_edge(device, precision):
+    c = cube()
+    ra = Rotation.from_rotvec([np.pi / 4, 0, 0])  # an edge of A along x, on top
+    rb = Rotation.from_rotvec([0, np.pi / 4, 0])  # an edge of B along y, at the bottom
+    h = np.sqrt(0.5)
+    pa = pose([0, 0, 0], ra)
+    pb = pose([0, 0, 2 * h - 0.05], rb)
+    res, _ = _against_reference(c, pa, c, pb, device, precision)
+    np.testing.assert_allclose(res.normal[0], [0, 0, 1], atol=1e-3)
+    np.testing.assert_allclose(res.contact_point[0][:2], [0, 0], atol=1e-3)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_vertex_into_face(device, precision):
+    c = cube()
+    # B's corner points straight down into A's top face.
+    rb = Rotation.align_vectors([[0, 0, -1]], [[1, 1, 1]])[0]
+    pb = pose([0.1, -0.05, 0.5 + np.sqrt(3) / 2 - 0.08], rb)
+    res, _ = _against_reference(c, pose([0, 0, 0]), c, pb, device, precision)
+    np.testing.assert_allclose(res.normal[0], [0, 0, 1], atol=1e-6 if precision == "float64" else 1e-4)
+    # On the axis through the tip, in the plane of the overlap's centroid (a quarter of the depth).
+    np.testing.assert_allclose(
+        res.contact_point[0], [0.1, -0.05, 0.5 - 0.08 / 4], atol=1e-6 if precision == "float64" else 1e-4
+    )
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_one_body_inside_the_other(device, precision):
+    big = ConvexShape.box(3.0)
+    small = ConvexShape.rock(n_points=15, size=0.5, seed=1)
+    pa = np.array([pose([0.2, 0.1, -0.3]), pose([0, 0, 0])])
+    pb = np.array([pose([0, 0, 0])] * 2)
+    res = overlap(small, pa, big, pb, device=device, precision=precision)
+    np.testing.assert_allclose(res.volume, small.volume, rtol=1e-5)
+    assert res.enclosed.all()
+    np.testing.assert_allclose(res.area_vector, 0.0, atol=1e-5)
+    f = contact_forces(res, ContactLaw("linear", k=1e6))
+    assert np.isfinite(f.force_a).all() and np.isfinite(f.torque_a).all()
+    # Pushed out along the line of centres (away from B), or +z... from B when the centres coincide.
+    away = pa[0, :3] / np.linalg.norm(pa[0, :3])
+    np.testing.assert_allclose(f.force_a[0] / np.linalg.norm(f.force_a[0]), away, atol=1e-6)
+    np.testing.assert_allclose(f.force_a[1] / np.linalg.norm(f.force_a[1]), [0, 0, -1], atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(f.force_a, axis=1), 1e6 * small.volume ** (2 / 3), rtol=1e-4)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_identical_coincident_bodies(device, precision):
+    r = ConvexShape.rock(n_points=20, size=1.0, seed=5)
+    p = pose([1.0, 2.0, 3.0], Rotation.from_rotvec([0.3, -0.2, 0.5]))
+    res = overlap(r, p, r, p, device=device, precision=precision)
+    np.testing.assert_allclose(res.volume, r.volume, rtol=1e-5)
+    np.testing.assert_allclose(res.area_vector, 0.0, atol=1e-5)
+    assert res.enclosed[0]
+    f = contact_forces(res, ContactLaw("hertz", k=1e6))
+    assert np.isfinite(f.force_a).all() and np.isfinite(f.torque_a).all() and np.isfinite(f.torque_b).all()
+    assert np.linalg.norm(f.force_a) > 0
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_touching_with_zero_overlap(device, precision):
+    c = cube()
+    pb = np.array(
+        [
+            pose([0, 0, 1.0]),  # face on face
+            pose([0.5, 0.2, 1.0]),  # face on face, shifted
+            pose([1.0, 1.0, 1.0]),  # corner on corner
+            pose([0, 0, 0.5 + np.sqrt(3) / 2], Rotation.align_vectors([[0, 0, -1]], [[1, 1, 1]])[0]),  # vertex on face
+        ]
+    )
+    res = overlap(c, np.array([pose([0, 0, 0])] * len(pb)), c, pb, device=device, precision=precision)
+    tol = 1e-6 if precision == "float32" else 1e-12
+    assert np.abs(res.volume).max() <= tol
+    for law in (ContactLaw("linear", 1e6), ContactLaw("hertz", 1e6), ContactLaw("power", 1e6, 2.0)):
+        f = contact_forces(res, law)
+        assert np.isfinite(f.force_a).all()
+        assert np.abs(f.force_a).max() <= 1e6 * 1e-5
+    for field in ("normal", "contact_point", "centroid"):
+        assert np.isfinite(getattr(res, field)).all()
+
+
+def test_separated(device):
+    c = cube()
+    r = ConvexShape.rock(n_points=12, size=1.0, seed=2)
+    pb = np.array([pose([0, 0, 1.2]), pose([5, 5, 5]), pose([0.9, 0.9, 0.9], Rotation.from_rotvec([0.2, 0.4, 0.1]))])
+    res = overlap(c, pose([0, 0, 0]), r, pb, device=device)
+    for i in range(len(pb)):
+        ref = reference_overlap(world_vertices(c, pose([0, 0, 0])), world_vertices(r, pb[i]))
+        if ref["volume"] == 0.0:
+            assert res.volume[i] == 0.0
+            assert (res.area_vector[i] == 0.0).all()
+    assert res.volume[1] == 0.0
+    assert np.isfinite(res.normal).all()
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_slivers(device, precision):
+    plate = ConvexShape.box(1.0, 1.0, 0.001)
+    needle = ConvexShape.box(0.001, 0.001, 1.0)
+    rng = np.random.default_rng(4)
+    for a, b in ((plate, plate), (plate, needle), (needle, needle)):
+        for _ in range(4):
+            pa = pose([0, 0, 0], Rotation.random(random_state=rng.integers(1 << 30)))
+            pb = pose(rng.normal(size=3) * 0.05, Rotation.random(random_state=rng.integers(1 << 30)))
+            _against_reference(a, pa, b, pb, device, precision)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_hulls_with_many_faces(device, precision):
+    s = ConvexShape.sphere(subdivisions=2, radius=0.5)
+    assert s.num_faces >= 100
+    r = ConvexShape.rock(n_points=64, size=1.0, seed=9)
+    rng = np.random.default_rng(5)
+    for a, b in ((s, s), (s, r)):
+        for _ in range(3):
+            pa = pose([0, 0, 0], Rotation.random(random_state=rng.integers(1 << 30)))
+            pb = pose(rng.normal(size=3) * 0.3, Rotation.random(random_state=rng.integers(1 << 30)))
+            _against_reference(a, pa, b, pb, device, precision)
+
+
+def test_polygon_buffer_overflow_grows_and_redoes(device):
+    s = ConvexShape.sphere(subdivisions=2, radius=0.5)
+    shapes = ShapeSet([s, s], device=device, precision="float64")
+    shapes.default_poly_capacity = 3  # too small for any clipped triangle: forces the redo path
+    pa = pose([0, 0, 0])
+    pb = pose([0.3, 0.2, 0.1], Rotation.from_rotvec([0.4, 0.1, 0.2]))
+    import warp as wp
+    from polydem.kernels.narrowphase import launch_overlap
+
+    vec3 = wp.types.vector(3, wp.float64)
+    out = {
+        k: wp.zeros(1, dtype=vec3, device=device)
+        for k in ("pair_volume_moment", "pair_area_a", "pair_moment_a", "pair_area_b", "pair_moment_b")
+    }
+    out["pair_volume"] = wp.zeros(1, dtype=wp.float64, device=device)
+    tf = wp.types.transformation(wp.float64)
+    ns = launch_overlap(
+        shapes,
+        wp.zeros(1, dtype=int, device=device),
+        wp.ones(1, dtype=int, device=device),
+        wp.array(pa[None], dtype=tf, device=device),
+        wp.array(pb[None], dtype=tf, device=device),
+        out,
+    )
+    assert ns.max_poly > 3
+    ref = reference_overlap(world_vertices(s, pa), world_vertices(s, pb))
+    np.testing.assert_allclose(out["pair_volume"].numpy()[0], ref["volume"], atol=1e-9)
+    np.testing.assert_allclose(out["pair_area_a"].numpy()[0], ref["area_vector"], atol=1e-9)
+
+
+def test_far_from_origin_float32(device):
+    r = ConvexShape.rock(n_points=20, size=1.0, seed=11)
+    c = cube()
+    far = np.array([1000.0, -700.0, 450.0])
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        pa = pose(far, Rotation.random(random_state=rng.integers(1 << 30)))
+        pb = pose(far + rng.normal(size=3) * 0.3, Rotation.random(random_state=rng.integers(1 << 30)))
+        res, ref = _against_reference(r, pa, c, pb, device, "float32")
+        np.testing.assert_allclose(res.centroid[0], ref["centroid"], atol=1e-3)
+
+
+def test_bad_arguments():
+    c = cube()
+    good = pose([0, 0, 0])
+    with pytest.raises(ValueError, match="shape"):
+        overlap(c, np.zeros((3, 6)), c, good)
+    with pytest.raises(ValueError, match="non-unit"):
+        overlap(c, [0, 0, 0, 0, 0, 0, 2.0], c, good)
+    with pytest.raises(ValueError, match="zero quaternion"):
+        overlap(c, [0, 0, 0, 0, 0, 0, 0], c, good)
+    with pytest.raises(ValueError, match="non-finite"):
+        overlap(c, [np.nan, 0, 0, 0, 0, 0, 1], c, good)
+    with pytest.raises(ValueError, match="rows"):
+        overlap(c, np.array([good] * 3), c, np.array([good] * 2))
+    with pytest.raises(TypeError, match="ConvexShape"):
+        overlap("cube", good, c, good)
+    with pytest.raises(ValueError, match="precision"):
+        overlap(c, good, c, good, precision="half")
+    with pytest.raises(ValueError, match="contact law"):
+        ContactLaw("quadratic", 1.0)
+    with pytest.raises(ValueError, match="positive"):
+        ContactLaw("linear", -1.0)
+    with pytest.raises(ValueError, match="exponent"):
+        ContactLaw("power", 1.0, 0.5)
