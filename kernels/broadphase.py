@@ -38,15 +38,20 @@ the sorted keys.
 
 Two ways to drive it:
 
-* host: :meth:`BroadPhase.build` (exact, grows on overflow; synchronises once to read the count)
-  and :meth:`BroadPhase.update` (reads the rebuild flag, rebuilds when needed);
+* host: :meth:`BroadPhase.build` (exact, grows on overflow; synchronises once to read the count;
+  builds a fresh tree with new size classes) and :meth:`BroadPhase.update` (reads the rebuild
+  flag, rebuilds when needed);
 * device only, usable inside a CUDA graph capture: :meth:`BroadPhase.update_on_device` computes the
-  rebuild flag and branches on it with ``wp.capture_if`` (Warp 1.19, CUDA 12.4+ for a conditional
-  graph node) into :meth:`BroadPhase.rebuild_on_device`, which never leaves the device (in-place
-  LBVH rebuild, a sort over the whole capacity with padded keys). It cannot grow the buffers: an
-  overflow raises the sticky device flag ``overflow``, which the host checks between graph
-  launches (:meth:`BroadPhase.check_overflow`) before calling :meth:`BroadPhase.build` and
-  capturing again.
+  rebuild flag and branches on it with ``wp.capture_if`` (Warp 1.19; a conditional graph node,
+  CUDA 12.4+) into :meth:`BroadPhase.rebuild_on_device`. That one allocates nothing (a
+  conditional graph body may not): it *refits* the tree of the last host build (same topology
+  and size classes, new boxes; always exact, slower as the bodies drift away from the build
+  layout), queries, and sorts the whole capacity with padded keys. It cannot grow the buffers:
+  an overflow, or a change of body flags (which would need new groups), raises the sticky device
+  flag ``host_build_needed``; the host checks it between graph launches
+  (:meth:`BroadPhase.check_host_build_needed`), then calls :meth:`BroadPhase.build` and captures
+  again. ``device_rebuilds`` counts the device rebuilds since the last host build, so the host can
+  also renew the tree every so many of them.
 
 Layout of this file: constants, ``@wp.func`` helpers, the kernels, then the plain numpy
 reference :func:`all_pairs` and the host class :class:`BroadPhase`.
@@ -68,6 +73,10 @@ NUM_GROUPS = 17
 # ulp too small could hide a pair that the exact test accepts. Extra candidates of the BVH are
 # harmless, the exact sphere test below decides.
 BOX_PAD = wp.constant(1.0e-5)
+
+# Keys a thread gathers before it reserves their slots with one atomic add.
+EMIT_BATCH = wp.constant(8)
+key_batch = wp.types.vector(length=8, dtype=wp.int64)
 
 # Default capacity in pairs per body (dense packings of equal spheres with a small skin have
 # 6 to 8 candidate pairs per body).
@@ -96,6 +105,16 @@ def make_pair_key(i: int, j: int, num_bodies: int):
 
 
 @wp.func
+def spread_bits(v: int):
+    # The 10 low bits of v moved to every third bit (bits 0, 3, ..., 27).
+    v = (v | (v << 16)) & 0x030000FF
+    v = (v | (v << 8)) & 0x0300F00F
+    v = (v | (v << 4)) & 0x030C30C3
+    v = (v | (v << 2)) & 0x09249249
+    return v
+
+
+@wp.func
 def rotation_angle(q: wp.quat, q0: wp.quat):
     # Angle [rad] in [0, pi] of the rotation taking q0 to q (not assumed normalised).
     r = q * wp.quat_inverse(q0)
@@ -108,7 +127,7 @@ def rotation_angle(q: wp.quat, q0: wp.quat):
 
 
 @wp.kernel(enable_backward=False)
-def reset_build_kernel(
+def reset_classes_kernel(
     # Out
     radius_min: wp.array(dtype=float),
     class_max: wp.array(dtype=int),
@@ -133,49 +152,32 @@ def radius_min_kernel(
 
 
 @wp.kernel(enable_backward=False)
-def bounds_kernel(
+def classes_kernel(
     # Model
-    half_skin: float,
     inv_log_class_ratio: float,
     # State in
-    body_q: wp.array(dtype=wp.transform),
     body_radius: wp.array(dtype=float),
     body_flags: wp.array(dtype=int),
     radius_min: wp.array(dtype=float),
     # Out
-    box_lower: wp.array(dtype=wp.vec3),
-    box_upper: wp.array(dtype=wp.vec3),
     body_group: wp.array(dtype=int),
     class_max: wp.array(dtype=int),
-    q_build: wp.array(dtype=wp.transform),
-    radius_build: wp.array(dtype=float),
     flags_build: wp.array(dtype=int),
 ):
-    """Boxes and groups of the BVH; remembers the build state. Launch dim: bodies.
+    """BVH group of every body; remembers the flags of the build. Launch dim: bodies.
 
     Args:
-        half_skin: skin / 2 [m].
         inv_log_class_ratio: 1 / ln(class_ratio) [-].
-        body_q: (N,) body poses, position [m] and unit quaternion xyzw.
         body_radius: (N,) bounding-sphere radii about the body centres [m].
         body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
         radius_min: (1,) smallest positive free radius [m].
-        box_lower, box_upper: (N,) out: corners of the sphere boxes inflated by skin/2 [m].
         body_group: (N,) out: size class of a free body, ``NONFREE_GROUP`` otherwise.
         class_max: (1,) out: largest size class of a free body (atomic max).
-        q_build, radius_build, flags_build: (N,) out: copies of the inputs at build time.
+        flags_build: (N,) out: copy of ``body_flags``.
     """
     i = wp.tid()
-    q = body_q[i]
     r = body_radius[i]
     f = body_flags[i]
-    x = wp.transform_get_translation(q)
-    e = padded_extent(r, half_skin, x)
-    ev = wp.vec3(e, e, e)
-    box_lower[i] = x - ev
-    box_upper[i] = x + ev
-    q_build[i] = q
-    radius_build[i] = r
     flags_build[i] = f
     if f == FLAG_FREE:
         c = int(0)
@@ -187,6 +189,100 @@ def bounds_kernel(
         wp.atomic_max(class_max, 0, c)
     else:
         body_group[i] = NONFREE_GROUP
+
+
+@wp.kernel(enable_backward=False)
+def bounds_kernel(
+    # Model
+    half_skin: float,
+    # State in
+    body_q: wp.array(dtype=wp.transform),
+    body_radius: wp.array(dtype=float),
+    body_flags: wp.array(dtype=int),
+    flags_build: wp.array(dtype=int),
+    # Out
+    box_lower: wp.array(dtype=wp.vec3),
+    box_upper: wp.array(dtype=wp.vec3),
+    q_build: wp.array(dtype=wp.transform),
+    radius_build: wp.array(dtype=float),
+    host_build_needed: wp.array(dtype=int),
+):
+    """Boxes of the BVH items; remembers the poses and radii of the build. Launch dim: bodies.
+
+    Args:
+        half_skin: skin / 2 [m].
+        body_q: (N,) body poses, position [m] and unit quaternion xyzw.
+        body_radius: (N,) bounding-sphere radii about the body centres [m].
+        body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
+        flags_build: (N,) flags of the last host build (the groups of the tree follow them).
+        box_lower, box_upper: (N,) out: corners of the sphere boxes inflated by skin/2 [m].
+        q_build, radius_build: (N,) out: copies of the inputs.
+        host_build_needed: (1,) out: set to 1 (sticky) when a flag differs from ``flags_build``.
+    """
+    i = wp.tid()
+    q = body_q[i]
+    r = body_radius[i]
+    x = wp.transform_get_translation(q)
+    e = padded_extent(r, half_skin, x)
+    ev = wp.vec3(e, e, e)
+    box_lower[i] = x - ev
+    box_upper[i] = x + ev
+    q_build[i] = q
+    radius_build[i] = r
+    if body_flags[i] != flags_build[i]:
+        wp.atomic_max(host_build_needed, 0, 1)
+
+
+@wp.kernel(enable_backward=False)
+def reset_extent_kernel(
+    # Out
+    scene_lower: wp.array(dtype=float),
+    scene_upper: wp.array(dtype=float),
+):
+    for k in range(3):
+        scene_lower[k] = 3.0e38
+        scene_upper[k] = -3.0e38
+
+
+@wp.kernel(enable_backward=False)
+def extent_kernel(
+    # State in
+    body_q: wp.array(dtype=wp.transform),
+    # Out
+    scene_lower: wp.array(dtype=float),
+    scene_upper: wp.array(dtype=float),
+):
+    """Box (3,) + (3,) [m] around all body centres (atomic min / max). Launch dim: bodies."""
+    x = wp.transform_get_translation(body_q[wp.tid()])
+    for k in range(3):
+        wp.atomic_min(scene_lower, k, x[k])
+        wp.atomic_max(scene_upper, k, x[k])
+
+
+@wp.kernel(enable_backward=False)
+def morton_kernel(
+    # State in
+    body_q: wp.array(dtype=wp.transform),
+    scene_lower: wp.array(dtype=float),
+    scene_upper: wp.array(dtype=float),
+    # Out
+    morton: wp.array(dtype=int),
+    order: wp.array(dtype=int),
+):
+    """30-bit Morton code of each body centre in the scene box, and the identity order.
+
+    Launch dim: bodies.
+    """
+    i = wp.tid()
+    x = wp.transform_get_translation(body_q[i])
+    code = int(0)
+    for k in range(3):
+        lo = scene_lower[k]
+        w = wp.max(scene_upper[k] - lo, 1.0e-30)
+        c = wp.clamp(int((x[k] - lo) / w * 1024.0), 0, 1023)
+        code = code | (spread_bits(c) << k)
+    morton[i] = code
+    order[i] = i
 
 
 @wp.kernel(enable_backward=False)
@@ -209,7 +305,9 @@ def query_pairs_kernel(
     capacity: int,
     half_skin: float,
     skin: float,
+    emit_mode: int,
     # State in
+    body_order: wp.array(dtype=int),
     body_q: wp.array(dtype=wp.transform),
     body_radius: wp.array(dtype=float),
     body_flags: wp.array(dtype=int),
@@ -222,19 +320,21 @@ def query_pairs_kernel(
 ):
     """Appends the key of every candidate pair, each exactly once (see the module docstring).
 
-    Launch dim: bodies.
+    Launch dim: bodies; thread t handles body ``body_order[t]`` (a spatial order, so that the
+    threads of a warp walk the same part of the tree).
 
     Args:
         num_bodies: N.
         capacity: length of ``pair_key`` that may be written.
         half_skin, skin: skin / 2 and skin [m].
-        body_group: (N,) group of each body as written by ``bounds_kernel``.
+        body_order: (N,) permutation of the bodies.
+        body_group: (N,) group of each body as written by ``classes_kernel``.
         group_root: (NUM_GROUPS,) subtree roots, -1 for an empty group.
         class_max: (1,) largest size class of a free body.
         pair_key: (capacity,) out: keys ``a * N + b`` in arbitrary order.
         pair_counter: (1,) in/out: number of pairs found (may exceed ``capacity``).
     """
-    i = wp.tid()
+    i = body_order[wp.tid()]
     if body_flags[i] != FLAG_FREE:
         return
     xi = wp.transform_get_translation(body_q[i])
@@ -242,6 +342,9 @@ def query_pairs_kernel(
     ci = body_group[i]
     query_radius = padded_extent(ri, half_skin, xi)
     last = class_max[0] + 1
+    # Keys wait in a small local batch; one atomic reserves the slots of a whole batch.
+    batch = key_batch()
+    m = int(0)
     for k in range(ci, last + 1):
         g = k
         if k == last:
@@ -257,9 +360,27 @@ def query_pairs_kernel(
                 d = wp.transform_get_translation(body_q[j]) - xi
                 cut = ri + body_radius[j] + skin
                 if wp.dot(d, d) < cut * cut:
-                    slot = wp.atomic_add(pair_counter, 0, 1)
-                    if slot < capacity:
-                        pair_key[slot] = make_pair_key(i, j, num_bodies)
+                    if emit_mode == 0:
+                        slot = wp.atomic_add(pair_counter, 0, 1)
+                        if slot < capacity:
+                            pair_key[slot] = make_pair_key(i, j, num_bodies)
+                    elif emit_mode == 1:
+                        m += 1
+                    else:
+                        batch[m] = make_pair_key(i, j, num_bodies)
+                        m += 1
+                        if m == EMIT_BATCH:
+                            base = wp.atomic_add(pair_counter, 0, m)
+                            for t in range(m):
+                                if base + t < capacity:
+                                    pair_key[base + t] = batch[t]
+                            m = 0
+    if m > 0:
+        base = wp.atomic_add(pair_counter, 0, m)
+        if emit_mode == 2:
+            for t in range(m):
+                if base + t < capacity:
+                    pair_key[base + t] = batch[t]
 
 
 @wp.kernel(enable_backward=False)
@@ -270,14 +391,19 @@ def finish_count_kernel(
     pair_counter: wp.array(dtype=int),
     # Out
     pair_count: wp.array(dtype=int),
-    overflow: wp.array(dtype=int),
+    host_build_needed: wp.array(dtype=int),
+    device_rebuilds: wp.array(dtype=int),
 ):
-    """``pair_count = min(counter, capacity)``; raises the sticky ``overflow`` flag. Launch dim: 1."""
+    """``pair_count = min(counter, capacity)``; an overflow sets the sticky ``host_build_needed``.
+
+    Also counts the builds in ``device_rebuilds``. Launch dim: 1.
+    """
     n = pair_counter[0]
     if n > capacity:
-        overflow[0] = 1
+        host_build_needed[0] = 1
         n = capacity
     pair_count[0] = n
+    device_rebuilds[0] = device_rebuilds[0] + 1
 
 
 @wp.kernel(enable_backward=False)
@@ -390,7 +516,7 @@ def all_pairs(positions, radii, flags, skin):
 class BroadPhase:
     """Candidate pairs of bounding spheres with a Verlet skin (see the module docstring).
 
-    Attributes (device arrays, replaced by new ones when the capacity grows):
+    Attributes (device arrays; the pair arrays are replaced by new ones when the capacity grows):
         pair_a, pair_b: (capacity,) int32 body indices, a < b, of the first ``pair_count[0]``
             entries; -1 after them.
         pair_key: (capacity,) int64 keys ``a * num_bodies + b``, strictly increasing over the first
@@ -398,7 +524,10 @@ class BroadPhase:
             unspecified).
         pair_count: (1,) int32 number of pairs.
         rebuild_flag: (1,) int32, written by :meth:`needs_rebuild`.
-        overflow: (1,) int32, sticky: 1 once :meth:`rebuild_on_device` ran out of capacity.
+        host_build_needed: (1,) int32, sticky: 1 once a device rebuild overflowed or saw changed
+            flags; cleared by :meth:`build`.
+        device_rebuilds: (1,) int32, device rebuilds since the last host build.
+        q_build, radius_build, flags_build: (N,) poses, radii [m] and flags at the last build.
         num_pairs: host int, the count of the last host :meth:`build`.
         capacity: host int.
         num_builds: host int, number of host :meth:`build` calls so far.
@@ -419,7 +548,8 @@ class BroadPhase:
             device: Warp device of every array.
             skin: Verlet skin [m], >= 0.
             capacity: initial pair capacity (default ``max(1024, 8 N)``); grows on overflow.
-            class_ratio: radius ratio of one size class (> 1).
+            class_ratio: radius ratio of one size class (> 1); ``float("inf")`` puts every free
+                body in one class (a plain BVH query, every free pair met from both sides).
             rotation_term: count ``radius * rotation angle`` in the motion of a body. Bounding
                 spheres about the centre do not move under rotation, so the candidate set never
                 needs it; it makes the rebuild test conservative for later uses of the list.
@@ -428,7 +558,7 @@ class BroadPhase:
             raise ValueError("num_bodies must be >= 0")
         if skin < 0.0:
             raise ValueError("skin must be >= 0")
-        if class_ratio <= 1.0:
+        if not class_ratio > 1.0:
             raise ValueError("class_ratio must be > 1")
         self.num_bodies = int(num_bodies)
         self.device = wp.get_device(device)
@@ -453,7 +583,15 @@ class BroadPhase:
         self.pair_counter = wp.zeros(1, dtype=int, device=dev)
         self.pair_count = wp.zeros(1, dtype=int, device=dev)
         self.rebuild_flag = wp.ones(1, dtype=int, device=dev)
-        self.overflow = wp.zeros(1, dtype=int, device=dev)
+        self.host_build_needed = wp.zeros(1, dtype=int, device=dev)
+        self.device_rebuilds = wp.zeros(1, dtype=int, device=dev)
+        # Spatial order of the query threads; radix_sort_pairs needs twice the length.
+        self._morton = wp.zeros(2 * n, dtype=int, device=dev)
+        self._order_buffer = wp.array(np.arange(2 * n, dtype=np.int32) % n, dtype=int, device=dev)
+        self.body_order = self._order_buffer[:n]
+        self.scene_lower = wp.zeros(3, dtype=float, device=dev)
+        self.scene_upper = wp.zeros(3, dtype=float, device=dev)
+        self.emit_mode = 2
         self.bvh = None
         self.built = False
         self.num_pairs = 0
@@ -484,37 +622,47 @@ class BroadPhase:
             if arr.device != self.device:
                 raise ValueError(f"{name} lives on {arr.device}, expected {self.device}")
 
-    # -- build -------------------------------------------------------------------------------
+    # -- stages ------------------------------------------------------------------------------
 
-    def _prepare(self, body_q, body_radius, body_flags):
-        # Boxes, groups and the BVH; device only (capture-safe once the BVH exists on CUDA).
+    def _classes(self, body_radius, body_flags):
         n = self.num_bodies
         dev = self.device
-        half_skin = 0.5 * self.skin
-        wp.launch(reset_build_kernel, dim=1, outputs=[self.radius_min, self.class_max], device=dev)
+        inv_log = 0.0 if np.isinf(self.class_ratio) else 1.0 / float(np.log(self.class_ratio))
+        wp.launch(reset_classes_kernel, dim=1, outputs=[self.radius_min, self.class_max], device=dev)
         wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags], outputs=[self.radius_min], device=dev)
         wp.launch(
-            bounds_kernel,
+            classes_kernel,
             dim=n,
-            inputs=[half_skin, 1.0 / float(np.log(self.class_ratio)), body_q, body_radius, body_flags, self.radius_min],
-            outputs=[
-                self.box_lower,
-                self.box_upper,
-                self.body_group,
-                self.class_max,
-                self.q_build,
-                self.radius_build,
-                self.flags_build,
-            ],
+            inputs=[inv_log, body_radius, body_flags, self.radius_min],
+            outputs=[self.body_group, self.class_max, self.flags_build],
             device=dev,
         )
-        if self.bvh is None:
-            self.bvh = wp.Bvh(self.box_lower, self.box_upper, groups=self.body_group)
-        else:
-            self.bvh.rebuild()
-        wp.launch(group_root_kernel, dim=NUM_GROUPS, inputs=[self.bvh.id], outputs=[self.group_root], device=dev)
 
-    def _query(self, body_q, body_radius, body_flags):
+    def _spatial_order(self, body_q):
+        n = self.num_bodies
+        dev = self.device
+        wp.launch(reset_extent_kernel, dim=1, outputs=[self.scene_lower, self.scene_upper], device=dev)
+        wp.launch(extent_kernel, dim=n, inputs=[body_q], outputs=[self.scene_lower, self.scene_upper], device=dev)
+        wp.launch(
+            morton_kernel,
+            dim=n,
+            inputs=[body_q, self.scene_lower, self.scene_upper],
+            outputs=[self._morton, self._order_buffer],
+            device=dev,
+        )
+        wp.utils.radix_sort_pairs(self._morton, self._order_buffer, n, 0, 30)
+
+    def _bounds(self, body_q, body_radius, body_flags):
+        wp.launch(
+            bounds_kernel,
+            dim=self.num_bodies,
+            inputs=[0.5 * self.skin, body_q, body_radius, body_flags, self.flags_build],
+            outputs=[self.box_lower, self.box_upper, self.q_build, self.radius_build, self.host_build_needed],
+            device=self.device,
+        )
+
+    def _query(self, body_q, body_radius):
+        # Who queries and which group a body sits in follow the flags of the last host build.
         self.pair_counter.zero_()
         wp.launch(
             query_pairs_kernel,
@@ -525,9 +673,11 @@ class BroadPhase:
                 self.capacity,
                 0.5 * self.skin,
                 self.skin,
+                self.emit_mode,
+                self.body_order,
                 body_q,
                 body_radius,
-                body_flags,
+                self.flags_build,
                 self.body_group,
                 self.group_root,
                 self.class_max,
@@ -541,23 +691,26 @@ class BroadPhase:
             finish_count_kernel,
             dim=1,
             inputs=[self.capacity, self.pair_counter],
-            outputs=[self.pair_count, self.overflow],
+            outputs=[self.pair_count, self.host_build_needed, self.device_rebuilds],
             device=self.device,
         )
 
-    def _unpack(self, dim):
+    def _unpack(self):
         wp.launch(
             unpack_pairs_kernel,
-            dim=dim,
+            dim=self.capacity,
             inputs=[self.num_bodies, self.pair_key, self.pair_count],
             outputs=[self.pair_a, self.pair_b],
             device=self.device,
         )
 
+    # -- build -------------------------------------------------------------------------------
+
     def build(self, body_q, body_radius, body_flags):
         """Find every candidate pair; grow the buffers and query again until all fit.
 
-        Synchronises with the device once per query pass (to read the pair count).
+        Builds a fresh tree with size classes from the current radii and flags. Synchronises with
+        the device once per query pass (to read the pair count).
 
         Args:
             body_q: (N,) wp.transform body poses: position [m], unit quaternion xyzw.
@@ -569,63 +722,76 @@ class BroadPhase:
         """
         self._check_inputs(body_q, body_radius, body_flags)
         self.num_builds += 1
-        self.overflow.zero_()
+        self.host_build_needed.zero_()
         self.rebuild_flag.zero_()
+        self.device_rebuilds.zero_()
         if self.num_bodies == 0:
             self.pair_count.zero_()
             self.num_pairs = 0
             self.built = True
             return 0
-        self._prepare(body_q, body_radius, body_flags)
+        self._classes(body_radius, body_flags)
+        self._spatial_order(body_q)
+        self._bounds(body_q, body_radius, body_flags)
+        if self.bvh is None:
+            self.bvh = wp.Bvh(self.box_lower, self.box_upper, groups=self.body_group)
+        else:
+            self.bvh.rebuild()
+        wp.launch(
+            group_root_kernel, dim=NUM_GROUPS, inputs=[self.bvh.id], outputs=[self.group_root], device=self.device
+        )
         while True:
-            self._query(body_q, body_radius, body_flags)
+            self._query(body_q, body_radius)
             count = int(self.pair_counter.numpy()[0])
             if count <= self.capacity:
                 break
             # The true count is known: grow with some headroom and query again.
-            self._allocate(max(count + count // 4, 2 * self.capacity))
+            self._allocate(count + count // 4 + 64)
         self._finish_count()
+        self.device_rebuilds.zero_()
         if count > 0:
             wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, count, 0, self.key_bits)
-        self._unpack(self.capacity)
+        self._unpack()
         self.num_pairs = count
         self.built = True
         return count
 
     def rebuild_on_device(self, body_q, body_radius, body_flags):
-        """Rebuild without any host synchronisation or allocation (CUDA-graph capturable).
+        """Rebuild without host synchronisation or allocation (usable in a conditional graph node).
 
-        Needs a previous :meth:`build` (it creates the BVH and sizes the buffers). The pairs are
-        sorted over the whole capacity with padded keys. It cannot grow: when the pairs exceed the
-        capacity, ``pair_count`` is clamped, the kept pairs are an arbitrary subset and the
-        sticky ``overflow`` flag is raised; see :meth:`check_overflow`.
+        Needs a previous :meth:`build`, whose tree topology, size classes, flags and capacity it
+        keeps: it refits the tree to the new boxes, queries and sorts the whole capacity with
+        padded keys. The pairs are exact (for the flags of the last host build). When they exceed
+        the capacity, ``pair_count`` is clamped, the kept pairs are an arbitrary subset, and the
+        sticky ``host_build_needed`` flag is raised; changed flags raise it too.
         """
         if not self.built:
             raise RuntimeError("rebuild_on_device needs a previous host build()")
         if self.num_bodies == 0:
             return
-        self._prepare(body_q, body_radius, body_flags)
-        self._query(body_q, body_radius, body_flags)
+        self._bounds(body_q, body_radius, body_flags)
+        self.bvh.refit()
+        self._query(body_q, body_radius)
         self._finish_count()
         wp.launch(
             pad_keys_kernel,
             dim=self.capacity,
-            inputs=[wp.int64(self.sentinel), self.pair_count],
+            inputs=[self.sentinel, self.pair_count],
             outputs=[self.pair_key],
             device=self.device,
         )
         wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, self.capacity, 0, self.key_bits)
-        self._unpack(self.capacity)
+        self._unpack()
 
     # -- Verlet test -------------------------------------------------------------------------
 
     def needs_rebuild(self, body_q, body_radius, body_flags=None):
         """Device flag (1,) int32: 1 when some body may have left its skin since the last build.
 
-        A body counts as moved by ``|x - x_build| + r * angle + max(r - r_build, 0)`` (the angle of
-        the rotation since the build, when ``rotation_term``); the flag is raised when that
-        exceeds skin / 2 for any body, or when ``body_flags`` (optional) differ from the build's.
-        Before the first build the flag is 1. No host synchronisation.
+        A body counts as moved by ``|x - x_build| + r * angle + max(r - r_build, 0)`` [m] (the
+        angle of the rotation since the build, when ``rotation_term``); the flag is raised when
+        that exceeds skin / 2 for any body, or when ``body_flags`` (optional) differ from the
+        build's. Before the first build the flag is 1. No host synchronisation.
         """
         if not self.built:
             self.rebuild_flag.fill_(1)
@@ -654,7 +820,7 @@ class BroadPhase:
         return self.rebuild_flag
 
     def update(self, body_q, body_radius, body_flags):
-        """Host convenience: rebuild only when needed; returns True when it rebuilt."""
+        """Host convenience: :meth:`build` only when needed; returns True when it rebuilt."""
         if self.built:
             flag = self.needs_rebuild(body_q, body_radius, body_flags)
             if int(flag.numpy()[0]) == 0:
@@ -667,8 +833,8 @@ class BroadPhase:
 
         Branches on the device flag with ``wp.capture_if``, so it can be recorded inside
         ``wp.ScopedCapture`` (a conditional graph node; CUDA 12.4+). Outside a capture Warp reads
-        the flag on the host and runs the branch directly. Needs a previous :meth:`build`.
-        Check :meth:`check_overflow` now and then outside the graph.
+        the flag on the host and runs the branch directly. Needs a previous :meth:`build`; check
+        :meth:`check_host_build_needed` now and then outside the graph.
         """
         if not self.built:
             raise RuntimeError("update_on_device needs a previous host build()")
@@ -681,9 +847,9 @@ class BroadPhase:
             body_flags=body_flags,
         )
 
-    def check_overflow(self):
-        """Host: True when a device rebuild ran out of capacity (then call :meth:`build`)."""
-        return bool(int(self.overflow.numpy()[0]))
+    def check_host_build_needed(self):
+        """Host: True when a device rebuild overflowed or saw changed flags (then :meth:`build`)."""
+        return bool(int(self.host_build_needed.numpy()[0]))
 
     # -- host views --------------------------------------------------------------------------
 

@@ -39,7 +39,7 @@ ENCLOSED_RATIO = 1.0e-4
 
 
 @functools.cache
-def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None):
+def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None):
     """Build the narrow-phase functions and kernels for one precision and polygon capacity.
 
     Args:
@@ -47,6 +47,7 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
         max_poly: capacity of the per-thread polygon buffer (vertices of one clipped facet). A
             facet that would exceed it raises the ``overflow`` flag of the launch; the host then
             rebuilds with a larger capacity and runs again.
+        max_faces: the most faces of any shape in use (capacity of the per-thread plane lists).
         coincident_tol: relative tolerance of the coincident-face test (default per precision).
 
     Returns:
@@ -58,6 +59,8 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
     quat = wp.types.quaternion(scalar)
     transform = wp.types.transformation(scalar)
     poly_t = wp.types.matrix(shape=(2 * max_poly, 3), dtype=scalar)
+    planes_t = wp.types.matrix(shape=(max_faces, 4), dtype=scalar)
+    ids_t = wp.types.vector(length=max_faces, dtype=int)
     tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
     # Cheap pre-filter before the exact coincidence test: normals within about 2.5 degrees.
     parallel_cos = 0.999
@@ -103,8 +106,9 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
     def clip_face(
         face: int,
         face_is_a: bool,
-        plane_begin: int,
-        plane_end: int,
+        planes: planes_t,
+        plane_ids: ids_t,
+        num_planes: int,
         face_plane: wp.array(dtype=vec4),
         face_sphere: wp.array(dtype=vec4),
         face_loop_start: wp.array(dtype=int),
@@ -115,18 +119,21 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
         origin: vec3,
         tol: scalar,
     ):
-        # Clips one face polygon by the planes [plane_begin, plane_end) of the other body and
-        # integrates the surviving piece. Everything is in A's frame: B's points map by rot, pos.
-        # Returns (weighted area, weighted area * centroid, volume of the cone from `origin`,
-        # first moment of that cone, overflow flag).
+        # Clips one face polygon by the other body's active planes (already in A's frame, with
+        # their face indices in plane_ids) and integrates the surviving piece. Everything is in
+        # A's frame: B's points map by rot, pos. Returns (weighted area, weighted area * centroid,
+        # volume of the cone from `origin`, first moment of that cone, overflow flag).
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         poly = poly_t()
         begin = face_loop_start[face]
         count = face_loop_start[face + 1] - begin
         sph = face_sphere[face]
         centre = vec3(sph[0], sph[1], sph[2])
+        pf = face_plane[face]
+        nf = vec3(pf[0], pf[1], pf[2])
         if not face_is_a:
             centre = rot * centre + pos
+            nf = rot * nf
         for k in range(count):
             v = vert[face_loop[begin + k]]
             if not face_is_a:
@@ -134,27 +141,25 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
             poly[k] = v
         weight = scalar(scalar(1.0))
         cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
-        for g in range(plane_begin, plane_end):
-            pl = face_plane[g]
+        for j in range(num_planes):
+            pl = planes[j]
             n = vec3(pl[0], pl[1], pl[2])
             d = pl[3]
-            if face_is_a:
-                n, d = plane_in_a(pl, rot, pos)
             dist = wp.dot(n, centre) - d
             if dist <= -sph[3]:
                 continue  # the whole face lies inside this plane
             if dist > sph[3]:
                 return scalar(0.0), zero3, scalar(0.0), zero3, 0
-            pf = face_plane[face]
-            nf = vec3(pf[0], pf[1], pf[2])
-            if not face_is_a:
-                nf = rot * nf
             if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
                 rel = int(0)
                 if face_is_a:
-                    rel = coplanar_relation(face, g, face_plane, face_loop_start, face_loop, vert, rot, pos, tol)
+                    rel = coplanar_relation(
+                        face, plane_ids[j], face_plane, face_loop_start, face_loop, vert, rot, pos, tol
+                    )
                 else:
-                    rel = coplanar_relation(g, face, face_plane, face_loop_start, face_loop, vert, rot, pos, tol)
+                    rel = coplanar_relation(
+                        plane_ids[j], face, face_plane, face_loop_start, face_loop, vert, rot, pos, tol
+                    )
                 if rel == 1:
                     weight = scalar(0.5)
                     continue
@@ -186,10 +191,6 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
             cur = out
             count = n_out
         # Fan triangulation: facet area and centroid, and the cone from `origin` for V.
-        pf = face_plane[face]
-        nf = vec3(pf[0], pf[1], pf[2])
-        if not face_is_a:
-            nf = rot * nf
         p0 = poly[cur]
         area = scalar(0.0)
         area_c = zero3
@@ -240,7 +241,8 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
         qa = wp.transform_get_rotation(xa)
         qa_inv = wp.quat_inverse(qa)
         pos = wp.quat_rotate(qa_inv, wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
-        if wp.length_sq(pos) >= (ra + rb) * (ra + rb):
+        dist2 = wp.length_sq(pos)
+        if dist2 >= (ra + rb) * (ra + rb):
             return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
         rot = wp.quat_to_matrix(qa_inv * wp.transform_get_rotation(xb))
         rot_t = wp.transpose(rot)
@@ -250,14 +252,39 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
         fa1 = shape_face_start[sa + 1]
         fb0 = shape_face_start[sb]
         fb1 = shape_face_start[sb + 1]
-        # Separating planes, by bounding spheres first and exactly (all of the other body's
-        # vertices outside) only for planes the other body's centre lies outside of.
-        # Meanwhile find where the line of centres leaves A (tau_a, as a fraction of the way from
-        # A's centre to B's) and enters B (tau_b): the cones that integrate V start from the
-        # middle of that stretch, inside the overlap whenever the line crosses it, so the cone
-        # volumes do not cancel and V and its centroid keep their precision for shallow overlaps.
+
+        # The overlap lies in the slab lo <= u.x <= hi across the line of centres u: beyond the
+        # reach of B's support towards A and A's towards B. An empty slab separates the bodies;
+        # otherwise faces (and their planes) that miss the slab cannot bound the overlap.
+        dist = wp.sqrt(dist2)
+        u = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+        lo = -(ra + rb)
+        hi = ra + rb
+        if dist > tol:
+            u = pos / dist
+            h_a = -(ra + rb)
+            for iv in range(shape_vert_start[sa], shape_vert_start[sa + 1]):
+                h_a = wp.max(h_a, wp.dot(u, vert[iv]))
+            u_b = rot_t * u
+            h_b = -(ra + rb)
+            for iv in range(shape_vert_start[sb], shape_vert_start[sb + 1]):
+                h_b = wp.max(h_b, -wp.dot(u_b, vert[iv]))
+            lo = dist - h_b - tol
+            hi = h_a + tol
+            if lo > hi:
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+
+        # Separating face planes, by bounding spheres first and exactly (all of the other body's
+        # vertices outside) only for planes the other body's centre lies outside of. Meanwhile find
+        # where the line of centres leaves A (tau_a, as a fraction of the way from A's centre to
+        # B's) and enters B (tau_b): the cones that integrate V start from the middle of that
+        # stretch, inside the overlap whenever the line crosses it, so the cone volumes do not
+        # cancel and V and its centroid keep their precision for shallow overlaps.
         tau_a = scalar(1.0)
         tau_b = scalar(0.0)
+        planes_a = planes_t()
+        ids_a = ids_t()
+        num_a = int(0)
         for f in range(fa0, fa1):
             pl = face_plane[f]
             n = vec3(pl[0], pl[1], pl[2])
@@ -277,6 +304,19 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
                         break
                 if sep:
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+            if s <= -rb:
+                continue  # B lies wholly inside this plane: the face cannot reach B
+            sph = face_sphere[f]
+            c = vec3(sph[0], sph[1], sph[2])
+            uc = wp.dot(u, c)
+            if uc + sph[3] < lo or uc - sph[3] > hi or wp.length_sq(c - pos) > (sph[3] + rb) * (sph[3] + rb):
+                continue
+            planes_a[num_a] = pl
+            ids_a[num_a] = f
+            num_a += 1
+        planes_b = planes_t()
+        ids_b = ids_t()
+        num_b = int(0)
         for g in range(fb0, fb1):
             pl = face_plane[g]
             n = vec3(pl[0], pl[1], pl[2])
@@ -286,8 +326,8 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
             s = sigma - pl[3]
             if s > ra:
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+            na = rot * n
             if s > scalar(0.0):
-                na = rot * n
                 da = pl[3] + wp.dot(na, pos)
                 sep = bool(True)
                 for iv in range(shape_vert_start[sa], shape_vert_start[sa + 1]):
@@ -296,6 +336,17 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
                         break
                 if sep:
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+            if s <= -ra:
+                continue
+            sph = face_sphere[g]
+            c = rot * vec3(sph[0], sph[1], sph[2]) + pos
+            uc = wp.dot(u, c)
+            if uc + sph[3] < lo or uc - sph[3] > hi or wp.length_sq(c) > (sph[3] + ra) * (sph[3] + ra):
+                continue
+            planes_b[num_b] = vec4(na[0], na[1], na[2], pl[3] + wp.dot(na, pos))
+            ids_b[num_b] = g
+            num_b += 1
+
         origin = pos * (scalar(0.5) * (tau_a + tau_b))
         vol = scalar(0.0)
         vol_c = zero3
@@ -304,37 +355,28 @@ def make_narrowphase(scalar, max_poly: int, coincident_tol: float | None = None)
         s_b = zero3
         m_b = zero3
         overflow = int(0)
-        for f in range(fa0, fa1):
-            pl = face_plane[f]
-            n = vec3(pl[0], pl[1], pl[2])
-            if wp.dot(n, pos) - pl[3] <= -rb:
-                continue  # B lies wholly inside this face's plane: the face cannot reach B
-            sph = face_sphere[f]
-            if wp.length(vec3(sph[0], sph[1], sph[2]) - pos) > sph[3] + rb:
-                continue
+        for j in range(num_a):
             area, area_c, dv, dv_c, of = clip_face(
-                f, True, fb0, fb1, face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol
-            )
+                ids_a[j], True, planes_b, ids_b, num_b,
+                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol,
+            )  # fmt: skip
             overflow = overflow | of
+            pl = planes_a[j]
+            n = vec3(pl[0], pl[1], pl[2])
             s_a += area * n
             m_a += wp.cross(area_c, n)
             vol += dv
             vol_c += dv_c
-        for g in range(fb0, fb1):
-            pl = face_plane[g]
-            n = vec3(pl[0], pl[1], pl[2])
-            if wp.dot(n, pos_b) - pl[3] <= -ra:
-                continue
-            sph = face_sphere[g]
-            if wp.length(vec3(sph[0], sph[1], sph[2]) - pos_b) > sph[3] + ra:
-                continue
+        for j in range(num_b):
             area, area_c, dv, dv_c, of = clip_face(
-                g, False, fa0, fa1, face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol
-            )
+                ids_b[j], False, planes_a, ids_a, num_a,
+                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol,
+            )  # fmt: skip
             overflow = overflow | of
-            na = rot * n
-            s_b += area * na
-            m_b += wp.cross(area_c, na)
+            pl = planes_b[j]
+            n = vec3(pl[0], pl[1], pl[2])
+            s_b += area * n
+            m_b += wp.cross(area_c, n)
             vol += dv
             vol_c += dv_c
         rot_a = wp.quat_to_matrix(qa)
@@ -414,7 +456,7 @@ def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b,
     n = len(pair_shape_a)
     capacity = shapes.default_poly_capacity if max_poly is None else max_poly
     while True:
-        nphase = make_narrowphase(shapes.scalar, capacity)
+        nphase = make_narrowphase(shapes.scalar, capacity, shapes.max_faces)
         overflow = wp.zeros(1, dtype=int, device=shapes.device)
         wp.launch(
             nphase.overlap_kernel,

@@ -11,7 +11,9 @@ sys.path.insert(0, os.path.dirname(__file__))  # the float64 reference lives bes
 wp.config.quiet = True
 wp.init()
 
-DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+# POLYDEM_TEST_DEVICES=cuda:0 runs on the GPU only (the GPU machine's Warp bundle has no CPU compiler).
+_env = os.environ.get("POLYDEM_TEST_DEVICES")
+DEVICES = _env.split(",") if _env else ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
 
 def pytest_generate_tests(metafunc):

@@ -366,12 +366,14 @@ def test_update_on_device(device):
     bp = BroadPhase(scene.n, device, skin=skin)
     bp.build(*scene.args())
     first = bp.pairs_numpy()[2].copy()
-    scene.set_poses(scene.positions + 0.3 * skin)  # below skin/2: no rebuild
+    scene.set_poses(scene.positions + [0.3 * skin, 0.0, 0.0])  # below skin/2: no rebuild
     bp.update_on_device(*scene.args())
+    assert int(bp.device_rebuilds.numpy()[0]) == 0
     np.testing.assert_array_equal(bp.pairs_numpy()[2], first)
     scene.set_poses(scene.positions + rng.normal(0.0, 0.02, (scene.n, 3)))
     bp.update_on_device(*scene.args())
-    assert not bp.check_overflow()
+    assert not bp.check_host_build_needed()
+    assert int(bp.device_rebuilds.numpy()[0]) == 1
     key = check_against_reference(bp, scene, skin)
     # Same result as the host build of the same poses.
     bp2 = BroadPhase(scene.n, device, skin=skin)
@@ -388,10 +390,24 @@ def test_device_overflow_is_flagged(device):
     assert bp.capacity < 2 * count  # headroom, not a doubling of a huge buffer
     scene.set_poses(0.5 + 0.2 * (scene.positions - 0.5))
     bp.rebuild_on_device(*scene.args())
-    assert bp.check_overflow()
+    assert bp.check_host_build_needed()
     assert int(bp.pair_count.numpy()[0]) == bp.capacity
     bp.build(*scene.args())  # the host build grows and clears the flag
-    assert not bp.check_overflow()
+    assert not bp.check_host_build_needed()
+    check_against_reference(bp, scene, 0.01)
+
+
+def test_device_rebuild_flags_change_is_flagged(device):
+    rng = np.random.default_rng(15)
+    scene = random_scene(device, 200, rng, 0.02, 0.08)
+    bp = BroadPhase(scene.n, device, skin=0.01)
+    bp.build(*scene.args())
+    scene.flags[::2] = FIXED
+    scene.body_flags.assign(scene.flags)
+    bp.update_on_device(*scene.args())  # the changed flags ask for a rebuild ...
+    assert bp.check_host_build_needed()  # ... which needs new groups: the host must build
+    assert bp.update(*scene.args())
+    assert not bp.check_host_build_needed()
     check_against_reference(bp, scene, 0.01)
 
 
@@ -407,11 +423,18 @@ def test_cuda_graph_capture(device):
     with wp.ScopedCapture(device=device, force_module_load=False) as capture:
         bp.update_on_device(*scene.args())
     # Small move: the graph runs, the branch is skipped.
-    scene.set_poses(scene.positions + 0.2 * skin)
+    scene.set_poses(scene.positions + [0.0, 0.3 * skin, 0.0])
     wp.capture_launch(capture.graph)
+    assert int(bp.device_rebuilds.numpy()[0]) == 0
     np.testing.assert_array_equal(bp.pairs_numpy()[2], first)
     # Large move: the graph rebuilds on the device.
     scene.set_poses(scene.positions + rng.normal(0.0, 0.03, (scene.n, 3)))
     wp.capture_launch(capture.graph)
-    assert not bp.check_overflow()
+    assert not bp.check_host_build_needed()
+    assert int(bp.device_rebuilds.numpy()[0]) == 1
+    check_against_reference(bp, scene, skin)
+    # A second large move, replayed again.
+    scene.set_poses(scene.positions + rng.normal(0.0, 0.03, (scene.n, 3)))
+    wp.capture_launch(capture.graph)
+    assert int(bp.device_rebuilds.numpy()[0]) == 2
     check_against_reference(bp, scene, skin)

@@ -6,12 +6,19 @@ gradients, computed by clipping the two hulls against each other.
 """
 
 from polydem.contact import ContactForces, ContactLaw, OverlapResult, contact_forces, overlap
+from polydem.scene import Body, Material, PlaneWall, Scene, SceneError, pair_material
 from polydem.shapes import ConvexShape
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ConvexShape",
+    "Scene",
+    "SceneError",
+    "Material",
+    "Body",
+    "PlaneWall",
+    "pair_material",
     "ContactLaw",
     "ContactForces",
     "OverlapResult",

@@ -67,8 +67,18 @@ KINDS = ("free", "fixed", "kinematic")
 """Body kinds; the integer code stored in :attr:`Scene.body_kind` is the index in this tuple."""
 KIND_FREE, KIND_FIXED, KIND_KINEMATIC = 0, 1, 2
 
-SHAPE_TYPES = ("box", "tetrahedron", "octahedron", "dodecahedron", "icosahedron", "prism", "rock", "sphere", "mesh",
-               "points")
+SHAPE_TYPES = (
+    "box",
+    "tetrahedron",
+    "octahedron",
+    "dodecahedron",
+    "icosahedron",
+    "prism",
+    "rock",
+    "sphere",
+    "mesh",
+    "points",
+)
 """Shape ``type`` values of a scene file's ``[shapes.NAME]`` tables."""
 
 QUAT_TOL = 1e-6
@@ -245,23 +255,25 @@ def _rows(value, width, key, file=None, *, n=None) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise SceneError(f"expected an array of shape (N, {width}) of numbers, got {_typename(value)}: {exc}", key,
-                         file) from None
+        raise SceneError(
+            f"expected an array of shape (N, {width}) of numbers, got {_typename(value)}: {exc}", key, file
+        ) from None
     if arr.ndim == 1 and arr.shape[0] == width:
         arr = arr[None, :] if n is None else np.broadcast_to(arr, (n, width))
     if arr.ndim != 2 or arr.shape[1] != width or (n is not None and arr.shape[0] != n):
         want = f"({'N' if n is None else n}, {width})"
-        raise SceneError(f"expected an array of shape {want} (or ({width},) for all rows), got shape {arr.shape}", key,
-                         file)
-    return np.ascontiguousarray(arr)
+        raise SceneError(
+            f"expected an array of shape {want} (or ({width},) for all rows), got shape {arr.shape}", key, file
+        )
+    return arr  # may be a broadcast view; callers copy it into their own storage
 
 
-def _check_keys(table, allowed, key, file=None, *, required=(), hints=None):
+def _check_keys(table, allowed, key, file=None, *, required=(), hints=None, context=""):
     """Reject unknown keys (with did-you-mean and the valid list) and report missing required ones."""
     for k in table:
         if k not in allowed:
             raise SceneError(
-                f"unknown key {k!r}{_did_you_mean(k, allowed) or '.'} Valid keys: {', '.join(allowed)}",
+                f"unknown key {k!r}{_did_you_mean(k, allowed) or '.'} Valid keys{context}: {', '.join(allowed)}",
                 _join(key, k),
                 file,
             )
@@ -305,12 +317,20 @@ def _quat_conj(q):
     return q
 
 
+def _cross(a, b):
+    """Row-wise cross product of (..., 3) arrays (faster than np.cross for large N)."""
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+
+
 def _quat_rotate(q, v):
     """Rotate (..., 3) vectors by (..., 4) unit quaternions."""
     q = np.asarray(q, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
     u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * _cross(u, v)
+    return v + w * t + _cross(u, t)
 
 
 def _quat_from_matrix(r) -> np.ndarray:
@@ -359,14 +379,15 @@ def quat_from_axis_angle(axis, angle: float) -> np.ndarray:
 
 def _check_quats(q: np.ndarray, rowkey, file) -> np.ndarray:
     """Validate (N, 4) quaternions (zero, non-unit beyond QUAT_TOL) and return them normalised."""
-    norms = np.linalg.norm(q, axis=1)
+    norms = np.sqrt(np.einsum("ij,ij->i", q, q))
     bad = np.flatnonzero(~(np.abs(norms - 1.0) <= QUAT_TOL))
     if bad.size:
         i = int(bad[0])
         given = ", ".join(f"{x:.9g}" for x in q[i])
         if norms[i] == 0.0:
             raise SceneError(
-                f"orientation [{given}] is zero; give a unit quaternion [x, y, z, w], e.g. [0, 0, 0, 1] for no rotation",
+                f"orientation [{given}] is zero; give a unit quaternion [x, y, z, w], "
+                "e.g. [0, 0, 0, 1] for no rotation",
                 rowkey(i),
                 file,
             )
@@ -451,8 +472,15 @@ class Material:
         kt = self.tangential_stiffness
         if kt is not None:
             kt = _number(kt, f"{key}.tangential_stiffness", positive=True, hint=f" ({h['tangential_stiffness']})")
-        for name, value in (("law", law), ("density", density), ("k", k), ("restitution", e), ("friction", mu),
-                            ("m", m), ("tangential_stiffness", kt)):
+        for name, value in (
+            ("law", law),
+            ("density", density),
+            ("k", k),
+            ("restitution", e),
+            ("friction", mu),
+            ("m", m),
+            ("tangential_stiffness", kt),
+        ):
             object.__setattr__(self, name, value)
 
     @property
@@ -468,8 +496,13 @@ class Material:
 
     def to_dict(self) -> dict:
         """The ``[materials.NAME]`` table of a scene file (without the name)."""
-        d = {"density": self.density, "law": self.law, "k": self.k, "restitution": self.restitution,
-             "friction": self.friction}
+        d = {
+            "density": self.density,
+            "law": self.law,
+            "k": self.k,
+            "restitution": self.restitution,
+            "friction": self.friction,
+        }
         if self.m is not None:
             d["m"] = self.m
         if self.tangential_stiffness is not None:
@@ -665,8 +698,15 @@ def _build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple
         raise SceneError(f"missing required key 'type' (one of {', '.join(SHAPE_TYPES)})", f"{key}.type", file)
     kind = _choice(spec["type"], SHAPE_TYPES, f"{key}.type", file, what="shape type")
     edge_required = ("edge",) if kind in ("tetrahedron", "octahedron", "dodecahedron", "icosahedron") else ()
-    _check_keys(spec, ("type", *_SHAPE_KEYS[kind]), key, file, required=_SHAPE_REQUIRED.get(kind, edge_required),
-                hints=_SHAPE_HINTS)
+    _check_keys(
+        spec,
+        ("type", *_SHAPE_KEYS[kind]),
+        key,
+        file,
+        required=_SHAPE_REQUIRED.get(kind, edge_required),
+        hints=_SHAPE_HINTS,
+        context=f" for type = {kind!r}",
+    )
 
     def pos(k):
         return _number(spec[k], f"{key}.{k}", file, positive=True, hint=f" ({_SHAPE_HINTS.get(k, 'in m')})")
@@ -679,8 +719,9 @@ def _build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple
             return {}
         t = _number(spec["tol"], f"{key}.tol", file, nonneg=True)
         if t > 1e-3:
-            raise SceneError(f"relative tolerance must be in [0, 1e-3], got {t:g} (use ~1e-6 for STL files)",
-                             f"{key}.tol", file)
+            raise SceneError(
+                f"relative tolerance must be in [0, 1e-3], got {t:g} (use ~1e-6 for STL files)", f"{key}.tol", file
+            )
         return {"tol": t}
 
     out = {"type": kind}
@@ -708,8 +749,9 @@ def _build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple
             if "elongation" in spec:
                 el = _vector(spec["elongation"], 3, f"{key}.elongation", file, label="[ex, ey, ez]")
                 if el.min() <= 0.0:
-                    raise SceneError(f"elongation factors must be positive, got {el.tolist()}", f"{key}.elongation",
-                                     file)
+                    raise SceneError(
+                        f"elongation factors must be positive, got {el.tolist()}", f"{key}.elongation", file
+                    )
                 extra["elongation"] = el.tolist()
             if "roughness" in spec:
                 r = _number(spec["roughness"], f"{key}.roughness", file, nonneg=True)
@@ -739,14 +781,20 @@ def _build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple
             out.update(t)
             shape = ConvexShape.from_file(path, name=name, **t)
             if "scale" in spec:
-                out["scale"] = _number(spec["scale"], f"{key}.scale", file, positive=True,
-                                       hint=" (factor applied to the file's coordinates, e.g. 0.001 for mm)")
+                out["scale"] = _number(
+                    spec["scale"],
+                    f"{key}.scale",
+                    file,
+                    positive=True,
+                    hint=" (factor applied to the file's coordinates, e.g. 0.001 for mm)",
+                )
                 shape = shape.scaled(out["scale"])
         else:  # points
             pts = spec["points"]
             if not isinstance(pts, list | tuple | np.ndarray) or len(pts) < 4:
-                raise SceneError(f"expected an array of at least 4 [x, y, z] points, got {_typename(pts)}",
-                                 f"{key}.points", file)
+                raise SceneError(
+                    f"expected an array of at least 4 [x, y, z] points, got {_typename(pts)}", f"{key}.points", file
+                )
             rows = [_vector(p, 3, f"{key}.points[{i}]", file) for i, p in enumerate(pts)]
             out["points"] = [r.tolist() for r in rows]
             t = tol()
@@ -801,19 +849,34 @@ class Scene:
         file: scene file the scene came from (used in error messages), or None.
     """
 
-    def __init__(self, gravity=(0.0, 0.0, -9.81), dt="auto", name: str = "scene", *, steps: int | None = None,
-                 duration: float | None = None, description: str = "", file=None):
+    def __init__(
+        self,
+        gravity=(0.0, 0.0, -9.81),
+        dt="auto",
+        name: str = "scene",
+        *,
+        steps: int | None = None,
+        duration: float | None = None,
+        description: str = "",
+        file=None,
+    ):
         self.file = file
         self.name = _string(name, "simulation.name", file)
         self.description = _string(description, "simulation.description", file)
         self.gravity = tuple(_vector(gravity, 3, "simulation.gravity", file).tolist())
         self.dt = self._check_dt(dt)
         if steps is not None and duration is not None:
-            raise SceneError(f"give either steps or duration, not both (got steps = {steps}, duration = {duration})",
-                             "simulation.duration", file)
+            raise SceneError(
+                f"give either steps or duration, not both (got steps = {steps}, duration = {duration})",
+                "simulation.duration",
+                file,
+            )
         self.steps = None if steps is None else _integer(steps, "simulation.steps", file, minimum=1)
-        self.duration = None if duration is None else _number(
-            duration, "simulation.duration", file, positive=True, hint=" (simulated time in s)")
+        self.duration = (
+            None
+            if duration is None
+            else _number(duration, "simulation.duration", file, positive=True, hint=" (simulated time in s)")
+        )
         self._shapes: dict[str, ConvexShape] = {}
         self._shape_index: dict[str, int] = {}
         self._shape_specs: dict[str, dict] = {}
@@ -828,10 +891,11 @@ class Scene:
     def _check_dt(self, dt):
         if isinstance(dt, str):
             if dt != "auto":
-                raise SceneError(f"expected a time step in seconds or \"auto\", got string {dt!r}", "simulation.dt",
-                                 self.file)
+                raise SceneError(
+                    f'expected a time step in seconds or "auto", got string {dt!r}', "simulation.dt", self.file
+                )
             return "auto"
-        return _number(dt, "simulation.dt", self.file, positive=True, hint=" (time step in s, or \"auto\")")
+        return _number(dt, "simulation.dt", self.file, positive=True, hint=' (time step in s, or "auto")')
 
     def _err(self, message, key) -> SceneError:
         return SceneError(message, key, self.file)
@@ -873,8 +937,9 @@ class Scene:
         if not isinstance(name, str):
             raise self._err(f"expected a shape name, got {_typename(name)}", key)
         if name not in self._shape_index:
-            raise self._err(_unknown_name(name, self._shapes, "shape",
-                                          "define one with [shapes.NAME] or Scene.add_shape()"), key)
+            raise self._err(
+                _unknown_name(name, self._shapes, "shape", "define one with [shapes.NAME] or Scene.add_shape()"), key
+            )
         return self._shape_index[name]
 
     def _lookup_material(self, name, key) -> int:
@@ -885,8 +950,12 @@ class Scene:
         if not isinstance(name, str):
             raise self._err(f"expected a material name, got {_typename(name)}", key)
         if name not in self._material_index:
-            raise self._err(_unknown_name(name, self._materials, "material",
-                                          "define one with [materials.NAME] or Scene.add_material()"), key)
+            raise self._err(
+                _unknown_name(
+                    name, self._materials, "material", "define one with [materials.NAME] or Scene.add_material()"
+                ),
+                key,
+            )
         return self._material_index[name]
 
     def add_material(self, name: str, **props) -> Material:
@@ -914,8 +983,9 @@ class Scene:
         if not isinstance(name, str) or not name:
             raise self._err(f"shape name must be a non-empty string, got {_typename(name)}", "shapes")
         if not isinstance(shape, ConvexShape):
-            raise self._err(f"expected a polydem.ConvexShape, got {_typename(shape)}; build one with e.g. "
-                            "ConvexShape.box(0.1)", key)
+            raise self._err(
+                f"expected a polydem.ConvexShape, got {_typename(shape)}; build one with e.g. ConvexShape.box(0.1)", key
+            )
         if name in self._shapes:
             if self._shapes[name] is shape:
                 return shape
@@ -982,9 +1052,18 @@ class Scene:
         """(N,) int32 kind code: 0 free, 1 fixed, 2 kinematic (see :data:`KINDS`)."""
         return self._view("kind")
 
-    def add_body(self, shape, material, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0),
-                 velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0), kind: str = "free", *,
-                 _key: str | None = None) -> int:
+    def add_body(
+        self,
+        shape,
+        material,
+        position=(0.0, 0.0, 0.0),
+        orientation=(0.0, 0.0, 0.0, 1.0),
+        velocity=(0.0, 0.0, 0.0),
+        angular_velocity=(0.0, 0.0, 0.0),
+        kind: str = "free",
+        *,
+        _key: str | None = None,
+    ) -> int:
         """Add one body; returns its index.
 
         Args:
@@ -1008,8 +1087,16 @@ class Scene:
         w = _vector(angular_velocity, 3, f"{key}.angular_velocity", f)
         return int(self._append(s, m, p[None], q[None], v[None], w[None], kind_code, lambda i: key)[0])
 
-    def add_bodies(self, shape, material, positions, orientations=None, velocities=None, angular_velocities=None,
-                   kind: str = "free") -> np.ndarray:
+    def add_bodies(
+        self,
+        shape,
+        material,
+        positions,
+        orientations=None,
+        velocities=None,
+        angular_velocities=None,
+        kind: str = "free",
+    ) -> np.ndarray:
         """Add N bodies of one shape and material at once; returns their indices (int64, (N,)).
 
         Args:
@@ -1028,19 +1115,26 @@ class Scene:
         kind_code = KINDS.index(_choice(kind, KINDS, f"{label}.kind", f, what="body kind"))
         q = _rows((0.0, 0.0, 0.0, 1.0) if orientations is None else orientations, 4, f"{label}.orientation", f, n=n)
         v = _rows((0.0, 0.0, 0.0) if velocities is None else velocities, 3, f"{label}.velocity", f, n=n)
-        w = _rows((0.0, 0.0, 0.0) if angular_velocities is None else angular_velocities, 3,
-                  f"{label}.angular_velocity", f, n=n)
+        w = _rows(
+            (0.0, 0.0, 0.0) if angular_velocities is None else angular_velocities,
+            3,
+            f"{label}.angular_velocity",
+            f,
+            n=n,
+        )
         return self._append(s, m, p, q, v, w, kind_code, lambda i: f"bodies[{start + i}]")
 
     def _append(self, s, m, p, q, v, w, kind_code, rowkey) -> np.ndarray:
         n = p.shape[0]
         for name, arr in (("position", p), ("orientation", q), ("velocity", v), ("angular_velocity", w)):
+            if np.isfinite(arr).all():
+                continue
             bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
             if bad.size:
                 i = int(bad[0])
                 raise self._err(f"expected finite numbers, got {arr[i].tolist()}", f"{rowkey(i)}.{name}")
         q = _check_quats(q, lambda i: f"{rowkey(i)}.orientation", self.file)
-        if kind_code == KIND_FIXED:
+        if kind_code == KIND_FIXED and (np.any(v != 0.0) or np.any(w != 0.0)):
             moving = np.flatnonzero(np.any(v != 0.0, axis=1) | np.any(w != 0.0, axis=1))
             if moving.size:
                 i = int(moving[0])
@@ -1051,9 +1145,13 @@ class Scene:
                     f"{rowkey(i)}.{which}",
                 )
         q_in, t_in = self._shape_frames[s]
-        centroid = p + _quat_rotate(q, np.broadcast_to(t_in, p.shape))
-        q_body = _quat_mul(q, q_in)
-        q_body /= np.linalg.norm(q_body, axis=1, keepdims=True)
+        # Most generated shapes are built in their principal frame: skip the no-op transforms.
+        centroid = p if not np.any(t_in) else p + _quat_rotate(q, np.broadcast_to(t_in, p.shape))
+        if np.array_equal(q_in, (0.0, 0.0, 0.0, 1.0)):
+            q_body = q
+        else:
+            q_body = _quat_mul(q, q_in)
+            q_body /= np.sqrt(np.einsum("ij,ij->i", q_body, q_body))[:, None]
         self._reserve(n)
         sl = slice(self._n, self._n + n)
         a = self._arrays
@@ -1132,8 +1230,9 @@ class Scene:
         self._planes.append(plane)
         return plane
 
-    def add_box_container(self, center, inner_size, material, wall_thickness=None, open_top: bool = True, *,
-                          _key: str | None = None) -> list[int]:
+    def add_box_container(
+        self, center, inner_size, material, wall_thickness=None, open_top: bool = True, *, _key: str | None = None
+    ) -> list[int]:
         """Add an axis-aligned box container made of fixed box-shaped bodies; returns their indices.
 
         The cavity is ``inner_size`` = (lx, ly, lz) [m] centred on ``center`` [m], z up. The walls,
@@ -1200,8 +1299,7 @@ class Scene:
         the simulator derives it); plus ``law`` (str) and ``exponent`` (float) shared by all."""
         mats = list(self._materials.values())
         if not mats:
-            raise self._err("the scene has no materials; add one with [materials.NAME] or add_material()",
-                            "materials")
+            raise self._err("the scene has no materials; add one with [materials.NAME] or add_material()", "materials")
         self._check_laws()
         nm = len(mats)
         out = {k: np.empty((nm, nm)) for k in ("k", "restitution", "friction", "tangential_stiffness")}
@@ -1211,7 +1309,8 @@ class Scene:
                 out["k"][i, j] = pm.k
                 out["restitution"][i, j] = pm.restitution
                 out["friction"][i, j] = pm.friction
-                out["tangential_stiffness"][i, j] = np.nan if pm.tangential_stiffness is None else pm.tangential_stiffness
+                kt = pm.tangential_stiffness
+                out["tangential_stiffness"][i, j] = np.nan if kt is None else kt
         out["law"] = mats[0].law
         out["exponent"] = mats[0].exponent
         return out
@@ -1227,7 +1326,8 @@ class Scene:
                     f"material {mat.name!r} uses law {mat.law!r} (exponent {mat.exponent:g}) but material {ref.name!r} "
                     f"uses law {ref.law!r} (exponent {ref.exponent:g}); all materials of a scene must share one "
                     f"contact law and exponent, since a contact between two of them needs a single W(V): use law = "
-                    f"{ref.law!r}" + (f" with m = {ref.exponent:g}" if ref.law == "power" else "")
+                    f"{ref.law!r}"
+                    + (f" with m = {ref.exponent:g}" if ref.law == "power" else "")
                     + f" for {mat.name!r} (and convert its k)",
                     f"materials.{mat.name}.law",
                 )
@@ -1262,8 +1362,9 @@ class Scene:
             bad = np.flatnonzero((a[name] < 0) | (a[name] >= count))
             if bad.size:
                 i = int(bad[0])
-                raise self._err(f"{name} index {int(a[name][i])} out of range: the scene has {count} {name}s",
-                                f"bodies[{i}].{name}")
+                raise self._err(
+                    f"{name} index {int(a[name][i])} out of range: the scene has {count} {name}s", f"bodies[{i}].{name}"
+                )
         for name in ("position", "orientation", "velocity", "angular_velocity"):
             bad = np.flatnonzero(~np.isfinite(a[name]).all(axis=1))
             if bad.size:
@@ -1273,18 +1374,31 @@ class Scene:
         bad = np.flatnonzero((a["kind"] < 0) | (a["kind"] >= len(KINDS)))
         if bad.size:
             i = int(bad[0])
-            raise self._err(f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)",
-                            f"bodies[{i}].kind")
+            raise self._err(
+                f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)", f"bodies[{i}].kind"
+            )
         fixed = a["kind"] == KIND_FIXED
-        moving = np.flatnonzero(fixed & (np.any(a["velocity"] != 0, axis=1) | np.any(a["angular_velocity"] != 0,
-                                                                                     axis=1)))
+        moving = np.flatnonzero(
+            fixed & (np.any(a["velocity"] != 0, axis=1) | np.any(a["angular_velocity"] != 0, axis=1))
+        )
         if moving.size:
             i = int(moving[0])
-            raise self._err("a fixed body cannot move; set its velocity and angular_velocity to zero or use "
-                            "kind = 'kinematic'", f"bodies[{i}].velocity")
+            raise self._err(
+                "a fixed body cannot move; set its velocity and angular_velocity to zero or use kind = 'kinematic'",
+                f"bodies[{i}].velocity",
+            )
         shapes = list(self._shapes.values())
-        massless = np.array([not (s.volume > 0.0 and math.isfinite(s.volume) and np.all(np.asarray(s.inertia) > 0.0)
-                                  and np.all(np.isfinite(s.inertia))) for s in shapes])
+        massless = np.array(
+            [
+                not (
+                    s.volume > 0.0
+                    and math.isfinite(s.volume)
+                    and np.all(np.asarray(s.inertia) > 0.0)
+                    and np.all(np.isfinite(s.inertia))
+                )
+                for s in shapes
+            ]
+        )
         bad = np.flatnonzero((a["kind"] == KIND_FREE) & massless[a["shape"]])
         if bad.size:
             i = int(bad[0])
@@ -1351,11 +1465,16 @@ class Scene:
             description=sim.get("description", ""),
             file=file,
         )
-        materials = _table(data.get("materials", {}), "materials", file,
-                           what="tables [materials.NAME], one per material")
+        materials = _table(
+            data.get("materials", {}), "materials", file, what="tables [materials.NAME], one per material"
+        )
         for name, props in materials.items():
-            props = _table(props, f"materials.{name}", file,
-                           what=f"a table [materials.{name}] with density, law, k, restitution, friction")
+            props = _table(
+                props,
+                f"materials.{name}",
+                file,
+                what=f"a table [materials.{name}] with density, law, k, restitution, friction",
+            )
             scene.add_material(name, **props)
         shapes = _table(data.get("shapes", {}), "shapes", file, what="tables [shapes.NAME], one per shape")
         for name, spec in shapes.items():
@@ -1369,8 +1488,11 @@ class Scene:
             body = _table(body, key, file, what="a [[bodies]] table")
             _check_keys(body, _BODY_KEYS, key, file, required=("shape", "material", "position"))
             if "orientation" in body and "rotation" in body:
-                raise SceneError("give either orientation (quaternion) or rotation (axis and angle), not both",
-                                 f"{key}.rotation", file)
+                raise SceneError(
+                    "give either orientation (quaternion) or rotation (axis and angle), not both",
+                    f"{key}.rotation",
+                    file,
+                )
             orientation = body.get("orientation", (0.0, 0.0, 0.0, 1.0))
             if "rotation" in body:
                 orientation = _rotation(body["rotation"], f"{key}.rotation", file)
@@ -1393,13 +1515,20 @@ class Scene:
             if "type" not in wall:
                 raise SceneError("missing required key 'type' ('plane' or 'box')", f"{key}.type", file)
             kind = _choice(wall["type"], _WALL_KEYS, f"{key}.type", file, what="wall type")
-            _check_keys(wall, _WALL_KEYS[kind], key, file, required=_WALL_REQUIRED[kind])
+            _check_keys(
+                wall, _WALL_KEYS[kind], key, file, required=_WALL_REQUIRED[kind], context=f" for type = {kind!r}"
+            )
             if kind == "plane":
                 scene.add_plane(wall["point"], wall["normal"], wall["material"], _key=key)
             else:
-                scene.add_box_container(wall["center"], wall["inner_size"], wall["material"],
-                                        wall_thickness=wall.get("wall_thickness"), open_top=wall.get("open_top", True),
-                                        _key=key)
+                scene.add_box_container(
+                    wall["center"],
+                    wall["inner_size"],
+                    wall["material"],
+                    wall_thickness=wall.get("wall_thickness"),
+                    open_top=wall.get("open_top", True),
+                    _key=key,
+                )
         if validate:
             scene.validate()
         return scene
@@ -1426,9 +1555,17 @@ class Scene:
         bodies = []
         for i in range(self._n):
             b = self.body(i)
-            bodies.append({"shape": b.shape, "material": b.material, "position": list(b.position),
-                           "orientation": list(b.orientation), "velocity": list(b.velocity),
-                           "angular_velocity": list(b.angular_velocity), "kind": b.kind})
+            bodies.append(
+                {
+                    "shape": b.shape,
+                    "material": b.material,
+                    "position": list(b.position),
+                    "orientation": list(b.orientation),
+                    "velocity": list(b.velocity),
+                    "angular_velocity": list(b.angular_velocity),
+                    "kind": b.kind,
+                }
+            )
         return {
             "simulation": sim,
             "materials": {name: m.to_dict() for name, m in self._materials.items()},
@@ -1443,33 +1580,43 @@ class Scene:
         dt = self.dt if self.dt == "auto" else f"{self.dt:g} s"
         run = f", {self.steps} steps" if self.steps is not None else ""
         run += f", duration {self.duration:g} s" if self.duration is not None else ""
-        lines = [f"Scene {self.name!r}" + (f" from {self.file}" if self.file else ""),
-                 f"  gravity [{g}] m/s^2, dt {dt}{run}"]
+        lines = [
+            f"Scene {self.name!r}" + (f" from {self.file}" if self.file else ""),
+            f"  gravity [{g}] m/s^2, dt {dt}{run}",
+        ]
         if self.description:
             lines.append(f"  {self.description}")
         lines.append(f"  materials ({len(self._materials)}):")
         for m in self._materials.values():
             extra = f", m={m.m:g}" if m.m is not None else ""
             extra += f", kt={m.tangential_stiffness:g} N/m" if m.tangential_stiffness is not None else ""
-            lines.append(f"    {m.name}: density {m.density:g} kg/m^3, {m.law} k={m.k:g} {_LAW_UNITS[m.law]}{extra}, "
-                         f"e={m.restitution:g}, mu={m.friction:g}")
+            lines.append(
+                f"    {m.name}: density {m.density:g} kg/m^3, {m.law} k={m.k:g} {_LAW_UNITS[m.law]}{extra}, "
+                f"e={m.restitution:g}, mu={m.friction:g}"
+            )
         lines.append(f"  shapes ({len(self._shapes)}):")
         counts = np.bincount(self.body_shape, minlength=len(self._shapes)) if self._n else [0] * len(self._shapes)
         for (name, s), c in zip(self._shapes.items(), counts, strict=True):
             kind = self._shape_specs.get(name, {}).get("type", "custom")
-            lines.append(f"    {name}: {kind}, {s.num_vertices} vertices, {s.num_faces} faces, volume {s.volume:.4g} "
-                         f"m^3, radius {s.radius:.4g} m; {int(c)} bodies")
+            lines.append(
+                f"    {name}: {kind}, {s.num_vertices} vertices, {s.num_faces} faces, volume {s.volume:.4g} "
+                f"m^3, radius {s.radius:.4g} m; {int(c)} bodies"
+            )
         kinds = np.bincount(self.body_kind, minlength=3) if self._n else [0, 0, 0]
         lines.append(f"  bodies: {self._n} ({kinds[0]} free, {kinds[1]} fixed, {kinds[2]} kinematic)")
         lines.append(f"  planes ({len(self._planes)}):")
         for p in self._planes:
-            lines.append(f"    point [{', '.join(f'{x:g}' for x in p.point)}], normal "
-                         f"[{', '.join(f'{x:.4g}' for x in p.normal)}], material {p.material}")
+            lines.append(
+                f"    point [{', '.join(f'{x:g}' for x in p.point)}], normal "
+                f"[{', '.join(f'{x:.4g}' for x in p.normal)}], material {p.material}"
+            )
         return "\n".join(lines)
 
     def __repr__(self) -> str:
-        return (f"Scene(name={self.name!r}, bodies={self._n}, shapes={len(self._shapes)}, "
-                f"materials={len(self._materials)}, planes={len(self._planes)})")
+        return (
+            f"Scene(name={self.name!r}, bodies={self._n}, shapes={len(self._shapes)}, "
+            f"materials={len(self._materials)}, planes={len(self._planes)})"
+        )
 
 
 def _rotation(value, key, file) -> np.ndarray:
@@ -1477,8 +1624,11 @@ def _rotation(value, key, file) -> np.ndarray:
     value = _table(value, key, file, what="a table {axis = [ax, ay, az], degrees = angle}")
     _check_keys(value, ("axis", "degrees", "radians"), key, file, required=("axis",))
     if ("degrees" in value) == ("radians" in value):
-        raise SceneError("give the angle as exactly one of degrees or radians, e.g. rotation = {axis = [0, 1, 0], "
-                         "degrees = 20}", f"{key}.degrees", file)
+        raise SceneError(
+            "give the angle as exactly one of degrees or radians, e.g. rotation = {axis = [0, 1, 0], degrees = 20}",
+            f"{key}.degrees",
+            file,
+        )
     axis = _vector(value["axis"], 3, f"{key}.axis", file)
     if np.linalg.norm(axis) == 0.0:
         raise SceneError("rotation axis is zero; give a direction such as [0, 0, 1]", f"{key}.axis", file)

@@ -41,6 +41,12 @@ DEFAULT_TOL = 1e-9
 # Below this, tolerances stop meaning anything in double precision (coordinates are O(L) and carry
 # ~1e-16 relative error through centring and rotation).
 _TOL_FLOOR = 1e-13
+# Plane refits per face while grouping triangles (see _polygon_hull); two or three suffice in practice.
+_MAX_REFITS = 5
+# Tolerances are capped at this fraction of the thickness 3 V / S (see _build).
+_THICKNESS_FRACTION = 1e-3
+# Largest tolerance tried when the requested one fails the consistency checks (see _build).
+_TOL_MAX = 1e-6
 # Relative thresholds of the degeneracy checks (see the module docstring).
 _AFFINE_RTOL = 1e-9
 _VOLUME_RTOL = 1e-12
@@ -516,42 +522,51 @@ def _build(points: np.ndarray, tol: float) -> dict:
     centred = points - origin
     size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     try:
-        hull_volume = ConvexHull(centred).volume
+        first_hull = ConvexHull(centred)
     except QhullError as exc:
         raise ValueError(f"the convex hull of the points could not be computed (degenerate input?): {exc}") from exc
-    if hull_volume < _VOLUME_RTOL * size**3:
+    if first_hull.volume < _VOLUME_RTOL * size**3:
         raise ValueError(
-            f"hull volume {hull_volume:.3g} m^3 is below {_VOLUME_RTOL:g} * bbox_diagonal^3 = "
+            f"hull volume {first_hull.volume:.3g} m^3 is below {_VOLUME_RTOL:g} * bbox_diagonal^3 = "
             f"{_VOLUME_RTOL * size**3:.3g} m^3: the points are (nearly) flat; check their spread and units"
         )
-    # Merging at a tolerance can in rare, nearly degenerate cases give an inconsistent polygon mesh;
-    # qhull's own facets are always consistent, so fall back to ever smaller tolerances.
-    ladder = [t for t in (tol, tol * 1e-3, tol * 1e-6) if t > _TOL_FLOOR] + [_TOL_FLOOR]
+    # A tolerance must stay well below the shape's thickness, or merging flattens a thin plate or
+    # needle altogether; 3 V / S (the inradius for shapes whose faces all touch one inscribed sphere)
+    # measures it.
+    cap = max(_TOL_FLOOR, _THICKNESS_FRACTION * 3.0 * first_hull.volume / first_hull.area / size)
+    # A tolerance can also be too small for the input: a triangle only a little thicker than tol * L
+    # has a normal whose roundoff error (~1e-16 L / thickness) exceeds tol itself. Larger tolerances
+    # remove such triangles (as slivers), so on failure retry with tol raised tenfold at a time.
+    ladder = [min(max(tol, _TOL_FLOOR), cap)]
+    while ladder[-1] < min(_TOL_MAX, cap):
+        ladder.append(min(10.0 * ladder[-1], cap))
     errors = []
     for rel in ladder:
         try:
-            verts, loops = _polygon_hull(centred, rel * size)
+            verts, loops = _polygon_hull(centred, rel * size, first_hull)
             return _body_frame(verts, loops, origin, 4.0 * rel * size)
         except _HullBuildError as exc:
             errors.append(f"tol={rel:g}: {exc}")
     raise RuntimeError("could not build a consistent polygon hull; " + "; ".join(errors))
 
 
-def _polygon_hull(points: np.ndarray, dist_tol: float) -> tuple[np.ndarray, list[np.ndarray]]:
+def _polygon_hull(points: np.ndarray, dist_tol: float, first_hull: ConvexHull) -> tuple[np.ndarray, list[np.ndarray]]:
     """Hull vertices and CCW face loops, merging hull triangles that share a plane within ``dist_tol``.
 
     Vertices found to be redundant (inside a merged face, or within ``dist_tol`` of the line through
     their loop neighbours) are removed and the hull rebuilt, so that every face and its neighbours
-    agree on the vertex set.
+    agree on the vertex set. ``first_hull`` is the qhull hull of all ``points``.
     """
     active = np.arange(len(points))
+    hull = first_hull
     for _ in range(len(points)):
-        if len(active) < 4:
-            raise _HullBuildError("fewer than 4 vertices left after removing redundant ones")
-        try:
-            hull = ConvexHull(points[active])
-        except QhullError as exc:
-            raise _HullBuildError(f"qhull failed: {exc}") from exc
+        if hull is None:
+            if len(active) < 4:
+                raise _HullBuildError("fewer than 4 vertices left after removing redundant ones")
+            try:
+                hull = ConvexHull(points[active])
+            except QhullError as exc:
+                raise _HullBuildError(f"qhull failed: {exc}") from exc
         pts = hull.points
         tri = hull.simplices.copy()
         qn = hull.equations[:, :3]
@@ -580,6 +595,7 @@ def _polygon_hull(points: np.ndarray, dist_tol: float) -> tuple[np.ndarray, list
                 drop.add(mid)
                 keep |= ends
             active = active[np.setdiff1d(hull.vertices, np.fromiter(drop, dtype=np.int64))]
+            hull = None
             continue
 
         # Vertex -> incident triangles (CSR), to find a plane's candidate triangles from its vertices.
@@ -592,53 +608,99 @@ def _polygon_hull(points: np.ndarray, dist_tol: float) -> tuple[np.ndarray, list
         group = np.full(len(tri), -1)
         n_groups = 0
         # Largest triangles first, so each face plane is seeded by its most reliable triangle; a seed
-        # claims every free triangle whose three vertices lie within dist_tol of its plane.
+        # claims every free triangle whose three vertices lie within dist_tol of its plane. A seed's
+        # plane can be tilted by noise in its own vertices, enough to miss far parts of a large face,
+        # so the plane is refitted to the claimed triangles and the claim repeated until it settles.
         for t in np.argsort(-twice_area, kind="stable"):
             if group[t] >= 0:
                 continue
-            group[t] = n_groups
-            near_vids = hull_vids[np.abs(hull_pts @ qn[t] - qd[t]) <= dist_tol]
-            near[near_vids] = True
-            cand = np.unique(np.concatenate([tris_of[first[v] : first[v + 1]] for v in near_vids]))
-            ok = (group[cand] < 0) & near[tri[cand]].all(axis=1) & (qn[cand] @ qn[t] > 0.0)
-            group[cand[ok]] = n_groups
-            near[near_vids] = False
+            normal, offset = qn[t], qd[t]
+            members = np.array([t])
+            for _ in range(_MAX_REFITS):
+                near_vids = hull_vids[np.abs(hull_pts @ normal - offset) <= dist_tol]
+                near[near_vids] = True
+                cand = np.unique(np.concatenate([tris_of[first[v] : first[v + 1]] for v in near_vids] + [[t]]))
+                ok = (group[cand] < 0) & near[tri[cand]].all(axis=1) & (qn[cand] @ normal > 0.0)
+                near[near_vids] = False
+                claimed = np.union1d(cand[ok], [t])
+                if np.array_equal(claimed, members):
+                    break
+                members = claimed
+                area_sum = cross[members].sum(axis=0)
+                normal = area_sum / np.linalg.norm(area_sum)
+                heights = pts[np.unique(tri[members])] @ normal
+                offset = 0.5 * (heights.max() + heights.min())
+            group[members] = n_groups
             n_groups += 1
 
         loops = []
-        redundant = set(hull.vertices.tolist())
-        drop = []
+        drop, keep = set(), set()
         order = np.argsort(group, kind="stable")
         bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
-        for g in range(n_groups):
-            members = order[bounds[g] : bounds[g + 1]]
+        pending = [order[bounds[g] : bounds[g + 1]] for g in range(n_groups)]
+        facet_of = None
+        for members in pending:  # grows while iterating when a group is split
             if len(members) == 1:
-                # A lone non-sliver triangle is already a valid loop: each vertex is farther than
-                # dist_tol from the opposite side, and tri is oriented outward.
-                loops.append(tri[members[0]])
-                redundant.difference_update(loops[-1].tolist())
-                continue
-            vids = np.unique(tri[members])
-            normal = cross[members].sum(axis=0)
-            normal /= np.linalg.norm(normal)
-            u, w = _plane_basis(normal)
-            q = pts[vids] @ np.column_stack([u, w])
-            keep = _convex_polygon_2d(q, dist_tol)
-            if len(keep) < 3:
-                raise _HullBuildError("a merged face collapsed to fewer than 3 vertices")
-            loop = vids[keep]
-            if len(loop) < len(vids):
-                drop.extend(np.setdiff1d(vids, loop).tolist())
-            redundant.difference_update(loop.tolist())
+                # A lone triangle is already a valid loop: it is no sliver, so each vertex is farther
+                # than dist_tol from the opposite side, and tri is oriented outward.
+                loop, extra = tri[members[0]], []
+            else:
+                found = _face_loop(pts, tri[members], cross[members], dist_tol)
+                if found is None:
+                    # The triangles near one plane do not tile a single convex polygon: a nearly flat
+                    # region with noise of about dist_tol, where the plane test alone cannot tell
+                    # faces apart. Fall back to qhull's facets there, which always tile correctly.
+                    if facet_of is None:
+                        facet_of = np.unique(hull.equations, axis=0, return_inverse=True)[1].ravel()
+                    ids = facet_of[members]
+                    if np.all(ids == ids[0]):
+                        raise _HullBuildError("a qhull facet does not form one convex polygon")
+                    pending.extend(members[ids == k] for k in np.unique(ids))
+                    continue
+                loop, extra = found
             loops.append(loop)
-        drop = set(drop) | redundant
+            # Two faces can each find the other's vertex redundant (two near-duplicates, one on each
+            # face); dropping both would cut a real corner. So a face's drops are taken only if they
+            # spare the loops that justified earlier drops and its own loop is spared by those drops;
+            # the rest wait for the rebuilt hull. The first face with drops always gets them.
+            if extra and not (keep.intersection(extra) or drop.intersection(loop.tolist())):
+                drop.update(extra)
+                keep.update(loop.tolist())
         if not drop:
             used = np.unique(np.concatenate(loops))
             remap = np.full(len(pts), -1)
             remap[used] = np.arange(len(used))
             return pts[used], [remap[lp] for lp in loops]
         active = active[np.setdiff1d(hull.vertices, np.fromiter(drop, dtype=np.int64))]
+        hull = None
     raise _HullBuildError("redundant-vertex removal did not converge")
+
+
+def _face_loop(pts, tris, crosses, dist_tol):
+    """CCW loop of a group of coplanar triangles and the group's vertices left off it.
+
+    Returns None when the triangles do not cover the convex polygon of their vertices (their area
+    falls short of the polygon's by more than a strip of width 4 * dist_tol along its boundary). More
+    area than the polygon is accepted: qhull's triangulation of a facet with a vertex in its interior
+    can overlap itself, and that vertex is dropped anyway.
+    """
+    vids = np.unique(tris)
+    normal = crosses.sum(axis=0)
+    normal /= np.linalg.norm(normal)
+    u, w = _plane_basis(normal)
+    q = pts[vids] @ np.column_stack([u, w])
+    keep = _convex_polygon_2d(q, dist_tol)
+    if len(keep) < 3:
+        return None
+    poly = q[keep] - q[keep].mean(axis=0)
+    nxt = np.roll(poly, -1, axis=0)
+    poly_area = 0.5 * np.sum(poly[:, 0] * nxt[:, 1] - poly[:, 1] * nxt[:, 0])
+    perimeter = np.linalg.norm(nxt - poly, axis=1).sum()
+    covered = 0.5 * np.sum(crosses @ normal)
+    if poly_area - covered > 4.0 * dist_tol * perimeter:
+        return None
+    loop = vids[keep]
+    return loop, (np.setdiff1d(vids, loop).tolist() if len(loop) < len(vids) else [])
 
 
 def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -762,15 +824,17 @@ def _body_frame(verts: np.ndarray, loops: list[np.ndarray], origin: np.ndarray, 
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     face_of = np.repeat(np.arange(len(loops)), lengths)
     p = body[np.concatenate(loops)]
-    p_next = body[np.concatenate([np.roll(lp, -1) for lp in loops])]
-    # Newell's vector area equals the sum of the merged triangles' area vectors (area-weighted normal).
-    area_vec = 0.5 * np.add.reduceat(np.cross(p, p_next), starts)
-    normals = area_vec / np.linalg.norm(area_vec, axis=1, keepdims=True)
-    heights = np.einsum("ij,ij->i", p, normals[face_of])
-    offsets = np.add.reduceat(heights, starts) / lengths
     centers = np.add.reduceat(p, starts) / lengths[:, None]
-    radii = np.maximum.reduceat(np.linalg.norm(p - centers[face_of], axis=1), starts)
-    off_plane = np.abs(heights - offsets[face_of])
+    # Coordinates relative to the face center keep the cross products small, which matters for the
+    # normals of thin faces (their relative error grows like roundoff * length^2 / area).
+    rel = p - centers[face_of]
+    rel_next = body[np.concatenate([np.roll(lp, -1) for lp in loops])] - centers[face_of]
+    # Newell's vector area equals the sum of the merged triangles' area vectors (area-weighted normal).
+    area_vec = 0.5 * np.add.reduceat(np.cross(rel, rel_next), starts)
+    normals = area_vec / np.linalg.norm(area_vec, axis=1, keepdims=True)
+    offsets = np.einsum("ij,ij->i", centers, normals)  # = mean of n . v over the face's vertices
+    radii = np.maximum.reduceat(np.linalg.norm(rel, axis=1), starts)
+    off_plane = np.abs(np.einsum("ij,ij->i", rel, normals[face_of]))
     if off_plane.max() > check_tol:
         f = face_of[np.argmax(off_plane)]
         raise _HullBuildError(f"face {f} is not planar within {check_tol:.3g} m (deviation {off_plane.max():.3g} m)")

@@ -80,6 +80,7 @@ class ShapeSet:
         # Pieces met in practice are far below the bound for shapes with many faces; start small
         # and let an overflow grow the buffer (see kernels.narrowphase.launch_overlap).
         self.default_poly_capacity = min(self.max_poly_bound, max_face_verts + 16)
+        self.max_faces = max_faces
 
     def kernel_args(self):
         """The ``# Shapes`` arguments of the narrow-phase kernels, in order."""

@@ -1,0 +1,208 @@
+"""Pair-kernel benchmark: pairs per second and error against the float64 reference.
+
+For cube, tetrahedron, 20-vertex rock and 64-vertex hull pairs at overlap depths of 0.1%, 1% and
+10% of the size, with half of the candidates not touching (separated along the line of centres
+by up to 20% of the size, so that their bounding spheres still overlap as broad-phase candidates'
+do), in float32 and float64. Prints a table and writes JSON.
+
+    python benchmarks/pair_kernel.py --device cuda:0            # GPU: 2^20 pairs per case
+    python benchmarks/pair_kernel.py --device cpu --pairs 4096  # one CPU core
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+import warp as wp
+from polydem.kernels.narrowphase import make_narrowphase
+
+from polydem import ConvexShape
+from polydem.shapeset import ShapeSet
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+
+
+def shape_library():
+    return {
+        "cube": ConvexShape.box(1.0),
+        "tetrahedron": ConvexShape.tetrahedron(1.0),
+        "rock20": ConvexShape.rock(n_points=20, size=1.0, seed=1),
+        "hull64": ConvexShape.rock(n_points=64, size=1.0, seed=2),
+    }
+
+
+def random_rotations(rng, n):
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def rotate(q, v):
+    """Rotate vectors v (n,3) by quaternions q (n,4) xyzw."""
+    u = q[:, :3]
+    w = q[:, 3:4]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def support(shape, q, direction):
+    """max over the shape's vertices of direction . (R v), per row."""
+    local = rotate(q * np.array([-1, -1, -1, 1]), direction)  # direction in the body frame
+    return (local @ np.asarray(shape.vertices).T).max(axis=1)
+
+
+def make_pairs(shape, n, depth, rng, device):
+    """Poses of n pairs of `shape` along random lines of centres: the first half pushed `depth` of
+    the size past first touch, the second half separated along the line by 2-20% of the size.
+
+    First touch is found by bisection on the float64 kernel (V > 0), as projections along the line
+    overlapping does not mean the bodies do."""
+    size = 2.0 * shape.radius
+    qa = random_rotations(rng, n)
+    qb = random_rotations(rng, n)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pa = np.hstack([np.zeros((n, 3)), qa])
+    lo = np.zeros(n)
+    hi = support(shape, qa, u) + support(shape, qb, -u)  # projections apart: surely not overlapping
+    shapes64 = ShapeSet([shape], device=device, precision="float64")
+    for _ in range(32):
+        mid = 0.5 * (lo + hi)
+        _, outs = time_kernel(shapes64, pa, np.hstack([u * mid[:, None], qb]), 0)
+        touching = outs[0] > 0.0
+        lo = np.where(touching, mid, lo)
+        hi = np.where(touching, hi, mid)
+    gap = np.where(np.arange(n) < n // 2, -depth * size, rng.uniform(0.02, 0.2, n) * size)
+    return pa, np.hstack([u * (hi + gap)[:, None], qb])
+
+
+def time_kernel(shapes, poses_a, poses_b, repeats):
+    dev = shapes.device
+    n = len(poses_a)
+    scalar = shapes.scalar
+    np_scalar = np.float32 if scalar == wp.float32 else np.float64
+    vec3 = wp.types.vector(3, scalar)
+    tf = wp.types.transformation(scalar)
+    ns = make_narrowphase(scalar, shapes.default_poly_capacity, shapes.max_faces)
+    args = [
+        *shapes.kernel_args(),
+        wp.zeros(n, dtype=int, device=dev),
+        wp.zeros(n, dtype=int, device=dev),
+        wp.array(poses_a.astype(np_scalar), dtype=tf, device=dev),
+        wp.array(poses_b.astype(np_scalar), dtype=tf, device=dev),
+    ]
+    outs = [wp.zeros(n, dtype=scalar, device=dev)] + [wp.zeros(n, dtype=vec3, device=dev) for _ in range(5)]
+    overflow = wp.zeros(1, dtype=int, device=dev)
+    wp.launch(ns.overlap_kernel, dim=n, inputs=args, outputs=[*outs, overflow], device=dev)  # compile, warm
+    wp.synchronize_device(dev)
+    times = [0.0]
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        wp.launch(ns.overlap_kernel, dim=n, inputs=args, outputs=[*outs, overflow], device=dev)
+        wp.synchronize_device(dev)
+        times.append(time.perf_counter() - t0)
+    if int(overflow.numpy()[0]):
+        raise RuntimeError("polygon buffer overflow in the benchmark; raise the capacity")
+    return float(np.median(times)), [o.numpy() for o in outs]
+
+
+def reference_errors(shape, poses_a, poses_b, outs, sample):
+    """Largest errors of V [size^3] and S_A [size^2] against the float64 reference on a sample."""
+    from reference_geometry import reference_overlap
+
+    def world(p):
+        return rotate(np.repeat(p[None, 3:], len(shape.vertices), axis=0), np.asarray(shape.vertices)) + p[:3]
+
+    size = 2.0 * shape.radius
+    err_v = err_s = 0.0
+    n = len(poses_a)
+    rows = np.unique(
+        np.concatenate([np.arange(min(sample // 2, n // 2)), n // 2 + np.arange(min(sample // 2, n // 2))])
+    )
+    for i in rows:
+        ref = reference_overlap(world(poses_a[i]), world(poses_b[i]))
+        err_v = max(err_v, abs(float(outs[0][i]) - ref["volume"]) / size**3)
+        err_s = max(err_s, float(np.abs(outs[2][i] - ref["area_vector"]).max()) / size**2)
+    return err_v, err_s
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
+    ap.add_argument("--pairs", type=int, default=None, help="pairs per case (default 2^21 GPU, 4096 CPU)")
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--sample", type=int, default=64, help="pairs per case checked against the reference")
+    ap.add_argument("--precisions", default="float32,float64")
+    ap.add_argument("--shapes", default="cube,tetrahedron,rock20,hull64")
+    ap.add_argument("--depths", default="0.001,0.01,0.1")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "pair_kernel.json"))
+    args = ap.parse_args()
+
+    wp.config.quiet = True
+    wp.init()
+    dev = wp.get_device(args.device)
+    n = args.pairs or (1 << 20 if dev.is_cuda else 4096)
+    repeats = args.repeats or (20 if dev.is_cuda else 5)
+    lib = shape_library()
+    rows = []
+    cases = {}  # poses per (shape, depth), shared by both precisions
+    print(f"device {dev.name} ({dev.alias}), {n} pairs per case, half touching, median of {repeats}")
+    print(
+        f"{'shape':<12}{'faces':>6}{'depth':>8}{'prec':>9}{'touch':>7}{'Mpairs/s':>11}{'ns/pair':>10}"
+        f"{'err V':>10}{'err S':>10}"
+    )
+    for prec in args.precisions.split(","):
+        for name in args.shapes.split(","):
+            shape = lib[name]
+            shapes = ShapeSet([shape], device=dev, precision=prec)
+            for depth in (float(d) for d in args.depths.split(",")):
+                if (name, depth) not in cases:
+                    cases[name, depth] = make_pairs(shape, n, depth, np.random.default_rng(12345), dev)
+                pa, pb = cases[name, depth]
+                t, outs = time_kernel(shapes, pa, pb, repeats)
+                ev, es = reference_errors(shape, pa, pb, outs, args.sample)
+                touching = int((outs[0][: n // 2] > 0).sum())
+                row = {
+                    "shape": name,
+                    "faces": shape.num_faces,
+                    "vertices": shape.num_vertices,
+                    "depth": depth,
+                    "precision": prec,
+                    "pairs": n,
+                    "touching": touching,
+                    "seconds": t,
+                    "pairs_per_second": n / t,
+                    "error_volume": ev,
+                    "error_area_vector": es,
+                }
+                rows.append(row)
+                print(
+                    f"{name:<12}{shape.num_faces:>6}{depth:>8.3g}{prec:>9}{touching / (n // 2):>7.0%}"
+                    f"{n / t / 1e6:>11.1f}{t / n * 1e9:>10.1f}"
+                    f"{ev:>10.1e}{es:>10.1e}",
+                    flush=True,
+                )
+                write(args.out, dev, rows)
+    print(f"wrote {args.out}")
+
+
+def write(path, dev, rows):
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    meta = {
+        "device": dev.name,
+        "alias": dev.alias,
+        "warp": wp.config.version,
+        "machine": platform.platform(),
+        "processor": platform.processor(),
+        "command": " ".join(sys.argv),
+    }
+    with open(path, "w") as f:
+        json.dump({"meta": meta, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
