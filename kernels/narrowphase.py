@@ -39,7 +39,9 @@ ENCLOSED_RATIO = 1.0e-4
 
 
 @functools.cache
-def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None):
+def make_narrowphase(
+    scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None, max_registers: int | None = None
+):
     """Build the narrow-phase functions and kernels for one precision and polygon capacity.
 
     Args:
@@ -49,6 +51,7 @@ def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: floa
             rebuilds with a larger capacity and runs again.
         max_faces: the most faces of any shape in use (capacity of the per-thread plane lists).
         coincident_tol: relative tolerance of the coincident-face test (default per precision).
+        max_registers: optional CUDA register cap per thread for the kernels (a tuning knob).
 
     Returns:
         A namespace with ``pair_geometry`` (the ``@wp.func``) and ``overlap_kernel``.
@@ -116,13 +119,12 @@ def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: floa
         vert: wp.array(dtype=vec3),
         rot: mat33,
         pos: vec3,
-        origin: vec3,
         tol: scalar,
     ):
         # Clips one face polygon by the other body's active planes (already in A's frame, with
         # their face indices in plane_ids) and integrates the surviving piece. Everything is in
         # A's frame: B's points map by rot, pos. Returns (weighted area, weighted area * centroid,
-        # volume of the cone from `origin`, first moment of that cone, overflow flag).
+        # overflow flag); a coincident facet has weight 1/2.
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         poly = poly_t()
         begin = face_loop_start[face]
@@ -149,7 +151,7 @@ def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: floa
             if dist <= -sph[3]:
                 continue  # the whole face lies inside this plane
             if dist > sph[3]:
-                return scalar(0.0), zero3, scalar(0.0), zero3, 0
+                return scalar(0.0), zero3, 0
             if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
                 rel = int(0)
                 if face_is_a:
@@ -164,7 +166,7 @@ def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: floa
                     weight = scalar(0.5)
                     continue
                 if rel == -1:
-                    return scalar(0.0), zero3, scalar(0.0), zero3, 0
+                    return scalar(0.0), zero3, 0
             # Sutherland-Hodgman against n.x <= d, from rows [cur, cur+count) into the other half.
             out = max_poly - cur
             n_out = int(0)
@@ -175,42 +177,42 @@ def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: floa
                 s = wp.dot(n, v) - d
                 if (s <= scalar(0.0)) != (s_prev <= scalar(0.0)):
                     if n_out >= max_poly:
-                        return scalar(0.0), zero3, scalar(0.0), zero3, 1
+                        return scalar(0.0), zero3, 1
                     t = s_prev / (s_prev - s)
                     poly[out + n_out] = prev + t * (v - prev)
                     n_out += 1
                 if s <= scalar(0.0):
                     if n_out >= max_poly:
-                        return scalar(0.0), zero3, scalar(0.0), zero3, 1
+                        return scalar(0.0), zero3, 1
                     poly[out + n_out] = v
                     n_out += 1
                 prev = v
                 s_prev = s
             if n_out < 3:
-                return scalar(0.0), zero3, scalar(0.0), zero3, 0
+                return scalar(0.0), zero3, 0
             cur = out
             count = n_out
-        # Fan triangulation: facet area and centroid, and the cone from `origin` for V.
+        # Fan triangulation: facet area and area-weighted centroid.
         p0 = poly[cur]
         area = scalar(0.0)
         area_c = zero3
-        vol6 = scalar(0.0)
-        vol_c = zero3
-        e0 = p0 - origin
         for k in range(1, count - 1):
             p1 = poly[cur + k]
             p2 = poly[cur + k + 1]
             a2 = wp.dot(wp.cross(p1 - p0, p2 - p0), nf)  # twice the signed triangle area
             area += a2
             area_c += a2 * (p0 + p1 + p2)
-            t6 = wp.dot(e0, wp.cross(p1 - origin, p2 - origin))  # six times the tetrahedron volume
-            vol6 += t6
-            vol_c += t6 * (e0 + (p1 - origin) + (p2 - origin))
         area = weight * scalar(0.5) * area
         area_c = (weight * scalar(0.5) / scalar(3.0)) * area_c
-        vol = weight * vol6 / scalar(6.0)
-        vol_c = (weight / scalar(24.0)) * vol_c + vol * origin
-        return area, area_c, vol, vol_c, 0
+        return area, area_c, 0
+
+    @wp.func
+    def cone(area: scalar, area_c: vec3, plane: vec4, origin: vec3):
+        # Volume and first moment of the pyramid from `origin` over a facet of the given area and
+        # area-weighted centroid in `plane` (its centroid lies 3/4 of the way to the facet's).
+        h = plane[3] - wp.dot(vec3(plane[0], plane[1], plane[2]), origin)
+        v = area * h / scalar(3.0)
+        return v, (h / scalar(3.0)) * (scalar(0.25) * area * origin + scalar(0.75) * area_c)
 
     @wp.func
     def pair_geometry(
@@ -356,24 +358,26 @@ def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: floa
         m_b = zero3
         overflow = int(0)
         for j in range(num_a):
-            area, area_c, dv, dv_c, of = clip_face(
+            area, area_c, of = clip_face(
                 ids_a[j], True, planes_b, ids_b, num_b,
-                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol,
+                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
             )  # fmt: skip
             overflow = overflow | of
             pl = planes_a[j]
+            dv, dv_c = cone(area, area_c, pl, origin)
             n = vec3(pl[0], pl[1], pl[2])
             s_a += area * n
             m_a += wp.cross(area_c, n)
             vol += dv
             vol_c += dv_c
         for j in range(num_b):
-            area, area_c, dv, dv_c, of = clip_face(
+            area, area_c, of = clip_face(
                 ids_b[j], False, planes_a, ids_a, num_a,
-                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, origin, tol,
+                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
             )  # fmt: skip
             overflow = overflow | of
             pl = planes_b[j]
+            dv, dv_c = cone(area, area_c, pl, origin)
             n = vec3(pl[0], pl[1], pl[2])
             s_b += area * n
             m_b += wp.cross(area_c, n)
@@ -382,7 +386,7 @@ def make_narrowphase(scalar, max_poly: int, max_faces: int, coincident_tol: floa
         rot_a = wp.quat_to_matrix(qa)
         return vol, rot_a * vol_c, rot_a * s_a, rot_a * m_a, rot_a * s_b, rot_a * m_b, overflow
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def overlap_kernel(
         # Shapes
         shape_vert_start: wp.array(dtype=int),

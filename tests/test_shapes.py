@@ -291,6 +291,76 @@ def test_redundant_and_nearly_redundant_points_are_removed():
     assert merged.num_vertices == 8 and merged.num_faces == 6
 
 
+def assert_valid(shape, points):
+    """Geometric invariants, and the volume within the tolerance of the exact hull of ``points``."""
+    heights = shape.vertices @ shape.face_normals.T - shape.face_offsets
+    assert heights.max() <= shape.tolerance
+    for f, loop in enumerate(shape.faces):
+        assert np.abs(heights[loop, f]).max() <= shape.tolerance
+    np.testing.assert_allclose(
+        polygon_area_vectors(shape) / np.linalg.norm(polygon_area_vectors(shape), axis=1)[:, None],
+        shape.face_normals,
+        atol=1e-9,
+    )
+    edges = [(int(a), int(b)) for loop in shape.faces for a, b in zip(loop, np.roll(loop, -1), strict=True)]
+    assert len(set(edges)) == len(edges) and set(edges) == {(b, a) for a, b in edges}
+    assert shape.num_vertices - len(edges) // 2 + shape.num_faces == 2
+    mesh = shape.to_trimesh()
+    assert abs(ConvexHull(points).volume - shape.volume) <= shape.tolerance * mesh.area
+
+
+def test_near_duplicate_corner_does_not_cut_the_corner():
+    # A point 1e-5 from a corner and 2e-10 off its edge (within the merge distance, but far from a
+    # duplicate): either it or the corner may go, never both.
+    dodeca = ConvexShape.dodecahedron(1.0)
+    v = dodeca.vertices
+    loop = dodeca.faces[0]
+    corner, nxt = v[loop[0]], v[loop[1]]
+    direction = (nxt - corner) / np.linalg.norm(nxt - corner)
+    extra = corner + 1e-5 * direction + 2e-10 * dodeca.face_normals[0]
+    points = np.vstack([v, extra])
+    shape = ConvexShape.from_points(points)
+    assert shape.num_vertices == 20 and shape.num_faces == 12
+    assert_valid(shape, points)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_noisy_faces(seed):
+    # Many points on the faces of a box with noise comparable to the merge distance: the faces may
+    # stay split, but the result must be a consistent convex polyhedron close to the exact hull.
+    rng = np.random.default_rng(seed)
+    n = 400
+    p = rng.random((n, 3)) - 0.5
+    axis = rng.integers(0, 3, n)
+    p[np.arange(n), axis] = np.sign(p[np.arange(n), axis]) * 0.5
+    p = np.vstack([p, ConvexShape.box(1.0).vertices])
+    p += rng.normal(scale=2e-9, size=p.shape)
+    p = p @ Rotation.random(random_state=seed).as_matrix().T + [3.0, -1.0, 2.0]
+    shape = ConvexShape.from_points(p)
+    assert_valid(shape, p)
+    merged = ConvexShape.from_points(p, tol=1e-6)
+    assert_valid(merged, p)
+    assert merged.num_faces == 6 and merged.num_vertices == 8
+
+
+@pytest.mark.parametrize("tol", [1e-9, 1e-4])
+def test_thin_plate_is_not_flattened(tol):
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(300, 3)) * [1.0, 1.0, 1e-5]
+    shape = ConvexShape.from_points(p, tol=tol)
+    assert_valid(shape, p)
+    assert shape.volume == pytest.approx(ConvexHull(p).volume, rel=1e-2)
+
+
+def test_dense_sphere_cloud_float32():
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(1000, 3))
+    p = (p / np.linalg.norm(p, axis=1, keepdims=True) + 50.0).astype(np.float32).astype(np.float64)
+    for tol in (1e-12, 1e-9, 1e-6):
+        shape = ConvexShape.from_points(p, tol=tol)
+        assert_valid(shape, p)
+
+
 def test_far_from_origin():
     rot = Rotation.from_euler("zyx", [0.4, 0.2, -0.7]).as_matrix()
     box = ConvexShape.box(1.0, 2.0, 3.0)
@@ -511,7 +581,7 @@ def _l_mesh():
     profile = np.array([[-1.0, -0.5], [1.0, -0.5], [1.0, 0.5], [0.0, 0.5], [0.0, 1.5], [-1.0, 1.5]])  # (x, z)
     vertices = np.array([[x, y, z] for y in (-0.5, 0.5) for x, z in profile])
     caps = [(3, 4, 5), (3, 5, 0), (3, 0, 1), (3, 1, 2)]  # fan from the reflex corner
-    faces = [c for c in caps] + [(c[0] + 6, c[2] + 6, c[1] + 6) for c in caps]
+    faces = list(caps) + [(c[0] + 6, c[2] + 6, c[1] + 6) for c in caps]
     for i in range(6):
         j = (i + 1) % 6
         faces += [(i, i + 6, j), (j, i + 6, j + 6)]

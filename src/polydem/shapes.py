@@ -5,20 +5,34 @@ at the centroid and the axes are the principal axes of inertia. Faces are convex
 hull triangles merged into one loop per plane) so that the contact kernels can clip polygons against
 face planes.
 
-Tolerances (all relative to the size ``L`` = bounding-box diagonal of the input points):
+Construction: qhull triangulates the hull; triangles are grouped by plane into
+faces; vertices that are redundant within the tolerance are removed and the hull rebuilt until the
+polygon mesh is consistent; then mass properties (trimesh) give the body frame.
 
-* ``tol`` (default :data:`DEFAULT_TOL` = 1e-9): hull triangles whose three vertices all lie within
-  ``tol * L`` of an existing face plane (and whose normal points the same way) are merged into that
-  face; a hull vertex within ``tol * L`` of the straight line through its neighbours on a face loop
-  (collinear in the middle of an edge), or of another vertex, is removed and the hull rebuilt. The
-  shape moves by at most about ``tol * L``. Double precision roundoff is ~1e-16, so 1e-9 merges
-  only what is coplanar up to roundoff; for float32 sources (binary STL, most scans) pass
-  ``tol=1e-6``, since float32 rounding (~6e-8 relative) leaves nominally flat faces as triangles
-  meeting at angles of ~1e-7 rad that 1e-9 keeps apart.
-* Points are rejected as flat or collinear when the smallest singular value of the centred cloud is
-  below 1e-9 times the largest, or when the hull volume is below 1e-12 * L^3.
-* :attr:`ConvexShape.tolerance` = 4 * tol * L is the absolute distance within which every vertex is
-  guaranteed to lie on its faces' planes and inside all other face planes (checked on construction).
+Tolerances, relative to the size ``L`` = bounding-box diagonal of the input points:
+
+* ``tol`` (default :data:`DEFAULT_TOL` = 1e-9), used as the distance ``tol * L``:
+
+  - triangles whose three vertices all lie within it of a face plane (normals on the same side)
+    join that face; the plane is refitted to the face's triangles (area-weighted normal);
+  - a vertex within it of the straight line through its two neighbours on a face loop (collinear
+    in the middle of an edge), of another vertex, or inside a merged face, is removed;
+  - a triangle thinner than it (a sliver) has its vertex opposite the longest edge removed.
+
+  The shape therefore shrinks by about ``tol * L`` at most. Double precision roundoff is ~1e-16,
+  so 1e-9 merges only what is coplanar up to roundoff. For float32 sources (binary STL, most scans)
+  pass ``tol=1e-6``: float32 rounding (~6e-8 relative) leaves nominally flat faces as triangles at
+  ~1e-7 rad to each other, which 1e-9 keeps apart.
+* ``tol`` is capped at 1e-3 times the thickness ``3 V / S`` (volume over surface area) so that
+  plates and needles are not flattened. If the result fails its consistency checks (possible when
+  ``tol`` is below the roundoff of thin triangles' normals, ~1e-16 L / thickness), ``tol`` is raised
+  tenfold at a time up to 1e-6 (or the cap) and the build repeated.
+* Where triangles near one plane do not cover a single convex polygon (a nearly flat region with
+  noise of about the tolerance), that region keeps qhull's own facets.
+* Points are rejected as collinear or coplanar when the smallest singular value of the centred
+  cloud is below 1e-9 times the largest, and as flat when the hull volume is below 1e-12 * L^3.
+* :attr:`ConvexShape.tolerance` = 4 times the distance tolerance actually used: every vertex is
+  within it of its faces' planes and satisfies ``n . x <= d + tolerance`` for every face.
 """
 
 from __future__ import annotations
@@ -90,8 +104,9 @@ class ConvexShape:
             principal axes expressed in the input frame.
         input_translation: (3,) view of ``t`` in ``input_transform`` [m]: the centroid in the input
             frame.
-        tolerance: float, absolute geometric tolerance [m]: every vertex lies within it of each of
-            its faces' planes and satisfies ``n . x <= d + tolerance`` for every face.
+        tolerance: float, absolute geometric tolerance [m] (4 x the merge distance used, see the
+            module docstring): every vertex lies within it of each of its faces' planes and
+            satisfies ``n . x <= d + tolerance`` for every face.
     """
 
     def __init__(self, points, name: str | None = None, *, tol: float = DEFAULT_TOL):
@@ -647,9 +662,9 @@ def _polygon_hull(points: np.ndarray, dist_tol: float, first_hull: ConvexHull) -
             else:
                 found = _face_loop(pts, tri[members], cross[members], dist_tol)
                 if found is None:
-                    # The triangles near one plane do not tile a single convex polygon: a nearly flat
-                    # region with noise of about dist_tol, where the plane test alone cannot tell
-                    # faces apart. Fall back to qhull's facets there, which always tile correctly.
+                    # The triangles near one plane do not cover a single convex polygon: a nearly
+                    # flat region with noise of about dist_tol, where the plane test alone cannot
+                    # tell faces apart. Fall back to qhull's own facets for these triangles.
                     if facet_of is None:
                         facet_of = np.unique(hull.equations, axis=0, return_inverse=True)[1].ravel()
                     ids = facet_of[members]
