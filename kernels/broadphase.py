@@ -18,16 +18,24 @@ One Warp BVH over the sphere boxes ``x -+ (r + skin/2)``, built as a *grouped* B
 
 Only free bodies query. A free body of class c runs one sphere query (centre x_i, radius
 r_i + skin/2) from the root of each group c, c+1, ..., c_max and of the non-free group, so it never
-walks over the bodies smaller than its own class. Each pair is emitted exactly once:
+walks over the bodies of the classes below its own. Each pair is emitted exactly once:
 
 * free i, non-free j: only i queries (non-free bodies never query);
 * free i, free j of a higher class: only i meets j (j does not look at lower classes);
 * free i, free j of the same class: both meet, the lower index emits.
 
-The work of one thread is thus bounded by the number of bodies of its own size or larger near it;
-a large body (a free boulder, a container wall) does not walk over the thousands of small grains
-around it, which keeps the warps of a GPU balanced whatever the radius ratio. A uniform grid would
-need a cell of the largest diameter (or a hierarchy of grids) for the same result.
+So a large body (a free boulder, a container wall) never walks over the thousands of small grains
+around it, which would stall its warp: the grains find it. A uniform grid would need cells of the
+largest diameter (or a hierarchy of grids) for the same. Query threads run in the Morton order of
+the body centres (sorted at each host build), so that the threads of a warp walk the same part of
+the tree.
+
+Measured on an H200 (random centres at solid fraction 0.3, skin 0.1 r_min; host build / query
+alone): 1M equal spheres 2.7 / 1.1 ms, 4M 8.5 / 4.5 ms; the Morton order halves the query time
+of bodies indexed in random order. For 1M bodies of a 20:1 bimodal mix (equal volumes) the query
+took 0.87 ms with ``class_ratio`` 8 and 2.7 ms with a single class; for radii spread evenly in
+log over 20:1 it took 0.95 ms with ratio 8, 0.91 ms with a single class and 1.1 ms with ratio 4,
+hence the default 8. The sort is a small part (0.2 ms for 1.4M pairs).
 
 Threads append the int64 key ``a * num_bodies + b`` through one atomic counter. Past the capacity
 nothing is written but the counter keeps counting, so the host build knows the true count, grows
@@ -73,10 +81,6 @@ NUM_GROUPS = 17
 # ulp too small could hide a pair that the exact test accepts. Extra candidates of the BVH are
 # harmless, the exact sphere test below decides.
 BOX_PAD = wp.constant(1.0e-5)
-
-# Keys a thread gathers before it reserves their slots with one atomic add.
-EMIT_BATCH = wp.constant(8)
-key_batch = wp.types.vector(length=8, dtype=wp.int64)
 
 # Default capacity in pairs per body (dense packings of equal spheres with a small skin have
 # 6 to 8 candidate pairs per body).
@@ -305,7 +309,6 @@ def query_pairs_kernel(
     capacity: int,
     half_skin: float,
     skin: float,
-    emit_mode: int,
     # State in
     body_order: wp.array(dtype=int),
     body_q: wp.array(dtype=wp.transform),
@@ -342,9 +345,6 @@ def query_pairs_kernel(
     ci = body_group[i]
     query_radius = padded_extent(ri, half_skin, xi)
     last = class_max[0] + 1
-    # Keys wait in a small local batch; one atomic reserves the slots of a whole batch.
-    batch = key_batch()
-    m = int(0)
     for k in range(ci, last + 1):
         g = k
         if k == last:
@@ -360,27 +360,11 @@ def query_pairs_kernel(
                 d = wp.transform_get_translation(body_q[j]) - xi
                 cut = ri + body_radius[j] + skin
                 if wp.dot(d, d) < cut * cut:
-                    if emit_mode == 0:
-                        slot = wp.atomic_add(pair_counter, 0, 1)
-                        if slot < capacity:
-                            pair_key[slot] = make_pair_key(i, j, num_bodies)
-                    elif emit_mode == 1:
-                        m += 1
-                    else:
-                        batch[m] = make_pair_key(i, j, num_bodies)
-                        m += 1
-                        if m == EMIT_BATCH:
-                            base = wp.atomic_add(pair_counter, 0, m)
-                            for t in range(m):
-                                if base + t < capacity:
-                                    pair_key[base + t] = batch[t]
-                            m = 0
-    if m > 0:
-        base = wp.atomic_add(pair_counter, 0, m)
-        if emit_mode == 2:
-            for t in range(m):
-                if base + t < capacity:
-                    pair_key[base + t] = batch[t]
+                    # One atomic per pair: measured on an H200 no slower than batching the keys
+                    # of a thread in local memory (the tree walk dominates).
+                    slot = wp.atomic_add(pair_counter, 0, 1)
+                    if slot < capacity:
+                        pair_key[slot] = make_pair_key(i, j, num_bodies)
 
 
 @wp.kernel(enable_backward=False)
@@ -539,7 +523,7 @@ class BroadPhase:
         device=None,
         skin: float = 0.0,
         capacity: int | None = None,
-        class_ratio: float = 2.0,
+        class_ratio: float = 8.0,
         rotation_term: bool = True,
     ):
         """
@@ -591,7 +575,6 @@ class BroadPhase:
         self.body_order = self._order_buffer[:n]
         self.scene_lower = wp.zeros(3, dtype=float, device=dev)
         self.scene_upper = wp.zeros(3, dtype=float, device=dev)
-        self.emit_mode = 2
         self.bvh = None
         self.built = False
         self.num_pairs = 0
@@ -673,7 +656,6 @@ class BroadPhase:
                 self.capacity,
                 0.5 * self.skin,
                 self.skin,
-                self.emit_mode,
                 self.body_order,
                 body_q,
                 body_radius,
@@ -759,9 +741,9 @@ class BroadPhase:
     def rebuild_on_device(self, body_q, body_radius, body_flags):
         """Rebuild without host synchronisation or allocation (usable in a conditional graph node).
 
-        Needs a previous :meth:`build`, whose tree topology, size classes, flags and capacity it
-        keeps: it refits the tree to the new boxes, queries and sorts the whole capacity with
-        padded keys. The pairs are exact (for the flags of the last host build). When they exceed
+        Needs a previous :meth:`build`, whose tree topology, size classes, flags, query order and
+        capacity it keeps: it refits the tree to the new boxes, queries and sorts the whole
+        capacity with padded keys. The pairs are exact (for the flags of the last host build). When they exceed
         the capacity, ``pair_count`` is clamped, the kept pairs are an arbitrary subset, and the
         sticky ``host_build_needed`` flag is raised; changed flags raise it too.
         """

@@ -93,12 +93,14 @@ def test_uniform_sizes(device):
     check_against_reference(bp, scene, 0.01)
 
 
-def test_mixed_sizes_20x(device):
+@pytest.mark.parametrize("class_ratio", [2.0, 8.0, float("inf")])
+def test_mixed_sizes_20x(device, class_ratio):
     rng = np.random.default_rng(2)
     scene = random_scene(device, 600, rng, 0.01, 0.2, p_fixed=0.1, p_kinematic=0.1)
-    bp = BroadPhase(scene.n, device, skin=0.02)
+    bp = BroadPhase(scene.n, device, skin=0.02, class_ratio=class_ratio)
     bp.build(*scene.args())
-    assert int(bp.class_max.numpy()[0]) >= 4  # a 20x range spans five classes of ratio 2
+    classes = {2.0: 5, 8.0: 2, float("inf"): 1}[class_ratio]  # a 20x range spans this many
+    assert int(bp.class_max.numpy()[0]) == classes - 1
     check_against_reference(bp, scene, 0.02)
 
 

@@ -8,6 +8,7 @@ gradients, computed by clipping the two hulls against each other.
 from polydem.contact import ContactForces, ContactLaw, OverlapResult, contact_forces, overlap
 from polydem.scene import Body, Material, PlaneWall, Scene, SceneError, pair_material
 from polydem.shapes import ConvexShape
+from polydem.simulation import Simulation, SimulationError
 
 __version__ = "0.1.0"
 
@@ -19,6 +20,8 @@ __all__ = [
     "Body",
     "PlaneWall",
     "pair_material",
+    "Simulation",
+    "SimulationError",
     "ContactLaw",
     "ContactForces",
     "OverlapResult",

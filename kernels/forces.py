@@ -1,0 +1,504 @@
+"""Contact forces: energy-model wrenches, hysteretic normal damping, Coulomb friction, walls.
+
+Per candidate pair one thread runs the narrow phase (:mod:`polydem.kernels.narrowphase`) and turns
+the overlap geometry into a wrench:
+
+* elastic: force on A ``-W'(V) S_A``, torque about A's centre ``-W'(V) (M_A - x_A x S_A)``;
+* normal damping from the restitution coefficient e, as hysteresis: while the overlap volume
+  shrinks (dV/dt < 0, computed exactly from S_A, M_A and the velocities) the elastic wrench is
+  scaled by e^2. A collision then returns e^2 of the energy stored while loading, whatever the
+  contact law and the shapes, so the rebound speed is e times the impact speed; the energy lost,
+  (1 - e^2) W'(V) |dV|, is counted as dissipated;
+* friction (only in the kernel variant built with friction): an elastic tangential spring xi
+  carried from step to step for each persisting pair, turned into the current tangent plane
+  (length kept), loaded by the tangential velocity at the contact point and capped at mu times
+  the normal force; it acts at the contact point. Work lost in slip, and the spring energy left
+  when a contact opens, are counted as dissipated.
+
+Forces are written per pair and gathered per body in a fixed order (the pairs' sorted keys), so
+that a run is bit-for-bit repeatable on a device: no floating-point atomics. The gather also adds
+the contacts with the infinite planes (walls), which clip the body by one plane with the same
+energy model.
+
+Layout: the factory :func:`make_contact_kernels` holds the ``@wp.func`` helpers and kernels for
+one contact law and friction setting; the launch functions follow it.
+"""
+
+import functools
+
+import warp as wp
+from polydem.kernels.narrowphase import ENCLOSED_RATIO, make_narrowphase
+
+LAWS = ("linear", "hertz", "power")
+
+
+@functools.cache
+def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int):
+    """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction."""
+    if law not in LAWS:
+        raise ValueError(f"unknown contact law {law!r}")
+    nphase = make_narrowphase(wp.float32, max_poly, max_faces)
+    pair_geometry = nphase.pair_geometry
+    zero3 = wp.constant(wp.vec3(0.0, 0.0, 0.0))
+
+    @wp.func
+    def law_derivative(volume: float, k: float, m: float):
+        # W'(V) [Pa]
+        if wp.static(law == "linear"):
+            return k
+        elif wp.static(law == "hertz"):
+            return k * wp.sqrt(volume)
+        else:
+            return k * wp.pow(volume, m - 1.0)
+
+    @wp.func
+    def law_energy(volume: float, k: float, m: float):
+        # W(V) [J]
+        if wp.static(law == "linear"):
+            return k * volume
+        elif wp.static(law == "hertz"):
+            return (2.0 / 3.0) * k * volume * wp.sqrt(volume)
+        else:
+            return k * wp.pow(volume, m) / m
+
+    @wp.func
+    def respond(
+        volume: float,
+        first_moment: wp.vec3,
+        area: wp.vec3,
+        moment: wp.vec3,
+        r_ab: wp.vec3,
+        v_a: wp.vec3,
+        w_a: wp.vec3,
+        v_b: wp.vec3,
+        w_b: wp.vec3,
+        k: float,
+        m: float,
+        e: float,
+        mu: float,
+        kt: float,
+        xi: wp.vec3,
+        dt: float,
+    ):
+        """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
+
+        ``r_ab`` is x_B - x_A (its direction is the push of an enclosed pair). Returns (force on A,
+        torque on A about x_A, new spring xi, stored energy, energy dissipated this step, unit
+        normal, contact point relative to x_A, normal force magnitude, tangential force).
+        """
+        c = first_moment / volume
+        s = area
+        mom = moment
+        s_norm = wp.length(s)
+        v23 = wp.pow(volume, 2.0 / 3.0)
+        if s_norm < ENCLOSED_RATIO * v23:
+            # One body (nearly) inside the other: the gradient of V vanishes; push along the line
+            # of centres instead (the module docstring of polydem.contact).
+            line = wp.vec3(0.0, 0.0, 1.0)
+            dist = wp.length(r_ab)
+            if dist > 0.0:
+                line = r_ab / dist
+            s = v23 * line
+            mom = wp.cross(c, s)
+            s_norm = v23
+        n = s / s_norm
+        axis = wp.cross(s, mom) / (s_norm * s_norm)
+        point = axis + wp.dot(c - axis, n) * n
+
+        wd = law_derivative(volume, k, m)
+        dvdt = wp.dot(s, v_a - v_b) + wp.dot(mom, w_a) + wp.dot(wp.cross(r_ab, s) - mom, w_b)
+        scale = float(1.0)
+        lost = float(0.0)
+        if dvdt < 0.0:
+            scale = e * e
+            lost = (1.0 - e * e) * wd * (-dvdt) * dt
+        fn = scale * wd * s_norm
+        force = -(scale * wd) * s
+        torque = -(scale * wd) * mom
+        energy = law_energy(volume, k, m)
+        ft = wp.vec3(0.0, 0.0, 0.0)
+        xi_new = wp.vec3(0.0, 0.0, 0.0)
+        if wp.static(friction):
+            v_rel = v_a + wp.cross(w_a, point) - v_b - wp.cross(w_b, point - r_ab)
+            vt = v_rel - wp.dot(v_rel, n) * n
+            # Turn the spring into the current tangent plane, keeping its length.
+            l0 = wp.length(xi)
+            xt = xi - wp.dot(xi, n) * n
+            l1 = wp.length(xt)
+            if l1 > 0.0:
+                xt = xt * (l0 / l1)
+            xt = xt + vt * dt
+            ft = -kt * xt
+            cap = mu * fn
+            ft_norm = wp.length(ft)
+            if ft_norm > cap:
+                ft = ft * (cap / ft_norm)
+                xi_new = ft * (-1.0 / kt)
+                lost += cap * (wp.length(xt) - wp.length(xi_new))
+            else:
+                xi_new = xt
+            energy += 0.5 * kt * wp.dot(xi_new, xi_new)
+            force += ft
+            torque += wp.cross(point, ft)
+        return force, torque, xi_new, energy, lost, n, point, fn, ft
+
+    @wp.func
+    def fan_add(first: wp.vec3, prev: wp.vec3, cur: wp.vec3, count: int, nf: wp.vec3, area: float, area_c: wp.vec3):
+        # Adds the fan triangle (first, prev, cur) of a polygon streamed vertex by vertex.
+        if count >= 2:
+            a2 = wp.dot(wp.cross(prev - first, cur - first), nf)
+            area += 0.5 * a2
+            area_c += (a2 / 6.0) * (first + prev + cur)
+        return area, area_c
+
+    @wp.func
+    def plane_geometry(
+        # Shapes
+        shape_radius: wp.array(dtype=float),
+        shape_face_start: wp.array(dtype=int),
+        face_plane: wp.array(dtype=wp.vec4),
+        face_loop_start: wp.array(dtype=int),
+        face_loop: wp.array(dtype=int),
+        vert: wp.array(dtype=wp.vec3),
+        # Body and wall
+        s: int,
+        xa: wp.transform,
+        normal: wp.vec3,
+        offset: float,
+    ):
+        """Overlap of shape ``s`` at pose ``xa`` with the half-space n.x <= offset (the wall).
+
+        Returns (V, V * centroid, S_A, M_A about x_A), positions relative to x_A, world axes.
+        """
+        q = wp.transform_get_rotation(xa)
+        dd = offset - wp.dot(normal, wp.transform_get_translation(xa))
+        if dd <= -shape_radius[s]:
+            return 0.0, zero3, zero3, zero3
+        nb = wp.quat_rotate_inv(q, normal)
+        origin = dd * nb  # on the plane, so the cap facet's cone is flat and adds nothing
+        vol = float(0.0)
+        vol_c = wp.vec3(0.0, 0.0, 0.0)
+        s_a = wp.vec3(0.0, 0.0, 0.0)
+        m_a = wp.vec3(0.0, 0.0, 0.0)
+        for f in range(shape_face_start[s], shape_face_start[s + 1]):
+            pl = face_plane[f]
+            nf = wp.vec3(pl[0], pl[1], pl[2])
+            begin = face_loop_start[f]
+            count = face_loop_start[f + 1] - begin
+            area = float(0.0)
+            area_c = wp.vec3(0.0, 0.0, 0.0)
+            emitted = int(0)
+            first = wp.vec3(0.0, 0.0, 0.0)
+            prev = wp.vec3(0.0, 0.0, 0.0)
+            vp = vert[face_loop[begin + count - 1]]
+            sp = wp.dot(nb, vp) - dd
+            for k in range(count):
+                v = vert[face_loop[begin + k]]
+                sv = wp.dot(nb, v) - dd
+                if (sv <= 0.0) != (sp <= 0.0):
+                    cut = vp + (sp / (sp - sv)) * (v - vp)
+                    area, area_c = fan_add(first, prev, cut, emitted, nf, area, area_c)
+                    if emitted == 0:
+                        first = cut
+                    prev = cut
+                    emitted += 1
+                if sv <= 0.0:
+                    area, area_c = fan_add(first, prev, v, emitted, nf, area, area_c)
+                    if emitted == 0:
+                        first = v
+                    prev = v
+                    emitted += 1
+                vp = v
+                sp = sv
+            if emitted >= 3:
+                s_a += area * nf
+                m_a += wp.cross(area_c, nf)
+                h = pl[3] - wp.dot(nf, origin)
+                vol += area * h / 3.0
+                vol_c += (h / 3.0) * (0.25 * area * origin + 0.75 * area_c)
+        return vol, wp.quat_rotate(q, vol_c), wp.quat_rotate(q, s_a), wp.quat_rotate(q, m_a)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def pair_contact_kernel(
+        # Shapes
+        shape_vert_start: wp.array(dtype=int),
+        shape_face_start: wp.array(dtype=int),
+        shape_radius: wp.array(dtype=float),
+        face_plane: wp.array(dtype=wp.vec4),
+        face_sphere: wp.array(dtype=wp.vec4),
+        face_loop_start: wp.array(dtype=int),
+        face_loop: wp.array(dtype=int),
+        vert: wp.array(dtype=wp.vec3),
+        # Model
+        body_shape: wp.array(dtype=int),
+        body_material: wp.array(dtype=int),
+        num_materials: int,
+        material_k: wp.array(dtype=float),
+        material_e: wp.array(dtype=float),
+        material_mu: wp.array(dtype=float),
+        material_kt: wp.array(dtype=float),
+        law_m: float,
+        dt: float,
+        # State in
+        body_q: wp.array(dtype=wp.transform),
+        body_v: wp.array(dtype=wp.vec3),
+        body_w: wp.array(dtype=wp.vec3),
+        pair_a: wp.array(dtype=int),
+        pair_b: wp.array(dtype=int),
+        pair_count: wp.array(dtype=int),
+        # State in/out
+        pair_xi: wp.array(dtype=wp.vec3),
+        # Out
+        pair_force: wp.array(dtype=wp.vec3),
+        pair_torque_a: wp.array(dtype=wp.vec3),
+        pair_torque_b: wp.array(dtype=wp.vec3),
+        pair_volume: wp.array(dtype=float),
+        pair_energy: wp.array(dtype=float),
+        pair_dissipated: wp.array(dtype=float),
+        pair_normal: wp.array(dtype=wp.vec3),
+        pair_point: wp.array(dtype=wp.vec3),
+        pair_fn: wp.array(dtype=float),
+        pair_ft: wp.array(dtype=wp.vec3),
+        overflow: wp.array(dtype=int),
+    ):
+        p = wp.tid()
+        if p >= pair_count[0]:
+            return
+        a = pair_a[p]
+        b = pair_b[p]
+        xa = body_q[a]
+        xb = body_q[b]
+        vol, first_moment, s_a, m_a, s_b, m_b, of = pair_geometry(
+            shape_vert_start, shape_face_start, shape_radius, face_plane, face_sphere, face_loop_start, face_loop,
+            vert, body_shape[a], body_shape[b], xa, xb,
+        )  # fmt: skip
+        if of != 0:
+            wp.atomic_max(overflow, 0, 1)
+        mat = body_material[a] * num_materials + body_material[b]
+        if vol <= 0.0:
+            xi = pair_xi[p]
+            lost = float(0.0)
+            if wp.static(friction):
+                lost = 0.5 * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
+            pair_xi[p] = zero3
+            pair_force[p] = zero3
+            pair_torque_a[p] = zero3
+            pair_torque_b[p] = zero3
+            pair_volume[p] = 0.0
+            pair_energy[p] = 0.0
+            pair_dissipated[p] = lost
+            pair_fn[p] = 0.0
+            pair_ft[p] = zero3
+            return
+        r_ab = wp.transform_get_translation(xb) - wp.transform_get_translation(xa)
+        force, torque, xi, energy, lost, n, point, fn, ft = respond(
+            vol, first_moment, s_a, m_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
+            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], pair_xi[p], dt,
+        )  # fmt: skip
+        pair_xi[p] = xi
+        pair_force[p] = force
+        pair_torque_a[p] = torque
+        pair_torque_b[p] = wp.cross(r_ab, force) - torque
+        pair_volume[p] = vol
+        pair_energy[p] = energy
+        pair_dissipated[p] = lost
+        pair_normal[p] = n
+        pair_point[p] = point + wp.transform_get_translation(xa)
+        pair_fn[p] = fn
+        pair_ft[p] = ft
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def gather_kernel(
+        # Shapes
+        shape_radius: wp.array(dtype=float),
+        shape_face_start: wp.array(dtype=int),
+        face_plane: wp.array(dtype=wp.vec4),
+        face_loop_start: wp.array(dtype=int),
+        face_loop: wp.array(dtype=int),
+        vert: wp.array(dtype=wp.vec3),
+        # Model
+        body_shape: wp.array(dtype=int),
+        body_material: wp.array(dtype=int),
+        body_flags: wp.array(dtype=int),
+        num_materials: int,
+        material_k: wp.array(dtype=float),
+        material_e: wp.array(dtype=float),
+        material_mu: wp.array(dtype=float),
+        material_kt: wp.array(dtype=float),
+        law_m: float,
+        dt: float,
+        plane_normal: wp.array(dtype=wp.vec3),
+        plane_offset: wp.array(dtype=float),
+        plane_material: wp.array(dtype=int),
+        # State in
+        body_q: wp.array(dtype=wp.transform),
+        body_v: wp.array(dtype=wp.vec3),
+        body_w: wp.array(dtype=wp.vec3),
+        body_pairs_a: wp.array(dtype=wp.vec2i),
+        body_pairs_b: wp.array(dtype=wp.vec2i),
+        pair_by_b: wp.array(dtype=int),
+        pair_force: wp.array(dtype=wp.vec3),
+        pair_torque_a: wp.array(dtype=wp.vec3),
+        pair_torque_b: wp.array(dtype=wp.vec3),
+        pair_dissipated: wp.array(dtype=float),
+        # State in/out
+        plane_xi: wp.array2d(dtype=wp.vec3),
+        body_dissipated: wp.array(dtype=float),
+        # Out
+        body_f: wp.array(dtype=wp.vec3),
+        body_t: wp.array(dtype=wp.vec3),
+        plane_volume: wp.array2d(dtype=float),
+        plane_energy: wp.array2d(dtype=float),
+        plane_fn: wp.array2d(dtype=float),
+        plane_point: wp.array2d(dtype=wp.vec3),
+        plane_ft: wp.array2d(dtype=wp.vec3),
+    ):
+        i = wp.tid()
+        f = wp.vec3(0.0, 0.0, 0.0)
+        t = wp.vec3(0.0, 0.0, 0.0)
+        lost = float(0.0)
+        ra = body_pairs_a[i]
+        for p in range(ra[0], ra[1]):
+            f += pair_force[p]
+            t += pair_torque_a[p]
+            lost += 0.5 * pair_dissipated[p]
+        rb = body_pairs_b[i]
+        for k in range(rb[0], rb[1]):
+            p = pair_by_b[k]
+            f -= pair_force[p]
+            t += pair_torque_b[p]
+            lost += 0.5 * pair_dissipated[p]
+        if body_flags[i] == 0:
+            xa = body_q[i]
+            s = body_shape[i]
+            for j in range(plane_normal.shape[0]):
+                pn = plane_normal[j]
+                vol, first_moment, s_a, m_a = plane_geometry(
+                    shape_radius, shape_face_start, face_plane, face_loop_start, face_loop, vert, s, xa, pn,
+                    plane_offset[j],
+                )  # fmt: skip
+                mat = body_material[i] * num_materials + plane_material[j]
+                if vol <= 0.0:
+                    if wp.static(friction):
+                        xi = plane_xi[i, j]
+                        lost += 0.5 * material_kt[mat] * wp.dot(xi, xi)
+                        plane_xi[i, j] = zero3
+                    plane_volume[i, j] = 0.0
+                    plane_energy[i, j] = 0.0
+                    plane_fn[i, j] = 0.0
+                    continue
+                force, torque, xi, energy, dl, n, point, fn, ft = respond(
+                    vol, first_moment, s_a, m_a, -pn, body_v[i], body_w[i], zero3, zero3,
+                    material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], plane_xi[i, j], dt,
+                )  # fmt: skip
+                plane_xi[i, j] = xi
+                f += force
+                t += torque
+                lost += dl
+                plane_volume[i, j] = vol
+                plane_energy[i, j] = energy
+                plane_fn[i, j] = fn
+                plane_point[i, j] = point + wp.transform_get_translation(xa)
+                plane_ft[i, j] = ft
+        body_f[i] = f
+        body_t[i] = t
+        body_dissipated[i] = body_dissipated[i] + lost
+
+    class ContactKernels:
+        pass
+
+    ns = ContactKernels()
+    ns.law = law
+    ns.friction = friction
+    ns.narrowphase = nphase
+    ns.respond = respond
+    ns.plane_geometry = plane_geometry
+    ns.pair_contact_kernel = pair_contact_kernel
+    ns.gather_kernel = gather_kernel
+    return ns
+
+
+# ---------------------------------------------------------------------------------------------
+# Pair bookkeeping at a broad-phase rebuild (no floating point: deterministic by construction)
+
+
+@wp.func
+def lower_bound(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
+    lo = int(0)
+    hi = count
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.kernel(enable_backward=False)
+def b_keys_kernel(
+    # Model
+    num_bodies: int,
+    sentinel: wp.int64,
+    # State in
+    pair_a: wp.array(dtype=int),
+    pair_b: wp.array(dtype=int),
+    pair_count: wp.array(dtype=int),
+    # Out
+    keys_b: wp.array(dtype=wp.int64),
+    pair_by_b: wp.array(dtype=int),
+):
+    """Keys ``b * N + a`` (sentinel past the count) with the pair index, to sort by the B body."""
+    p = wp.tid()
+    if p < pair_count[0]:
+        keys_b[p] = wp.int64(pair_b[p]) * wp.int64(num_bodies) + wp.int64(pair_a[p])
+    else:
+        keys_b[p] = sentinel
+    pair_by_b[p] = p
+
+
+@wp.kernel(enable_backward=False)
+def body_ranges_kernel(
+    # Model
+    num_bodies: int,
+    # State in
+    pair_key: wp.array(dtype=wp.int64),
+    keys_b: wp.array(dtype=wp.int64),
+    pair_count: wp.array(dtype=int),
+    # Out
+    body_pairs_a: wp.array(dtype=wp.vec2i),
+    body_pairs_b: wp.array(dtype=wp.vec2i),
+):
+    """Each body's ranges in the pairs sorted by (a, b) and in those sorted by (b, a)."""
+    i = wp.tid()
+    count = pair_count[0]
+    n = wp.int64(num_bodies)
+    lo = wp.int64(i) * n
+    hi = lo + n
+    body_pairs_a[i] = wp.vec2i(lower_bound(pair_key, count, lo), lower_bound(pair_key, count, hi))
+    body_pairs_b[i] = wp.vec2i(lower_bound(keys_b, count, lo), lower_bound(keys_b, count, hi))
+
+
+@wp.kernel(enable_backward=False)
+def remap_history_kernel(
+    # State in
+    old_key: wp.array(dtype=wp.int64),
+    old_count: wp.array(dtype=int),
+    old_xi: wp.array(dtype=wp.vec3),
+    new_key: wp.array(dtype=wp.int64),
+    new_count: wp.array(dtype=int),
+    # Out
+    new_xi: wp.array(dtype=wp.vec3),
+):
+    """Carries each pair's friction spring over a rebuild, matched by the pair's key."""
+    p = wp.tid()
+    if p >= new_count[0]:
+        new_xi[p] = wp.vec3(0.0, 0.0, 0.0)
+        return
+    key = new_key[p]
+    count = old_count[0]
+    j = lower_bound(old_key, count, key)
+    if j < count and old_key[j] == key:
+        new_xi[p] = old_xi[j]
+    else:
+        new_xi[p] = wp.vec3(0.0, 0.0, 0.0)

@@ -1,0 +1,146 @@
+"""Model: the static device arrays of a simulation, built once from a validated Scene."""
+
+import numpy as np
+import warp as wp
+
+from polydem.scene import SceneError
+from polydem.shapeset import ShapeSet
+
+# The time step resolves a contact oscillation at the reference overlap (1% of a body's size,
+# over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
+# fast (it is unstable past 1/pi of it).
+STEPS_PER_CONTACT_PERIOD = 50
+MAX_DT_FRACTION = 1.0 / 8.0
+REFERENCE_DEPTH = 0.01
+
+
+def reference_stiffness(law, k, exponent, volume):
+    """Secant normal stiffness [N/m] of a face contact of area V^(2/3) at 1% of the size V^(1/3).
+
+    With W'(V) the law, a face of area A pressed to depth d gives V = A d and a force W'(A d) A;
+    the secant stiffness is that force over d.
+    """
+    area = volume ** (2.0 / 3.0)
+    depth = REFERENCE_DEPTH * volume ** (1.0 / 3.0)
+    v = area * depth
+    if law == "linear":
+        dw = k
+    elif law == "hertz":
+        dw = k * np.sqrt(v)
+    else:
+        dw = k * v ** (exponent - 1.0)
+    return dw * area / depth
+
+
+class Model:
+    """Static device arrays of a simulation (float32), from a :class:`~polydem.Scene`.
+
+    Attributes:
+        shapes: :class:`~polydem.shapeset.ShapeSet` of the scene's shapes (``shape_*``, ``face_*``).
+        body_shape: (N,) int32 shape index.
+        body_material: (N,) int32 material index.
+        body_flags: (N,) int32: 0 free, 1 fixed, 2 kinematic.
+        body_mass: (N,) float32 mass [kg] (numpy, host).
+        body_inv_mass: (N,) float32 inverse mass [1/kg], 0 for fixed and kinematic bodies.
+        body_inertia: (N,) vec3 principal moments of inertia [kg m^2].
+        body_radius: (N,) float32 bounding radius about the centre [m].
+        material_k, material_e, material_mu, material_kt: (M*M,) float32 mixed pair properties,
+            row-major by (material of A, material of B): stiffness (units of the law),
+            restitution, friction coefficient, tangential stiffness [N/m].
+        law: "linear", "hertz" or "power"; law_m: its exponent m (W = k V^m / m).
+        plane_normal: (P,) vec3 outward unit normals of the walls; plane_offset: (P,) float32 [m]
+            (the wall is n.x <= offset); plane_material: (P,) int32.
+        gravity: (3,) [m/s^2]; dt: time step [s]; dt_limit: largest accurate step [s].
+    """
+
+    def __init__(self, scene, device=None):
+        scene.validate()
+        self.device = wp.get_device(device)
+        dev = self.device
+        self.scene = scene
+        names = scene.shape_names
+        shape_list = [scene.shapes[n] for n in names]
+        self.shapes = ShapeSet(shape_list, device=dev, precision="float32")
+        self.num_bodies = n = scene.num_bodies
+        self.num_materials = len(scene.material_names)
+
+        body_shape = np.asarray(scene.body_shape, dtype=np.int32)
+        kind = np.asarray(scene.body_kind, dtype=np.int32)
+        mass = np.asarray(scene.body_mass(), dtype=np.float64)
+        inertia = np.asarray(scene.body_inertia(), dtype=np.float64)
+        radius = np.array([s.radius for s in shape_list])[body_shape]
+        free = kind == 0
+        self.body_mass = mass.astype(np.float32)
+        self.body_flags_np = kind
+        inv_mass = np.where(free, 1.0 / np.maximum(mass, 1e-300), 0.0)
+
+        table = scene.pair_table()
+        self.law = table["law"]
+        self.law_m = float(table["exponent"])
+        k = np.asarray(table["k"], dtype=np.float64)
+        kt = np.asarray(table["tangential_stiffness"], dtype=np.float64)
+
+        # The lightest free body and the stiffest pair set the time step and default spring.
+        if free.any():
+            light = int(np.argmin(np.where(free, mass, np.inf)))
+            m_min = mass[light]
+            v_ref = shape_list[body_shape[light]].volume
+        else:
+            m_min = mass.min()
+            v_ref = min(s.volume for s in shape_list)
+        k_n = reference_stiffness(self.law, k, self.law_m, v_ref)
+        kt = np.where(np.isnan(kt), k_n, kt)
+        stiffest = max(float(np.max(k_n)), float(np.max(kt)))
+        period = 2.0 * np.pi * np.sqrt(m_min / stiffest)
+        self.dt_recommended = period / STEPS_PER_CONTACT_PERIOD
+        self.dt_limit = period * MAX_DT_FRACTION
+        if scene.dt == "auto":
+            self.dt = self.dt_recommended
+        else:
+            self.dt = float(scene.dt)
+            if self.dt > self.dt_limit:
+                raise SceneError(
+                    f"time step {self.dt:.3g} s is above the stable limit {self.dt_limit:.3g} s for the stiffest "
+                    f"contact and the lightest body (recommended {self.dt_recommended:.3g} s); "
+                    'use dt = "auto" or a smaller value',
+                    key="simulation.dt",
+                    file=getattr(scene, "file", None),
+                )
+        self.gravity = np.asarray(scene.gravity, dtype=np.float64)
+        self.friction = bool(np.any(np.asarray(table["friction"]) > 0.0))
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=dev)
+
+        self.body_shape = arr(body_shape, int)
+        self.body_material = arr(np.asarray(scene.body_material, dtype=np.int32), int)
+        self.body_flags = arr(kind, int)
+        self.body_inv_mass = arr(inv_mass.astype(np.float32), float)
+        self.body_inertia = arr(inertia.astype(np.float32), wp.vec3)
+        self.body_radius = arr(radius.astype(np.float32), float)
+        self.material_k = arr(k.astype(np.float32).ravel(), float)
+        self.material_e = arr(np.asarray(table["restitution"], dtype=np.float32).ravel(), float)
+        self.material_mu = arr(np.asarray(table["friction"], dtype=np.float32).ravel(), float)
+        self.material_kt = arr(kt.astype(np.float32).ravel(), float)
+
+        planes = scene.planes
+        mat_index = {name: i for i, name in enumerate(scene.material_names)}
+        normals = np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3)
+        offsets = np.array([np.dot(p.normal, p.point) for p in planes], dtype=np.float64)
+        self.num_planes = len(planes)
+        self.plane_normal = arr(normals.astype(np.float32), wp.vec3)
+        self.plane_offset = arr(offsets.astype(np.float32), float)
+        self.plane_material = arr(np.array([mat_index[p.material] for p in planes], dtype=np.int32), int)
+        self.bytes = sum(
+            a.capacity
+            for a in (
+                self.body_shape,
+                self.body_material,
+                self.body_flags,
+                self.body_inv_mass,
+                self.body_inertia,
+                self.body_radius,
+            )
+        )
+        if n == 0:
+            raise SceneError("the scene has no bodies", key="bodies")
