@@ -1,0 +1,5 @@
+import sys
+
+from polydem.cli import main
+
+sys.exit(main())
