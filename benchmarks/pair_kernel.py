@@ -80,14 +80,14 @@ def make_pairs(shape, n, depth, rng, device):
     return pa, np.hstack([u * (hi + gap)[:, None], qb])
 
 
-def time_kernel(shapes, poses_a, poses_b, repeats):
+def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=None, block_dim=256):
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
     np_scalar = np.float32 if scalar == wp.float32 else np.float64
     vec3 = wp.types.vector(3, scalar)
     tf = wp.types.transformation(scalar)
-    ns = make_narrowphase(scalar, shapes.default_poly_capacity, shapes.max_faces)
+    ns = make_narrowphase(scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=max_registers)
     args = [
         *shapes.kernel_args(),
         wp.zeros(n, dtype=int, device=dev),
@@ -97,12 +97,13 @@ def time_kernel(shapes, poses_a, poses_b, repeats):
     ]
     outs = [wp.zeros(n, dtype=scalar, device=dev)] + [wp.zeros(n, dtype=vec3, device=dev) for _ in range(5)]
     overflow = wp.zeros(1, dtype=int, device=dev)
-    wp.launch(ns.overlap_kernel, dim=n, inputs=args, outputs=[*outs, overflow], device=dev)  # compile, warm
+    launch = {"dim": n, "inputs": args, "outputs": [*outs, overflow], "device": dev, "block_dim": block_dim}
+    wp.launch(ns.overlap_kernel, **launch)  # compile, warm
     wp.synchronize_device(dev)
     times = [0.0]
     for _ in range(repeats):
         t0 = time.perf_counter()
-        wp.launch(ns.overlap_kernel, dim=n, inputs=args, outputs=[*outs, overflow], device=dev)
+        wp.launch(ns.overlap_kernel, **launch)
         wp.synchronize_device(dev)
         times.append(time.perf_counter() - t0)
     if int(overflow.numpy()[0]):

@@ -145,6 +145,8 @@ def make_narrowphase(
         cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
         for j in range(num_planes):
             pl = planes[j]
+            if not face_is_a:
+                pl = face_plane[plane_ids[j]]  # A's own planes are read where they are
             n = vec3(pl[0], pl[1], pl[2])
             d = pl[3]
             dist = wp.dot(n, centre) - d
@@ -284,7 +286,6 @@ def make_narrowphase(
         # cancel and V and its centroid keep their precision for shallow overlaps.
         tau_a = scalar(1.0)
         tau_b = scalar(0.0)
-        planes_a = planes_t()
         ids_a = ids_t()
         num_a = int(0)
         for f in range(fa0, fa1):
@@ -313,7 +314,6 @@ def make_narrowphase(
             uc = wp.dot(u, c)
             if uc + sph[3] < lo or uc - sph[3] > hi or wp.length_sq(c - pos) > (sph[3] + rb) * (sph[3] + rb):
                 continue
-            planes_a[num_a] = pl
             ids_a[num_a] = f
             num_a += 1
         planes_b = planes_t()
@@ -363,7 +363,7 @@ def make_narrowphase(
                 face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
             )  # fmt: skip
             overflow = overflow | of
-            pl = planes_a[j]
+            pl = face_plane[ids_a[j]]
             dv, dv_c = cone(area, area_c, pl, origin)
             n = vec3(pl[0], pl[1], pl[2])
             s_a += area * n
@@ -372,7 +372,7 @@ def make_narrowphase(
             vol_c += dv_c
         for j in range(num_b):
             area, area_c, of = clip_face(
-                ids_b[j], False, planes_a, ids_a, num_a,
+                ids_b[j], False, planes_b, ids_a, num_a,
                 face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
             )  # fmt: skip
             overflow = overflow | of
