@@ -33,8 +33,11 @@ LAWS = ("linear", "hertz", "power")
 
 
 @functools.cache
-def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int):
-    """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction."""
+def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int, diagnostics: bool = False):
+    """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
+
+    ``diagnostics`` builds the variant that reports contacts and energies without stepping.
+    """
     if law not in LAWS:
         raise ValueError(f"unknown contact law {law!r}")
     nphase = make_narrowphase(wp.float32, max_poly, max_faces)
@@ -248,19 +251,22 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         pair_count: wp.array(dtype=int),
         # State in/out
         pair_xi: wp.array(dtype=wp.vec3),
-        # Out
+        # Out (step)
         pair_force: wp.array(dtype=wp.vec3),
         pair_torque_a: wp.array(dtype=wp.vec3),
-        pair_torque_b: wp.array(dtype=wp.vec3),
+        pair_dissipated: wp.array(dtype=float),
+        overflow: wp.array(dtype=int),
+        # Out (diagnostics)
         pair_volume: wp.array(dtype=float),
         pair_energy: wp.array(dtype=float),
-        pair_dissipated: wp.array(dtype=float),
         pair_normal: wp.array(dtype=wp.vec3),
         pair_point: wp.array(dtype=wp.vec3),
         pair_fn: wp.array(dtype=float),
         pair_ft: wp.array(dtype=wp.vec3),
-        overflow: wp.array(dtype=int),
     ):
+        """The step variant writes the wrench on A, the spring and the energy dissipated; the
+        diagnostics variant (run on request only) writes what contacts() and energy() report,
+        at the current state, and changes nothing."""
         p = wp.tid()
         if p >= pair_count[0]:
             return
@@ -276,36 +282,45 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             wp.atomic_max(overflow, 0, 1)
         mat = body_material[a] * num_materials + body_material[b]
         if vol <= 0.0:
-            xi = pair_xi[p]
-            lost = float(0.0)
-            if wp.static(friction):
-                lost = 0.5 * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
-            pair_xi[p] = zero3
-            pair_force[p] = zero3
-            pair_torque_a[p] = zero3
-            pair_torque_b[p] = zero3
-            pair_volume[p] = 0.0
-            pair_energy[p] = 0.0
-            pair_dissipated[p] = lost
-            pair_fn[p] = 0.0
-            pair_ft[p] = zero3
+            if wp.static(diagnostics):
+                pair_volume[p] = 0.0
+                pair_energy[p] = 0.0
+                pair_fn[p] = 0.0
+                pair_ft[p] = zero3
+            else:
+                lost = float(0.0)
+                if wp.static(friction):
+                    xi = pair_xi[p]
+                    lost = 0.5 * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
+                    pair_xi[p] = zero3
+                pair_force[p] = zero3
+                pair_torque_a[p] = zero3
+                pair_dissipated[p] = lost
             return
         r_ab = wp.transform_get_translation(xb) - wp.transform_get_translation(xa)
+        step = dt
+        if wp.static(diagnostics):
+            step = 0.0
+        xi_in = zero3
+        if wp.static(friction):
+            xi_in = pair_xi[p]
         force, torque, xi, energy, lost, n, point, fn, ft = respond(
             vol, first_moment, s_a, m_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
-            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], pair_xi[p], dt,
+            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, step,
         )  # fmt: skip
-        pair_xi[p] = xi
-        pair_force[p] = force
-        pair_torque_a[p] = torque
-        pair_torque_b[p] = wp.cross(r_ab, force) - torque
-        pair_volume[p] = vol
-        pair_energy[p] = energy
-        pair_dissipated[p] = lost
-        pair_normal[p] = n
-        pair_point[p] = point + wp.transform_get_translation(xa)
-        pair_fn[p] = fn
-        pair_ft[p] = ft
+        if wp.static(diagnostics):
+            pair_volume[p] = vol
+            pair_energy[p] = energy
+            pair_normal[p] = n
+            pair_point[p] = point + wp.transform_get_translation(xa)
+            pair_fn[p] = fn
+            pair_ft[p] = ft
+        else:
+            if wp.static(friction):
+                pair_xi[p] = xi
+            pair_force[p] = force
+            pair_torque_a[p] = torque
+            pair_dissipated[p] = lost
 
     @wp.kernel(enable_backward=False, module="unique")
     def gather_kernel(
@@ -334,40 +349,47 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         body_q: wp.array(dtype=wp.transform),
         body_v: wp.array(dtype=wp.vec3),
         body_w: wp.array(dtype=wp.vec3),
+        pair_a: wp.array(dtype=int),
         body_pairs_a: wp.array(dtype=wp.vec2i),
         body_pairs_b: wp.array(dtype=wp.vec2i),
         pair_by_b: wp.array(dtype=int),
         pair_force: wp.array(dtype=wp.vec3),
         pair_torque_a: wp.array(dtype=wp.vec3),
-        pair_torque_b: wp.array(dtype=wp.vec3),
         pair_dissipated: wp.array(dtype=float),
         # State in/out
         plane_xi: wp.array2d(dtype=wp.vec3),
         body_dissipated: wp.array(dtype=float),
-        # Out
+        # Out (step)
         body_f: wp.array(dtype=wp.vec3),
         body_t: wp.array(dtype=wp.vec3),
+        # Out (diagnostics)
         plane_volume: wp.array2d(dtype=float),
         plane_energy: wp.array2d(dtype=float),
         plane_fn: wp.array2d(dtype=float),
         plane_point: wp.array2d(dtype=wp.vec3),
         plane_ft: wp.array2d(dtype=wp.vec3),
     ):
+        """Sums each body's pair wrenches in key order and adds its wall contacts (step variant);
+        the diagnostics variant only reports the wall contacts."""
         i = wp.tid()
         f = wp.vec3(0.0, 0.0, 0.0)
         t = wp.vec3(0.0, 0.0, 0.0)
         lost = float(0.0)
-        ra = body_pairs_a[i]
-        for p in range(ra[0], ra[1]):
-            f += pair_force[p]
-            t += pair_torque_a[p]
-            lost += 0.5 * pair_dissipated[p]
-        rb = body_pairs_b[i]
-        for k in range(rb[0], rb[1]):
-            p = pair_by_b[k]
-            f -= pair_force[p]
-            t += pair_torque_b[p]
-            lost += 0.5 * pair_dissipated[p]
+        xi_pos = wp.transform_get_translation(body_q[i])
+        if wp.static(not diagnostics):
+            ra = body_pairs_a[i]
+            for p in range(ra[0], ra[1]):
+                f += pair_force[p]
+                t += pair_torque_a[p]
+                lost += 0.5 * pair_dissipated[p]
+            rb = body_pairs_b[i]
+            for k in range(rb[0], rb[1]):
+                p = pair_by_b[k]
+                fa = pair_force[p]
+                r_ab = xi_pos - wp.transform_get_translation(body_q[pair_a[p]])
+                f -= fa
+                t += wp.cross(r_ab, fa) - pair_torque_a[p]
+                lost += 0.5 * pair_dissipated[p]
         if body_flags[i] == 0:
             xa = body_q[i]
             s = body_shape[i]
@@ -379,30 +401,42 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                 )  # fmt: skip
                 mat = body_material[i] * num_materials + plane_material[j]
                 if vol <= 0.0:
-                    if wp.static(friction):
+                    if wp.static(diagnostics):
+                        plane_volume[i, j] = 0.0
+                        plane_energy[i, j] = 0.0
+                        plane_fn[i, j] = 0.0
+                        plane_ft[i, j] = zero3
+                    elif wp.static(friction):
                         xi = plane_xi[i, j]
                         lost += 0.5 * material_kt[mat] * wp.dot(xi, xi)
                         plane_xi[i, j] = zero3
-                    plane_volume[i, j] = 0.0
-                    plane_energy[i, j] = 0.0
-                    plane_fn[i, j] = 0.0
                     continue
+                step = dt
+                if wp.static(diagnostics):
+                    step = 0.0
+                xi_in = zero3
+                if wp.static(friction):
+                    xi_in = plane_xi[i, j]
                 force, torque, xi, energy, dl, n, point, fn, ft = respond(
                     vol, first_moment, s_a, m_a, -pn, body_v[i], body_w[i], zero3, zero3,
-                    material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], plane_xi[i, j], dt,
+                    material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, step,
                 )  # fmt: skip
-                plane_xi[i, j] = xi
-                f += force
-                t += torque
-                lost += dl
-                plane_volume[i, j] = vol
-                plane_energy[i, j] = energy
-                plane_fn[i, j] = fn
-                plane_point[i, j] = point + wp.transform_get_translation(xa)
-                plane_ft[i, j] = ft
-        body_f[i] = f
-        body_t[i] = t
-        body_dissipated[i] = body_dissipated[i] + lost
+                if wp.static(diagnostics):
+                    plane_volume[i, j] = vol
+                    plane_energy[i, j] = energy
+                    plane_fn[i, j] = fn
+                    plane_point[i, j] = point + xi_pos
+                    plane_ft[i, j] = ft
+                else:
+                    if wp.static(friction):
+                        plane_xi[i, j] = xi
+                    f += force
+                    t += torque
+                    lost += dl
+        if wp.static(not diagnostics):
+            body_f[i] = f
+            body_t[i] = t
+            body_dissipated[i] = body_dissipated[i] + lost
 
     class ContactKernels:
         pass

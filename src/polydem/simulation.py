@@ -89,13 +89,10 @@ class Simulation:
         self.body_f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.body_t = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.body_dissipated = wp.zeros(n, dtype=float, device=dev)
-        p = max(model.num_planes, 1)
-        self.plane_xi = wp.zeros((n, p), dtype=wp.vec3, device=dev)
-        self.plane_volume = wp.zeros((n, p), dtype=float, device=dev)
-        self.plane_energy = wp.zeros((n, p), dtype=float, device=dev)
-        self.plane_fn = wp.zeros((n, p), dtype=float, device=dev)
-        self.plane_point = wp.zeros((n, p), dtype=wp.vec3, device=dev)
-        self.plane_ft = wp.zeros((n, p), dtype=wp.vec3, device=dev)
+        # Friction springs of the wall contacts (a placeholder when the scene has no friction).
+        shape = (n, max(model.num_planes, 1)) if model.friction else (1, 1)
+        self.plane_xi = wp.zeros(shape, dtype=wp.vec3, device=dev)
+        self._diag = None
         self.step_count = wp.zeros(1, dtype=int, device=dev)
         self.bad_step = wp.full(1, 2**31 - 1, dtype=int, device=dev)
         self.poly_overflow = wp.zeros(1, dtype=int, device=dev)
@@ -123,22 +120,14 @@ class Simulation:
     def _allocate_pairs(self, capacity):
         dev = self.device
         self._capacity = capacity
-        z3 = lambda: wp.zeros(capacity, dtype=wp.vec3, device=dev)  # noqa: E731
-        z1 = lambda: wp.zeros(capacity, dtype=float, device=dev)  # noqa: E731
-        self.pair_xi = z3()
-        self.pair_force = z3()
-        self.pair_torque_a = z3()
-        self.pair_torque_b = z3()
-        self.pair_normal = z3()
-        self.pair_point = z3()
-        self.pair_ft = z3()
-        self.pair_volume = z1()
-        self.pair_energy = z1()
-        self.pair_dissipated = z1()
-        self.pair_fn = z1()
+        springs = capacity if self.model.friction else 1
+        self.pair_xi = wp.zeros(springs, dtype=wp.vec3, device=dev)
+        self.pair_force = wp.zeros(capacity, dtype=wp.vec3, device=dev)
+        self.pair_torque_a = wp.zeros(capacity, dtype=wp.vec3, device=dev)
+        self.pair_dissipated = wp.zeros(capacity, dtype=float, device=dev)
         # History of the previous pair list, for the friction springs across a rebuild.
         self.old_key = wp.zeros(capacity, dtype=wp.int64, device=dev)
-        self.old_xi = z3()
+        self.old_xi = wp.zeros(springs, dtype=wp.vec3, device=dev)
         self.old_count = wp.zeros(1, dtype=int, device=dev)
         # Pairs ordered by their B body (radix sort needs twice the room).
         self._keys_b = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
@@ -146,9 +135,12 @@ class Simulation:
         self.pair_by_b = self._by_b[:capacity]
         self.body_pairs_a = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
         self.body_pairs_b = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
+        self._diag = None
         self._graph = None
 
     def _save_history(self):
+        if not self.model.friction:
+            return
         bp = self.broadphase
         wp.copy(self.old_key, bp.pair_key, count=self._capacity)
         wp.copy(self.old_xi, self.pair_xi)
@@ -159,13 +151,14 @@ class Simulation:
         bp = self.broadphase
         dev = self.device
         cap = self._capacity
-        wp.launch(
-            remap_history_kernel,
-            dim=cap,
-            inputs=[self.old_key, self.old_count, self.old_xi, bp.pair_key, bp.pair_count],
-            outputs=[self.pair_xi],
-            device=dev,
-        )
+        if self.model.friction:
+            wp.launch(
+                remap_history_kernel,
+                dim=cap,
+                inputs=[self.old_key, self.old_count, self.old_xi, bp.pair_key, bp.pair_count],
+                outputs=[self.pair_xi],
+                device=dev,
+            )
         wp.launch(
             b_keys_kernel,
             dim=cap,
@@ -193,7 +186,7 @@ class Simulation:
         if bp.capacity != self._capacity:
             old = (self.old_key, self.old_xi, self.old_count) if self._capacity else None
             self._allocate_pairs(bp.capacity)
-            if old is not None and history:
+            if old is not None and history and self.model.friction:
                 n_old = min(len(old[0]), bp.capacity)
                 wp.copy(self.old_key, old[0], count=n_old)
                 wp.copy(self.old_xi, old[1], count=n_old)
@@ -208,15 +201,16 @@ class Simulation:
 
     # -- one step ------------------------------------------------------------------------------
 
-    def _contacts_and_integrate(self):
+    def _launch_contacts(self, kernels, diag):
+        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``."""
         m = self.model
         s = m.shapes
-        k = self.kernels
         bp = self.broadphase
         dev = self.device
         materials = [m.num_materials, m.material_k, m.material_e, m.material_mu, m.material_kt, m.law_m, self.dt]
+        d = diag if diag is not None else self._placeholders()
         wp.launch(
-            k.pair_contact_kernel,
+            kernels.pair_contact_kernel,
             dim=self._capacity,
             inputs=[
                 *s.kernel_args(),
@@ -234,20 +228,19 @@ class Simulation:
             outputs=[
                 self.pair_force,
                 self.pair_torque_a,
-                self.pair_torque_b,
-                self.pair_volume,
-                self.pair_energy,
                 self.pair_dissipated,
-                self.pair_normal,
-                self.pair_point,
-                self.pair_fn,
-                self.pair_ft,
                 self.poly_overflow,
+                d["pair_volume"],
+                d["pair_energy"],
+                d["pair_normal"],
+                d["pair_point"],
+                d["pair_fn"],
+                d["pair_ft"],
             ],
             device=dev,
         )
         wp.launch(
-            k.gather_kernel,
+            kernels.gather_kernel,
             dim=self.num_bodies,
             inputs=[
                 s.shape_radius,
@@ -266,12 +259,12 @@ class Simulation:
                 self.body_q,
                 self.body_v,
                 self.body_w,
+                bp.pair_a,
                 self.body_pairs_a,
                 self.body_pairs_b,
                 self.pair_by_b,
                 self.pair_force,
                 self.pair_torque_a,
-                self.pair_torque_b,
                 self.pair_dissipated,
                 self.plane_xi,
                 self.body_dissipated,
@@ -279,14 +272,66 @@ class Simulation:
             outputs=[
                 self.body_f,
                 self.body_t,
-                self.plane_volume,
-                self.plane_energy,
-                self.plane_fn,
-                self.plane_point,
-                self.plane_ft,
+                d["plane_volume"],
+                d["plane_energy"],
+                d["plane_fn"],
+                d["plane_point"],
+                d["plane_ft"],
             ],
             device=dev,
         )
+
+    def _placeholders(self):
+        if getattr(self, "_empty", None) is None:
+            dev = self.device
+            self._empty = {
+                "pair_volume": wp.zeros(1, dtype=float, device=dev),
+                "pair_energy": wp.zeros(1, dtype=float, device=dev),
+                "pair_normal": wp.zeros(1, dtype=wp.vec3, device=dev),
+                "pair_point": wp.zeros(1, dtype=wp.vec3, device=dev),
+                "pair_fn": wp.zeros(1, dtype=float, device=dev),
+                "pair_ft": wp.zeros(1, dtype=wp.vec3, device=dev),
+                "plane_volume": wp.zeros((1, 1), dtype=float, device=dev),
+                "plane_energy": wp.zeros((1, 1), dtype=float, device=dev),
+                "plane_fn": wp.zeros((1, 1), dtype=float, device=dev),
+                "plane_point": wp.zeros((1, 1), dtype=wp.vec3, device=dev),
+                "plane_ft": wp.zeros((1, 1), dtype=wp.vec3, device=dev),
+            }
+        return self._empty
+
+    def _diagnostics(self):
+        """Runs the diagnostics variant at the current state; returns its host arrays."""
+        dev = self.device
+        cap = self._capacity
+        n = self.num_bodies
+        p = max(self.model.num_planes, 1)
+        if self._diag is None:
+            self._diag = {
+                "pair_volume": wp.zeros(cap, dtype=float, device=dev),
+                "pair_energy": wp.zeros(cap, dtype=float, device=dev),
+                "pair_normal": wp.zeros(cap, dtype=wp.vec3, device=dev),
+                "pair_point": wp.zeros(cap, dtype=wp.vec3, device=dev),
+                "pair_fn": wp.zeros(cap, dtype=float, device=dev),
+                "pair_ft": wp.zeros(cap, dtype=wp.vec3, device=dev),
+                "plane_volume": wp.zeros((n, p), dtype=float, device=dev),
+                "plane_energy": wp.zeros((n, p), dtype=float, device=dev),
+                "plane_fn": wp.zeros((n, p), dtype=float, device=dev),
+                "plane_point": wp.zeros((n, p), dtype=wp.vec3, device=dev),
+                "plane_ft": wp.zeros((n, p), dtype=wp.vec3, device=dev),
+            }
+        m = self.model
+        kernels = make_contact_kernels(m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True)
+        self._launch_contacts(kernels, self._diag)
+        count = int(self.broadphase.pair_count.numpy()[0])
+        out = {k: v.numpy() for k, v in self._diag.items()}
+        for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft"):
+            out[k] = out[k][:count]
+        return out
+
+    def _contacts_and_integrate(self):
+        m = self.model
+        dev = self.device
+        self._launch_contacts(self.kernels, None)
         integrate_bodies(
             m.body_inv_mass,
             m.body_inertia,
@@ -433,10 +478,10 @@ class Simulation:
         lin, ang = kinetic_energy(
             m.body_inv_mass, m.body_inertia, m.body_flags, self.body_q, self.body_v, self.body_w, device=self.device
         )
-        count = int(self.broadphase.pair_count.numpy()[0])
-        contact = float(np.sum(self.pair_energy.numpy()[:count], dtype=np.float64))
+        d = self._diagnostics()
+        contact = float(np.sum(d["pair_energy"], dtype=np.float64))
         if m.num_planes:
-            contact += float(np.sum(self.plane_energy.numpy(), dtype=np.float64))
+            contact += float(np.sum(d["plane_energy"], dtype=np.float64))
         free = m.body_flags_np == 0
         x = self.body_q.numpy()[:, :3].astype(np.float64)
         grav = -float(np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity)))
@@ -455,32 +500,33 @@ class Simulation:
 
         ``body_a``, ``body_b`` (int; ``body_b = -1 - p`` for wall plane p), ``normal`` (N,3) from A
         into B, ``point`` (N,3) [m], ``normal_force`` (N,) [N], ``tangential_force`` (N,3) on A [N],
-        ``volume`` (N,) [m^3]. Forces are from the last step.
+        ``volume`` (N,) [m^3]. Computed at the current state (after the last step).
         """
         bp = self.broadphase
-        count = int(bp.pair_count.numpy()[0])
-        vol = self.pair_volume.numpy()[:count]
+        d = self._diagnostics()
+        count = len(d["pair_volume"])
+        vol = d["pair_volume"]
         on = vol > 0.0
         out = {
             "body_a": bp.pair_a.numpy()[:count][on].astype(np.int64),
             "body_b": bp.pair_b.numpy()[:count][on].astype(np.int64),
-            "normal": self.pair_normal.numpy()[:count][on].astype(np.float64),
-            "point": self.pair_point.numpy()[:count][on].astype(np.float64),
-            "normal_force": self.pair_fn.numpy()[:count][on].astype(np.float64),
-            "tangential_force": self.pair_ft.numpy()[:count][on].astype(np.float64),
+            "normal": d["pair_normal"][on].astype(np.float64),
+            "point": d["pair_point"][on].astype(np.float64),
+            "normal_force": d["pair_fn"][on].astype(np.float64),
+            "tangential_force": d["pair_ft"][on].astype(np.float64),
             "volume": vol[on].astype(np.float64),
         }
         if self.model.num_planes:
-            pv = self.plane_volume.numpy()
+            pv = d["plane_volume"]
             body, plane = np.nonzero(pv > 0.0)
             normals = self.model.plane_normal.numpy()
             out["body_a"] = np.concatenate([out["body_a"], body])
             out["body_b"] = np.concatenate([out["body_b"], -1 - plane])
             out["normal"] = np.concatenate([out["normal"], -normals[plane].astype(np.float64)])
-            out["point"] = np.concatenate([out["point"], self.plane_point.numpy()[body, plane].astype(np.float64)])
-            out["normal_force"] = np.concatenate([out["normal_force"], self.plane_fn.numpy()[body, plane]])
+            out["point"] = np.concatenate([out["point"], d["plane_point"][body, plane].astype(np.float64)])
+            out["normal_force"] = np.concatenate([out["normal_force"], d["plane_fn"][body, plane].astype(np.float64)])
             out["tangential_force"] = np.concatenate(
-                [out["tangential_force"], self.plane_ft.numpy()[body, plane].astype(np.float64)]
+                [out["tangential_force"], d["plane_ft"][body, plane].astype(np.float64)]
             )
-            out["volume"] = np.concatenate([out["volume"], pv[body, plane]])
+            out["volume"] = np.concatenate([out["volume"], pv[body, plane].astype(np.float64)])
         return out
