@@ -80,7 +80,7 @@ def make_pairs(shape, n, depth, rng, device):
     return pa, np.hstack([u * (hi + gap)[:, None], qb])
 
 
-def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=None, block_dim=256):
+def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64):
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar

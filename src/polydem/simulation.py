@@ -22,6 +22,7 @@ from polydem.kernels.forces import (
     remap_history_kernel,
 )
 from polydem.kernels.integrate import integrate_bodies, kinetic_energy
+from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.model import Model
 
 __all__ = ["Simulation", "SimulationError"]
@@ -238,6 +239,7 @@ class Simulation:
                 d["pair_ft"],
             ],
             device=dev,
+            block_dim=NARROWPHASE_BLOCK_DIM,
         )
         wp.launch(
             kernels.gather_kernel,
