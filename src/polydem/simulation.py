@@ -399,10 +399,11 @@ class Simulation:
         bp.build(self.body_q, self.model.body_radius, self.model.body_flags)
         if bp.capacity != self._capacity:
             self._allocate_pairs(bp.capacity)
-        n_old = min(len(s["key"]), self._capacity)
-        wp.copy(self.old_key, s["key"], count=n_old)
-        wp.copy(self.old_xi, s["xi"], count=n_old)
-        wp.copy(self.old_count, s["count"])
+        if self.model.friction:
+            n_old = min(int(s["count"].numpy()[0]), len(s["key"]), self._capacity)
+            wp.copy(self.old_key, s["key"], count=n_old)
+            wp.copy(self.old_xi, s["xi"], count=n_old)
+            self.old_count.fill_(n_old)
         self._after_rebuild()
 
     def _run_chunk(self, steps):
