@@ -58,7 +58,9 @@ def load_checkpoint(sim, path):
     if n != sim.num_bodies:
         raise ValueError(f"{path}: checkpoint has {n} bodies but the scene has {sim.num_bodies}; use the same scene")
     if not np.isclose(float(data["dt"]), sim.dt, rtol=1e-12):
-        raise ValueError(f"{path}: checkpoint time step {float(data['dt']):.6g} s differs from the scene's {sim.dt:.6g} s")
+        raise ValueError(
+            f"{path}: checkpoint time step {float(data['dt']):.6g} s differs from the scene's {sim.dt:.6g} s"
+        )
     dev = sim.device
     count = len(data["pair_key"])
     cap = max(count, 1)
