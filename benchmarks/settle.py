@@ -1,42 +1,62 @@
-"""Settling benchmark: throughput of the whole simulation step for a pile of cubes in a container.
+"""Settling benchmark: throughput of the whole simulation step for a pile of cubes settling in a box.
 
-Scene (per N): cubes of 1 cm edge (density 2500 kg/m^3, hertz law, restitution 0.5, friction 0.5)
-in columns of ``--layers`` cubes on a square grid, in an open box container sized for the count,
-so every N has the same pile height, contacts per body and time step. Orientations are uniformly
-random. The columns are ``sqrt(3) * edge * (1 + margin)`` apart and jittered sideways by less than
-the margin, so bounding spheres of different columns never meet; within a column each cube sits
-a small random gap (``--gap``, in edges) above the axis-aligned box of the one below, the lowest
-one that gap above the floor. So nothing overlaps at the start, neighbours are already candidate
-pairs, and the pile makes its contacts within the first few hundred steps as the gaps close and
-the columns topple: a dense settling pile rather than a free fall. The stiffness k is chosen so
-that a face contact carrying ``--load-factor`` times the weight of a whole column overlaps by
-``--overlap`` (1%) of the cube volume; the time step is the simulator's "auto" one.
+Scene, the same for every N but for its footprint: cubes of 1 cm edge (density 2500 kg/m^3, hertz
+law, restitution 0.5, friction 0.5, uniformly random orientations) stacked in columns of
+``--layers`` (10) cubes on a square grid, in an open box container sized for the count. So the
+pile height, the load per contact, the time step and the contacts per cube do not depend on N.
+The columns are ``sqrt(3) edge (1 + margin)`` apart and jittered sideways by less than the margin
+(bounding spheres of different columns never meet); in a column each cube sits a random gap
+(``--gap``, in edges) above the axis-aligned box of the one below, the lowest one that gap above
+the floor. Nothing overlaps at the start (checked: ``initial_contacts``) and grid neighbours are
+candidate pairs from the first step. The pile then settles: it compacts from a packing fraction of
+about 0.2 and the columns topple; 1000 cubes come to rest after about 0.2 s simulated.
 
-Walls: ``--walls box`` (default) uses ``Scene.add_box_container`` (fixed box bodies, so every cube
-whose bounding sphere meets a wall's bounding sphere is a candidate pair with it: for a wide
-container that is every cube with the floor and a good part of them with the side walls);
-``--walls planes`` uses five infinite planes (handled per body in the gather kernel).
+Stiffness: k is such that a face contact carrying ``--load-factor`` times the weight of a whole
+column overlaps by ``--overlap`` (1%) of the cube volume. Edge and corner contacts overlap more
+under the same force, so the load factor (20) was set by measurement: the largest overlap in the
+pile stays near 1% (1000 cubes at rest: 1.1%; up to 1.5-2.5% while settling; reported as
+``max_overlap_volume_fraction``). The time step is the simulator's "auto" one (2.8e-5 s).
 
-Per N: build (scene generation, Simulation: Model and first broad phase), warm-up (compile, CUDA
-graph capture, and the first ``--warmup`` steps so that the pile is in contact), then ``--steps``
-timed steps through ``Simulation.step`` (the production path: graph on CUDA, host loop on the
-CPU). Reported: body-steps per second, time per step, candidate pairs and actual contacts (pairs
-with overlap volume > 0), broad-phase rebuilds in the timed window, device bytes per body. Then a
-separate *measuring pass* runs ``--stage-steps`` steps stage by stage, synchronising the device
-around each stage (so a stage's time includes its launch overhead; on CUDA the GPU time of its
-kernels, from Warp's activity timing, is reported too): broad-phase check (the Verlet test),
-broad-phase rebuild (device refit+query+sort on CUDA, host build on the CPU; also timed on its
-own), pair contacts (narrow phase + wrench per candidate), gather (per body sum plus walls),
-integrate, and the rest (step counter, finiteness check). The stage times are not the timed
-steps' breakdown (those are one graph launch): their sum against the step time shows the launch
-and host overhead that the graph removes. On CUDA the same N is then run again with
-``use_graph=False`` over the same warm-up and timed steps.
+Walls: ``--walls box`` (default) uses ``Scene.add_box_container``: five fixed box bodies. They go
+through the broad phase like any body, so every cube whose bounding sphere meets a wall's bounding
+sphere is a candidate pair with it: in a wide container every cube with the floor and many with
+the side walls (about 2.6 wall pairs per cube, most of them far from touching).
+``--walls planes`` uses five infinite planes instead (tested per body in the gather kernel).
 
-    python benchmarks/settle.py --device cuda:0                          # 1e3 .. 1e6
-    python benchmarks/settle.py --device cpu --sizes 1000,10000 --steps 64
+Per N: build (scene generation; ``Simulation()``: Model and first broad phase), warm-up (first
+step: kernel compile and CUDA graph capture; then ``--warmup-time``, 0.1 s simulated or about
+3500 steps, of settling so that the timed window sees a pile in contact: about 1.2 grain-grain
+contacts per cube, against 2.7 at rest and almost none in the first steps, which cost a tenth of
+a step in contact), then ``--steps`` timed steps through ``Simulation.step`` (the production path:
+one CUDA graph launch per step on CUDA, the host loop on the CPU). Reported: body-steps per
+second, time per step, candidate pairs (broad phase ``pair_count``) and contacts (pairs with
+overlap volume > 0, from ``Simulation.contacts()``), broad-phase rebuilds in the window, device
+bytes per body (every Warp array of the Simulation, Model, ShapeSet and BroadPhase, views counted
+once, plus an estimate of the BVH's own buffers; on CUDA also the growth of the mempool's used
+memory).
 
-Results: a table on stdout and JSON (``--out``, default ``benchmarks/results/settle_<device>.json``),
-rewritten after every phase of every size, so a run cut short keeps what it measured.
+Graph on/off (CUDA): ``use_graph`` of the same Simulation is switched off for ``--steps`` steps and
+on again for another ``--steps``; the speed-up is against the mean of the two graph windows (the
+pile moves on meanwhile). ``--fresh-no-graph`` times a new ``Simulation(use_graph=False)`` after
+the same warm-up instead (the same state, twice the warm-up cost).
+
+Stages: a separate measuring pass after the timed steps runs ``--stage-steps`` steps stage by
+stage, with device synchronisation around each stage (wall_s: host clock, so a stage's time
+includes its launch overhead; on CUDA also gpu_s, the sum of Warp's CUDA activity timing of its
+kernels, copies and memsets): broad-phase check (the Verlet test, every step), broad-phase rebuild
+(when the check asks; the device refit + query + sort on CUDA, a host build on the CPU; both also
+timed on their own), pair contacts (narrow phase and wrench per candidate pair), gather (per body
+sums plus the plane walls), integrate, and the rest (step counter, finiteness check). The launches
+of ``Simulation._contacts_and_integrate`` are timed one by one by wrapping ``wp.launch`` for the
+pass. These are not a breakdown of the timed steps; the broad phase per step is reported as the
+check plus the rebuild cost times the rebuilds per timed step.
+
+    python benchmarks/settle.py --device cuda:0                      # 1e3, 1e4, 1e5, 1e6
+    python benchmarks/settle.py --device cpu                         # 1e3, 1e4
+
+Results: a table on stdout and JSON (``--out``, default ``benchmarks/results/settle_<device>.json``)
+with the machine, Warp version and command line, rewritten after every phase of every size, so a
+run cut short keeps what it measured.
 """
 
 import argparse
@@ -49,11 +69,13 @@ import platform
 import subprocess
 import sys
 import time
+import traceback
 
 import numpy as np
 import warp as wp
 
 from polydem import ConvexShape, Scene, Simulation
+from polydem.simulation import CHUNK_STEPS as CHUNK
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SQRT3 = math.sqrt(3.0)
@@ -79,23 +101,16 @@ def random_quaternions(rng, n):
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def abs_rotation_rowsums(q):
-    """For unit quaternions q (n, 4) xyzw, sum_k |R_jk| per world axis j: (n, 3).
+def half_heights(q, edge):
+    """Vertical half extent of cubes of edge ``edge`` turned by unit quaternions q (n, 4) xyzw.
 
-    A cube of edge a rotated by R has the axis-aligned half extent (a / 2) * sum_k |R_jk|.
+    That is ``edge / 2 * sum_k |R_2k|``, with R_2k = e_z . (R e_k) the third row of R.
     """
     x, y, z, w = q.T
-    r = np.empty((len(q), 3, 3))
-    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    r[:, 0, 1] = 2 * (x * y - z * w)
-    r[:, 0, 2] = 2 * (x * z + y * w)
-    r[:, 1, 0] = 2 * (x * y + z * w)
-    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    r[:, 1, 2] = 2 * (y * z - x * w)
-    r[:, 2, 0] = 2 * (x * z - y * w)
-    r[:, 2, 1] = 2 * (y * z + x * w)
-    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return np.abs(r).sum(axis=2)
+    r20 = 2.0 * (x * z - y * w)
+    r21 = 2.0 * (y * z + x * w)
+    r22 = 1.0 - 2.0 * (x * x + y * y)
+    return 0.5 * edge * (np.abs(r20) + np.abs(r21) + np.abs(r22))
 
 
 def hertz_k(edge, density, layers, overlap, load_factor, g=9.81):
@@ -130,16 +145,14 @@ def make_scene(n, args, seed=0):
     jitter = 0.45 * (spacing - SQRT3 * a)  # |dx|, |dy| < jitter: columns' spheres stay apart
 
     q = random_quaternions(rng, n)
-    half = 0.5 * a * abs_rotation_rowsums(q)  # (n, 3) axis-aligned half extents
     col = np.arange(n) % columns
-    lay = np.arange(n) // columns
     cx = (col % nx - 0.5 * (nx - 1)) * spacing
     cy = (col // nx - 0.5 * (ny - 1)) * spacing
     x = cx + rng.uniform(-jitter, jitter, n)
     y = cy + rng.uniform(-jitter, jitter, n)
     # Stack each column: bottom of cube k = top of cube k-1 + gap (the floor is z = 0).
     hz = np.zeros((nz, columns))
-    hz.reshape(-1)[:n] = half[:, 2]
+    hz.reshape(-1)[:n] = half_heights(q, a)
     gaps = rng.uniform(args.gap[0], args.gap[1], (nz, columns)) * a
     heights = 2.0 * hz + gaps
     bottom = np.cumsum(heights, axis=0) - heights + gaps
@@ -147,8 +160,12 @@ def make_scene(n, args, seed=0):
     top = float(np.max((bottom + 2.0 * hz).reshape(-1)[:n]))
     del hz, gaps, heights, bottom
     positions = np.column_stack([x, y, z])
-    scene.add_bodies("cube", "grain", positions, orientations=q)
-    del q, half, col, lay, cx, cy, x, y, z, positions
+    spin = None
+    if args.spin > 0.0:
+        spin = rng.normal(size=(n, 3))
+        spin *= args.spin / np.linalg.norm(spin, axis=1, keepdims=True)
+    scene.add_bodies("cube", "grain", positions, orientations=q, angular_velocities=spin)
+    del q, col, cx, cy, x, y, z, positions
 
     lx = nx * spacing + 0.1 * a
     ly = ny * spacing + 0.1 * a
@@ -382,11 +399,38 @@ def contact_stats(sim, grains):
         "contacts_grain_wall": int(np.count_nonzero(wall)),
         "plane_contacts": int(np.count_nonzero(plane)),
         "max_overlap_volume_fraction": vmax / sim.model.shapes.shapes[0].volume,
+        "candidate_pairs_per_grain": count / grains,
+        # Mean contacts per cube: a grain-grain contact counts for both cubes.
+        "coordination": (2 * int(np.count_nonzero(~plane & ~wall)) + int(np.count_nonzero(plane | wall))) / grains,
     }
 
 
 # ---------------------------------------------------------------------------------------------
 # Driver
+
+
+def warm_up(sim, steps, record):
+    """First step (kernel compile, CUDA graph capture), then the rest in a few blocks with progress."""
+    dev = sim.device
+    t0 = time.perf_counter()
+    sim.step(1)
+    wp.synchronize_device(dev)
+    first = time.perf_counter() - t0
+    log(f"  warm-up: first step (compile, capture) {first:.2f} s")
+    rest = steps - 1
+    block = max(CHUNK, -(-rest // 8 // CHUNK) * CHUNK)
+    done = 0
+    t1 = time.perf_counter()
+    while done < rest:
+        k = min(block, rest - done)
+        sim.step(k)
+        done += k
+        log(
+            f"    {1 + done}/{steps} steps, t = {1e3 * sim.time:.1f} ms, {time.perf_counter() - t1:.1f} s, "
+            f"{int(sim.broadphase.pair_count.numpy()[0])} candidate pairs"
+        )
+    wp.synchronize_device(dev)
+    record.update({"first_step_s": first, "warmup_steps": steps, "warmup_s": time.perf_counter() - t1})
 
 
 def run_size(n, args, device, record, save):
@@ -399,6 +443,10 @@ def run_size(n, args, device, record, save):
     sim = Simulation(scene, device=device)
     wp.synchronize_device(device)
     t2 = time.perf_counter()
+    warmup = args.warmup if args.warmup is not None else max(CHUNK, math.ceil(args.warmup_time / sim.dt))
+    initial = sim.contacts()
+    if hasattr(sim, "_diag"):
+        sim._diag = None  # the diagnostics buffers of contacts(): not part of stepping, let them go
     record.update(info)
     record.update(
         {
@@ -409,25 +457,23 @@ def run_size(n, args, device, record, save):
             "scene_s": t1 - t0,
             "simulation_init_s": t2 - t1,
             "first_pairs": int(sim.broadphase.num_pairs),
+            "initial_contacts": len(initial["volume"]),
+            "initial_max_overlap_volume_fraction": float(initial["volume"].max() / sim.model.shapes.shapes[0].volume)
+            if len(initial["volume"])
+            else 0.0,
         }
     )
+    del initial
     log(
-        f"  N={n}: scene {t1 - t0:.2f} s, Simulation() {t2 - t1:.2f} s, dt {sim.dt:.3g} s, grid {info['grid']}, "
-        f"{sim.broadphase.num_pairs} candidate pairs"
+        f"N={n}: scene {t1 - t0:.2f} s, Simulation() {t2 - t1:.2f} s, dt {sim.dt:.3g} s, grid {info['grid']}, "
+        f"{sim.broadphase.num_pairs} candidate pairs, {record['initial_contacts']} initial contacts; {warmup} warm-up "
+        "steps"
     )
     save()
 
-    # Warm-up: compile and capture in the first step, then settle into contact.
-    t0 = time.perf_counter()
-    sim.step(1)
-    wp.synchronize_device(device)
-    t1 = time.perf_counter()
-    if args.warmup > 1:
-        sim.step(args.warmup - 1)
-    wp.synchronize_device(device)
-    t2 = time.perf_counter()
-    record.update({"first_step_s": t1 - t0, "warmup_steps": args.warmup, "warmup_s": t2 - t1})
-    log(f"  warm-up: first step (compile, capture) {t1 - t0:.2f} s, {args.warmup - 1} more {t2 - t1:.2f} s")
+    warm_up(sim, warmup, record)
+    record["status"] = "warm"
+    save()
 
     seconds, host_builds, dev_rebuilds = timed_steps(sim, args.steps)
     record.update(
@@ -455,13 +501,23 @@ def run_size(n, args, device, record, save):
     }
     if record["memory"]["mempool_used_delta_bytes"] is not None:
         record["memory"]["mempool_bytes_per_body"] = record["memory"]["mempool_used_delta_bytes"] / n
+        try:
+            record["memory"]["mempool_high_water_bytes"] = int(wp.get_mempool_used_mem_high(device))
+        except Exception:
+            pass
     log(
         f"  timed: {args.steps} steps {seconds:.3f} s = {1e3 * seconds / args.steps:.3f} ms/step, "
-        f"{n * args.steps / seconds / 1e6:.3f} M body-steps/s; {record['candidate_pairs']} candidates, "
-        f"{record['contacts']} contacts (+{record['plane_contacts']} plane), rebuilds host {host_builds} "
-        f"device {dev_rebuilds}, {mem['total'] / n:.0f} B/body"
+        f"{n * args.steps / seconds / 1e6:.3f} M body-steps/s; {record['candidate_pairs']} candidate pairs "
+        f"({record['candidate_pairs_grain_grain']} grain-grain), contacts {record['contacts_grain_grain']} "
+        f"grain-grain + {record['contacts_grain_wall'] + record['plane_contacts']} wall, max overlap "
+        f"{100 * record['max_overlap_volume_fraction']:.2f}% of a cube; rebuilds host {host_builds} device "
+        f"{dev_rebuilds}; {mem['total'] / n:.0f} B/body"
     )
     save()
+
+    if sim.use_graph and not args.no_graph_compare:
+        graph_off(sim, scene, args, record, warmup)
+        save()
 
     if args.stage_steps > 0:
         stages = measure_stages(sim, args.stage_steps, args.rebuild_reps)
@@ -469,45 +525,65 @@ def run_size(n, args, device, record, save):
         rebuild_cost = stages["wall_s"].get("device_rebuild" if sim.use_graph else "host_build", 0.0)
         stages["broadphase_per_step_s"] = stages["wall_s"]["broadphase_check"] + rebuild_cost * rebuilds / args.steps
         stages["note"] = (
-            "measuring pass, separate from the timed steps: each stage run alone with device "
+            "measuring pass after the timed steps, separate from them: each stage run alone with device "
             "synchronisation around it (wall_s includes launch overhead; gpu_s: Warp CUDA activity timing); "
             "broadphase_per_step_s = check + rebuild cost x rebuilds per timed step"
         )
         record["stages"] = stages
-        w = stages["wall_s"]
         log(
             "  stages (measuring pass, each synchronised) ms: "
-            + ", ".join(f"{k} {1e3 * v:.3f}" for k, v in w.items())
+            + ", ".join(f"{k} {1e3 * v:.3f}" for k, v in stages["wall_s"].items())
             + (
                 "; GPU ms: " + ", ".join(f"{k} {1e3 * v:.3f}" for k, v in stages["gpu_s"].items())
                 if stages["gpu_s"]
                 else ""
             )
         )
-        save()
-
+    record["status"] = "complete"
+    save()
     del sim
     gc.collect()
 
-    if device.is_cuda and not args.no_graph_compare:
-        sim = Simulation(scene, device=device, use_graph=False)
-        sim.step(args.warmup)
-        seconds_ng, host_builds_ng, _ = timed_steps(sim, args.steps)
-        record["no_graph"] = {
-            "seconds": seconds_ng,
-            "step_s": seconds_ng / args.steps,
-            "body_steps_per_s": n * args.steps / seconds_ng,
-            "host_builds": host_builds_ng,
-            "graph_speedup": seconds_ng / record["seconds"],
-        }
-        log(
-            f"  use_graph=False: {1e3 * seconds_ng / args.steps:.3f} ms/step, host builds {host_builds_ng}; "
-            f"graph speed-up x{seconds_ng / record['seconds']:.2f}"
-        )
-        del sim
+
+def graph_off(sim, scene, args, record, warmup):
+    """Time the same steps with ``use_graph=False``.
+
+    Default: the same Simulation with ``use_graph`` switched off for ``--steps`` steps, then on
+    again for another ``--steps`` (the state moves on meanwhile: the speed-up is against the mean of
+    the graph windows before and after). ``--fresh-no-graph``: a new ``Simulation(use_graph=False)``
+    from the same scene, with the same warm-up, timed from the very same state.
+    """
+    n = record["grains"]
+    if args.fresh_no_graph:
+        other = Simulation(scene, device=sim.device, use_graph=False)
+        other.step(warmup)
+        seconds, host_builds, _ = timed_steps(other, args.steps)
+        del other
         gc.collect()
-    record["status"] = "complete"
-    save()
+        graph_seconds = record["seconds"]
+        mode = "fresh Simulation(use_graph=False), same warm-up"
+    else:
+        sim.use_graph = False
+        try:
+            seconds, host_builds, _ = timed_steps(sim, args.steps)
+        finally:
+            sim.use_graph = True
+        again, _, _ = timed_steps(sim, args.steps)
+        record["step_s_graph_after"] = again / args.steps
+        graph_seconds = 0.5 * (record["seconds"] + again)
+        mode = "same Simulation, use_graph switched off for the window between two graph windows"
+    record["no_graph"] = {
+        "mode": mode,
+        "seconds": seconds,
+        "step_s": seconds / args.steps,
+        "body_steps_per_s": n * args.steps / seconds,
+        "host_builds": host_builds,
+        "graph_speedup": seconds / graph_seconds,
+    }
+    log(
+        f"  use_graph=False: {1e3 * seconds / args.steps:.3f} ms/step ({host_builds} host builds); graph "
+        f"{1e3 * graph_seconds / args.steps:.3f} ms/step: speed-up x{seconds / graph_seconds:.2f}"
+    )
 
 
 def print_table(records):
@@ -522,12 +598,16 @@ def print_table(records):
         ("other", 7, lambda r: _stage(r, "other")),
         ("cand", 9, lambda r: f"{r['candidate_pairs']}"),
         ("contacts", 9, lambda r: f"{r['contacts'] + r['plane_contacts']}"),
+        ("coord", 5, lambda r: f"{r['coordination']:.2f}"),
         ("rebuilds", 8, lambda r: f"{r['host_builds'] + r['device_rebuilds']}"),
         ("B/body", 7, lambda r: f"{r['memory']['bytes_per_body']:.0f}"),
         ("nograph", 9, lambda r: f"{1e3 * r['no_graph']['step_s']:.3f}" if "no_graph" in r else "-"),
     ]
     log("")
-    log("stage columns: ms per step from the separate synchronised measuring pass (bp = check + amortised rebuild)")
+    log(
+        "ms per step; stage columns from the separate synchronised measuring pass (bp = check + amortised "
+        "rebuild); cand = candidate pairs, contacts = pairs and walls with overlap > 0, coord = contacts per cube"
+    )
     log(" ".join(f"{name:>{w}}" for name, w, _ in cols))
     for r in records:
         if "step_s" not in r:
@@ -561,9 +641,10 @@ def machine_meta(device):
         meta["memory_bytes"] = getattr(device, "total_memory", None)
         meta["arch"] = getattr(device, "arch", None)
         meta["mempool_enabled"] = bool(wp.is_mempool_enabled(device))
+        meta["sm_count"] = getattr(device, "sm_count", None)
         try:
-            meta["cuda_driver"] = wp.context.runtime.driver_version
-            meta["cuda_toolkit"] = wp.context.runtime.toolkit_version
+            meta["cuda_driver"] = wp.get_cuda_driver_version()
+            meta["cuda_toolkit"] = wp.get_cuda_toolkit_version()
         except Exception:
             pass
     try:
@@ -589,11 +670,16 @@ def main():
     ap.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
     ap.add_argument("--sizes", default=None, help="comma-separated cube counts (default 1e3..1e6 GPU, 1e3,1e4 CPU)")
     ap.add_argument("--steps", type=int, default=None, help="timed steps (default 200 GPU, 64 CPU)")
-    ap.add_argument("--warmup", type=int, default=None, help="untimed steps first (default 256 GPU, 128 CPU)")
+    ap.add_argument("--warmup-time", type=float, default=0.1, help="simulated time [s] before the timing")
+    ap.add_argument("--warmup", type=int, default=None, help="warm-up steps (overrides --warmup-time)")
     ap.add_argument("--stage-steps", type=int, default=None, help="steps of the measuring pass (default 20 GPU, 8 CPU)")
     ap.add_argument("--rebuild-reps", type=int, default=2, help="lone broad-phase rebuilds timed in that pass")
     ap.add_argument("--out", default=None, help="JSON file (default benchmarks/results/settle_<device>.json)")
-    ap.add_argument("--no-graph-compare", action="store_true", help="skip the use_graph=False run on CUDA")
+    ap.add_argument("--no-graph-compare", action="store_true", help="skip the use_graph=False timing on CUDA")
+    ap.add_argument(
+        "--fresh-no-graph", action="store_true", help="time use_graph=False on a new Simulation (repeats the warm-up)"
+    )
+    ap.add_argument("--verbose", action="store_true", help="Warp's module load messages")
     ap.add_argument("--walls", choices=("box", "planes"), default="box", help="container of fixed boxes or planes")
     ap.add_argument("--layers", type=int, default=10, help="cubes per column")
     ap.add_argument("--edge", type=float, default=0.01, help="cube edge [m]")
@@ -601,9 +687,10 @@ def main():
     ap.add_argument("--restitution", type=float, default=0.5)
     ap.add_argument("--friction", type=float, default=0.5)
     ap.add_argument("--overlap", type=float, default=0.01, help="target overlap volume / cube volume")
-    ap.add_argument("--load-factor", type=float, default=2.0, help="design load / weight of a full column")
+    ap.add_argument("--load-factor", type=float, default=20.0, help="design load / weight of a full column")
     ap.add_argument("--margin", type=float, default=0.03, help="column spacing = sqrt(3) edge (1 + margin)")
     ap.add_argument("--gap", default="0.002,0.02", help="min,max gap between stacked cubes [edges]")
+    ap.add_argument("--spin", type=float, default=0.0, help="initial angular speed [rad/s], random axes")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     args.gap = tuple(float(v) for v in args.gap.split(","))
@@ -618,11 +705,12 @@ def main():
     sizes = [int(float(s)) for s in sizes.split(",") if s.strip()]
     if args.steps is None:
         args.steps = 200 if cuda else 64
-    if args.warmup is None:
-        args.warmup = 256 if cuda else 128
     if args.stage_steps is None:
         args.stage_steps = 20 if cuda else 8
-    args.warmup = max(args.warmup, 1)
+    if args.warmup is not None:
+        args.warmup = max(args.warmup, 1)
+    if not args.verbose:
+        wp.config.log_level = wp.LOG_WARNING
     out = args.out or os.path.join(HERE, "results", f"settle_{device.alias.replace(':', '')}.json")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
 
@@ -638,7 +726,8 @@ def main():
         os.replace(tmp, out)
 
     log(f"settle benchmark on {device.name} ({device.alias}), Warp {wp.config.version}; sizes {sizes}, ")
-    log(f"  {args.steps} timed steps after {args.warmup} warm-up steps; walls {args.walls}; JSON -> {out}")
+    warm = f"{args.warmup} warm-up steps" if args.warmup else f"{args.warmup_time} s simulated warm-up"
+    log(f"  {args.steps} timed steps after {warm}; walls {args.walls}; JSON -> {out}")
     for n in sizes:
         record = {"grains": n, "status": "started"}
         records.append(record)
@@ -647,7 +736,8 @@ def main():
         except Exception as err:  # keep what was measured, go on with the next size
             record["status"] = "error"
             record["error"] = f"{type(err).__name__}: {err}"
-            log(f"  N={n}: {record['error']}")
+            record["traceback"] = traceback.format_exc()
+            log(f"  N={n}: {record['traceback']}")
             save()
             if isinstance(err, MemoryError):
                 break

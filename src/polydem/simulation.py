@@ -105,7 +105,10 @@ class Simulation:
         r_min = float(radius[free].min()) if free.any() else float(radius.min())
         self.skin = 0.2 * r_min if skin is None else float(skin)
         # Bounding spheres about the centre do not change as a body turns: no rotation term.
-        self.broadphase = BroadPhase(n, dev, self.skin, rotation_term=False)
+        shape_list = [scene.shapes[name] for name in scene.shape_names]
+        lower = np.array([s.vertices.min(axis=0) for s in shape_list])[scene.body_shape]
+        upper = np.array([s.vertices.max(axis=0) for s in shape_list])[scene.body_shape]
+        self.broadphase = BroadPhase(n, dev, self.skin, rotation_term=False, body_box=(lower, upper))
         self.poly_capacity = model.shapes.default_poly_capacity
         self._kernels()
         self._graph = None
