@@ -376,18 +376,25 @@ class Simulation:
     # -- public --------------------------------------------------------------------------------
 
     def _backup(self):
+        """Copies the state at the start of a chunk into buffers kept between chunks."""
         bp = self.broadphase
-        self._saved = {
-            "q": wp.clone(self.body_q),
-            "v": wp.clone(self.body_v),
-            "w": wp.clone(self.body_w),
-            "diss": wp.clone(self.body_dissipated),
-            "plane_xi": wp.clone(self.plane_xi),
-            "xi": wp.clone(self.pair_xi),
-            "key": wp.clone(bp.pair_key),
-            "count": wp.clone(bp.pair_count),
-            "step": wp.clone(self.step_count),
+        live = {
+            "q": self.body_q,
+            "v": self.body_v,
+            "w": self.body_w,
+            "diss": self.body_dissipated,
+            "plane_xi": self.plane_xi,
+            "xi": self.pair_xi,
+            "key": bp.pair_key,
+            "count": bp.pair_count,
+            "step": self.step_count,
         }
+        saved = getattr(self, "_saved", None)
+        if saved is None or any(saved[k].shape != a.shape for k, a in live.items()):
+            self._saved = {k: wp.clone(a) for k, a in live.items()}
+            return
+        for k, a in live.items():
+            wp.copy(saved[k], a)
 
     def _restore(self):
         s = self._saved
