@@ -390,7 +390,11 @@ def contact_stats(sim, grains):
     plane = cb < 0
     wall = cb >= grains
     vmax = float(c["volume"].max()) if len(c["volume"]) else 0.0
+    worst = int(np.argmax(c["volume"])) if len(c["volume"]) else -1
+    worst_pair = [int(c["body_a"][worst]), int(c["body_b"][worst])] if worst >= 0 else []
     return {
+        "max_overlap_pair": worst_pair,
+        "max_overlap_position": sim.state()["body_position"][worst_pair[0]].tolist() if worst_pair else [],
         "candidate_pairs": count,
         "candidate_pairs_grain_grain": int(np.count_nonzero(b < grains)),
         "pair_capacity": int(bp.capacity),

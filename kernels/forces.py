@@ -350,6 +350,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         body_v: wp.array(dtype=wp.vec3),
         body_w: wp.array(dtype=wp.vec3),
         pair_a: wp.array(dtype=int),
+        pair_b: wp.array(dtype=int),
         body_pairs_a: wp.array(dtype=wp.vec2i),
         body_pairs_b: wp.array(dtype=wp.vec2i),
         pair_by_b: wp.array(dtype=int),
@@ -376,20 +377,30 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         t = wp.vec3(0.0, 0.0, 0.0)
         lost = float(0.0)
         xi_pos = wp.transform_get_translation(body_q[i])
-        if wp.static(not diagnostics):
+        # A fixed or kinematic body needs no force, and a container wall may touch a whole pile:
+        # it skips its pairs (one thread would walk them all), and its free partners book the
+        # energy lost in full.
+        if wp.static(not diagnostics) and body_flags[i] == 0:
             ra = body_pairs_a[i]
             for p in range(ra[0], ra[1]):
                 f += pair_force[p]
                 t += pair_torque_a[p]
-                lost += 0.5 * pair_dissipated[p]
+                share = float(0.5)
+                if body_flags[pair_b[p]] != 0:
+                    share = 1.0
+                lost += share * pair_dissipated[p]
             rb = body_pairs_b[i]
             for k in range(rb[0], rb[1]):
                 p = pair_by_b[k]
                 fa = pair_force[p]
-                r_ab = xi_pos - wp.transform_get_translation(body_q[pair_a[p]])
+                a = pair_a[p]
+                r_ab = xi_pos - wp.transform_get_translation(body_q[a])
                 f -= fa
                 t += wp.cross(r_ab, fa) - pair_torque_a[p]
-                lost += 0.5 * pair_dissipated[p]
+                share = float(0.5)
+                if body_flags[a] != 0:
+                    share = 1.0
+                lost += share * pair_dissipated[p]
         if body_flags[i] == 0:
             xa = body_q[i]
             s = body_shape[i]

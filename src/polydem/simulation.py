@@ -265,6 +265,7 @@ class Simulation:
                 self.body_v,
                 self.body_w,
                 bp.pair_a,
+                bp.pair_b,
                 self.body_pairs_a,
                 self.body_pairs_b,
                 self.pair_by_b,
