@@ -63,7 +63,8 @@ A principal moment I_k = 0 locks the rotation about that axis (I_k^-1 is taken a
 
 Fixed bodies (``BODY_FIXED``) keep their state unchanged. Kinematic bodies (``BODY_KINEMATIC``) keep
 their prescribed v and w; their position advances by v dt and their orientation by the exact
-rotation exp(w dt) (about world axes), and forces and gravity are ignored.
+rotation exp(w dt) (about world axes), and forces and gravity are ignored. A kinematic body with a
+pivot p (a part of a drum) turns about it instead: x <- p + exp(w dt)(x - p), v = w x (x - p).
 
 Layout of this file: ``@wp.func`` helpers, the kernels, then the plain launch functions.
 """
@@ -177,6 +178,8 @@ def integrate_bodies_kernel(
     body_inv_mass: wp.array(dtype=float),
     body_inertia: wp.array(dtype=wp.vec3),
     body_flags: wp.array(dtype=int),
+    body_pivot: wp.array(dtype=wp.vec3),
+    has_pivot: int,
     gravity: wp.vec3,
     dt: float,
     # State in
@@ -205,10 +208,18 @@ def integrate_bodies_kernel(
         return
 
     if flag == BODY_KINEMATIC:
+        dq = quat_exp(w * dt)
+        q_new = wp.normalize(dq * q)
         x_new = x + v * dt
-        q_new = wp.normalize(quat_exp(w * dt) * q)
+        v_new = v
+        if has_pivot != 0:
+            p = body_pivot[i]
+            if wp.isfinite(p[0] + p[1] + p[2]):
+                # A part of a drum turns about its pivot: its centre goes round, not along a tangent.
+                x_new = p + wp.quat_rotate(dq, x - p)
+                v_new = wp.cross(w, x_new - p)
         body_q_out[i] = wp.transform(x_new, q_new)
-        body_v_out[i] = v
+        body_v_out[i] = v_new
         body_w_out[i] = w
         return
 
@@ -327,6 +338,7 @@ def integrate_bodies(
     body_t,
     dt,
     device=None,
+    body_pivot=None,
 ):
     """Advance every body by one step of length ``dt``, updating the state in place.
 
@@ -342,11 +354,16 @@ def integrate_bodies(
         body_t: ``(n,)`` vec3 torque about the centroid, world axes [N m].
         dt: time step [s].
         device: Warp device; defaults to the device of ``body_q``.
+        body_pivot: optional ``(n,)`` vec3 [m]: a kinematic body with a finite pivot turns about it
+            (x <- p + R(w dt)(x - p), v = w x (x - p)) instead of moving along its velocity.
 
     The scheme (symplectic Euler for translation; momentum kick and Strang-split free-rotor
     drift for rotation) is described in the module docstring. Capturable in a CUDA graph.
     """
     device = _device(device, body_q)
+    has_pivot = int(body_pivot is not None)
+    if body_pivot is None:
+        body_pivot = wp.zeros(1, dtype=wp.vec3, device=device)
     wp.launch(
         integrate_bodies_kernel,
         dim=body_q.shape[0],
@@ -354,6 +371,8 @@ def integrate_bodies(
             body_inv_mass,
             body_inertia,
             body_flags,
+            body_pivot,
+            has_pivot,
             wp.vec3(*[float(g) for g in gravity]),
             float(dt),
             body_q,

@@ -13,14 +13,15 @@ All clipping happens in A's body frame, so the numbers that meet in a subtractio
 of the shapes whatever the distance from the world origin.
 
 Coincident facets: when a face f of A and a face g of B lie in one plane (every vertex of both
-faces within ``tol = tol_rel * (radius_A + radius_B)`` of the other face's plane) the pair is
-decided once, by one function evaluated identically from both sides:
+faces within ``tol = tol_rel * min(r_A, r_B) + noise * (r_A + r_B)`` of the other face's plane;
+tol_rel 2e-5 in float32 and 1e-10 in float64, noise a few units of rounding, 5e-7 and 1e-15) the
+pair is decided once, by one function evaluated identically from both sides:
 
 * same outward normal: f is not clipped by g (nor g by f) and both pieces count with weight 1/2,
   so the shared region is split half to each body and S_A + S_B = 0 holds to rounding;
-* opposite outward normals: the bodies merely touch through that plane; both pieces are dropped
-  (the overlap there has zero thickness, and the linear law would otherwise give a finite force
-  at zero overlap).
+* opposite outward normals: the bodies merely touch through that plane; both pieces are left out
+  of S and M (the overlap there has a thickness below the tolerance, and the linear law would
+  otherwise give a finite force at zero overlap) but still count for V, which stays exact.
 
 Layout of this file: ``@wp.func`` helpers inside the factory :func:`make_narrowphase`, the
 kernels it returns, then the launch function used by the host code.
@@ -32,6 +33,9 @@ import warp as wp
 
 # Relative tolerance of the coincident-face test, per precision (see the module docstring).
 COINCIDENT_TOL = {wp.float32: 2.0e-5, wp.float64: 1.0e-10}
+# Plus a few units of rounding of the coordinates, which grow with the larger body (a grain on a
+# container wall meets the wall's far corners in its frame).
+COORDINATE_NOISE = {wp.float32: 5.0e-7, wp.float64: 1.0e-15}
 
 # Threads per block of the pair kernels: small blocks suit their large per-thread stack (measured
 # on an H200, 64 is 3-7% faster than 256).
@@ -40,6 +44,9 @@ NARROWPHASE_BLOCK_DIM = 64
 # A pair whose |S_A| falls below this fraction of V^(2/3) is "enclosed": one body (nearly) inside
 # the other, or two identical bodies on top of each other. The gradient of V vanishes there.
 ENCLOSED_RATIO = 1.0e-4
+# ... and only when the overlap is a real share of the smaller body (V > this times r_min^3): a
+# sliver whose faces were found merely touching has no gradient either, and no force.
+ENCLOSED_MIN_VOLUME = 1.0e-3
 
 
 @functools.cache
@@ -70,6 +77,7 @@ def make_narrowphase(
     planes_t = wp.types.matrix(shape=(max_faces, 4), dtype=scalar)
     ids_t = wp.types.vector(length=max_faces, dtype=int)
     tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
+    noise_rel = float(COORDINATE_NOISE[scalar])
     # Cheap pre-filter before the exact coincidence test: normals within about 2.5 degrees.
     parallel_cos = 0.999
 
@@ -129,7 +137,8 @@ def make_narrowphase(
         # Clips one face polygon by the other body's active planes (already in A's frame, with
         # their face indices in plane_ids) and integrates the surviving piece. Everything is in
         # A's frame: B's points map by rot, pos. Returns (weighted area, weighted area * centroid,
-        # overflow flag); a coincident facet has weight 1/2.
+        # surface flag, overflow flag); a coincident facet has weight 1/2; a face merely touching an
+        # opposite face of the other body (surface 0) adds to V but not to S or M.
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         poly = poly_t()
         begin = face_loop_start[face]
@@ -147,6 +156,7 @@ def make_narrowphase(
                 v = rot * v + pos
             poly[k] = v
         weight = scalar(scalar(1.0))
+        surface = int(1)  # 0: a face merely touching the other body's: volume only, no area
         cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
         for j in range(num_planes):
             pl = planes[j]
@@ -158,7 +168,7 @@ def make_narrowphase(
             if dist <= -sph[3]:
                 continue  # the whole face lies inside this plane
             if dist > sph[3]:
-                return scalar(0.0), zero3, 0
+                return scalar(0.0), zero3, 1, 0
             if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
                 rel = int(0)
                 if face_is_a:
@@ -173,7 +183,8 @@ def make_narrowphase(
                     weight = scalar(0.5)
                     continue
                 if rel == -1:
-                    return scalar(0.0), zero3, 0
+                    surface = int(0)
+                    continue
             # Sutherland-Hodgman against n.x <= d, from rows [cur, cur+count) into the other half.
             out = max_poly - cur
             n_out = int(0)
@@ -184,19 +195,19 @@ def make_narrowphase(
                 s = wp.dot(n, v) - d
                 if (s <= scalar(0.0)) != (s_prev <= scalar(0.0)):
                     if n_out >= max_poly:
-                        return scalar(0.0), zero3, 1
+                        return scalar(0.0), zero3, 1, 1
                     t = s_prev / (s_prev - s)
                     poly[out + n_out] = prev + t * (v - prev)
                     n_out += 1
                 if s <= scalar(0.0):
                     if n_out >= max_poly:
-                        return scalar(0.0), zero3, 1
+                        return scalar(0.0), zero3, 1, 1
                     poly[out + n_out] = v
                     n_out += 1
                 prev = v
                 s_prev = s
             if n_out < 3:
-                return scalar(0.0), zero3, 0
+                return scalar(0.0), zero3, 1, 0
             cur = out
             count = n_out
         # Fan triangulation: facet area and area-weighted centroid.
@@ -211,7 +222,7 @@ def make_narrowphase(
             area_c += a2 * (p0 + p1 + p2)
         area = weight * scalar(0.5) * area
         area_c = (weight * scalar(0.5) / scalar(3.0)) * area_c
-        return area, area_c, 0
+        return area, area_c, surface, 0
 
     @wp.func
     def cone(area: scalar, area_c: vec3, plane: vec4, origin: vec3):
@@ -256,7 +267,7 @@ def make_narrowphase(
         rot = wp.quat_to_matrix(qa_inv * wp.transform_get_rotation(xb))
         rot_t = wp.transpose(rot)
         pos_b = -(rot_t * pos)  # A's centre in B's frame
-        tol = scalar(tol_rel) * (ra + rb)
+        tol = scalar(tol_rel) * wp.min(ra, rb) + scalar(noise_rel) * (ra + rb)
         fa0 = shape_face_start[sa]
         fa1 = shape_face_start[sa + 1]
         fb0 = shape_face_start[sb]
@@ -363,7 +374,7 @@ def make_narrowphase(
         m_b = zero3
         overflow = int(0)
         for j in range(num_a):
-            area, area_c, of = clip_face(
+            area, area_c, surface, of = clip_face(
                 ids_a[j], True, planes_b, ids_b, num_b,
                 face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
             )  # fmt: skip
@@ -371,12 +382,13 @@ def make_narrowphase(
             pl = face_plane[ids_a[j]]
             dv, dv_c = cone(area, area_c, pl, origin)
             n = vec3(pl[0], pl[1], pl[2])
-            s_a += area * n
-            m_a += wp.cross(area_c, n)
+            if surface != 0:
+                s_a += area * n
+                m_a += wp.cross(area_c, n)
             vol += dv
             vol_c += dv_c
         for j in range(num_b):
-            area, area_c, of = clip_face(
+            area, area_c, surface, of = clip_face(
                 ids_b[j], False, planes_b, ids_a, num_a,
                 face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
             )  # fmt: skip
@@ -384,8 +396,9 @@ def make_narrowphase(
             pl = planes_b[j]
             dv, dv_c = cone(area, area_c, pl, origin)
             n = vec3(pl[0], pl[1], pl[2])
-            s_b += area * n
-            m_b += wp.cross(area_c, n)
+            if surface != 0:
+                s_b += area * n
+                m_b += wp.cross(area_c, n)
             vol += dv
             vol_c += dv_c
         rot_a = wp.quat_to_matrix(qa)

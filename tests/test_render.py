@@ -324,7 +324,7 @@ def test_bad_path_and_image(tmp_path):
 
 
 def test_render_simulation(tmp_path, device):
-    scene = polydem.Scene(gravity=(0, 0, -9.81), dt=1e-4)
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt="auto")
     scene.add_material("steel", density=7800, law="hertz", k=1e10, restitution=0.5, friction=0.0)
     scene.add_shape("cube", polydem.ConvexShape.box(0.1))
     scene.add_body("cube", "steel", position=(0, 0, 0.06))

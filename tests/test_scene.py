@@ -1,6 +1,7 @@
-"""Tests of polydem.scene: building scenes in Python and from TOML, validation and error messages.
+"""Tests of polydem.scene: building scenes in Python and from TOML, validation and error messages;
+emitters, drums, output settings, the shipped scene files and the default scene.
 
-Host-only: no Warp kernels run here.
+Host-only: no Warp kernels run here (Model only allocates arrays, on the CPU).
 """
 
 import math
@@ -12,13 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
+from polydem.default_scene import default_scene, default_scene_path
 from polydem.scene import (
     KIND_FIXED,
     KIND_FREE,
     KIND_KINEMATIC,
     Body,
     Material,
+    Output,
     PlaneWall,
     Scene,
     SceneError,
@@ -28,7 +32,9 @@ from polydem.scene import (
 )
 from polydem.shapes import ConvexShape
 
-SCENES = Path(__file__).resolve().parent.parent / "scenes"
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = ROOT / "scenes"
+PACKAGED_DEFAULT = ROOT / "src" / "polydem" / "scenes" / "default.toml"
 
 STEEL = dict(density=7800.0, law="hertz", k=2.0e11, restitution=0.5, friction=0.3)
 GLASS = dict(density=2500.0, law="hertz", k=5.0e10, restitution=0.8, friction=0.2)
@@ -445,7 +451,8 @@ def test_scene_files_load_and_validate(path):
 
 
 def test_shipped_scenes_exist():
-    assert {"cube_drop.toml", "incline.toml"} <= {p.name for p in SCENES.glob("*.toml")}
+    shipped = {"default.toml", "cube_drop.toml", "incline.toml", "cubes_10k.toml", "tetrahedra_100k.toml", "drum.toml"}
+    assert shipped <= {p.name for p in SCENES.glob("*.toml")}
 
 
 def test_cube_drop_scene():
@@ -729,3 +736,690 @@ def test_toml_without_bodies(tmp_path):
     text = BASE_TOML.split("[[bodies]]")[0]
     err = load_error(tmp_path, text)
     assert err.key == "bodies" and "no bodies" in err.message
+
+
+# ---------------------------------------------------------------------- shipped scenes and the default scene
+
+
+def radii(scene) -> np.ndarray:
+    """(N,) bounding radius of every body about its centre of mass."""
+    return np.array([s.radius for s in scene.shapes.values()])[scene.body_shape]
+
+
+def assert_spheres_apart(scene, idx):
+    """No two bounding spheres of the bodies ``idx`` overlap."""
+    pos, r = scene.body_position[idx], radii(scene)[idx]
+    pairs = cKDTree(pos).query_pairs(2.0 * r.max(), output_type="ndarray")
+    if len(pairs):
+        d = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
+        gap = d - r[pairs[:, 0]] - r[pairs[:, 1]]
+        assert gap.min() > 0.0, f"bounding spheres overlap by {-gap.min():.3g} m"
+
+
+def assert_inside(scene, idx, lo, hi):
+    """Every bounding sphere of the bodies ``idx`` lies inside the box [lo, hi]."""
+    pos, r = scene.body_position[idx], radii(scene)[idx][:, None]
+    assert np.all(pos - r >= np.asarray(lo) - 1e-12) and np.all(pos + r <= np.asarray(hi) + 1e-12)
+
+
+@pytest.mark.parametrize("path", sorted(SCENES.glob("*.toml")), ids=lambda p: p.name)
+def test_scene_files_build_a_model_within_the_time_step_limit(path):
+    import warp as wp
+
+    from polydem.model import Model
+
+    wp.config.quiet = True
+    scene = Scene.from_toml(path)
+    model = Model(scene, device="cpu")
+    assert model.num_bodies == scene.num_bodies
+    assert model.dt <= model.dt_limit
+    if scene.dt == "auto":
+        assert 5e-6 <= model.dt <= 1e-4, f"auto time step {model.dt:.3g} s is unreasonable"
+    free = scene.body_kind == KIND_FREE
+    assert_spheres_apart(scene, np.flatnonzero(free))
+
+
+def test_time_step_above_the_limit_names_the_file_and_key(tmp_path):
+    import warp as wp
+
+    from polydem.model import Model
+
+    wp.config.quiet = True
+    path = write(tmp_path, (SCENES / "default.toml").read_text().replace('dt = "auto"', "dt = 1.0e-2"))
+    scene = Scene.from_toml(path)
+    with pytest.raises(SceneError, match=r"above the stable limit") as info:
+        Model(scene, device="cpu")
+    assert info.value.key == "simulation.dt" and info.value.file == path
+
+
+def test_scene_files_with_emitters_and_output():
+    for name, count in (("default.toml", 300), ("cubes_10k.toml", 10_000), ("tetrahedra_100k.toml", 100_000)):
+        scene = Scene.from_toml(SCENES / name)
+        assert np.sum(scene.body_kind == KIND_FREE) == count
+        assert len(scene.emitters) == 1 and scene.emitters[0]["count"] == count
+        assert scene.output.summary == "summary.json" and scene.output.usd.endswith(".usd")
+        assert scene.precision == "float32"
+        # every free body sits inside the box's cavity, above the floor at z = 0
+        verts_z = np.array([scene.body_vertices(i)[:, 2].min() for i in np.flatnonzero(scene.body_kind == 0)[:200]])
+        assert verts_z.min() > 0.0
+    drum = Scene.from_toml(SCENES / "drum.toml")
+    assert len(drum.drums) == 1 and len(drum.drums[0].bodies) == 24 + 2
+    assert np.sum(drum.body_kind == KIND_FREE) == 300
+    assert drum.output.pictures == "last" and drum.output.fps == 30
+    u, e = drum.drums[0].interior_planes()
+    for i in np.flatnonzero(drum.body_kind == KIND_FREE):
+        assert np.all(drum.body_vertices(i) @ u.T <= e), "a body starts outside the drum"
+
+
+def test_static_overlap_estimate_of_the_packings():
+    """Under the weight of the settled bed the overlap stays below ~1% of a body's volume.
+
+    Hertz-type law W = 2/3 k V^1.5: a vertex pressed into a face with an area vector |S| ~ V^(2/3)
+    carries F = k V^(7/6), the worst case; the bed (solid fraction 0.6) presses the bottom layer
+    with p = rho 0.6 g h, about F = p L^2 per body.
+    """
+    for name in ("default.toml", "cubes_10k.toml", "tetrahedra_100k.toml", "drum.toml"):
+        scene = Scene.from_toml(SCENES / name)
+        free = scene.body_kind == KIND_FREE
+        vol = np.array([s.volume for s in scene.shapes.values()])[scene.body_shape[free]]
+        mat = scene.materials["stone"]
+        if scene.drums:
+            d = scene.drums[0]
+            area = 2.0 * d.radius * d.length  # lower bound of the bed's width times the length
+        else:
+            box = [scene.body_vertices(i) for i in np.flatnonzero(scene.body_kind == KIND_FIXED)]
+            ext = np.ptp(np.vstack(box), axis=0)
+            area = ext[0] * ext[1]
+        height = vol.sum() / (0.6 * area)
+        force = mat.density * 0.6 * 9.81 * height * np.cbrt(vol.mean()) ** 2
+        overlap = (force / mat.k) ** (6.0 / 7.0) / vol.min()
+        assert overlap < 0.01, f"{name}: ~{overlap:.2%} overlap under the bed's weight"
+
+
+def test_packaged_default_scene_is_the_repository_file():
+    assert PACKAGED_DEFAULT.read_bytes() == (SCENES / "default.toml").read_bytes()
+    assert Path(str(default_scene_path())).resolve() == PACKAGED_DEFAULT.resolve()
+
+
+def test_default_scene():
+    scene = default_scene()
+    assert scene.name == "default" and scene.duration == 0.6 and scene.dt == "auto"
+    assert scene.num_bodies == 305
+    np.testing.assert_array_equal(np.bincount(scene.body_kind), [300, 5])
+    counts = np.bincount(scene.body_shape[scene.body_kind == KIND_FREE])
+    assert dict(zip(scene.shape_names, counts, strict=False)) == {
+        "cube": 60,
+        "tetrahedron": 60,
+        "octahedron": 60,
+        "prism6": 60,
+        "rock": 60,
+    }
+    stone = scene.materials["stone"]
+    assert (stone.density, stone.law, stone.k, stone.restitution, stone.friction) == (2500.0, "hertz", 1e8, 0.4, 0.5)
+    assert scene.shapes["cube"].volume == pytest.approx(0.02**3)
+    free = np.flatnonzero(scene.body_kind == KIND_FREE)
+    assert_spheres_apart(scene, free)
+    assert_inside(scene, free, (-0.182, -0.182, 0.0), (0.182, 0.182, 0.22))
+    # same file, same scene; a seed or a count changes it
+    np.testing.assert_array_equal(default_scene().body_position, scene.body_position)
+    other = default_scene(seed=1)
+    assert not np.allclose(other.body_position, scene.body_position)
+    big = default_scene(1000)
+    assert np.sum(big.body_kind == KIND_FREE) == 1000 and "1000 mixed polyhedra" in big.description
+    assert_spheres_apart(big, np.flatnonzero(big.body_kind == KIND_FREE))
+    with pytest.raises(SceneError, match="count must be an integer >= 1"):
+        default_scene(0)
+
+
+# ---------------------------------------------------------------------- emitters
+
+
+def stone_scene(**kw):
+    scene = Scene(**kw)
+    scene.add_material("stone", density=2500.0, law="hertz", k=1e8, restitution=0.4, friction=0.5)
+    scene.add_shape("cube", ConvexShape.box(0.02))
+    scene.add_shape("tet", ConvexShape.tetrahedron(0.028))
+    scene.add_shape("rock", ConvexShape.rock(20, 0.024, seed=3))  # its input origin is not its centroid
+    return scene
+
+
+REGION = {"min": [-0.2, -0.1, 0.0], "max": [0.2, 0.1, 0.3]}
+
+
+def test_emit_places_count_without_overlaps_inside_the_region():
+    scene = stone_scene()
+    idx = scene.emit(["cube", "tet", "rock"], "stone", 250, REGION, seed=4)
+    np.testing.assert_array_equal(idx, np.arange(250))
+    assert scene.num_bodies == 250 and np.all(scene.body_kind == KIND_FREE)
+    assert_spheres_apart(scene, idx)
+    assert_inside(scene, idx, REGION["min"], REGION["max"])
+    np.testing.assert_array_equal(np.bincount(scene.body_shape), [84, 83, 83])  # exact shares
+    q = scene.body_orientation
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
+    assert np.std(q[:, 3]) > 0.2  # random orientations
+    assert scene.emitters == [{"key": "emitters[0]", "count": 250, "first": 0, "last": 249}]
+    scene.validate()
+
+
+def test_emit_is_deterministic_for_a_seed():
+    def build(seed):
+        scene = stone_scene()
+        scene.emit(["cube", "rock"], "stone", 120, REGION, seed=seed, scale_range=[0.8, 1.2], velocity_jitter=0.1)
+        return scene
+
+    a, b, c = build(7), build(7), build(8)
+    for name in ("body_position", "body_orientation", "body_velocity", "body_shape"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert not np.array_equal(a.body_position, c.body_position)
+    assert a.shape_names == b.shape_names
+
+
+def test_emit_fills_from_the_bottom_against_gravity():
+    bottom = stone_scene()
+    bottom.emit("cube", "stone", 40, REGION)
+    top = stone_scene()
+    top.emit("cube", "stone", 40, REGION, fill="random", seed=1)
+    assert bottom.body_position[:, 2].max() < 0.05 < top.body_position[:, 2].max()
+    # gravity along -x stacks the layers from the -x side
+    sideways = stone_scene(gravity=(-9.81, 0.0, 0.0))
+    sideways.emit("cube", "stone", 40, REGION)
+    assert sideways.body_position[:, 0].max() < -0.12  # two layers of 5 x 7 cells at the -x end
+    assert sideways.body_position[:, 2].max() > 0.2
+
+
+def test_emit_aligned_orientation_and_velocity():
+    scene = stone_scene()
+    idx = scene.emit("cube", "stone", 30, REGION, orientation="aligned", velocity=(0, 0, -1), velocity_jitter=0.2)
+    np.testing.assert_array_equal(scene.body_orientation, np.tile([0.0, 0.0, 0.0, 1.0], (30, 1)))
+    v = scene.body_velocity[idx]
+    assert np.all(np.abs(v - [0.0, 0.0, -1.0]) <= 0.2) and np.std(v[:, 0]) > 0.01
+    assert np.all(scene.body_angular_velocity == 0.0)
+
+
+def test_emit_jitter_and_spacing():
+    scene = stone_scene()
+    idx = scene.emit("cube", "stone", 64, {"min": [0, 0, 0], "max": [0.3, 0.3, 0.3]}, jitter=0.0, spacing=2.0)
+    pos = scene.body_position[idx]
+    cell = 2.0 * 2.0 * scene.shapes["cube"].radius  # 0.069 m: 4 cells along each axis
+    # no jitter: the centres form the grid, centred in the region
+    for axis in range(3):
+        np.testing.assert_allclose(
+            np.unique(np.round(pos[:, axis], 12)), 0.15 + cell * np.array([-1.5, -0.5, 0.5, 1.5]), atol=1e-12
+        )
+    with pytest.raises(SceneError, match=r"must be >= 1") as info:
+        scene.emit("cube", "stone", 1, REGION, spacing=0.9)
+    assert info.value.key == "emitters[1].spacing"
+
+
+def test_emit_avoids_walls_and_bodies_already_there():
+    scene = stone_scene()
+    scene.add_box_container((0, 0, 0.1), (0.3, 0.3, 0.2), "stone", wall_thickness=0.02)
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "stone")
+    scene.add_plane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), "stone")  # cuts the region at x = 0
+    scene.add_shape("block", ConvexShape.box(0.1, 0.1, 0.05))
+    block = scene.add_body("block", "stone", (0.08, 0.0, 0.025), quat_from_axis_angle((0, 0, 1), 0.4), kind="fixed")
+    # the region spills over the walls: cells crossing them are left out
+    idx = scene.emit(["cube", "rock"], "stone", 30, {"min": [-0.2, -0.2, -0.05], "max": [0.2, 0.2, 0.2]}, seed=2)
+    assert_spheres_apart(scene, idx)
+    pos, r = scene.body_position[idx], radii(scene)[idx]
+    assert np.all(pos[:, 0] - r >= 0.0), "a body crosses the plane x = 0"
+    assert np.all(pos[:, :2] - r[:, None] >= -0.15) and np.all(pos[:, :2] + r[:, None] <= 0.15)
+    assert np.all(pos[:, 2] - r >= 0.0), "a body reaches into the floor"
+    # and none touches the fixed block: its bounding sphere is clear of every face plane it faces
+    verts = scene.body_vertices(block)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    near = np.all((pos + r[:, None] > lo) & (pos - r[:, None] < hi), axis=1)
+    rot = quat_to_matrix(scene.body_orientation[block])
+    shape = scene.shapes["block"]
+    for i in np.flatnonzero(near):
+        local = rot.T @ (pos[i] - scene.body_position[block])
+        assert np.max(shape.face_normals @ local - shape.face_offsets) >= r[i] - 1e-12
+
+
+def test_emit_into_a_drum_stays_inside_it():
+    scene = stone_scene()
+    drum = scene.add_drum((0.0, 0.0, 0.3), (0.0, 1.0, 0.0), 0.2, 0.15, "stone", rpm=10.0)
+    idx = scene.emit(["cube", "tet"], "stone", 150, {"min": [-0.25, -0.1, 0.0], "max": [0.25, 0.1, 0.6]}, seed=5)
+    u, e = drum.interior_planes()
+    for i in idx:
+        assert np.all(scene.body_vertices(i) @ u.T <= e + 1e-12)
+    with pytest.raises(SceneError, match=r"holds at most \d+ bodies.*cross walls or bodies") as info:
+        scene.emit("cube", "stone", 500, {"min": [-0.25, -0.1, 0.0], "max": [0.25, 0.1, 0.6]})
+    assert info.value.key == "emitters[1].count"
+
+
+def test_emit_region_too_small():
+    scene = stone_scene()
+    with pytest.raises(SceneError) as info:
+        scene.emit("cube", "stone", 1000, REGION)
+    err = info.value
+    assert err.key == "emitters[0].count"
+    m = re.search(r"holds at most (\d+) bodies, fewer than count = 1000", err.message)
+    assert m, err.message
+    fit = int(m.group(1))
+    assert f"Lower count to {fit}" in err.message and "enlarge the region" in err.message
+    assert scene.num_bodies == 0
+    assert len(scene.emit("cube", "stone", fit, REGION)) == fit  # exactly that many fit
+    with pytest.raises(SceneError, match=r"region is 0.02 m along y, too small for one body") as info:
+        scene.emit("cube", "stone", 1, {"min": [0, 0, 0], "max": [1, 0.02, 1]})
+    assert info.value.key == "emitters[1].region"
+
+
+def test_emit_size_distributions():
+    scene = stone_scene()
+    base = scene.shapes["cube"]
+    idx = scene.emit("cube", "stone", 10, REGION | {"max": [0.2, 0.1, 0.15]}, scale=1.5)
+    (name,) = {scene.shape_names[s] for s in scene.body_shape[idx]}
+    assert name == "cube_x1.5" and scene.shapes[name].volume == pytest.approx(1.5**3 * base.volume)
+    assert scene.emit("cube", "stone", 5, REGION | {"min": [-0.2, -0.1, 0.15]}, scale=1.5)[0] == 10
+    assert scene.shape_names.count("cube_x1.5") == 1  # registered once
+
+    uni = stone_scene()
+    idx = uni.emit(["cube", "tet"], "stone", 400, {"min": [0, 0, 0], "max": [1, 1, 1]}, scale_range=[0.5, 1.0])
+    used = sorted({uni.shape_names[s] for s in uni.body_shape[idx]})
+    assert len(used) == 2 * 8  # 8 bins per base shape
+    cube_rows = np.array([uni.shape_names[s].startswith("cube") for s in uni.body_shape])
+    factor = np.cbrt(np.array([s.volume for s in uni.shapes.values()])[uni.body_shape[cube_rows]] / base.volume)
+    assert factor.min() >= 0.5 and factor.max() <= 1.0
+    assert factor.mean() == pytest.approx(0.75, abs=0.03)
+    assert_spheres_apart(uni, idx)
+
+    logn = stone_scene()
+    idx = logn.emit(
+        "cube", "stone", 2000, {"min": [0, 0, 0], "max": [2, 2, 1]}, scale_lognormal={"mean": 1.0, "sigma": 0.2}
+    )
+    factor = np.cbrt(np.array([s.volume for s in logn.shapes.values()])[logn.body_shape[idx]] / base.volume)
+    assert factor.mean() == pytest.approx(1.0, abs=0.02)
+    assert np.std(np.log(factor)) == pytest.approx(0.2, abs=0.03)
+    assert len(np.unique(factor)) <= 8
+    big = np.cbrt(np.array([s.volume for s in logn.shapes.values()]) / base.volume).max()
+    assert big <= math.exp(-0.02 + 3 * 0.2) + 1e-9  # truncated at 3 sigma
+    assert_spheres_apart(logn, idx)
+
+    with pytest.raises(SceneError, match="one size distribution.*not both scale and scale_range") as info:
+        stone_scene().emit("cube", "stone", 1, REGION, scale=1.0, scale_range=[1, 2])
+    assert info.value.key == "emitters[0].scale_range"
+
+
+def test_emit_mix_weights():
+    scene = stone_scene()
+    scene.emit(["cube", "tet", "rock"], "stone", 100, REGION, weights=[2, 1, 1])
+    np.testing.assert_array_equal(np.bincount(scene.body_shape), [50, 25, 25])
+    table = stone_scene()
+    table.emit({"cube": 1, "rock": 3}, "stone", 10, REGION)
+    counts = dict(zip(table.shape_names, np.bincount(table.body_shape, minlength=3), strict=True))
+    assert counts == {"cube": 3, "tet": 0, "rock": 7}  # 2.5 and 7.5: the tie goes to the first
+    with pytest.raises(SceneError, match="expected 3 weights") as info:
+        stone_scene().emit(["cube", "tet", "rock"], "stone", 10, REGION, weights=[1, 2])
+    assert info.value.key == "emitters[0].weights"
+    with pytest.raises(SceneError, match="listed twice"):
+        stone_scene().emit(["cube", "cube"], "stone", 10, REGION)
+
+
+def test_emit_rock_centroid_and_kinematic():
+    scene = stone_scene()
+    idx = scene.emit("rock", "stone", 20, REGION, kind="kinematic", velocity=(0.1, 0, 0), orientation="aligned")
+    assert np.all(scene.body_kind == KIND_KINEMATIC)
+    assert_inside(scene, idx, REGION["min"], REGION["max"])  # centroids are placed, not input origins
+    with pytest.raises(SceneError, match="fixed bodies cannot move") as info:
+        scene.emit("cube", "stone", 1, REGION, kind="fixed", velocity_jitter=0.1)
+    assert info.value.key == "emitters[1].velocity"
+
+
+def test_emit_a_hundred_thousand_bodies_quickly():
+    scene = stone_scene()
+    scene.add_shape("grain", ConvexShape.tetrahedron(0.01))
+    scene.add_shape("pebble", ConvexShape.rock(12, 0.01, seed=1))
+    scene.add_box_container((0, 0, 0.5), (1.0, 1.0, 1.0), "stone")
+    t0 = time.perf_counter()
+    region = {"min": [-0.5, -0.5, 0.0], "max": [0.5, 0.5, 1.0]}
+    idx = scene.emit(["grain", "pebble"], "stone", 100_000, region, scale_range=[0.8, 1.0])
+    elapsed = time.perf_counter() - t0
+    assert len(idx) == 100_000
+    assert elapsed < 3.0, f"emitting 10^5 bodies took {elapsed:.2f} s"
+    assert_spheres_apart(scene, idx)
+
+
+# ---------------------------------------------------------------------- drums and pivots
+
+
+@pytest.mark.parametrize("axis", [(0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 2.0, -0.5)])
+def test_drum_slabs_move_consistently(axis):
+    scene = stone_scene()
+    center = np.array([0.1, -0.2, 0.3])
+    drum = scene.add_drum(center, axis, 0.25, 0.3, "stone", omega=-2.0, sides=16, thickness=0.03)
+    a = np.asarray(axis) / np.linalg.norm(axis)
+    np.testing.assert_allclose(drum.axis, a)
+    assert drum.sides == 16 and drum.caps and len(drum.bodies) == 18
+    idx = np.array(drum.bodies)
+    assert np.all(scene.body_kind[idx] == KIND_KINEMATIC)
+    pos = scene.body_position[idx]
+    w = scene.body_angular_velocity[idx]
+    np.testing.assert_allclose(w, np.tile(-2.0 * a, (18, 1)), atol=1e-15)
+    np.testing.assert_allclose(scene.body_pivot[idx], np.tile(center, (18, 1)))
+    # velocity = omega x r for every part; the slabs' centres lie at radius + thickness / 2
+    np.testing.assert_allclose(scene.body_velocity[idx], np.cross(w, pos - center), atol=1e-14)
+    rel = pos[:16] - center
+    radial = rel - np.outer(rel @ a, a)
+    np.testing.assert_allclose(np.linalg.norm(radial, axis=1), 0.25 + 0.015)
+    np.testing.assert_allclose(rel @ a, 0.0, atol=1e-14)
+    np.testing.assert_allclose(np.linalg.norm(scene.body_velocity[idx[:16]], axis=1), 2.0 * 0.265)
+    # the caps sit on the axis beyond the ends and only spin
+    np.testing.assert_allclose((pos[16:] - center) @ a, [0.165, -0.165])
+    np.testing.assert_allclose(scene.body_velocity[idx[16:]], 0.0, atol=1e-14)
+    # inner faces form the 16-gon of inradius 0.25: every slab vertex is at least that far from the
+    # axis, each slab has a face at exactly that distance, and neighbours meet at the corners
+    u, e = drum.interior_planes()
+    for k in range(16):
+        v = scene.body_vertices(int(idx[k])) - center
+        dist = np.linalg.norm(v - np.outer(v @ a, a), axis=1)
+        assert dist.min() == pytest.approx(0.25 / math.cos(math.pi / 16))
+        assert np.sum(np.isclose(v @ (-u[k]), -0.25, atol=1e-12)) == 4
+        assert np.all(np.abs(v @ a) <= 0.15 + 1e-12)
+    corners = [scene.body_vertices(int(i)) for i in idx[:16]]
+    for k in range(16):
+        shared = np.min(np.linalg.norm(corners[k][:, None] - corners[(k + 1) % 16][None], axis=2), axis=1)
+        assert np.sum(shared < 1e-12) == 2  # two inner corners (one edge) shared with the neighbour
+    # a short rigid rotation of the whole drum moves each centre by omega x r dt
+    dt = 1e-6
+    rot = quat_to_matrix(quat_from_axis_angle(a, -2.0 * dt))
+    moved = (pos - center) @ rot.T + center
+    np.testing.assert_allclose((moved - pos) / dt, scene.body_velocity[idx], atol=1e-6)
+    scene.validate()
+
+
+def test_drum_options_and_errors():
+    scene = stone_scene()
+    drum = scene.add_drum((0, 0, 0), (0, 1, 0), 0.2, 0.1, "stone", rpm=30.0, caps=False)
+    assert drum.omega == pytest.approx(math.pi) and len(drum.bodies) == 24 and drum.thickness == pytest.approx(0.02)
+    assert scene.drums == [drum] and "24 slabs, omega 3.142 rad/s (30 rpm)" in scene.describe()
+    with pytest.raises(SceneError, match="exactly one of omega") as info:
+        scene.add_drum((0, 0, 0), (0, 1, 0), 0.2, 0.1, "stone")
+    assert info.value.key == "drums[1].omega"
+    with pytest.raises(SceneError, match="exactly one of omega"):
+        scene.add_drum((0, 0, 0), (0, 1, 0), 0.2, 0.1, "stone", omega=1.0, rpm=10.0)
+    with pytest.raises(SceneError, match="axis .* is zero"):
+        scene.add_drum((0, 0, 0), (0, 0, 0), 0.2, 0.1, "stone", omega=1.0)
+    with pytest.raises(SceneError, match=r"must be an integer >= 3") as info:
+        scene.add_drum((0, 0, 0), (0, 1, 0), 0.2, 0.1, "stone", omega=1.0, sides=2)
+    assert info.value.key == "drums[1].sides"
+
+
+def test_pivot_bodies():
+    scene = stone_scene()
+    i = scene.add_body(
+        "cube", "stone", (1.0, 0.0, 0.0), angular_velocity=(0, 0, 2.0), kind="kinematic", pivot=(0, 0, 0)
+    )
+    np.testing.assert_allclose(scene.body_velocity[i], [0.0, 2.0, 0.0])
+    assert scene.body(i).pivot == (0.0, 0.0, 0.0)
+    j = scene.add_body("cube", "stone", (0.0, 0.0, 1.0))
+    assert np.all(np.isnan(scene.body_pivot[j])) and scene.body(j).pivot is None
+    with pytest.raises(SceneError, match="only a kinematic body can turn about a pivot") as info:
+        scene.add_body("cube", "stone", pivot=(0, 0, 0))
+    assert info.value.key == "bodies[2].pivot"
+    with pytest.raises(SceneError, match="leave velocity out") as info:
+        scene.add_body("cube", "stone", velocity=(1, 0, 0), kind="kinematic", pivot=(0, 0, 0))
+    assert info.value.key == "bodies[2].velocity"
+
+
+# ---------------------------------------------------------------------- simulation settings and output
+
+
+def test_device_and_precision():
+    assert Scene(device="cuda:1").device == "cuda:1" and Scene().device is None
+    assert Scene(precision="float32").precision == "float32"
+    with pytest.raises(SceneError, match=r"runs in float32 only.*polydem.overlap") as info:
+        Scene(precision="float64")
+    assert info.value.key == "simulation.precision"
+    with pytest.raises(SceneError, match=r"unknown precision 'float16'.*Valid precisions: float32, float64"):
+        Scene(precision="float16")
+    with pytest.raises(SceneError, match=r"unknown device 'gpu'.*\"cuda:N\"") as info:
+        Scene(device="gpu")
+    assert info.value.key == "simulation.device"
+    scene = stone_scene()
+    scene.add_body("cube", "stone")
+    scene.precision = "float64"
+    with pytest.raises(SceneError, match="float32 only"):
+        scene.validate()
+
+
+def test_output_settings():
+    out = Output.from_dict(
+        {"usd": "run/traj.usda", "fps": 24, "summary": "s.json", "pictures": [30, 0, 30], "checkpoint": {"steps": 500}}
+    )
+    assert out == Output(usd="run/traj.usda", fps=24.0, summary="s.json", pictures=(0, 30), checkpoint_steps=500)
+    assert out.checkpoint_path == "checkpoints" and out.checkpoint_seconds is None
+    default = Output()
+    assert (default.usd, default.summary, default.pictures, default.fps) == (None, "summary.json", (), 60.0)
+    flags = Output.from_dict({"usd": True, "summary": False, "pictures": "last", "checkpoint": {"seconds": 0.1}})
+    assert (flags.usd, flags.summary, flags.pictures, flags.checkpoint_seconds) == ("trajectory.usd", None, "last", 0.1)
+    assert Output.from_dict(out.to_dict()) == out and Output.from_dict(flags.to_dict()) == flags
+
+
+@pytest.mark.parametrize(
+    "table, key, match",
+    [
+        ({"fsp": 30}, "output.fsp", r"unknown key 'fsp'; did you mean 'fps'\?"),
+        ({"fps": -1}, "output.fps", r"must be positive"),
+        ({"fps": "fast"}, "output.fps", r"expected a number, got string 'fast'"),
+        ({"usd": "out.obj"}, "output.usd", r"must end in \.usd, \.usda, \.usdc"),
+        ({"usd": 3}, "output.usd", r"expected a file path string"),
+        ({"summary": 1}, "output.summary", r"expected a file path string"),
+        ({"pictures": "first"}, "output.pictures", r"expected a list of frame numbers or \"last\""),
+        ({"pictures": [0, -2]}, "output.pictures[1]", r"must be an integer >= 0"),
+        ({"pictures": [0.5]}, "output.pictures[0]", r"expected an integer"),
+        ({"checkpoint": 100}, "output.checkpoint", r"expected a table such as checkpoint = \{steps = 10000\}"),
+        ({"checkpoint": {}}, "output.checkpoint", r"give the checkpoint interval"),
+        ({"checkpoint": {"step": 10}}, "output.checkpoint.step", r"did you mean 'steps'\?"),
+        ({"checkpoint": {"steps": 10, "seconds": 1.0}}, "output.checkpoint.seconds", r"not both"),
+        ({"checkpoint": {"steps": 0}}, "output.checkpoint.steps", r"must be an integer >= 1"),
+    ],
+)
+def test_output_errors(table, key, match):
+    with pytest.raises(SceneError, match=match) as info:
+        Output.from_dict(table, file="x.toml")
+    assert info.value.key == key and info.value.file == "x.toml"
+
+
+# ---------------------------------------------------------------------- the new tables in scene files
+
+
+EMITTER_TOML = (
+    BASE_TOML.replace("steps = 100", 'steps = 100\ndevice = "cpu"\nprecision = "float32"')
+    + """
+[shapes.rock]
+type = "rock"
+n_points = 12
+size = 0.1
+
+[[emitters]]
+shape = ["cube", "rock"]
+weights = [1.0, 1.0]
+material = "glass"
+count = 50
+region = { min = [-0.5, -0.5, 0.5], max = [0.5, 0.5, 1.5] }
+orientation = "random"
+seed = 3
+velocity = [0.0, 0.0, -0.5]
+velocity_jitter = 0.05
+scale_range = [0.9, 1.1]
+scale_bins = 4
+kind = "free"
+spacing = 1.2
+jitter = 0.5
+fill = "bottom"
+
+[[walls]]
+type = "drum"
+center = [3.0, 0.0, 1.0]
+axis = [1.0, 0.0, 0.0]
+radius = 0.5
+length = 0.4
+rpm = 12.0
+sides = 12
+thickness = 0.05
+caps = false
+material = "steel"
+
+[output]
+usd = "emit.usd"
+fps = 30
+summary = "summary.json"
+pictures = [0, 10]
+checkpoint = { seconds = 0.5, path = "ck" }
+"""
+)
+
+
+def test_toml_emitters_drums_and_output(tmp_path):
+    scene = Scene.from_toml(write(tmp_path, EMITTER_TOML))
+    assert scene.device == "cpu" and scene.precision == "float32"
+    assert scene.num_bodies == 1 + 12 + 50  # the body, the drum's slabs (no caps), the emitted
+    (drum,) = scene.drums
+    assert drum.omega == pytest.approx(12 * 2 * math.pi / 60) and not drum.caps
+    emitted = np.arange(13, 63)
+    np.testing.assert_array_equal(np.bincount(scene.body_shape[emitted], minlength=1)[0], 0)
+    assert len({scene.shape_names[s] for s in scene.body_shape[emitted]}) <= 2 * 4
+    assert np.all(np.abs(scene.body_velocity[emitted] - [0, 0, -0.5]) <= 0.05)
+    assert_spheres_apart(scene, np.arange(63)[scene.body_kind == KIND_FREE])
+    assert scene.output == Output(
+        usd="emit.usd", fps=30, summary="summary.json", pictures=(0, 10), checkpoint_seconds=0.5, checkpoint_path="ck"
+    )
+    # the round trip keeps bodies, pivots and output
+    again = Scene.from_dict(scene.to_dict())
+    np.testing.assert_allclose(again.body_position, scene.body_position, atol=1e-12)
+    np.testing.assert_allclose(again.body_velocity, scene.body_velocity, atol=1e-12)
+    np.testing.assert_array_equal(np.isnan(again.body_pivot), np.isnan(scene.body_pivot))
+    assert again.output == scene.output and again.device == "cpu"
+
+
+def test_toml_pivot_body(tmp_path):
+    text = BASE_TOML + (
+        '\n[[bodies]]\nshape = "cube"\nmaterial = "steel"\nposition = [0.5, 0.0, 1.0]\nkind = "kinematic"\n'
+        "angular_velocity = [0.0, 0.0, 1.0]\npivot = [0.0, 0.0, 1.0]\n"
+    )
+    scene = Scene.from_toml(write(tmp_path, text))
+    np.testing.assert_allclose(scene.body_velocity[1], [0.0, 0.5, 0.0])
+    err = load_error(tmp_path, text.replace("pivot =", "velocity = [0.0, 0.5, 0.0]\npivot ="))
+    assert err.key == "bodies[1].velocity" and "not both" in err.message
+    err = load_error(tmp_path, text.replace('kind = "kinematic"', 'kind = "free"'))
+    assert err.key == "bodies[1].pivot" and "only a kinematic body" in err.message
+
+
+EMITTER_BASE = (
+    BASE_TOML
+    + """
+[[emitters]]
+shape = "cube"
+material = "steel"
+count = 20
+region = { min = [-0.5, -0.5, 0.5], max = [0.5, 0.5, 1.0] }
+"""
+)
+
+
+@pytest.mark.parametrize(
+    "old, new, key, match",
+    [
+        ("count = 20", "cuont = 20", "emitters[0].cuont", r"unknown key 'cuont'; did you mean 'count'\?"),
+        ("count = 20", "count = -5", "emitters[0].count", r"must be an integer >= 1, got -5"),
+        ("count = 20", "count = 2.5", "emitters[0].count", r"expected an integer, got float 2.5"),
+        ("count = 20", "count = '20'", "emitters[0].count", r"expected an integer, got string '20'"),
+        ("count = 20", "", "emitters[0].count", r"missing required key 'count' \(number of bodies"),
+        ("count = 20", "count = 100000", "emitters[0].count", r"holds at most \d+ bodies.*Lower count to \d+"),
+        (
+            'shape = "cube"\nmaterial = "steel"\ncount',
+            'shape = "cueb"\nmaterial = "steel"\ncount',
+            "emitters[0].shape",
+            r"unknown shape 'cueb'; did you mean 'cube'\?",
+        ),
+        (
+            'shape = "cube"\nmaterial = "steel"\ncount',
+            'shape = []\nmaterial = "steel"\ncount',
+            "emitters[0].shape",
+            r"the list of shapes is empty",
+        ),
+        (
+            '"cube"\nmaterial = "steel"\ncount',
+            '"cube"\nweights = [1]\nmaterial = "steel"\ncount',
+            "emitters[0].weights",
+            r"go with a list of shapes",
+        ),
+        (
+            'shape = "cube"\nmaterial = "steel"\ncount',
+            'shape = ["cube"]\nweights = [-1]\nmaterial = "steel"\ncount',
+            "emitters[0].weights[0]",
+            r"must not be negative",
+        ),
+        ('material = "steel"\ncount', 'material = "stel"\ncount', "emitters[0].material", r"did you mean 'steel'"),
+        ("max = [0.5, 0.5, 1.0]", "mx = [0.5, 0.5, 1.0]", "emitters[0].region.mx", r"did you mean 'max'\?"),
+        (
+            "max = [0.5, 0.5, 1.0]",
+            "max = [0.5, 0.5, 0.4]",
+            "emitters[0].region.max",
+            r"along z min = 0.5 and max = 0.4",
+        ),
+        ("max = [0.5, 0.5, 1.0]", "max = [0.5, 0.5]", "emitters[0].region.max", r"expected 3 numbers"),
+        ("max = [0.5, 0.5, 1.0]", "max = [0.5, 0.5, 0.51]", "emitters[0].region", r"too small for one body"),
+        ("count = 20", "count = 20\norientation = 'randon'", "emitters[0].orientation", r"did you mean 'random'\?"),
+        ("count = 20", "count = 20\nfill = 'botom'", "emitters[0].fill", r"did you mean 'bottom'\?"),
+        ("count = 20", "count = 20\nkind = 'fixd'", "emitters[0].kind", r"did you mean 'fixed'\?"),
+        ("count = 20", "count = 20\nseed = -1", "emitters[0].seed", r"must be an integer >= 0"),
+        ("count = 20", "count = 20\njitter = 2.0", "emitters[0].jitter", r"must be in \[0, 1\]"),
+        ("count = 20", "count = 20\nvelocity_jitter = -1", "emitters[0].velocity_jitter", r"must not be negative"),
+        ("count = 20", "count = 20\nvelocity = [0, 0]", "emitters[0].velocity", r"expected 3 numbers"),
+        ("count = 20", "count = 20\nscale = 0", "emitters[0].scale", r"must be positive"),
+        ("count = 20", "count = 20\nscale_range = [2, 1]", "emitters[0].scale_range", r"expected 0 < lo <= hi"),
+        (
+            "count = 20",
+            "count = 20\nscale_lognormal = {mean = 1.0}",
+            "emitters[0].scale_lognormal.sigma",
+            r"missing required key 'sigma'",
+        ),
+        (
+            "count = 20",
+            "count = 20\nscale_lognormal = {mean = 1.0, sigma = 0.1, mode = 1}",
+            "emitters[0].scale_lognormal.mode",
+            r"unknown key 'mode'",
+        ),
+        ("count = 20", "count = 20\nscale_bins = 0", "emitters[0].scale_bins", r"must be an integer >= 1"),
+        ("[[emitters]]", "[emitters]", "emitters", r"expected an array of tables \[\[emitters\]\]"),
+        # simulation settings
+        ("steps = 100", 'steps = 100\nprecision = "float64"', "simulation.precision", r"float32 only.*float64"),
+        ("steps = 100", 'steps = 100\ndevice = "gpu"', "simulation.device", r"unknown device 'gpu'"),
+        ("steps = 100", "steps = 100\ndevice = 0", "simulation.device", r"expected a device name"),
+        ("steps = 100", "steps = 100\nprecison = 'float32'", "simulation.precison", r"did you mean 'precision'\?"),
+        # output
+        ("[[emitters]]", "[output]\nfps = 0\n\n[[emitters]]", "output.fps", r"must be positive"),
+        ("[[emitters]]", "[output]\nusd = 'a.txt'\n\n[[emitters]]", "output.usd", r"must end in"),
+        ("[[emitters]]", "[outptu]\nfps = 1\n\n[[emitters]]", "outptu", r"did you mean 'output'\?"),
+        # drums
+        (
+            "[[emitters]]",
+            "[[walls]]\ntype = 'drum'\ncenter = [0, 0, 3]\naxis = [0, 1, 0]\nradius = 0.5\nlength = 0.2\n"
+            "material = 'steel'\nrmp = 10\n\n[[emitters]]",
+            "walls[1].rmp",
+            r"did you mean 'rpm'\?.*Valid keys for type = 'drum'",
+        ),
+        (
+            "[[emitters]]",
+            "[[walls]]\ntype = 'drum'\ncenter = [0, 0, 3]\naxis = [0, 1, 0]\nradius = -0.5\nlength = 0.2\n"
+            "material = 'steel'\nrpm = 10\n\n[[emitters]]",
+            "walls[1].radius",
+            r"must be positive",
+        ),
+        (
+            "[[emitters]]",
+            "[[walls]]\ntype = 'drum'\ncenter = [0, 0, 3]\naxis = [0, 1, 0]\nradius = 0.5\n"
+            "material = 'steel'\nrpm = 10\n\n[[emitters]]",
+            "walls[1].length",
+            r"missing required key 'length'",
+        ),
+        ('type = "plane"', 'type = "drun"', "walls[0].type", r"did you mean 'drum'\?"),
+    ],
+)
+def test_toml_emitter_and_settings_errors(tmp_path, old, new, key, match):
+    assert old in EMITTER_BASE
+    err = load_error(tmp_path, EMITTER_BASE.replace(old, new, 1))
+    assert err.key == key, str(err)
+    assert re.search(match, err.message), str(err)

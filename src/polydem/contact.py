@@ -6,12 +6,15 @@ exact energy-model quantities as numpy arrays; :func:`contact_forces` turns them
 
 Degenerate pairs. When one body lies (almost) wholly inside the other, or two identical bodies
 sit on top of each other, the gradient of the overlap volume vanishes and so would the force.
-Such a pair is flagged ``enclosed`` (|S_A| < 1e-4 V^(2/3)) and gets a push along the line of
-centres instead: the effective area vector is V^(2/3) times the unit vector from A's centre to
-B's (the world +z axis when the centres coincide to 1e-9 of the size), so the force on A is
+Such a pair is flagged ``enclosed`` (|S_A| < 1e-4 V^(2/3) while V > 1e-3 r_min^3, r_min the
+smaller bounding radius) and gets a push along the line of centres instead: the effective area
+vector is V^(2/3) times the unit vector from A's centre to B's (the world +z axis when the
+centres coincide to 1e-9 of the size), so the force on A is
 ``-W'(V) V^(2/3) n``, applied at the overlap centroid. Pairs without overlap have V = 0, S = 0,
 zero force, their normal along the line of centres and their centroid and contact point on it,
-between the bounding spheres. No output is ever NaN or infinite for finite input.
+between the bounding spheres. A thin sliver whose faces were found merely touching (|S_A| small
+and V below that bound) gets no force; its normal is the line of centres and its contact point
+the centroid. No output is ever NaN or infinite for finite input.
 """
 
 from dataclasses import dataclass
@@ -19,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from polydem.kernels.narrowphase import ENCLOSED_RATIO, launch_overlap
+from polydem.kernels.narrowphase import ENCLOSED_MIN_VOLUME, ENCLOSED_RATIO, launch_overlap
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
 
@@ -219,8 +222,9 @@ def _finish(res, origin, position_b, rel_b, radius_a, radius_b):
     centroid_local[touching] = res["pair_volume_moment"][touching] / volume[touching, None]
 
     s_norm = np.linalg.norm(s_a, axis=1)
-    enclosed = touching & (s_norm < ENCLOSED_RATIO * np.cbrt(volume) ** 2)
-    regular = touching & ~enclosed
+    flat = touching & (s_norm < ENCLOSED_RATIO * np.cbrt(volume) ** 2)
+    enclosed = flat & (volume > ENCLOSED_MIN_VOLUME * min(radius_a, radius_b) ** 3)
+    regular = touching & ~flat
     normal = line.copy()
     normal[regular] = s_a[regular] / s_norm[regular, None]
 

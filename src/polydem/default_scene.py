@@ -1,48 +1,63 @@
-"""The built-in default scene: a few hundred mixed polyhedra poured into a box."""
+"""The built-in default scene: a few hundred mixed polyhedra poured into a box.
 
-import numpy as np
+The scene is the scene file ``default.toml`` shipped inside the package (``polydem/scenes/``; the
+repository's ``scenes/default.toml`` is the same file), so it reads like any other scene and
+``polydem run`` without a scene file runs exactly that file.
+"""
 
-from polydem.scene import Scene
-from polydem.shapes import ConvexShape
+import copy
+import math
+import tomllib
+from importlib import resources
+
+from polydem.scene import Scene, SceneError
+
+DEFAULT_COUNT = 300
+"""Number of bodies of the packaged default scene."""
 
 
-def default_scene(count=300, seed=0):
-    """Mixed cubes, tetrahedra, octahedra, prisms and rocks (about 2 cm) dropped into a box.
+def default_scene_path():
+    """The packaged ``default.toml`` (a :class:`importlib.resources.abc.Traversable`; a path on disk
+    for a normal install)."""
+    return resources.files("polydem").joinpath("scenes", "default.toml")
 
-    The bodies start on a jittered grid with random orientations, none touching, and settle under
-    gravity in about half a second. Returns a :class:`~polydem.Scene` with ``duration`` 0.6 s.
+
+def default_scene(count=DEFAULT_COUNT, seed=0):
+    """Mixed cubes, tetrahedra, octahedra, hexagonal prisms and rocks (about 2 cm) poured into a box.
+
+    Loads the packaged ``default.toml``: 300 bodies, 60 of each shape, on a jittered grid at the
+    bottom of an open box, randomly oriented and at rest, none touching; they settle under gravity
+    in about half a second (``duration`` 0.6 s).
+
+    Args:
+        count: number of bodies (the emitter's ``count``); above 300 the box and the emitter's
+            region grow in height to hold them.
+        seed: the emitter's seed (placement, orientations and the order of the shapes).
+
+    Returns:
+        The validated :class:`~polydem.Scene`.
     """
-    if count < 1:
-        raise ValueError(f"count must be at least 1, got {count}")
-    rng = np.random.default_rng(seed)
-    size = 0.02
-    scene = Scene(gravity=(0.0, 0.0, -9.81), dt="auto", name="default", duration=0.6)
-    scene.description = f"{count} mixed polyhedra of about {size * 100:g} cm poured into a box"
-    scene.add_material("stone", density=2500.0, law="hertz", k=1.0e8, restitution=0.4, friction=0.5)
-    shapes = {
-        "cube": ConvexShape.box(size),
-        "tetrahedron": ConvexShape.tetrahedron(1.4 * size),
-        "octahedron": ConvexShape.octahedron(size),
-        "prism6": ConvexShape.prism(6, radius=0.55 * size, height=size),
-        "rock": ConvexShape.rock(n_points=20, size=1.2 * size, seed=seed),
-    }
-    for name, shape in shapes.items():
-        scene.add_shape(name, shape)
-    spacing = 2.0 * max(s.radius for s in shapes.values()) * 1.05
-    side = int(np.ceil(np.sqrt(count / 4.0)))
-    layers = int(np.ceil(count / side**2))
-    inner = side * spacing + spacing
-    scene.add_box_container((0.0, 0.0, 0.5 * (layers + 2) * spacing), (inner, inner, (layers + 2) * spacing), "stone")
-    grid = np.stack(np.meshgrid(np.arange(side), np.arange(side), np.arange(layers), indexing="ij"), -1).reshape(-1, 3)
-    grid = grid[:count].astype(float)
-    pos = (grid - [0.5 * (side - 1), 0.5 * (side - 1), 0.0]) * spacing + [0.0, 0.0, 0.5 * spacing + 0.002]
-    pos[:, :2] += rng.uniform(-0.1, 0.1, size=(count, 2)) * spacing
-    quat = rng.normal(size=(count, 4))
-    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    names = list(shapes)
-    kinds = rng.integers(len(names), size=count)
-    for k, name in enumerate(names):
-        rows = np.flatnonzero(kinds == k)
-        if len(rows):
-            scene.add_bodies(name, "stone", positions=pos[rows], orientations=quat[rows])
-    return scene.validate()
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise SceneError(f"count must be an integer >= 1, got {count!r}", "emitters[0].count")
+    path = default_scene_path()
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"the packaged default scene '{path}' is missing: polydem was installed without its package data "
+            '(pyproject.toml needs [tool.setuptools.package-data] polydem = ["scenes/*.toml"]); reinstall it'
+        )
+    with path.open("rb") as fh:
+        data = tomllib.load(fh)
+    if count != DEFAULT_COUNT or seed != 0:
+        data = copy.deepcopy(data)
+        emitter = data["emitters"][0]
+        emitter["count"] = count
+        emitter["seed"] = seed
+        if count > DEFAULT_COUNT:
+            # The packaged region holds 600 bodies; grow the box and the region in height alike.
+            grow = math.ceil(count / DEFAULT_COUNT)
+            box = data["walls"][0]
+            box["inner_size"][2] *= grow
+            box["center"][2] = box["center"][2] - 0.5 * box["inner_size"][2] / grow + 0.5 * box["inner_size"][2]
+            emitter["region"]["max"][2] = emitter["region"]["min"][2] + box["inner_size"][2]
+        data["simulation"]["description"] = f"{count} mixed polyhedra of about 2 cm poured into a box"
+    return Scene.from_dict(data, file=str(path), base_dir=None)

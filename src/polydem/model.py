@@ -6,16 +6,16 @@ import warp as wp
 from polydem.scene import SceneError
 from polydem.shapeset import ShapeSet
 
-# The time step resolves a contact oscillation at the reference overlap (1% of a body's size,
+# The time step resolves a contact oscillation at the reference overlap (0.1% of a body's size,
 # over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
 # fast (it is unstable past 1/pi of it).
 STEPS_PER_CONTACT_PERIOD = 50
 MAX_DT_FRACTION = 1.0 / 8.0
-REFERENCE_DEPTH = 0.01
+REFERENCE_DEPTH = 0.001
 
 
 def reference_stiffness(law, k, exponent, volume):
-    """Secant normal stiffness [N/m] of a face contact of area V^(2/3) at 1% of the size V^(1/3).
+    """Secant normal stiffness [N/m] of a face contact of area V^(2/3) at 0.1% of the size V^(1/3).
 
     With W'(V) the law, a face of area A pressed to depth d gives V = A d and a force W'(A d) A;
     the secant stiffness is that force over d.
@@ -44,6 +44,8 @@ class Model:
         body_inv_mass: (N,) float32 inverse mass [1/kg], 0 for fixed and kinematic bodies.
         body_inertia: (N,) vec3 principal moments of inertia [kg m^2].
         body_radius: (N,) float32 bounding radius about the centre [m].
+        body_pivot: (N,) vec3 point a kinematic body turns about [m] (NaN: none), or None when no
+            body has one.
         material_k, material_e, material_mu, material_kt: (M*M,) float32 mixed pair properties,
             row-major by (material of A, material of B): stiffness (units of the law),
             restitution, friction coefficient, tangential stiffness [N/m].
@@ -118,6 +120,9 @@ class Model:
         self.body_inv_mass = arr(inv_mass.astype(np.float32), float)
         self.body_inertia = arr(inertia.astype(np.float32), wp.vec3)
         self.body_radius = arr(radius.astype(np.float32), float)
+        pivot = np.asarray(getattr(scene, "body_pivot", np.full((n, 3), np.nan)), dtype=np.float64)
+        # Only kinematic bodies turning about a pivot (drum parts) need the array.
+        self.body_pivot = arr(pivot.astype(np.float32), wp.vec3) if np.isfinite(pivot).any() else None
         self.material_k = arr(k.astype(np.float32).ravel(), float)
         self.material_e = arr(np.asarray(table["restitution"], dtype=np.float32).ravel(), float)
         self.material_mu = arr(np.asarray(table["friction"], dtype=np.float32).ravel(), float)

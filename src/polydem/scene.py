@@ -25,7 +25,26 @@ scene stores the pose of the body frame, which is what the simulator integrates:
 
 Body kinds: ``free`` bodies move under gravity and contacts; ``fixed`` bodies never move (their
 velocities must be zero); ``kinematic`` bodies move with their prescribed (constant) velocity and
-angular velocity and are not pushed by contacts.
+angular velocity and are not pushed by contacts. A kinematic body may name a ``pivot``: a fixed
+point its pose turns about at its angular velocity (the parts of a rotating drum); its velocity is
+then ``angular_velocity x (centroid - pivot)`` at the start and is derived, not given.
+
+Scene files (TOML; examples in ``scenes/``). Every table and key is checked; an unknown key gets a
+did-you-mean and the list of valid keys, and every error names the file and the key::
+
+    [simulation]     name, description, steps | duration, dt (seconds or "auto"), gravity,
+                     device ("cpu", "cuda", "cuda:N"; optional), precision ("float32")
+    [materials.NAME] density, law, k, restitution, friction (+ m, tangential_stiffness)
+    [shapes.NAME]    type = box | tetrahedron | ... | mesh | points, and its parameters
+    [[bodies]]       shape, material, position, orientation | rotation, velocity, angular_velocity,
+                     kind (free | fixed | kinematic), pivot (kinematic bodies turning about a point)
+    [[walls]]        type = "plane" (point, normal, material), "box" (an open or closed container
+                     of fixed slabs) or "drum" (a rotating polygonal drum of kinematic slabs)
+    [[emitters]]     many bodies placed without overlaps in a box region (see Scene.emit)
+    [output]         usd, fps, summary, pictures, checkpoint (see Output)
+
+Bodies are added in the file's order of sections: ``[[bodies]]``, then ``[[walls]]``, then
+``[[emitters]]`` (so emitters avoid every body and wall given before them), each in its order.
 """
 
 from __future__ import annotations
@@ -33,6 +52,7 @@ from __future__ import annotations
 import difflib
 import math
 import numbers
+import re
 import tomllib
 from dataclasses import dataclass, field, fields
 from os import PathLike
@@ -44,6 +64,9 @@ from polydem.shapes import ConvexShape
 
 __all__ = [
     "Body",
+    "Drum",
+    "Output",
+    "PRECISIONS",
     "KINDS",
     "KIND_FIXED",
     "KIND_FREE",
@@ -80,6 +103,16 @@ SHAPE_TYPES = (
     "points",
 )
 """Shape ``type`` values of a scene file's ``[shapes.NAME]`` tables."""
+
+PRECISIONS = ("float32", "float64")
+"""Values of ``[simulation] precision``; the simulator runs float32 only (float64 is rejected with
+a message pointing to :func:`polydem.overlap`, which offers it for contact geometry)."""
+
+ORIENTATIONS = ("random", "aligned")
+"""Emitter orientations: uniformly random, or every body with its input axes along the world axes."""
+
+FILLS = ("bottom", "random")
+"""Emitter fill orders: the lowest cells first (against gravity), or cells anywhere in the region."""
 
 QUAT_TOL = 1e-6
 """Largest accepted | |q| - 1 | of an orientation quaternion; accepted ones are normalised exactly."""
@@ -601,6 +634,7 @@ class Body:
         centroid: (3,) world position of the centre of mass [m] (filled in by :meth:`Scene.body`).
         body_orientation: (4,) xyzw orientation of the body (principal) frame (filled in by
             :meth:`Scene.body`).
+        pivot: (3,) fixed point a kinematic body turns about [m], or None (see :meth:`Scene.add_body`).
     """
 
     shape: str
@@ -612,9 +646,12 @@ class Body:
     kind: str = "free"
     centroid: tuple | None = field(default=None, compare=False)
     body_orientation: tuple | None = field(default=None, compare=False)
+    pivot: tuple | None = None
 
     def __post_init__(self):
         _string(self.shape, "body.shape", what="a shape name")
+        if self.pivot is not None:
+            object.__setattr__(self, "pivot", _tuple(_vector(self.pivot, 3, "body.pivot")))
         _string(self.material, "body.material", what="a material name")
         _choice(self.kind, KINDS, "body.kind", what="body kind")
         q = _check_quats(_vector(self.orientation, 4, "body.orientation")[None, :], lambda i: "body.orientation", None)
@@ -653,6 +690,226 @@ def _unit_normal(value, key, file) -> np.ndarray:
     if length < 1e-12:
         raise SceneError(f"normal {n.tolist()} is zero; give the direction the wall faces, e.g. [0, 0, 1]", key, file)
     return n / length
+
+
+# ---------------------------------------------------------------------- output settings
+
+
+_USD_SUFFIXES = (".usd", ".usda", ".usdc")
+_OUTPUT_KEYS = ("usd", "fps", "summary", "pictures", "checkpoint")
+_CHECKPOINT_KEYS = ("steps", "seconds", "path")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Output:
+    """What a run writes: the ``[output]`` table of a scene file (validated on construction).
+
+    The scene only stores these settings; the ``polydem`` command acts on them. Relative paths are
+    taken from the output folder of the run (``polydem run --out DIR``); absolute paths are kept.
+
+    Attributes:
+        usd: USD file of the trajectory (``.usd``, ``.usda`` or ``.usdc``), or None for none. In a
+            scene file ``usd = true`` means ``"trajectory.usd"`` and ``usd = false`` none.
+        fps: frames per simulated second of the USD file and of the picture frames, > 0 [1/s].
+        summary: JSON summary file, or None for none. In a scene file ``summary = true`` (the
+            default) means ``"summary.json"``; ``false`` none; a string is the path.
+        pictures: frame numbers to render as pictures (frame k is the state at time k / fps), as a
+            sorted tuple of distinct integers >= 0, or ``"last"`` for the final state; ``()`` for none.
+        checkpoint_steps: write a checkpoint every so many steps, or None.
+        checkpoint_seconds: write a checkpoint every so many simulated seconds, or None (at most
+            one of the two is set). In a scene file: ``checkpoint = {steps = 10000}`` or
+            ``checkpoint = {seconds = 0.1}``, optionally with ``path``.
+        checkpoint_path: folder of the checkpoints.
+    """
+
+    usd: str | None = None
+    fps: float = 60.0
+    summary: str | None = "summary.json"
+    pictures: tuple | str = ()
+    checkpoint_steps: int | None = None
+    checkpoint_seconds: float | None = None
+    checkpoint_path: str = "checkpoints"
+
+    def __post_init__(self):
+        usd = self.usd
+        if usd is not None:
+            usd = _string(usd, "output.usd", what="a file path string such as 'trajectory.usd' (or true / false)")
+            if not usd.strip():
+                raise SceneError("the USD path is empty; give a file name such as 'trajectory.usd'", "output.usd")
+            if Path(usd).suffix.lower() not in _USD_SUFFIXES:
+                raise SceneError(
+                    f"the USD file {usd!r} must end in {', '.join(_USD_SUFFIXES)} (e.g. 'trajectory.usd')", "output.usd"
+                )
+        fps = _number(self.fps, "output.fps", positive=True, hint=" (frames per simulated second, e.g. fps = 60)")
+        summary = self.summary
+        if summary is not None:
+            summary = _string(summary, "output.summary", what="a file path string (or true / false)")
+            if not summary.strip():
+                raise SceneError("the summary path is empty; give a file name such as 'summary.json'", "output.summary")
+        pictures = self.pictures
+        hint = ' (frame numbers at fps, e.g. pictures = [0, 30, 60], or pictures = "last")'
+        if isinstance(pictures, str):
+            if pictures != "last":
+                raise SceneError(
+                    f'expected a list of frame numbers or "last", got {pictures!r}{hint}', "output.pictures"
+                )
+        elif isinstance(pictures, list | tuple | np.ndarray):
+            frames = [_integer(x, f"output.pictures[{i}]", minimum=0, hint=hint) for i, x in enumerate(pictures)]
+            pictures = tuple(sorted(set(frames)))
+        else:
+            raise SceneError(
+                f'expected a list of frame numbers or "last", got {_typename(pictures)}{hint}', "output.pictures"
+            )
+        steps, seconds = self.checkpoint_steps, self.checkpoint_seconds
+        if steps is not None and seconds is not None:
+            raise SceneError(
+                "give the checkpoint interval in steps or in seconds, not both", "output.checkpoint.seconds"
+            )
+        if steps is not None:
+            steps = _integer(steps, "output.checkpoint.steps", minimum=1, hint=" (a checkpoint every so many steps)")
+        if seconds is not None:
+            seconds = _number(
+                seconds, "output.checkpoint.seconds", positive=True, hint=" (a checkpoint every so many simulated s)"
+            )
+        path = _string(self.checkpoint_path, "output.checkpoint.path", what="a folder path string")
+        for name, value in (
+            ("usd", usd),
+            ("fps", fps),
+            ("summary", summary),
+            ("pictures", pictures),
+            ("checkpoint_steps", steps),
+            ("checkpoint_seconds", seconds),
+            ("checkpoint_path", path),
+        ):
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def from_dict(cls, table, file=None) -> Output:
+        """Settings from an ``[output]`` table (errors name ``output.KEY`` and ``file``)."""
+        try:
+            table = _table(table, "output", file, what="an [output] table")
+            _check_keys(table, _OUTPUT_KEYS, "output", file)
+            kw = {}
+            if "usd" in table:
+                usd = table["usd"]
+                kw["usd"] = ("trajectory.usd" if usd else None) if isinstance(usd, bool) else usd
+            if "fps" in table:
+                kw["fps"] = table["fps"]
+            if "summary" in table:
+                summary = table["summary"]
+                kw["summary"] = ("summary.json" if summary else None) if isinstance(summary, bool) else summary
+            if "pictures" in table:
+                kw["pictures"] = table["pictures"]
+            if "checkpoint" in table:
+                cp = _table(
+                    table["checkpoint"],
+                    "output.checkpoint",
+                    file,
+                    what="a table such as checkpoint = {steps = 10000} or checkpoint = {seconds = 0.1}",
+                )
+                _check_keys(cp, _CHECKPOINT_KEYS, "output.checkpoint", file)
+                if "steps" not in cp and "seconds" not in cp:
+                    raise SceneError(
+                        "give the checkpoint interval, e.g. checkpoint = {steps = 10000} or {seconds = 0.1}",
+                        "output.checkpoint",
+                        file,
+                    )
+                kw.update(checkpoint_steps=cp.get("steps"), checkpoint_seconds=cp.get("seconds"))
+                if "path" in cp:
+                    kw["checkpoint_path"] = cp["path"]
+            return cls(**kw)
+        except SceneError as err:
+            if err.file is None:
+                err.file = file
+            raise
+
+    def to_dict(self) -> dict:
+        """The ``[output]`` table of a scene file."""
+        d = {"fps": self.fps, "summary": self.summary if self.summary is not None else False}
+        d["usd"] = self.usd if self.usd is not None else False
+        if self.pictures:
+            d["pictures"] = self.pictures if isinstance(self.pictures, str) else list(self.pictures)
+        if self.checkpoint_steps is not None or self.checkpoint_seconds is not None:
+            cp = {"path": self.checkpoint_path}
+            if self.checkpoint_steps is not None:
+                cp["steps"] = self.checkpoint_steps
+            else:
+                cp["seconds"] = self.checkpoint_seconds
+            d["checkpoint"] = cp
+        return d
+
+
+# ---------------------------------------------------------------------- drums
+
+
+@dataclass(frozen=True)
+class Drum:
+    """A rotating polygonal drum built by :meth:`Scene.add_drum` (a record of what was built).
+
+    A hollow drum is not convex, so it is made of ``sides`` kinematic box slabs whose inner faces
+    form a regular polygon of inradius ``radius`` around the axis, and (``caps``) two kinematic
+    polygonal plates closing its ends. Every part has the angular velocity ``omega * axis`` and
+    the drum centre as its ``pivot``; a slab's velocity is ``omega x r`` with r from the axis to
+    the slab's centre (the caps, centred on the axis, only spin).
+
+    Attributes:
+        center: (3,) middle of the drum on its axis [m].
+        axis: (3,) unit direction of the axis [-]; the drum turns by the right-hand rule about it.
+        radius: inradius of the polygon of inner faces [m].
+        length: inner length along the axis [m].
+        sides: number of slabs.
+        thickness: slab and cap thickness [m].
+        omega: angular speed about ``axis`` [rad/s] (negative turns the other way).
+        material: material name.
+        caps: whether the ends are closed by rotating plates.
+        bodies: indices of the slabs, then of the caps.
+    """
+
+    center: tuple
+    axis: tuple
+    radius: float
+    length: float
+    sides: int
+    thickness: float
+    omega: float
+    material: str
+    caps: bool
+    bodies: tuple
+
+    @property
+    def angular_velocity(self) -> np.ndarray:
+        """(3,) angular velocity of every part [rad/s]."""
+        return self.omega * np.asarray(self.axis)
+
+    def interior_planes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Half-spaces ``u . x <= e`` whose intersection is the (convex) inside of the drum.
+
+        Returns ``(u, e)``: (K, 3) outward unit normals and (K,) offsets [m]; the radial planes
+        of the slabs' inner faces and, with caps, the two end planes.
+        """
+        c, a = np.asarray(self.center), np.asarray(self.axis)
+        radial = _drum_radial(a, self.sides)
+        u = list(radial)
+        e = list(radial @ c + self.radius)
+        if self.caps:
+            u += [a, -a]
+            e += [a @ c + 0.5 * self.length, -(a @ c) + 0.5 * self.length]
+        return np.array(u), np.array(e)
+
+
+def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors e1, e2 with (e1, e2, axis) right-handed; e1 = axis x z (x when axis ~ z)."""
+    ref = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(axis, ref)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(axis, e1)
+
+
+def _drum_radial(axis: np.ndarray, sides: int) -> np.ndarray:
+    """(sides, 3) outward radial unit vectors of the slabs (slab k at angle 2 pi k / sides from e1)."""
+    e1, e2 = _perpendicular_basis(axis)
+    ang = 2.0 * np.pi * np.arange(sides) / sides
+    return np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2
 
 
 # ---------------------------------------------------------------------- shapes from specs
@@ -807,17 +1064,320 @@ def _build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple
     return shape, out
 
 
+# ---------------------------------------------------------------------- emitter helpers
+
+
+_MAX_EMITTER_CELLS = 20_000_000  # grid cells an emitter may scan (random fill) or hold in one layer
+_EMITTER_CHUNK = 1 << 20  # grid cells tested at a time
+_PAIR_BATCH = 1 << 20  # (obstacle, cell) pairs tested at a time
+
+
+def _region(region, key, file) -> tuple[np.ndarray, np.ndarray]:
+    """``(min, max)`` corners of an emitter region given as {min = [..], max = [..]} or a pair."""
+    hint = "region = {min = [x0, y0, z0], max = [x1, y1, z1]} in m"
+    if isinstance(region, dict):
+        _check_keys(region, ("min", "max"), key, file, required=("min", "max"), hints={"min": hint, "max": hint})
+        lo = _vector(region["min"], 3, f"{key}.min", file)
+        hi = _vector(region["max"], 3, f"{key}.max", file)
+    elif isinstance(region, list | tuple) and len(region) == 2:
+        lo = _vector(region[0], 3, f"{key}.min", file)
+        hi = _vector(region[1], 3, f"{key}.max", file)
+    else:
+        raise SceneError(f"expected a box, {hint}, got {_typename(region)}", key, file)
+    bad = np.flatnonzero(hi <= lo)
+    if bad.size:
+        ax = int(bad[0])
+        raise SceneError(
+            f"max must exceed min along every axis, but along {'xyz'[ax]} min = {lo[ax]:g} and max = {hi[ax]:g} m",
+            f"{key}.max",
+            file,
+        )
+    return lo, hi
+
+
+def _largest_remainder(count: int, frac: np.ndarray) -> np.ndarray:
+    """Integer counts summing to ``count`` in the proportions ``frac`` (largest remainders get the rest)."""
+    raw = count * frac
+    out = np.floor(raw).astype(np.int64)
+    rest = count - int(out.sum())
+    order = np.lexsort((np.arange(len(frac)), -(raw - out)))
+    out[order[:rest]] += 1
+    return out
+
+
+def _scale_sampler(scale, scale_range, scale_lognormal, bins: int, key: str, file):
+    """A function ``(rng, n) -> (bin index per body, factor per bin)`` for an emitter's sizes."""
+    given = [
+        k
+        for k, v in (("scale", scale), ("scale_range", scale_range), ("scale_lognormal", scale_lognormal))
+        if v is not None
+    ]
+    if len(given) > 1:
+        raise SceneError(
+            f"give one size distribution: scale, scale_range or scale_lognormal, not both {given[0]} and {given[1]}",
+            f"{key}.{given[1]}",
+            file,
+        )
+
+    def single(value):
+        return lambda rng, n: (np.zeros(n, dtype=np.int64), np.array([value]))
+
+    if scale_range is not None:
+        lo, hi = _vector(scale_range, 2, f"{key}.scale_range", file, label="[lo, hi]")
+        if lo <= 0.0 or hi < lo:
+            raise SceneError(f"expected 0 < lo <= hi (size factors), got [{lo:g}, {hi:g}]", f"{key}.scale_range", file)
+        if hi == lo:
+            return single(float(lo))
+        values = lo + (np.arange(bins) + 0.5) * (hi - lo) / bins
+
+        def uniform(rng, n):
+            u = rng.uniform(lo, hi, size=n)
+            return np.clip(np.floor((u - lo) / (hi - lo) * bins).astype(np.int64), 0, bins - 1), values
+
+        return uniform
+    if scale_lognormal is not None:
+        lk = f"{key}.scale_lognormal"
+        hint = "scale_lognormal = {mean = 1.0, sigma = 0.2}: the mean size factor and the spread of its logarithm"
+        if isinstance(scale_lognormal, list | tuple) and len(scale_lognormal) == 2:
+            scale_lognormal = {"mean": scale_lognormal[0], "sigma": scale_lognormal[1]}
+        table = _table(scale_lognormal, lk, file, what=f"a table, {hint}")
+        _check_keys(table, ("mean", "sigma"), lk, file, required=("mean", "sigma"), hints={"mean": hint, "sigma": hint})
+        mean = _number(table["mean"], f"{lk}.mean", file, positive=True, hint=" (mean size factor)")
+        sigma = _number(table["sigma"], f"{lk}.sigma", file, nonneg=True, hint=" (standard deviation of ln(factor))")
+        if sigma > 2.0:
+            raise SceneError(
+                f"must be <= 2 (factors from e^-6 to e^6 times the median), got {sigma:g}", f"{lk}.sigma", file
+            )
+        if sigma == 0.0:
+            return single(mean)
+        mu = math.log(mean) - 0.5 * sigma * sigma
+        a, width = mu - 3.0 * sigma, 6.0 * sigma
+        values = np.exp(a + (np.arange(bins) + 0.5) * width / bins)
+
+        def lognormal(rng, n):
+            x = rng.normal(mu, sigma, size=n)
+            return np.clip(np.floor((x - a) / width * bins).astype(np.int64), 0, bins - 1), values
+
+        return lognormal
+    if scale is None:
+        return single(1.0)
+    return single(_number(scale, f"{key}.scale", file, positive=True, hint=" (size factor of the shapes)"))
+
+
+_SCALED_KEYS = {
+    "box": ("size",),
+    "tetrahedron": ("edge",),
+    "octahedron": ("edge",),
+    "dodecahedron": ("edge",),
+    "icosahedron": ("edge",),
+    "prism": ("radius", "height"),
+    "rock": ("size",),
+    "sphere": ("radius",),
+    "mesh": ("scale",),
+}
+
+
+def _scaled_spec(spec: dict | None, factor: float) -> dict | None:
+    """The spec of a shape scaled by ``factor`` about its input origin, or None (then written as points)."""
+    if spec is None:
+        return None
+    out = dict(spec)
+    kind = spec["type"]
+    if kind == "points":
+        out["points"] = [[factor * x for x in p] for p in spec["points"]]
+        return out
+    for k in _SCALED_KEYS.get(kind, ()):
+        value = spec.get(k, 1.0)
+        out[k] = [factor * x for x in value] if isinstance(value, list) else factor * value
+    return out
+
+
+def _cell_index(layer, m, k, ax_a, ax_b, nb, nk, ascending) -> np.ndarray:
+    """(N, 3) grid indices of cells given by layer (counted against gravity) and index in the layer."""
+    gi = np.empty((len(layer), 3), dtype=np.int64)
+    gi[:, k] = layer if ascending else nk - 1 - layer
+    gi[:, ax_a] = m // nb
+    gi[:, ax_b] = m % nb
+    return gi
+
+
+class _Obstacles:
+    """What an emitter's grid cells must keep clear of: plane walls, the scene's bodies, drums.
+
+    A cell (a cube of side ``cell``) is blocked when it reaches behind a plane, when it is not
+    separated from a body by one of the body's face planes (conservative near edges and corners),
+    or when it lies beside a drum (within its axial span) but not wholly inside it. A body in a free
+    cell therefore touches none of them.
+    """
+
+    def __init__(self, scene, grid_lo, grid_hi, cell):
+        self.origin = grid_lo
+        self.n = np.rint((grid_hi - grid_lo) / cell).astype(np.int64)
+        self.cell = cell
+        self.h = 0.5 * cell
+        self.tol = 1e-9 * cell
+        planes = scene.planes
+        self.plane_n = np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3)
+        self.plane_e = np.array([np.dot(p.normal, p.point) for p in planes], dtype=np.float64)
+        self.shapes = list(scene.shapes.values())
+        self.body = np.zeros(0, dtype=np.int64)
+        if scene.num_bodies:
+            radius = np.array([s.radius for s in self.shapes])[scene.body_shape]
+            pos = scene.body_position
+            d = pos - np.clip(pos, grid_lo, grid_hi)
+            self.body = np.flatnonzero(np.einsum("ij,ij->i", d, d) < radius * radius)
+            self.pos = pos[self.body]
+            self.rad = radius[self.body]
+            self.shape = np.asarray(scene.body_shape)[self.body]
+            self.rot = quat_to_matrix(scene.body_orientation[self.body])
+        self.drums = []
+        reach = self.h * math.sqrt(3.0)
+        for drum in scene.drums:
+            u, e = drum.interior_planes()
+            axial = 0.5 * drum.length + (drum.thickness if drum.caps else 0.0) + reach
+            self.drums.append((np.asarray(drum.center), np.asarray(drum.axis), axial, u, e))
+
+    def blocked(self, centres, krange, k, local_of) -> np.ndarray:
+        """Which of the cells at ``centres`` are blocked; ``krange`` bounds their grid index along
+        axis ``k`` and ``local_of`` maps (M, 3) grid indices to positions in ``centres``."""
+        h, tol = self.h, self.tol
+        out = np.zeros(len(centres), dtype=bool)
+        for nrm, e in zip(self.plane_n, self.plane_e, strict=True):
+            out |= centres @ nrm - e - h * np.abs(nrm).sum() < -tol
+        for c, a, axial, u, e in self.drums:
+            z = (centres - c) @ a
+            near = np.flatnonzero(np.abs(z) < axial)
+            if near.size:
+                inside = np.all(centres[near] @ u.T + h * np.abs(u).sum(axis=1) <= e + tol, axis=1)
+                out[near[~inside]] = True
+        if self.body.size:
+            self._block_bodies(out, krange, k, local_of)
+        return out
+
+    def _block_bodies(self, out, krange, k, local_of):
+        cell, n = self.cell, self.n
+        ilo = np.clip(np.floor((self.pos - self.rad[:, None] - self.origin) / cell), 0, n - 1).astype(np.int64)
+        ihi = np.clip(np.floor((self.pos + self.rad[:, None] - self.origin) / cell), 0, n - 1).astype(np.int64)
+        ilo[:, k] = np.maximum(ilo[:, k], krange[0])
+        ihi[:, k] = np.minimum(ihi[:, k], krange[1])
+        dims = ihi - ilo + 1
+        sel = np.flatnonzero(np.all(dims > 0, axis=1))
+        if not sel.size:
+            return
+        ilo, dims = ilo[sel], dims[sel]
+        sizes = np.prod(dims, axis=1)
+        big = np.flatnonzero(sizes > _PAIR_BATCH)
+        if big.size:  # a wall spanning the whole chunk: cut its block into slices along its longest axis
+            pieces = [(sel[i : i + 1], ilo[i : i + 1], dims[i : i + 1]) for i in np.flatnonzero(sizes <= _PAIR_BATCH)]
+            for i in big:
+                ax = int(np.argmax(dims[i]))
+                step = max(1, _PAIR_BATCH // (int(sizes[i]) // int(dims[i, ax])))
+                for s0 in range(0, int(dims[i, ax]), step):
+                    lo_, d_ = ilo[i].copy(), dims[i].copy()
+                    lo_[ax] += s0
+                    d_[ax] = min(step, int(dims[i, ax]) - s0)
+                    pieces.append((sel[i : i + 1], lo_[None], d_[None]))
+            sel = np.concatenate([pc[0] for pc in pieces])
+            ilo = np.concatenate([pc[1] for pc in pieces])
+            dims = np.concatenate([pc[2] for pc in pieces])
+            sizes = np.prod(dims, axis=1)
+        ends = np.cumsum(sizes)
+        start = 0
+        while start < sel.size:
+            base = ends[start - 1] if start else 0
+            stop = max(start + 1, int(np.searchsorted(ends, base + _PAIR_BATCH, side="right")))
+            self._block_pairs(out, sel[start:stop], ilo[start:stop], dims[start:stop], sizes[start:stop], local_of)
+            start = stop
+
+    def _block_pairs(self, out, obs, ilo, dims, sizes, local_of):
+        """Test every (obstacle, cell) pair of the index blocks ``ilo + [0, dims)``, one per entry of
+        ``obs`` (an obstacle may have several blocks)."""
+        h, tol = self.h, self.tol
+        ob = np.repeat(np.arange(len(obs)), sizes)
+        local = np.arange(int(sizes.sum()), dtype=np.int64) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+        dz, dy = dims[ob, 2], dims[ob, 1]
+        gi = np.empty((len(ob), 3), dtype=np.int64)
+        gi[:, 2] = local % dz
+        local //= dz
+        gi[:, 1] = local % dy
+        gi[:, 0] = local // dy
+        gi += ilo[ob]
+        j = obs[ob]
+        rel = self.origin + (gi + 0.5) * self.cell - self.pos[j]
+        # Bounding sphere against the cube first: most far pairs end here.
+        gap = np.maximum(np.abs(rel) - h, 0.0)
+        close = np.flatnonzero(np.einsum("ij,ij->i", gap, gap) < self.rad[j] ** 2)
+        if not close.size:
+            return
+        gi, j, rel = gi[close], j[close], rel[close]
+        for sid in np.unique(self.shape[j]):
+            pick = np.flatnonzero(self.shape[j] == sid)
+            shape = self.shapes[int(sid)]
+            bodies, which = np.unique(j[pick], return_inverse=True)
+            normals = np.einsum("bij,fj->bfi", self.rot[bodies], shape.face_normals)  # world normals
+            support = h * np.abs(normals).sum(axis=2)  # (bodies, faces): half extent of the cube along each
+            r = rel[pick]
+            sep = np.full(len(pick), -np.inf)
+            for face in range(shape.num_faces):
+                nw = normals[which, face]
+                s = np.einsum("ij,ij->i", r, nw) - shape.face_offsets[face] - support[which, face]
+                np.maximum(sep, s, out=sep)
+            hit = pick[sep < -tol]
+            if hit.size:
+                out[local_of(gi[hit])] = True
+
+
 # ---------------------------------------------------------------------- the scene
 
 
-_SIM_KEYS = ("name", "description", "dt", "gravity", "steps", "duration")
-_TOP_KEYS = ("simulation", "materials", "shapes", "bodies", "walls")
-_BODY_KEYS = ("shape", "material", "position", "orientation", "rotation", "velocity", "angular_velocity", "kind")
+_SIM_KEYS = ("name", "description", "dt", "gravity", "steps", "duration", "device", "precision")
+_TOP_KEYS = ("simulation", "materials", "shapes", "bodies", "walls", "emitters", "output")
+_BODY_KEYS = (
+    "shape",
+    "material",
+    "position",
+    "orientation",
+    "rotation",
+    "velocity",
+    "angular_velocity",
+    "kind",
+    "pivot",
+)
 _WALL_KEYS = {
     "plane": ("type", "point", "normal", "material"),
     "box": ("type", "center", "inner_size", "material", "wall_thickness", "open_top"),
+    "drum": ("type", "center", "axis", "radius", "length", "material", "omega", "rpm", "sides", "thickness", "caps"),
 }
-_WALL_REQUIRED = {"plane": ("point", "normal", "material"), "box": ("center", "inner_size", "material")}
+_WALL_REQUIRED = {
+    "plane": ("point", "normal", "material"),
+    "box": ("center", "inner_size", "material"),
+    "drum": ("center", "axis", "radius", "length", "material"),
+}
+_EMITTER_KEYS = (
+    "shape",
+    "weights",
+    "material",
+    "count",
+    "region",
+    "orientation",
+    "seed",
+    "velocity",
+    "velocity_jitter",
+    "scale",
+    "scale_range",
+    "scale_lognormal",
+    "scale_bins",
+    "kind",
+    "spacing",
+    "jitter",
+    "fill",
+)
+_EMITTER_HINTS = {
+    "shape": "a shape name, a list of names, or a table of weights such as {cube = 2, rock = 1}",
+    "material": "a material name",
+    "count": "number of bodies, an integer >= 1",
+    "region": "the box to fill: region = {min = [x0, y0, z0], max = [x1, y1, z1]} in m",
+}
 _BODY_FIELDS = (
     ("shape", np.int32, ()),
     ("material", np.int32, ()),
@@ -826,6 +1386,7 @@ _BODY_FIELDS = (
     ("velocity", np.float64, (3,)),
     ("angular_velocity", np.float64, (3,)),
     ("kind", np.int32, ()),
+    ("pivot", np.float64, (3,)),
 )
 
 
@@ -847,6 +1408,14 @@ class Scene:
         duration: simulated time to run [s] (optional), > 0; not together with ``steps``.
         description: free text.
         file: scene file the scene came from (used in error messages), or None.
+        device: Warp device to run on (``"cpu"``, ``"cuda"``, ``"cuda:N"``), or None for the default;
+            a command-line ``--device`` overrides it.
+        precision: ``"float32"``, the simulator's only precision (``"float64"`` raises
+            :class:`SceneError`; :func:`polydem.overlap` offers float64 contact geometry).
+        output: what a run writes (:class:`Output`); default ``Output()`` (a summary only).
+
+    Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`) and
+    :attr:`emitters` (one dict per :meth:`emit` call: key, count, first and last body index).
     """
 
     def __init__(
@@ -859,6 +1428,9 @@ class Scene:
         duration: float | None = None,
         description: str = "",
         file=None,
+        device: str | None = None,
+        precision: str = "float32",
+        output: Output | None = None,
     ):
         self.file = file
         self.name = _string(name, "simulation.name", file)
@@ -877,6 +1449,12 @@ class Scene:
             if duration is None
             else _number(duration, "simulation.duration", file, positive=True, hint=" (simulated time in s)")
         )
+        self.device = self._check_device(device)
+        self.precision = self._check_precision(precision)
+        self.output = self._check_output(output)
+        self.drums: list[Drum] = []
+        self.emitters: list[dict] = []
+        self._scaled: dict[tuple[int, float], int] = {}
         self._shapes: dict[str, ConvexShape] = {}
         self._shape_index: dict[str, int] = {}
         self._shape_specs: dict[str, dict] = {}
@@ -896,6 +1474,42 @@ class Scene:
                 )
             return "auto"
         return _number(dt, "simulation.dt", self.file, positive=True, hint=' (time step in s, or "auto")')
+
+    def _check_device(self, device):
+        if device is None:
+            return None
+        device = _string(device, "simulation.device", self.file, what='a device name such as "cpu" or "cuda:0"')
+        if not re.fullmatch(r"cpu|cuda(:\d+)?", device):
+            raise SceneError(
+                f'unknown device {device!r}{_did_you_mean(device, ("cpu", "cuda", "cuda:0")) or "."} Give "cpu", '
+                '"cuda" (the default GPU) or "cuda:N" (GPU number N), or leave device out to use the GPU when '
+                "there is one",
+                "simulation.device",
+                self.file,
+            )
+        return device
+
+    def _check_precision(self, precision):
+        precision = _choice(precision, PRECISIONS, "simulation.precision", self.file, what="precision")
+        if precision == "float64":
+            raise SceneError(
+                'the simulator runs in float32 only; use precision = "float32" (or leave it out). Float64 is offered '
+                'for contact geometry by polydem.overlap(..., precision="float64")',
+                "simulation.precision",
+                self.file,
+            )
+        return precision
+
+    def _check_output(self, output):
+        if output is None:
+            return Output()
+        if not isinstance(output, Output):
+            raise SceneError(
+                f"expected a polydem.scene.Output, got {_typename(output)}; build one with Output(usd=...)",
+                "output",
+                self.file,
+            )
+        return output
 
     def _err(self, message, key) -> SceneError:
         return SceneError(message, key, self.file)
@@ -1052,6 +1666,16 @@ class Scene:
         """(N,) int32 kind code: 0 free, 1 fixed, 2 kinematic (see :data:`KINDS`)."""
         return self._view("kind")
 
+    @property
+    def body_pivot(self) -> np.ndarray:
+        """(N, 3) fixed point each kinematic body turns about [m]; NaN rows for bodies without one.
+
+        A body with a pivot p and angular velocity w moves rigidly about p: after a time t its
+        centroid is ``p + Rot(w t) (x0 - p)`` and its velocity ``w x (x - p)``. The parts of a
+        :meth:`add_drum` drum have the drum centre as their pivot.
+        """
+        return self._view("pivot")
+
     def add_body(
         self,
         shape,
@@ -1062,6 +1686,7 @@ class Scene:
         angular_velocity=(0.0, 0.0, 0.0),
         kind: str = "free",
         *,
+        pivot=None,
         _key: str | None = None,
     ) -> int:
         """Add one body; returns its index.
@@ -1075,6 +1700,9 @@ class Scene:
             velocity: (3,) velocity of the centre of mass [m/s].
             angular_velocity: (3,) world axes [rad/s].
             kind: ``"free"``, ``"fixed"`` (velocities must be zero) or ``"kinematic"``.
+            pivot: (3,) for a kinematic body only: a fixed point [m] the body turns about at
+                ``angular_velocity``; its velocity is then derived, ``angular_velocity x (centroid -
+                pivot)``, so leave ``velocity`` at zero.
         """
         key = _key or f"bodies[{self._n}]"
         f = self.file
@@ -1085,7 +1713,8 @@ class Scene:
         q = _vector(orientation, 4, f"{key}.orientation", f)
         v = _vector(velocity, 3, f"{key}.velocity", f)
         w = _vector(angular_velocity, 3, f"{key}.angular_velocity", f)
-        return int(self._append(s, m, p[None], q[None], v[None], w[None], kind_code, lambda i: key)[0])
+        piv = None if pivot is None else _vector(pivot, 3, f"{key}.pivot", f)[None]
+        return int(self._append(s, m, p[None], q[None], v[None], w[None], kind_code, lambda i: key, piv)[0])
 
     def add_bodies(
         self,
@@ -1096,6 +1725,8 @@ class Scene:
         velocities=None,
         angular_velocities=None,
         kind: str = "free",
+        *,
+        pivots=None,
     ) -> np.ndarray:
         """Add N bodies of one shape and material at once; returns their indices (int64, (N,)).
 
@@ -1105,6 +1736,8 @@ class Scene:
             velocities: (N, 3) or (3,) [m/s]; default zero.
             angular_velocities: (N, 3) or (3,) world axes [rad/s]; default zero.
             kind: one kind for all of them.
+            pivots: (N, 3) or (3,) fixed points the (kinematic) bodies turn about [m], or None; see
+                :meth:`add_body`.
         """
         start, f = self._n, self.file
         p = _rows(positions, 3, f"bodies[{start}:].position", f)
@@ -1122,11 +1755,16 @@ class Scene:
             f,
             n=n,
         )
-        return self._append(s, m, p, q, v, w, kind_code, lambda i: f"bodies[{start + i}]")
+        piv = None if pivots is None else _rows(pivots, 3, f"{label}.pivot", f, n=n)
+        return self._append(s, m, p, q, v, w, kind_code, lambda i: f"bodies[{start + i}]", piv)
 
-    def _append(self, s, m, p, q, v, w, kind_code, rowkey) -> np.ndarray:
+    def _append(self, s, m, p, q, v, w, kind_code, rowkey, pivot=None) -> np.ndarray:
+        """Store n bodies. ``s`` and ``m`` are one index or (n,) arrays; p, q, v, w are (n, k)."""
         n = p.shape[0]
-        for name, arr in (("position", p), ("orientation", q), ("velocity", v), ("angular_velocity", w)):
+        arrays = [("position", p), ("orientation", q), ("velocity", v), ("angular_velocity", w)]
+        if pivot is not None:
+            arrays.append(("pivot", pivot))
+        for name, arr in arrays:
             if np.isfinite(arr).all():
                 continue
             bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
@@ -1144,14 +1782,37 @@ class Scene:
                     "kind = 'kinematic' for a body that moves at a prescribed velocity",
                     f"{rowkey(i)}.{which}",
                 )
-        q_in, t_in = self._shape_frames[s]
+        if pivot is not None:
+            if kind_code != KIND_KINEMATIC:
+                raise self._err(
+                    f"only a kinematic body can turn about a pivot, this one is {KINDS[kind_code]!r}; use kind = "
+                    "'kinematic' or leave pivot out",
+                    f"{rowkey(0)}.pivot",
+                )
+            moving = np.flatnonzero(np.any(v != 0.0, axis=1))
+            if moving.size:
+                i = int(moving[0])
+                raise self._err(
+                    f"a body turning about a pivot has the velocity angular_velocity x (centroid - pivot), derived "
+                    f"from its pose; leave velocity out (got {v[i].tolist()})",
+                    f"{rowkey(i)}.velocity",
+                )
+        if np.ndim(s) == 0:
+            q_in, t_in = self._shape_frames[int(s)]
+        else:
+            s = np.asarray(s, dtype=np.int32)
+            frames = self._shape_frames
+            q_in = np.array([frames[k][0] for k in range(len(frames))])[s]
+            t_in = np.array([frames[k][1] for k in range(len(frames))])[s]
         # Most generated shapes are built in their principal frame: skip the no-op transforms.
         centroid = p if not np.any(t_in) else p + _quat_rotate(q, np.broadcast_to(t_in, p.shape))
-        if np.array_equal(q_in, (0.0, 0.0, 0.0, 1.0)):
+        if np.all(q_in == (0.0, 0.0, 0.0, 1.0)):
             q_body = q
         else:
             q_body = _quat_mul(q, q_in)
             q_body /= np.sqrt(np.einsum("ij,ij->i", q_body, q_body))[:, None]
+        if pivot is not None:
+            v = _cross(w, centroid - pivot)
         self._reserve(n)
         sl = slice(self._n, self._n + n)
         a = self._arrays
@@ -1162,6 +1823,7 @@ class Scene:
         a["velocity"][sl] = v
         a["angular_velocity"][sl] = w
         a["kind"][sl] = kind_code
+        a["pivot"][sl] = np.nan if pivot is None else pivot
         self._n += n
         return np.arange(sl.start, sl.stop, dtype=np.int64)
 
@@ -1198,6 +1860,7 @@ class Scene:
             kind=KINDS[int(a["kind"][i])],
             centroid=_tuple(a["position"][i]),
             body_orientation=_tuple(q_body),
+            pivot=None if np.isnan(a["pivot"][i]).any() else _tuple(a["pivot"][i]),
         )
 
     def body_vertices(self, i: int) -> np.ndarray:
@@ -1281,6 +1944,407 @@ class Scene:
             self.add_shape(name, ConvexShape.box(*dims, name=name), _spec=spec)
         return name
 
+    # ------------------------------------------------------------------ drums
+
+    def add_drum(
+        self,
+        center,
+        axis,
+        radius,
+        length,
+        material,
+        *,
+        omega=None,
+        rpm=None,
+        sides=24,
+        thickness=None,
+        caps=True,
+        _key: str | None = None,
+    ) -> Drum:
+        """Add a rotating polygonal drum made of kinematic bodies; returns its :class:`Drum` record.
+
+        A hollow drum is not convex, so it is built from ``sides`` box slabs, ``thickness`` thick
+        and ``length`` long, whose inner faces are the sides of a regular polygon of inradius
+        ``radius`` around the axis (adjacent slabs meet along the polygon's corners and open up
+        outwards, so the inside is closed). With ``caps`` two polygonal plates (prisms centred on
+        the axis, covering the slabs' outer corners) close the ends at ``+-length / 2``.
+
+        Every part is a kinematic body with angular velocity ``omega * axis`` and the drum centre
+        as its pivot (:attr:`body_pivot`); a slab's velocity is ``omega x r``, r from the axis to
+        the slab's centre, and the caps only spin. The registered shapes are
+        ``"wall_box_{w}x{length}x{thickness}"`` (w = 2 radius tan(pi / sides)) and
+        ``"drum_cap_{sides}_{r}x{thickness}"``.
+
+        Args:
+            center: (3,) middle of the drum on its axis [m].
+            axis: (3,) direction of the axis (any non-zero length) [-]; the drum turns by the
+                right-hand rule about it.
+            radius: inradius of the inner polygon [m], > 0.
+            length: inner length along the axis [m], > 0.
+            material: material name.
+            omega: angular speed [rad/s] (negative turns the other way); or give ``rpm``.
+            rpm: revolutions per minute (2 pi / 60 rad/s each); or give ``omega``.
+            sides: number of slabs, >= 3 (default 24).
+            thickness: slab and cap thickness [m], default a tenth of ``radius``.
+            caps: close the ends with rotating plates (default True).
+        """
+        key = _key or f"drums[{len(self.drums)}]"
+        f = self.file
+        c = _vector(center, 3, f"{key}.center", f)
+        a = _vector(axis, 3, f"{key}.axis", f)
+        if np.linalg.norm(a) < 1e-12:
+            raise self._err(
+                f"axis {a.tolist()} is zero; give the direction of the drum axis, e.g. [0, 1, 0]", f"{key}.axis"
+            )
+        a = a / np.linalg.norm(a)
+        r = _number(radius, f"{key}.radius", f, positive=True, hint=" (inner radius in m)")
+        length = _number(length, f"{key}.length", f, positive=True, hint=" (inner length along the axis in m)")
+        n = _integer(sides, f"{key}.sides", f, minimum=3, maximum=1000, hint=" (number of slabs)")
+        t = 0.1 * r if thickness is None else _number(thickness, f"{key}.thickness", f, positive=True, hint=" (in m)")
+        caps = _boolean(caps, f"{key}.caps", f)
+        if (omega is None) == (rpm is None):
+            raise self._err(
+                "give the rotation speed as exactly one of omega (rad/s) or rpm (revolutions per minute)",
+                f"{key}.omega" if omega is None else f"{key}.rpm",
+            )
+        if omega is not None:
+            w = _number(omega, f"{key}.omega", f, hint=" (angular speed in rad/s)")
+        else:
+            w = _number(rpm, f"{key}.rpm", f, hint=" (revolutions per minute)") * 2.0 * math.pi / 60.0
+        mat = self._lookup_material(material, f"{key}.material")
+        name = self.material_names[mat]
+        radial = _drum_radial(a, n)
+        tangent = _cross(np.broadcast_to(a, radial.shape), radial)
+        slab = self._box_shape((2.0 * r * math.tan(math.pi / n), length, t))
+        quats = np.array([_quat_from_matrix(np.column_stack([tangent[k], a, radial[k]])) for k in range(n)])
+        omega_vec = np.broadcast_to(w * a, (n, 3))
+        zeros = np.zeros((n, 3))
+        idx = [
+            self._append(
+                self._shape_index[slab],
+                mat,
+                c + (r + 0.5 * t) * radial,
+                quats,
+                zeros,
+                omega_vec,
+                KIND_KINEMATIC,
+                lambda i: key,
+                np.broadcast_to(c, (n, 3)),
+            )
+        ]
+        if caps:
+            rho = (r + t) / math.cos(math.pi / n) ** 2
+            cap_name = f"drum_cap_{n}_{rho:.6g}x{t:.6g}"
+            spec = {"type": "prism", "n": n, "radius": rho, "height": t}
+            base, k = cap_name, 1
+            while cap_name in self._shapes and self._shape_specs.get(cap_name) != spec:
+                k += 1
+                cap_name = f"{base}_{k}"
+            if cap_name not in self._shapes:
+                self.add_shape(cap_name, ConvexShape.prism(n, rho, t, name=cap_name), _spec=spec)
+            e1, e2 = _perpendicular_basis(a)
+            q_cap = _quat_from_matrix(np.column_stack([e1, e2, a]))
+            ends = np.array([c + (0.5 * length + 0.5 * t) * a, c - (0.5 * length + 0.5 * t) * a])
+            idx.append(
+                self._append(
+                    self._shape_index[cap_name],
+                    mat,
+                    ends,
+                    np.tile(q_cap, (2, 1)),
+                    np.zeros((2, 3)),
+                    np.tile(w * a, (2, 1)),
+                    KIND_KINEMATIC,
+                    lambda i: key,
+                    np.tile(c, (2, 1)),
+                )
+            )
+        drum = Drum(
+            center=_tuple(c),
+            axis=_tuple(a),
+            radius=r,
+            length=length,
+            sides=n,
+            thickness=t,
+            omega=w,
+            material=name,
+            caps=caps,
+            bodies=tuple(int(i) for i in np.concatenate(idx)),
+        )
+        self.drums.append(drum)
+        return drum
+
+    # ------------------------------------------------------------------ emitters
+
+    def emit(
+        self,
+        shape,
+        material,
+        count,
+        region,
+        *,
+        weights=None,
+        orientation="random",
+        seed=0,
+        velocity=(0.0, 0.0, 0.0),
+        velocity_jitter=0.0,
+        scale=None,
+        scale_range=None,
+        scale_lognormal=None,
+        scale_bins=8,
+        kind="free",
+        spacing=1.1,
+        jitter=0.9,
+        fill="bottom",
+        _key: str | None = None,
+    ) -> np.ndarray:
+        """Place ``count`` bodies in a box region without overlaps; returns their indices.
+
+        This is the ``[[emitters]]`` table of a scene file (same argument names).
+
+        Placement. Each body gets a cell of a cubic grid filling the region (centred in it); the
+        cell side is ``spacing`` times the largest bounding diameter among the emitted bodies, and
+        each body's centre of mass is moved from its cell centre by up to ``jitter`` times its free
+        room (half the cell minus its bounding radius) along each axis, uniformly at random. So
+        every bounding sphere stays inside its own cell: no two emitted bodies overlap and none
+        crosses the region's faces. Cells that would cross a plane wall, any body already in the
+        scene (a container's slabs, a drum's slabs, earlier bodies and emitters; tested against
+        the body's face planes) or that lie beside a drum (within its axial span) without being
+        wholly inside it are left out.
+        ``fill = "bottom"`` takes the lowest cells first (layers against gravity; within the last
+        layer at random), ``fill = "random"`` cells anywhere in the region. Bodies are stored in
+        the grid order of their cells. If the region cannot hold ``count`` bodies, SceneError
+        (key ``.count``, or ``.region`` when not even one cell fits) says how many fit.
+
+        Everything is deterministic for a given ``seed`` (independent random streams for the
+        shape mix, the sizes, the cells, the jitter, the orientations and the velocities) and
+        vectorised: 10^6 bodies take a few seconds.
+
+        Args:
+            shape: a shape name (or :class:`ConvexShape`), a list of names (a mix; ``weights``
+                gives their proportions, equal by default), or a dict name -> weight. The counts
+                follow the weights exactly (largest remainders), in random order.
+            material: material name.
+            count: number of bodies, >= 1.
+            region: the box to fill, ``{"min": (x0, y0, z0), "max": (x1, y1, z1)}`` or a pair
+                ``(min, max)`` [m].
+            weights: proportions of a list of shapes (non-negative, not all zero).
+            orientation: ``"random"`` (uniform) or ``"aligned"`` (input axes along world axes).
+            seed: integer >= 0.
+            velocity: (3,) initial velocity of every body [m/s].
+            velocity_jitter: each velocity component gets a uniform random addition in
+                ``[-velocity_jitter, velocity_jitter]`` [m/s].
+            scale: one size factor for all bodies (default 1), or
+            scale_range: ``(lo, hi)``, factors uniform in [lo, hi], or
+            scale_lognormal: ``{"mean": m, "sigma": s}``: ln(factor) normal with standard deviation
+                s, its mean chosen so that the factors average m; truncated at 3 s either side.
+            scale_bins: a distribution is quantised into this many equal bins (in log for the
+                lognormal), each body taking its bin's centre, so at most ``scale_bins`` new shapes
+                per base shape are registered (``ConvexShape.scaled``, named ``"{name}_x{factor}"``).
+                Factors scale about each shape's input origin (its centroid but for rocks).
+            kind: ``"free"`` (default), ``"fixed"`` or ``"kinematic"``.
+            spacing: cell side over the largest bounding diameter, >= 1 (default 1.1).
+            jitter: fraction of each body's free room used for its random offset, in [0, 1].
+            fill: ``"bottom"`` (default) or ``"random"``.
+        """
+        key = _key or f"emitters[{len(self.emitters)}]"
+        f = self.file
+        count = _integer(count, f"{key}.count", f, minimum=1, hint=" (number of bodies to place)")
+        lo, hi = _region(region, f"{key}.region", f)
+        base, frac = self._emitter_shapes(shape, weights, key)
+        mat = self._lookup_material(material, f"{key}.material")
+        kind_code = KINDS.index(_choice(kind, KINDS, f"{key}.kind", f, what="body kind"))
+        orientation = _choice(orientation, ORIENTATIONS, f"{key}.orientation", f, what="orientation")
+        fill = _choice(fill, FILLS, f"{key}.fill", f, what="fill order")
+        seed = _integer(seed, f"{key}.seed", f, minimum=0)
+        vel = _vector(velocity, 3, f"{key}.velocity", f)
+        vj = _number(velocity_jitter, f"{key}.velocity_jitter", f, nonneg=True, hint=" (in m/s)")
+        spacing = _number(spacing, f"{key}.spacing", f, hint=" (cell side over the largest bounding diameter)")
+        if spacing < 1.0:
+            raise self._err(
+                f"must be >= 1 (narrower cells would let bounding spheres overlap), got {spacing:g}",
+                f"{key}.spacing",
+            )
+        jitter = _number(jitter, f"{key}.jitter", f, nonneg=True)
+        if jitter > 1.0:
+            raise self._err(f"must be in [0, 1] (a fraction of each body's free room), got {jitter:g}", f"{key}.jitter")
+        bins = _integer(scale_bins, f"{key}.scale_bins", f, minimum=1, maximum=64)
+        sample_scales = _scale_sampler(scale, scale_range, scale_lognormal, bins, key, f)
+        if kind_code == KIND_FIXED and (vj > 0.0 or np.any(vel != 0.0)):
+            raise self._err(
+                "fixed bodies cannot move; remove velocity and velocity_jitter or use kind = 'kinematic'",
+                f"{key}.velocity",
+            )
+
+        streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)]
+        rng_shape, rng_scale, rng_cells, rng_jitter, rng_orient, rng_vel = streams
+        label = rng_shape.permutation(np.repeat(np.arange(len(base)), _largest_remainder(count, frac)))
+        bin_index, values = sample_scales(rng_scale, count)
+        combo, inverse = np.unique(label * len(values) + bin_index, return_inverse=True)
+        combo_shape = np.array(
+            [self._scaled_shape(base[int(cb) // len(values)], float(values[int(cb) % len(values)])) for cb in combo],
+            dtype=np.int32,
+        )
+        shapes = list(self._shapes.values())
+        combo_radius = np.array([shapes[s].radius for s in combo_shape])
+        rows = combo_shape[inverse]
+        radius = combo_radius[inverse]
+        r_max = float(combo_radius.max())
+        cell = spacing * 2.0 * r_max
+        centres = self._emitter_cells(lo, hi, cell, count, fill, rng_cells, key, r_max, spacing)
+        room = jitter * np.maximum(0.5 * cell - radius, 0.0)
+        centres = centres + rng_jitter.uniform(-1.0, 1.0, size=(count, 3)) * room[:, None]
+        if orientation == "random":
+            q = rng_orient.normal(size=(count, 4))
+            norm = np.sqrt(np.einsum("ij,ij->i", q, q))
+            q = np.where(norm[:, None] > 1e-12, q / np.maximum(norm, 1e-300)[:, None], [0.0, 0.0, 0.0, 1.0])
+        else:
+            q = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), (count, 4))
+        v = np.broadcast_to(vel, (count, 3))
+        if vj > 0.0:
+            v = v + rng_vel.uniform(-vj, vj, size=(count, 3))
+        t_in = np.array([self._shape_frames[s][1] for s in range(len(self._shape_frames))])[rows]
+        positions = centres - _quat_rotate(q, t_in) if np.any(t_in) else centres
+        idx = self._append(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
+        self.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
+        return idx
+
+    def _emitter_shapes(self, shape, weights, key) -> tuple[list[int], np.ndarray]:
+        """Shape indices and normalised weights of an emitter's ``shape`` (and ``weights``)."""
+        f = self.file
+        if isinstance(shape, dict):
+            if weights is not None:
+                raise self._err("give the weights either in the shape table or as weights, not both", f"{key}.weights")
+            names = list(shape)
+            weights = [shape[n] for n in names]
+            wkey = [f"{key}.shape.{n}" for n in names]
+        elif isinstance(shape, list | tuple):
+            names = list(shape)
+            wkey = [f"{key}.weights[{i}]" for i in range(len(names))]
+        else:
+            if weights is not None:
+                raise self._err(
+                    "weights go with a list of shapes, e.g. shape = ['cube', 'rock'] and weights = [2, 1]",
+                    f"{key}.weights",
+                )
+            names, weights, wkey = [shape], None, [f"{key}.weights"]
+        if not names:
+            raise self._err("the list of shapes is empty; give at least one shape name", f"{key}.shape")
+        index = []
+        for i, name in enumerate(names):
+            sub = f"{key}.shape" if len(names) == 1 else f"{key}.shape[{i}]"
+            if isinstance(shape, dict):
+                sub = f"{key}.shape.{name}"
+            s = self._resolve_shape(name, sub)
+            if s in index:
+                raise self._err(f"shape {self.shape_names[s]!r} is listed twice; list each shape once", sub)
+            index.append(s)
+        if weights is None:
+            frac = np.full(len(index), 1.0 / len(index))
+        else:
+            if not isinstance(weights, list | tuple | np.ndarray) or len(weights) != len(index):
+                raise self._err(
+                    f"expected {len(index)} weights, one per shape, got {_typename(weights)}", f"{key}.weights"
+                )
+            frac = np.array([_number(wt, wkey[i], f, nonneg=True) for i, wt in enumerate(weights)])
+            if frac.sum() <= 0.0:
+                raise self._err("the weights are all zero; give at least one positive weight", f"{key}.weights")
+            frac = frac / frac.sum()
+        return index, frac
+
+    def _scaled_shape(self, base: int, factor: float) -> int:
+        """Index of shape ``base`` scaled by ``factor`` (registered once as ``"{name}_x{factor}"``)."""
+        if factor == 1.0:
+            return base
+        cache = (base, factor)
+        if cache in self._scaled:
+            return self._scaled[cache]
+        src = self.shape_names[base]
+        name = stem = f"{src}_x{factor:.6g}"
+        k = 1
+        while name in self._shapes:
+            k += 1
+            name = f"{stem}_{k}"
+        shape = list(self._shapes.values())[base].scaled(factor)
+        shape.name = name
+        self.add_shape(name, shape, _spec=_scaled_spec(self._shape_specs.get(src), factor))
+        self._scaled[cache] = self._shape_index[name]
+        return self._scaled[cache]
+
+    def _emitter_cells(self, lo, hi, cell, count, fill, rng, key, r_max, spacing) -> np.ndarray:
+        """(count, 3) centres of the free grid cells chosen for an emitter (see :meth:`emit`)."""
+        ext = hi - lo
+        n = np.floor(ext / cell * (1.0 + 1e-12)).astype(np.int64)
+        sizes = f"cells of {cell:.4g} m (spacing {spacing:g} x the largest bounding diameter {2.0 * r_max:.4g} m)"
+        if np.any(n < 1):
+            ax = int(np.flatnonzero(n < 1)[0])
+            raise self._err(
+                f"the region is {ext[ax]:.4g} m along {'xyz'[ax]}, too small for one body: bodies are placed in "
+                f"{sizes}; make the region at least {cell:.4g} m along {'xyz'[ax]}, or use smaller shapes or a "
+                "smaller spacing",
+                f"{key}.region",
+            )
+        origin = lo + 0.5 * (ext - n * cell)
+        g = np.asarray(self.gravity, dtype=np.float64)
+        up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0.0 else np.array([0.0, 0.0, 1.0])
+        k = int(np.argmax(np.abs(up)))
+        ascending = bool(up[k] >= 0.0)
+        ax_a, ax_b = (i for i in range(3) if i != k)
+        nb_, nk = int(n[ax_b]), int(n[k])
+        per_layer = int(n[ax_a]) * nb_
+        total = per_layer * nk
+        if per_layer > _MAX_EMITTER_CELLS or (fill == "random" and total > _MAX_EMITTER_CELLS):
+            what = "one layer of" if per_layer > _MAX_EMITTER_CELLS else "the"
+            raise self._err(
+                f"{what} region holds {per_layer if what != 'the' else total:.3g} {sizes}, far more than "
+                f"{count} bodies need (the limit is {_MAX_EMITTER_CELLS:.0e} cells); make the region smaller"
+                + (' or use fill = "bottom"' if fill == "random" else ""),
+                f"{key}.region",
+            )
+        obstacles = _Obstacles(self, origin, origin + n * cell, cell)
+        chunk_layers = max(1, _EMITTER_CHUNK // per_layer)
+        found, got_layer, got_m = 0, [], []
+        for l0 in range(0, nk, chunk_layers):
+            l1 = min(nk, l0 + chunk_layers)
+            layer = np.repeat(np.arange(l0, l1, dtype=np.int64), per_layer)
+            m = np.tile(np.arange(per_layer, dtype=np.int64), l1 - l0)
+            gi = _cell_index(layer, m, k, ax_a, ax_b, nb_, nk, ascending)
+            krange = (l0, l1 - 1) if ascending else (nk - l1, nk - 1 - l0)
+
+            def local_of(g, l0=l0):
+                lay = g[:, k] if ascending else nk - 1 - g[:, k]
+                return (lay - l0) * per_layer + g[:, ax_a] * nb_ + g[:, ax_b]
+
+            blocked = obstacles.blocked(origin + (gi + 0.5) * cell, krange, k, local_of)
+            keep = ~blocked
+            got_layer.append(layer[keep])
+            got_m.append(m[keep])
+            found += int(keep.sum())
+            if fill == "bottom" and found >= count:
+                break
+        if found < count:
+            per = found / nk if found else per_layer
+            need = math.ceil(count / max(per, 1e-300)) * cell
+            msg = (
+                f"the region holds at most {found} bodies, fewer than count = {count}: it is a grid of "
+                f"{n[0]} x {n[1]} x {n[2]} {sizes}"
+            )
+            if total > found:
+                msg += f", and {total - found} of its {total} cells cross walls or bodies already in the scene"
+            msg += (
+                f". Lower count to {found}, or enlarge the region (to about {need:.3g} m along {'xyz'[k]} at this "
+                "width, or wider), or lower spacing"
+            )
+            raise self._err(msg, f"{key}.count")
+        layer = np.concatenate(got_layer)
+        m = np.concatenate(got_m)
+        if fill == "bottom":
+            pick = np.lexsort((rng.random(found), layer))[:count]
+        else:
+            pick = rng.choice(found, size=count, replace=False)
+        pick.sort()
+        gi = _cell_index(layer[pick], m[pick], k, ax_a, ax_b, nb_, nk, ascending)
+        return origin + (gi + 0.5) * cell
+
     # ------------------------------------------------------------------ checks and mixing
 
     def pair_material(self, a, b) -> PairMaterial:
@@ -1338,11 +2402,15 @@ class Scene:
         Checks: simulation settings; all materials share one contact law; at least one body; every
         body's shape and material index exists; all numbers finite; unit quaternions; valid kinds;
         fixed bodies at rest; free bodies have a shape with positive volume and inertia; planes use
-        registered materials and have unit normals.
+        registered materials and have unit normals; only kinematic bodies have pivots; precision is
+        float32; the device name and the output settings are valid.
         """
         f = self.file
         self.gravity = tuple(_vector(list(self.gravity), 3, "simulation.gravity", f).tolist())
         self.dt = self._check_dt(self.dt)
+        self.device = self._check_device(self.device)
+        self.precision = self._check_precision(self.precision)
+        self.output = self._check_output(self.output)
         if self.steps is not None and self.duration is not None:
             raise self._err("give either steps or duration, not both", "simulation.duration")
         if self.steps is not None:
@@ -1376,6 +2444,13 @@ class Scene:
             i = int(bad[0])
             raise self._err(
                 f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)", f"bodies[{i}].kind"
+            )
+        pivoted = np.flatnonzero(~np.isnan(a["pivot"]).any(axis=1) & (a["kind"] != KIND_KINEMATIC))
+        if pivoted.size:
+            i = int(pivoted[0])
+            raise self._err(
+                "only a kinematic body can turn about a pivot; use kind = 'kinematic' or leave pivot out",
+                f"bodies[{i}].pivot",
             )
         fixed = a["kind"] == KIND_FIXED
         moving = np.flatnonzero(
@@ -1464,6 +2539,8 @@ class Scene:
             duration=sim.get("duration"),
             description=sim.get("description", ""),
             file=file,
+            device=sim.get("device"),
+            precision=sim.get("precision", "float32"),
         )
         materials = _table(
             data.get("materials", {}), "materials", file, what="tables [materials.NAME], one per material"
@@ -1496,6 +2573,13 @@ class Scene:
             orientation = body.get("orientation", (0.0, 0.0, 0.0, 1.0))
             if "rotation" in body:
                 orientation = _rotation(body["rotation"], f"{key}.rotation", file)
+            if "pivot" in body and "velocity" in body:
+                raise SceneError(
+                    "a body turning about a pivot gets its velocity from angular_velocity x (centroid - pivot); "
+                    "give either velocity or pivot, not both",
+                    f"{key}.velocity",
+                    file,
+                )
             scene.add_body(
                 body["shape"],
                 body["material"],
@@ -1504,6 +2588,7 @@ class Scene:
                 velocity=body.get("velocity", (0.0, 0.0, 0.0)),
                 angular_velocity=body.get("angular_velocity", (0.0, 0.0, 0.0)),
                 kind=body.get("kind", "free"),
+                pivot=body.get("pivot"),
                 _key=key,
             )
         walls = data.get("walls", [])
@@ -1513,14 +2598,14 @@ class Scene:
             key = f"walls[{j}]"
             wall = _table(wall, key, file, what="a [[walls]] table")
             if "type" not in wall:
-                raise SceneError("missing required key 'type' ('plane' or 'box')", f"{key}.type", file)
+                raise SceneError("missing required key 'type' ('plane', 'box' or 'drum')", f"{key}.type", file)
             kind = _choice(wall["type"], _WALL_KEYS, f"{key}.type", file, what="wall type")
             _check_keys(
                 wall, _WALL_KEYS[kind], key, file, required=_WALL_REQUIRED[kind], context=f" for type = {kind!r}"
             )
             if kind == "plane":
                 scene.add_plane(wall["point"], wall["normal"], wall["material"], _key=key)
-            else:
+            elif kind == "box":
                 scene.add_box_container(
                     wall["center"],
                     wall["inner_size"],
@@ -1529,6 +2614,37 @@ class Scene:
                     open_top=wall.get("open_top", True),
                     _key=key,
                 )
+            else:
+                scene.add_drum(
+                    wall["center"],
+                    wall["axis"],
+                    wall["radius"],
+                    wall["length"],
+                    wall["material"],
+                    omega=wall.get("omega"),
+                    rpm=wall.get("rpm"),
+                    sides=wall.get("sides", 24),
+                    thickness=wall.get("thickness"),
+                    caps=wall.get("caps", True),
+                    _key=key,
+                )
+        emitters = data.get("emitters", [])
+        if not isinstance(emitters, list):
+            raise SceneError(f"expected an array of tables [[emitters]], got {_typename(emitters)}", "emitters", file)
+        for j, emitter in enumerate(emitters):
+            key = f"emitters[{j}]"
+            emitter = _table(emitter, key, file, what="an [[emitters]] table")
+            _check_keys(
+                emitter,
+                _EMITTER_KEYS,
+                key,
+                file,
+                required=("shape", "material", "count", "region"),
+                hints=_EMITTER_HINTS,
+            )
+            scene.emit(**emitter, _key=key)
+        if "output" in data:
+            scene.output = Output.from_dict(data["output"], file)
         if validate:
             scene.validate()
         return scene
@@ -1536,42 +2652,69 @@ class Scene:
     def to_dict(self) -> dict:
         """The scene as the nested dict of a scene file (``Scene.from_dict(scene.to_dict())`` rebuilds it).
 
-        Shapes built from a scene file keep their spec; others are written as ``type = "points"``
-        with their vertices in the input frame. Box containers come back as fixed bodies.
+        Shapes built from a scene file keep their spec; others (including the scaled shapes of
+        emitters) are written as ``type = "points"`` with their vertices in the input frame. Box
+        containers, drums and emitters come back as the bodies they made (drum parts as kinematic
+        bodies with their pivot).
         """
-        sim = {"name": self.name, "dt": self.dt, "gravity": list(self.gravity)}
+        sim = {"name": self.name, "dt": self.dt, "gravity": list(self.gravity), "precision": self.precision}
         if self.description:
             sim["description"] = self.description
         if self.steps is not None:
             sim["steps"] = self.steps
         if self.duration is not None:
             sim["duration"] = self.duration
+        if self.device is not None:
+            sim["device"] = self.device
         shapes = {}
         for name, shape in self._shapes.items():
             spec = self._shape_specs.get(name)
             if spec is None:
                 spec = {"type": "points", "points": shape.to_input_frame(shape.vertices).tolist()}
             shapes[name] = dict(spec)
+        n = self._n
+        a = {name: self._arrays[name][:n] for name, _, _ in _BODY_FIELDS}
+        frames = self._shape_frames
+        q_in = np.array([fr[0] for fr in frames]).reshape(-1, 4)[a["shape"]]
+        t_in = np.array([fr[1] for fr in frames]).reshape(-1, 3)[a["shape"]]
+        q_user = _quat_mul(a["orientation"], _quat_conj(q_in))
+        q_user /= np.sqrt(np.einsum("ij,ij->i", q_user, q_user))[:, None]
+        pos = a["position"] - _quat_rotate(q_user, t_in)
+        shape_names, material_names = self.shape_names, self.material_names
+        has_pivot = ~np.isnan(a["pivot"]).any(axis=1)
         bodies = []
-        for i in range(self._n):
-            b = self.body(i)
-            bodies.append(
-                {
-                    "shape": b.shape,
-                    "material": b.material,
-                    "position": list(b.position),
-                    "orientation": list(b.orientation),
-                    "velocity": list(b.velocity),
-                    "angular_velocity": list(b.angular_velocity),
-                    "kind": b.kind,
-                }
-            )
+        for s, m, p, q, v, w, kind, pivoted, pivot in zip(
+            a["shape"].tolist(),
+            a["material"].tolist(),
+            pos.tolist(),
+            q_user.tolist(),
+            a["velocity"].tolist(),
+            a["angular_velocity"].tolist(),
+            a["kind"].tolist(),
+            has_pivot.tolist(),
+            a["pivot"].tolist(),
+            strict=True,
+        ):
+            body = {
+                "shape": shape_names[s],
+                "material": material_names[m],
+                "position": p,
+                "orientation": q,
+                "velocity": v,
+                "angular_velocity": w,
+                "kind": KINDS[kind],
+            }
+            if pivoted:
+                del body["velocity"]
+                body["pivot"] = pivot
+            bodies.append(body)
         return {
             "simulation": sim,
             "materials": {name: m.to_dict() for name, m in self._materials.items()},
             "shapes": shapes,
             "bodies": bodies,
             "walls": [p.to_dict() for p in self._planes],
+            "output": self.output.to_dict(),
         }
 
     def describe(self) -> str:
@@ -1580,6 +2723,7 @@ class Scene:
         dt = self.dt if self.dt == "auto" else f"{self.dt:g} s"
         run = f", {self.steps} steps" if self.steps is not None else ""
         run += f", duration {self.duration:g} s" if self.duration is not None else ""
+        run += f", {self.precision}" + (f", device {self.device}" if self.device else "")
         lines = [
             f"Scene {self.name!r}" + (f" from {self.file}" if self.file else ""),
             f"  gravity [{g}] m/s^2, dt {dt}{run}",
@@ -1610,6 +2754,27 @@ class Scene:
                 f"    point [{', '.join(f'{x:g}' for x in p.point)}], normal "
                 f"[{', '.join(f'{x:.4g}' for x in p.normal)}], material {p.material}"
             )
+        for d in self.drums:
+            centre = ", ".join(f"{x:g}" for x in d.center)
+            axis = ", ".join(f"{x:.4g}" for x in d.axis)
+            lines.append(
+                f"  drum: centre [{centre}], axis [{axis}],"
+                f" radius {d.radius:g} m, length {d.length:g} m, {d.sides} slabs{' and 2 caps' if d.caps else ''}, "
+                f"omega {d.omega:.4g} rad/s ({d.omega * 60.0 / (2.0 * math.pi):.4g} rpm)"
+            )
+        for e in self.emitters:
+            lines.append(f"  {e['key']}: {e['count']} bodies (indices {e['first']} to {e['last']})")
+        o = self.output
+        out = [f"summary {o.summary}" if o.summary else "no summary"]
+        if o.usd:
+            out.append(f"USD {o.usd} at {o.fps:g} fps")
+        if o.pictures:
+            out.append(f"pictures {o.pictures if isinstance(o.pictures, str) else list(o.pictures)}")
+        if o.checkpoint_steps is not None:
+            out.append(f"checkpoint every {o.checkpoint_steps} steps")
+        if o.checkpoint_seconds is not None:
+            out.append(f"checkpoint every {o.checkpoint_seconds:g} s")
+        lines.append("  output: " + ", ".join(out))
         return "\n".join(lines)
 
     def __repr__(self) -> str:

@@ -350,6 +350,7 @@ class Simulation:
             self.body_t,
             self.dt,
             device=dev,
+            body_pivot=m.body_pivot,
         )
         wp.launch(advance_step_kernel, dim=1, inputs=[self.step_count], device=dev)
         wp.launch(

@@ -1,0 +1,635 @@
+"""Verification of polydem.Simulation: closed forms against the integrator, and physics checks.
+
+Scenes are sized for Warp's single-threaded CPU backend (the file takes ~105 s there, 75 s of it the
+512-body pour, 16 s the 10^5-step energy run). Units SI; float32 state,
+unit roundoff EPS = 2^-24. The integrator (kernels/integrate.py) is symplectic Euler for
+translation (v += dt a, then x += dt v) with a Strang-split free-rotor drift for rotation.
+
+Energy checks use the first-order *modified energy* of symplectic Euler. For the kick-then-drift
+map the conserved quantity is, to O(dt^2),
+
+    H~ = H + (dt / 2) * sum_free (v . F + w . tau)          (F includes gravity)
+
+so H itself swings by O(dt) F.v inside every contact and comes back afterwards; H~ does not swing
+(in free fall it is conserved exactly: H drifts by -m g^2 dt^2 / 2 per step, the correction by the
+opposite amount). F and tau are the contact wrench of the last step (sim.body_f, sim.body_t),
+evaluated one step earlier than v, which changes H~ only at O(dt^2).
+"""
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+import polydem
+from polydem import ConvexShape, Scene, SceneError, Simulation, SimulationError
+from polydem.scene import quat_from_axis_angle, quat_to_matrix
+
+EPS = 2.0**-24
+G = 9.81
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers
+
+
+def single_material_scene(gravity=(0.0, 0.0, -G), dt="auto", **material):
+    props = dict(density=1000.0, law="hertz", k=1.0e9, restitution=1.0, friction=0.0)
+    props.update(material)
+    scene = Scene(gravity=gravity, dt=dt)
+    scene.add_material("m", **props)
+    return scene
+
+
+def modified_energy(sim, energy=None):
+    """H~ = total energy (including the dissipated part) + dt/2 sum(v.F + w.tau), see the module docstring."""
+    e = sim.energy() if energy is None else energy
+    m = sim.model
+    free = m.body_flags_np == 0
+    mass = m.body_mass[free].astype(np.float64)
+    v = sim.body_v.numpy()[free].astype(np.float64)
+    w = sim.body_w.numpy()[free].astype(np.float64)
+    f = sim.body_f.numpy()[free].astype(np.float64) + mass[:, None] * np.asarray(m.gravity, dtype=np.float64)
+    tau = sim.body_t.numpy()[free].astype(np.float64)
+    return e["total"] + 0.5 * sim.dt * (np.sum(f * v) + np.sum(tau * w))
+
+
+def contact_volume(sim):
+    """Total overlap volume of the current contacts [m^3]."""
+    return float(np.sum(sim.contacts()["volume"]))
+
+
+def body_rotation(shape, orientation):
+    """World rotation of the body (principal) frame for a shape placed with `orientation` (xyzw)."""
+    return quat_to_matrix(orientation) @ shape.input_rotation
+
+
+def angular_momentum(scene, state):
+    """Total angular momentum about the origin, sum x cross m v + R I R^T w [kg m^2/s] (float64)."""
+    mass = scene.body_mass()
+    inertia = scene.body_inertia()
+    rot = quat_to_matrix(state["body_orientation"])
+    w_body = np.einsum("nji,nj->ni", rot, state["body_angular_velocity"])
+    spin = np.einsum("nij,nj->ni", rot, inertia * w_body)
+    orbit = np.cross(state["body_position"], mass[:, None] * state["body_velocity"])
+    return (orbit + spin).sum(axis=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. Free fall and projectile: the closed form of symplectic Euler
+
+
+def test_free_fall_and_projectile_closed_form(device):
+    # A large step (2 ms; the soft material's stable limit is seconds) makes the closed form's
+    # first-order term g t dt / 2 large against float32 rounding of the position.
+    scene = single_material_scene(dt=2.0e-3, k=1.0e3)
+    cube = scene.add_shape("cube", ConvexShape.box(0.1))
+    x0 = np.array([[0.0, 0.0, 1.0], [0.5, -0.2, 0.5]])
+    v0 = np.array([[0.0, 0.0, 0.0], [1.5, -0.7, 4.0]])
+    scene.add_body(cube, "m", position=x0[0])
+    scene.add_body(cube, "m", position=x0[1], velocity=v0[1], angular_velocity=(2.0, -1.0, 3.0))
+    sim = Simulation(scene, device)
+    steps = 500
+    sim.step(steps)
+    st = sim.state()
+
+    dt = float(np.float32(sim.dt))  # the kernels step with the float32 dt
+    t = steps * dt
+    g = np.array([0.0, 0.0, -G])
+    x_exact = x0 + v0 * t + 0.5 * g * t * t + 0.5 * g * t * dt
+    v_exact = v0 + g * t
+    # Worst case, every one of the `steps` float32 additions x += dt v and v += dt g rounds by half
+    # an ulp of its result, the same way (errors add up linearly, and the velocity error is carried
+    # into x for the remaining time): steps * EPS * (max|x| + t max|v|) and steps * EPS * max|v|.
+    vmax = np.abs(v0).max() + G * t
+    tol_x = steps * EPS * (np.abs(x_exact).max() + np.abs(x0).max() + t * vmax)
+    tol_v = steps * EPS * vmax
+    err_x = np.abs(st["body_position"] - x_exact).max()
+    err_v = np.abs(st["body_velocity"] - v_exact).max()
+    print(f"\nfree fall: t = {t:.4f} s, |x - exact| = {err_x:.2e} m (tol {tol_x:.1e}), |v - exact| = {err_v:.2e}")
+    assert err_x <= tol_x
+    assert err_v <= tol_v
+    # The closed form differs from the exact parabola by g t dt / 2; make sure the test resolves it.
+    assert 0.5 * G * t * dt > 10 * tol_x
+    # No contact ever happened: the spin of the projectile is untouched (a cube is isotropic, so its
+    # angular velocity is constant in the torque-free case; float32 rounding of the drift only).
+    np.testing.assert_allclose(st["body_angular_velocity"][1], [2.0, -1.0, 3.0], rtol=0, atol=1e-4)
+    assert np.all(st["body_angular_velocity"][0] == 0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. Restitution and the energy of a corner impact
+
+
+@pytest.mark.parametrize("e", [0.3, 0.6, 0.9])
+def test_restitution_face_down_cube(device, e):
+    """A cube lands flat on a plane (hertz, no friction) and leaves with e times its impact speed.
+
+    The cube starts 0.5 mm above the plane with the speed of a 5 cm drop (1 m/s), under gravity.
+    Impact speed: the velocity at the first state with an overlap (no contact force has acted on
+    it yet); rebound speed: at the first state without overlap afterwards.
+    """
+    impact = 1.0
+    probe = single_material_scene(restitution=e)
+    probe.add_shape("cube", ConvexShape.box(0.1))
+    probe.add_body("cube", "m", position=(0.0, 0.0, 0.0505), velocity=(0.0, 0.0, -impact))
+    probe.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    # Time step: a quarter of the recommended one. The recommended step resolves a contact 1% of
+    # the size deep; this impact only reaches 0.08 mm (0.08%), where the face contact of the
+    # hertz law (force ~ sqrt(depth)) is 3.5 times stiffer, and the whole contact then lasts ~20
+    # steps. The e^2 switch of the hysteresis happens at whole steps, an error that e^-2
+    # amplifies: measured at the recommended step, e = 0.3 comes out 7-13% high (impact speeds
+    # 0.3-3 m/s), e = 0.6 1-1.6% and e = 0.9 within 1%; at a quarter step all are within 0.6%.
+    dt = Simulation(probe, device).model.dt_recommended / 4
+    scene = single_material_scene(dt=dt, restitution=e)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("cube", "m", position=(0.0, 0.0, 0.0505), velocity=(0.0, 0.0, -impact))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    sim = Simulation(scene, device)
+
+    v_in = v_out = None
+    max_volume = 0.0
+    for _ in range(20000):
+        sim.step(1)
+        volume = contact_volume(sim)
+        vz = sim.state()["body_velocity"][0, 2]
+        if v_in is None and volume > 0.0:
+            v_in = vz
+        if v_in is not None:
+            max_volume = max(max_volume, volume)
+            if volume == 0.0:
+                v_out = vz
+                break
+    assert v_in is not None and v_out is not None, "the cube never hit or never left the plane"
+    # Gravity works against the rebound while the cube is in the plane: with the deepest overlap
+    # d (volume / face area), loading stores m v_in^2 / 2 + m g d, unloading returns e^2 of it,
+    # so v_out^2 = e^2 v_in^2 - 2 g d (1 - e^2) (a 0.8% correction for e = 0.3).
+    depth = max_volume / 0.01
+    e_expected = math.sqrt(e * e - 2.0 * G * depth * (1.0 - e * e) / (v_in * v_in))
+    e_measured = -v_out / v_in
+    print(f"\nrestitution e = {e}: v_in = {v_in:.4f}, v_out = {v_out:.4f}, measured {e_measured:.4f}, "
+          f"expected {e_expected:.4f} ({100 * (e_measured / e_expected - 1):+.2f}%)")  # fmt: skip
+    assert v_in < -0.99 * impact  # the cube did land with the intended speed
+    # The issue's criterion: within 5% (measured within 0.5% at this step).
+    assert abs(e_measured / e_expected - 1.0) < 0.05
+
+
+def vertex_down_orientation():
+    """Rotation taking the cube diagonal (1, 1, 1) to -z: a vertex points down."""
+    a = np.array([1.0, 1.0, 1.0]) / math.sqrt(3.0)
+    b = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(a, b)
+    return quat_from_axis_angle(axis, math.acos(float(a @ b)))
+
+
+@pytest.mark.parametrize("e", [1.0, 0.5])
+def test_corner_impact_gains_no_energy(device, e):
+    """A cube falling corner-first tips over and bounces on edges and faces without gaining energy."""
+    scene = single_material_scene(restitution=e)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    q = vertex_down_orientation()
+    height = 0.05 * math.sqrt(3.0)  # centre to vertex
+    v_impact = 1.0
+    scene.add_body(
+        "cube", "m", position=(0.0, 0.0, height + 0.002), orientation=q, velocity=(0.0, 0.0, -v_impact),
+        angular_velocity=(3.0, 1.0, 0.0),
+    )  # fmt: skip
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    sim = Simulation(scene, device)
+    e0 = sim.energy()
+    h0 = modified_energy(sim, e0)
+    # Energy scale: what the first impact brings in (kinetic energy, 1 kg cube, plus the 2 mm fall).
+    scale = 0.5 * v_impact**2 + G * 0.002
+    steps = int(0.12 / sim.dt)
+    every = 5
+    raw_gain, mod_gain, mod_loss, in_contact = -np.inf, -np.inf, np.inf, 0
+    for _ in range(steps // every):
+        sim.step(every)
+        en = sim.energy()
+        raw_gain = max(raw_gain, en["total"] - e0["total"])
+        dh = modified_energy(sim, en) - h0
+        mod_gain = max(mod_gain, dh)
+        mod_loss = min(mod_loss, dh)
+        in_contact += en["contact"] > 0.0
+    st = sim.state()
+    print(f"\ncorner drop e = {e}: max gain of total energy {raw_gain / scale:.2e}, of the modified energy "
+          f"{mod_gain / scale:.2e} (min {mod_loss / scale:.2e}) of the impact energy; dissipated "
+          f"{en['dissipated'] / scale:.3f}; {in_contact} of {steps // every} samples in contact")  # fmt: skip
+    assert in_contact > 20  # the cube did hit the plane (and it turned: the vertex no longer points down)
+    assert abs(st["body_orientation"][0] @ q) < 0.999
+    # The modified energy is conserved to O(dt^2) in contact: measured gains <= 4e-5 of the impact
+    # energy. 1e-3 leaves room, and still fails for an O(dt) error (the raw energy swings by 2.7e-3).
+    assert mod_gain < 1e-3 * scale
+    # The raw total energy swings by O(dt/2 F.v) inside a contact (measured 2.7e-3, up to 6e-3 in
+    # longer runs); 2% of the impact energy bounds that swing, not a gain that stays.
+    assert raw_gain < 2e-2 * scale
+    if e == 1.0:
+        # Nothing is lost either (same bound as the gain).
+        assert mod_loss > -1e-3 * scale
+        assert en["dissipated"] == 0.0
+    else:
+        # The loss is booked as dissipated, to within its first-order accounting (measured -0.2%
+        # here, -1% over a run twice as long).
+        assert en["dissipated"] > 0.5 * scale
+        assert mod_loss > -3e-2 * scale
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. Block on an incline (gravity tilted by theta; plane z = 0)
+
+BLOCK = (0.2, 0.1, 0.05)  # along the slope, across, height [m]; 1 kg at 1000 kg/m^3
+BLOCK_AREA = BLOCK[0] * BLOCK[1]
+INCLINE_K = 1.0e10  # power law m = 2: a face contact is a linear spring of stiffness k A^2 = 4e6 N/m
+
+
+def incline_run(device, theta_deg, mu, e, duration):
+    """Times, along-slope positions and velocities of a block on a plane tilted by theta.
+
+    The power law with m = 2 (force k V S: a linear spring k A^2 for a face) gives the resting
+    contact a resolvable equilibrium overlap (2.3 um here); the block starts at that overlap, at
+    rest. (With the hertz law the face contact's force goes as sqrt(depth), infinitely stiff at
+    zero overlap: the equilibrium overlap is ~1e-11 m, below float32 resolution of the position,
+    and the resting contact chatters.)
+    """
+    th = math.radians(theta_deg)
+    scene = single_material_scene(
+        gravity=(G * math.sin(th), 0.0, -G * math.cos(th)), law="power", m=2.0, k=INCLINE_K, restitution=e, friction=mu
+    )
+    scene.add_shape("block", ConvexShape.box(*BLOCK))
+    depth = G * math.cos(th) / (INCLINE_K * BLOCK_AREA**2)
+    scene.add_body("block", "m", position=(0.0, 0.0, 0.5 * BLOCK[2] - depth))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    sim = Simulation(scene, device)
+    samples = 300
+    every = max(1, int(duration / sim.dt) // samples)
+    t, x, v = [], [], []
+    for _ in range(samples):
+        sim.step(every)
+        st = sim.state()
+        t.append(sim.time)
+        x.append(st["body_position"][0, 0])
+        v.append(st["body_velocity"][0, 0])
+    kt = float(sim.model.material_kt.numpy()[0])
+    return np.array(t), np.array(x), np.array(v), kt
+
+
+STICK_BUG = (
+    "known bug (kernels/forces.py respond): at a resting contact dV/dt changes sign every step, so "
+    "the normal force alternates between W'|S| and e^2 W'|S|, and each e^2 step truncates the "
+    "friction spring to mu e^2 W'|S|/kt; with e = 0.3 the block slides at a steady 4 cm/s on 20 deg"
+)
+
+
+@pytest.mark.parametrize(
+    "e", [1.0, 0.9, pytest.param(0.3, marks=pytest.mark.xfail(strict=True, reason=STICK_BUG))]
+)  # fmt: skip
+def test_incline_sticks_below_friction_angle(device, e):
+    theta, mu = 20.0, 0.5  # tan(20 deg) = 0.36 < mu
+    t, x, v, kt = incline_run(device, theta, mu, e, duration=0.3)
+    fn = G * math.cos(math.radians(theta))
+    creep = mu * fn / kt  # the longest the friction spring gets before it slips [m]
+    late = t > 0.1
+    print(f"\nincline {theta} deg, mu {mu}, e {e}: displacement {x[-1]:.3e} m, range after settling "
+          f"{np.ptp(x[late]):.3e} m, creep bound mu Fn/kt {creep:.3e} m")  # fmt: skip
+    # From rest with an unstretched spring, the load m g sin(theta) swings the spring to twice its
+    # static stretch (7.3e-6 m), past the slip limit (4.6e-6 m): one small slip, after which it
+    # oscillates within the limit. So: never more than 3 creep lengths overall (measured 2.2),
+    # and after settling a spring that holds moves the block by at most 2 creep lengths (+-limit).
+    # A sliding block (a = 1.25 m/s^2 without friction's hold) would be 5e-2 m away.
+    assert np.abs(x).max() < 3.0 * creep
+    assert np.ptp(x[late]) < 2.0 * creep
+
+
+@pytest.mark.parametrize("theta, e", [(35.0, 0.3), (45.0, 0.9)])
+def test_incline_slides_above_friction_angle(device, theta, e):
+    mu = 0.5
+    t, x, v, _ = incline_run(device, theta, mu, e, duration=0.25)
+    th = math.radians(theta)
+    a_expected = G * (math.sin(th) - mu * math.cos(th))
+    late = t > 0.05  # after the spring's transient (it loads to mu Fn within ~1 ms)
+    a_fit = np.polyfit(t[late], v[late], 1)[0]
+    print(f"\nincline {theta} deg, mu {mu}, e {e}: a = {a_fit:.4f} m/s^2, expected {a_expected:.4f} "
+          f"({100 * (a_fit / a_expected - 1):+.3f}%)")  # fmt: skip
+    assert abs(a_fit / a_expected - 1.0) < 0.02  # the issue's criterion (measured within 0.1%)
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. Torque-free brick
+
+
+def test_torque_free_brick_conserves_energy_and_momentum(device):
+    """A 1 x 2 x 3 brick spun near its intermediate axis tumbles (flips) for 10^4 steps."""
+    dt = 1.0e-3
+    wdt = 0.03  # |w| dt, the docstring's test case
+    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), dt=dt, k=1.0e3)
+    brick = scene.add_shape("brick", ConvexShape.box(1.0, 2.0, 3.0).scaled(0.1))
+    q = np.array([0.1, 0.2, 0.3, 0.9])
+    q /= np.linalg.norm(q)
+    inertia = brick.inertia
+    mid = int(np.argsort(inertia)[1])
+    w_body = np.full(3, 0.05)
+    w_body[mid] = 1.0
+    w_body *= wdt / dt / np.linalg.norm(w_body)
+    w0 = body_rotation(brick, q) @ w_body
+    scene.add_body(brick, "m", position=(0.3, -0.2, 0.1), orientation=q, angular_velocity=w0)
+    sim = Simulation(scene, device)
+    l0 = angular_momentum(scene, sim.state())
+    k0 = sim.energy()["kinetic"]
+    dl, dk, flips, sign = [], [], 0, 1.0
+    for _ in range(100):
+        sim.step(100)
+        st = sim.state()
+        lt = angular_momentum(scene, st)
+        dl.append(np.linalg.norm(lt - l0) / np.linalg.norm(l0))
+        dk.append(sim.energy()["kinetic"] / k0 - 1.0)
+        pi_mid = (quat_to_matrix(st["body_orientation"][0]).T @ lt)[mid]
+        if np.sign(pi_mid) != sign:
+            flips += 1
+            sign = np.sign(pi_mid)
+    dl, dk = np.array(dl), np.array(dk)
+    print(f"\nbrick: {sim.steps_done} steps, |w| dt = {wdt}: max |dL|/|L| = {dl.max():.2e}, "
+          f"max |dK|/K = {np.abs(dk).max():.2e}, {flips} flips")  # fmt: skip
+    assert sim.steps_done == 10_000
+    assert flips >= 4  # it did tumble about the unstable axis
+    # integrate.py: L is kept to rounding, an unbiased walk of ~3e-7 per sqrt(step): 3e-5 after
+    # 10^4 steps (measured 8e-6). 1e-4 is three times that walk.
+    assert dl.max() < 1e-4
+    # The energy error has the same rounding walk plus the splitting's bounded O((|w| dt)^2)
+    # term, (|w| dt)^2 / 12 = 7.5e-5 for a Strang splitting; measured 2.1e-5.
+    assert np.abs(dk).max() < 3e-5 + wdt**2 / 12
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. Energy and momentum conservation of elastic, frictionless collisions
+
+
+def mixed_shapes(scene):
+    shapes = [
+        ConvexShape.box(0.1, name="cube"),
+        ConvexShape.tetrahedron(0.15, name="tet"),
+        ConvexShape.rock(12, 0.13, seed=1, name="rock"),
+    ]
+    for s in shapes:
+        scene.add_shape(s.name, s)
+    return shapes
+
+
+def random_quats(n, seed):
+    q = np.random.default_rng(seed).normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def test_energy_conserved_in_closed_box(device):
+    """8 polyhedra (cubes, tetrahedra, rocks) colliding inside a closed box, e = 1, mu = 0, no gravity.
+
+    10^5 steps at the recommended step (dt = "auto"): 15 s on one CPU thread.
+    """
+    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), restitution=1.0, friction=0.0)
+    shapes = mixed_shapes(scene)
+    rng = np.random.default_rng(0)
+    grid = np.array([(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=float)
+    quats = random_quats(8, 1)
+    for n, p in enumerate((grid - 0.5) * 0.2):
+        scene.add_body(
+            shapes[n % 3].name, "m", position=p, orientation=quats[n], velocity=rng.normal(size=3) * 0.5,
+            angular_velocity=rng.normal(size=3) * 5.0,
+        )  # fmt: skip
+    scene.add_box_container((0.0, 0.0, 0.0), (0.4, 0.4, 0.4), "m", open_top=False)
+    sim = Simulation(scene, device)
+    e0 = sim.energy()
+    assert e0["contact"] == 0.0
+    h0 = e0["kinetic"]
+    steps, every = 100_000, 100
+    mod, raw_free, raw_contact, pairs = [], [], [], set()
+    for _ in range(steps // every):
+        sim.step(every)
+        en = sim.energy()
+        h = en["kinetic"] + en["contact"]
+        mod.append(modified_energy(sim, en) - h0)
+        (raw_contact if en["contact"] > 0.0 else raw_free).append(h - h0)
+        c = sim.contacts()
+        pairs.update(zip(c["body_a"].tolist(), c["body_b"].tolist(), strict=True))
+    mod, raw_free, raw_contact = np.abs(mod) / h0, np.abs(raw_free) / h0, np.abs(raw_contact) / h0
+    body_pairs = {p for p in pairs if p[0] < 8 and p[1] < 8}
+    print(f"\nclosed box, {steps} steps of {sim.dt:.3g} s: modified energy max rel. error {mod.max():.2e}; "
+          f"K + W: max {raw_free.max():.2e} over {len(raw_free)} contact-free samples, {raw_contact.max():.2e} "
+          f"over {len(raw_contact)} samples in contact; {len(body_pairs)} body pairs and "
+          f"{len(pairs) - len(body_pairs)} body-wall pairs met")  # fmt: skip
+    assert sim.steps_done == steps
+    assert en["dissipated"] == 0.0
+    # The run is busy: bodies met each other and the walls, and some samples fell between contacts.
+    assert len(body_pairs) >= 3 and len(pairs) - len(body_pairs) >= 5
+    assert len(raw_free) >= 20
+    # The issue's criterion, 1e-3 relative. Between contacts K + W is itself the invariant
+    # (measured 7e-5); inside contacts symplectic Euler's H swings by dt/2 F.v (measured up to
+    # 2e-3, not a drift) and the modified energy is the invariant (measured 1.3e-4).
+    assert raw_free.max() < 1e-3
+    assert mod.max() < 1e-3
+    st = sim.state()
+    assert np.all(np.abs(st["body_position"][:8]) < 0.2)  # nobody left the box
+
+
+def test_momentum_conserved_without_walls(device):
+    """8 free bodies thrown together in zero gravity: linear and angular momentum stay put."""
+    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), restitution=0.7, friction=0.4)
+    shapes = mixed_shapes(scene)
+    rng = np.random.default_rng(3)
+    grid = np.array([(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=float)
+    pos = (grid - 0.5) * 0.2 + np.array([0.5, -0.3, 0.2])
+    quats = random_quats(8, 2)
+    for n in range(8):
+        # Towards the group's centre at 1-2 m/s, plus spin: they meet within ~20 ms.
+        vel = -(pos[n] - pos.mean(axis=0)) * 10.0 + rng.normal(size=3) * 0.3
+        scene.add_body(
+            shapes[n % 3].name, "m", position=pos[n], orientation=quats[n], velocity=vel,
+            angular_velocity=rng.normal(size=3) * 5.0,
+        )  # fmt: skip
+    sim = Simulation(scene, device)
+    mass = scene.body_mass()
+    st = sim.state()
+    p0 = (mass[:, None] * st["body_velocity"]).sum(axis=0)
+    l0 = angular_momentum(scene, st)
+    p_scale = float(np.sum(mass * np.linalg.norm(st["body_velocity"], axis=1)))
+    # Long enough for the bodies to meet whatever the recommended step (about 0.12 s).
+    steps = 50 * int(np.ceil(0.12 / sim.dt / 50))
+    dp, dl, met = 0.0, 0.0, set()
+    for _ in range(steps // 50):
+        sim.step(50)
+        st = sim.state()
+        dp = max(dp, np.abs((mass[:, None] * st["body_velocity"]).sum(axis=0) - p0).max())
+        dl = max(dl, np.abs(angular_momentum(scene, st) - l0).max())
+        c = sim.contacts()
+        met.update(zip(c["body_a"].tolist(), c["body_b"].tolist(), strict=True))
+    en = sim.energy()
+    print(f"\nfree collisions: {len(met)} pairs met; max |dP| = {dp:.2e} (scale {p_scale:.2f} kg m/s), "
+          f"max |dL| = {dl:.2e}; dissipated {en['dissipated']:.3f} J")  # fmt: skip
+    assert len(met) >= 4 and en["dissipated"] > 0.0  # they collided (and friction and damping acted)
+    # Pair forces and torques act on both bodies with one float32 value, so the momenta change only
+    # by the rounding of v += dt F/m and w's update: at most EPS of sum m|v| per step, added up
+    # linearly over the steps as the worst case (measured: ~1e-7 relative).
+    tol = steps * EPS * p_scale
+    assert dp < tol
+    # Angular momentum about the origin: the same per step, with lever arms up to 1 m.
+    assert dl < 2.0 * tol
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. A pour into a box container
+
+
+def test_pour_settles_in_box(device):
+    """512 mixed polyhedra dropped from an 8 x 8 x 8 grid into an open box settle: finite, inside,
+    small overlaps, kinetic energy gone. 75 s on one CPU thread (a 6 x 6 x 5 grid takes 25 s)."""
+    pour(device, 8, 8)
+
+
+def pour(device, nx, nz):
+    size = 0.1
+    scene = single_material_scene(k=1.0e8, restitution=0.3, friction=0.5)
+    shapes = [
+        ConvexShape.box(0.8 * size, name="cube"),
+        ConvexShape.tetrahedron(1.2 * size, name="tet"),
+        ConvexShape.octahedron(0.8 * size, name="oct"),
+        ConvexShape.rock(16, size, seed=3, name="rock"),
+        ConvexShape.prism(6, 0.5 * size, 0.8 * size, name="hex"),
+    ]
+    for s in shapes:
+        scene.add_shape(s.name, s)
+    gap = 1.5 * size  # grid pitch, larger than any body's diameter (0.147 m): no initial overlap
+    width = nx * gap
+    depth = nz * gap + 0.3
+    scene.add_box_container((0.0, 0.0, 0.5 * depth), (width, width, depth), "m")
+    n_walls = scene.num_bodies
+    rng = np.random.default_rng(1)
+    g1 = (np.arange(nx) - 0.5 * (nx - 1)) * gap
+    pts = np.array([(x, y, (iz + 0.5) * gap) for iz in range(nz) for y in g1 for x in g1])
+    kinds = rng.integers(0, len(shapes), len(pts))
+    quats = random_quats(len(pts), 4)
+    for i, p in enumerate(pts):
+        scene.add_body(shapes[kinds[i]].name, "m", position=p, orientation=quats[i], velocity=rng.normal(size=3) * 0.2)
+    free = slice(n_walls, None)
+    assert max(s.radius for s in shapes) * 2 < gap
+
+    sim = Simulation(scene, device)
+    assert len(sim.contacts()["volume"]) == 0  # no initial overlaps
+    duration = 1.5
+    chunk = 1000
+    ke = []
+    while sim.time < duration:
+        sim.step(chunk)
+        ke.append(sim.energy()["kinetic"])
+    ke = np.array(ke)
+    st = sim.state()
+    x = st["body_position"][free]
+
+    # Overlaps: each contact's volume against the smaller body's (walls are far larger).
+    volumes = np.array([s.volume for s in scene.shapes.values()])[scene.body_shape]
+    c = sim.contacts()
+    ref = np.minimum(volumes[c["body_a"]], volumes[c["body_b"]])
+    worst = float(np.max(c["volume"] / ref))
+    mass = scene.body_mass()[free]
+    speed = np.linalg.norm(st["body_velocity"][free], axis=1)
+    print(f"\npour of {len(pts)} bodies, {sim.steps_done} steps of {sim.dt:.3g} s: kinetic energy peak "
+          f"{ke.max():.3g} J, final {ke[-1]:.3g} J (last 5: {np.array2string(ke[-5:], precision=2)}); largest "
+          f"overlap {100 * worst:.2f}% of a body; max speed {speed.max():.3g} m/s; pile top {x[:, 2].max():.3f} m "
+          f"(grid top {pts[:, 2].max():.3f} m)")  # fmt: skip
+
+    assert np.all(np.isfinite(st["body_position"])) and np.all(np.isfinite(st["body_velocity"]))
+    # Nobody escaped: every centre inside the cavity (walls at +-width/2, floor at 0).
+    assert np.all(np.abs(x[:, :2]) < 0.5 * width)
+    assert np.all(x[:, 2] > 0.0) and np.all(x[:, 2] < depth)
+    # The issue's criterion: the largest overlap below 1% of the body volume (measured 0.47%).
+    assert worst < 0.01
+    # The fall's kinetic energy is gone (measured: peak 380 J, final 7e-3 J) and stays gone over the
+    # last 0.3 s (measured below 3e-5 of the peak); what is left is the contact chatter of
+    # hysteretic damping at rest, 1 cm/s rms (the bodies hit the heap at 3-4 m/s).
+    assert ke[-1] < 1e-3 * ke.max()
+    assert np.all(ke[-5:] < 1e-3 * ke.max())
+    rms = math.sqrt(2.0 * ke[-1] / mass.sum())
+    assert rms < 0.03
+    # Settled into a heap: lower than half the starting grid.
+    assert x[:, 2].max() < 0.5 * pts[:, 2].max()
+    return rms
+
+
+# ---------------------------------------------------------------------------------------------
+# 7. Determinism
+
+
+def test_same_scene_twice_is_bit_identical(device):
+    scene = single_material_scene(restitution=0.5, friction=0.5, k=1.0e6)  # soft: dt = 0.5 ms, 0.35 s in all
+    shapes = mixed_shapes(scene)
+    scene.add_box_container((0.0, 0.0, 0.35), (0.7, 0.7, 0.7), "m")
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")  # a wall plane too (coincides with the floor)
+    rng = np.random.default_rng(5)
+    g1 = (np.arange(3) - 1.0) * 0.2  # pitch 0.2 m > the largest diameter (0.18 m): no initial overlap
+    pts = np.array([(x, y, 0.1 + 0.2 * k) for k in range(3) for y in g1 for x in g1])
+    quats = random_quats(len(pts), 6)
+    for i, p in enumerate(pts):
+        scene.add_body(
+            shapes[i % 3].name, "m", position=p, orientation=quats[i], velocity=rng.normal(size=3),
+            angular_velocity=rng.normal(size=3) * 5.0,
+        )  # fmt: skip
+
+    def run():
+        sim = Simulation(scene, device)
+        sim.step(700)
+        return sim.state(), sim.energy(), sim.contacts()
+
+    (s1, e1, c1), (s2, e2, c2) = run(), run()
+    assert len(c1["volume"]) > 10  # busy: many contacts, friction springs and rebuilds
+    for k in s1:
+        assert np.array_equal(s1[k], s2[k]), k
+    assert e1 == e2
+    for k in c1:
+        assert np.array_equal(c1[k], c2[k]), k
+
+
+# ---------------------------------------------------------------------------------------------
+# 8, 9. Errors
+
+
+def test_nonfinite_state_names_step_and_body(device):
+    scene = single_material_scene()
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    for i in range(4):
+        scene.add_body("cube", "m", position=(0.5 * i, 0.0, 1.0))  # far apart: no contacts
+    sim = Simulation(scene, device)
+    sim.step(100)  # more than one chunk of steps
+    v = sim.body_v.numpy()
+    v[2, 1] = np.nan
+    sim.body_v.assign(v)
+    with pytest.raises(SimulationError) as info:
+        sim.step(10)
+    msg = str(info.value)
+    print(f"\n{msg}")
+    # The first bad state is the one after step 101 (the 1st step of this call), body 2 only.
+    assert re.search(r"\bstep 101\b", msg), msg
+    assert re.search(r"bodies \[2\]", msg), msg
+
+
+def test_time_step_above_stable_limit(device):
+    scene = single_material_scene()
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("cube", "m", position=(0.0, 0.0, 0.06))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    model = Simulation(scene, device).model
+    assert model.dt_recommended < model.dt_limit
+
+    scene.dt = 1.5 * model.dt_limit
+    with pytest.raises(SceneError) as info:
+        Simulation(scene, device)
+    assert info.value.key == "simulation.dt"
+    assert "stable limit" in str(info.value)
+
+    scene.dt = 0.9 * model.dt_limit  # just below: accepted, and the contact stays bounded
+    sim = Simulation(scene, device)
+    assert sim.dt == scene.dt
+    sim.step(2000)
+    assert np.all(np.isfinite(sim.state()["body_position"]))
+
+
+def test_package_exports():
+    assert polydem.Simulation is Simulation and polydem.SimulationError is SimulationError
+    assert issubclass(SimulationError, RuntimeError)
