@@ -414,3 +414,26 @@ def test_bad_arguments():
         ContactLaw("linear", -1.0)
     with pytest.raises(ValueError, match="exponent"):
         ContactLaw("power", 1.0, 0.5)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_small_body_resting_on_a_huge_one(device, precision):
+    """A 1 cm cube pressed 10 um into a 6 m floor plate, flat and slightly tilted: the face
+    contact is found (the coincidence tolerance follows the smaller body), V and S are right."""
+    c = ConvexShape.box(0.01)
+    plate = ConvexShape.box(5.8, 5.8, 0.1)
+    pb = pose([0.0, 0.0, -0.05])
+    depth = 1e-5
+    for tilt in (0.0, 1e-6, 1e-4):
+        pa = pose([2.5067, 0.3273, 0.005 - depth], Rotation.from_rotvec([tilt, 0.3 * tilt, 0.0]))
+        res = overlap(c, pa, plate, pb, device=device, precision=precision)
+        ref = reference_overlap(world_vertices(c, pa), world_vertices(plate, pb))
+        # float32 coordinates of the plate's far corners in the cube's frame carry ~3e-7 m of
+        # rounding: 3% of the 10 um depth.
+        rtol = 1e-6 if precision == "float64" else 0.03
+        np.testing.assert_allclose(res.volume[0], ref["volume"], rtol=rtol)
+        np.testing.assert_allclose(res.area_vector[0], ref["area_vector"], atol=rtol * 1e-4)
+        assert not res.enclosed[0]
+        f = contact_forces(res, ContactLaw("hertz", k=1e9))
+        assert f.force_a[0, 2] > 0.0  # pushed up, not sideways
+        assert abs(f.force_a[0, 0]) < 1e-2 * f.force_a[0, 2]
