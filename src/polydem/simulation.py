@@ -108,7 +108,11 @@ class Simulation:
         shape_list = [scene.shapes[name] for name in scene.shape_names]
         lower = np.array([s.vertices.min(axis=0) for s in shape_list])[scene.body_shape]
         upper = np.array([s.vertices.max(axis=0) for s in shape_list])[scene.body_shape]
-        self.broadphase = BroadPhase(n, dev, self.skin, rotation_term=False, body_box=(lower, upper))
+        # Settled packings of convex grains have 3-4 candidate pairs per body at this skin: start
+        # with room for 5 (an overflow grows the buffers and redoes the step).
+        self.broadphase = BroadPhase(
+            n, dev, self.skin, capacity=max(1024, 5 * n), rotation_term=False, body_box=(lower, upper)
+        )
         self.poly_capacity = model.shapes.default_poly_capacity
         self._kernels()
         self._graph = None
