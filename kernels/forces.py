@@ -8,14 +8,15 @@ the overlap geometry into a wrench:
   shrinks (dV/dt < 0, computed exactly from S_A, M_A and the velocities) the elastic wrench is
   scaled by e^2. A collision then returns e^2 of the energy stored while loading, whatever the
   contact law and the shapes, so the rebound speed is e times the impact speed; the energy lost,
-  (1 - e^2) W'(V) |dV|, is counted as dissipated (to first order in dt). Known limitation: at rest
-  dV/dt jitters about zero and the normal force flickers between the branches; with a low e this
-  lowers the friction cap enough that a block on an incline creeps (see tests/test_simulation.py);
+  (1 - e^2) W'(V) |dV|, is counted as dissipated (to first order in dt). Unloading starts once V
+  shrinks faster than 5% of the contact's natural rate, so a contact at rest does not flicker
+  between the branches;
 * friction (only in the kernel variant built with friction): an elastic tangential spring xi
   carried from step to step for each persisting pair, turned into the current tangent plane
-  (length kept), loaded by the tangential velocity at the contact point and capped at mu times
-  the normal force; it acts at the contact point. Work lost in slip, and the spring energy left
-  when a contact opens, are counted as dissipated.
+  (length kept), loaded by the tangential velocity at the contact point, with a dashpot of the
+  damping ratio that e gives a linear oscillator, the sum capped at mu times the normal force; it
+  acts at the contact point. Work taken from the bodies and not stored in the spring, and the
+  spring energy left when a contact opens, are counted as dissipated.
 
 Forces are written per pair and gathered per body in a fixed order (the pairs' sorted keys), so
 that a run is bit-for-bit repeatable on a device: no floating-point atomics. The gather also adds
@@ -32,6 +33,9 @@ import warp as wp
 from polydem.kernels.narrowphase import ENCLOSED_MIN_VOLUME, ENCLOSED_RATIO, make_narrowphase
 
 LAWS = ("linear", "hertz", "power")
+
+# dV/dt below -UNLOAD_THRESHOLD * V * omega counts as unloading (see respond()).
+UNLOAD_THRESHOLD = wp.constant(0.05)
 
 
 @functools.cache
@@ -85,6 +89,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         xi: wp.vec3,
         dt: float,
         r_min: float,
+        inv_mass: float,
     ):
         """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
 
@@ -121,7 +126,14 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         dvdt = wp.dot(s, v_a - v_b) + wp.dot(mom, w_a) + wp.dot(wp.cross(r_ab, s) - mom, w_b)
         scale = float(1.0)
         lost = float(0.0)
-        if dvdt < 0.0:
+        # Unloading only once V shrinks faster than 5% of the contact's own rate V * omega
+        # (omega^2 = secant stiffness W' |S|^2 / V over the reduced mass): a contact at rest, whose
+        # dV/dt merely jitters about zero, stays on the loading branch instead of flickering
+        # between the branches (which would also make the friction cap flicker). A collision
+        # loses only the first ~3 degrees of its unloading phase to the threshold (~0.1% of its
+        # energy), whatever dt.
+        omega = wp.sqrt(wd * s_norm * s_norm / volume * inv_mass)
+        if dvdt < -UNLOAD_THRESHOLD * volume * omega:
             scale = e * e
             lost = (1.0 - e * e) * wd * (-dvdt) * dt
         fn = scale * wd * s_norm
@@ -139,16 +151,25 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             l1 = wp.length(xt)
             if l1 > 0.0:
                 xt = xt * (l0 / l1)
+            stored = 0.5 * kt * wp.dot(xt, xt)
             xt = xt + vt * dt
-            ft = -kt * xt
+            # A tangential dashpot with the damping ratio of e keeps a sticking contact from ringing
+            # (an undamped spring rings, slips at each swing and lets a block creep down a slope).
+            ln_e = wp.log(wp.max(e, 1.0e-6))
+            zeta = -ln_e / wp.sqrt(ln_e * ln_e + 9.8696044)
+            ct = 2.0 * zeta * wp.sqrt(kt / wp.max(inv_mass, 1.0e-30))
+            if inv_mass <= 0.0:
+                ct = 0.0
+            ft = -kt * xt - ct * vt
             cap = mu * fn
             ft_norm = wp.length(ft)
             if ft_norm > cap:
                 ft = ft * (cap / ft_norm)
                 xi_new = ft * (-1.0 / kt)
-                lost += cap * (wp.length(xt) - wp.length(xi_new))
             else:
                 xi_new = xt
+            # Work taken from the bodies less what the spring stored is what friction dissipated.
+            lost += wp.max(-wp.dot(ft, vt) * dt - (0.5 * kt * wp.dot(xi_new, xi_new) - stored), 0.0)
             energy += 0.5 * kt * wp.dot(xi_new, xi_new)
             force += ft
             torque += wp.cross(point, ft)
@@ -244,6 +265,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         # Model
         body_shape: wp.array(dtype=int),
         body_material: wp.array(dtype=int),
+        body_inv_mass: wp.array(dtype=float),
         num_materials: int,
         material_k: wp.array(dtype=float),
         material_e: wp.array(dtype=float),
@@ -316,7 +338,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         force, torque, xi, energy, lost, n, point, fn, ft = respond(
             vol, first_moment, s_a, m_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
             material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, step,
-            wp.min(shape_radius[body_shape[a]], shape_radius[body_shape[b]]),
+            wp.min(shape_radius[body_shape[a]], shape_radius[body_shape[b]]), body_inv_mass[a] + body_inv_mass[b],
         )  # fmt: skip
         if wp.static(diagnostics):
             pair_volume[p] = vol
@@ -345,6 +367,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         body_shape: wp.array(dtype=int),
         body_material: wp.array(dtype=int),
         body_flags: wp.array(dtype=int),
+        body_inv_mass: wp.array(dtype=float),
         num_materials: int,
         material_k: wp.array(dtype=float),
         material_e: wp.array(dtype=float),
@@ -441,7 +464,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                 force, torque, xi, energy, dl, n, point, fn, ft = respond(
                     vol, first_moment, s_a, m_a, -pn, body_v[i], body_w[i], zero3, zero3,
                     material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, step,
-                    shape_radius[s],
+                    shape_radius[s], body_inv_mass[i],
                 )  # fmt: skip
                 if wp.static(diagnostics):
                     plane_volume[i, j] = vol
