@@ -1,22 +1,233 @@
-"""The ``polydem`` command: run a scene, check the installation.
+"""The ``polydem`` command: run, check and render scenes, and describe the installation.
 
-polydem run                 # the built-in default scene
-polydem run scene.toml --device cpu --duration 0.2 --out results/
-polydem info
+::
+
+    polydem run [SCENE] [--device DEV] [--steps N | --duration T] [--out DIR] [--fps F]
+                [--precision P] [--resume CHECKPOINT] [--picture-size WxH] [--quiet]
+    polydem validate SCENE [SCENE ...] [--quiet]
+    polydem render SOURCE --out IMAGE.png [--scene SCENE] [--frame K] [--width W] [--height H] [--device DEV]
+    polydem info
+
+``polydem run`` without a scene runs the built-in default scene (:func:`polydem.default_scene.default_scene`).
+Progress goes to stderr (one line updated in place on a terminal, one line per 5% of the steps
+otherwise); the header and the closing summary go to stdout.
+
+Outputs of ``polydem run`` (in ``--out``, default ``polydem_out/<scene name>/``; the scene's
+``[output]`` table names them, relative to that folder):
+
+* a USD animation (``output.usd``; ``trajectory.usdc`` when the scene file does not mention ``usd``,
+  none for ``usd = false``). Frame k is the state at simulated time k / fps (``--fps`` or
+  ``output.fps``) and has time code k: the run steps in chunks up to each frame time and records
+  the first state at or after it.
+* the summary JSON (``output.summary``, default ``summary.json``; see :func:`settled_region` for
+  the packing fraction and the coordination number).
+* pictures (``output.pictures``: frame numbers, or ``"last"`` for the final state) as
+  ``pictures/frame_NNNNNN.png`` and ``pictures/last.png``.
+* checkpoints in ``output.checkpoint.path`` (default ``checkpoints/``): ``step_NNNNNNNNN.npz``
+  every ``output.checkpoint.steps`` steps or ``.seconds`` of simulated time (counted from t = 0),
+  ``final.npz`` at the end and ``interrupted.npz`` when the run stops early.
+
+Nothing is lost when a run stops early (Ctrl-C, or a :class:`~polydem.SimulationError`): the USD
+file is closed with the frames so far, the summary says ``"interrupted": true`` and why, and
+``interrupted.npz`` holds the state after the last completed step (after a SimulationError, the
+last finite state). The first Ctrl-C stops the run after the steps under way (at most
+``MAX_CHUNK_STEPS``); a second one stops at once.
+
+Resuming. ``polydem run SCENE --resume CHECKPOINT`` continues from a checkpoint of the same scene;
+``--steps`` and ``--duration`` count from t = 0, so the same command line with ``--resume`` added
+ends in the same state, bit for bit (on the same device), as a run that was never interrupted. The
+resumed part goes to a new USD file, ``<usd stem>.from_step_<N><suffix>`` (N the checkpoint's
+step); its time codes continue those of the first file (frame k keeps time code k).
+
+Exit codes: 0 done; 1 the simulation failed (SimulationError: outputs written, message on stderr)
+or an internal error (with its traceback); 2 a user error (one message on stderr naming the file
+or option, the key and the fix); 130 interrupted by Ctrl-C (outputs written).
 """
+
+from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import re
+import shlex
+import signal
 import sys
+import textwrap
+import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
 from polydem.scene import SceneError
 
+__all__ = ["CliError", "main", "settled_region"]
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+DEFAULT_STEPS = 1000
+"""Steps of a run when neither the command line nor the scene gives steps or a duration."""
+
+DEFAULT_USD = "trajectory.usdc"
+"""USD file of a run whose scene file does not mention ``output.usd``."""
+
+MAX_CHUNK_STEPS = 256
+"""Most steps between two checks for Ctrl-C (and progress updates on a terminal)."""
+
+PROGRESS_LINES = 20
+"""Progress lines of a run whose stderr is not a terminal (one per 5% of the steps)."""
+
+TTY_REFRESH_S = 0.25
+"""Shortest wall time between two updates of the progress line on a terminal [s]."""
+
+SETTLED_PERCENTILE = 80.0
+"""The settled region reaches up to this percentile of the free bodies' centre heights."""
+
+SETTLED_MARGIN = 2.0
+"""The settled region keeps this many mean body diameters from the sides of the free bodies' box."""
+
+_USD_SUFFIXES = (".usd", ".usda", ".usdc")
+
+
+class CliError(Exception):
+    """A user error found by the command itself (options, checkpoints, output folders).
+
+    Printed like a :class:`~polydem.SceneError`: ``"FILE: KEY: MESSAGE"`` without the parts that
+    are None; the message says how to fix it. The command exits with code 2.
+    """
+
+    def __init__(self, message: str, file=None, key: str | None = None):
+        super().__init__(message)
+        self.message = message
+        self.file = file
+        self.key = key
+
+    def __str__(self) -> str:
+        parts = [str(p) for p in (self.file, self.key) if p not in (None, "")]
+        return ": ".join([*parts, self.message])
+
+
+# ---------------------------------------------------------------------- Warp and devices
+
+_WARP_NOTES: list[str] = []
+
+
+def _warp():
+    """Warp, initialised with its info messages off.
+
+    Warp's native library prints a warning on stderr when it finds no CUDA driver, which on a
+    CPU-only machine would come before every message of this command; it is kept for ``polydem
+    info`` instead (other native messages are passed on).
+    """
+    import warp as wp
+
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    context = getattr(getattr(wp, "_src", None), "context", None)
+    if context is None or getattr(context, "runtime", True) is not None:
+        wp.init()  # already initialised, or a Warp whose internals differ: nothing to capture
+        return wp
+    import tempfile
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        wp.init()
+        return wp
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode(errors="replace")
+    for line in text.splitlines():
+        if "NVIDIA CUDA driver" in line:
+            _WARP_NOTES.append(line.strip())
+        elif line.strip():
+            print(line, file=sys.stderr)
+    return wp
+
+
+def _device(name, *, file=None, key="--device"):
+    """The Warp device ``name`` (None: Warp's default), or a CliError when this machine lacks it."""
+    wp = _warp()
+    if name is None:
+        return wp.get_device()
+    aliases = [d.alias for d in wp.get_devices()]
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", str(name)):
+        raise CliError(
+            f'unknown device {name!r}; give "cpu", "cuda" (the default GPU) or "cuda:N" (available here: '
+            f"{', '.join(aliases)})",
+            file,
+            key,
+        )
+    if name == "cuda" and wp.get_cuda_device_count() > 0:
+        return wp.get_device("cuda")
+    if name not in aliases:
+        fix = "use --device cpu" if key == "--device" else "override it with --device cpu"
+        raise CliError(
+            f"device {name!r} is not available on this machine (available: {', '.join(aliases)}); {fix}", file, key
+        )
+    return wp.get_device(name)
+
+
+# ---------------------------------------------------------------------- argument types
+
+
+def _count(what: str, example: str, one: str):
+    def parse(text: str) -> int:
+        value = None
+        try:
+            value = int(text, 10)
+        except ValueError:
+            try:
+                f = float(text)
+                if math.isfinite(f) and f.is_integer():
+                    value = int(f)
+            except ValueError:
+                pass
+        if value is None:
+            raise argparse.ArgumentTypeError(f"expected a whole number of {what}, got {text!r}; e.g. {example}")
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"expected at least 1 {one}, got {value}; e.g. {example}")
+        return value
+
+    return parse
+
+
+def _positive(what: str, example: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}; e.g. {example}") from None
+        if not (math.isfinite(value) and value > 0.0):
+            raise argparse.ArgumentTypeError(f"expected {what} > 0, got {text!r}; e.g. {example}")
+        return value
+
+    return parse
+
+
+def _size(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels, got {text!r}; e.g. 800x600")
+    return int(m.group(1)), int(m.group(2))
+
+
+# ---------------------------------------------------------------------- helpers
+
 
 def _load_scene(path):
+    """The scene file ``path``, or the built-in default scene when ``path`` is None."""
     from polydem.scene import Scene
 
     if path is None:
@@ -26,105 +237,1223 @@ def _load_scene(path):
     return Scene.from_toml(path)
 
 
-def _summary(sim, wall, steps):
-    e = sim.energy()
-    c = sim.contacts()
-    vol = np.array([s.volume for s in sim.model.scene.shapes.values()])[sim.model.scene.body_shape]
-    rel = 0.0
-    if len(c["volume"]):
-        rel = float(np.max(c["volume"] / vol[c["body_a"]]))
-    return {
-        "scene": sim.model.scene.name,
-        "bodies": sim.num_bodies,
-        "steps": steps,
-        "dt": sim.dt,
-        "simulated_time": sim.time,
-        "wall_time": wall,
-        "body_steps_per_second": sim.num_bodies * steps / wall if wall > 0 else None,
-        "contacts": int(len(c["volume"])),
-        "largest_overlap_relative": rel,
-        "energy": e,
-        "device": str(sim.device),
+def _usd_setting(scene) -> str | None:
+    """The USD file name of a run: ``output.usd``; the default when the scene file does not
+    mention it; None for ``usd = false``."""
+    if scene.output.usd is not None:
+        return scene.output.usd
+    file = getattr(scene, "file", None)
+    if file is not None:
+        import tomllib
+
+        try:
+            with open(file, "rb") as fh:
+                table = tomllib.load(fh).get("output", {})
+            if isinstance(table, dict) and "usd" in table:
+                return None  # usd = false
+        except (OSError, tomllib.TOMLDecodeError):
+            pass
+    return DEFAULT_USD
+
+
+def _resolve(folder: Path, name) -> Path:
+    p = Path(name)
+    return p if p.is_absolute() else folder / p
+
+
+def _rel(path, folder: Path) -> str:
+    """``path`` relative to ``folder`` when inside it (summary entries), else as given."""
+    try:
+        return str(Path(path).resolve().relative_to(folder.resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _n(count: int, word: str, plural: str | None = None) -> str:
+    """``"1 body"``, ``"3 bodies"``."""
+    if count == 1:
+        return f"1 {word}"
+    return f"{count} {plural or word + 's'}"
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^\w.-]+", "_", name).strip("._") or "scene"
+
+
+def _finite(x):
+    """JSON-safe: non-finite floats become None, numpy scalars plain Python."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_finite(v) for v in x]
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, float | np.floating):
+        x = float(x)
+        return x if math.isfinite(x) else None
+    return x
+
+
+def _steps_at(time_s: float, dt: float) -> int:
+    """The first step whose time is at or after ``time_s`` (with a little slack for rounding)."""
+    return max(0, math.ceil(time_s / dt - 1e-9))
+
+
+def _body_volumes(scene) -> np.ndarray:
+    vol = np.array([scene.shapes[name].volume for name in scene.shape_names], dtype=np.float64)
+    return vol[np.asarray(scene.body_shape)]
+
+
+def _relative_overlaps(contacts, volumes) -> np.ndarray:
+    """Overlap volume of each contact over the smaller body's volume (the body's own for walls)."""
+    a = contacts["body_a"]
+    b = contacts["body_b"]
+    va = volumes[a]
+    vb = np.where(b >= 0, volumes[np.maximum(b, 0)], np.inf)
+    return contacts["volume"] / np.minimum(va, vb)
+
+
+def _perpendicular(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two horizontal unit axes (x and y for up = z)."""
+    axis = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = axis - up * float(axis @ up)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
+def settled_region(scene, state, contacts) -> dict:
+    """Packing fraction and coordination number of the settled part of a pile.
+
+    Definition (heights along minus gravity, +z when there is none; "horizontal" perpendicular to it):
+
+    * D is the mean volume-equivalent diameter (6 V / pi)^(1/3) of the free bodies;
+    * the region is a box: horizontally, the bounding box of the free bodies' centres shrunk by
+      ``SETTLED_MARGIN`` (2) D on every side (away from the side walls); vertically, from the lowest
+      point of any free body (the floor) up to the ``SETTLED_PERCENTILE`` (80th) percentile of the
+      free bodies' centre heights (below the loose top layer);
+    * the bodies in the region are the free bodies whose centres lie in it;
+    * packing fraction = the sum of their volumes / the volume of the box (bodies cut by the top
+      and side faces count whole or not at all, which cancels on average);
+    * coordination number = the mean number of contacts of a body in the region, counting every
+      contact (with a free, fixed or kinematic body, or a wall plane); ``coordination_number_free``
+      counts only the contacts with other free bodies.
+
+    Returns a dict with ``bodies`` (in the region), ``packing_fraction``, ``coordination_number``,
+    ``coordination_number_free``, ``diameter`` (D [m]), ``lower`` and ``upper`` (the box: horizontal
+    axis 1, horizontal axis 2, height [m]); the three values are None, with a ``note``, when the
+    region is empty (a bed narrower than about 4 D, or too few bodies).
+    """
+    from polydem.scene import quat_to_matrix
+
+    kind = np.asarray(scene.body_kind)
+    free = kind == 0
+    out = {
+        "bodies": 0,
+        "packing_fraction": None,
+        "coordination_number": None,
+        "coordination_number_free": None,
     }
+    if not free.any():
+        out["note"] = "no free bodies"
+        return out
+    g = np.asarray(scene.gravity, dtype=np.float64)
+    up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0.0 else np.array([0.0, 0.0, 1.0])
+    e1, e2 = _perpendicular(up)
+    pos = np.asarray(state["body_position"], dtype=np.float64)
+    quat = np.asarray(state["body_orientation"], dtype=np.float64)
+    volumes = _body_volumes(scene)
+    body_shape = np.asarray(scene.body_shape)
+    idx = np.flatnonzero(free)
+    diameter = float(np.mean((6.0 * volumes[idx] / math.pi) ** (1.0 / 3.0)))
+    h, u, w = pos[idx] @ up, pos[idx] @ e1, pos[idx] @ e2
+    floor = np.inf
+    for s, name in enumerate(scene.shape_names):
+        verts = np.asarray(scene.shapes[name].vertices, dtype=np.float64)
+        members = idx[body_shape[idx] == s]
+        for k in range(0, len(members), 65536):
+            rows = members[k : k + 65536]
+            up_body = np.einsum("nji,j->ni", quat_to_matrix(quat[rows]), up)  # R^T up
+            lowest = pos[rows] @ up + (up_body @ verts.T).min(axis=1)
+            floor = min(floor, float(lowest.min()))
+    top = float(np.percentile(h, SETTLED_PERCENTILE))
+    margin = SETTLED_MARGIN * diameter
+    lower = np.array([u.min() + margin, w.min() + margin, floor])
+    upper = np.array([u.max() - margin, w.max() - margin, top])
+    out.update(diameter=diameter, lower=lower.tolist(), upper=upper.tolist())
+    if not np.all(upper > lower):
+        out["note"] = (
+            f"no settled region: the free bodies span less than {2 * SETTLED_MARGIN:g} mean diameters "
+            "horizontally (or do not form a bed)"
+        )
+        return out
+    inside = (u >= lower[0]) & (u <= upper[0]) & (w >= lower[1]) & (w <= upper[1]) & (h <= upper[2])
+    members = idx[inside]
+    out["bodies"] = int(len(members))
+    if not len(members):
+        out["note"] = "no free body has its centre in the settled region"
+        return out
+    n = len(kind)
+    a, b = contacts["body_a"], contacts["body_b"]
+    count = np.bincount(a, minlength=n) + np.bincount(b[b >= 0], minlength=n)
+    both = (b >= 0) & free[a] & free[np.maximum(b, 0)]
+    count_free = np.bincount(a[both], minlength=n) + np.bincount(b[both], minlength=n)
+    out["packing_fraction"] = float(volumes[members].sum() / np.prod(upper - lower))
+    out["coordination_number"] = float(count[members].mean())
+    out["coordination_number_free"] = float(count_free[members].mean())
+    return out
 
 
-def cmd_run(args):
-    import warp as wp
+def _fixed_pose_mismatch(scene, positions) -> int | None:
+    """Index of a fixed body whose position is not the scene's (a state of another scene), or None.
+
+    Fixed bodies never move, so every state of this scene holds their initial positions exactly
+    (as float32, which checkpoints and USD files keep).
+    """
+    fixed = np.flatnonzero(np.asarray(scene.body_kind) == 1)
+    if not len(fixed):
+        return None
+    expect = np.asarray(scene.body_position, dtype=np.float64)[fixed].astype(np.float32)
+    got = np.asarray(positions, dtype=np.float64)[fixed].astype(np.float32)
+    bad = np.flatnonzero(np.any(got != expect, axis=1))
+    return int(fixed[bad[0]]) if len(bad) else None
+
+
+def _check_poses(path, positions, scene, scene_arg, what: str, fix: str, key=None) -> None:
+    """CliError unless ``positions`` (from a checkpoint or USD file) can be a state of ``scene``."""
+    label = "the built-in default scene" if scene_arg is None else f"the scene {scene_arg}"
+    n = len(positions)
+    if n != scene.num_bodies:
+        raise CliError(f"the {what} has {n} bodies but {label} has {scene.num_bodies}; {fix}", path, key)
+    bad = _fixed_pose_mismatch(scene, positions)
+    if bad is not None:
+        raise CliError(
+            f"fixed body {bad} is not where {label} puts it, so the {what} comes from another scene; {fix}", path, key
+        )
+
+
+def _read_checkpoint_poses(path: Path) -> np.ndarray:
+    """The (N, 7) body poses [px, py, pz, qx, qy, qz, qw] of a checkpoint (CliError if it is not one)."""
+    from polydem.checkpoint import FORMAT
+
+    try:
+        with np.load(path) as data:
+            fmt = str(data["format"])
+            body_q = np.array(data["body_q"], dtype=np.float64)
+    except Exception as err:  # a truncated or foreign file
+        raise CliError(
+            f"not a polydem checkpoint ({type(err).__name__}: {err}); give a .npz file written by polydem run",
+            path,
+        ) from None
+    if fmt != FORMAT:
+        raise CliError(f"checkpoint format {fmt!r}, this polydem reads {FORMAT!r}; rerun the scene", path)
+    if body_q.ndim != 2 or body_q.shape[1] != 7:
+        raise CliError(f"body poses of shape {body_q.shape}, expected (N, 7); the file is damaged", path)
+    return body_q
+
+
+class _Poses:
+    """What :func:`polydem.render.render_simulation` reads of a Simulation, for poses from a file."""
+
+    def __init__(self, scene, positions, orientations, device):
+        from types import SimpleNamespace
+
+        self.device = device
+        self.model = SimpleNamespace(
+            scene=scene,
+            shapes=[scene.shapes[name] for name in scene.shape_names],
+            body_flags_np=np.asarray(scene.body_kind),
+        )
+        self._state = {
+            "body_position": np.asarray(positions, dtype=np.float64),
+            "body_orientation": np.asarray(orientations, dtype=np.float64),
+        }
+
+    def state(self):
+        return self._state
+
+
+# ---------------------------------------------------------------------- progress
+
+
+class _Progress:
+    """Progress on stderr: one line updated in place on a terminal, else one line per 5%."""
+
+    def __init__(self, stream, start: int, target: int, dt: float, enabled: bool):
+        self.stream = stream
+        self.start = start
+        self.target = target
+        self.dt = dt
+        self.enabled = enabled
+        try:
+            self.tty = bool(stream.isatty())
+        except (AttributeError, ValueError):
+            self.tty = False
+        self.t0 = time.perf_counter()
+        self.last = -math.inf
+        self.last_steps = None
+        self.width = 0
+        self.marks = [start + math.ceil(j * (target - start) / PROGRESS_LINES) for j in range(1, PROGRESS_LINES + 1)]
+
+    def next_mark(self, steps: int) -> int | None:
+        """The next step at which a line is due (None on a terminal: lines follow the wall clock)."""
+        if not self.enabled or self.tty:
+            return None
+        later = [m for m in self.marks if m > steps]
+        return later[0] if later else None
+
+    def update(self, sim, force=False) -> None:
+        if not self.enabled:
+            return
+        steps = sim.steps_done
+        now = time.perf_counter()
+        if self.tty:
+            if not force and now - self.last < TTY_REFRESH_S:
+                return
+        else:
+            if not any(self.start < m <= steps for m in self.marks) and not force:
+                return
+            self.marks = [m for m in self.marks if m > steps]
+        self.last = now
+        self.last_steps = steps
+        energy = sim.energy()
+        contacts = len(sim.contacts()["volume"])
+        rate = (steps - self.start) / max(now - self.t0, 1e-9)
+        frac = (steps - self.start) / max(self.target - self.start, 1)
+        t_end = self.target * self.dt
+        if self.tty:
+            bar = "#" * int(round(20 * frac))
+            line = (
+                f"  [{bar:<20}] {100 * frac:5.1f}%  t {sim.time:.4g}/{t_end:.4g} s  {rate:8.1f} steps/s  "
+                f"{contacts} contacts  kinetic {energy['kinetic']:.3e} J"
+            )
+            pad = max(0, self.width - len(line))
+            self.width = len(line)
+            self.stream.write("\r" + line + " " * pad)
+        else:
+            self.stream.write(
+                f"  {100 * frac:5.1f}%  t = {sim.time:.4g} of {t_end:.4g} s  step {steps}/{self.target}  "
+                f"{rate:.1f} steps/s  {contacts} contacts  kinetic {energy['kinetic']:.3e} J\n"
+            )
+        self.stream.flush()
+
+    def finish(self, sim=None) -> None:
+        """Ends the line on a terminal, after a last update at the state of ``sim`` (if given)."""
+        if sim is not None and self.enabled and self.tty and self.last_steps != sim.steps_done:
+            self.update(sim, force=True)
+        if self.enabled and self.tty and self.width:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.width = 0
+
+
+class _StopOnSigint:
+    """First Ctrl-C: ask the run to stop after the steps under way. Second: KeyboardInterrupt at once."""
+
+    def __init__(self):
+        self.requested = False
+        self.finishing = False  # writing the outputs: a first Ctrl-C is ignored
+        self._old = None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            try:
+                if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+                    self._old = signal.signal(signal.SIGINT, self._handler)
+            except (ValueError, OSError):
+                self._old = None
+        return self
+
+    def _handler(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        what = "writing the outputs" if self.finishing else "stopping after the steps under way"
+        sys.stderr.write(f"\npolydem: {what} (Ctrl-C again to stop at once)\n")
+        sys.stderr.flush()
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+def _roll_back(sim) -> bool:
+    """Bring ``sim`` back to a consistent state after an exception inside ``Simulation.step``.
+
+    A step interrupted part-way through a chunk has advanced the device state beyond
+    ``sim.steps_done`` (and a SimulationError leaves a non-finite state); the copy saved at the
+    start of that chunk is restored. Returns whether the state now matches ``sim.steps_done``.
+    """
+    try:
+        if int(sim.step_count.numpy()[0]) == sim.steps_done and np.all(np.isfinite(sim.body_q.numpy())):
+            return True
+        saved = getattr(sim, "_saved", None)
+        if saved is None or int(saved["step"].numpy()[0]) != sim.steps_done:
+            return False
+        sim._restore()
+        return int(sim.step_count.numpy()[0]) == sim.steps_done and bool(np.all(np.isfinite(sim.body_q.numpy())))
+    except Exception:
+        return False
+
+
+# ---------------------------------------------------------------------- polydem run
+
+
+class _Run:
+    """One ``polydem run``: the schedule of frames, pictures and checkpoints, and the outputs."""
+
+    def __init__(self, args, scene, sim, out_dir: Path, target: int, resumed_from):
+        self.args = args
+        self.scene = scene
+        self.sim = sim
+        self.out_dir = out_dir
+        self.target = target
+        self.resumed_from = resumed_from
+        self.start = sim.steps_done
+        self.dt = sim.dt
+        o = scene.output
+        self.fps = args.fps if args.fps is not None else o.fps
+        self.frame_dt = 1.0 / self.fps
+        self.pictures = o.pictures
+        self.picture_size = args.picture_size
+        self.cp_steps = o.checkpoint_steps
+        self.cp_seconds = o.checkpoint_seconds
+        self.cp_dir = _resolve(out_dir, o.checkpoint_path)
+        self.summary_path = _resolve(out_dir, o.summary) if o.summary is not None else None
+        usd = _usd_setting(scene)
+        self.usd_path = None
+        if usd is not None:
+            p = _resolve(out_dir, usd)
+            if resumed_from is not None:
+                p = p.with_name(f"{p.stem}.from_step_{self.start}{p.suffix}")
+            self.usd_path = p
+        self.volumes = _body_volumes(scene)
+        self.recorder = None
+        self.frame = self._first_frame(self.start)
+        self.frame_contacts: list[int] = []
+        self.frame_overlap = 0.0
+        self.picture_files: list[str] = []
+        self.checkpoints: list[str] = []
+        self.cp_index = self._first_checkpoint(self.start)
+
+    # -- schedule (all in absolute steps from t = 0)
+
+    def frame_step(self, k: int) -> int:
+        return _steps_at(k * self.frame_dt, self.dt)
+
+    def _first_frame(self, steps: int) -> int:
+        k = max(0, math.floor(steps * self.dt / self.frame_dt) - 1)
+        while self.frame_step(k) < steps:
+            k += 1
+        return k
+
+    def cp_step(self, j: int) -> int | None:
+        if self.cp_steps is not None:
+            return j * self.cp_steps
+        if self.cp_seconds is not None:
+            return _steps_at(j * self.cp_seconds, self.dt)
+        return None
+
+    def _first_checkpoint(self, steps: int) -> int:
+        j = 1
+        if self.cp_steps is not None:
+            j = steps // self.cp_steps + 1
+        elif self.cp_seconds is not None:
+            j = max(1, math.floor(steps * self.dt / self.cp_seconds))
+            while self.cp_step(j) <= steps:
+                j += 1
+        return j
+
+    # -- events
+
+    def record_frames(self) -> None:
+        """Record frame ``self.frame`` (and any others due at this step) when the run is at its step."""
+        sim = self.sim
+        steps = sim.steps_done
+        if self.frame_step(self.frame) != steps:
+            return
+        contacts = sim.contacts()
+        self.frame_contacts.append(len(contacts["volume"]))
+        if len(contacts["volume"]):
+            self.frame_overlap = max(self.frame_overlap, float(_relative_overlaps(contacts, self.volumes).max()))
+        rec = self.recorder
+        if rec is not None and (rec.last_time_code is None or rec.time_code(sim.time) > rec.last_time_code):
+            rec.record_simulation(sim)
+        while self.frame_step(self.frame) <= steps:
+            if isinstance(self.pictures, tuple) and self.frame in self.pictures:
+                self.picture(f"frame_{self.frame:06d}.png")
+            self.frame += 1
+
+    def picture(self, name: str) -> None:
+        from polydem.render import render_simulation
+
+        path = self.out_dir / "pictures" / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        width, height = self.picture_size
+        render_simulation(self.sim, path, width=width, height=height)
+        self.picture_files.append(_rel(path, self.out_dir))
+
+    def checkpoint(self, name: str) -> Path:
+        from polydem.checkpoint import save_checkpoint
+
+        self.cp_dir.mkdir(parents=True, exist_ok=True)
+        path = self.cp_dir / name
+        save_checkpoint(self.sim, path)
+        self.checkpoints.append(_rel(path, self.out_dir))
+        return path
+
+    def periodic_checkpoint(self) -> None:
+        steps = self.sim.steps_done
+        due = self.cp_step(self.cp_index)
+        if due is None or due > steps:
+            return
+        self.checkpoint(f"step_{steps:09d}.npz")
+        while self.cp_step(self.cp_index) <= steps:
+            self.cp_index += 1
+
+    def next_stop(self, progress: _Progress) -> int:
+        steps = self.sim.steps_done
+        stops = [self.target, steps + MAX_CHUNK_STEPS, self.frame_step(self.frame)]
+        cp = self.cp_step(self.cp_index)
+        if cp is not None:
+            stops.append(cp)
+        mark = progress.next_mark(steps)
+        if mark is not None:
+            stops.append(mark)
+        return min(s for s in stops if s > steps)
+
+    # -- the run
+
+    def execute(self, out, err) -> int:
+        """Run to the target step; whatever stops the run, write the outputs. Returns the exit code."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        progress = _Progress(err, self.start, self.target, self.dt, enabled=not self.args.quiet)
+        self.energy_initial = self.sim.energy()
+        t0 = time.perf_counter()
+        with _StopOnSigint() as stop:
+            return self._execute(out, err, progress, t0, stop)
+
+    def _execute(self, out, err, progress, t0, stop) -> int:
+        from polydem.simulation import SimulationError
+        from polydem.usd import UsdRecorder
+
+        sim = self.sim
+        reason = None
+        failure = None
+        internal = None
+        status = EXIT_OK
+        try:
+            if self.usd_path is not None:
+                self.recorder = UsdRecorder(self.usd_path, self.scene, fps=self.fps, frame_dt=self.frame_dt)
+            self.record_frames()
+            while sim.steps_done < self.target:
+                sim.step(self.next_stop(progress) - sim.steps_done)
+                self.record_frames()
+                self.periodic_checkpoint()
+                progress.update(sim)
+                if stop.requested:
+                    raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            reason = "interrupted by the user (Ctrl-C)"
+            status = EXIT_INTERRUPTED
+        except SimulationError as exc:
+            reason = f"SimulationError: {exc}"
+            failure = str(exc)
+            status = EXIT_FAILED
+        except Exception as exc:
+            reason = f"internal error: {type(exc).__name__}: {exc}"
+            internal = exc
+            status = EXIT_FAILED
+        finally:
+            if self.recorder is not None:
+                self.recorder.close()  # the frames so far are kept, whatever happened
+        stop.finishing = True
+        try:
+            self._finish(out, err, progress, t0, reason, status)
+        except Exception:
+            if internal is None:
+                raise
+            err.write("polydem: the outputs could not be completed after the internal error below\n")
+        if internal is not None:
+            raise internal
+        if failure is not None:
+            err.write(f"polydem: error: the simulation failed: {failure}\n")
+        return status
+
+    def _finish(self, out, err, progress, t0, reason, status) -> None:
+        """Final picture and checkpoint, the summary, and the closing lines (also after an interruption)."""
+        sim = self.sim
+        wall = time.perf_counter() - t0
+        notes = []
+        consistent = True if reason is None else _roll_back(sim)
+        progress.finish(sim if consistent else None)
+        cp_path = None
+        try:
+            if reason is None:
+                if self.pictures == "last":
+                    self.picture("last.png")
+                cp_path = self.checkpoint("final.npz")
+            elif consistent:
+                cp_path = self.checkpoint("interrupted.npz")
+            else:
+                notes.append("no checkpoint: the state could not be brought back to a completed step")
+        except Exception as exc:  # keep going: the summary matters more
+            notes.append(f"writing the outputs failed: {type(exc).__name__}: {exc}")
+            if reason is None:
+                raise
+        summary = self.summary(wall, reason, notes, consistent)
+        if self.summary_path is not None:
+            self.summary_path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.summary_path.with_name(self.summary_path.name + ".tmp")
+            tmp.write_text(json.dumps(_finite(summary), indent=1) + "\n")
+            os.replace(tmp, self.summary_path)
+        self.report(out, err, summary, cp_path, reason, status)
+
+    def summary(self, wall, reason, notes, consistent) -> dict:
+        from polydem import __version__
+
+        sim = self.sim
+        scene = self.scene
+        kind = np.asarray(scene.body_kind)
+        run_steps = sim.steps_done - self.start
+        energy = sim.energy() if consistent else None
+        contacts = sim.contacts() if consistent else None
+        rel = _relative_overlaps(contacts, self.volumes) if contacts is not None else np.zeros(0)
+        largest = None
+        if len(rel):
+            i = int(np.argmax(rel))
+            b = int(contacts["body_b"][i])
+            largest = {
+                "relative": float(rel[i]),
+                "volume": float(contacts["volume"][i]),
+                "body_a": int(contacts["body_a"][i]),
+                "body_b": b if b >= 0 else None,
+                "wall": -1 - b if b < 0 else None,
+            }
+        frames = self.frame_contacts
+        summary = {
+            "polydem": __version__,
+            "scene": scene.name,
+            "scene_file": str(scene.file) if self.args.scene is not None else None,
+            "device": str(sim.device),
+            "precision": scene.precision,
+            "interrupted": reason is not None,
+            "reason": reason,
+            "resumed_from": str(self.resumed_from) if self.resumed_from is not None else None,
+            "steps": sim.steps_done,
+            "steps_this_run": run_steps,
+            "target_steps": self.target,
+            "dt": self.dt,
+            "simulated_time": sim.time,
+            "wall_time": wall,
+            "steps_per_second": run_steps / wall if wall > 0 else None,
+            "body_steps_per_second": run_steps * sim.num_bodies / wall if wall > 0 else None,
+            "bodies": {
+                "total": int(sim.num_bodies),
+                "free": int(np.sum(kind == 0)),
+                "fixed": int(np.sum(kind == 1)),
+                "kinematic": int(np.sum(kind == 2)),
+            },
+            "fps": self.fps,
+            "frames": len(frames),
+            "contacts": {
+                "final": len(contacts["volume"]) if contacts is not None else None,
+                "mean": float(np.mean(frames)) if frames else None,
+                "max": int(np.max(frames)) if frames else None,
+            },
+            "largest_overlap": {
+                "final": largest,
+                "max_over_frames": self.frame_overlap if frames else None,
+            },
+            "energy": {"initial": self.energy_initial, "final": energy},
+            "settled_region": settled_region(scene, sim.state(), contacts) if consistent else None,
+            "outputs": {
+                "folder": str(self.out_dir),
+                "usd": _rel(self.usd_path, self.out_dir) if self.usd_path is not None else None,
+                "usd_frames": self.recorder.frames if self.recorder is not None else 0,
+                "pictures": self.picture_files,
+                "checkpoints": self.checkpoints,
+                "summary": _rel(self.summary_path, self.out_dir) if self.summary_path is not None else None,
+            },
+        }
+        if isinstance(self.pictures, tuple):
+            missing = [k for k in self.pictures if k >= self.frame]
+            if missing:
+                notes.append(f"picture frames {missing} were not reached by this run")
+        if notes:
+            summary["notes"] = notes
+        return summary
+
+    def report(self, out, err, s, cp_path, reason, status) -> None:
+        frames = s["frames"]
+        c = s["contacts"]
+        lines = []
+        head = "interrupted" if status == EXIT_INTERRUPTED else "stopped" if reason else "done"
+        rate = f" ({s['steps_per_second']:.0f} steps/s)" if s["steps_per_second"] else ""
+        lines.append(
+            f"{head}: {s['steps_this_run']} steps to step {s['steps']} (t = {s['simulated_time']:.6g} s) in "
+            f"{s['wall_time']:.2f} s{rate}, {_n(s['bodies']['total'], 'body', 'bodies')}"
+        )
+        if c["final"] is not None:
+            over = ""
+            if frames:
+                over = f" (mean {c['mean']:.1f}, max {c['max']} over {_n(frames, 'frame')})"
+            lines.append(f"  contacts: {c['final']}{over}")
+        lo = s["largest_overlap"]
+        parts = []
+        if lo["final"] is not None:
+            parts.append(f"{lo['final']['relative']:.3%} now")
+        if lo["max_over_frames"] is not None:
+            parts.append(f"{lo['max_over_frames']:.3%} at most in the frames")
+        if parts:
+            lines.append(f"  largest overlap (of the smaller body's volume): {', '.join(parts)}")
+        region = s["settled_region"]
+        if region is not None and region["packing_fraction"] is not None:
+            lines.append(
+                f"  settled region ({_n(region['bodies'], 'body', 'bodies')}): packing fraction "
+                f"{region['packing_fraction']:.3f}, "
+                f"coordination number {region['coordination_number']:.2f}"
+            )
+        e = s["energy"]["final"]
+        if e is not None:
+            lines.append(
+                f"  energy [J]: kinetic {e['kinetic']:.4g}, contact {e['contact']:.4g}, dissipated "
+                f"{e['dissipated']:.4g}, total {e['total']:.6g} (at the start {s['energy']['initial']['total']:.6g})"
+            )
+        o = s["outputs"]
+        written = []
+        if o["usd"]:
+            written.append(f"{o['usd']} ({_n(o['usd_frames'], 'frame')})")
+        if o["summary"]:
+            written.append(o["summary"])
+        if o["pictures"]:
+            written.append(f"{_n(len(o['pictures']), 'picture')} in pictures/")
+        if cp_path is not None:
+            written.append(_rel(cp_path, self.out_dir))
+        lines.append(f"  written to {self.out_dir}{os.sep}: {', '.join(written) if written else 'nothing'}")
+        for note in s.get("notes", []):
+            lines.append(f"  note: {note}")
+        out.write("\n".join(lines) + "\n")
+        out.flush()
+        if reason is not None and cp_path is not None and status == EXIT_INTERRUPTED:
+            err.write(
+                f"polydem: run interrupted at step {s['steps']}; continue with:\n  {self.resume_command(cp_path)}\n"
+            )
+            err.flush()
+
+    def resume_command(self, cp_path) -> str:
+        a = self.args
+        cmd = ["polydem", "run"]
+        if a.scene is not None:
+            cmd.append(str(a.scene))
+        cmd += ["--resume", str(cp_path)]
+        if a.device is not None:
+            cmd += ["--device", a.device]
+        if a.steps is not None:
+            cmd += ["--steps", str(a.steps)]
+        if a.duration is not None:
+            cmd += ["--duration", repr(a.duration)]
+        if a.fps is not None:
+            cmd += ["--fps", repr(a.fps)]
+        if a.out is not None:
+            cmd += ["--out", str(a.out)]
+        return shlex.join(cmd)
+
+
+def _target_steps(args, scene, dt: float) -> tuple[int, str]:
+    """Total steps from t = 0 and where they come from."""
+    if args.steps is not None:
+        return args.steps, "--steps"
+    if args.duration is not None:
+        return max(1, _steps_at(args.duration, dt)), f"--duration {args.duration:g} s"
+    if scene.duration is not None:
+        return max(1, _steps_at(scene.duration, dt)), f"duration {scene.duration:g} s"
+    if scene.steps is not None:
+        return scene.steps, "the scene's steps"
+    return DEFAULT_STEPS, "the default"
+
+
+def cmd_run(args) -> int:
+    out, err = sys.stdout, sys.stderr
+    _warp()
+    if args.precision == "float64":
+        raise CliError(
+            "the simulator runs in float32 only; use --precision float32 (or leave it out). Float64 contact geometry "
+            'is offered by polydem.overlap(..., precision="float64")',
+            key="--precision",
+        )
+    resume = None
+    if args.resume is not None:
+        resume = Path(args.resume)
+        if not resume.is_file():
+            raise CliError(
+                f"checkpoint not found (looked for '{resume.absolute()}'); give a .npz file from a run's "
+                "checkpoint folder, e.g. polydem_out/<scene>/checkpoints/final.npz",
+                resume,
+                "--resume",
+            )
+    scene = _load_scene(args.scene)
+    if args.precision is not None:
+        scene.precision = args.precision
+    device = _device(args.device) if args.device is not None else None
+    if device is None and scene.device is not None:
+        device = _device(scene.device, file=scene.file, key="simulation.device")
 
     from polydem.simulation import Simulation
 
-    wp.config.quiet = True
-    scene = _load_scene(args.scene)
-    sim = Simulation(scene, device=args.device)
-    if args.steps is not None:
-        steps = args.steps
-    else:
-        duration = args.duration if args.duration is not None else (scene.duration or None)
-        steps = int(np.ceil(duration / sim.dt)) if duration else (scene.steps or 1000)
-    print(f"{scene.name}: {sim.num_bodies} bodies on {sim.device}, dt {sim.dt:.3g} s, {steps} steps", flush=True)
-    t0 = time.perf_counter()
-    done = 0
-    report = max(1, steps // 20)
-    try:
-        while done < steps:
-            n = min(report, steps - done)
-            sim.step(n)
-            done += n
-            wall = time.perf_counter() - t0
-            e = sim.energy()
-            print(
-                f"  t = {sim.time:8.4f} s  {done / wall:9.1f} steps/s  {len(sim.contacts()['volume']):7d} contacts  "
-                f"kinetic {e['kinetic']:.4g} J",
-                flush=True,
+    sim = Simulation(scene, device=device)
+    target, source = _target_steps(args, scene, sim.dt)
+    if resume is not None:
+        _resume(sim, scene, resume, args)
+        if sim.steps_done >= target:
+            raise CliError(
+                f"the checkpoint is at step {sim.steps_done} (t = {sim.time:.6g} s), which already reaches the "
+                f"{target} steps asked for ({source}); ask for more with --steps or --duration (counted from t = 0)",
+                resume,
+                "--resume",
             )
-    except KeyboardInterrupt:
-        print("interrupted: writing the summary of the steps so far", file=sys.stderr)
-    summary = _summary(sim, time.perf_counter() - t0, done)
-    os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, "summary.json")
-    with open(path, "w") as f:
-        json.dump(summary, f, indent=1)
-    print(
-        f"done: {done} steps in {summary['wall_time']:.2f} s, {summary['contacts']} contacts, largest overlap "
-        f"{summary['largest_overlap_relative']:.2%} of a body's volume; summary in {path}"
+    out_dir = Path(args.out) if args.out is not None else Path("polydem_out") / _safe_name(scene.name)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(
+            f"cannot create the output folder ({exc.strerror}); give another --out", out_dir, "--out"
+        ) from None
+    run = _Run(args, scene, sim, out_dir, target, resume)
+    kind = np.asarray(scene.body_kind)
+    what = f"from step {sim.steps_done} (t = {sim.time:.6g} s) " if resume is not None else ""
+    out.write(
+        f"{scene.name}: {_n(sim.num_bodies, 'body', 'bodies')} ({int(np.sum(kind == 0))} free) on {sim.device}, "
+        f"dt {sim.dt:.4g} s; "
+        f"{what}to step {target} (t = {target * sim.dt:.6g} s, {source}); frames at {run.fps:g} per simulated s; "
+        f"output in {out_dir}{os.sep}\n"
     )
-    return 0
+    out.flush()
+    return run.execute(out, err)
 
 
-def cmd_info(args):
-    import warp as wp
+def _resume(sim, scene, path: Path, args) -> None:
+    from polydem.checkpoint import load_checkpoint
+
+    fix = "resume with the scene the checkpoint was written from: polydem run SCENE --resume CHECKPOINT"
+    body_q = _read_checkpoint_poses(path)
+    _check_poses(path, body_q[:, :3], scene, args.scene, "checkpoint", fix, "--resume")
+    try:
+        load_checkpoint(sim, path)
+    except (ValueError, KeyError, OSError) as exc:
+        message = str(exc)
+        prefix = f"{os.fspath(path)}: "
+        if message.startswith(prefix):
+            message = message[len(prefix) :]
+        raise CliError(f"{message}; {fix}", path, "--resume") from None
+
+
+# ---------------------------------------------------------------------- polydem validate
+
+
+def cmd_validate(args) -> int:
+    from polydem.model import Model
+
+    out, err = sys.stdout, sys.stderr
+    status = EXIT_OK
+    for k, path in enumerate(args.scenes):
+        try:
+            scene = _load_scene(path)
+            model = Model(scene, _warp().get_device("cpu"))  # checks the time step; host arrays only
+        except SceneError as exc:
+            err.write(f"polydem: error: {exc}\n")
+            err.flush()
+            status = EXIT_USER_ERROR
+            continue
+        dt = model.dt
+        if scene.duration is not None:
+            steps, how = max(1, _steps_at(scene.duration, dt)), f"duration {scene.duration:g} s"
+        elif scene.steps is not None:
+            steps, how = scene.steps, "steps"
+        else:
+            steps, how = DEFAULT_STEPS, "no steps or duration given: the default"
+        usd = _usd_setting(scene)
+        if args.quiet:
+            out.write(f"{path}: OK, {_n(scene.num_bodies, 'body', 'bodies')}, dt {dt:.4g} s, {steps} steps\n")
+            continue
+        if k:
+            out.write("\n")
+        lines = [scene.describe()]
+        auto = "auto" if scene.dt == "auto" else "given"
+        lines.append(
+            f"  time step: {dt:.4g} s ({auto}; recommended {model.dt_recommended:.4g} s, stable limit "
+            f"{model.dt_limit:.4g} s)"
+        )
+        frames = math.floor(steps * dt * scene.output.fps + 1e-9) + 1
+        lines.append(
+            f"  a run: {steps} steps to t = {steps * dt:.6g} s ({how}); {frames} frames at {scene.output.fps:g} fps"
+            + (f" in {usd}" if usd else " (no USD file)")
+        )
+        lines.append(f"OK: {path} is a valid scene")
+        out.write("\n".join(lines) + "\n")
+    out.flush()
+    return status
+
+
+# ---------------------------------------------------------------------- polydem render
+
+
+def cmd_render(args) -> int:
+    from polydem.render import render_simulation
+
+    out_png = Path(args.out)
+    if out_png.suffix.lower() != ".png":
+        raise CliError("the picture must be a .png file, e.g. --out frame.png", out_png, "--out")
+    source = Path(args.source)
+    suffix = source.suffix.lower()
+    if suffix not in (".toml", ".npz", *_USD_SUFFIXES):
+        raise CliError(
+            "give a scene file (.toml, frame 0), a checkpoint (.npz) or a USD file written by polydem run "
+            "(.usd, .usda, .usdc)",
+            source,
+        )
+    if not source.is_file():
+        raise CliError(f"file not found (looked for '{source.absolute()}'); check the path", source)
+    device = _device(args.device)
+    fix = "give the scene it was written from with --scene SCENE"
+    if suffix == ".toml":
+        if args.scene is not None:
+            raise CliError("--scene is for checkpoints and USD files; a scene file renders itself", key="--scene")
+        if args.frame not in (None, 0):
+            raise CliError(
+                f"a scene file holds frame 0 only (its initial state), not frame {args.frame}; run it with "
+                "polydem run and render a frame of its USD file or a checkpoint",
+                source,
+                "--frame",
+            )
+        scene = _load_scene(source)
+        positions, orientations = scene.body_position, scene.body_orientation
+        what = f"frame 0 of {source}"
+    elif suffix == ".npz":
+        if args.frame is not None:
+            raise CliError(
+                "a checkpoint holds one state: leave --frame out (or render a frame of the run's USD file)",
+                source,
+                "--frame",
+            )
+        scene = _load_scene(args.scene)
+        body_q = _read_checkpoint_poses(source)
+        _check_poses(source, body_q[:, :3], scene, args.scene, "checkpoint", fix)
+        positions, orientations = body_q[:, :3], body_q[:, 3:7]
+        what = f"the checkpoint {source}"
+    else:
+        from polydem.usd import read_frame, read_time_codes
+
+        scene = _load_scene(args.scene)
+        try:
+            codes = read_time_codes(source)
+        except (ValueError, OSError) as exc:
+            raise CliError(f"{exc}; give a USD file written by polydem run", source) from None
+        if not len(codes):
+            raise CliError("the USD file has no frames; render a checkpoint or the scene instead", source)
+        frame = int(codes[-1]) if args.frame is None else args.frame
+        if frame not in set(codes.astype(np.int64).tolist()):
+            raise CliError(
+                f"the USD file has no frame {frame}: it holds {len(codes)} frames, {int(codes[0])} to "
+                f"{int(codes[-1])}; give one of them with --frame",
+                source,
+                "--frame",
+            )
+        positions, orientations = read_frame(source, frame)
+        _check_poses(source, positions, scene, args.scene, "USD file", fix)
+        what = f"frame {frame} of {source}"
+    poses = _Poses(scene, positions, orientations, device)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    render_simulation(
+        poses,
+        out_png,
+        width=args.width,
+        height=args.height,
+        supersample=args.supersample,
+        azimuth=args.azimuth,
+        elevation=args.elevation,
+    )
+    sys.stdout.write(
+        f"wrote {out_png} ({args.width} x {args.height}): {what}, {_n(scene.num_bodies, 'body', 'bodies')}\n"
+    )
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------- polydem info
+
+
+def cmd_info(args) -> int:
+    import platform
 
     import polydem
 
-    wp.init()
-    print(f"polydem {polydem.__version__}, Warp {wp.config.version}")
-    for d in wp.get_devices():
-        print(f"  {d.alias}: {d.name}")
-    return 0
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(prog="polydem", description="Discrete element simulation of convex polyhedra.")
-    sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="run a scene (the built-in default when none is given)")
-    run.add_argument("scene", nargs="?", default=None, help="scene file (TOML); default: the built-in default scene")
-    run.add_argument("--device", default=None, help='Warp device, e.g. "cpu" or "cuda:0" (default: the GPU if any)')
-    group = run.add_mutually_exclusive_group()
-    group.add_argument("--steps", type=int, default=None, help="number of steps")
-    group.add_argument("--duration", type=float, default=None, help="simulated time [s]")
-    run.add_argument("--out", default="polydem_out", help="output folder (default: polydem_out)")
-    run.set_defaults(func=cmd_run)
-    info = sub.add_parser("info", help="print the Warp version and devices")
-    info.set_defaults(func=cmd_info)
-    args = parser.parse_args(argv)
+    wp = _warp()
+    lines = [f"polydem {polydem.__version__}", f"  Python {platform.python_version()}, numpy {np.__version__}"]
+    lines.append(f"  Warp {wp.config.version}, kernel cache {wp.config.kernel_cache_dir}")
     try:
+        from pxr import Usd
+
+        lines.append(f"  usd-core (OpenUSD) {'.'.join(map(str, Usd.GetVersion()))}")
+    except ImportError:
+        lines.append("  usd-core: not installed (no USD output)")
+    default = wp.get_device()
+    lines.append(f"devices (default {default.alias}):")
+    for d in wp.get_devices():
+        extra = ""
+        if d.is_cuda:
+            extra = f", sm_{d.arch}, {d.total_memory / 2**30:.1f} GiB"
+        lines.append(f"  {d.alias:<8} {d.name}{extra}")
+    if not wp.get_cuda_device_count():
+        lines.append("  no CUDA device: runs use the CPU")
+    for note in _WARP_NOTES:
+        lines.append(f"  note: {note}")
+    sys.stdout.write("\n".join(lines) + "\n")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------- the parser
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line (a CliError: exit code 2)."""
+
+    def error(self, message):
+        raise CliError(f"{message} (see '{self.prog} --help')", key=None)
+
+
+_RUN_EPILOG = """\
+outputs (in --out; the scene's [output] table names them, relative to that folder):
+  USD animation   output.usd (trajectory.usdc when the scene file does not mention usd; none for
+                  usd = false). Frame k is the state at simulated time k / fps, time code k.
+  summary         output.summary (summary.json): steps, simulated and wall time, bodies, contacts
+                  (final, mean and max over the frames), energies (start and end), the largest
+                  overlap relative to the smaller body's volume, and the packing fraction and mean
+                  coordination number of the settled region. That region is a box: horizontally the
+                  bounding box of the free bodies' centres shrunk by 2 mean body diameters (of
+                  equal-volume spheres) on each side, vertically from the lowest point of any free
+                  body to the 80th percentile of their centre heights. Packing fraction = volume of
+                  the free bodies whose centres lie in it / its volume; coordination number = mean
+                  number of contacts (with bodies or walls) of those bodies.
+  pictures        output.pictures (frame numbers, or "last"): pictures/frame_NNNNNN.png, last.png.
+  checkpoints     output.checkpoint = {steps = N} or {seconds = T}: checkpoints/step_NNNNNNNNN.npz,
+                  plus checkpoints/final.npz at the end and checkpoints/interrupted.npz when the
+                  run stops early (Ctrl-C, or a failing simulation).
+
+interruption and resuming:
+  Ctrl-C stops after the steps under way (a second Ctrl-C at once); the USD file keeps the frames
+  so far, the summary says "interrupted": true, and interrupted.npz holds the state. Add
+  --resume CHECKPOINT to the same command to continue: --steps and --duration count from t = 0,
+  and the result equals that of an unbroken run bit for bit (same device). The resumed frames go
+  to a new USD file, <usd name>.from_step_<N>.<ext>, with the same time codes as before.
+
+exit codes: 0 done; 1 the simulation failed (outputs written) or an internal error; 2 a user error
+(bad option, scene or checkpoint: one message naming the file, the key and the fix); 130 Ctrl-C.
+
+examples:
+  polydem run                                   the built-in default scene (300 polyhedra)
+  polydem run scenes/cube_drop.toml --device cpu --duration 0.1 --out results/
+  polydem run scenes/drum.toml --resume polydem_out/drum/checkpoints/interrupted.npz
+"""
+
+
+def _para(text: str) -> str:
+    return textwrap.fill(text, 100)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    fmt = argparse.RawDescriptionHelpFormatter
+    parser = _Parser(
+        prog="polydem",
+        formatter_class=fmt,
+        description=_para(
+            "Discrete element simulation of rigid convex polyhedra (energy-based volume contact model) "
+            "with NVIDIA Warp."
+        ),
+        epilog=_para(
+            "Run 'polydem COMMAND --help' for the options of a command. Exit codes: 0 success, 1 simulation "
+            "failure or internal error, 2 user error, 130 interrupted."
+        ),
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
+
+    run = sub.add_parser(
+        "run",
+        help="run a scene (the built-in default when none is given)",
+        description=_para(
+            "Run a scene: progress on stderr, a USD animation, a summary, pictures and checkpoints in "
+            "the output folder, and a short summary at the end."
+        ),
+        epilog=_RUN_EPILOG,
+        formatter_class=fmt,
+    )
+    run.add_argument(
+        "scene", nargs="?", default=None, metavar="SCENE", help="scene file (TOML); default: the built-in default scene"
+    )
+    run.add_argument(
+        "--device",
+        default=None,
+        metavar="DEV",
+        help='Warp device: "cpu", "cuda" or "cuda:N"; default: the scene\'s [simulation] device, else the GPU '
+        "when there is one",
+    )
+    length = run.add_mutually_exclusive_group()
+    length.add_argument(
+        "--steps",
+        type=_count("steps", "--steps 10000", "step"),
+        default=None,
+        metavar="N",
+        help="run until step N (counted from t = 0, also when resuming); default: the scene's duration or steps, "
+        f"else {DEFAULT_STEPS}",
+    )
+    length.add_argument(
+        "--duration",
+        type=_positive("a simulated time in seconds", "--duration 0.5"),
+        default=None,
+        metavar="T",
+        help="run until simulated time T [s] (counted from t = 0, also when resuming); replaces the scene's "
+        "duration or steps",
+    )
+    run.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="output folder (made if missing); default: polydem_out/<scene name>/",
+    )
+    run.add_argument(
+        "--fps",
+        type=_positive("frames per simulated second", "--fps 60"),
+        default=None,
+        metavar="F",
+        help="frames per simulated second of the USD file, the picture frames and the contact statistics; "
+        "default: the scene's output.fps (60)",
+    )
+    run.add_argument(
+        "--precision",
+        choices=("float32", "float64"),
+        default=None,
+        help="floating-point precision of the simulation; the simulator runs float32 only (the default)",
+    )
+    run.add_argument(
+        "--resume",
+        default=None,
+        metavar="CHECKPOINT",
+        help="continue from a checkpoint (.npz) written by a run of the same scene; the result equals an "
+        "unbroken run's",
+    )
+    run.add_argument(
+        "--picture-size",
+        type=_size,
+        default=(800, 600),
+        metavar="WxH",
+        help="size of the pictures of output.pictures in pixels (default 800x600)",
+    )
+    run.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress on stderr (the closing summary is still printed)"
+    )
+    run.set_defaults(func=cmd_run)
+
+    validate = sub.add_parser(
+        "validate",
+        help="check scene files without running them",
+        description=_para(
+            "Check scene files without running them: load each one (every key and value), build the "
+            "model on the CPU to check the time step against the stable limit, and print a short description."
+        ),
+        epilog=_para(
+            "exit codes: 0 every scene is valid; 2 some scene is not (one message per bad file on stderr, "
+            "naming the file, the key and the fix)."
+        ),
+        formatter_class=fmt,
+    )
+    validate.add_argument("scenes", nargs="+", metavar="SCENE", help="scene file(s) (TOML)")
+    validate.add_argument(
+        "-q", "--quiet", action="store_true", help="one line per valid scene instead of a description"
+    )
+    validate.set_defaults(func=cmd_validate)
+
+    render = sub.add_parser(
+        "render",
+        help="write a PNG picture of a scene, a checkpoint or a frame of a USD file",
+        description=_para(
+            "Write a PNG picture of bodies and walls (ray cast with Warp). SOURCE is a scene file "
+            "(its initial state, frame 0), a checkpoint (.npz) or a USD file written by polydem run (any of its "
+            "frames). Checkpoints and USD files hold poses only: --scene names the scene they come from."
+        ),
+        epilog="examples:\n"
+        "  polydem render scenes/drum.toml --out drum.png\n"
+        "  polydem render polydem_out/drum/drum.usd --scene scenes/drum.toml --frame 30 --out drum_1s.png\n"
+        "  polydem render polydem_out/default/checkpoints/final.npz --out settled.png",
+        formatter_class=fmt,
+    )
+    render.add_argument("source", metavar="SOURCE", help="scene file (.toml), checkpoint (.npz) or USD file")
+    render.add_argument("--out", required=True, metavar="IMAGE.png", help="the PNG file to write")
+    render.add_argument(
+        "--scene",
+        default=None,
+        metavar="SCENE",
+        help="scene file of a checkpoint or USD file (for the shapes, walls and colours); default: the built-in "
+        "default scene",
+    )
+    render.add_argument(
+        "--frame",
+        type=int,
+        default=None,
+        metavar="K",
+        help="frame of a USD file (time code K: simulated time K / fps); default: its last frame. A scene file "
+        "has frame 0 only; a checkpoint one state",
+    )
+    render.add_argument(
+        "--width", type=_count("pixels", "--width 800", "pixel"), default=800, help="width in pixels (800)"
+    )
+    render.add_argument(
+        "--height", type=_count("pixels", "--height 600", "pixel"), default=600, help="height in pixels (600)"
+    )
+    render.add_argument(
+        "--supersample",
+        type=_count("rays per pixel side", "--supersample 2", "ray per pixel side"),
+        default=1,
+        metavar="S",
+        help="S x S rays per pixel, for smoother edges (default 1)",
+    )
+    render.add_argument(
+        "--azimuth", type=float, default=-60.0, help="camera direction about the vertical [degrees] (default -60)"
+    )
+    render.add_argument(
+        "--elevation", type=float, default=50.0, help="camera height above the horizontal [degrees] (default 50)"
+    )
+    render.add_argument(
+        "--device",
+        default=None,
+        metavar="DEV",
+        help='Warp device that renders: "cpu", "cuda" or "cuda:N" (default: the GPU when there is one)',
+    )
+    render.set_defaults(func=cmd_render)
+
+    info = sub.add_parser(
+        "info",
+        help="print the versions and the Warp devices",
+        description=_para("Print the versions of polydem, Python, numpy, Warp and usd-core, and the Warp devices."),
+        formatter_class=fmt,
+    )
+    info.set_defaults(func=cmd_info)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the ``polydem`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    parser = build_parser()
+    try:
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # --help
+            return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USER_ERROR
         return args.func(args)
-    except SceneError as err:
+    except (SceneError, CliError) as err:
+        sys.stdout.flush()
         print(f"polydem: error: {err}", file=sys.stderr)
-        return 2
-    except FileNotFoundError as err:
-        print(f"polydem: error: {err}", file=sys.stderr)
-        return 2
+        return EXIT_USER_ERROR
 
 
 if __name__ == "__main__":
