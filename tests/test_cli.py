@@ -610,3 +610,17 @@ def test_settled_region_of_a_regular_packing():
 
 if os.environ.get("POLYDEM_TEST_DEVICES", "cpu").split(",")[0] != "cpu":  # the CLI tests need the CPU
     pytestmark = pytest.mark.skip(reason="the command-line tests run on the CPU")
+
+
+def test_plots_of_a_run(tmp_path):
+    pytest.importorskip("matplotlib")
+    from polydem.plots import write_plots
+
+    history = {k: [0.0, 1.0, 2.0] for k in ("time", "kinetic", "contact", "gravity", "dissipated", "total")}
+    history["contacts"] = [0, 3, 5]
+    history["packing_fraction"] = [None, 0.5, 0.55]
+    paths = write_plots(history, tmp_path)
+    assert [p.name for p in paths] == ["energy.png", "packing.png"]
+    for p in paths:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "fewer than two" in write_plots({k: [0.0] for k in history}, tmp_path)

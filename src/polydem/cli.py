@@ -631,6 +631,10 @@ class _Run:
         self.recorder = None
         self.frame = self._first_frame(self.start)
         self.frame_contacts: list[int] = []
+        self.history: dict[str, list] = {
+            k: []
+            for k in ("time", "kinetic", "contact", "gravity", "dissipated", "total", "contacts", "packing_fraction")
+        }
         self.frame_overlap = 0.0
         self.picture_files: list[str] = []
         self.checkpoints: list[str] = []
@@ -674,6 +678,13 @@ class _Run:
             return
         contacts = sim.contacts()
         self.frame_contacts.append(len(contacts["volume"]))
+        energy = sim.energy()
+        region = settled_region(sim.model.scene, sim.state(), contacts)
+        self.history["time"].append(sim.time)
+        for key in ("kinetic", "contact", "gravity", "dissipated", "total"):
+            self.history[key].append(energy[key])
+        self.history["contacts"].append(len(contacts["volume"]))
+        self.history["packing_fraction"].append(region.get("packing_fraction"))
         if len(contacts["volume"]):
             self.frame_overlap = max(self.frame_overlap, float(_relative_overlaps(contacts, self.volumes).max()))
         rec = self.recorder
@@ -801,7 +812,15 @@ class _Run:
             notes.append(f"writing the outputs failed: {type(exc).__name__}: {exc}")
             if reason is None:
                 raise
+        from polydem.plots import write_plots
+
+        plots = write_plots(self.history, self.out_dir)
+        if isinstance(plots, str):
+            notes.append(plots)
+            plots = []
         summary = self.summary(wall, reason, notes, consistent)
+        summary["outputs"]["plots"] = [_rel(p, self.out_dir) for p in plots]
+        summary["history"] = self.history
         if self.summary_path is not None:
             self.summary_path.parent.mkdir(parents=True, exist_ok=True)
             tmp = self.summary_path.with_name(self.summary_path.name + ".tmp")
