@@ -67,13 +67,13 @@ import json
 import math
 import os
 import platform
-import subprocess
 import sys
 import time
 import types
 
 import numpy as np
 import warp as wp
+from _meta import git_state
 
 import polydem
 from polydem import ConvexShape, Scene, Simulation
@@ -726,24 +726,6 @@ def machine_meta(device):
     }
     meta.update(git_state())
     return meta
-
-
-def git_state():
-    """Commit and whether src/ or kernels/ differ from it (the simulator that produced the figures)."""
-    out = {}
-    try:
-
-        def git(*a):
-            return subprocess.run(["git", *a], cwd=HERE, capture_output=True, text=True, timeout=10).stdout.rstrip()
-
-        out["git_commit"] = git("rev-parse", "HEAD")
-        dirty = git("status", "--porcelain", "--", "../src", "../kernels")
-        out["git_dirty"] = bool(dirty)
-        if dirty:
-            out["git_dirty_files"] = [line[3:] for line in dirty.splitlines()]
-    except Exception:
-        pass
-    return out
 
 
 def main():

@@ -34,6 +34,8 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 BENCH = os.path.dirname(HERE)
 OUT_DIR = os.path.join(BENCH, "results", "peers")
+sys.path.insert(0, BENCH)
+from _meta import git_state  # noqa: E402
 
 
 def settle_options(layers=10):
@@ -56,7 +58,6 @@ def settle_options(layers=10):
 
 def build(n):
     """(scene, info) of the pour with n cubes."""
-    sys.path.insert(0, BENCH)
     import settle
 
     return settle.make_scene(n, settle_options())
@@ -200,24 +201,6 @@ def run_polydem(n, device, warmup, steps, out, settle_time=0.0):
         flush=True,
     )
     return result
-
-
-def git_state():
-    out = {}
-    try:
-        import subprocess
-
-        def git(*a):
-            return subprocess.run(["git", *a], cwd=HERE, capture_output=True, text=True, timeout=10).stdout.rstrip()
-
-        out["git_commit"] = git("rev-parse", "HEAD")
-        dirty = git("status", "--porcelain", "--", "../../src", "../../kernels")
-        out["git_dirty"] = bool(dirty)
-        if dirty:
-            out["git_dirty_files"] = [line[3:] for line in dirty.splitlines()]
-    except Exception:
-        pass
-    return out
 
 
 def meta():

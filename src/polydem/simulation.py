@@ -312,7 +312,12 @@ class Simulation:
         return self._empty
 
     def _diagnostics(self):
-        """Runs the diagnostics variant at the current state; returns its host arrays."""
+        """Runs the diagnostics variant at the current state; returns its host arrays.
+
+        energy() and contacts() at the same state share one run (the cache is dropped whenever
+        the state changes: a step, a restore)."""
+        if getattr(self, "_diag_cache", None) is not None:
+            return self._diag_cache
         dev = self.device
         cap = self._capacity
         n = self.num_bodies
@@ -338,6 +343,7 @@ class Simulation:
         out = {k: v.numpy() for k, v in self._diag.items()}
         for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft"):
             out[k] = out[k][:count]
+        self._diag_cache = out
         return out
 
     def _contacts_and_integrate(self):
@@ -405,6 +411,7 @@ class Simulation:
             wp.copy(saved[k], a)
 
     def _restore(self):
+        self._diag_cache = None
         s = self._saved
         wp.copy(self.body_q, s["q"])
         wp.copy(self.body_v, s["v"])
@@ -425,6 +432,7 @@ class Simulation:
         self._after_rebuild()
 
     def _run_chunk(self, steps):
+        self._diag_cache = None
         if self.use_graph:
             if self._graph is None:
                 with wp.ScopedCapture(device=self.device) as capture:
