@@ -1,6 +1,6 @@
 """Diagnose the deepest contacts of a settling run: are they physical or a kernel error?
 
-    python benchmarks/diagnose_overlap.py --device cuda:0 --n 1000000 --steps 3725
+python benchmarks/diagnose_overlap.py --device cuda:0 --n 1000000 --steps 3725
 """
 
 import argparse

@@ -52,6 +52,7 @@ pass. These are not a breakdown of the timed steps; the broad phase per step is 
 check plus the rebuild cost times the rebuilds per timed step.
 
     python benchmarks/settle.py --device cuda:0                      # 1e3, 1e4, 1e5, 1e6
+    python benchmarks/settle.py --device cuda:0 --skin 0             # Verlet list off: rebuilt every step
     python benchmarks/settle.py --device cpu                         # 1e3, 1e4
 
 Results: a table on stdout and JSON (``--out``, default ``benchmarks/results/settle_<device>.json``)
@@ -444,7 +445,11 @@ def run_size(n, args, device, record, save):
     t0 = time.perf_counter()
     scene, info = make_scene(n, args, seed=args.seed)
     t1 = time.perf_counter()
-    sim = Simulation(scene, device=device)
+    skin = None
+    if args.skin is not None:
+        # In units of the cube's bounding radius; 0 turns the Verlet list off (rebuild every step).
+        skin = args.skin * scene.shapes["cube"].radius
+    sim = Simulation(scene, device=device, skin=skin)
     wp.synchronize_device(device)
     t2 = time.perf_counter()
     warmup = args.warmup if args.warmup is not None else max(CHUNK, math.ceil(args.warmup_time / sim.dt))
@@ -682,6 +687,12 @@ def main():
     ap.add_argument("--no-graph-compare", action="store_true", help="skip the use_graph=False timing on CUDA")
     ap.add_argument(
         "--fresh-no-graph", action="store_true", help="time use_graph=False on a new Simulation (repeats the warm-up)"
+    )
+    ap.add_argument(
+        "--skin",
+        type=float,
+        default=None,
+        help="Verlet skin in cube bounding radii (default: the simulator's, 0.2); 0 = no skin, rebuilt every step",
     )
     ap.add_argument("--verbose", action="store_true", help="Warp's module load messages")
     ap.add_argument("--walls", choices=("box", "planes"), default="box", help="container of fixed boxes or planes")

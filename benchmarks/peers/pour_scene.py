@@ -137,8 +137,10 @@ def run_polydem(n, device, warmup, steps, out, settle_time=0.0):
     t0 = time.perf_counter()
     sim = Simulation(scene, device=dev)
     t_init = time.perf_counter() - t0
+    print(f"polydem: {n} cubes, Simulation() {t_init:.2f} s; {warmup} warm-up steps", flush=True)
     sim.step(warmup)
     wp.synchronize_device(dev)
+    print(f"polydem: warm-up done, timing {steps} steps", flush=True)
     t0 = time.perf_counter()
     sim.step(steps)
     wp.synchronize_device(dev)
@@ -152,7 +154,9 @@ def run_polydem(n, device, warmup, steps, out, settle_time=0.0):
     at_rest = None
     if settle_time > sim.time:
         t0 = time.perf_counter()
-        sim.step(int(round((settle_time - sim.time) / sim.dt)))
+        rest = int(round((settle_time - sim.time) / sim.dt))
+        print(f"polydem: {1e3 * wall / steps:.3f} ms/step; {rest} more steps to {settle_time} s", flush=True)
+        sim.step(rest)
         wp.synchronize_device(dev)
         c = sim.contacts()
         v = sim.state()["body_velocity"][free]
