@@ -388,12 +388,15 @@ def finish_count_kernel(
     pair_count: wp.array(dtype=int),
     host_build_needed: wp.array(dtype=int),
     device_rebuilds: wp.array(dtype=int),
+    pair_count_peak: wp.array(dtype=int),
 ):
     """``pair_count = min(counter, capacity)``; an overflow sets the sticky ``host_build_needed``.
 
-    Also counts the builds in ``device_rebuilds``. Launch dim: 1.
+    Also counts the builds in ``device_rebuilds`` and keeps the largest true count in
+    ``pair_count_peak``. Launch dim: 1.
     """
     n = pair_counter[0]
+    pair_count_peak[0] = wp.max(pair_count_peak[0], n)
     if n > capacity:
         host_build_needed[0] = 1
         n = capacity
@@ -593,6 +596,9 @@ class BroadPhase:
         self.rebuild_flag = wp.ones(1, dtype=int, device=dev)
         self.host_build_needed = wp.zeros(1, dtype=int, device=dev)
         self.device_rebuilds = wp.zeros(1, dtype=int, device=dev)
+        # Largest true pair count since the last host build (a device rebuild may overflow with
+        # more pairs than the host build that follows finds at the restored poses).
+        self.pair_count_peak = wp.zeros(1, dtype=int, device=dev)
         # Spatial order of the query threads; radix_sort_pairs needs twice the length.
         self._morton = wp.zeros(2 * n, dtype=int, device=dev)
         self._order_buffer = wp.array(np.arange(2 * n, dtype=np.int32) % n, dtype=int, device=dev)
@@ -699,7 +705,7 @@ class BroadPhase:
             finish_count_kernel,
             dim=1,
             inputs=[self.capacity, self.pair_counter],
-            outputs=[self.pair_count, self.host_build_needed, self.device_rebuilds],
+            outputs=[self.pair_count, self.host_build_needed, self.device_rebuilds, self.pair_count_peak],
             device=self.device,
         )
 
@@ -730,6 +736,13 @@ class BroadPhase:
         """
         self._check_inputs(body_q, body_radius, body_flags)
         self.num_builds += 1
+        # Room for what an overflowed device rebuild saw: the host build usually runs from the
+        # poses at the start of a redone chunk, where fewer pairs may fit than the chunk will need
+        # (without this the redo would overflow again, for ever).
+        peak = int(self.pair_count_peak.numpy()[0])
+        if peak > self.capacity:
+            self._allocate(peak + peak // 4 + 64)
+        self.pair_count_peak.zero_()
         self.host_build_needed.zero_()
         self.rebuild_flag.zero_()
         self.device_rebuilds.zero_()

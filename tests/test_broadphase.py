@@ -399,6 +399,28 @@ def test_device_overflow_is_flagged(device):
     check_against_reference(bp, scene, 0.01)
 
 
+def test_host_build_after_device_overflow_has_room_for_it(device):
+    # A chunk is redone from the poses at its start, where the pairs may still fit: the host build
+    # must still make room for what the overflowed device rebuild saw, or the redo overflows again.
+    rng = np.random.default_rng(16)
+    scene = random_scene(device, 300, rng, 0.02, 0.05)
+    start = scene.positions.copy()
+    bp = BroadPhase(scene.n, device, skin=0.01, capacity=1)
+    count_start = bp.build(*scene.args())
+    scene.set_poses(0.5 + 0.2 * (start - 0.5))
+    bp.rebuild_on_device(*scene.args())
+    assert bp.check_host_build_needed()
+    needed = int(bp.pair_count_peak.numpy()[0])
+    assert needed > bp.capacity >= count_start
+    scene.set_poses(start)  # back to the start of the chunk
+    assert bp.build(*scene.args()) == count_start
+    assert bp.capacity >= needed
+    scene.set_poses(0.5 + 0.2 * (start - 0.5))
+    bp.rebuild_on_device(*scene.args())  # the redo now fits
+    assert not bp.check_host_build_needed()
+    check_against_reference(bp, scene, 0.01)
+
+
 def test_device_rebuild_flags_change_is_flagged(device):
     rng = np.random.default_rng(15)
     scene = random_scene(device, 200, rng, 0.02, 0.08)
