@@ -119,112 +119,6 @@ def make_narrowphase(
         return -1
 
     @wp.func
-    def clip_face(
-        face: int,
-        face_is_a: bool,
-        planes: planes_t,
-        plane_ids: ids_t,
-        num_planes: int,
-        face_plane: wp.array(dtype=vec4),
-        face_sphere: wp.array(dtype=vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=vec3),
-        rot: mat33,
-        pos: vec3,
-        tol: scalar,
-    ):
-        # Clips one face polygon by the other body's active planes (already in A's frame, with
-        # their face indices in plane_ids) and integrates the surviving piece. Everything is in
-        # A's frame: B's points map by rot, pos. Returns (weighted area, weighted area * centroid,
-        # surface flag, overflow flag); a coincident facet has weight 1/2; a face merely touching an
-        # opposite face of the other body (surface 0) adds to V but not to S or M.
-        zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        poly = poly_t()
-        begin = face_loop_start[face]
-        count = face_loop_start[face + 1] - begin
-        sph = face_sphere[face]
-        centre = vec3(sph[0], sph[1], sph[2])
-        pf = face_plane[face]
-        nf = vec3(pf[0], pf[1], pf[2])
-        if not face_is_a:
-            centre = rot * centre + pos
-            nf = rot * nf
-        for k in range(count):
-            v = vert[face_loop[begin + k]]
-            if not face_is_a:
-                v = rot * v + pos
-            poly[k] = v
-        weight = scalar(scalar(1.0))
-        surface = int(1)  # 0: a face merely touching the other body's: volume only, no area
-        cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
-        for j in range(num_planes):
-            pl = planes[j]
-            if not face_is_a:
-                pl = face_plane[plane_ids[j]]  # A's own planes are read where they are
-            n = vec3(pl[0], pl[1], pl[2])
-            d = pl[3]
-            dist = wp.dot(n, centre) - d
-            if dist <= -sph[3]:
-                continue  # the whole face lies inside this plane
-            if dist > sph[3]:
-                return scalar(0.0), zero3, 1, 0
-            if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
-                rel = int(0)
-                if face_is_a:
-                    rel = coplanar_relation(
-                        face, plane_ids[j], face_plane, face_loop_start, face_loop, vert, rot, pos, tol
-                    )
-                else:
-                    rel = coplanar_relation(
-                        plane_ids[j], face, face_plane, face_loop_start, face_loop, vert, rot, pos, tol
-                    )
-                if rel == 1:
-                    weight = scalar(0.5)
-                    continue
-                if rel == -1:
-                    surface = int(0)
-                    continue
-            # Sutherland-Hodgman against n.x <= d, from rows [cur, cur+count) into the other half.
-            out = max_poly - cur
-            n_out = int(0)
-            prev = poly[cur + count - 1]
-            s_prev = wp.dot(n, prev) - d
-            for k in range(count):
-                v = poly[cur + k]
-                s = wp.dot(n, v) - d
-                if (s <= scalar(0.0)) != (s_prev <= scalar(0.0)):
-                    if n_out >= max_poly:
-                        return scalar(0.0), zero3, 1, 1
-                    t = s_prev / (s_prev - s)
-                    poly[out + n_out] = prev + t * (v - prev)
-                    n_out += 1
-                if s <= scalar(0.0):
-                    if n_out >= max_poly:
-                        return scalar(0.0), zero3, 1, 1
-                    poly[out + n_out] = v
-                    n_out += 1
-                prev = v
-                s_prev = s
-            if n_out < 3:
-                return scalar(0.0), zero3, 1, 0
-            cur = out
-            count = n_out
-        # Fan triangulation: facet area and area-weighted centroid.
-        p0 = poly[cur]
-        area = scalar(0.0)
-        area_c = zero3
-        for k in range(1, count - 1):
-            p1 = poly[cur + k]
-            p2 = poly[cur + k + 1]
-            a2 = wp.dot(wp.cross(p1 - p0, p2 - p0), nf)  # twice the signed triangle area
-            area += a2
-            area_c += a2 * (p0 + p1 + p2)
-        area = weight * scalar(0.5) * area
-        area_c = (weight * scalar(0.5) / scalar(3.0)) * area_c
-        return area, area_c, surface, 0
-
-    @wp.func
     def cone(area: scalar, area_c: vec3, plane: vec4, origin: vec3):
         # Volume and first moment of the pyramid from `origin` over a facet of the given area and
         # area-weighted centroid in `plane` (its centroid lies 3/4 of the way to the facet's).
@@ -368,34 +262,137 @@ def make_narrowphase(
         s_b = zero3
         m_b = zero3
         overflow = int(0)
-        for j in range(num_a):
-            area, area_c, surface, of = clip_face(
-                ids_a[j], True, planes_b, ids_b, num_b,
-                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
-            )  # fmt: skip
-            overflow = overflow | of
-            pl = face_plane[ids_a[j]]
-            dv, dv_c = cone(area, area_c, pl, origin)
-            n = vec3(pl[0], pl[1], pl[2])
-            if surface != 0:
-                s_a += area * n
-                m_a += wp.cross(area_c, n)
+        # Clip each active face polygon by the other body's active planes and integrate the
+        # surviving piece. This loop is written out here rather than in a helper called per face:
+        # a @wp.func takes its arguments by value, and the per-thread buffers (polygon, planes, ids)
+        # live in local memory, so a call per face copied and zero-filled them again each time.
+        # One polygon buffer serves every face; its halves [0, max_poly) and [max_poly, 2 max_poly)
+        # take turns as input and output of the Sutherland-Hodgman passes.
+        poly = poly_t()
+        for j in range(num_a + num_b):
+            face_is_a = j < num_a
+            face = int(0)
+            num_planes = int(0)
+            if face_is_a:
+                face = ids_a[j]
+                num_planes = num_b
+            else:
+                face = ids_b[j - num_a]
+                num_planes = num_a
+            begin = face_loop_start[face]
+            count = face_loop_start[face + 1] - begin
+            sph = face_sphere[face]
+            centre = vec3(sph[0], sph[1], sph[2])
+            pf = face_plane[face]
+            nf = vec3(pf[0], pf[1], pf[2])
+            if not face_is_a:
+                centre = rot * centre + pos
+                nf = rot * nf
+            for k in range(count):
+                v = vert[face_loop[begin + k]]
+                if not face_is_a:
+                    v = rot * v + pos
+                poly[k] = v
+            weight = scalar(1.0)
+            surface = int(1)  # 0: a face merely touching an opposite face of the other body
+            alive = bool(True)
+            cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
+            for i in range(num_planes):
+                pl = vec4()
+                plane_id = int(0)
+                if face_is_a:
+                    pl = planes_b[i]
+                    plane_id = ids_b[i]
+                else:
+                    plane_id = ids_a[i]
+                    pl = face_plane[plane_id]  # A's own planes are read where they are
+                n = vec3(pl[0], pl[1], pl[2])
+                d = pl[3]
+                dist = wp.dot(n, centre) - d
+                if dist <= -sph[3]:
+                    continue  # the whole face lies inside this plane
+                if dist > sph[3]:
+                    alive = False
+                    break
+                if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
+                    # Coincident or touching faces: decided by one function evaluated the same way
+                    # from both sides (A's face first), so both sides agree bit for bit.
+                    rel = int(0)
+                    if face_is_a:
+                        rel = coplanar_relation(
+                            face, plane_id, face_plane, face_loop_start, face_loop, vert, rot, pos, tol
+                        )
+                    else:
+                        rel = coplanar_relation(
+                            plane_id, face, face_plane, face_loop_start, face_loop, vert, rot, pos, tol
+                        )
+                    if rel == 1:
+                        weight = scalar(0.5)
+                        continue
+                    if rel == -1:
+                        surface = int(0)
+                        continue
+                # Sutherland-Hodgman against n.x <= d, from rows [cur, cur+count) into the other half.
+                out = max_poly - cur
+                n_out = int(0)
+                full = int(0)
+                prev = poly[cur + count - 1]
+                s_prev = wp.dot(n, prev) - d
+                for k in range(count):
+                    v = poly[cur + k]
+                    sk = wp.dot(n, v) - d
+                    if (sk <= scalar(0.0)) != (s_prev <= scalar(0.0)):
+                        if n_out >= max_poly:
+                            full = 1
+                            break
+                        t = s_prev / (s_prev - sk)
+                        poly[out + n_out] = prev + t * (v - prev)
+                        n_out += 1
+                    if sk <= scalar(0.0):
+                        if n_out >= max_poly:
+                            full = 1
+                            break
+                        poly[out + n_out] = v
+                        n_out += 1
+                    prev = v
+                    s_prev = sk
+                if full != 0:
+                    overflow = 1
+                if n_out < 3 or full != 0:
+                    alive = False
+                    break
+                cur = out
+                count = n_out
+            if not alive:
+                continue
+            # Fan triangulation: facet area and area-weighted centroid.
+            p0 = poly[cur]
+            area = scalar(0.0)
+            area_c = zero3
+            for k in range(1, count - 1):
+                p1 = poly[cur + k]
+                p2 = poly[cur + k + 1]
+                a2 = wp.dot(wp.cross(p1 - p0, p2 - p0), nf)  # twice the signed triangle area
+                area += a2
+                area_c += a2 * (p0 + p1 + p2)
+            area = weight * scalar(0.5) * area
+            area_c = (weight * scalar(0.5) / scalar(3.0)) * area_c
+            plane = vec4()
+            if face_is_a:
+                plane = pf
+            else:
+                plane = planes_b[j - num_a]
+            dv, dv_c = cone(area, area_c, plane, origin)
             vol += dv
             vol_c += dv_c
-        for j in range(num_b):
-            area, area_c, surface, of = clip_face(
-                ids_b[j], False, planes_b, ids_a, num_a,
-                face_plane, face_sphere, face_loop_start, face_loop, vert, rot, pos, tol,
-            )  # fmt: skip
-            overflow = overflow | of
-            pl = planes_b[j]
-            dv, dv_c = cone(area, area_c, pl, origin)
-            n = vec3(pl[0], pl[1], pl[2])
             if surface != 0:
-                s_b += area * n
-                m_b += wp.cross(area_c, n)
-            vol += dv
-            vol_c += dv_c
+                n = vec3(plane[0], plane[1], plane[2])
+                if face_is_a:
+                    s_a += area * n
+                    m_a += wp.cross(area_c, n)
+                else:
+                    s_b += area * n
+                    m_b += wp.cross(area_c, n)
         rot_a = wp.quat_to_matrix(qa)
         return vol, rot_a * vol_c, rot_a * s_a, rot_a * m_a, rot_a * s_b, rot_a * m_b, overflow
 
