@@ -4,13 +4,37 @@ Per candidate pair one thread runs the narrow phase (:mod:`polydem.kernels.narro
 the overlap geometry into a wrench:
 
 * elastic: force on A ``-W'(V) S_A``, torque about A's centre ``-W'(V) (M_A - x_A x S_A)``;
-* normal damping from the restitution coefficient e, as hysteresis: while the overlap volume
-  shrinks (dV/dt < 0, computed exactly from S_A, M_A and the velocities) the elastic wrench is
-  scaled by e^2. A collision then returns e^2 of the energy stored while loading, whatever the
-  contact law and the shapes, so the rebound speed is e times the impact speed; the energy lost,
-  (1 - e^2) W'(V) |dV|, is counted as dissipated (to first order in dt). Unloading starts once V
-  shrinks faster than 5% of the contact's natural rate, so a contact at rest does not flicker
-  between the branches;
+* normal damping from the restitution coefficient e, as hysteresis in the overlap volume with a
+  turning volume V_t kept per pair (and per body and wall). While V grows, or stands above V_t,
+  the contact is on the loading branch: pressure W'(V) and V_t follows V. Once V shrinks (dV/dt
+  < 0, computed exactly from S_A, M_A and the velocities) below V_t, it unloads along the law
+  taken at an elastic volume u = V_t - (V_t - V) / e^2 (du = dV / e^2): pressure W'(u), zero
+  once u <= 0, i.e. below V = (1 - e^2) V_t. Why this curve:
+
+  - the force is continuous where the contact turns (u = V_t there). A resting contact whose
+    dV/dt jitters about zero therefore keeps its force, and its friction cap, through every
+    turn; the older scheme (wrench times e^2 while unloading) dropped both by e^2 at each
+    jitter, which let a block with e = 0.3 creep down a slope it should stick on;
+  - a full unloading returns exactly e^2 W(V_t), the integral of W'(u) dV, for every law and
+    every shape (the wrench stays -W' S_A, so its power is exactly -W' dV/dt): rebound speed e
+    times the impact speed, with no switching threshold to bias it;
+  - the energy is a state function E(V; V_t): W(V) on the loading branch, and (1 - e^2) W(V_t)
+    + e^2 W(u) on the unloading one (what is still to come back, plus what never will), so each
+    branch is conservative and the step integrates it as well as an elastic contact.
+    Dissipation happens only where the state jumps, and is booked exactly, as the drop of E at
+    fixed V: reloading from below V_t (V_t := V) loses E(V; V_t) - W(V) >= 0, the area of the
+    loop, and a contact that opens loses the (1 - e^2) W(V_t) it kept. So the energy balance
+    closes to the integrator's error instead of to first order in dt.
+
+  A reversal below V_t reloads on the loading curve, not back along the unloading one (that would
+  be Walton and Braun's elastic inner loop): each small oscillation of a resting contact then
+  traces a loop and loses energy, so piles still come to rest. The prices: the force jumps up
+  where a shrinking contact turns back to growing (by (1/e^2 - 1) W'' times the volume lost
+  since V_t, small for a small oscillation); the unloading branch is stiffer than the loading
+  one by 1/e^2 (the contact's frequency by 1/e), so at dt = "auto" a low e is resolved by fewer
+  steps (50 e steps per period at the reference overlap: 15 for e = 0.3; below e of about 0.1
+  take a smaller dt); and the force ends before the bodies separate (at V = (1 - e^2) V_t, a
+  plastic dent that the bodies then leave freely);
 * friction (only in the kernel variant built with friction): an elastic tangential spring xi
   carried from step to step for each persisting pair, turned into the current tangent plane
   (length kept), loaded by the tangential velocity at the contact point, with a dashpot of the
@@ -33,9 +57,6 @@ import warp as wp
 from polydem.kernels.narrowphase import ENCLOSED_MIN_VOLUME, ENCLOSED_RATIO, make_narrowphase
 
 LAWS = ("linear", "hertz", "power")
-
-# dV/dt below -UNLOAD_THRESHOLD * V * omega counts as unloading (see respond()).
-UNLOAD_THRESHOLD = wp.constant(0.05)
 
 
 @functools.cache
@@ -71,6 +92,37 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             return k * wp.pow(volume, m) / m
 
     @wp.func
+    def elastic_volume(volume: float, turn: float, e2: float):
+        # u on the unloading branch from the turning volume: du = dV / e^2, u(turn) = turn.
+        return turn - (turn - volume) / e2
+
+    @wp.func
+    def branch_pressure(volume: float, turn: float, k: float, m: float, e2: float):
+        # dE/dV on the branch of (V, turn) [Pa]: W'(V) loading, W'(u) unloading, 0 once u <= 0.
+        p = float(0.0)
+        if volume >= turn:
+            p = law_derivative(volume, k, m)
+        else:
+            u = elastic_volume(volume, turn, e2)
+            if u > 0.0:
+                p = law_derivative(u, k, m)
+        return p
+
+    @wp.func
+    def branch_energy(volume: float, turn: float, k: float, m: float, e2: float):
+        # E(V; turn) [J]: W(V) loading; unloading, (1 - e^2) W(turn) + e^2 W(u) (what is left to
+        # return plus what will never come back), so that -dE/dV is the branch's pressure.
+        en = float(0.0)
+        if volume >= turn:
+            en = law_energy(volume, k, m)
+        else:
+            en = (1.0 - e2) * law_energy(turn, k, m)
+            u = elastic_volume(volume, turn, e2)
+            if u > 0.0:
+                en += e2 * law_energy(u, k, m)
+        return en
+
+    @wp.func
     def respond(
         volume: float,
         first_moment: wp.vec3,
@@ -87,16 +139,21 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         mu: float,
         kt: float,
         xi: wp.vec3,
+        turn: float,
         dt: float,
         r_min: float,
         inv_mass: float,
     ):
         """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
 
-        ``r_ab`` is x_B - x_A (its direction is the push of an enclosed pair). Returns (force on A,
-        torque on A about x_A, new spring xi, stored energy, energy dissipated this step, unit
-        normal, contact point relative to x_A, normal force magnitude, tangential force).
+        ``r_ab`` is x_B - x_A (its direction is the push of an enclosed pair); ``turn`` the pair's
+        turning volume (0 for a new contact; unused for e = 1). Returns (force on A, torque on A about x_A, new spring
+        xi, new turning volume, stored energy, energy dissipated this step, unit normal, contact
+        point relative to x_A, normal force magnitude, tangential force).
         """
+        e2 = e * e
+        if e2 >= 1.0:
+            turn = 0.0
         c = first_moment / volume
         s = area
         mom = moment
@@ -112,7 +169,8 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                 lost0 = float(0.0)
                 if wp.static(friction):
                     lost0 = 0.5 * kt * wp.dot(xi, xi)
-                return zero3, zero3, zero3, law_energy(volume, k, m), lost0, line, c, 0.0, zero3
+                en0 = branch_energy(volume, turn, k, m, e2)
+                return zero3, zero3, zero3, turn, en0, lost0, line, c, 0.0, zero3
             # One body (nearly) inside the other: the gradient of V vanishes; push along the line
             # of centres instead (the module docstring of polydem.contact).
             s = v23 * line
@@ -122,24 +180,22 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         axis = wp.cross(s, mom) / (s_norm * s_norm)
         point = axis + wp.dot(c - axis, n) * n
 
-        wd = law_derivative(volume, k, m)
         dvdt = wp.dot(s, v_a - v_b) + wp.dot(mom, w_a) + wp.dot(wp.cross(r_ab, s) - mom, w_b)
-        scale = float(1.0)
         lost = float(0.0)
-        # Unloading only once V shrinks faster than 5% of the contact's own rate V * omega
-        # (omega^2 = secant stiffness W' |S|^2 / V over the reduced mass): a contact at rest, whose
-        # dV/dt merely jitters about zero, stays on the loading branch instead of flickering
-        # between the branches (which would also make the friction cap flicker). A collision
-        # loses only the first ~3 degrees of its unloading phase to the threshold (~0.1% of its
-        # energy), whatever dt.
-        omega = wp.sqrt(wd * s_norm * s_norm / volume * inv_mass)
-        if dvdt < -UNLOAD_THRESHOLD * volume * omega:
-            scale = e * e
-            lost = (1.0 - e * e) * wd * (-dvdt) * dt
-        fn = scale * wd * s_norm
-        force = -(scale * wd) * s
-        torque = -(scale * wd) * mom
-        energy = law_energy(volume, k, m)
+        turn_new = turn
+        if wp.static(not diagnostics):
+            # Growing, or past the turning volume: the loading branch, whose turning volume follows V.
+            # Reloading from below the turning volume drops the part of E(V; turn) that the loading
+            # branch does not hold: the hysteresis loop's area, dissipated.
+            if e2 < 1.0 and (dvdt >= 0.0 or volume >= turn):
+                turn_new = volume
+                if volume < turn:
+                    lost = branch_energy(volume, turn, k, m, e2) - law_energy(volume, k, m)
+        wd = branch_pressure(volume, turn_new, k, m, e2)
+        fn = wd * s_norm
+        force = -wd * s
+        torque = -wd * mom
+        energy = branch_energy(volume, turn_new, k, m, e2)
         ft = wp.vec3(0.0, 0.0, 0.0)
         xi_new = wp.vec3(0.0, 0.0, 0.0)
         if wp.static(friction):
@@ -173,7 +229,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             energy += 0.5 * kt * wp.dot(xi_new, xi_new)
             force += ft
             torque += wp.cross(point, ft)
-        return force, torque, xi_new, energy, lost, n, point, fn, ft
+        return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
 
     @wp.func
     def fan_add(first: wp.vec3, prev: wp.vec3, cur: wp.vec3, count: int, nf: wp.vec3, area: float, area_c: wp.vec3):
@@ -282,6 +338,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         pair_count: wp.array(dtype=int),
         # State in/out
         pair_xi: wp.array(dtype=wp.vec3),
+        pair_turn: wp.array(dtype=float),
         # Out (step)
         pair_force: wp.array(dtype=wp.vec3),
         pair_torque_a: wp.array(dtype=wp.vec3),
@@ -313,16 +370,22 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             wp.atomic_max(overflow, 0, 1)
         mat = body_material[a] * num_materials + body_material[b]
         if vol <= 0.0:
+            # What the last impact never gave back, (1 - e^2) W(turn), is dissipated when the
+            # contact opens (its force may have ended before, at u = 0); until the step books it,
+            # it is still part of the contact's energy.
+            e_mat = material_e[mat]
+            kept = (1.0 - e_mat * e_mat) * law_energy(pair_turn[p], material_k[mat], law_m)
             if wp.static(diagnostics):
                 pair_volume[p] = 0.0
-                pair_energy[p] = 0.0
+                pair_energy[p] = kept
                 pair_fn[p] = 0.0
                 pair_ft[p] = zero3
             else:
-                lost = float(0.0)
+                lost = kept
+                pair_turn[p] = 0.0
                 if wp.static(friction):
                     xi = pair_xi[p]
-                    lost = 0.5 * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
+                    lost += 0.5 * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
                     pair_xi[p] = zero3
                 pair_force[p] = zero3
                 pair_torque_a[p] = zero3
@@ -335,9 +398,9 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         xi_in = zero3
         if wp.static(friction):
             xi_in = pair_xi[p]
-        force, torque, xi, energy, lost, n, point, fn, ft = respond(
+        force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
             vol, first_moment, s_a, m_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
-            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, step,
+            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], step,
             wp.min(shape_radius[body_shape[a]], shape_radius[body_shape[b]]), body_inv_mass[a] + body_inv_mass[b],
         )  # fmt: skip
         if wp.static(diagnostics):
@@ -350,6 +413,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         else:
             if wp.static(friction):
                 pair_xi[p] = xi
+            pair_turn[p] = turn
             pair_force[p] = force
             pair_torque_a[p] = torque
             pair_dissipated[p] = lost
@@ -392,6 +456,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         pair_dissipated: wp.array(dtype=float),
         # State in/out
         plane_xi: wp.array2d(dtype=wp.vec3),
+        plane_turn: wp.array2d(dtype=float),
         body_dissipated: wp.array(dtype=float),
         # Out (step)
         body_f: wp.array(dtype=wp.vec3),
@@ -445,15 +510,20 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                 )  # fmt: skip
                 mat = body_material[i] * num_materials + plane_material[j]
                 if vol <= 0.0:
+                    e_mat = material_e[mat]
+                    kept = (1.0 - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m)
                     if wp.static(diagnostics):
                         plane_volume[i, j] = 0.0
-                        plane_energy[i, j] = 0.0
+                        plane_energy[i, j] = kept
                         plane_fn[i, j] = 0.0
                         plane_ft[i, j] = zero3
-                    elif wp.static(friction):
-                        xi = plane_xi[i, j]
-                        lost += 0.5 * material_kt[mat] * wp.dot(xi, xi)
-                        plane_xi[i, j] = zero3
+                    else:
+                        lost += kept
+                        plane_turn[i, j] = 0.0
+                        if wp.static(friction):
+                            xi = plane_xi[i, j]
+                            lost += 0.5 * material_kt[mat] * wp.dot(xi, xi)
+                            plane_xi[i, j] = zero3
                     continue
                 step = dt
                 if wp.static(diagnostics):
@@ -461,9 +531,10 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                 xi_in = zero3
                 if wp.static(friction):
                     xi_in = plane_xi[i, j]
-                force, torque, xi, energy, dl, n, point, fn, ft = respond(
+                force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
                     vol, first_moment, s_a, m_a, -pn, body_v[i], body_w[i], zero3, zero3,
-                    material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, step,
+                    material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
+                    plane_turn[i, j], step,
                     shape_radius[s], body_inv_mass[i],
                 )  # fmt: skip
                 if wp.static(diagnostics):
@@ -475,6 +546,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                 else:
                     if wp.static(friction):
                         plane_xi[i, j] = xi
+                    plane_turn[i, j] = turn
                     f += force
                     t += torque
                     lost += dl
@@ -564,20 +636,27 @@ def remap_history_kernel(
     old_key: wp.array(dtype=wp.int64),
     old_count: wp.array(dtype=int),
     old_xi: wp.array(dtype=wp.vec3),
+    old_turn: wp.array(dtype=float),
     new_key: wp.array(dtype=wp.int64),
     new_count: wp.array(dtype=int),
+    friction: int,
     # Out
     new_xi: wp.array(dtype=wp.vec3),
+    new_turn: wp.array(dtype=float),
 ):
-    """Carries each pair's friction spring over a rebuild, matched by the pair's key."""
+    """Carries each pair's history (turning volume; friction spring, with ``friction``) over a
+    rebuild, matched by the pair's key."""
     p = wp.tid()
-    if p >= new_count[0]:
-        new_xi[p] = wp.vec3(0.0, 0.0, 0.0)
-        return
-    key = new_key[p]
-    count = old_count[0]
-    j = lower_bound(old_key, count, key)
-    if j < count and old_key[j] == key:
-        new_xi[p] = old_xi[j]
-    else:
-        new_xi[p] = wp.vec3(0.0, 0.0, 0.0)
+    xi = wp.vec3(0.0, 0.0, 0.0)
+    turn = float(0.0)
+    if p < new_count[0]:
+        key = new_key[p]
+        count = old_count[0]
+        j = lower_bound(old_key, count, key)
+        if j < count and old_key[j] == key:
+            turn = old_turn[j]
+            if friction != 0:
+                xi = old_xi[j]
+    new_turn[p] = turn
+    if friction != 0:
+        new_xi[p] = xi

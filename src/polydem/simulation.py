@@ -93,6 +93,8 @@ class Simulation:
         # Friction springs of the wall contacts (a placeholder when the scene has no friction).
         shape = (n, max(model.num_planes, 1)) if model.friction else (1, 1)
         self.plane_xi = wp.zeros(shape, dtype=wp.vec3, device=dev)
+        # Turning volumes of the wall contacts (the normal hysteresis, kernels/forces.py).
+        self.plane_turn = wp.zeros((n, max(model.num_planes, 1)), dtype=float, device=dev)
         self._diag = None
         self.step_count = wp.zeros(1, dtype=int, device=dev)
         self.bad_step = wp.full(1, 2**31 - 1, dtype=int, device=dev)
@@ -130,12 +132,14 @@ class Simulation:
         self._capacity = capacity
         springs = capacity if self.model.friction else 1
         self.pair_xi = wp.zeros(springs, dtype=wp.vec3, device=dev)
+        self.pair_turn = wp.zeros(capacity, dtype=float, device=dev)
         self.pair_force = wp.zeros(capacity, dtype=wp.vec3, device=dev)
         self.pair_torque_a = wp.zeros(capacity, dtype=wp.vec3, device=dev)
         self.pair_dissipated = wp.zeros(capacity, dtype=float, device=dev)
-        # History of the previous pair list, for the friction springs across a rebuild.
+        # History of the previous pair list, for the turning volumes and springs across a rebuild.
         self.old_key = wp.zeros(capacity, dtype=wp.int64, device=dev)
         self.old_xi = wp.zeros(springs, dtype=wp.vec3, device=dev)
+        self.old_turn = wp.zeros(capacity, dtype=float, device=dev)
         self.old_count = wp.zeros(1, dtype=int, device=dev)
         # Pairs ordered by their B body (radix sort needs twice the room).
         self._keys_b = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
@@ -147,26 +151,33 @@ class Simulation:
         self._graph = None
 
     def _save_history(self):
-        if not self.model.friction:
-            return
         bp = self.broadphase
         wp.copy(self.old_key, bp.pair_key, count=self._capacity)
-        wp.copy(self.old_xi, self.pair_xi)
+        wp.copy(self.old_turn, self.pair_turn)
+        if self.model.friction:
+            wp.copy(self.old_xi, self.pair_xi)
         wp.copy(self.old_count, bp.pair_count)
 
     def _after_rebuild(self):
-        """Friction springs carried over by pair key; per-body ranges for the gather."""
+        """Turning volumes and friction springs carried over by pair key; per-body ranges for the gather."""
         bp = self.broadphase
         dev = self.device
         cap = self._capacity
-        if self.model.friction:
-            wp.launch(
-                remap_history_kernel,
-                dim=cap,
-                inputs=[self.old_key, self.old_count, self.old_xi, bp.pair_key, bp.pair_count],
-                outputs=[self.pair_xi],
-                device=dev,
-            )
+        wp.launch(
+            remap_history_kernel,
+            dim=cap,
+            inputs=[
+                self.old_key,
+                self.old_count,
+                self.old_xi,
+                self.old_turn,
+                bp.pair_key,
+                bp.pair_count,
+                int(self.model.friction),
+            ],
+            outputs=[self.pair_xi, self.pair_turn],
+            device=dev,
+        )
         wp.launch(
             b_keys_kernel,
             dim=cap,
@@ -192,13 +203,15 @@ class Simulation:
             self.old_count.zero_()
         bp.build(self.body_q, m.body_radius, m.body_flags)
         if bp.capacity != self._capacity:
-            old = (self.old_key, self.old_xi, self.old_count) if self._capacity else None
+            old = (self.old_key, self.old_xi, self.old_turn, self.old_count) if self._capacity else None
             self._allocate_pairs(bp.capacity)
-            if old is not None and history and self.model.friction:
+            if old is not None and history:
                 n_old = min(len(old[0]), bp.capacity)
                 wp.copy(self.old_key, old[0], count=n_old)
-                wp.copy(self.old_xi, old[1], count=n_old)
-                wp.copy(self.old_count, old[2])
+                if self.model.friction:
+                    wp.copy(self.old_xi, old[1], count=n_old)
+                wp.copy(self.old_turn, old[2], count=n_old)
+                wp.copy(self.old_count, old[3])
         self._after_rebuild()
 
     def _device_rebuild(self):
@@ -233,6 +246,7 @@ class Simulation:
                 bp.pair_b,
                 bp.pair_count,
                 self.pair_xi,
+                self.pair_turn,
             ],
             outputs=[
                 self.pair_force,
@@ -279,6 +293,7 @@ class Simulation:
                 self.pair_torque_a,
                 self.pair_dissipated,
                 self.plane_xi,
+                self.plane_turn,
                 self.body_dissipated,
             ],
             outputs=[
@@ -398,7 +413,9 @@ class Simulation:
             "w": self.body_w,
             "diss": self.body_dissipated,
             "plane_xi": self.plane_xi,
+            "plane_turn": self.plane_turn,
             "xi": self.pair_xi,
+            "turn": self.pair_turn,
             "key": bp.pair_key,
             "count": bp.pair_count,
             "step": self.step_count,
@@ -418,17 +435,19 @@ class Simulation:
         wp.copy(self.body_w, s["w"])
         wp.copy(self.body_dissipated, s["diss"])
         wp.copy(self.plane_xi, s["plane_xi"])
+        wp.copy(self.plane_turn, s["plane_turn"])
         wp.copy(self.step_count, s["step"])
-        # A fresh host build from the restored poses; the springs come back through their keys.
+        # A fresh host build from the restored poses; the pair histories come back through their keys.
         bp = self.broadphase
         bp.build(self.body_q, self.model.body_radius, self.model.body_flags)
         if bp.capacity != self._capacity:
             self._allocate_pairs(bp.capacity)
+        n_old = min(int(s["count"].numpy()[0]), len(s["key"]), self._capacity)
+        wp.copy(self.old_key, s["key"], count=n_old)
+        wp.copy(self.old_turn, s["turn"], count=n_old)
         if self.model.friction:
-            n_old = min(int(s["count"].numpy()[0]), len(s["key"]), self._capacity)
-            wp.copy(self.old_key, s["key"], count=n_old)
             wp.copy(self.old_xi, s["xi"], count=n_old)
-            self.old_count.fill_(n_old)
+        self.old_count.fill_(n_old)
         self._after_rebuild()
 
     def _run_chunk(self, steps):
