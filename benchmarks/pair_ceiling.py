@@ -182,8 +182,7 @@ class Mirror:
     def clip_face(self, c, face, face_is_a, planes, plane_ids, num_planes, rot, pos, tol):
         mp = self.max_poly
         zero3 = np.zeros(3)
-        poly = np.zeros((2 * mp, 3))
-        c.move("local_init", scalars=2 * mp * 3)
+        poly = np.zeros((2 * mp, 3))  # one buffer per pair in the kernel: zero-filled once, below
         begin = self.loop_start[face]
         count = self.loop_start[face + 1] - begin
         sph = self.face_sphere[face]
@@ -446,6 +445,7 @@ class Mirror:
         vol, vol_c = 0.0, zero3
         s_a, m_a, s_b, m_b = zero3, zero3, zero3, zero3
         overflow = 0
+        c.move("local_init", scalars=2 * self.max_poly * 3)  # the polygon buffer, once per pair
         for j in range(len(ids_a)):
             c.move("local_ld", ints=1)
             area, area_c, surface, of = self.clip_face(c, ids_a[j], True, planes_b, ids_b, len(ids_b), rot, pos, tol)

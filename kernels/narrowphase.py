@@ -255,6 +255,24 @@ def make_narrowphase(
             num_b += 1
 
         origin = pos * (scalar(0.5) * (tau_a + tau_b))
+        if wp.length_sq(origin - pos) > rb * rb:
+            # The line of centres misses the overlap (a small body B on a big face of A, far from
+            # A's centre): that apex would lie far outside it, and the cone volumes, each as large
+            # as the distance makes them, would cancel to V with a float32 error far larger than V.
+            # Take instead the foot of B's centre on the active plane of A it lies farthest above:
+            # within B's sphere, and on the contact face, whose cones then vanish exactly.
+            s_top = -(ra + rb)
+            foot = pos
+            for j in range(num_a):
+                pl = face_plane[ids_a[j]]
+                n = vec3(pl[0], pl[1], pl[2])
+                sj = wp.dot(n, pos) - pl[3]
+                if sj > s_top:
+                    s_top = sj
+                    foot = pos - sj * n
+            origin = pos
+            if s_top > scalar(0.0):
+                origin = foot
         vol = scalar(0.0)
         vol_c = zero3
         s_a = zero3

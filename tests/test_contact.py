@@ -439,6 +439,32 @@ def test_small_body_resting_on_a_huge_one(device, precision):
         assert abs(f.force_a[0, 0]) < 1e-2 * f.force_a[0, 2]
 
 
+def test_float32_small_body_far_out_on_a_huge_floor(device):
+    """Cubes of 1 cm in any orientation (face, edge or corner down) pressed 1 um to 1 mm into an
+    18 m floor plate, up to 8 m from its centre. The line of centres then misses the overlap, so the
+    cones that integrate V take their apex on the floor's top face under the cube: V stays within a
+    few 1e-6 of the cube's volume of the float64 value (with the apex on the line of centres, 1.5 m
+    from the overlap, the error was 7e-4 of it, larger than many of the overlaps themselves)."""
+    cube = ConvexShape.box(0.01)
+    plate = ConvexShape.box(17.84, 17.84, 0.01)
+    rng = np.random.default_rng(5)
+    n = 200
+    pa = np.zeros((n, 7))
+    for k in range(n):
+        rot = Rotation.random(random_state=int(rng.integers(2**31)))
+        low = rot.apply(np.array(cube.vertices))[:, 2].min()
+        xy = rng.uniform(-8.0, 8.0, 2)
+        pa[k] = [xy[0], xy[1], -low - 10.0 ** rng.uniform(-6, -3), *rot.as_quat()]
+    pb = np.tile([0.0, 0.0, -0.005, 0.0, 0.0, 0.0, 1.0], (n, 1))
+    r32 = overlap(cube, pa, plate, pb, device=device, precision="float32")
+    r64 = overlap(cube, pa, plate, pb, device=device, precision="float64")
+    assert np.abs(r32.volume - r64.volume).max() < 2e-5 * cube.volume
+    real = r64.volume > 1e-4 * cube.volume
+    assert real.sum() > 10
+    np.testing.assert_allclose(r32.volume[real], r64.volume[real], rtol=5e-3)
+    np.testing.assert_allclose(r32.area_vector[real], r64.area_vector[real], atol=1e-3 * 1e-4)
+
+
 def test_float32_world_poses_small_body_on_a_huge_one(device):
     """The simulator feeds float32 world poses straight to the kernel (no float64 shift). A 1 cm
     cube resting, tilted 0.5 degrees, on a 6 m floor 2.6 m from its centre: the clipping runs in
