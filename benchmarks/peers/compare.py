@@ -215,6 +215,8 @@ def compare_pours(peers_dir, skip_overlaps):
         }
         row["device_kind"] = device_kind(run)
         row["ns_per_body_step"] = 1e9 / run["body_steps_per_s"]
+        # A code with a longer step covers more simulated time per step: compare that too.
+        row["simulated_s_per_wall_s"] = run["dt"] / run["step_s"] if run.get("dt") else None
         scene_path = os.path.join(peers_dir, f"pour_{n}.json")
         if not skip_overlaps and os.path.exists(scene_path):
             with open(scene_path) as f:
@@ -234,6 +236,8 @@ def compare_pours(peers_dir, skip_overlaps):
         ]
         if ref:
             row["polydem_speedup"] = ref[0]["body_steps_per_s"] / row["body_steps_per_s"]
+            if ref[0]["simulated_s_per_wall_s"] and row["simulated_s_per_wall_s"]:
+                row["polydem_speedup_simulated_time"] = ref[0]["simulated_s_per_wall_s"] / row["simulated_s_per_wall_s"]
             row["polydem_reference"] = ref[0]["file"]
     return rows
 
@@ -266,15 +270,17 @@ def main():
     if out["pours"]:
         print("\npours (same scene and protocol; see pour_scene.py):")
         print(
-            f"{'code':<9}{'device':<14}{'thr':>4}{'N':>7}{'ms/step':>10}{'ns/body-step':>13}{'speed-up':>9}"
-            f"{'max overlap':>12}{'overlapping':>12}"
+            f"{'code':<9}{'device':<14}{'thr':>4}{'N':>7}{'dt':>9}{'ms/step':>10}{'ns/body-step':>13}{'speed-up':>9}"
+            f"{'sim s/s':>9}{'sim-time x':>11}{'max overlap':>12}{'overlapping':>12}"
         )
         for r in out["pours"]:
             fo = r.get("final_overlaps", {})
             print(
                 f"{r['code']:<9}{str(r['device'])[:13]:<14}{str(r.get('threads') or '-'):>4}{r['grains']:>7}"
-                f"{1e3 * r['step_s']:>10.3f}{r['ns_per_body_step']:>13.0f}"
+                f"{r['dt']:>9.3g}{1e3 * r['step_s']:>10.3f}{r['ns_per_body_step']:>13.0f}"
                 f"{(format(r['polydem_speedup'], '.1f') + 'x') if 'polydem_speedup' in r else '-':>9}"
+                f"{format(r['simulated_s_per_wall_s'] or 0.0, '.3g'):>9}"
+                f"{(format(r['polydem_speedup_simulated_time'], '.2g') + 'x') if 'polydem_speedup_simulated_time' in r else '-':>11}"
                 f"{(format(100 * fo['max_overlap_volume_fraction'], '.2f') + '%') if fo else '-':>12}"
                 f"{fo.get('overlapping_pairs', '-'):>12}"
             )
