@@ -275,12 +275,13 @@ def main():
         )
         for r in out["pours"]:
             fo = r.get("final_overlaps", {})
+            sim_x = r.get("polydem_speedup_simulated_time")
             print(
                 f"{r['code']:<9}{str(r['device'])[:13]:<14}{str(r.get('threads') or '-'):>4}{r['grains']:>7}"
                 f"{r['dt']:>9.3g}{1e3 * r['step_s']:>10.3f}{r['ns_per_body_step']:>13.0f}"
                 f"{(format(r['polydem_speedup'], '.1f') + 'x') if 'polydem_speedup' in r else '-':>9}"
                 f"{format(r['simulated_s_per_wall_s'] or 0.0, '.3g'):>9}"
-                f"{(format(r['polydem_speedup_simulated_time'], '.2g') + 'x') if 'polydem_speedup_simulated_time' in r else '-':>11}"
+                f"{(format(sim_x, '.2g') + 'x') if sim_x else '-':>11}"
                 f"{(format(100 * fo['max_overlap_volume_fraction'], '.2f') + '%') if fo else '-':>12}"
                 f"{fo.get('overlapping_pairs', '-'):>12}"
             )
