@@ -221,7 +221,14 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             ft_norm = wp.length(ft)
             if ft_norm > cap:
                 ft = ft * (cap / ft_norm)
+                # Sliding: the spring takes the capped force, but never more length than the
+                # displacement xt gave it: when the dashpot pushed the force over the cap,
+                # xi = -ft / kt would lengthen the spring and store energy that no work put there.
                 xi_new = ft * (-1.0 / kt)
+                l_new = wp.length(xi_new)
+                l_max = wp.length(xt)
+                if l_new > l_max:
+                    xi_new = xi_new * (l_max / l_new)
             else:
                 xi_new = xt
             # Work taken from the bodies less what the spring stored is what friction dissipated.

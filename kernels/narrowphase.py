@@ -197,7 +197,7 @@ def make_narrowphase(
             pl = face_plane[f]
             n = vec3(pl[0], pl[1], pl[2])
             sigma = wp.dot(n, pos)
-            if sigma > pl[3] * tau_a:
+            if sigma * tau_a > pl[3]:  # d / sigma < tau_a: the line leaves A earlier here
                 tau_a = pl[3] / sigma
             s = sigma - pl[3]
             if s > rb:
@@ -228,7 +228,7 @@ def make_narrowphase(
             pl = face_plane[g]
             n = vec3(pl[0], pl[1], pl[2])
             sigma = wp.dot(n, pos_b)
-            if sigma > pl[3] * (scalar(1.0) - tau_b):
+            if sigma * (scalar(1.0) - tau_b) > pl[3]:  # 1 - d / sigma > tau_b: it enters B later here
                 tau_b = scalar(1.0) - pl[3] / sigma
             s = sigma - pl[3]
             if s > ra:
@@ -255,12 +255,14 @@ def make_narrowphase(
             num_b += 1
 
         origin = pos * (scalar(0.5) * (tau_a + tau_b))
-        if wp.length_sq(origin - pos) > rb * rb:
-            # The line of centres misses the overlap (a small body B on a big face of A, far from
-            # A's centre): that apex would lie far outside it, and the cone volumes, each as large
-            # as the distance makes them, would cancel to V with a float32 error far larger than V.
-            # Take instead the foot of B's centre on the active plane of A it lies farthest above:
-            # within B's sphere, and on the contact face, whose cones then vanish exactly.
+        if tau_b > tau_a:
+            # The line of centres misses the overlap (it leaves A before it enters B: a body lying
+            # on a big face of the other, away from its centre). The apex would lie outside the
+            # overlap, up to metres from it, and in float32 the facets close only to ~1e-3 of their
+            # area: that gap times the apex's distance came out as V errors of 10-100x for shallow
+            # face contacts of a cube on a floor box (and flickering forces). Take instead the foot
+            # of B's centre on the active plane of A it lies farthest above: within B's sphere, and
+            # on the contact face, whose cones then vanish exactly.
             s_top = -(ra + rb)
             foot = pos
             for j in range(num_a):
