@@ -350,7 +350,7 @@ class Mirror:
             n = pl[:3]
             sigma = float(n @ pos)
             c(DOT, mul=1, cmp=1)
-            if sigma > pl[3] * tau_a:
+            if sigma * tau_a > pl[3]:
                 tau_a = pl[3] / sigma
                 c(div=1)
             s = sigma - pl[3]
@@ -398,7 +398,7 @@ class Mirror:
             n = pl[:3]
             sigma = float(n @ pos_b)
             c(DOT, add=1, mul=1, cmp=1)
-            if sigma > pl[3] * (1.0 - tau_b):
+            if sigma * (1.0 - tau_b) > pl[3]:
                 tau_b = 1.0 - pl[3] / sigma
                 c(div=1, add=1)
             s = sigma - pl[3]
@@ -441,7 +441,21 @@ class Mirror:
             c.move("local_st", scalars=4, ints=1)
 
         origin = pos * (0.5 * (tau_a + tau_b))
-        c(add=1, mul=1 + 3)
+        c(add=1, mul=1 + 3, cmp=1)
+        if tau_b > tau_a:
+            # The line of centres misses the overlap: apex at the foot of B's centre on the active
+            # plane of A that it lies farthest above (as in the kernel).
+            s_top, foot = -(ra + rb), pos
+            for f in ids_a:
+                pl = fp[f]
+                c.move("shape_ld", scalars=4)
+                sj = float(pl[:3] @ pos) - pl[3]
+                c(DOT, add=1, cmp=1)
+                if sj > s_top:
+                    s_top, foot = sj, pos - sj * pl[:3]
+                    c(add=3, mul=3)
+            origin = foot if s_top > 0.0 else pos
+            c(cmp=1)
         vol, vol_c = 0.0, zero3
         s_a, m_a, s_b, m_b = zero3, zero3, zero3, zero3
         overflow = 0
