@@ -22,3 +22,46 @@ def git_state():
     except Exception:  # no git: the figures simply carry no provenance
         pass
     return out
+
+
+def run_meta(device=None):
+    """Machine, command line, date and git state of a benchmark run; with a Warp ``device`` also
+    the device, Warp's version and, on CUDA, the GPU's properties. Plain Python otherwise (the Yade
+    and Newton scripts use it too)."""
+    import datetime
+    import platform
+    import sys
+
+    meta = {
+        "python": platform.python_version(),
+        "machine": platform.platform(),
+        "processor": platform.processor(),
+        "cpu_count": os.cpu_count(),
+        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    if device is not None:
+        import numpy as np
+        import warp as wp
+
+        meta.update(
+            {
+                "device": device.name,
+                "alias": device.alias,
+                "is_cuda": device.is_cuda,
+                "warp": wp.config.version,
+                "numpy": np.__version__,
+            }
+        )
+        if device.is_cuda:
+            meta["memory_bytes"] = getattr(device, "total_memory", None)
+            meta["arch"] = getattr(device, "arch", None)
+            meta["sm_count"] = getattr(device, "sm_count", None)
+            meta["mempool_enabled"] = bool(wp.is_mempool_enabled(device))
+            try:
+                meta["cuda_driver"] = wp.get_cuda_driver_version()
+                meta["cuda_toolkit"] = wp.get_cuda_toolkit_version()
+            except Exception:
+                pass
+    meta.update(git_state())
+    return meta

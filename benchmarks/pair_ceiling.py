@@ -44,11 +44,9 @@ Results: a table on stdout and JSON ``benchmarks/results/pair_ceiling_<device>.j
 import argparse
 import collections
 import csv
-import datetime
 import io
 import json
 import os
-import platform
 import re
 import shutil
 import subprocess
@@ -63,7 +61,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 import pair_kernel as pk  # noqa: E402  (benchmarks/pair_kernel.py: pair generation and timing)
-from _meta import git_state  # noqa: E402
+from _meta import run_meta  # noqa: E402
 from polydem.kernels.narrowphase import COINCIDENT_TOL, COORDINATE_NOISE  # noqa: E402
 
 import polydem  # noqa: E402
@@ -822,27 +820,6 @@ def parse_ncu_csv(text):
 # ---------------------------------------------------------------------------------------------
 
 
-def machine_meta(device):
-    meta = {
-        "device": device.name,
-        "alias": device.alias,
-        "is_cuda": device.is_cuda,
-        "warp": wp.config.version,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    }
-    if device.is_cuda:
-        meta["arch"] = getattr(device, "arch", None)
-        meta["sm_count"] = getattr(device, "sm_count", None)
-    meta.update(git_state())
-    return meta
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
@@ -868,7 +845,7 @@ def main():
     repeats = args.repeats or (20 if dev.is_cuda else 5)
     out = args.out or os.path.join(RESULTS, f"pair_ceiling_{dev.alias.replace(':', '')}.json")
     record = {
-        "meta": machine_meta(dev),
+        "meta": run_meta(dev),
         "config": {k: v for k, v in vars(args).items() if k not in ("out", "ncu_child")},
     }
     record["config"]["pairs"] = n

@@ -12,7 +12,6 @@ do), in float32 and float64. Prints a table and writes JSON.
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 
@@ -25,6 +24,8 @@ from polydem.shapeset import ShapeSet
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+sys.path.insert(0, HERE)
+from _meta import run_meta  # noqa: E402
 
 
 def shape_library():
@@ -193,14 +194,7 @@ def main():
 
 def write(path, dev, rows):
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    meta = {
-        "device": dev.name,
-        "alias": dev.alias,
-        "warp": wp.config.version,
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "command": " ".join(sys.argv),
-    }
+    meta = run_meta(dev)
     with open(path, "w") as f:
         json.dump({"meta": meta, "rows": rows}, f, indent=1)
 

@@ -61,13 +61,10 @@ run cut short keeps what it measured.
 """
 
 import argparse
-import datetime
 import gc
 import json
 import math
 import os
-import platform
-import subprocess
 import sys
 import time
 import traceback
@@ -77,6 +74,9 @@ import warp as wp
 
 from polydem import ConvexShape, Scene, Simulation
 from polydem.simulation import CHUNK_STEPS as CHUNK
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _meta import run_meta  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SQRT3 = math.sqrt(3.0)
@@ -632,49 +632,7 @@ def _stage(r, key):
     return "-" if v is None else f"{1e3 * v:.3f}"
 
 
-def machine_meta(device):
-    meta = {
-        "device": device.name,
-        "alias": device.alias,
-        "is_cuda": device.is_cuda,
-        "warp": wp.config.version,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "command": " ".join([sys.executable, *sys.argv]),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    }
-    if device.is_cuda:
-        meta["memory_bytes"] = getattr(device, "total_memory", None)
-        meta["arch"] = getattr(device, "arch", None)
-        meta["mempool_enabled"] = bool(wp.is_mempool_enabled(device))
-        meta["sm_count"] = getattr(device, "sm_count", None)
-        try:
-            meta["cuda_driver"] = wp.get_cuda_driver_version()
-            meta["cuda_toolkit"] = wp.get_cuda_toolkit_version()
-        except Exception:
-            pass
-    try:
-        meta["git_commit"] = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=HERE, capture_output=True, text=True, timeout=10
-        ).stdout.strip()
-        meta["git_dirty"] = bool(
-            subprocess.run(
-                ["git", "status", "--porcelain", "--", "src", "kernels"],
-                cwd=HERE,
-                capture_output=True,
-                text=True,
-                timeout=10,
-            ).stdout.strip()
-        )
-    except Exception:
-        pass
-    return meta
-
-
-def main():
+def make_parser():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
     ap.add_argument("--sizes", default=None, help="comma-separated cube counts (default 1e3..1e6 GPU, 1e3,1e4 CPU)")
@@ -707,10 +665,27 @@ def main():
     ap.add_argument("--gap", default="0.002,0.02", help="min,max gap between stacked cubes [edges]")
     ap.add_argument("--spin", type=float, default=0.0, help="initial angular speed [rad/s], random axes")
     ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
+    return ap
+
+
+def parse_args(ap, argv=None):
+    args = ap.parse_args(argv)
     args.gap = tuple(float(v) for v in args.gap.split(","))
     if len(args.gap) != 2 or not 0.0 <= args.gap[0] <= args.gap[1]:
         ap.error("--gap needs two numbers 0 <= min <= max")
+    return args
+
+
+def scene_options(**overrides):
+    """This benchmark's scene options at their defaults (for the scripts that build the same pile)."""
+    args = parse_args(make_parser(), [])
+    for key, value in overrides.items():
+        setattr(args, key, value)
+    return args
+
+
+def main():
+    args = parse_args(make_parser())
 
     wp.config.quiet = True
     wp.init()
@@ -729,7 +704,7 @@ def main():
     out = args.out or os.path.join(HERE, "results", f"settle_{device.alias.replace(':', '')}.json")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
 
-    meta = machine_meta(device)
+    meta = run_meta(device)
     config = {k: v for k, v in vars(args).items() if k != "out"}
     config["sizes"] = sizes
     records = []

@@ -62,18 +62,15 @@ from the JSON.
 """
 
 import argparse
-import datetime
 import json
 import math
 import os
-import platform
 import sys
 import time
-import types
 
 import numpy as np
 import warp as wp
-from _meta import git_state
+from _meta import run_meta
 
 import polydem
 from polydem import ConvexShape, Scene, Simulation
@@ -427,20 +424,7 @@ def load_settle_module():
 
 def settle_args():
     """The defaults of benchmarks/settle.py's scene options."""
-    return types.SimpleNamespace(
-        layers=10,
-        edge=0.01,
-        density=2500.0,
-        restitution=0.5,
-        friction=0.5,
-        overlap=0.01,
-        load_factor=20.0,
-        margin=0.03,
-        gap=(0.002, 0.02),
-        spin=0.0,
-        walls="box",
-        seed=0,
-    )
+    return load_settle_module().scene_options()
 
 
 def modified_energy(sim, en):
@@ -612,6 +596,14 @@ def plots(record, prefix):
         log("matplotlib is not installed: no plots (pip install matplotlib, or the 'plot' extra)")
         return []
     written = []
+
+    def save(fig, part):
+        fig.tight_layout()
+        path = f"{prefix}_{part}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+
     dev = record["meta"]["device"]
     imp = record.get("impacts", {}).get("cases")
     if imp:
@@ -639,11 +631,7 @@ def plots(record, prefix):
             f"{record['impacts']['fractions'][-1]:g} x dt_recommended ({dev}); reference = smallest dt",
             fontsize=11,
         )
-        fig.tight_layout()
-        path = f"{prefix}_impacts.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        save(fig, "impacts")
     st = record.get("settle", {}).get("runs")
     if st:
         fig, ax = plt.subplots(1, 2, figsize=(12, 4.8))
@@ -667,11 +655,7 @@ def plots(record, prefix):
         ax[1].grid(True, which="both", alpha=0.3)
         ax[1].legend(fontsize=8)
         fig.suptitle(f"Settling pile of cubes ({dev})", fontsize=11)
-        fig.tight_layout()
-        path = f"{prefix}_settle.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        save(fig, "settle")
     pair = record.get("pair", {}).get("sources")
     if pair:
         fig, ax = plt.subplots(1, 2, figsize=(12, 4.8))
@@ -697,35 +681,13 @@ def plots(record, prefix):
             a.grid(True, which="both", alpha=0.3)
         ax[0].legend(fontsize=7, ncol=2)
         fig.suptitle("Pair kernel: float32 (blue) and float64 (red), error against cost", fontsize=11)
-        fig.tight_layout()
-        path = f"{prefix}_pair.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        save(fig, "pair")
     for p in written:
         log(f"wrote {p}")
     return written
 
 
 # ---------------------------------------------------------------------------------------------
-
-
-def machine_meta(device):
-    meta = {
-        "device": device.name,
-        "alias": device.alias,
-        "is_cuda": device.is_cuda,
-        "warp": wp.config.version,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    }
-    meta.update(git_state())
-    return meta
 
 
 def main():
@@ -758,7 +720,7 @@ def main():
     device = wp.get_device(args.device)
     out = args.out or os.path.join(RESULTS, f"work_precision_{device.alias.replace(':', '')}.json")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    record = {"meta": machine_meta(device), "config": {k: v for k, v in vars(args).items() if k != "out"}}
+    record = {"meta": run_meta(device), "config": {k: v for k, v in vars(args).items() if k != "out"}}
 
     def save():
         tmp = out + ".tmp"

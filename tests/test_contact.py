@@ -439,6 +439,21 @@ def test_small_body_resting_on_a_huge_one(device, precision):
         assert abs(f.force_a[0, 0]) < 1e-2 * f.force_a[0, 2]
 
 
+def cubes_pressed_into_a_plate(device, cube, plate, rng, n, rotation, half_width, depth_exponents):
+    """float32 and float64 overlaps of ``n`` cubes turned by ``rotation(rng)``, anywhere within
+    ``half_width`` of the centre of a plate whose top face is z = 0, their lowest vertex
+    10^uniform(*depth_exponents) m below it."""
+    pa = np.zeros((n, 7))
+    for k in range(n):
+        rot = rotation(rng)
+        low = rot.apply(np.array(cube.vertices))[:, 2].min()
+        xy = rng.uniform(-half_width, half_width, 2)
+        pa[k] = [xy[0], xy[1], -low - 10.0 ** rng.uniform(*depth_exponents), *rot.as_quat()]
+    thickness = np.ptp(np.array(plate.vertices)[:, 2])
+    pb = np.tile([0.0, 0.0, -0.5 * thickness, 0.0, 0.0, 0.0, 1.0], (n, 1))
+    return tuple(overlap(cube, pa, plate, pb, device=device, precision=p) for p in ("float32", "float64"))
+
+
 def test_float32_cubes_resting_flat_on_a_floor_box(device):
     """Cubes lying face down, tilted by 1e-7 to 1e-4 rad, 10 nm to 1 um deep in a 20 cm floor box,
     anywhere on it: the line of centres from the floor's centre leaves the floor before it enters
@@ -446,24 +461,19 @@ def test_float32_cubes_resting_flat_on_a_floor_box(device):
     a resting cube's V came out 10-170x too large, its force flickered between 0 and 75 weights)
     put the apex millimetres from the overlap, where float32 facets, which close only to ~1e-3 of
     their area, leave V errors of 1e-3 of the cube's volume. Now within 1e-6 of it."""
-    cube = ConvexShape.box(0.01)
-    plate = ConvexShape.box(0.2, 0.2, 0.018)
-    rng = np.random.default_rng(7)
-    n = 300
-    pa = np.zeros((n, 7))
-    for k in range(n):
+
+    def tilted_face_down(rng):
         axis = rng.normal(size=3)
         axis[2] = 0.0
         axis /= np.linalg.norm(axis)
-        rot = Rotation.from_rotvec(axis * 10.0 ** rng.uniform(-7, -4)) * Rotation.from_euler(
-            "z", rng.uniform(0.0, 90.0), degrees=True
-        )
-        low = rot.apply(np.array(cube.vertices))[:, 2].min()
-        xy = rng.uniform(-0.09, 0.09, 2)
-        pa[k] = [xy[0], xy[1], -low - 10.0 ** rng.uniform(-8, -6), *rot.as_quat()]
-    pb = np.tile([0.0, 0.0, -0.009, 0.0, 0.0, 0.0, 1.0], (n, 1))
-    r32 = overlap(cube, pa, plate, pb, device=device, precision="float32")
-    r64 = overlap(cube, pa, plate, pb, device=device, precision="float64")
+        tilt = Rotation.from_rotvec(axis * 10.0 ** rng.uniform(-7, -4))
+        return tilt * Rotation.from_euler("z", rng.uniform(0.0, 90.0), degrees=True)
+
+    cube = ConvexShape.box(0.01)
+    plate = ConvexShape.box(0.2, 0.2, 0.018)
+    r32, r64 = cubes_pressed_into_a_plate(
+        device, cube, plate, np.random.default_rng(7), 300, tilted_face_down, 0.09, (-8, -6)
+    )
     assert np.abs(r32.volume - r64.volume).max() < 1e-6 * cube.volume
     real = r64.volume > 1e-5 * cube.volume  # deeper than 0.1 um on average
     assert real.sum() > 50
@@ -478,17 +488,10 @@ def test_float32_small_body_far_out_on_a_huge_floor(device):
     from the overlap, the error was 7e-4 of it, larger than many of the overlaps themselves)."""
     cube = ConvexShape.box(0.01)
     plate = ConvexShape.box(17.84, 17.84, 0.01)
-    rng = np.random.default_rng(5)
-    n = 200
-    pa = np.zeros((n, 7))
-    for k in range(n):
-        rot = Rotation.random(random_state=int(rng.integers(2**31)))
-        low = rot.apply(np.array(cube.vertices))[:, 2].min()
-        xy = rng.uniform(-8.0, 8.0, 2)
-        pa[k] = [xy[0], xy[1], -low - 10.0 ** rng.uniform(-6, -3), *rot.as_quat()]
-    pb = np.tile([0.0, 0.0, -0.005, 0.0, 0.0, 0.0, 1.0], (n, 1))
-    r32 = overlap(cube, pa, plate, pb, device=device, precision="float32")
-    r64 = overlap(cube, pa, plate, pb, device=device, precision="float64")
+    r32, r64 = cubes_pressed_into_a_plate(
+        device, cube, plate, np.random.default_rng(5), 200,
+        lambda rng: Rotation.random(random_state=int(rng.integers(2**31))), 8.0, (-6, -3),
+    )  # fmt: skip
     assert np.abs(r32.volume - r64.volume).max() < 2e-5 * cube.volume
     real = r64.volume > 1e-4 * cube.volume
     assert real.sum() > 10

@@ -27,10 +27,8 @@ so that compare.py can also measure the overlaps with polydem's exact geometry.
 """
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import sys
 import time
 
@@ -38,6 +36,20 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT_DIR = os.path.join(HERE, "..", "results", "peers")
+sys.path.insert(0, os.path.dirname(HERE))
+from _meta import run_meta  # noqa: E402
+
+
+def shape_config(newton, sc, args):
+    """Newton shape settings from the exported material (friction, restitution) and the options."""
+    cfg = newton.ModelBuilder.ShapeConfig()
+    cfg.mu = sc["material"]["friction"]
+    cfg.restitution = sc["material"]["restitution"]
+    if args.ke is not None:
+        cfg.ke = args.ke
+    if args.kd is not None:
+        cfg.kd = args.kd
+    return cfg
 
 
 def build_model(sc, device, args):
@@ -48,14 +60,8 @@ def build_model(sc, device, args):
     # Newton's default detection gap is 0.1 m, ten cube edges: every cube would be paired with
     # hundreds of neighbours (and the contact buffer overflows). Use polydem's Verlet skin instead.
     builder.rigid_gap = args.gap if args.gap is not None else sc.get("skin", 0.2 * 0.5 * np.sqrt(3.0) * sc["edge"])
-    cfg = newton.ModelBuilder.ShapeConfig()
+    cfg = shape_config(newton, sc, args)
     cfg.density = sc["density"]
-    cfg.mu = sc["material"]["friction"]
-    cfg.restitution = sc["material"]["restitution"]
-    if args.ke is not None:
-        cfg.ke = args.ke
-    if args.kd is not None:
-        cfg.kd = args.kd
     verts = np.asarray(sc["cube_body_vertices"], dtype=np.float32)
     tris = np.asarray(sc["cube_triangles"], dtype=np.int32).reshape(-1)
     mesh = newton.Mesh(verts, tris)
@@ -70,13 +76,7 @@ def build_model(sc, device, args):
             builder.add_shape_box(body, hx=half, hy=half, hz=half, cfg=cfg)
         else:
             builder.add_shape_convex_hull(body, mesh=mesh, cfg=cfg)
-    wall_cfg = newton.ModelBuilder.ShapeConfig()
-    wall_cfg.mu = sc["material"]["friction"]
-    wall_cfg.restitution = sc["material"]["restitution"]
-    if args.ke is not None:
-        wall_cfg.ke = args.ke
-    if args.kd is not None:
-        wall_cfg.kd = args.kd
+    wall_cfg = shape_config(newton, sc, args)
     for w in sc["walls"]:
         hx, hy, hz = w["half_extents_body"]
         builder.add_shape_box(
@@ -274,14 +274,7 @@ def main():
         "max_penetration_at_rest_edges": pen_rest / sc["edge"],
         "max_speed_at_rest_m_s": speed,
         "final": {"position": q[:n, :3].tolist(), "orientation_xyzw": q[:n, 3:7].tolist()},
-        "meta": {
-            "machine": platform.platform(),
-            "processor": platform.processor(),
-            "cpu_count": os.cpu_count(),
-            "python": platform.python_version(),
-            "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
-            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        },
+        "meta": run_meta(device),
     }
     os.makedirs(OUT_DIR, exist_ok=True)
     tag = "" if (args.solver, args.shape) == ("xpbd", "hull") else f"_{args.solver}_{args.shape}"

@@ -21,13 +21,10 @@ format that the peers' scripts write.
 """
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import sys
 import time
-import types
 
 import numpy as np
 
@@ -35,25 +32,14 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 BENCH = os.path.dirname(HERE)
 OUT_DIR = os.path.join(BENCH, "results", "peers")
 sys.path.insert(0, BENCH)
-from _meta import git_state  # noqa: E402
+from _meta import run_meta  # noqa: E402
 
 
 def settle_options(layers=10):
     """benchmarks/settle.py's defaults for the scene."""
-    return types.SimpleNamespace(
-        layers=layers,
-        edge=0.01,
-        density=2500.0,
-        restitution=0.5,
-        friction=0.5,
-        overlap=0.01,
-        load_factor=20.0,
-        margin=0.03,
-        gap=(0.002, 0.02),
-        spin=0.0,
-        walls="box",
-        seed=0,
-    )
+    import settle
+
+    return settle.scene_options(layers=layers)
 
 
 def build(n):
@@ -188,7 +174,7 @@ def run_polydem(n, device, warmup, steps, out, settle_time=0.0):
             "position": st["body_position"][free].tolist(),
             "orientation_xyzw": st["body_orientation"][free].tolist(),
         },
-        "meta": meta(),
+        "meta": run_meta(dev),
     }
     with open(out, "w") as f:
         json.dump(result, f)
@@ -205,18 +191,6 @@ def run_polydem(n, device, warmup, steps, out, settle_time=0.0):
         flush=True,
     )
     return result
-
-
-def meta():
-    return {
-        **git_state(),
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "command": " ".join([os.path.basename(sys.executable), *sys.argv]),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    }
 
 
 def main():

@@ -21,11 +21,9 @@ Yade's own overlap volumes are written to ``results/peers/yade_pour_<N>_j<thread
 """
 
 import argparse
-import datetime
 import json
 import math
 import os
-import platform
 import sys
 import time
 
@@ -55,6 +53,8 @@ def _script_dir():
 
 HERE = _script_dir()
 OUT_DIR = os.path.normpath(os.path.join(HERE, "..", "results", "peers"))
+sys.path.insert(0, os.path.dirname(HERE))
+from _meta import run_meta  # noqa: E402
 
 
 def _yade_version():
@@ -177,13 +177,7 @@ def main(argv):
         "contacts": len(vols),
         "max_overlap_volume_fraction_own": (max(vols) / sc["cube_volume"]) if vols else 0.0,
         "final": {"position": final_pos, "orientation_xyzw": final_q, "world_vertices": world_vertices},
-        "meta": {
-            "machine": platform.platform(),
-            "cpu_count": os.cpu_count(),
-            "python": platform.python_version(),
-            "command": "yade " + " ".join(sys.argv),
-            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        },
+        "meta": {**run_meta(), "command": "yade " + " ".join(sys.argv)},
     }
     out = args.out or os.path.join(OUT_DIR, f"yade_pour_{n}_j{threads}.json")
     with open(out, "w") as f:
