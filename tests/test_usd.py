@@ -256,3 +256,231 @@ def test_errors(tmp_path, run):
 def test_import_polydem_does_not_import_pxr():
     code = "import sys, polydem, polydem.usd; assert 'pxr' not in sys.modules, 'pxr imported'"
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+
+
+# ---------------------------------------------------------------------- precision and velocities
+
+
+def random_quaternions(n, seed=0):
+    q = np.random.default_rng(seed).normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def cubes(n):
+    scene = polydem.Scene(name="many")
+    scene.add_material("m", density=1000, law="linear", k=1e6, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.1))
+    for i in range(n):
+        scene.add_body("cube", "m", position=(0.2 * i, 0, 0))
+    return scene
+
+
+def instance_rotations(inst, code):
+    """(N, 3, 3) rotations of the instances as USD computes them (column-vector convention)."""
+    xforms = inst.ComputeInstanceTransformsAtTime(Usd.TimeCode(code), Usd.TimeCode(code))
+    return np.array([np.array(m.ExtractRotationMatrix()).T for m in xforms])
+
+
+@pytest.mark.parametrize("ext", [".usdc", ".usda"])
+def test_orientations_in_float_by_default_and_in_half_for_old_readers(tmp_path, ext):
+    n = 500
+    scene = cubes(n)
+    q = random_quaternions(n)
+    path = tmp_path / f"q{ext}"
+    with UsdRecorder(path, scene, fps=10.0) as rec:
+        rec.record(0.1, scene.body_position, q)
+    assert rec.orientation_precision == "float"  # this usd-core has orientationsf
+    stage = Usd.Stage.Open(str(path))
+    inst = UsdGeom.PointInstancer.Get(stage, "/World/Bodies")
+    qf = np.asarray(inst.GetOrientationsfAttr().Get(1), dtype=np.float64)
+    qh = np.asarray(inst.GetOrientationsAttr().Get(1), dtype=np.float64)  # what an older reader sees
+    assert np.abs(np.linalg.norm(qf, axis=1) - 1.0).max() < 1e-6
+    assert 1e-5 < np.abs(np.linalg.norm(qh, axis=1) - 1.0).max() < 5e-4  # half precision: the old error
+    np.testing.assert_allclose(read_frame(path, 1)[1], q, atol=1e-7)  # same signs: q[0] ... as given
+    # OpenUSD takes orientationsf where both are authored: the instances turn in float precision.
+    np.testing.assert_allclose(instance_rotations(inst, 1), quat_to_matrix(q), atol=1e-6)
+
+
+def test_half_orientations_when_asked_or_when_usd_core_has_no_orientationsf(tmp_path, monkeypatch):
+    n = 200
+    scene = cubes(n)
+    q = random_quaternions(n, seed=1)
+    with UsdRecorder(tmp_path / "half.usda", scene, fps=10.0, orientation_precision="half") as rec:
+        rec.record(0.0, scene.body_position, q)
+    monkeypatch.delattr(UsdGeom.PointInstancer, "CreateOrientationsfAttr")  # an older usd-core
+    with UsdRecorder(tmp_path / "old.usda", scene, fps=10.0) as old:
+        old.record(0.0, scene.body_position, q)
+    with pytest.raises(ValueError, match="no PointInstancer.orientationsf.*'half'"):
+        UsdRecorder(tmp_path / "f.usda", scene, orientation_precision="float")
+    monkeypatch.undo()
+    assert rec.orientation_precision == old.orientation_precision == "half"
+    for path in (tmp_path / "half.usda", tmp_path / "old.usda"):
+        stage = Usd.Stage.Open(str(path))
+        inst = UsdGeom.PointInstancer.Get(stage, "/World/Bodies")
+        assert not inst.GetOrientationsfAttr().HasAuthoredValue()
+        assert_same_rotation(read_frame(path, 0)[1], q, 2e-3)
+        assert np.abs(instance_rotations(inst, 0) - quat_to_matrix(q)).max() > 1e-5  # half precision
+
+
+@pytest.fixture(scope="module")
+def moving():
+    """FRAMES states (time, positions, orientations, velocities, angular velocities) STEPS apart."""
+    scene = make_scene()
+    sim = polydem.Simulation(scene, device="cpu")
+    frames = []
+    for _ in range(FRAMES):
+        st = sim.state()
+        frames.append((sim.time, *(st[k] for k in ("body_position", "body_orientation", "body_velocity"))))
+        frames[-1] += (st["body_angular_velocity"],)
+        sim.step(STEPS)
+    return scene, sim.dt, frames
+
+
+@pytest.mark.parametrize("ext", [".usdc", ".usda"])
+@pytest.mark.parametrize("fps", [30.0, None])  # slow motion (frame_dt = STEPS dt, played at 30 fps), real time
+def test_velocities_and_angular_velocities(tmp_path, moving, ext, fps):
+    from polydem.usd import read_velocities
+
+    scene, dt, frames = moving
+    frame_dt = dt * STEPS
+    fps = fps or 1.0 / frame_dt
+    per_second = frame_dt * fps  # simulated seconds per second of playback
+    path = tmp_path / f"v{ext}"
+    with UsdRecorder(path, scene, fps=fps, frame_dt=frame_dt) as rec:
+        for t, p, q, v, w in frames:
+            rec.record(t, p, q, v, w)
+    stage = Usd.Stage.Open(str(path))
+    inst = UsdGeom.PointInstancer.Get(stage, "/World/Bodies")
+    assert inst.GetVelocitiesAttr().GetTimeSamples() == inst.GetPositionsAttr().GetTimeSamples()
+    assert inst.GetAngularVelocitiesAttr().GetTimeSamples() == list(map(float, range(FRAMES)))
+    spinning = 0.0
+    for code, (_, p, q, v, w) in enumerate(frames):
+        # The schema's units: position units and degrees per second of playback.
+        usd_v = np.asarray(inst.GetVelocitiesAttr().Get(code), dtype=np.float64)
+        usd_w = np.asarray(inst.GetAngularVelocitiesAttr().Get(code), dtype=np.float64)
+        np.testing.assert_allclose(usd_v, v * per_second, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(usd_w, np.degrees(w) * per_second, rtol=1e-6, atol=1e-12)
+        back_v, back_w = read_velocities(path, code)
+        np.testing.assert_allclose(back_v, v, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(back_w, w, rtol=1e-6, atol=1e-12)
+        spinning = max(spinning, np.abs(w).max())
+        # Between frames a renderer moves the bodies by them: half a frame on = frame_dt / 2 of motion.
+        xforms = inst.ComputeInstanceTransformsAtTime(Usd.TimeCode(code + 0.5), Usd.TimeCode(code))
+        h = 0.5 * frame_dt
+        for i, m in enumerate(xforms):
+            np.testing.assert_allclose(np.array(m.ExtractTranslation()), p[i] + v[i] * h, atol=1e-6)
+            angle = np.linalg.norm(w[i]) * h
+            turn = quat_from_axis_angle(w[i], angle) if angle > 0 else np.array([0.0, 0.0, 0.0, 1.0])
+            expected = quat_to_matrix(turn) @ quat_to_matrix(q[i])  # world axes: the turn applies last
+            np.testing.assert_allclose(np.array(m.ExtractRotationMatrix()).T, expected, atol=1e-5)
+    assert spinning > 1.0
+
+
+def test_record_simulation_writes_velocities_and_frames_agree(tmp_path, moving):
+    from polydem.usd import read_velocities
+
+    scene = make_scene()
+    sim = polydem.Simulation(scene, device="cpu")
+    with UsdRecorder(tmp_path / "s.usdc", sim, frame_dt=sim.dt * STEPS) as rec:
+        for _ in range(2):
+            rec.record_simulation(sim)
+            sim.step(STEPS)
+    for code in range(2):
+        _, _, _, v, w = moving[2][code]
+        back_v, back_w = read_velocities(tmp_path / "s.usdc", code)
+        np.testing.assert_allclose(back_v, v, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(back_w, w, rtol=1e-6, atol=1e-12)
+
+
+def test_velocity_errors(tmp_path, moving):
+    from polydem.usd import read_velocities
+
+    scene, dt, frames = moving
+    t, p, q, v, w = frames[0]
+    with UsdRecorder(tmp_path / "e.usda", scene, frame_dt=dt * STEPS) as rec:
+        with pytest.raises(ValueError, match="both velocities and angular_velocities, or neither"):
+            rec.record(t, p, q, v)
+        with pytest.raises(ValueError, match=r"velocities must have shape \(5, 3\)"):
+            rec.record(t, p, q, v[:2], w)
+        assert rec.record(t, p, q, v, w) == 0  # still usable
+        with pytest.raises(ValueError, match="first frame of this file was recorded with velocities"):
+            rec.record(frames[1][0], frames[1][1], frames[1][2])
+        assert rec.record(*frames[1]) == 1
+    assert list(read_time_codes(tmp_path / "e.usda")) == [0.0, 1.0]
+    with UsdRecorder(tmp_path / "n.usda", scene, frame_dt=dt * STEPS) as rec:
+        rec.record(t, p, q)
+        with pytest.raises(ValueError, match="recorded without velocities"):
+            rec.record(*frames[1])
+    assert read_velocities(tmp_path / "n.usda", 0) is None  # like a file of an older polydem
+
+
+RENDER_SCENE = """\
+[simulation]
+name = "render"
+dt = "auto"
+
+[materials.steel]
+density = 7800.0
+law = "hertz"
+k = 1.0e10
+restitution = 0.5
+friction = 0.3
+
+[shapes.cube]
+type = "box"
+size = 0.1
+
+[shapes.tet]
+type = "tetrahedron"
+edge = 0.12
+
+[[bodies]]
+shape = "cube"
+material = "steel"
+position = [0.0, 0.0, 0.2]
+rotation = { axis = [1.0, 2.0, 3.0], degrees = 50.0 }
+angular_velocity = [5.0, 3.0, 20.0]
+
+[[bodies]]
+shape = "tet"
+material = "steel"
+position = [0.2, 0.0, 0.2]
+velocity = [0.0, 0.0, -1.0]
+
+[[walls]]
+type = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "steel"
+"""
+
+
+def test_polydem_render_reads_old_and_new_files(tmp_path, capsys):
+    """`polydem render x.usd` reads files with quath orientations only (older polydem) and new ones."""
+    from polydem.cli import main
+
+    toml = tmp_path / "render.toml"
+    toml.write_text(RENDER_SCENE)
+    scene = polydem.Scene.from_toml(toml)
+    sim = polydem.Simulation(scene, device="cpu")
+    old, new = tmp_path / "old.usdc", tmp_path / "new.usdc"
+    with (
+        UsdRecorder(old, scene, frame_dt=sim.dt * STEPS, orientation_precision="half") as rec_old,
+        UsdRecorder(new, scene, frame_dt=sim.dt * STEPS) as rec_new,
+    ):
+        for _ in range(2):
+            st = sim.state()
+            rec_old.record(sim.time, st["body_position"], st["body_orientation"])  # what polydem wrote before
+            rec_new.record_simulation(sim)
+            sim.step(STEPS)
+    (pos_old, q_old), (pos_new, q_new) = read_frame(old, 1), read_frame(new, 1)
+    np.testing.assert_allclose(pos_old, pos_new, atol=1e-7)
+    np.testing.assert_allclose(q_new, st["body_orientation"], atol=1e-7)
+    assert_same_rotation(q_old, q_new, 2e-3)
+    for path in (old, new):
+        png = tmp_path / f"{path.stem}.png"
+        args = ["render", path, "--scene", toml, "--frame", "1", "--out", png, "--width", "48", "--height", "32"]
+        code = main([str(a) for a in [*args, "--device", "cpu"]])
+        out, err = capsys.readouterr()
+        assert code == 0, err
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "frame 1" in out

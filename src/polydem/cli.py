@@ -3,7 +3,7 @@
 ::
 
     polydem run [SCENE] [--device DEV] [--steps N | --duration T] [--out DIR] [--fps F]
-                [--precision P] [--resume CHECKPOINT] [--picture-size WxH] [--quiet]
+                [--precision P] [--resume CHECKPOINT] [--picture-size WxH] [--vtk] [--quiet]
     polydem validate SCENE [SCENE ...] [--quiet]
     polydem render SOURCE --out IMAGE.png [--scene SCENE] [--frame K] [--width W] [--height H] [--device DEV]
     polydem info
@@ -629,6 +629,10 @@ class _Run:
             self.usd_path = p
         self.volumes = _body_volumes(scene)
         self.recorder = None
+        self.vtk = None  # the VtkWriter, made by _execute when VTK output is on (--vtk or output.vtk)
+        self.vtk_dir = out_dir / "vtk" if (args.vtk or o.vtk) else None
+        if self.vtk_dir is not None and self.vtk_dir.exists() and not self.vtk_dir.is_dir():
+            raise CliError("the VTK output folder is a file; remove it or give another --out", self.vtk_dir, "--vtk")
         self.frame = self._first_frame(self.start)
         self.frame_contacts: list[int] = []
         self.history: dict[str, list] = {
@@ -690,6 +694,8 @@ class _Run:
         rec = self.recorder
         if rec is not None and (rec.last_time_code is None or rec.time_code(sim.time) > rec.last_time_code):
             rec.record_simulation(sim)
+        if self.vtk is not None and (self.vtk.last_index is None or self.frame > self.vtk.last_index):
+            self.vtk.record(sim.time, sim.state(), contacts, index=self.frame)
         while self.frame_step(self.frame) <= steps:
             if isinstance(self.pictures, tuple) and self.frame in self.pictures:
                 self.picture(f"frame_{self.frame:06d}.png")
@@ -756,6 +762,10 @@ class _Run:
         try:
             if self.usd_path is not None:
                 self.recorder = UsdRecorder(self.usd_path, self.scene, fps=self.fps, frame_dt=self.frame_dt)
+            if self.vtk_dir is not None:
+                from polydem.vtk import VtkWriter
+
+                self.vtk = VtkWriter(self.vtk_dir, self.scene, resume=self.resumed_from is not None)
             self.record_frames()
             while sim.steps_done < self.target:
                 sim.step(self.next_stop(progress) - sim.steps_done)
@@ -890,6 +900,12 @@ class _Run:
                 "folder": str(self.out_dir),
                 "usd": _rel(self.usd_path, self.out_dir) if self.usd_path is not None else None,
                 "usd_frames": self.recorder.frames if self.recorder is not None else 0,
+                "vtk": {
+                    "files": [_rel(p, self.out_dir) for p in self.vtk.files],
+                    "frames": self.vtk.frames,
+                }
+                if self.vtk is not None
+                else None,
                 "pictures": self.picture_files,
                 "checkpoints": self.checkpoints,
                 "summary": _rel(self.summary_path, self.out_dir) if self.summary_path is not None else None,
@@ -943,6 +959,8 @@ class _Run:
         written = []
         if o["usd"]:
             written.append(f"{o['usd']} ({_n(o['usd_frames'], 'frame')})")
+        if o["vtk"]:
+            written.append(f"{', '.join(o['vtk']['files'])} ({_n(o['vtk']['frames'], 'frame')})")
         if o["summary"]:
             written.append(o["summary"])
         if o["pictures"]:
@@ -974,6 +992,8 @@ class _Run:
             cmd += ["--duration", repr(a.duration)]
         if a.fps is not None:
             cmd += ["--fps", repr(a.fps)]
+        if a.vtk:
+            cmd.append("--vtk")
         if a.out is not None:
             cmd += ["--out", str(a.out)]
         return shlex.join(cmd)
@@ -1256,6 +1276,10 @@ outputs (in --out; the scene's [output] table names them, relative to that folde
                   the free bodies whose centres lie in it / its volume; coordination number = mean
                   number of contacts (with bodies or walls) of those bodies.
   pictures        output.pictures (frame numbers, or "last"): pictures/frame_NNNNNN.png, last.png.
+  VTK (ParaView)  --vtk or output.vtk = true: vtk/particles.pvd (the polyhedra), vtk/centres.pvd
+                  (one point per body), vtk/contacts.pvd (a line per contact with its forces: the
+                  force chains), each a series of frames (vtk/<series>/<series>_NNNNNN.vtu), and
+                  vtk/walls.vtu. Open the .pvd files in ParaView.
   checkpoints     output.checkpoint = {steps = N} or {seconds = T}: checkpoints/step_NNNNNNNNN.npz,
                   plus checkpoints/final.npz at the end and checkpoints/interrupted.npz when the
                   run stops early (Ctrl-C, or a failing simulation).
@@ -1367,6 +1391,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=(800, 600),
         metavar="WxH",
         help="size of the pictures of output.pictures in pixels (default 800x600)",
+    )
+    run.add_argument(
+        "--vtk",
+        action="store_true",
+        help="also write every frame as VTK files for ParaView in vtk/ of the output folder (as output.vtk = true)",
     )
     run.add_argument(
         "-q", "--quiet", action="store_true", help="no progress on stderr (the closing summary is still printed)"

@@ -41,7 +41,7 @@ did-you-mean and the list of valid keys, and every error names the file and the 
     [[walls]]        type = "plane" (point, normal, material), "box" (an open or closed container
                      of fixed slabs) or "drum" (a rotating polygonal drum of kinematic slabs)
     [[emitters]]     many bodies placed without overlaps in a box region (see Scene.emit)
-    [output]         usd, fps, summary, pictures, checkpoint (see Output)
+    [output]         usd, fps, summary, pictures, checkpoint, vtk (see Output)
 
 Bodies are added in the file's order of sections: ``[[bodies]]``, then ``[[walls]]``, then
 ``[[emitters]]`` (so emitters avoid every body and wall given before them), each in its order.
@@ -696,7 +696,7 @@ def _unit_normal(value, key, file) -> np.ndarray:
 
 
 _USD_SUFFIXES = (".usd", ".usda", ".usdc")
-_OUTPUT_KEYS = ("usd", "fps", "summary", "pictures", "checkpoint")
+_OUTPUT_KEYS = ("usd", "fps", "summary", "pictures", "checkpoint", "vtk")
 _CHECKPOINT_KEYS = ("steps", "seconds", "path")
 
 
@@ -720,6 +720,8 @@ class Output:
             one of the two is set). In a scene file: ``checkpoint = {steps = 10000}`` or
             ``checkpoint = {seconds = 0.1}``, optionally with ``path``.
         checkpoint_path: folder of the checkpoints.
+        vtk: write VTK files for ParaView (``vtk/`` in the output folder: :mod:`polydem.vtk`) at
+            every frame; ``polydem run --vtk`` turns it on too.
     """
 
     usd: str | None = None
@@ -729,6 +731,7 @@ class Output:
     checkpoint_steps: int | None = None
     checkpoint_seconds: float | None = None
     checkpoint_path: str = "checkpoints"
+    vtk: bool = False
 
     def __post_init__(self):
         usd = self.usd
@@ -772,6 +775,7 @@ class Output:
                 seconds, "output.checkpoint.seconds", positive=True, hint=" (a checkpoint every so many simulated s)"
             )
         path = _string(self.checkpoint_path, "output.checkpoint.path", what="a folder path string")
+        vtk = _boolean(self.vtk, "output.vtk")
         for name, value in (
             ("usd", usd),
             ("fps", fps),
@@ -780,6 +784,7 @@ class Output:
             ("checkpoint_steps", steps),
             ("checkpoint_seconds", seconds),
             ("checkpoint_path", path),
+            ("vtk", vtk),
         ):
             object.__setattr__(self, name, value)
 
@@ -800,6 +805,8 @@ class Output:
                 kw["summary"] = ("summary.json" if summary else None) if isinstance(summary, bool) else summary
             if "pictures" in table:
                 kw["pictures"] = table["pictures"]
+            if "vtk" in table:
+                kw["vtk"] = table["vtk"]
             if "checkpoint" in table:
                 cp = _table(
                     table["checkpoint"],
@@ -836,6 +843,8 @@ class Output:
             else:
                 cp["seconds"] = self.checkpoint_seconds
             d["checkpoint"] = cp
+        if self.vtk:
+            d["vtk"] = True
         return d
 
 
@@ -2774,6 +2783,8 @@ class Scene:
             out.append(f"checkpoint every {o.checkpoint_steps} steps")
         if o.checkpoint_seconds is not None:
             out.append(f"checkpoint every {o.checkpoint_seconds:g} s")
+        if o.vtk:
+            out.append("VTK files in vtk/")
         lines.append("  output: " + ", ".join(out))
         return "\n".join(lines)
 

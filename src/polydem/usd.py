@@ -14,8 +14,9 @@ Layout of the file (Z up and metres unless told otherwise)::
 
     /World                       Xform, the default prim
     /World/Bodies                PointInstancer: protoIndices = Scene.body_shape (constant),
-                                 positions and orientations (time samples), extent (time samples),
-                                 polydem:time (time samples: the exact simulated time [s])
+                                 positions, orientations and orientationsf, velocities and
+                                 angularVelocities, extent (time samples), polydem:time (time
+                                 samples: the exact simulated time [s])
     /World/Bodies/Prototypes/S   Mesh per shape S, in its body frame (centroid, principal axes):
                                  the shape's polygon faces (counter-clockwise seen from outside),
                                  flat (face-varying) normals, subdivisionScheme "none", and a
@@ -33,17 +34,28 @@ the last recorded frame.
 
 Orientations. polydem quaternions are ``[x, y, z, w]``; Gf quaternions are constructed as
 ``(w, x, y, z)`` (their memory holds x, y, z, w). The recorder writes them through numpy without any
-per-body Python work, in half precision to ``orientations`` (``quath[]``, read by every USD
-consumer; about 1e-3 rad of rounding) or, with ``orientation_precision="float"``, in single
-precision to ``orientationsf`` (``quatf[]``, newer OpenUSD only: older readers ignore it and show
-the bodies unrotated). Each quaternion's sign is chosen to be nearest to the previous frame's, so
-a viewer interpolating between frames turns the short way.
+per-body Python work. Where the installed usd-core has ``PointInstancer.orientationsf`` (``quatf[]``,
+newer OpenUSD), they are written there in single precision (|q| within 1e-7 of 1), and also, in half
+precision, to ``orientations`` (``quath[]``) for readers that predate ``orientationsf``: OpenUSD
+prefers ``orientationsf`` where both are authored, older readers see ``orientations``. Half precision
+alone (``orientation_precision="half"``, and the fallback on an older usd-core) rounds |q| by up to
+about 4e-4 and the rotation by about 1e-3 rad. Each quaternion's sign is chosen to be nearest to the
+previous frame's, so a viewer interpolating between frames turns the short way.
+
+Velocities. Frames given velocities (:meth:`~UsdRecorder.record_simulation` always gives them) also
+write ``velocities`` (file units per second) and ``angularVelocities`` (degrees per second, world
+axes), which renderers use for motion blur and, per the PointInstancer schema, to move bodies between
+time samples instead of interpolating. The schema's "second" is ``timeCodesPerSecond`` time codes of
+playback, so both are scaled by ``frame_dt * fps`` (1 for real-time playback): with ``frame_dt =
+1e-3`` and ``fps = 25``, a body at 1 m/s is written as 0.025 m/s. :func:`read_velocities` undoes the
+scaling.
 
 Streaming. Frames are not kept: the file is saved every ``save_every`` frames (if given), once the
 unsaved frames reach ``max_unsaved_mb``, every ``save_interval`` seconds of wall time, and on
 :meth:`~UsdRecorder.close`. ``.usdc`` and ``.usd`` (binary crate) saves append the new time samples
-to the file, so memory stays bounded (measured: 10^6 bodies, about 80 ms and 20 MB of file per frame)
-and the file on disk is a valid, complete recording of every frame up to the last save, should the
+to the file, so memory stays bounded (measured with 10^6 bodies, saving every frame: about 0.25 s
+and 60 MB of file per frame with float orientations and velocities, 0.1 s and 20 MB with half
+orientations only) and the file on disk is a valid, complete recording of every frame up to the last save, should the
 run be interrupted. Each save rewrites the (small) index, which grows with the number of frames: for
 long runs of few bodies, save less often. ``.usda`` (text) keeps every frame in memory and rewrites
 the whole file on each save: meant for small scenes and for reading by eye.
@@ -63,7 +75,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PALETTE", "UsdRecorder", "read_frame", "read_time_codes"]
+__all__ = ["PALETTE", "UsdRecorder", "read_frame", "read_time_codes", "read_velocities"]
 
 EXTENSIONS = (".usda", ".usdc", ".usd")
 """File extensions the recorder writes: text (``.usda``) or binary crate (``.usdc``, ``.usd``)."""
@@ -168,8 +180,10 @@ class UsdRecorder:
             axes unchanged, so give the axis that points against gravity.
         meters_per_unit: length unit of the file [m]; lengths are written in this unit (e.g. 0.01
             writes centimetres). :func:`read_frame` converts back to metres.
-        orientation_precision: ``"half"`` (``orientations``, quath) or ``"float"``
-            (``orientationsf``, quatf; needs a reader with OpenUSD's newer PointInstancer).
+        orientation_precision: ``"auto"`` (the default: ``"float"`` where this usd-core has
+            ``orientationsf``, else ``"half"``), ``"float"`` (``orientationsf``, quatf, plus
+            ``orientations`` in half precision for older readers) or ``"half"`` (``orientations``,
+            quath, only).
         save_every: save after this many frames (default: no frame count limit).
         max_unsaved_mb: save once the unsaved frames reach this size [MB] (binary files only; a
             text file keeps every frame in memory anyway).
@@ -187,7 +201,7 @@ class UsdRecorder:
         frame_dt: float | None = None,
         up_axis: str = "Z",
         meters_per_unit: float = 1.0,
-        orientation_precision: str = "half",
+        orientation_precision: str = "auto",
         save_every: int | None = None,
         max_unsaved_mb: float = 128.0,
         save_interval: float = 30.0,
@@ -203,9 +217,8 @@ class UsdRecorder:
         self.up_axis = axis
         self.meters_per_unit = _positive("meters_per_unit", meters_per_unit)
         self._scale = 1.0 / self.meters_per_unit
-        if orientation_precision not in ("half", "float"):
-            raise ValueError(f"orientation_precision must be 'half' or 'float', got {orientation_precision!r}")
-        self.orientation_precision = orientation_precision
+        if orientation_precision not in ("auto", "half", "float"):
+            raise ValueError(f"orientation_precision must be 'auto', 'half' or 'float', got {orientation_precision!r}")
         if save_every is not None and (not isinstance(save_every, int | np.integer) or save_every < 1):
             raise ValueError(f"save_every must be a positive integer or None, got {save_every!r}")
         self.save_every = None if save_every is None else int(save_every)
@@ -215,18 +228,27 @@ class UsdRecorder:
 
         from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
-        if orientation_precision == "float" and not hasattr(UsdGeom.PointInstancer, "CreateOrientationsfAttr"):
+        has_float = hasattr(UsdGeom.PointInstancer, "CreateOrientationsfAttr")
+        if orientation_precision == "auto":
+            orientation_precision = "float" if has_float else "half"
+        if orientation_precision == "float" and not has_float:
             raise ValueError(
                 f"this usd-core ({'.'.join(map(str, Usd.GetVersion()))}) has no PointInstancer.orientationsf; "
-                "use orientation_precision='half'"
+                "use orientation_precision='half' (or 'auto')"
             )
+        self.orientation_precision = orientation_precision
+        # The schema's velocities are per second of playback: timeCodesPerSecond = fps time codes,
+        # each frame_dt of simulated time.
+        self._vel_scale = self._scale * self.frame_dt * self.fps
+        self._ang_scale = math.degrees(1.0) * self.frame_dt * self.fps
+        self._with_velocities = None  # decided by the first frame
 
         self.num_bodies = n = int(scene.num_bodies)
         self.body_shape = np.array(scene.body_shape, dtype=np.int32)
         shapes = scene.shapes
         names = scene.shape_names
         self._binary = self.path.suffix.lower() != ".usda"
-        self._frame_bytes = n * (12 + (8 if orientation_precision == "half" else 16)) + 64
+        self._frame_bytes = n * (12 + 8 + (16 if orientation_precision == "float" else 0) + 24) + 64
         radius = np.array([shapes[s].radius for s in names], dtype=np.float64)
         self._max_radius = float(radius.max()) if len(radius) else 0.0
 
@@ -282,20 +304,21 @@ class UsdRecorder:
 
         inst.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(self.body_shape))
         self._pos_attr = inst.CreatePositionsAttr()
-        if orientation_precision == "half":
-            self._ori_attr = inst.CreateOrientationsAttr()
-        else:
-            self._ori_attr = inst.CreateOrientationsfAttr()
+        self._ori_attr = inst.CreateOrientationsAttr()
+        self._orif_attr = inst.CreateOrientationsfAttr() if orientation_precision == "float" else None
+        self._vel_attr = self._angvel_attr = None  # made by the first frame with velocities
         self._extent_attr = inst.CreateExtentAttr()
         self._time_attr = inst.GetPrim().CreateAttribute(TIME_ATTR, Sdf.ValueTypeNames.Double, custom=True)
         # Defaults (shown before the first frame, and where no time sample exists): the scene's poses.
         p0 = np.asarray(scene.body_position, dtype=np.float64).reshape(n, 3)
         q0 = np.asarray(scene.body_orientation, dtype=np.float64).reshape(n, 4)
         self._prev_q = None  # the last frame's orientations (float32), for the sign choice
-        pos, ori, ext = self._convert(p0, q0)
+        pos, ori, orif, ext = self._convert(p0, q0)
         self._prev_q = None  # the defaults do not count as a frame
         self._pos_attr.Set(pos)
         self._ori_attr.Set(ori)
+        if orif is not None:
+            self._orif_attr.Set(orif)
         self._extent_attr.Set(ext)
 
         # -- walls
@@ -343,7 +366,8 @@ class UsdRecorder:
         mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(ext))
 
     def _convert(self, positions, orientations):
-        """Checked numpy poses -> (Vt positions, Vt orientations, Vt extent) in file units."""
+        """Checked numpy poses -> (Vt positions, Vt quath orientations, Vt quatf orientations or None,
+        Vt extent) in file units."""
         from pxr import Vt
 
         n = self.num_bodies
@@ -369,7 +393,24 @@ class UsdRecorder:
             for k in range(3):  # per column: much faster than min(axis=0) on an (N, 3) array
                 ext[0, k], ext[1, k] = p[:, k].min() - r, p[:, k].max() + r
         pos = Vt.Vec3fArray.FromNumpy(p)
-        return pos, _quats_to_vt(q, self.orientation_precision), Vt.Vec3fArray.FromNumpy(ext)
+        orif = _quats_to_vt(q, "float") if self.orientation_precision == "float" else None
+        return pos, _quats_to_vt(q, "half"), orif, Vt.Vec3fArray.FromNumpy(ext)
+
+    def _convert_velocities(self, velocities, angular_velocities):
+        """Checked (N, 3) velocities [m/s] and angular velocities [rad/s] -> Vt arrays as the schema has them."""
+        from pxr import Vt
+
+        n = self.num_bodies
+        out = []
+        for name, value, scale in (
+            ("velocities", velocities, self._vel_scale),
+            ("angular_velocities", angular_velocities, self._ang_scale),
+        ):
+            a = np.asarray(value)
+            if a.shape != (n, 3):
+                raise ValueError(f"{name} must have shape ({n}, 3) (one row per body), got {a.shape}")
+            out.append(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a * scale, dtype=np.float32)))
+        return out
 
     # ------------------------------------------------------------------ recording
 
@@ -377,7 +418,7 @@ class UsdRecorder:
         """The time code of a frame at simulated time ``time_s`` [s]: ``round(time_s / frame_dt)``."""
         return int(round(float(time_s) / self.frame_dt))
 
-    def record(self, time_s: float, positions, orientations) -> int:
+    def record(self, time_s: float, positions, orientations, velocities=None, angular_velocities=None) -> int:
         """Write one frame; returns its time code.
 
         Args:
@@ -386,6 +427,9 @@ class UsdRecorder:
             positions: (N, 3) centres of mass [m] (``Simulation.state()["body_position"]``).
             orientations: (N, 4) unit quaternions x y z w of the body frames
                 (``Simulation.state()["body_orientation"]``).
+            velocities, angular_velocities: (N, 3) [m/s] and world-axes [rad/s]
+                (``Simulation.state()["body_velocity"]``, ``["body_angular_velocity"]``), both or
+                neither; the first frame decides for the whole file.
         """
         if self._closed:
             raise RuntimeError(f"the recorder of {self.path} is closed")
@@ -399,14 +443,33 @@ class UsdRecorder:
                 f"not after the previous frame's {self.last_time_code}; record frames at least frame_dt apart "
                 "or make frame_dt smaller"
             )
+        given = (velocities is not None, angular_velocities is not None)
+        if given[0] != given[1]:
+            raise ValueError("give both velocities and angular_velocities, or neither")
+        if self._with_velocities is not None and given[0] != self._with_velocities:
+            raise ValueError(
+                "the first frame of this file was recorded "
+                + ("with" if self._with_velocities else "without")
+                + " velocities: give velocities and angular_velocities to every frame or to none"
+            )
         prev_q = self._prev_q
         try:
-            pos, ori, ext = self._convert(positions, orientations)
+            pos, ori, orif, ext = self._convert(positions, orientations)
+            vel = self._convert_velocities(velocities, angular_velocities) if given[0] else None
         except Exception:
             self._prev_q = prev_q
             raise
+        if vel is not None and self._vel_attr is None:
+            self._vel_attr = self._instancer.CreateVelocitiesAttr()
+            self._angvel_attr = self._instancer.CreateAngularVelocitiesAttr()
+        self._with_velocities = given[0]
         self._pos_attr.Set(pos, code)
         self._ori_attr.Set(ori, code)
+        if orif is not None:
+            self._orif_attr.Set(orif, code)
+        if vel is not None:
+            self._vel_attr.Set(vel[0], code)
+            self._angvel_attr.Set(vel[1], code)
         self._extent_attr.Set(ext, code)
         self._time_attr.Set(t, code)
         self._stage.SetEndTimeCode(float(code))
@@ -422,9 +485,12 @@ class UsdRecorder:
         return code
 
     def record_simulation(self, sim) -> int:
-        """Record a :class:`~polydem.Simulation`'s current state at ``sim.time``; returns the time code."""
+        """Record a :class:`~polydem.Simulation`'s current state (poses and velocities) at ``sim.time``;
+        returns the time code."""
         st = sim.state()
-        return self.record(sim.time, st["body_position"], st["body_orientation"])
+        return self.record(
+            sim.time, st["body_position"], st["body_orientation"], st["body_velocity"], st["body_angular_velocity"]
+        )
 
     def save(self) -> None:
         """Write what has been recorded so far to the file (done automatically; see the class)."""
@@ -441,7 +507,8 @@ class UsdRecorder:
             return
         self.save()
         self._closed = True
-        self._instancer = self._pos_attr = self._ori_attr = self._extent_attr = self._time_attr = None
+        self._instancer = self._pos_attr = self._ori_attr = self._orif_attr = self._extent_attr = None
+        self._vel_attr = self._angvel_attr = self._time_attr = None
         self._stage = None
         self._layer = None
         self._prev_q = None
@@ -485,7 +552,8 @@ def read_frame(path: str | PathLike, time_code: float) -> tuple[np.ndarray, np.n
     Returns ``(positions, orientations)``: (N, 3) float64 centres of mass in metres (converted with the
     stage's metersPerUnit) and (N, 4) float64 unit quaternions x y z w. At a recorded time code these
     are the recorded frame (to float32, or half for ``orientations``); between time codes USD's
-    interpolation applies. Reads ``orientationsf`` where authored, else ``orientations``.
+    interpolation applies. Reads ``orientationsf`` where authored (and known to this usd-core), else
+    ``orientations``: files of every polydem version read alike.
     """
     from pxr import Usd, UsdGeom
 
@@ -503,3 +571,26 @@ def read_time_codes(path: str | PathLike) -> np.ndarray:
     """The time codes of the frames in a file written by :class:`UsdRecorder` (float64, increasing)."""
     _, inst = _open_instancer(path)
     return np.array(inst.GetPositionsAttr().GetTimeSamples(), dtype=np.float64)
+
+
+def read_velocities(path: str | PathLike, time_code: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Body velocities of a file written by :class:`UsdRecorder` at a recorded ``time_code``.
+
+    Returns ``(velocities, angular_velocities)``: (N, 3) float64 in m/s and rad/s (world axes) of
+    simulated time, undoing the file's scaling (see the module docstring); None when the file has no
+    velocities (frames recorded without them, or a file of an older polydem).
+    """
+    from pxr import Usd, UsdGeom
+
+    stage, inst = _open_instancer(path)
+    vel_attr, ang_attr = inst.GetVelocitiesAttr(), inst.GetAngularVelocitiesAttr()
+    if not (vel_attr.HasAuthoredValue() and ang_attr.HasAuthoredValue()):
+        return None
+    frame_dt = float(stage.GetRootLayer().customLayerData.get("polydem:frame_dt", 0.0))
+    if not frame_dt > 0.0:
+        raise ValueError(f"{path} has no polydem:frame_dt in its layer metadata; was it written by UsdRecorder?")
+    per_second = frame_dt * stage.GetTimeCodesPerSecond()
+    t = Usd.TimeCode(float(time_code))
+    v = np.asarray(vel_attr.Get(t), dtype=np.float64).reshape(-1, 3)
+    w = np.asarray(ang_attr.Get(t), dtype=np.float64).reshape(-1, 3)
+    return v * UsdGeom.GetStageMetersPerUnit(stage) / per_second, np.radians(w) / per_second
