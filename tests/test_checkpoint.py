@@ -1,5 +1,7 @@
 """Checkpoint and resume give the same result as an unbroken run."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -40,3 +42,228 @@ def test_bad_checkpoints(device, tmp_path):
     other = polydem.Simulation(default_scene(count=12), device=device)
     with pytest.raises(ValueError, match="bodies"):
         load_checkpoint(other, tmp_path / "ok.npz")
+
+
+# ---------------------------------------------------------------------- physics record and sound files
+
+
+def stack(friction=0.5, restitution=0.4, k=1.0e8, density=2500.0, size=0.02, gravity=-9.81, plane=True, dt=2e-5):
+    """Five cubes falling onto a floor plane (a plane wall, springs and candidate pairs at once)."""
+    from polydem.scene import Scene
+    from polydem.shapes import ConvexShape
+
+    scene = Scene(gravity=(0.0, 0.0, gravity), dt=dt, name="stack")
+    scene.add_material("stone", density=density, law="hertz", k=k, restitution=restitution, friction=friction)
+    scene.add_shape("cube", ConvexShape.box(size, name="cube"))
+    if plane:
+        scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "stone")
+    for i in range(5):
+        scene.add_body("cube", "stone", position=(0.003 * i, 0.0, 0.0102 + 0.0201 * i), velocity=(0.0, 0.0, -0.5))
+    return scene
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """A checkpoint of the stack after 300 steps (with pairs, springs and a run record): its path."""
+    sim = polydem.Simulation(stack(), device="cpu")
+    sim.step(300)
+    path = tmp_path_factory.mktemp("ck") / "stack.npz"
+    save_checkpoint(sim, path, run={"note": "the run so far"})
+    with np.load(path) as data:
+        assert len(data["pair_key"]) >= 3 and np.any(data["pair_xi"] != 0.0)
+    return path
+
+
+def edited(saved, tmp_path, **changes):
+    """A copy of the saved checkpoint with entries replaced (None: removed)."""
+    with np.load(saved) as f:
+        data = dict(f)
+    for key, value in changes.items():
+        if value is None:
+            data.pop(key)
+        else:
+            data[key] = value(data) if callable(value) else value
+    path = tmp_path / "edited.npz"
+    np.savez(path, **data)
+    return path
+
+
+def _set(name, index, value):
+    def change(data):
+        a = data[name].copy()
+        a[index] = value
+        return a
+
+    return change
+
+
+# (entries changed, words the error must hold)
+EDITS = {
+    "zero quaternion": ({"body_q": _set("body_q", (2, slice(3, 7)), 0.0)}, ["orientation of body 2", "length 0"]),
+    "scaled quaternion": (
+        {"body_q": lambda d: d["body_q"] * np.r_[1, 1, 1, 2, 2, 2, 2].astype(np.float32)},
+        ["orientation of body 0", "length 2"],
+    ),
+    "rows missing": ({"body_q": lambda d: d["body_q"][:-1]}, ["body_q has shape (4, 7), expected (5, 7)"]),
+    "velocity rows missing": ({"body_v": lambda d: d["body_v"][:3]}, ["body_v has shape (3, 3)"]),
+    "wrong columns": ({"body_w": lambda d: d["body_w"][:, :2]}, ["body_w has shape (5, 2), expected (5, 3)"]),
+    "string dtype": ({"body_v": lambda d: d["body_v"].astype(str)}, ["body_v holds", "expected real numbers"]),
+    "complex dtype": ({"body_w": lambda d: d["body_w"].astype(complex)}, ["body_w holds complex128"]),
+    "NaN position": ({"body_q": _set("body_q", (1, 2), np.nan)}, ["body_q[1, 2] is nan", "finite"]),
+    "inf velocity": ({"body_v": _set("body_v", (0, 0), np.inf)}, ["body_v[0, 0] is inf"]),
+    "NaN dissipated": ({"body_dissipated": _set("body_dissipated", 3, np.nan)}, ["body_dissipated[3] is nan"]),
+    "NaN wall spring": ({"plane_xi": _set("plane_xi", (0, 0, 1), np.nan)}, ["plane_xi[0, 0, 1] is nan"]),
+    "NaN turning volume": ({"pair_turn": _set("pair_turn", 0, np.nan)}, ["pair_turn[0] is nan"]),
+    "float64 overflow": ({"body_w": lambda d: d["body_w"].astype(np.float64) + 1e300}, ["body_w[0, 0] is 1e+300"]),
+    "negative steps": ({"steps_done": np.array(-5)}, ["steps_done = -5 is negative"]),
+    "fractional steps": ({"steps_done": np.array(300.5)}, ["steps_done = 300.5 is not a whole number"]),
+    "step count mismatch": ({"step_count": np.array([7], np.int32)}, ["step_count = [7] does not match"]),
+    "NaN time": ({"time": np.array(np.nan)}, ["time = nan s is not a finite time"]),
+    "time off": ({"time": np.array(1.0)}, ["time = 1.0 s does not match steps_done = 300"]),
+    "NaN dt": ({"dt": np.array(np.nan)}, ["dt = nan"]),
+    "no bodies": ({"num_bodies": np.array(0)}, ["num_bodies = 0"]),
+    "pair key out of range": ({"pair_key": _set("pair_key", -1, 5 * 5 + 1)}, ["pair_key[", "is not a pair of bodies"]),
+    "pair key of a body with itself": (
+        {"pair_key": _set("pair_key", 0, 0)},
+        ["pair_key[0] = 0 (bodies 0, 0) is not a pair"],
+    ),
+    "negative pair key": ({"pair_key": _set("pair_key", 0, -3)}, ["pair_key[0] = -3"]),
+    "repeated pair key": ({"pair_key": lambda d: np.r_[d["pair_key"][:1], d["pair_key"][:-1]]}, ["repeats"]),
+    "unsorted pair keys": ({"pair_key": lambda d: d["pair_key"][::-1].copy()}, ["smaller than the one before"]),
+    "float pair keys": ({"pair_key": lambda d: d["pair_key"] + 0.5}, ["pair_key has shape", "whole numbers"]),
+    "springs missing": ({"pair_xi": lambda d: d["pair_xi"][:-1]}, ["pair_xi has shape"]),
+    "entry missing": ({"body_w": None}, ["it lacks body_w"]),
+    "physics record edited": (
+        {"physics_json": lambda d: np.array(str(d["physics_json"]).replace("0.5", "0.25"))},
+        ["does not match its physics_fingerprint"],
+    ),
+    "run record not JSON": ({"run_json": np.array("{not json")}, ["run record is not JSON"]),
+    "format unknown": ({"format": np.array("polydem-checkpoint-99")}, ["checkpoint format 'polydem-checkpoint-99'"]),
+}
+
+
+@pytest.mark.parametrize("case", EDITS, ids=list(EDITS))
+def test_edited_checkpoints_are_refused(saved, tmp_path, case):
+    from polydem.checkpoint import CheckpointError, read_checkpoint
+
+    changes, words = EDITS[case]
+    path = edited(saved, tmp_path, **changes)
+    with pytest.raises(CheckpointError) as info:
+        read_checkpoint(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message
+    for word in words:
+        assert word in message, (word, message)
+
+
+def test_sound_checkpoint_reads(saved):
+    from polydem.checkpoint import read_checkpoint
+
+    ck = read_checkpoint(saved)
+    assert ck.steps_done == 300 and ck.run == {"note": "the run so far"}
+    assert ck.physics["materials.stone.friction"] == 0.5 and len(ck.physics["shapes.cube.vertices"]) == 8
+
+
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (lambda p: p.write_bytes(b"not a checkpoint"), ["not a polydem checkpoint"]),
+        (lambda p, src=None: p.write_bytes(b""), ["not a polydem checkpoint"]),
+        (lambda p: np.save(open(p, "wb"), np.zeros(3)), ["a single .npy array"]),
+    ],
+    ids=["text", "empty", "npy"],
+)
+def test_foreign_files_are_refused(tmp_path, make, words):
+    from polydem.checkpoint import CheckpointError, read_checkpoint
+
+    path = tmp_path / "x.npz"
+    make(path)
+    with pytest.raises(CheckpointError) as info:
+        read_checkpoint(path)
+    for word in words:
+        assert word in str(info.value)
+    assert "allow_pickle" not in str(info.value)  # numpy's advice to unpickle the file is not passed on
+
+
+def test_truncated_and_damaged_files_are_refused(saved, tmp_path):
+    import zipfile
+
+    from polydem.checkpoint import CheckpointError, read_checkpoint
+
+    raw = saved.read_bytes()
+    for cut in (len(raw) // 2, len(raw) - 10):
+        path = tmp_path / f"cut{cut}.npz"
+        path.write_bytes(raw[:cut])
+        with pytest.raises(CheckpointError, match="not a polydem checkpoint"):
+            read_checkpoint(path)
+    damaged = tmp_path / "member.npz"
+    with zipfile.ZipFile(saved) as src, zipfile.ZipFile(damaged, "w") as dst:
+        for name in src.namelist():
+            data = src.read(name)
+            dst.writestr(name, data[: len(data) // 2] if name == "body_v.npy" else data)
+    with pytest.raises(CheckpointError, match="array 'body_v' cannot be read"):
+        read_checkpoint(damaged)
+
+
+@pytest.mark.parametrize(
+    "other, words",
+    [
+        ({"friction": 0.3}, ["materials.stone.friction differs: checkpoint 0.5, scene 0.3"]),
+        ({"restitution": 0.9}, ["materials.stone.restitution differs: checkpoint 0.4, scene 0.9"]),
+        ({"k": 2.0e8}, ["materials.stone.k differs: checkpoint 1e+08, scene 2e+08"]),
+        ({"density": 3000.0}, ["materials.stone.density differs: checkpoint 2500, scene 3000"]),
+        ({"size": 0.021}, ["shapes.cube.vertices differ", "0.02 x 0.02 x 0.02 m", "0.021 x 0.021 x 0.021 m"]),
+        ({"gravity": -3.0}, ["simulation.gravity differs: checkpoint [0, 0, -9.81], scene [0, 0, -3]"]),
+        ({"plane": False}, ["planes differ: checkpoint 1 planes, scene 0"]),
+        ({"dt": 1e-5}, ["simulation.dt differs: checkpoint 2e-05, scene 1e-05"]),
+    ],
+)
+def test_checkpoint_of_other_physics_is_refused(saved, other, words):
+    from polydem.checkpoint import CheckpointError
+
+    sim = polydem.Simulation(stack(**other), device="cpu")
+    with pytest.raises(CheckpointError) as info:
+        load_checkpoint(sim, saved)
+    message = str(info.value)
+    assert "written for other physics" in message and "use the scene the checkpoint was written from" in message
+    for word in words:
+        assert word in message, (word, message)
+    assert sim.steps_done == 0  # nothing was loaded
+
+
+def test_physics_differences_of_drums_and_bodies(tmp_path):
+    """Host only: the drum's speed, and bodies of another shape, are named with the first body that differs."""
+    from polydem.checkpoint import physics_description, physics_differences
+    from polydem.scene import Scene
+
+    drum = (Path(__file__).resolve().parents[1] / "scenes" / "drum.toml").read_text()
+    assert "rpm = 20.0" in drum
+    (tmp_path / "fast.toml").write_text(drum.replace("rpm = 20.0", "rpm = 30.0"))
+    a = physics_description(Scene.from_toml(tmp_path / "fast.toml"), 1e-5)
+    b = physics_description(Scene.from_toml(Path(__file__).resolve().parents[1] / "scenes" / "drum.toml"), 1e-5)
+    diffs = physics_differences(*a, *b)
+    assert diffs[0] == "drums[0].omega differs: checkpoint 3.14159, scene 2.0944"
+    assert any("angular_velocity of a kinematic body differs" in d for d in diffs)
+    assert physics_differences(*b, *b) == []
+
+    one, two = stack(), stack()
+    two.add_shape("tet", polydem.ConvexShape.tetrahedron(0.03, name="tet"))
+    two.add_body("tet", "stone", position=(0.0, 0.0, 0.5))
+    one.add_body("cube", "stone", position=(0.0, 0.0, 0.5))
+    diffs = physics_differences(*physics_description(one, 1e-5), *physics_description(two, 1e-5))
+    assert "shapes differ: checkpoint ['cube'], scene ['cube', 'tet']" in diffs
+    assert "bodies[5].shape differs: checkpoint 'cube', scene 'tet'" in diffs
+
+
+def test_old_format_loads_with_a_warning(saved, tmp_path):
+    from polydem.checkpoint import CheckpointWarning, read_checkpoint
+
+    with np.load(saved) as f:
+        data = {k: v for k, v in f.items() if not k.startswith("physics_") and k != "run_json"}
+    data["format"] = np.array("polydem-checkpoint-2")
+    np.savez(tmp_path / "old.npz", **data)
+    assert read_checkpoint(tmp_path / "old.npz").physics is None
+    sim = polydem.Simulation(stack(), device="cpu")
+    with pytest.warns(CheckpointWarning, match="cannot be checked to come from this scene"):
+        load_checkpoint(sim, tmp_path / "old.npz")
+    assert sim.steps_done == 300

@@ -342,6 +342,269 @@ def test_checkpoint_errors(tmp_path, capsys, unbroken):
     assert not (tmp_path / "o" / "summary.json").exists()
 
 
+def files_of(folder):
+    """Every file under ``folder`` with its bytes (to show that a refused resume changed nothing)."""
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(Path(folder).rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def earlier_run(tmp_path, unbroken):
+    """A copy of the unbroken run's output folder (outputs a refused resume must leave alone): (scene, folder)."""
+    import shutil
+
+    scene, out_dir = unbroken
+    folder = tmp_path / "out"
+    shutil.copytree(out_dir, folder)
+    return scene, folder
+
+
+@pytest.mark.parametrize(
+    "replace, words",
+    [
+        (
+            [("steps = 400", "steps = 400\ngravity = [0.0, 0.0, -3.0]")],
+            ["simulation.gravity differs: checkpoint [0, 0, -9.81], scene [0, 0, -3]"],
+        ),
+        (
+            [("restitution = 0.4", "restitution = 0.9")],
+            ["materials.stone.restitution differs: checkpoint 0.4, scene 0.9"],
+        ),
+        ([("friction = 0.5", "friction = 0.2")], ["materials.stone.friction differs: checkpoint 0.5, scene 0.2"]),
+        ([("k = 1.0e8", "k = 2.0e8")], ["materials.stone.k differs: checkpoint 1e+08, scene 2e+08", "simulation.dt"]),
+        ([("density = 2500.0", "density = 3000.0")], ["materials.stone.density differs", "simulation.dt differs"]),
+        (
+            [('law = "hertz"\nk = 1.0e8', 'law = "linear"\nk = 1.0e10')],
+            ["materials.stone.law differs: checkpoint 'hertz', scene 'linear'"],
+        ),
+        ([('dt = "auto"', "dt = 3.0e-5")], ["simulation.dt differs", "scene 3e-05"]),
+        (
+            [("size = 0.02", "size = 0.019")],
+            ["shapes.cube.vertices differ: checkpoint 8 vertices within 0.02 x 0.02 x 0.02 m, scene 8 vertices"],
+        ),
+        (
+            [("size = 0.02", "size = [0.02, 0.02, 0.019]")],
+            ["shapes.cube.vertices differ", "0.02 x 0.02 x 0.019 m"],
+        ),
+        ([('shape = ["cube", "tet"]', 'shape = ["tet", "cube"]')], ["bodies[", "].shape differs", "bodies differ"]),
+        (
+            [
+                (
+                    "seed = 1\n",
+                    'seed = 1\n\n[[walls]]\ntype = "plane"\npoint = [0, 0, 0]\nnormal = [0, 0, 1]\n'
+                    'material = "stone"\n',
+                )
+            ],
+            ["planes differ: checkpoint 0 planes, scene 1"],
+        ),
+    ],
+    ids=["gravity", "restitution", "friction", "k", "density", "law", "dt", "size", "shape", "kinds", "walls"],
+)
+def test_resume_refuses_other_physics(tmp_path, capsys, earlier_run, replace, words):
+    """Before: accepted (exit 0) and run on with the new scene's physics, or refused for a time step
+    only. Now: exit code 2 naming what differs, and the earlier outputs stay as they were."""
+    _, out_dir = earlier_run
+    other = write_scene(tmp_path, name="other.toml", replace=replace)
+    before = files_of(out_dir)
+    checkpoint = out_dir / "checkpoints" / "step_000000150.npz"
+    code, _, err = run(["run", other, "--device", "cpu", "--out", out_dir, "--resume", checkpoint], capsys)
+    assert_user_error(
+        code,
+        err,
+        "step_000000150.npz: --resume: the checkpoint was written for other physics",
+        *words,
+        "resume with the scene the checkpoint was written from",
+    )
+    assert files_of(out_dir) == before
+
+
+def _edit(path, out, **changes):
+    with np.load(path) as f:
+        data = dict(f)
+    for key, change in changes.items():
+        if change is None:
+            data.pop(key)
+        else:
+            data[key] = change(data[key].copy())
+    np.savez(out, **data)
+
+
+def _entry(index, value):
+    def change(a):
+        a[index] = value
+        return a
+
+    return change
+
+
+def _changed(text, old, new):
+    assert old in text
+    return text.replace(old, new)
+
+
+def _run_record(change):
+    def edit(text):
+        rec = json.loads(str(text))
+        change(rec)
+        return np.array(json.dumps(rec))
+
+    return edit
+
+
+EDITED = {
+    "zero quaternion": ({"body_q": _entry((6, slice(3, 7)), 0.0)}, ["orientation of body 6", "has length 0, not 1"]),
+    "scaled quaternion": ({"body_q": lambda q: q * np.float32(3.0)}, ["orientation of body 0", "has length 3"]),
+    "rows missing": ({"body_q": lambda q: q[:-2]}, ["body_q has shape (15, 7), expected (17, 7)"]),
+    "velocity rows missing": ({"body_v": lambda v: v[:-2]}, ["body_v has shape (15, 3), expected (17, 3)"]),
+    "wrong dtype": ({"body_w": lambda w: w.astype(complex)}, ["body_w holds complex128 values"]),
+    "NaN": ({"body_q": _entry((8, 1), np.nan)}, ["body_q[8, 1] is nan", "must be finite"]),
+    "inf": ({"body_v": _entry((8, 1), np.inf)}, ["body_v[8, 1] is inf"]),
+    "negative steps": ({"steps_done": lambda s: np.array(-150)}, ["steps_done = -150 is negative"]),
+    "NaN time": ({"time": lambda t: np.array(np.nan)}, ["time = nan s is not a finite time"]),
+    "fake pair key": ({"pair_key": _entry(-1, 17 * 17 + 3)}, ["is not a pair of bodies a < b < 17"]),
+    "repeated pair key": ({"pair_key": lambda k: np.r_[k[:1], k[:-1]]}, ["repeats"]),
+    "pair keys out of order": ({"pair_key": lambda k: k[::-1].copy()}, ["smaller than the one before"]),
+    "physics record edited": (
+        {"physics_json": lambda t: np.array(_changed(str(t), 'stone.friction":0.5', 'stone.friction":0.2'))},
+        ["does not match its physics_fingerprint"],
+    ),
+    "run record edited": (
+        {"run_json": _run_record(lambda rec: rec["history"]["kinetic"].pop())},
+        ["history.kinetic of its run record is not a list of"],
+    ),
+    "run record ahead of the state": (
+        {"run_json": _run_record(lambda rec: rec["history"]["time"].__setitem__(-1, 1.0))},
+        ["its run record has a frame at t = 1 s, after the checkpoint's"],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", EDITED, ids=list(EDITED))
+def test_resume_refuses_edited_checkpoints(tmp_path, capsys, earlier_run, case):
+    """Before: accepted and run on (zero or scaled quaternions, rows of velocities missing, negative
+    step counts, fake pair keys), or a traceback (NaN time). Now: exit code 2 and one line naming
+    the entry; the earlier outputs stay as they were."""
+    scene, out_dir = earlier_run
+    changes, words = EDITED[case]
+    bad = tmp_path / "edited.npz"
+    with np.load(out_dir / "checkpoints" / "step_000000150.npz") as data:
+        assert len(data["pair_key"]) > 2  # the keys to edit
+    _edit(out_dir / "checkpoints" / "step_000000150.npz", bad, **changes)
+    before = files_of(out_dir)
+    code, _, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "--resume", bad], capsys)
+    assert_user_error(code, err, "edited.npz: --resume: ", *words)
+    assert files_of(out_dir) == before
+    if not case.startswith("run record"):  # render reads the same checks (the run record is the summary's)
+        png = tmp_path / "edited.png"
+        code, _, err = run(["render", bad, "--scene", scene, "--device", "cpu", "--out", png], capsys)
+        assert_user_error(code, err, "edited.npz: ", *words)
+        assert not png.exists()
+
+
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (lambda raw: raw[: len(raw) // 2], ["not a polydem checkpoint (BadZipFile"]),
+        (lambda raw: raw[:-10], ["not a polydem checkpoint"]),
+        (lambda raw: b"hello", ["not a polydem checkpoint (neither an .npz archive nor an .npy array)"]),
+    ],
+    ids=["truncated", "tail cut", "text"],
+)
+def test_resume_refuses_files_that_are_not_checkpoints(tmp_path, capsys, earlier_run, make, words):
+    scene, out_dir = earlier_run
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(make((out_dir / "checkpoints" / "final.npz").read_bytes()))
+    before = files_of(out_dir)
+    code, _, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "--resume", bad], capsys)
+    assert_user_error(code, err, "bad.npz: --resume: ", *words, "give a checkpoint written by polydem")
+    assert files_of(out_dir) == before
+
+
+def test_resume_refuses_another_frame_rate(tmp_path, capsys, earlier_run):
+    scene, out_dir = earlier_run
+    before = files_of(out_dir)
+    checkpoint = out_dir / "checkpoints" / "step_000000150.npz"
+    code, _, err = run(
+        ["run", scene, "--device", "cpu", "--out", out_dir, "--fps", "250", "--resume", checkpoint], capsys
+    )
+    assert_user_error(code, err, "recorded its frames at 500.0 per simulated second", "give --fps 500.0")
+    assert files_of(out_dir) == before
+
+
+def test_old_checkpoint_resumes_with_a_warning(tmp_path, capsys, unbroken):
+    """A checkpoint of the previous format (no physics record, no run record) still resumes, with a
+    warning on stderr and a note in the summary that it covers the resumed part only."""
+    scene, out_dir = unbroken
+    old = tmp_path / "old.npz"
+    with np.load(out_dir / "checkpoints" / "step_000000300.npz") as f:
+        data = {k: v for k, v in f.items() if not k.startswith("physics_") and k != "run_json"}
+    data["format"] = np.array("polydem-checkpoint-2")
+    np.savez(old, **data)
+    code, _, err = run(["run", scene, "--device", "cpu", "--out", tmp_path / "o", "-q", "--resume", old], capsys)
+    assert code == 0, err
+    assert "polydem: warning: " in err and "cannot be checked to come from this scene" in err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["history_from_step"] == 300
+    assert any("no record of the run before step 300" in note for note in summary["notes"])
+    assert_same_state(out_dir / "checkpoints" / "final.npz", tmp_path / "o" / "checkpoints" / "final.npz")
+
+
+def test_resumed_summary_covers_the_whole_run(tmp_path, capsys, unbroken):
+    """Before: the summary of a resumed run held only the resumed part (its frames, the energy at the
+    resume as the initial one, its wall time and files). Now, after runs to step 200, 300 and the
+    end, it equals the unbroken run's over the whole run and lists every part and file."""
+    scene, unbroken_dir = unbroken
+    out_dir = tmp_path / "out"
+    base = ["run", scene, "--device", "cpu", "--out", out_dir, "-q"]
+    code, _, err = run([*base, "--steps", "200"], capsys)
+    assert code == 0, err
+    code, _, err = run([*base, "--steps", "300", "--resume", out_dir / "checkpoints" / "final.npz"], capsys)
+    assert code == 0, err
+    code, out, err = run([*base, "--resume", out_dir / "checkpoints" / "final.npz"], capsys)
+    assert code == 0, err
+    assert "1 picture" not in out  # the closing lines name this part's files only
+
+    whole = json.loads((unbroken_dir / "summary.json").read_text())
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert summary["frames"] == whole["frames"] == expected_frames(STEPS, whole["dt"], 500.0)
+    assert set(summary["history"]) == set(whole["history"])
+    for key, values in whole["history"].items():
+        assert len(summary["history"][key]) == len(values), key
+        np.testing.assert_allclose(
+            np.array(summary["history"][key], dtype=float), np.array(values, dtype=float), rtol=1e-9, err_msg=key
+        )
+    assert summary["history"]["time"][0] == 0.0
+    assert summary["contacts"] == pytest.approx(whole["contacts"])
+    assert summary["largest_overlap"]["max_over_frames"] == pytest.approx(whole["largest_overlap"]["max_over_frames"])
+    assert summary["energy"]["initial"] == pytest.approx(whole["energy"]["initial"])
+    assert summary["energy"]["final"] == pytest.approx(whole["energy"]["final"])
+    assert summary["energy"]["at_resume"]["total"] != pytest.approx(whole["energy"]["initial"]["total"], rel=1e-9)
+    assert summary["steps"] == STEPS and summary["steps_this_run"] == STEPS - 300
+    assert summary["resumed_at_step"] == 300 and summary["history_from_step"] == 0
+    assert summary["wall_time"] > summary["wall_time_this_run"] > 0.0
+    # Which part wrote which steps and frames, into which USD file.
+    parts = summary["parts"]
+    assert [(p["from_step"], p["to_step"]) for p in parts] == [(0, 200), (200, 300), (300, STEPS)]
+    assert [p["usd"] for p in parts] == ["tiny.usda", "tiny.from_step_200.usda", "tiny.from_step_300.usda"]
+    assert [p["resumed_from"] for p in parts] == [None, "checkpoints/final.npz", "checkpoints/final.npz"]
+    from polydem.usd import read_time_codes
+
+    codes = []
+    for p in parts:
+        file_codes = read_time_codes(out_dir / p["usd"]).tolist()
+        assert p["usd_frames"] == len(file_codes) and p["usd_time_codes"] == [file_codes[0], file_codes[-1]]
+        codes += file_codes
+    assert sorted(set(codes)) == list(range(whole["frames"]))
+    assert sum(p["wall_time"] for p in parts) == pytest.approx(summary["wall_time"])
+    # Files of the earlier parts are kept in the lists.
+    assert summary["outputs"]["pictures"] == ["pictures/frame_000001.png"]
+    assert summary["outputs"]["checkpoints"] == [
+        "checkpoints/step_000000150.npz",
+        "checkpoints/final.npz",
+        "checkpoints/step_000000300.npz",
+    ]
+    assert summary["outputs"]["usd"] == "tiny.from_step_300.usda"
+
+
 # ---------------------------------------------------------------------- interruption and resume
 
 
@@ -426,6 +689,14 @@ def test_resume_from_periodic_checkpoint(tmp_path, capsys, unbroken):
     )
     assert code == 0, err
     assert_same_state(unbroken_dir / "checkpoints" / "final.npz", tmp_path / "out" / "checkpoints" / "final.npz")
+    # The summary continues the unbroken run's record up to step 150, whose files lie in its folder.
+    whole = json.loads((unbroken_dir / "summary.json").read_text())
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["history"]["time"] == pytest.approx(whole["history"]["time"], rel=1e-9)
+    assert summary["history"]["total"] == pytest.approx(whole["history"]["total"], rel=1e-9)
+    first = (unbroken_dir / "pictures" / "frame_000001.png").resolve()
+    assert summary["outputs"]["pictures"] == [str(first)]
+    assert summary["parts"][0]["folder"] == str(unbroken_dir.resolve())
 
 
 def test_interrupt_inside_a_step_rolls_back(tmp_path, capsys, monkeypatch, unbroken):

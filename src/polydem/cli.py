@@ -37,7 +37,16 @@ Resuming. ``polydem run SCENE --resume CHECKPOINT`` continues from a checkpoint 
 ``--steps`` and ``--duration`` count from t = 0, so the same command line with ``--resume`` added
 ends in the same state, bit for bit (on the same device), as a run that was never interrupted. The
 resumed part goes to a new USD file, ``<usd stem>.from_step_<N><suffix>`` (N the checkpoint's
-step); its time codes continue those of the first file (frame k keeps time code k).
+step); its time codes continue those of the first file (frame k keeps time code k). The
+checkpoint must come from the same physics (its record of the scene's materials, shapes, walls,
+bodies, gravity and time step is compared with the scene's; a difference is an error naming it)
+and be sound (every array is checked). Checkpoints written by ``polydem run`` also carry the
+record of the run so far, so the summary of a resumed run covers the whole run from t = 0: its
+frame history, contact counts, largest overlap, initial energy, wall time, pictures and
+checkpoints, and ``parts`` (the steps, folder, USD file and time codes of each part). A checkpoint
+without that record (of the older format, or from :func:`polydem.checkpoint.save_checkpoint`
+without ``run``) is resumed with a note that the summary covers the resumed part only; one of
+the older format, without a record of its physics, with a warning that it cannot be checked.
 
 Exit codes: 0 done; 1 the simulation failed (SimulationError: outputs written, message on stderr)
 or an internal error (with its traceback); 2 a user error (one message on stderr naming the file
@@ -431,24 +440,23 @@ def _check_poses(path, positions, scene, scene_arg, what: str, fix: str, key=Non
         )
 
 
-def _read_checkpoint_poses(path: Path) -> np.ndarray:
-    """The (N, 7) body poses [px, py, pz, qx, qy, qz, qw] of a checkpoint (CliError if it is not one)."""
-    from polydem.checkpoint import FORMAT
+def _read_checkpoint(path: Path, key=None):
+    """The checked :class:`polydem.checkpoint.Checkpoint` in ``path`` (CliError naming what is wrong)."""
+    from polydem.checkpoint import CheckpointError, read_checkpoint
 
     try:
-        with np.load(path) as data:
-            fmt = str(data["format"])
-            body_q = np.array(data["body_q"], dtype=np.float64)
-    except Exception as err:  # a truncated or foreign file
+        return read_checkpoint(path)
+    except CheckpointError as err:
+        raise CliError(err.message, path, key) from None
+    except OSError as err:
         raise CliError(
-            f"not a polydem checkpoint ({type(err).__name__}: {err}); give a .npz file written by polydem run",
-            path,
+            f"cannot read the checkpoint ({err.strerror or err}); check the path and its permissions", path, key
         ) from None
-    if fmt != FORMAT:
-        raise CliError(f"checkpoint format {fmt!r}, this polydem reads {FORMAT!r}; rerun the scene", path)
-    if body_q.ndim != 2 or body_q.shape[1] != 7:
-        raise CliError(f"body poses of shape {body_q.shape}, expected (N, 7); the file is damaged", path)
-    return body_q
+
+
+def _read_checkpoint_poses(path: Path) -> np.ndarray:
+    """The (N, 7) body poses [px, py, pz, qx, qy, qz, qw] of a checkpoint (CliError if it is not one)."""
+    return _read_checkpoint(path).arrays["body_q"].astype(np.float64)
 
 
 class _Poses:
@@ -643,6 +651,61 @@ class _Run:
         self.picture_files: list[str] = []
         self.checkpoints: list[str] = []
         self.cp_index = self._first_checkpoint(self.start)
+        self.earlier = None  # the record of the run up to the checkpoint resumed from (continue_record)
+        self.usd_codes: list[float] = []  # time codes of the first and last frame of this part's USD file
+        self.t0 = time.perf_counter()
+
+    def continue_record(self, checkpoint) -> None:
+        """Continue the record of the run that wrote ``checkpoint`` (its history, contact counts,
+        largest overlap, initial energy, wall time and files), so the summary covers the whole run."""
+        rec = checkpoint.run
+        if rec is None:
+            return
+        self.earlier = rec
+        self.history = {k: list(rec["history"][k]) for k in _HISTORY_KEYS}
+        self.frame_contacts = list(rec["frame_contacts"])
+        self.frame_overlap = float(rec["frame_overlap"])
+
+    def run_record(self, writing=None) -> dict:
+        """The record of the run up to now, kept in its checkpoints (``writing``: the checkpoint
+        being written). Paths are absolute, so a run resumed into another folder still finds them."""
+        e = self.earlier or {}
+
+        def absolute(names):
+            return [str(_resolve(self.out_dir, p).resolve()) for p in names]
+
+        wall = time.perf_counter() - self.t0
+        checkpoints = [*e.get("checkpoints", []), *absolute(self.checkpoints)]
+        if writing is not None:
+            checkpoints.append(str(Path(writing).resolve()))
+        return _finite(
+            {
+                "version": RUN_RECORD_VERSION,
+                "fps": self.fps,
+                "history": self.history,
+                "frame_contacts": self.frame_contacts,
+                "frame_overlap": self.frame_overlap,
+                "energy_initial": self.energy_initial,
+                "wall_time": e.get("wall_time", 0.0) + wall,
+                "pictures": [*e.get("pictures", []), *absolute(self.picture_files)],
+                "checkpoints": list(dict.fromkeys(checkpoints)),
+                "parts": [*e.get("parts", []), self.part(wall)],
+            }
+        )
+
+    def part(self, wall) -> dict:
+        """This part of the run (from the start or the checkpoint resumed from, to now)."""
+        rec = self.recorder
+        return {
+            "from_step": self.start,
+            "to_step": self.sim.steps_done,
+            "folder": str(self.out_dir.resolve()),
+            "resumed_from": str(Path(self.resumed_from).resolve()) if self.resumed_from is not None else None,
+            "usd": str(self.usd_path.resolve()) if self.usd_path is not None else None,
+            "usd_frames": rec.frames if rec is not None else 0,
+            "usd_time_codes": [self.usd_codes[0], self.usd_codes[-1]] if self.usd_codes else None,
+            "wall_time": wall,
+        }
 
     # -- schedule (all in absolute steps from t = 0)
 
@@ -681,25 +744,32 @@ class _Run:
         if self.frame_step(self.frame) != steps:
             return
         contacts = sim.contacts()
-        self.frame_contacts.append(len(contacts["volume"]))
-        energy = sim.energy()
-        region = settled_region(sim.model.scene, sim.state(), contacts)
-        self.history["time"].append(sim.time)
-        for key in ("kinetic", "contact", "gravity", "dissipated", "total"):
-            self.history[key].append(energy[key])
-        self.history["contacts"].append(len(contacts["volume"]))
-        self.history["packing_fraction"].append(region.get("packing_fraction"))
-        if len(contacts["volume"]):
-            self.frame_overlap = max(self.frame_overlap, float(_relative_overlaps(contacts, self.volumes).max()))
+        times = self.history["time"]
+        if not times or sim.time > times[-1] + 0.5 * self.dt:  # a resumed run starts at a frame it may hold
+            self.record_history(contacts)
         rec = self.recorder
         if rec is not None and (rec.last_time_code is None or rec.time_code(sim.time) > rec.last_time_code):
             rec.record_simulation(sim)
+            self.usd_codes = [*self.usd_codes[:1], rec.last_time_code]
         if self.vtk is not None and (self.vtk.last_index is None or self.frame > self.vtk.last_index):
             self.vtk.record(sim.time, sim.state(), contacts, index=self.frame)
         while self.frame_step(self.frame) <= steps:
             if isinstance(self.pictures, tuple) and self.frame in self.pictures:
                 self.picture(f"frame_{self.frame:06d}.png")
             self.frame += 1
+
+    def record_history(self, contacts) -> None:
+        sim = self.sim
+        self.frame_contacts.append(len(contacts["volume"]))
+        energy = sim.energy()
+        region = settled_region(sim.model.scene, sim.state(), contacts)
+        self.history["time"].append(sim.time)
+        for key in _ENERGY_KEYS:
+            self.history[key].append(energy[key])
+        self.history["contacts"].append(len(contacts["volume"]))
+        self.history["packing_fraction"].append(region.get("packing_fraction"))
+        if len(contacts["volume"]):
+            self.frame_overlap = max(self.frame_overlap, float(_relative_overlaps(contacts, self.volumes).max()))
 
     def picture(self, name: str) -> None:
         from polydem.render import render_simulation
@@ -715,7 +785,7 @@ class _Run:
 
         self.cp_dir.mkdir(parents=True, exist_ok=True)
         path = self.cp_dir / name
-        save_checkpoint(self.sim, path)
+        save_checkpoint(self.sim, path, run=self.run_record(writing=path))
         self.checkpoints.append(_rel(path, self.out_dir))
         return path
 
@@ -745,8 +815,10 @@ class _Run:
         """Run to the target step; whatever stops the run, write the outputs. Returns the exit code."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
         progress = _Progress(err, self.start, self.target, self.dt, enabled=not self.args.quiet)
-        self.energy_initial = self.sim.energy()
-        t0 = time.perf_counter()
+        energy = self.sim.energy()
+        self.energy_initial = energy if self.earlier is None else self.earlier["energy_initial"]
+        self.energy_at_start = energy
+        self.t0 = t0 = time.perf_counter()
         with _StopOnSigint() as stop:
             return self._execute(out, err, progress, t0, stop)
 
@@ -860,6 +932,13 @@ class _Run:
                 "wall": -1 - b if b < 0 else None,
             }
         frames = self.frame_contacts
+        e = self.earlier or {}
+        folder = self.out_dir
+        parts = [dict(p) for p in [*e.get("parts", []), self.part(wall)]]
+        for p in parts:
+            for k in ("usd", "resumed_from"):
+                if p.get(k) is not None:
+                    p[k] = _rel(p[k], folder)
         summary = {
             "polydem": __version__,
             "scene": scene.name,
@@ -869,12 +948,16 @@ class _Run:
             "interrupted": reason is not None,
             "reason": reason,
             "resumed_from": str(self.resumed_from) if self.resumed_from is not None else None,
+            "resumed_at_step": self.start if self.resumed_from is not None else None,
+            "history_from_step": parts[0]["from_step"],
+            "parts": parts,
             "steps": sim.steps_done,
             "steps_this_run": run_steps,
             "target_steps": self.target,
             "dt": self.dt,
             "simulated_time": sim.time,
-            "wall_time": wall,
+            "wall_time": e.get("wall_time", 0.0) + wall,
+            "wall_time_this_run": wall,
             "steps_per_second": run_steps / wall if wall > 0 else None,
             "body_steps_per_second": run_steps * sim.num_bodies / wall if wall > 0 else None,
             "bodies": {
@@ -894,7 +977,11 @@ class _Run:
                 "final": largest,
                 "max_over_frames": self.frame_overlap if frames else None,
             },
-            "energy": {"initial": self.energy_initial, "final": energy},
+            "energy": {
+                "initial": self.energy_initial,
+                "at_resume": self.energy_at_start if self.resumed_from is not None else None,
+                "final": energy,
+            },
             "settled_region": settled_region(scene, sim.state(), contacts) if consistent else None,
             "outputs": {
                 "folder": str(self.out_dir),
@@ -906,8 +993,10 @@ class _Run:
                 }
                 if self.vtk is not None
                 else None,
-                "pictures": self.picture_files,
-                "checkpoints": self.checkpoints,
+                "pictures": [*(_rel(p, folder) for p in e.get("pictures", [])), *self.picture_files],
+                "checkpoints": list(
+                    dict.fromkeys([*(_rel(p, folder) for p in e.get("checkpoints", [])), *self.checkpoints])
+                ),
                 "summary": _rel(self.summary_path, self.out_dir) if self.summary_path is not None else None,
             },
         }
@@ -915,6 +1004,11 @@ class _Run:
             missing = [k for k in self.pictures if k >= self.frame]
             if missing:
                 notes.append(f"picture frames {missing} were not reached by this run")
+        if self.resumed_from is not None and self.earlier is None:
+            notes.append(
+                f"the checkpoint holds no record of the run before step {self.start}: the history, contact counts, "
+                "initial energy, wall time and files cover the resumed part only"
+            )
         if notes:
             summary["notes"] = notes
         return summary
@@ -927,7 +1021,7 @@ class _Run:
         rate = f" ({s['steps_per_second']:.0f} steps/s)" if s["steps_per_second"] else ""
         lines.append(
             f"{head}: {s['steps_this_run']} steps to step {s['steps']} (t = {s['simulated_time']:.6g} s) in "
-            f"{s['wall_time']:.2f} s{rate}, {_n(s['bodies']['total'], 'body', 'bodies')}"
+            f"{s['wall_time_this_run']:.2f} s{rate}, {_n(s['bodies']['total'], 'body', 'bodies')}"
         )
         if c["final"] is not None:
             over = ""
@@ -963,8 +1057,8 @@ class _Run:
             written.append(f"{', '.join(o['vtk']['files'])} ({_n(o['vtk']['frames'], 'frame')})")
         if o["summary"]:
             written.append(o["summary"])
-        if o["pictures"]:
-            written.append(f"{_n(len(o['pictures']), 'picture')} in pictures/")
+        if self.picture_files:  # this run's (the summary lists those of the earlier parts too)
+            written.append(f"{_n(len(self.picture_files), 'picture')} in pictures/")
         if cp_path is not None:
             written.append(_rel(cp_path, self.out_dir))
         lines.append(f"  written to {self.out_dir}{os.sep}: {', '.join(written) if written else 'nothing'}")
@@ -1021,7 +1115,7 @@ def cmd_run(args) -> int:
             'is offered by polydem.overlap(..., precision="float64")',
             key="--precision",
         )
-    resume = None
+    resume = checkpoint = None
     if args.resume is not None:
         resume = Path(args.resume)
         if not resume.is_file():
@@ -1031,6 +1125,7 @@ def cmd_run(args) -> int:
                 resume,
                 "--resume",
             )
+        checkpoint = _read_checkpoint(resume, "--resume")  # a damaged file fails before the model is built
     scene = _load_scene(args.scene)
     if args.precision is not None:
         scene.precision = args.precision
@@ -1043,7 +1138,7 @@ def cmd_run(args) -> int:
     sim = Simulation(scene, device=device)
     target, source = _target_steps(args, scene, sim.dt)
     if resume is not None:
-        _resume(sim, scene, resume, args)
+        _resume(sim, scene, resume, checkpoint, args)
         if sim.steps_done >= target:
             raise CliError(
                 f"the checkpoint is at step {sim.steps_done} (t = {sim.time:.6g} s), which already reaches the "
@@ -1061,6 +1156,8 @@ def cmd_run(args) -> int:
             f"cannot create the output folder ({exc.strerror}); give another --out", out_dir, "--out"
         ) from None
     run = _Run(args, scene, sim, out_dir, target, resume)
+    if checkpoint is not None:
+        run.continue_record(checkpoint)
     kind = np.asarray(scene.body_kind)
     what = f"from step {sim.steps_done} (t = {sim.time:.6g} s) " if resume is not None else ""
     out.write(
@@ -1073,20 +1170,88 @@ def cmd_run(args) -> int:
     return run.execute(out, err)
 
 
-def _resume(sim, scene, path: Path, args) -> None:
-    from polydem.checkpoint import load_checkpoint
+_HISTORY_KEYS = ("time", "kinetic", "contact", "gravity", "dissipated", "total", "contacts", "packing_fraction")
+_ENERGY_KEYS = ("kinetic", "contact", "gravity", "dissipated", "total")
+RUN_RECORD_VERSION = 1
+"""Layout of the run record that ``polydem run`` keeps in its checkpoints (:meth:`_Run.run_record`)."""
+
+
+def _run_record_problem(rec, fps, time_s, dt) -> str | None:
+    """What is wrong with the run record ``rec`` of a checkpoint at ``time_s`` for a run at ``fps``, or None."""
+
+    def number(x, lo=-math.inf):
+        return isinstance(x, int | float) and not isinstance(x, bool) and x >= lo
+
+    def strings(x):
+        return isinstance(x, list) and all(isinstance(v, str) for v in x)
+
+    damaged = "; the file is damaged or was edited: use another checkpoint of the run or rerun"
+    if rec.get("version") != RUN_RECORD_VERSION:
+        return f"its run record has version {rec.get('version')!r}, this polydem reads {RUN_RECORD_VERSION}{damaged}"
+    history = rec.get("history")
+    if not isinstance(history, dict) or set(history) != set(_HISTORY_KEYS):
+        return f"its run record has no frame history with the entries {', '.join(_HISTORY_KEYS)}{damaged}"
+    contacts = rec.get("frame_contacts")
+    frames = len(contacts) if isinstance(contacts, list) else -1
+    if frames < 0 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in contacts):
+        return f"frame_contacts of its run record is not a list of contact counts{damaged}"
+    for key in _HISTORY_KEYS:
+        values = history[key]
+        if not isinstance(values, list) or len(values) != frames or not all(v is None or number(v) for v in values):
+            return f"history.{key} of its run record is not a list of {frames} numbers{damaged}"
+    times = history["time"]
+    if None in times or any(b <= a for a, b in zip(times, times[1:], strict=False)):
+        return f"history.time of its run record is not increasing{damaged}"
+    if times and times[-1] > time_s + 0.5 * dt:
+        return f"its run record has a frame at t = {times[-1]:.6g} s, after the checkpoint's {time_s:.6g} s{damaged}"
+    energy = rec.get("energy_initial")
+    if not (
+        isinstance(energy, dict) and all(k in energy and (energy[k] is None or number(energy[k])) for k in _ENERGY_KEYS)
+    ):
+        return f"energy_initial of its run record is not a table of energies{damaged}"
+    if not (number(rec.get("frame_overlap"), 0.0) and number(rec.get("wall_time"), 0.0)):
+        return f"frame_overlap or wall_time of its run record is not a number >= 0{damaged}"
+    if not (strings(rec.get("pictures")) and strings(rec.get("checkpoints"))):
+        return f"pictures or checkpoints of its run record is not a list of file names{damaged}"
+    parts = rec.get("parts")
+
+    def part(p):
+        steps = (p.get("from_step"), p.get("to_step"))
+        whole = all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in steps)
+        return whole and isinstance(p.get("folder"), str) and number(p.get("wall_time"), 0.0)
+
+    if not (isinstance(parts, list) and parts and all(isinstance(p, dict) and part(p) for p in parts)):
+        return f"parts of its run record is not a list of the parts of the run{damaged}"
+    if not number(rec.get("fps"), 0.0) or not math.isclose(rec["fps"], fps, rel_tol=1e-12):
+        return (
+            f"the run recorded its frames at {rec.get('fps')!r} per simulated second, this one would at {fps:g}: its "
+            f"frame history and USD time codes would not fit; give --fps {rec.get('fps')!r} (or leave --fps out)"
+        )
+    return None
+
+
+def _resume(sim, scene, path: Path, ck, args) -> None:
+    """Put the checkpoint ``ck`` (read from ``path``) into ``sim`` after checking it against ``scene``."""
+    from polydem.checkpoint import CheckpointError, check_scene, restore_checkpoint
 
     fix = "resume with the scene the checkpoint was written from: polydem run SCENE --resume CHECKPOINT"
-    body_q = _read_checkpoint_poses(path)
-    _check_poses(path, body_q[:, :3], scene, args.scene, "checkpoint", fix, "--resume")
+    _check_poses(path, ck.arrays["body_q"][:, :3], scene, args.scene, "checkpoint", fix, "--resume")
     try:
-        load_checkpoint(sim, path)
-    except (ValueError, KeyError, OSError) as exc:
-        message = str(exc)
-        prefix = f"{os.fspath(path)}: "
-        if message.startswith(prefix):
-            message = message[len(prefix) :]
-        raise CliError(f"{message}; {fix}", path, "--resume") from None
+        check_scene(ck, sim, fix=f"{fix} (or leave --resume out to run this scene from t = 0)")
+    except CheckpointError as err:
+        raise CliError(err.message, path, "--resume") from None
+    fps = args.fps if args.fps is not None else scene.output.fps
+    problem = _run_record_problem(ck.run, fps, ck.time, sim.dt) if ck.run is not None else None
+    if problem is not None:
+        raise CliError(problem, path, "--resume")
+    if ck.physics is None:
+        sys.stderr.write(
+            f"polydem: warning: {path}: a checkpoint of the older format {ck.format!r} holds no record of its "
+            "scene's physics or of the run so far: it cannot be checked to come from this scene, and the summary "
+            "covers the resumed part only\n"
+        )
+        sys.stderr.flush()
+    restore_checkpoint(sim, ck)
 
 
 # ---------------------------------------------------------------------- polydem validate
@@ -1289,7 +1454,10 @@ interruption and resuming:
   so far, the summary says "interrupted": true, and interrupted.npz holds the state. Add
   --resume CHECKPOINT to the same command to continue: --steps and --duration count from t = 0,
   and the result equals that of an unbroken run bit for bit (same device). The resumed frames go
-  to a new USD file, <usd name>.from_step_<N>.<ext>, with the same time codes as before.
+  to a new USD file, <usd name>.from_step_<N>.<ext>, with the same time codes as before. A checkpoint
+  of other physics (materials, shapes, walls, bodies, gravity, dt) is refused, naming what differs;
+  the summary of a resumed run covers the whole run from t = 0 ("parts": which steps and frames
+  each part wrote, and where).
 
 exit codes: 0 done; 1 the simulation failed (outputs written) or an internal error; 2 a user error
 (bad option, scene or checkpoint: one message naming the file, the key and the fix); 130 Ctrl-C.
