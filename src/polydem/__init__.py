@@ -5,10 +5,40 @@ function W(V) of the overlap volume V of two polyhedra, and forces and torques a
 gradients, computed by clipping the two hulls against each other.
 """
 
-from polydem.contact import ContactForces, ContactLaw, OverlapResult, contact_forces, overlap
-from polydem.scene import Body, Material, PlaneWall, Scene, SceneError, pair_material
-from polydem.shapes import ConvexShape
-from polydem.simulation import Simulation, SimulationError
+import importlib
+
+# Names are imported on first use, so that `polydem --help`, `polydem validate` and `polydem info`
+# start without importing Warp (a third of a second) or trimesh.
+_EXPORTS = {
+    "ContactForces": "polydem.contact",
+    "ContactLaw": "polydem.contact",
+    "OverlapResult": "polydem.contact",
+    "contact_forces": "polydem.contact",
+    "overlap": "polydem.contact",
+    "Body": "polydem.scene",
+    "Material": "polydem.scene",
+    "PlaneWall": "polydem.scene",
+    "Scene": "polydem.scene",
+    "SceneError": "polydem.scene",
+    "pair_material": "polydem.scene",
+    "ConvexShape": "polydem.shapes",
+    "Simulation": "polydem.simulation",
+    "SimulationError": "polydem.simulation",
+}
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'polydem' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))
+
 
 __version__ = "0.1.0"
 
