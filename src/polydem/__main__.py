@@ -1,5 +1,29 @@
+"""``python -m polydem`` and the ``polydem`` command (see :mod:`polydem.cli`).
+
+The signal handlers go in before the rest of polydem (numpy, trimesh, scipy, Warp) is imported,
+so that a Ctrl-C or SIGTERM in the first second stops the command with one line (exit code 130 or
+143) instead of a traceback, or of being swallowed by a library's import.
+"""
+
 import sys
 
-from polydem.cli import main
 
-sys.exit(main())
+def main() -> int:
+    from polydem import _signals
+
+    _signals.install()
+    try:
+        try:
+            from polydem.cli import main as cli_main
+
+            _signals.check()
+        except KeyboardInterrupt:
+            sys.stderr.write(f"polydem: stopped by {_signals.name()}; nothing was written\n")
+            return _signals.exit_code()
+        return cli_main()
+    finally:
+        _signals.uninstall()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
