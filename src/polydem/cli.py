@@ -337,6 +337,14 @@ def _why(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[:300]}" if text else type(exc).__name__
 
 
+def _remove(path: Path) -> None:
+    """Remove the file ``path`` if it is there (a temporary file after a failed write)."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass  # not there after all (its folder is gone or a file)
+
+
 def _probe_file(path: Path, extra: str = ".tmp") -> None:
     """OSError unless a file ``path`` can be written (its folder is made; the longest temporary name,
     ``path`` + ``extra``, is created and removed)."""
@@ -381,7 +389,13 @@ def _listing(names: list[str], what: str, most: int) -> str:
     """``names`` joined, or, beyond ``most`` of them, a count with the first and the last."""
     if len(names) <= most:
         return ", ".join(_short(n) for n in names)
-    return f"{len(names)} {what}: {_short(names[0])}, {_short(names[1])}, ..., {_short(names[-1])}"
+    folders = {os.path.dirname(n) for n in names}
+    if len(folders) == 1 and "" not in folders:
+        where = f" in {folders.pop()}{os.sep}"
+        names = [os.path.basename(n) for n in names]
+    else:
+        where = ""
+    return f"{len(names)} {what}{where}: {_short(names[0])}, {_short(names[1])}, ..., {_short(names[-1])}"
 
 
 def _safe_name(name: str) -> str:
@@ -846,7 +860,7 @@ class _Run:
             self.cp_dir.mkdir(parents=True, exist_ok=True)
             save_checkpoint(self.sim, path)
         except OSError as exc:
-            Path(f"{path}.tmp.npz").unlink(missing_ok=True)  # save_checkpoint's temporary file
+            _remove(Path(f"{path}.tmp.npz"))  # save_checkpoint's temporary file
             raise _OutputError(f"cannot write the checkpoint {self.rel(path)}: {_why(exc)}") from exc
         self.checkpoints.append(_rel(path, self.out_dir))
         return path
@@ -936,7 +950,7 @@ class _Run:
             status = EXIT_FAILED
         except _OutputError as exc:
             reason = f"an output could not be written: {exc}"
-            failure = str(exc)
+            self.errors.append(str(exc))
             status = EXIT_FAILED
         except Exception as exc:
             reason = f"internal error: {type(exc).__name__}: {exc}"
@@ -995,6 +1009,8 @@ class _Run:
         self.plot_files = [_rel(p, self.out_dir) for p in plots]
         summary = self.summary(wall, reason, notes, consistent)
         summary["outputs"]["plots"] = self.plot_files
+        if self.errors:
+            summary["not_written"] = list(self.errors)
         summary["history"] = self.history
         self.summary_written = False
         if self.summary_path is not None:
@@ -1006,10 +1022,7 @@ class _Run:
                 self.summary_written = True
             except OSError as exc:
                 self.errors.append(f"cannot write the summary {self.rel(self.summary_path)}: {_why(exc)}")
-                try:
-                    tmp.unlink(missing_ok=True)
-                except OSError:
-                    pass
+                _remove(tmp)
         self.report(out, err, summary, cp_path, reason, status)
 
     def summary(self, wall, reason, notes, consistent) -> dict:
@@ -1151,7 +1164,7 @@ class _Run:
         pictures = o["pictures"]
         if pictures:
             last = pictures[-1] == "pictures/last.png"
-            what = "picture of the final state" if len(pictures) == 1 and last else "pictures"
+            what = ("picture of the final state" if last else "picture") if len(pictures) == 1 else "pictures"
             files.append((_listing(pictures, "pictures", 6), what))
         if self.plot_files:
             files.append((", ".join(self.plot_files), "plots"))
@@ -1210,7 +1223,7 @@ def _check_outputs(args, scene, out_dir: Path) -> None:
             _probe_file(path, extra)
         except OSError as exc:
             where = _short(exc.filename) if getattr(exc, "filename", None) else _short(path)
-            raise CliError(f"cannot write {where} ({_why(exc)})", None if key == "--out" else file, key) from None
+            raise CliError(f"cannot write {where}: {_why(exc)}", None if key == "--out" else file, key) from None
 
 
 def _target_steps(args, scene, dt: float) -> tuple[int, str]:
