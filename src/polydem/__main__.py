@@ -2,16 +2,21 @@
 
 The signal handlers go in before the rest of polydem (numpy, trimesh, scipy, Warp) is imported,
 so that a Ctrl-C or SIGTERM in the first second stops the command with one line (exit code 130 or
-143) instead of a traceback, or of being swallowed by a library's import.
+143) instead of a traceback, or of being swallowed by a library's import. (Before this module's
+code runs, while the interpreter itself starts, Python's own handling applies.)
 """
 
 import sys
 
 
 def main() -> int:
-    from polydem import _signals
+    try:
+        from polydem import _signals
 
-    _signals.install()
+        _signals.install()
+    except KeyboardInterrupt:  # before the handlers were in
+        sys.stderr.write("polydem: stopped by Ctrl-C; nothing was written\n")
+        return 130
     try:
         try:
             from polydem.cli import main as cli_main

@@ -1266,9 +1266,9 @@ def cmd_run(args) -> int:
     if device is None and scene.device is not None:
         device = _device(scene.device, file=scene.file, key="simulation.device")
     out_dir = Path(args.out) if args.out is not None else Path("polydem_out") / _safe_name(scene.name)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
     try:
+        if out_dir.exists() and not out_dir.is_dir():
+            raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"cannot create the output folder ({_why(exc)})", _short(out_dir), "--out") from None
@@ -1382,7 +1382,11 @@ def cmd_render(args) -> int:
             "(.usd, .usda, .usdc)",
             source,
         )
-    if not source.is_file():
+    try:
+        found = source.is_file()
+    except OSError as exc:  # a name too long for the file system
+        raise CliError(f"cannot read the file ({_why(exc)}); check the path", _short(source)) from None
+    if not found:
         raise CliError(f"file not found (looked for '{source.absolute()}'); check the path", source)
     device = _device(args.device)
     fix = "give the scene it was written from with --scene SCENE"
@@ -1505,9 +1509,11 @@ class _Parser(argparse.ArgumentParser):
 
 
 _RUN_EPILOG = """\
-outputs (in --out; the scene's [output] table names them, relative to that folder):
+outputs (in --out, default polydem_out/<scene name>/; the scene's [output] table names them, as
+paths inside that folder; the closing lines name every file written):
   USD animation   output.usd (trajectory.usdc when the scene file does not mention usd; none for
-                  usd = false). Frame k is the state at simulated time k / fps, time code k.
+                  usd = false). Frame k is the state at simulated time k / fps, time code k. It
+                  records the scene file, so that polydem render finds the scene.
   summary         output.summary (summary.json): steps, simulated and wall time, bodies, contacts
                   (final, mean and max over the frames), energies (start and end), the largest
                   overlap relative to the smaller body's volume, and the packing fraction and mean
@@ -1517,24 +1523,36 @@ outputs (in --out; the scene's [output] table names them, relative to that folde
                   body to the 80th percentile of their centre heights. Packing fraction = volume of
                   the free bodies whose centres lie in it / its volume; coordination number = mean
                   number of contacts (with bodies or walls) of those bodies.
-  pictures        output.pictures (frame numbers, or "last"): pictures/frame_NNNNNN.png, last.png.
-  checkpoints     output.checkpoint = {steps = N} or {seconds = T}: checkpoints/step_NNNNNNNNN.npz,
-                  plus checkpoints/final.npz at the end and checkpoints/interrupted.npz when the
-                  run stops early (Ctrl-C, or a failing simulation).
+  pictures        pictures/last.png, the final state (unless the scene sets output.pictures: frame
+                  numbers for pictures/frame_NNNNNN.png, "last", or false for none).
+  plots           energy.png and packing.png (energies, contacts, packing fraction against time)
+                  when matplotlib is installed: pip install "polydem[plot]".
+  checkpoints     checkpoints/final.npz at the end, checkpoints/interrupted.npz when the run stops
+                  early; with output.checkpoint = {steps = N} or {seconds = T} also
+                  checkpoints/step_NNNNNNNNN.npz.
+  An output that cannot be written (a name too long, a file in the way of a folder, no
+  permission) stops the command before the run (exit code 2); after the start, the others are
+  still written (exit code 1).
+
+progress: one line per 5% of the steps on stderr (one line kept up to date on a terminal), with
+the wall time left once it can be estimated.
 
 interruption and resuming:
-  Ctrl-C stops after the steps under way (a second Ctrl-C at once); the USD file keeps the frames
-  so far, the summary says "interrupted": true, and interrupted.npz holds the state. Add
-  --resume CHECKPOINT to the same command to continue: --steps and --duration count from t = 0,
-  and the result equals that of an unbroken run bit for bit (same device). The resumed frames go
-  to a new USD file, <usd name>.from_step_<N>.<ext>, with the same time codes as before.
+  Ctrl-C, or SIGTERM (what a batch scheduler sends), stops after the steps under way (a second one
+  at once); the USD file keeps the frames so far, the summary says "interrupted": true, and
+  interrupted.npz holds the state. While the command starts (imports, Warp, kernel compilation)
+  either stops it at once, writing nothing. Add --resume CHECKPOINT to the same command to
+  continue: --steps and --duration count from t = 0, and the result equals that of an unbroken
+  run bit for bit (same device). The resumed frames go to a new USD file,
+  <usd name>.from_step_<N>.<ext>, with the same time codes as before.
 
-exit codes: 0 done; 1 the simulation failed (outputs written) or an internal error; 2 a user error
-(bad option, scene or checkpoint: one message naming the file, the key and the fix); 130 Ctrl-C.
+exit codes: 0 done; 1 the simulation failed or an output could not be written (the other outputs
+written), or an internal error; 2 a user error (bad option, scene or checkpoint: one message
+naming the file, the key and the fix); 130 Ctrl-C (SIGINT); 143 SIGTERM.
 
 examples:
   polydem run                                   the built-in default scene (300 polyhedra)
-  polydem run scenes/cube_drop.toml --device cpu --duration 0.1 --out results/
+  polydem run scenes/cube_drop.toml --device cpu --duration 0.6 --out results/
   polydem run scenes/drum.toml --resume polydem_out/drum/checkpoints/interrupted.npz
 """
 
@@ -1554,7 +1572,8 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog=_para(
             "Run 'polydem COMMAND --help' for the options of a command. Exit codes: 0 success, 1 simulation "
-            "failure or internal error, 2 user error, 130 interrupted."
+            "failure, an output not written or internal error, 2 user error, 130 interrupted (Ctrl-C), 143 stopped "
+            "by SIGTERM."
         ),
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
