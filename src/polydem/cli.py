@@ -1003,6 +1003,8 @@ class _Run:
         except OSError as exc:
             self.errors.append(f"cannot write the plots: {_why(exc)}")
             plots = []
+        except Exception as exc:  # matplotlib itself: the plots are an extra, the run is fine
+            plots = f"no plots: matplotlib failed ({_why(exc)})"
         if isinstance(plots, str):
             notes.append(plots)
             plots = []
