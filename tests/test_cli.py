@@ -678,6 +678,13 @@ def test_closing_lines_name_every_file_and_a_picture_of_the_end(tmp_path, capsys
     assert "USD animation, 8 frames" in text and "picture of the final state" in text
 
 
+def test_pictures_true_is_the_last_frame(tmp_path, capsys):
+    scene = write_scene(tmp_path, replace=[("pictures = [1]", "pictures = true")])
+    code, out, err = run(["run", scene, "--device", "cpu", "--steps", "50", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    assert [p.name for p in (tmp_path / "o" / "pictures").iterdir()] == ["last.png"]
+
+
 @pytest.mark.parametrize("setting", ["pictures = false", "pictures = []"])
 def test_no_pictures_when_the_scene_says_so(tmp_path, capsys, setting):
     scene = write_scene(tmp_path, replace=[("pictures = [1]", setting)])

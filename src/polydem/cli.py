@@ -1649,7 +1649,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=_size,
         default=(800, 600),
         metavar="WxH",
-        help="size of the pictures of output.pictures in pixels (default 800x600)",
+        help="size of the pictures (pictures/last.png and those of output.pictures) in pixels (default 800x600)",
     )
     run.add_argument(
         "-q", "--quiet", action="store_true", help="no progress on stderr (the closing summary is still printed)"
