@@ -1,6 +1,7 @@
 """The polydem command: outputs, user errors, interruption and resume, validate, render, info (CPU)."""
 
 import glob
+import importlib.util
 import io
 import json
 import math
@@ -734,7 +735,9 @@ def test_first_ctrl_c_stops_after_the_steps_under_way(tmp_path, capsys, monkeypa
     def step(self, n=1):
         count["n"] += 1
         if count["n"] == 3:
-            os.kill(os.getpid(), signal.SIGINT)  # the handler only sets a flag: this step still runs
+            # raise_signal delivers it to this thread before it returns (os.kill may reach another
+            # thread of the process first); the handler only sets a flag: this step still runs.
+            signal.raise_signal(signal.SIGINT)
         return original(self, n)
 
     monkeypatch.setattr(Simulation, "step", step)
@@ -904,3 +907,482 @@ def test_plots_of_a_run(tmp_path):
     for p in paths:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "fewer than two" in write_plots({k: [0.0] for k in history}, tmp_path)
+
+
+# ---------------------------------------------------------------------- the outputs a run names
+
+
+def written_lines(out):
+    """The closing lines after 'written to FOLDER/:' (the files, one kind per line)."""
+    lines = out.splitlines()
+    k = next(i for i, line in enumerate(lines) if line.strip().startswith("written to "))
+    files = []
+    for line in lines[k + 1 :]:
+        if not line.startswith("    "):
+            break
+        files.append(line.strip())
+    return lines[k].strip(), files
+
+
+def test_closing_lines_name_every_file_and_a_picture_of_the_end(tmp_path, capsys):
+    """No pictures key: pictures/last.png; the closing lines name each file the summary lists."""
+    scene = write_scene(tmp_path, replace=[("pictures = [1]\n", "")])
+    out_dir = tmp_path / "out"
+    code, out, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "-q"], capsys)
+    assert code == 0, err
+    assert (out_dir / "pictures" / "last.png").read_bytes()[:8] == PNG_SIGNATURE
+    head, files = written_lines(out)
+    assert head == f"written to {out_dir}{os.sep}:"
+    text = "\n".join(files)
+    summary = json.loads((out_dir / "summary.json").read_text())
+    o = summary["outputs"]
+    named = [o["usd"], o["summary"], *o["pictures"], *o["checkpoints"]]
+    if importlib.util.find_spec("matplotlib") is not None:
+        assert o["plots"] == ["energy.png", "packing.png"]
+        named += o["plots"]
+    assert "pictures/last.png" in named and "checkpoints/final.npz" in named
+    for name in named:
+        assert name in text, name
+        assert (out_dir / name).is_file() and (out_dir / name).stat().st_size > 0
+    on_disk = sorted(str(p.relative_to(out_dir)) for p in out_dir.rglob("*") if p.is_file())
+    assert on_disk == sorted(named)  # nothing written that the closing lines do not name
+    assert "USD animation, 8 frames" in text and "picture of the final state" in text
+
+
+def test_pictures_true_is_the_last_frame(tmp_path, capsys):
+    scene = write_scene(tmp_path, replace=[("pictures = [1]", "pictures = true")])
+    code, out, err = run(["run", scene, "--device", "cpu", "--steps", "50", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    assert [p.name for p in (tmp_path / "o" / "pictures").iterdir()] == ["last.png"]
+
+
+@pytest.mark.parametrize("setting", ["pictures = false", "pictures = []"])
+def test_no_pictures_when_the_scene_says_so(tmp_path, capsys, setting):
+    scene = write_scene(tmp_path, replace=[("pictures = [1]", setting)])
+    code, out, err = run(["run", scene, "--device", "cpu", "--steps", "50", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    assert not (tmp_path / "o" / "pictures").exists()
+    assert not any("picture" in line for line in written_lines(out)[1])
+
+
+def test_without_matplotlib_one_note_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
+    scene = write_scene(tmp_path)
+    code, out, err = run(["run", scene, "--device", "cpu", "--steps", "100", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    assert "Traceback" not in err and err == ""
+    out = out.replace(str(tmp_path), "TMP")  # the test's name is in the folder's
+    notes = [line for line in out.splitlines() if "matplotlib" in line]
+    assert notes == ['  note: no plots: matplotlib is not installed (pip install "polydem[plot]")']
+    assert not (tmp_path / "o" / "energy.png").exists() and "plots" not in "\n".join(written_lines(out)[1])
+
+
+# ---------------------------------------------------------------------- progress: the time left
+
+
+def test_progress_says_how_long_it_will_take(monkeypatch):
+    """The time left follows the recent rate (a pour slows down as its contacts grow)."""
+    clock = {"t": 100.0}
+    monkeypatch.setattr(cli.time, "perf_counter", lambda: clock["t"])
+
+    class Sim:
+        steps_done = 0
+        time = 0.0
+
+        def energy(self):
+            return {"kinetic": 1.0}
+
+        def contacts(self):
+            return {"volume": np.zeros(3)}
+
+    sim, stream = Sim(), io.StringIO()
+    progress = cli._Progress(stream, 0, 10000, 1e-4, enabled=True)
+    # 1000 steps per second, then 100 per second from step 5000 on.
+    for steps, t in [(100, 100.5), (500, 100.9), (1000, 101.4), (2000, 102.4), (5000, 105.4), (5500, 110.4)]:
+        clock["t"], sim.steps_done, sim.time = t, steps, steps * 1e-4
+        progress.update(sim)
+    lines = stream.getvalue().splitlines()
+    assert "left" not in lines[0]  # 5%: not yet estimated
+    assert lines[1].split("steps/s")[1].split("left")[0].strip() == "9.0 s"  # 10%: 9000 steps at 1000/s
+    last = lines[-1]
+    assert "55.0%" in last
+    assert "45 s left" in last  # 4500 steps at the recent 100 steps/s, not at the mean rate (8 s)
+    clock["t"], sim.steps_done = 160.0, 10000
+    progress.update(sim)
+    assert "took 1 min 00 s" in stream.getvalue().splitlines()[-1]
+    assert cli._duration(3.14) == "3.1 s" and cli._duration(75) == "1 min 15 s" and cli._duration(7322) == "2 h 02 min"
+
+
+def test_progress_lines_off_a_terminal_also_follow_the_clock(monkeypatch):
+    clock = {"t": 0.0}
+    monkeypatch.setattr(cli.time, "perf_counter", lambda: clock["t"])
+
+    class Sim:
+        time = 0.0
+
+        def energy(self):
+            return {"kinetic": 1.0}
+
+        def contacts(self):
+            return {"volume": np.zeros(0)}
+
+    sim, stream = Sim(), io.StringIO()
+    progress = cli._Progress(stream, 0, 10**6, 1e-4, enabled=True)
+    for k in range(1, 200):  # a slow run: 100 steps per second, far from the first 5% mark
+        clock["t"], sim.steps_done = float(k), 100 * k
+        progress.update(sim)
+    lines = stream.getvalue().splitlines()
+    assert 3 <= len(lines) <= 5  # after 10 s, then a minute apart
+    assert "left" in lines[0] and "2 h 4" in lines[0]
+
+
+# ---------------------------------------------------------------------- outputs stay inside --out
+
+
+@pytest.mark.parametrize(
+    "replace, key, needles",
+    [
+        ("summary = '{abs}'", "output.summary", ["is an absolute path", "relative to it", "summary = 'summary.json'"]),
+        ("usd = '../../x.usda'", "output.usd", ["leads out of the output folder", "--out DIR"]),
+        ("usd = 'a/../../x.usda'", "output.usd", ["leads out of the output folder"]),
+        ("usd = '{abs}.usda'", "output.usd", ["is an absolute path"]),
+        ("checkpoint = { steps = 150, path = '../cp' }", "output.checkpoint.path", ["leads out of the output folder"]),
+        ("checkpoint = { steps = 150, path = '{abs}' }", "output.checkpoint.path", ["is an absolute path"]),
+    ],
+)
+def test_scene_outputs_stay_inside_the_output_folder(tmp_path, capsys, replace, key, needles):
+    outside = tmp_path / "outside"
+    outside.write_text("the user's file")
+    text = TINY.replace('usd = "tiny.usda"\n', "").replace("checkpoint = { steps = 150 }\n", "")
+    scene = write_scene(tmp_path, text.replace("[output]", "[output]\n" + replace.replace("{abs}", str(outside))))
+    out_dir = tmp_path / "a" / "b"
+    code, _, err = run(["run", scene, "--device", "cpu", "--out", out_dir], capsys)
+    assert_user_error(code, err, "tiny.toml", key, *needles)
+    code, _, err = run(["validate", scene], capsys)
+    assert_user_error(code, err, "tiny.toml", key, *needles)
+    assert outside.read_text() == "the user's file"
+    assert not (tmp_path / "x.usda").exists() and not (tmp_path / "a" / "cp").exists()
+    assert not out_dir.exists()
+
+
+def test_paths_inside_the_output_folder_are_fine(tmp_path, capsys):
+    scene = write_scene(
+        tmp_path,
+        replace=[
+            ('usd = "tiny.usda"', 'usd = "anim/./tiny.usda"\nsummary = "x/../s.json"'),
+            ("checkpoint = { steps = 150 }", 'checkpoint = { steps = 150, path = "state" }'),
+        ],
+    )
+    out_dir = tmp_path / "o"
+    code, _, err = run(["run", scene, "--device", "cpu", "--steps", "50", "--out", out_dir, "-q"], capsys)
+    assert code == 0, err
+    assert (out_dir / "anim" / "tiny.usda").is_file() and (out_dir / "s.json").is_file()
+    assert (out_dir / "state" / "final.npz").is_file()
+
+
+# ---------------------------------------------------------------------- outputs that cannot be written
+
+
+def no_temporary_files(folder):
+    return [str(p) for p in Path(folder).rglob("*") if ".tmp" in p.name]
+
+
+LONG = "n" * 300
+
+
+@pytest.mark.parametrize(
+    "replace, block, key, needles",
+    [
+        ([('usd = "tiny.usda"', f'usd = "{LONG}.usda"')], None, "output.usd", ["File name too long", "shorter name"]),
+        ([("[output]", f'[output]\nsummary = "{LONG}.json"')], None, "output.summary", ["File name too long"]),
+        (
+            [("checkpoint = { steps = 150 }", f'checkpoint = {{ steps = 150, path = "{LONG}" }}')],
+            None,
+            "output.checkpoint.path",
+            ["File name too long"],
+        ),
+        ([], "checkpoints", "output.checkpoint.path", ["a file is in the way of a folder"]),
+        ([], "pictures", "output.pictures", ["a file is in the way of a folder"]),
+        ([], "summary.json/", "output.summary", ["a folder is in the way of the file"]),
+    ],
+)
+def test_outputs_that_cannot_be_written_stop_before_the_run(tmp_path, capsys, replace, block, key, needles):
+    scene = write_scene(tmp_path, replace=replace)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    if block is not None and block.endswith("/"):
+        (out_dir / block).mkdir()
+    elif block is not None:
+        (out_dir / block).write_text("in the way")
+    code, out, err = run(["run", scene, "--device", "cpu", "--out", out_dir], capsys)
+    assert_user_error(code, err, key, *needles)
+    assert "written to" not in out and "steps/s" not in err  # it did not start
+    assert not list(out_dir.rglob("*.usda")) and not (out_dir / "summary.json").is_file()
+    assert no_temporary_files(out_dir) == []
+
+
+@pytest.mark.parametrize("name", ["a_file/sub", "n" * 300])
+def test_output_folder_that_cannot_be_made(tmp_path, capsys, name):
+    (tmp_path / "a_file").write_text("in the way")
+    code, _, err = run(["run", write_scene(tmp_path), "--device", "cpu", "--out", tmp_path / name], capsys)
+    assert_user_error(code, err, "--out", "cannot create the output folder")
+
+
+def test_an_output_failing_during_the_run_keeps_the_others(tmp_path, capsys, monkeypatch):
+    """The checkpoint folder turns into a file during the run: exit code 1, one error line, the
+    other outputs written, and the checkpoints not named as written."""
+    scene = write_scene(tmp_path, replace=[("pictures = [1]", "")])
+    out_dir = tmp_path / "out"
+    original = Simulation.step
+    count = {"n": 0}
+
+    def step(self, n=1):
+        count["n"] += 1
+        if count["n"] == 2:
+            (out_dir / "checkpoints").rmdir()
+            (out_dir / "checkpoints").write_text("in the way")
+        return original(self, n)
+
+    monkeypatch.setattr(Simulation, "step", step)
+    code, out, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "-q"], capsys)
+    assert code == 1
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("polydem: error: cannot write the checkpoint checkpoints/step_")
+    assert "a file is in the way of a folder" in lines[0]
+    _, files = written_lines(out)
+    assert not any(".npz" in f for f in files)
+    assert "not written: cannot write the checkpoint checkpoints/interrupted.npz" in out
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert summary["interrupted"] is True and "could not be written" in summary["reason"]
+    assert summary["outputs"]["checkpoints"] == [] and len(summary["not_written"]) == 2
+    from polydem.usd import read_time_codes
+
+    assert len(read_time_codes(out_dir / "tiny.usda")) == summary["outputs"]["usd_frames"] > 0
+    assert (out_dir / "pictures" / "last.png").is_file()
+    assert no_temporary_files(out_dir) == []
+
+
+def test_a_summary_that_cannot_be_written_after_the_run(tmp_path, capsys, monkeypatch):
+    """The summary's place is taken by a folder once the run is over: exit code 1, the rest kept."""
+    scene = write_scene(tmp_path, replace=[("pictures = [1]", "")])
+    out_dir = tmp_path / "out"
+    original = cli._Run.summary
+
+    def summary(self, *args):
+        (out_dir / "summary.json").mkdir()
+        return original(self, *args)
+
+    monkeypatch.setattr(cli._Run, "summary", summary)
+    code, out, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "-q"], capsys)
+    assert code == 1
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "cannot write the summary summary.json" in lines[0] and "Traceback" not in err
+    _, files = written_lines(out)
+    assert not any(f.startswith("summary.json") for f in files)
+    assert any(f.startswith("checkpoints/") for f in files) and (out_dir / "checkpoints" / "final.npz").is_file()
+    assert (out_dir / "tiny.usda").is_file() and no_temporary_files(out_dir) == []
+
+
+def test_render_picture_that_cannot_be_written(tmp_path, capsys, unbroken):
+    scene, _ = unbroken
+    (tmp_path / "a_file").write_text("in the way")
+    for png in (tmp_path / "a_file" / "x.png", tmp_path / f"{'n' * 300}.png"):
+        code, out, err = run(["render", scene, "--out", png, "--width", "16", "--height", "12"], capsys)
+        assert_user_error(code, err, "--out", "cannot write the picture")
+        assert "wrote" not in out
+    assert no_temporary_files(tmp_path) == []
+
+
+# ---------------------------------------------------------------------- render finds the scene
+
+
+def test_render_finds_the_scene_of_a_usd_file(tmp_path, capsys):
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    scene = write_scene(folder)
+    out_dir = tmp_path / "out"
+    code, _, err = run(["run", scene, "--device", "cpu", "--steps", "60", "--out", out_dir, "-q"], capsys)
+    assert code == 0, err
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert summary["scene_file"] == str(scene.resolve()) and summary["default_scene"] is False
+    from polydem.usd import read_metadata
+
+    assert read_metadata(out_dir / "tiny.usda")["scene_file"] == str(scene.resolve())
+    png = tmp_path / "x.png"
+    size = ["--width", "32", "--height", "24", "--device", "cpu"]
+    code, out, err = run(["render", out_dir / "tiny.usda", "--out", png, *size], capsys)
+    assert code == 0, err
+    assert out.startswith(f"wrote {png} (32 x 24)") and "17 bodies" in out
+    assert png.read_bytes()[:8] == PNG_SIGNATURE
+    # The scene file is gone: say so, and how to go on.
+    scene.rename(tmp_path / "elsewhere.toml")
+    code, _, err = run(["render", out_dir / "tiny.usda", "--out", tmp_path / "y.png", *size], capsys)
+    assert_user_error(code, err, "tiny.usda", str(scene.resolve()), "is gone", "--scene SCENE")
+    code, _, err = run(
+        ["render", out_dir / "tiny.usda", "--scene", tmp_path / "elsewhere.toml", "--out", tmp_path / "y.png", *size],
+        capsys,
+    )
+    assert code == 0, err
+
+
+def test_render_finds_the_default_scene_of_a_usd_file(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run(["run", "--device", "cpu", "--steps", "2", "--out", "o", "-q"], capsys)
+    assert code == 0, err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["default_scene"] is True and summary["scene_file"] is None
+    from polydem.usd import read_metadata
+
+    assert read_metadata(tmp_path / "o" / "default.usd")["default_scene"] is True
+    code, out, err = run(["render", "o/default.usd", "--out", "x.png", "--width", "32", "--height", "24"], capsys)
+    assert code == 0, err
+    assert "305 bodies" in out and (tmp_path / "x.png").read_bytes()[:8] == PNG_SIGNATURE
+
+
+@pytest.mark.parametrize("elevation", ["90", "-90"])
+def test_render_from_straight_above_and_below(tmp_path, capsys, unbroken, elevation):
+    scene, _ = unbroken
+    png = tmp_path / "view.png"
+    code, out, err = run(
+        ["render", scene, "--out", png, "--width", "32", "--height", "24", "--elevation", elevation], capsys
+    )
+    assert code == 0, err
+    assert png.read_bytes()[:8] == PNG_SIGNATURE
+
+
+@pytest.mark.parametrize("value", ["91", "-90.5", "nan", "up"])
+def test_render_elevation_out_of_range(tmp_path, capsys, unbroken, value):
+    scene, _ = unbroken
+    code, _, err = run(["render", scene, "--out", tmp_path / "v.png", f"--elevation={value}"], capsys)
+    assert_user_error(code, err, "--elevation", "-90", "90")
+
+
+# ---------------------------------------------------------------------- the README's example
+
+
+def test_readme_cube_drop_example_includes_the_landing():
+    """The README's cube_drop command runs long enough for the cube to land and come to rest."""
+    import re
+
+    readme = (REPO / "README.md").read_text()
+    m = re.search(r"polydem run scenes/cube_drop\.toml [^`]*--duration ([0-9.]+)", readme)
+    assert m, "the README gives no cube_drop example with --duration"
+    duration = float(m.group(1))
+    assert f"--duration {m.group(1)}" in cli._RUN_EPILOG  # polydem run --help gives the same example
+    scene = polydem.Scene.from_toml(REPO / "scenes" / "cube_drop.toml")
+    g = -scene.gravity[2]
+    drop = scene.body_vertices(0)[:, 2].min() - scene.planes[0].point[2]
+    e = scene.materials["steel"].restitution
+    landing = math.sqrt(2.0 * drop / g)
+    # Bounces: each e times the speed of the last; the flights add up to 2 v e / (g (1 - e)).
+    resting = landing + 2.0 * g * landing * e / (g * (1.0 - e))
+    assert duration > resting, (duration, landing, resting)
+
+
+# ---------------------------------------------------------------------- Ctrl-C and SIGTERM (real processes)
+
+LONG_TINY = TINY.replace("steps = 400", "steps = 1000000").replace("checkpoint = { steps = 150 }\n", "")
+"""Minutes of steps: a signal that is swallowed shows as a run that goes on (finish() times out)."""
+
+RUN_TINY = LONG_TINY.replace("steps = 1000000", "steps = 20000")
+"""A progress line every 1000 steps; ignoring the signal, it would end with exit code 0."""
+
+
+def spawn(args, cwd, importtime=False):
+    cmd = [sys.executable, *(["-X", "importtime"] if importtime else []), "-m", "polydem", *map(str, args)]
+    return subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for(proc, stream, marker, timeout=300.0):
+    """Read ``stream`` of ``proc`` until a line containing ``marker``, or, for ``-X importtime``
+    output, naming a module that starts with ``marker[7:]`` when ``marker`` starts with "module:"."""
+    t0 = time.monotonic()
+    lines = []
+    while time.monotonic() - t0 < timeout:
+        line = stream.readline()
+        if not line:
+            break
+        lines.append(line)
+        if marker.startswith("module:"):
+            if line.startswith("import time:") and line.split("|")[-1].strip().startswith(marker[7:]):
+                return
+        elif marker in line:
+            return
+    proc.kill()
+    proc.communicate()
+    raise AssertionError(f"no line with {marker!r} came: {''.join(lines[-20:])}")
+
+
+def finish(proc, timeout=120.0):
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        raise AssertionError(f"the command went on after the signal: {err[-2000:]}") from None
+    err = "\n".join(line for line in err.splitlines() if not line.startswith("import time:"))
+    return out, err
+
+
+@pytest.mark.parametrize(
+    "marker",
+    [
+        "module:polydem._signals",  # the handlers are in, polydem.cli is not imported yet
+        "module:trimesh.",  # inside trimesh's import, which catches BaseException around its own imports
+        "module:warp._src",  # inside Warp's import
+    ],
+)
+def test_ctrl_c_while_the_command_starts(tmp_path, marker):
+    """Ctrl-C while modules import: one line, exit code 130, nothing written, and the run does not
+    go on (the scene would take many minutes)."""
+    scene = write_scene(tmp_path, LONG_TINY)
+    proc = spawn(["run", scene, "--device", "cpu", "--out", tmp_path / "o"], tmp_path, importtime=True)
+    wait_for(proc, proc.stderr, marker)
+    proc.send_signal(signal.SIGINT)
+    out, err = finish(proc)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    assert err.strip().splitlines() == ["polydem: stopped by Ctrl-C; nothing was written"]
+    assert not (tmp_path / "o" / "summary.json").exists()
+
+
+def test_signal_after_the_start_but_before_the_steps(tmp_path):
+    """SIGTERM once the header is out (the model built, kernels loading): it stops at once (143)."""
+    scene = write_scene(tmp_path, LONG_TINY)
+    proc = spawn(["run", scene, "--device", "cpu", "--out", tmp_path / "o", "-q"], tmp_path)
+    wait_for(proc, proc.stdout, "output in")
+    proc.send_signal(signal.SIGTERM)
+    out, err = finish(proc)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err
+    # Either still starting (nothing written) or already stepping (outputs written, run interrupted).
+    if "nothing was written" in err:
+        assert err.strip().splitlines() == ["polydem: stopped by SIGTERM; nothing was written"]
+    else:
+        assert json.loads((tmp_path / "o" / "summary.json").read_text())["interrupted"] is True
+
+
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGTERM, 143, "SIGTERM"), (signal.SIGINT, 130, "Ctrl-C")])
+def test_signal_during_the_run_keeps_every_output(tmp_path, sig, code, word):
+    """SIGTERM (a batch scheduler) is Ctrl-C: the USD file with its frames, the summary and
+    interrupted.npz are written, and the command says how to resume."""
+    scene = write_scene(tmp_path, RUN_TINY)
+    out_dir = tmp_path / "o"
+    proc = spawn(["run", scene, "--device", "cpu", "--out", out_dir], tmp_path)
+    wait_for(proc, proc.stderr, "steps/s")  # the first progress line: the run is stepping
+    proc.send_signal(sig)
+    out, err = finish(proc)
+    assert proc.returncode == code, err
+    assert "Traceback" not in err
+    assert f"polydem: {word}: stopping after the steps under way" in err
+    assert "interrupted:" in out and "--resume" in err
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert summary["interrupted"] is True and word in summary["reason"]
+    assert 0 < summary["steps"] < 20000
+    from polydem.usd import read_time_codes
+
+    frames = read_time_codes(out_dir / "tiny.usda")
+    assert len(frames) == summary["outputs"]["usd_frames"] == expected_frames(summary["steps"], summary["dt"], 500.0)
+    with np.load(out_dir / "checkpoints" / "interrupted.npz") as data:
+        assert int(data["steps_done"]) == summary["steps"]

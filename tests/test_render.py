@@ -336,3 +336,108 @@ def test_render_simulation(tmp_path, device):
     w, h, _, pixels = decode_png((tmp_path / "sim.png").read_bytes())
     assert (w, h) == (W, H)
     np.testing.assert_array_equal(pixels, img)
+
+
+# ------------------------------------------------------------------------------------ views and cut-away
+
+
+@pytest.mark.parametrize("elevation, sign", [(90.0, -1.0), (-90.0, 1.0)])
+def test_top_and_bottom_views(device, elevation, sign):
+    """Elevation +-90: a camera straight above (below) the box, looking along -up (+up); the image
+    keeps the roll of the views just short of it."""
+    lo, hi = (-1.0, -0.5, 0.0), (1.0, 0.5, 0.4)
+    cam = Camera.frame_box(lo, hi, W, H, elevation=elevation, azimuth=-60.0)
+    _, forward, right, _ = cam.frame()
+    np.testing.assert_allclose(forward, [0.0, 0.0, sign], atol=1e-12)
+    near = Camera.frame_box(lo, hi, W, H, elevation=elevation + sign * 1e-3, azimuth=-60.0)
+    np.testing.assert_allclose(near.frame()[2], right, atol=1e-4)
+    # A cube seen from above shows its top face only: a square, every pixel of it the cube.
+    shapes = [polydem.ConvexShape.box(1.0)]
+    layers = render_layers([(0, 0, 0)], [IDENTITY], [0], shapes, width=W, height=H, device=device, elevation=elevation)
+    assert np.all(np.abs(layers["camera"].frame()[1] - [0, 0, sign]) < 1e-12)
+    assert (layers["hit"] == 0).sum() > 0.2 * W * H
+    with pytest.raises(ValueError, match=r"elevation in \[-90, 90\]"):
+        Camera.frame_box(lo, hi, W, H, elevation=91.0)
+
+
+def closed_box_scene():
+    """A free cube inside a closed box of six fixed slabs: from outside, nothing of it shows."""
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt="auto")
+    scene.add_material("steel", density=7800, law="hertz", k=1e10, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.2))
+    scene.add_shape("slab_x", polydem.ConvexShape.box(0.02, 0.5, 0.5))
+    scene.add_shape("slab_y", polydem.ConvexShape.box(0.5, 0.02, 0.5))
+    scene.add_shape("slab_z", polydem.ConvexShape.box(0.5, 0.5, 0.02))
+    scene.add_body("cube", "steel", position=(0, 0, 0.11))
+    for axis, name in enumerate(("slab_x", "slab_y", "slab_z")):
+        for side in (-1, 1):
+            p = [0.0, 0.0, 0.2]
+            p[axis] += side * 0.26
+            scene.add_body(name, "steel", position=tuple(p), kind="fixed")
+    return scene
+
+
+def test_render_simulation_cuts_away_what_hides_the_free_bodies(tmp_path, device):
+    sim = polydem.Simulation(closed_box_scene(), device=device)
+    colors = np.zeros((7, 3))
+    colors[0] = (1.0, 0.0, 0.0)  # the cube red, the box green
+    colors[1:] = (0.0, 1.0, 0.0)
+    options = dict(width=W, height=H, body_colors=colors, shadows=False, light=(0, 0, 1))
+
+    def red(image):
+        return int(np.sum((image[..., 0] > 60) & (image[..., 1] < 20)))
+
+    closed = render_simulation(sim, cutaway=False, **options)
+    assert red(closed) == 0
+    opened = render_simulation(sim, tmp_path / "open.png", **options)
+    assert red(opened) > 0.03 * W * H
+    assert np.sum(opened[..., 1] > 60) > 0.2 * W * H  # the walls behind the cube stay
+    # The camera still frames the whole box, as without the cut-away.
+    lo_rows = np.flatnonzero((closed != closed[0, 0]).any(axis=(1, 2)))
+    hi_rows = np.flatnonzero((opened != opened[0, 0]).any(axis=(1, 2)))
+    assert abs(lo_rows[0] - hi_rows[0]) <= 2 and abs(lo_rows[-1] - hi_rows[-1]) <= 2
+
+
+def test_drum_scene_shows_its_grains(device):
+    """The shipped drum: closed by its slabs and end plates, its grains show once the near parts go."""
+    from pathlib import Path
+
+    from polydem.cli import _Poses
+
+    scene = polydem.Scene.from_toml(Path(__file__).resolve().parents[1] / "scenes" / "drum.toml")
+    free = np.asarray(scene.body_kind) == 0
+    colors = np.where(free[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    poses = _Poses(scene, scene.body_position, scene.body_orientation, device)
+    image = render_simulation(poses, width=80, height=60, body_colors=colors, shadows=False)
+    grains = np.sum((image[..., 0] > 40) & (image[..., 1] < 20))
+    assert grains > 0.1 * 80 * 60
+    assert np.sum((image[..., 1] > 40) & (image[..., 0] < 20)) > 0.1 * 80 * 60  # the drum's far half
+
+
+def test_container_bodies_are_grey(device):
+    """Fixed and kinematic bodies (a drum turns) are drawn in FIXED_COLOR, free ones by shape."""
+    from polydem.render import FIXED_COLOR
+
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt="auto")
+    scene.add_material("steel", density=7800, law="hertz", k=1e10, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.1))
+    scene.add_body("cube", "steel", position=(-0.2, 0, 0.0), kind="fixed")
+    scene.add_body("cube", "steel", position=(0.0, 0, 0.0), kind="kinematic", angular_velocity=(0, 0, 1))
+    scene.add_body("cube", "steel", position=(0.2, 0, 0.0))
+    sim = polydem.Simulation(scene, device=device)
+    seen = {}
+
+    def fake_render(positions, orientations, body_shape, shapes, **kw):
+        seen.update(kw)
+        return np.zeros((H, W, 3), dtype=np.uint8)
+
+    import polydem.render as render_module
+
+    original = render_module.render
+    render_module.render = fake_render
+    try:
+        render_simulation(sim, width=W, height=H, cutaway=False)
+    finally:
+        render_module.render = original
+    np.testing.assert_allclose(seen["body_colors"][:2], [FIXED_COLOR, FIXED_COLOR])
+    np.testing.assert_allclose(seen["body_colors"][2], PALETTE[0])

@@ -1,5 +1,34 @@
+"""``python -m polydem`` and the ``polydem`` command (see :mod:`polydem.cli`).
+
+The signal handlers go in before the rest of polydem (numpy, trimesh, scipy, Warp) is imported,
+so that a Ctrl-C or SIGTERM in the first second stops the command with one line (exit code 130 or
+143) instead of a traceback, or of being swallowed by a library's import. (Before this module's
+code runs, while the interpreter itself starts, Python's own handling applies.)
+"""
+
 import sys
 
-from polydem.cli import main
 
-sys.exit(main())
+def main() -> int:
+    try:
+        from polydem import _signals
+
+        _signals.install()
+    except KeyboardInterrupt:  # before the handlers were in
+        sys.stderr.write("polydem: stopped by Ctrl-C; nothing was written\n")
+        return 130
+    try:
+        try:
+            from polydem.cli import main as cli_main
+
+            _signals.check()
+        except KeyboardInterrupt:
+            sys.stderr.write(f"polydem: stopped by {_signals.name()}; nothing was written\n")
+            return _signals.exit_code()
+        return cli_main()
+    finally:
+        _signals.uninstall()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

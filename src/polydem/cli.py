@@ -21,17 +21,27 @@ Outputs of ``polydem run`` (in ``--out``, default ``polydem_out/<scene name>/``;
   the first state at or after it.
 * the summary JSON (``output.summary``, default ``summary.json``; see :func:`settled_region` for
   the packing fraction and the coordination number).
-* pictures (``output.pictures``: frame numbers, or ``"last"`` for the final state) as
-  ``pictures/frame_NNNNNN.png`` and ``pictures/last.png``.
+* pictures (``output.pictures``: frame numbers, or ``"last"`` for the final state, the default;
+  ``false`` or ``[]`` for none) as ``pictures/frame_NNNNNN.png`` and ``pictures/last.png``.
+* plots of the energies, the contacts and the packing fraction against time, ``energy.png`` and
+  ``packing.png``, when matplotlib is installed (``pip install "polydem[plot]"``).
 * checkpoints in ``output.checkpoint.path`` (default ``checkpoints/``): ``step_NNNNNNNNN.npz``
   every ``output.checkpoint.steps`` steps or ``.seconds`` of simulated time (counted from t = 0),
   ``final.npz`` at the end and ``interrupted.npz`` when the run stops early.
 
-Nothing is lost when a run stops early (Ctrl-C, or a :class:`~polydem.SimulationError`): the USD
-file is closed with the frames so far, the summary says ``"interrupted": true`` and why, and
-``interrupted.npz`` holds the state after the last completed step (after a SimulationError, the
-last finite state). The first Ctrl-C stops the run after the steps under way (at most
-``MAX_CHUNK_STEPS``); a second one stops at once.
+Every output stays inside the output folder: the scene's paths are relative to it (absolute
+paths and ``..`` are refused). The closing lines name every file written. An output that cannot
+be written (a name too long for the file system, a file where a folder should be, no permission)
+is a user error found before the run starts where possible (exit code 2); one that fails later is
+reported in one line (exit code 1), and the other outputs are still written.
+
+Nothing is lost when a run stops early (Ctrl-C, SIGTERM or a :class:`~polydem.SimulationError`):
+the USD file is closed with the frames so far, the summary says ``"interrupted": true`` and why,
+and ``interrupted.npz`` holds the state after the last completed step (after a SimulationError,
+the last finite state). The first Ctrl-C or SIGTERM (what a batch scheduler sends) stops the run
+after the steps under way (at most ``MAX_CHUNK_STEPS``); a second one stops at once. While the
+command starts (modules importing, Warp initialising, kernels compiling) either signal stops it at
+once with one line (see :mod:`polydem._signals`).
 
 Resuming. ``polydem run SCENE --resume CHECKPOINT`` continues from a checkpoint of the same scene;
 ``--steps`` and ``--duration`` count from t = 0, so the same command line with ``--resume`` added
@@ -48,9 +58,11 @@ without that record (of the older format, or from :func:`polydem.checkpoint.save
 without ``run``) is resumed with a note that the summary covers the resumed part only; one of
 the older format, without a record of its physics, with a warning that it cannot be checked.
 
-Exit codes: 0 done; 1 the simulation failed (SimulationError: outputs written, message on stderr)
-or an internal error (with its traceback); 2 a user error (one message on stderr naming the file
-or option, the key and the fix); 130 interrupted by Ctrl-C (outputs written).
+Exit codes: 0 done; 1 the simulation failed (SimulationError: outputs written, message on stderr),
+an output could not be written after the run had started (the others written), or an internal
+error (with its traceback); 2 a user error (one message on stderr naming the file or option, the
+key and the fix); 130 interrupted by Ctrl-C (SIGINT), 143 stopped by SIGTERM (outputs written
+when the run had started).
 """
 
 from __future__ import annotations
@@ -61,15 +73,15 @@ import math
 import os
 import re
 import shlex
-import signal
 import sys
 import textwrap
-import threading
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
 
+from polydem import _signals
 from polydem.scene import SceneError
 
 __all__ = ["CliError", "main", "settled_region"]
@@ -77,7 +89,8 @@ __all__ = ["CliError", "main", "settled_region"]
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USER_ERROR = 2
-EXIT_INTERRUPTED = 130
+EXIT_INTERRUPTED = _signals.EXIT_SIGINT
+EXIT_TERMINATED = _signals.EXIT_SIGTERM
 
 DEFAULT_STEPS = 1000
 """Steps of a run when neither the command line nor the scene gives steps or a duration."""
@@ -93,6 +106,17 @@ PROGRESS_LINES = 20
 
 TTY_REFRESH_S = 0.25
 """Shortest wall time between two updates of the progress line on a terminal [s]."""
+
+FIRST_LINE_S = 10.0
+LINE_EVERY_S = 60.0
+"""Off a terminal, the first progress line comes after at most FIRST_LINE_S of wall time, the
+others at most LINE_EVERY_S apart (besides one per 5% of the steps) [s]."""
+
+ETA_AFTER_S = 0.5
+"""The time left is shown once the steps after the first chunk took this much wall time [s]."""
+
+ETA_WINDOW = 0.3
+"""The time left follows the rate over this fraction of the wall time so far (the recent past)."""
 
 SETTLED_PERCENTILE = 80.0
 """The settled region reaches up to this percentile of the free bodies' centre heights."""
@@ -225,6 +249,20 @@ def _positive(what: str, example: str):
     return parse
 
 
+def _angle(lowest: float, highest: float, example: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an angle in degrees, got {text!r}; e.g. {example}") from None
+        if not math.isfinite(value) or not lowest <= value <= highest:
+            span = "finite" if math.isinf(lowest) else f"from {lowest:g} to {highest:g}"
+            raise argparse.ArgumentTypeError(f"expected an angle {span} degrees, got {text!r}; e.g. {example}")
+        return value
+
+    return parse
+
+
 def _size(text: str) -> tuple[int, int]:
     m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
     if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
@@ -246,23 +284,88 @@ def _load_scene(path):
     return Scene.from_toml(path)
 
 
+def _output_keys(scene) -> set | None:
+    """The keys of the scene file's ``[output]`` table (None when the scene has no readable file)."""
+    file = getattr(scene, "file", None)
+    if file is None:
+        return None
+    import tomllib
+
+    try:
+        with open(file, "rb") as fh:
+            table = tomllib.load(fh).get("output", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        return None
+    return set(table) if isinstance(table, dict) else set()
+
+
 def _usd_setting(scene) -> str | None:
     """The USD file name of a run: ``output.usd``; the default when the scene file does not
     mention it; None for ``usd = false``."""
     if scene.output.usd is not None:
         return scene.output.usd
-    file = getattr(scene, "file", None)
-    if file is not None:
-        import tomllib
-
-        try:
-            with open(file, "rb") as fh:
-                table = tomllib.load(fh).get("output", {})
-            if isinstance(table, dict) and "usd" in table:
-                return None  # usd = false
-        except (OSError, tomllib.TOMLDecodeError):
-            pass
+    if "usd" in (_output_keys(scene) or ()):
+        return None  # usd = false
     return DEFAULT_USD
+
+
+def _pictures_setting(scene):
+    """The pictures of a run: ``output.pictures``; ``"last"`` (a picture of the final state) when
+    the scene file does not mention it; ``()`` for ``pictures = false`` or ``[]``."""
+    if scene.output.pictures or "pictures" in (_output_keys(scene) or ()):
+        return scene.output.pictures
+    return "last"
+
+
+class _OutputError(Exception):
+    """An output file could not be written; the message is one line that says why and what to do."""
+
+
+_ERRNO_FIX = {
+    "ENAMETOOLONG": "give a shorter name",
+    "EACCES": "check the permissions or give another --out",
+    "EPERM": "check the permissions or give another --out",
+    "EROFS": "the file system is read-only: give another --out",
+    "ENOSPC": "the disk is full: free some space or give another --out",
+    "EDQUOT": "the disk quota is used up: free some space or give another --out",
+    "ENOTDIR": "a file is in the way of a folder: remove it or give another --out",
+    "EEXIST": "a file is in the way of a folder: remove it or give another --out",
+    "EISDIR": "a folder is in the way of the file: remove it or give another --out",
+}
+
+
+def _why(exc: BaseException) -> str:
+    """One line about a failed write: the OS's reason and the fix, or the first line of the error."""
+    if isinstance(exc, OSError) and exc.strerror:
+        import errno
+
+        code = errno.errorcode.get(exc.errno or 0, "")
+        fix = _ERRNO_FIX.get(code)
+        return f"{exc.strerror}{'; ' + fix if fix else ''}"
+    text = " ".join(str(exc).split())  # pxr errors come on several lines
+    return f"{type(exc).__name__}: {text[:300]}" if text else type(exc).__name__
+
+
+def _remove(path: Path) -> None:
+    """Remove the file ``path`` if it is there (a temporary file after a failed write)."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass  # not there after all (its folder is gone or a file)
+
+
+def _probe_file(path: Path, extra: str = ".tmp") -> None:
+    """OSError unless a file ``path`` can be written (its folder is made; the longest temporary name,
+    ``path`` + ``extra``, is created and removed)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise IsADirectoryError(21, "Is a directory", str(path))  # EISDIR
+    probe = path.with_name(path.name + extra)
+    if probe.exists():
+        return
+    fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    os.close(fd)
+    os.unlink(probe)
 
 
 def _resolve(folder: Path, name) -> Path:
@@ -283,6 +386,25 @@ def _n(count: int, word: str, plural: str | None = None) -> str:
     if count == 1:
         return f"1 {word}"
     return f"{count} {plural or word + 's'}"
+
+
+def _short(name: str, longest: int = 60) -> str:
+    """``name`` with any path component longer than ``longest`` shortened (for messages)."""
+    parts = re.split(r"([/\\])", str(name))
+    return "".join(p if len(p) <= longest else f"{p[:24]}...{p[-12:]} ({len(p)} characters)" for p in parts)
+
+
+def _listing(names: list[str], what: str, most: int) -> str:
+    """``names`` joined, or, beyond ``most`` of them, a count with the first and the last."""
+    if len(names) <= most:
+        return ", ".join(_short(n) for n in names)
+    folders = {os.path.dirname(n) for n in names}
+    if len(folders) == 1 and "" not in folders:
+        where = f" in {folders.pop()}{os.sep}"
+        names = [os.path.basename(n) for n in names]
+    else:
+        where = ""
+    return f"{len(names)} {what}{where}: {_short(names[0])}, {_short(names[1])}, ..., {_short(names[-1])}"
 
 
 def _safe_name(name: str) -> str:
@@ -484,7 +606,8 @@ class _Poses:
 
 
 class _Progress:
-    """Progress on stderr: one line updated in place on a terminal, else one line per 5%."""
+    """Progress on stderr: one line updated in place on a terminal, else one line per 5% (and at
+    least one a minute); both with the wall time left once it can be estimated."""
 
     def __init__(self, stream, start: int, target: int, dt: float, enabled: bool):
         self.stream = stream
@@ -498,8 +621,11 @@ class _Progress:
             self.tty = False
         self.t0 = time.perf_counter()
         self.last = -math.inf
+        self.last_line = self.t0  # wall time of the last line written (not on a terminal)
+        self.lines = 0
         self.last_steps = None
         self.width = 0
+        self.samples: deque = deque()  # (wall time, steps) after each chunk, over the recent past
         self.marks = [start + math.ceil(j * (target - start) / PROGRESS_LINES) for j in range(1, PROGRESS_LINES + 1)]
 
     def next_mark(self, steps: int) -> int | None:
@@ -509,16 +635,37 @@ class _Progress:
         later = [m for m in self.marks if m > steps]
         return later[0] if later else None
 
+    def sample(self, steps: int, now: float) -> None:
+        """Note the progress after a chunk; keep the samples of the last ETA_WINDOW of the run."""
+        samples = self.samples
+        samples.append((now, steps))
+        window = max(ETA_AFTER_S, ETA_WINDOW * (now - samples[0][0]))
+        while len(samples) > 2 and samples[1][0] <= now - window:
+            samples.popleft()
+
+    def eta(self, steps: int, now: float) -> float | None:
+        """Wall time left [s] at the rate of the recent past (a pour slows down as its contacts grow;
+        the first chunk, with the start-up costs, is left out); None until it can be estimated."""
+        if not self.samples:
+            return None
+        t_ref, s_ref = self.samples[0]
+        if steps <= s_ref or now - t_ref < ETA_AFTER_S:
+            return None
+        return (self.target - steps) * (now - t_ref) / (steps - s_ref)
+
     def update(self, sim, force=False) -> None:
         if not self.enabled:
             return
         steps = sim.steps_done
         now = time.perf_counter()
+        self.sample(steps, now)
         if self.tty:
             if not force and now - self.last < TTY_REFRESH_S:
                 return
         else:
-            if not any(self.start < m <= steps for m in self.marks) and not force:
+            due = any(self.start < m <= steps for m in self.marks)
+            gap = now - self.last_line
+            if not (due or force or gap >= (LINE_EVERY_S if self.lines else FIRST_LINE_S)):
                 return
             self.marks = [m for m in self.marks if m > steps]
         self.last = now
@@ -528,10 +675,15 @@ class _Progress:
         rate = (steps - self.start) / max(now - self.t0, 1e-9)
         frac = (steps - self.start) / max(self.target - self.start, 1)
         t_end = self.target * self.dt
+        left = self.eta(steps, now)
+        if steps >= self.target:
+            left_text = f"  took {_duration(now - self.t0)}"
+        else:
+            left_text = f"  {_duration(left)} left" if left is not None else ""
         if self.tty:
             bar = "#" * int(round(20 * frac))
             line = (
-                f"  [{bar:<20}] {100 * frac:5.1f}%  t {sim.time:.4g}/{t_end:.4g} s  {rate:8.1f} steps/s  "
+                f"  [{bar:<20}] {100 * frac:5.1f}%  t {sim.time:.4g}/{t_end:.4g} s  {rate:8.1f} steps/s{left_text}  "
                 f"{contacts} contacts  kinetic {energy['kinetic']:.3e} J"
             )
             pad = max(0, self.width - len(line))
@@ -540,8 +692,10 @@ class _Progress:
         else:
             self.stream.write(
                 f"  {100 * frac:5.1f}%  t = {sim.time:.4g} of {t_end:.4g} s  step {steps}/{self.target}  "
-                f"{rate:.1f} steps/s  {contacts} contacts  kinetic {energy['kinetic']:.3e} J\n"
+                f"{rate:.1f} steps/s{left_text}  {contacts} contacts  kinetic {energy['kinetic']:.3e} J\n"
             )
+            self.last_line = now
+            self.lines += 1
         self.stream.flush()
 
     def finish(self, sim=None) -> None:
@@ -554,35 +708,16 @@ class _Progress:
             self.width = 0
 
 
-class _StopOnSigint:
-    """First Ctrl-C: ask the run to stop after the steps under way. Second: KeyboardInterrupt at once."""
-
-    def __init__(self):
-        self.requested = False
-        self.finishing = False  # writing the outputs: a first Ctrl-C is ignored
-        self._old = None
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            try:
-                if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-                    self._old = signal.signal(signal.SIGINT, self._handler)
-            except (ValueError, OSError):
-                self._old = None
-        return self
-
-    def _handler(self, signum, frame):
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-        what = "writing the outputs" if self.finishing else "stopping after the steps under way"
-        sys.stderr.write(f"\npolydem: {what} (Ctrl-C again to stop at once)\n")
-        sys.stderr.flush()
-
-    def __exit__(self, *exc):
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
-        return False
+def _duration(seconds: float) -> str:
+    """``"4.2 s"``, ``"42 s"``, ``"3 min 05 s"``, ``"2 h 07 min"``."""
+    if seconds < 9.95:
+        return f"{max(0.0, seconds):.1f} s"
+    s = int(round(seconds))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
 
 
 def _roll_back(sim) -> bool:
@@ -622,25 +757,27 @@ class _Run:
         o = scene.output
         self.fps = args.fps if args.fps is not None else o.fps
         self.frame_dt = 1.0 / self.fps
-        self.pictures = o.pictures
+        self.pictures = _pictures_setting(scene)
         self.picture_size = args.picture_size
         self.cp_steps = o.checkpoint_steps
         self.cp_seconds = o.checkpoint_seconds
-        self.cp_dir = _resolve(out_dir, o.checkpoint_path)
-        self.summary_path = _resolve(out_dir, o.summary) if o.summary is not None else None
-        usd = _usd_setting(scene)
-        self.usd_path = None
-        if usd is not None:
-            p = _resolve(out_dir, usd)
-            if resumed_from is not None:
-                p = p.with_name(f"{p.stem}.from_step_{self.start}{p.suffix}")
-            self.usd_path = p
+        paths = _output_paths(scene, out_dir)
+        self.cp_dir = paths["output.checkpoint.path"]
+        self.summary_path = paths.get("output.summary")
+        self.usd_path = paths.get("output.usd")
+        if self.usd_path is not None and resumed_from is not None:
+            p = self.usd_path
+            self.usd_path = p.with_name(f"{p.stem}.from_step_{self.start}{p.suffix}")
         self.volumes = _body_volumes(scene)
         self.recorder = None
         self.vtk = None  # the VtkWriter, made by _execute when VTK output is on (--vtk or output.vtk)
         self.vtk_dir = out_dir / "vtk" if (args.vtk or o.vtk) else None
         if self.vtk_dir is not None and self.vtk_dir.exists() and not self.vtk_dir.is_dir():
             raise CliError("the VTK output folder is a file; remove it or give another --out", self.vtk_dir, "--vtk")
+        self.usd_failed = False
+        self.errors: list[str] = []  # outputs that could not be written (one line each)
+        self.plot_files: list[str] = []
+        self.summary_written = False
         self.frame = self._first_frame(self.start)
         self.frame_contacts: list[int] = []
         self.history: dict[str, list] = {
@@ -749,10 +886,17 @@ class _Run:
             self.record_history(contacts)
         rec = self.recorder
         if rec is not None and (rec.last_time_code is None or rec.time_code(sim.time) > rec.last_time_code):
-            rec.record_simulation(sim)
+            try:
+                rec.record_simulation(sim)  # saves the file now and then
+            except Exception as exc:
+                self.usd_failed = True
+                raise _OutputError(f"cannot write the USD file {self.rel(self.usd_path)}: {_why(exc)}") from exc
             self.usd_codes = [*self.usd_codes[:1], rec.last_time_code]
         if self.vtk is not None and (self.vtk.last_index is None or self.frame > self.vtk.last_index):
-            self.vtk.record(sim.time, sim.state(), contacts, index=self.frame)
+            try:
+                self.vtk.record(sim.time, sim.state(), contacts, index=self.frame)
+            except OSError as exc:
+                raise _OutputError(f"cannot write the VTK files in {self.rel(self.vtk_dir)}: {_why(exc)}") from exc
         while self.frame_step(self.frame) <= steps:
             if isinstance(self.pictures, tuple) and self.frame in self.pictures:
                 self.picture(f"frame_{self.frame:06d}.png")
@@ -771,23 +915,42 @@ class _Run:
         if len(contacts["volume"]):
             self.frame_overlap = max(self.frame_overlap, float(_relative_overlaps(contacts, self.volumes).max()))
 
+    def rel(self, path) -> str:
+        """``path`` as the closing lines and the summary name it: relative to the output folder."""
+        return _short(_rel(path, self.out_dir))
+
     def picture(self, name: str) -> None:
         from polydem.render import render_simulation
 
         path = self.out_dir / "pictures" / name
-        path.parent.mkdir(parents=True, exist_ok=True)
         width, height = self.picture_size
-        render_simulation(self.sim, path, width=width, height=height)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            render_simulation(self.sim, path, width=width, height=height)
+        except OSError as exc:
+            raise _OutputError(f"cannot write the picture {self.rel(path)}: {_why(exc)}") from exc
         self.picture_files.append(_rel(path, self.out_dir))
 
     def checkpoint(self, name: str) -> Path:
         from polydem.checkpoint import save_checkpoint
 
-        self.cp_dir.mkdir(parents=True, exist_ok=True)
         path = self.cp_dir / name
-        save_checkpoint(self.sim, path, run=self.run_record(writing=path))
+        try:
+            self.cp_dir.mkdir(parents=True, exist_ok=True)
+            save_checkpoint(self.sim, path, run=self.run_record(writing=path))
+        except OSError as exc:
+            _remove(Path(f"{path}.tmp.npz"))  # save_checkpoint's temporary file
+            raise _OutputError(f"cannot write the checkpoint {self.rel(path)}: {_why(exc)}") from exc
         self.checkpoints.append(_rel(path, self.out_dir))
         return path
+
+    def attempt(self, write, *args):
+        """``write(*args)``; an output that cannot be written is noted in ``errors`` (returns None)."""
+        try:
+            return write(*args)
+        except _OutputError as exc:
+            self.errors.append(str(exc))
+            return None
 
     def periodic_checkpoint(self) -> None:
         steps = self.sim.steps_done
@@ -819,21 +982,36 @@ class _Run:
         self.energy_initial = energy if self.earlier is None else self.earlier["energy_initial"]
         self.energy_at_start = energy
         self.t0 = t0 = time.perf_counter()
-        with _StopOnSigint() as stop:
-            return self._execute(out, err, progress, t0, stop)
+        return self._execute(out, err, progress, t0)
 
-    def _execute(self, out, err, progress, t0, stop) -> int:
-        from polydem.simulation import SimulationError
+    def _open_recorder(self):
         from polydem.usd import UsdRecorder
+
+        try:
+            rec = UsdRecorder(self.usd_path, self.scene, fps=self.fps, frame_dt=self.frame_dt)
+        except Exception as exc:  # nothing has run yet: the user can fix it and start again
+            raise CliError(f"cannot write the USD file: {_why(exc)}", self.usd_path, "output.usd") from None
+        rec.set_metadata(**self.scene_metadata())
+        return rec
+
+    def scene_metadata(self) -> dict:
+        """What the USD file and the summary record of the scene, so that ``polydem render`` finds it."""
+        if self.args.scene is None:
+            return {"default_scene": True}
+        return {"scene_file": str(Path(self.args.scene).resolve())}
+
+    def _execute(self, out, err, progress, t0) -> int:
+        from polydem.simulation import SimulationError
 
         sim = self.sim
         reason = None
         failure = None
         internal = None
         status = EXIT_OK
+        _signals.running()
         try:
             if self.usd_path is not None:
-                self.recorder = UsdRecorder(self.usd_path, self.scene, fps=self.fps, frame_dt=self.frame_dt)
+                self.recorder = self._open_recorder()
             if self.vtk_dir is not None:
                 from polydem.vtk import VtkWriter
 
@@ -844,23 +1022,34 @@ class _Run:
                 self.record_frames()
                 self.periodic_checkpoint()
                 progress.update(sim)
-                if stop.requested:
+                if _signals.received():
                     raise KeyboardInterrupt
+        except CliError:
+            raise
         except KeyboardInterrupt:
-            reason = "interrupted by the user (Ctrl-C)"
-            status = EXIT_INTERRUPTED
+            status = _signals.exit_code()
+            reason = "interrupted by the user (Ctrl-C)" if status == EXIT_INTERRUPTED else "stopped by SIGTERM"
         except SimulationError as exc:
             reason = f"SimulationError: {exc}"
-            failure = str(exc)
+            failure = f"the simulation failed: {exc}"
+            status = EXIT_FAILED
+        except _OutputError as exc:
+            reason = f"an output could not be written: {exc}"
+            self.errors.append(str(exc))
             status = EXIT_FAILED
         except Exception as exc:
             reason = f"internal error: {type(exc).__name__}: {exc}"
             internal = exc
             status = EXIT_FAILED
         finally:
+            _signals.finishing()
             if self.recorder is not None:
-                self.recorder.close()  # the frames so far are kept, whatever happened
-        stop.finishing = True
+                try:
+                    self.recorder.close()  # the frames so far are kept, whatever happened
+                except Exception as exc:
+                    if not self.usd_failed:
+                        self.errors.append(f"cannot save the USD file {self.rel(self.usd_path)}: {_why(exc)}")
+                    self.usd_failed = True
         try:
             self._finish(out, err, progress, t0, reason, status)
         except Exception:
@@ -869,45 +1058,58 @@ class _Run:
             err.write("polydem: the outputs could not be completed after the internal error below\n")
         if internal is not None:
             raise internal
-        if failure is not None:
-            err.write(f"polydem: error: the simulation failed: {failure}\n")
+        errors = ([failure] if failure else []) + self.errors
+        if errors:
+            more = f" (and {_n(len(errors) - 1, 'other error')}: see the lines above)" if len(errors) > 1 else ""
+            err.write(f"polydem: error: {errors[0]}{more}\n")
+            err.flush()
+            if status == EXIT_OK:
+                status = EXIT_FAILED
         return status
 
     def _finish(self, out, err, progress, t0, reason, status) -> None:
-        """Final picture and checkpoint, the summary, and the closing lines (also after an interruption)."""
+        """Final checkpoint and picture, plots, the summary, and the closing lines (also after an interruption)."""
         sim = self.sim
         wall = time.perf_counter() - t0
         notes = []
         consistent = True if reason is None else _roll_back(sim)
         progress.finish(sim if consistent else None)
         cp_path = None
-        try:
-            if reason is None:
-                if self.pictures == "last":
-                    self.picture("last.png")
-                cp_path = self.checkpoint("final.npz")
-            elif consistent:
-                cp_path = self.checkpoint("interrupted.npz")
-            else:
-                notes.append("no checkpoint: the state could not be brought back to a completed step")
-        except Exception as exc:  # keep going: the summary matters more
-            notes.append(f"writing the outputs failed: {type(exc).__name__}: {exc}")
-            if reason is None:
-                raise
+        if consistent:
+            cp_path = self.attempt(self.checkpoint, "final.npz" if reason is None else "interrupted.npz")
+            if self.pictures == "last":
+                self.attempt(self.picture, "last.png")
+        else:
+            notes.append("no checkpoint: the state could not be brought back to a completed step")
         from polydem.plots import write_plots
 
-        plots = write_plots(self.history, self.out_dir)
+        try:
+            plots = write_plots(self.history, self.out_dir)
+        except OSError as exc:
+            self.errors.append(f"cannot write the plots: {_why(exc)}")
+            plots = []
+        except Exception as exc:  # matplotlib itself: the plots are an extra, the run is fine
+            plots = f"no plots: matplotlib failed ({_why(exc)})"
         if isinstance(plots, str):
             notes.append(plots)
             plots = []
+        self.plot_files = [_rel(p, self.out_dir) for p in plots]
         summary = self.summary(wall, reason, notes, consistent)
-        summary["outputs"]["plots"] = [_rel(p, self.out_dir) for p in plots]
+        summary["outputs"]["plots"] = self.plot_files
+        if self.errors:
+            summary["not_written"] = list(self.errors)
         summary["history"] = self.history
+        self.summary_written = False
         if self.summary_path is not None:
-            self.summary_path.parent.mkdir(parents=True, exist_ok=True)
             tmp = self.summary_path.with_name(self.summary_path.name + ".tmp")
-            tmp.write_text(json.dumps(_finite(summary), indent=1) + "\n")
-            os.replace(tmp, self.summary_path)
+            try:
+                self.summary_path.parent.mkdir(parents=True, exist_ok=True)
+                tmp.write_text(json.dumps(_finite(summary), indent=1) + "\n")
+                os.replace(tmp, self.summary_path)
+                self.summary_written = True
+            except OSError as exc:
+                self.errors.append(f"cannot write the summary {self.rel(self.summary_path)}: {_why(exc)}")
+                _remove(tmp)
         self.report(out, err, summary, cp_path, reason, status)
 
     def summary(self, wall, reason, notes, consistent) -> dict:
@@ -942,7 +1144,8 @@ class _Run:
         summary = {
             "polydem": __version__,
             "scene": scene.name,
-            "scene_file": str(scene.file) if self.args.scene is not None else None,
+            "scene_file": self.scene_metadata().get("scene_file"),
+            "default_scene": self.args.scene is None,
             "device": str(sim.device),
             "precision": scene.precision,
             "interrupted": reason is not None,
@@ -985,8 +1188,8 @@ class _Run:
             "settled_region": settled_region(scene, sim.state(), contacts) if consistent else None,
             "outputs": {
                 "folder": str(self.out_dir),
-                "usd": _rel(self.usd_path, self.out_dir) if self.usd_path is not None else None,
-                "usd_frames": self.recorder.frames if self.recorder is not None else 0,
+                "usd": _rel(self.usd_path, self.out_dir) if self.usd_path is not None and not self.usd_failed else None,
+                "usd_frames": self.recorder.frames if self.recorder is not None and not self.usd_failed else 0,
                 "vtk": {
                     "files": [_rel(p, self.out_dir) for p in self.vtk.files],
                     "frames": self.vtk.frames,
@@ -1017,7 +1220,7 @@ class _Run:
         frames = s["frames"]
         c = s["contacts"]
         lines = []
-        head = "interrupted" if status == EXIT_INTERRUPTED else "stopped" if reason else "done"
+        head = "interrupted" if status in (EXIT_INTERRUPTED, EXIT_TERMINATED) else "stopped" if reason else "done"
         rate = f" ({s['steps_per_second']:.0f} steps/s)" if s["steps_per_second"] else ""
         lines.append(
             f"{head}: {s['steps_this_run']} steps to step {s['steps']} (t = {s['simulated_time']:.6g} s) in "
@@ -1049,28 +1252,45 @@ class _Run:
                 f"  energy [J]: kinetic {e['kinetic']:.4g}, contact {e['contact']:.4g}, dissipated "
                 f"{e['dissipated']:.4g}, total {e['total']:.6g} (at the start {s['energy']['initial']['total']:.6g})"
             )
-        o = s["outputs"]
-        written = []
-        if o["usd"]:
-            written.append(f"{o['usd']} ({_n(o['usd_frames'], 'frame')})")
-        if o["vtk"]:
-            written.append(f"{', '.join(o['vtk']['files'])} ({_n(o['vtk']['frames'], 'frame')})")
-        if o["summary"]:
-            written.append(o["summary"])
-        if self.picture_files:  # this run's (the summary lists those of the earlier parts too)
-            written.append(f"{_n(len(self.picture_files), 'picture')} in pictures/")
-        if cp_path is not None:
-            written.append(_rel(cp_path, self.out_dir))
-        lines.append(f"  written to {self.out_dir}{os.sep}: {', '.join(written) if written else 'nothing'}")
+        lines.append(f"  written to {self.out_dir}{os.sep}:")
+        files = self.written(s)
+        width = min(max((len(name) for name, _ in files), default=0), 40)
+        lines += [f"    {name:<{width}}  {what}" for name, what in files] or ["    nothing"]
         for note in s.get("notes", []):
             lines.append(f"  note: {note}")
+        for error in self.errors:
+            lines.append(f"  not written: {error}")
         out.write("\n".join(lines) + "\n")
         out.flush()
-        if reason is not None and cp_path is not None and status == EXIT_INTERRUPTED:
+        if reason is not None and cp_path is not None and status in (EXIT_INTERRUPTED, EXIT_TERMINATED):
             err.write(
                 f"polydem: run interrupted at step {s['steps']}; continue with:\n  {self.resume_command(cp_path)}\n"
             )
             err.flush()
+
+    def written(self, s) -> list[tuple[str, str]]:
+        """The files written (relative to the output folder) as (names, what) pairs, by kind."""
+        o = s["outputs"]
+        files = []
+        if o["usd"]:
+            files.append((_short(o["usd"]), f"USD animation, {_n(o['usd_frames'], 'frame')}"))
+        if o.get("vtk"):
+            vtk = o["vtk"]
+            names = ", ".join(_short(f) for f in vtk["files"] if f.endswith(".pvd"))
+            files.append((names, f"VTK series for ParaView, {_n(vtk['frames'], 'frame')} (and vtk/walls.vtu)"))
+        if o["summary"] and self.summary_written:
+            files.append((_short(o["summary"]), "summary"))
+        pictures = o["pictures"]
+        if pictures:
+            last = pictures[-1] == "pictures/last.png"
+            what = ("picture of the final state" if last else "picture") if len(pictures) == 1 else "pictures"
+            files.append((_listing(pictures, "pictures", 6), what))
+        if self.plot_files:
+            files.append((", ".join(self.plot_files), "plots"))
+        if o["checkpoints"]:
+            what = "checkpoint" if len(o["checkpoints"]) == 1 else "checkpoints"
+            files.append((_listing(o["checkpoints"], "checkpoints", 4), what))
+        return files
 
     def resume_command(self, cp_path) -> str:
         a = self.args
@@ -1093,6 +1313,40 @@ class _Run:
         return shlex.join(cmd)
 
 
+def _output_paths(scene, out_dir: Path) -> dict:
+    """The outputs of a run by the key that names them: ``output.usd`` and ``output.summary`` (when
+    written), ``output.checkpoint.path`` (the folder); all inside ``out_dir``."""
+    o = scene.output
+    paths = {"output.checkpoint.path": out_dir / o.checkpoint_path}
+    usd = _usd_setting(scene)
+    if usd is not None:
+        paths["output.usd"] = out_dir / usd
+    if o.summary is not None:
+        paths["output.summary"] = out_dir / o.summary
+    return paths
+
+
+def _check_outputs(args, scene, out_dir: Path) -> None:
+    """CliError (before the run) for an output that cannot be written: a name too long for the file
+    system, a file where a folder should be, a folder without write permission."""
+    file = args.scene
+    paths = _output_paths(scene, out_dir)
+    probes = [(out_dir / "packing.png", ".tmp", "--out")]  # the plots; the folder itself
+    if "output.usd" in paths:
+        probes.append((paths["output.usd"], ".tmp", "output.usd"))
+    if "output.summary" in paths:
+        probes.append((paths["output.summary"], ".tmp", "output.summary"))
+    probes.append((paths["output.checkpoint.path"] / "step_000000000.npz", ".tmp.npz", "output.checkpoint.path"))
+    if _pictures_setting(scene):
+        probes.append((out_dir / "pictures" / "frame_000000.png", ".tmp", "output.pictures"))
+    for path, extra, key in probes:
+        try:
+            _probe_file(path, extra)
+        except OSError as exc:
+            where = _short(exc.filename) if getattr(exc, "filename", None) else _short(path)
+            raise CliError(f"cannot write {where}: {_why(exc)}", None if key == "--out" else file, key) from None
+
+
 def _target_steps(args, scene, dt: float) -> tuple[int, str]:
     """Total steps from t = 0 and where they come from."""
     if args.steps is not None:
@@ -1109,6 +1363,7 @@ def _target_steps(args, scene, dt: float) -> tuple[int, str]:
 def cmd_run(args) -> int:
     out, err = sys.stdout, sys.stderr
     _warp()
+    _signals.check()
     if args.precision == "float64":
         raise CliError(
             "the simulator runs in float32 only; use --precision float32 (or leave it out). Float64 contact geometry "
@@ -1132,10 +1387,20 @@ def cmd_run(args) -> int:
     device = _device(args.device) if args.device is not None else None
     if device is None and scene.device is not None:
         device = _device(scene.device, file=scene.file, key="simulation.device")
+    out_dir = Path(args.out) if args.out is not None else Path("polydem_out") / _safe_name(scene.name)
+    try:
+        if out_dir.exists() and not out_dir.is_dir():
+            raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"cannot create the output folder ({_why(exc)})", _short(out_dir), "--out") from None
+    _check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
+    _signals.check()
 
     from polydem.simulation import Simulation
 
     sim = Simulation(scene, device=device)
+    _signals.check()
     target, source = _target_steps(args, scene, sim.dt)
     if resume is not None:
         _resume(sim, scene, resume, checkpoint, args)
@@ -1146,15 +1411,6 @@ def cmd_run(args) -> int:
                 resume,
                 "--resume",
             )
-    out_dir = Path(args.out) if args.out is not None else Path("polydem_out") / _safe_name(scene.name)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(
-            f"cannot create the output folder ({exc.strerror}); give another --out", out_dir, "--out"
-        ) from None
     run = _Run(args, scene, sim, out_dir, target, resume)
     if checkpoint is not None:
         run.continue_record(checkpoint)
@@ -1318,7 +1574,11 @@ def cmd_render(args) -> int:
             "(.usd, .usda, .usdc)",
             source,
         )
-    if not source.is_file():
+    try:
+        found = source.is_file()
+    except OSError as exc:  # a name too long for the file system
+        raise CliError(f"cannot read the file ({_why(exc)}); check the path", _short(source)) from None
+    if not found:
         raise CliError(f"file not found (looked for '{source.absolute()}'); check the path", source)
     device = _device(args.device)
     fix = "give the scene it was written from with --scene SCENE"
@@ -1348,13 +1608,22 @@ def cmd_render(args) -> int:
         positions, orientations = body_q[:, :3], body_q[:, 3:7]
         what = f"the checkpoint {source}"
     else:
-        from polydem.usd import read_frame, read_time_codes
+        from polydem.usd import read_frame, read_metadata, read_time_codes
 
-        scene = _load_scene(args.scene)
         try:
             codes = read_time_codes(source)
+            recorded = read_metadata(source)
         except (ValueError, OSError) as exc:
             raise CliError(f"{exc}; give a USD file written by polydem run", source) from None
+        scene_arg = args.scene
+        if scene_arg is None and recorded.get("scene_file"):
+            scene_arg = recorded["scene_file"]
+            if not Path(scene_arg).is_file():
+                raise CliError(
+                    f"the scene file it was written from, '{scene_arg}', is gone; give the scene with --scene SCENE",
+                    source,
+                )
+        scene = _load_scene(scene_arg)
         if not len(codes):
             raise CliError("the USD file has no frames; render a checkpoint or the scene instead", source)
         frame = int(codes[-1]) if args.frame is None else args.frame
@@ -1366,19 +1635,23 @@ def cmd_render(args) -> int:
                 "--frame",
             )
         positions, orientations = read_frame(source, frame)
-        _check_poses(source, positions, scene, args.scene, "USD file", fix)
+        _check_poses(source, positions, scene, scene_arg, "USD file", fix)
         what = f"frame {frame} of {source}"
     poses = _Poses(scene, positions, orientations, device)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    render_simulation(
-        poses,
-        out_png,
-        width=args.width,
-        height=args.height,
-        supersample=args.supersample,
-        azimuth=args.azimuth,
-        elevation=args.elevation,
-    )
+    _signals.check()
+    try:
+        out_png.parent.mkdir(parents=True, exist_ok=True)
+        render_simulation(
+            poses,
+            out_png,
+            width=args.width,
+            height=args.height,
+            supersample=args.supersample,
+            azimuth=args.azimuth,
+            elevation=args.elevation,
+        )
+    except OSError as exc:
+        raise CliError(f"cannot write the picture ({_why(exc)})", _short(out_png), "--out") from None
     sys.stdout.write(
         f"wrote {out_png} ({args.width} x {args.height}): {what}, {_n(scene.num_bodies, 'body', 'bodies')}\n"
     )
@@ -1428,9 +1701,11 @@ class _Parser(argparse.ArgumentParser):
 
 
 _RUN_EPILOG = """\
-outputs (in --out; the scene's [output] table names them, relative to that folder):
+outputs (in --out, default polydem_out/<scene name>/; the scene's [output] table names them, as
+paths inside that folder; the closing lines name every file written):
   USD animation   output.usd (trajectory.usdc when the scene file does not mention usd; none for
-                  usd = false). Frame k is the state at simulated time k / fps, time code k.
+                  usd = false). Frame k is the state at simulated time k / fps, time code k. It
+                  records the scene file, so that polydem render finds the scene.
   summary         output.summary (summary.json): steps, simulated and wall time, bodies, contacts
                   (final, mean and max over the frames), energies (start and end), the largest
                   overlap relative to the smaller body's volume, and the packing fraction and mean
@@ -1440,31 +1715,43 @@ outputs (in --out; the scene's [output] table names them, relative to that folde
                   body to the 80th percentile of their centre heights. Packing fraction = volume of
                   the free bodies whose centres lie in it / its volume; coordination number = mean
                   number of contacts (with bodies or walls) of those bodies.
-  pictures        output.pictures (frame numbers, or "last"): pictures/frame_NNNNNN.png, last.png.
+  pictures        pictures/last.png, the final state (unless the scene sets output.pictures: frame
+                  numbers for pictures/frame_NNNNNN.png, "last", or false for none).
+  plots           energy.png and packing.png (energies, contacts, packing fraction against time)
+                  when matplotlib is installed: pip install "polydem[plot]".
   VTK (ParaView)  --vtk or output.vtk = true: vtk/particles.pvd (the polyhedra), vtk/centres.pvd
                   (one point per body), vtk/contacts.pvd (a line per contact with its forces: the
                   force chains), each a series of frames (vtk/<series>/<series>_NNNNNN.vtu), and
                   vtk/walls.vtu. Open the .pvd files in ParaView.
-  checkpoints     output.checkpoint = {steps = N} or {seconds = T}: checkpoints/step_NNNNNNNNN.npz,
-                  plus checkpoints/final.npz at the end and checkpoints/interrupted.npz when the
-                  run stops early (Ctrl-C, or a failing simulation).
+  checkpoints     checkpoints/final.npz at the end, checkpoints/interrupted.npz when the run stops
+                  early; with output.checkpoint = {steps = N} or {seconds = T} also
+                  checkpoints/step_NNNNNNNNN.npz.
+  An output that cannot be written (a name too long, a file in the way of a folder, no
+  permission) stops the command before the run (exit code 2); after the start, the others are
+  still written (exit code 1).
+
+progress: one line per 5% of the steps on stderr (one line kept up to date on a terminal), with
+the wall time left once it can be estimated.
 
 interruption and resuming:
-  Ctrl-C stops after the steps under way (a second Ctrl-C at once); the USD file keeps the frames
-  so far, the summary says "interrupted": true, and interrupted.npz holds the state. Add
-  --resume CHECKPOINT to the same command to continue: --steps and --duration count from t = 0,
-  and the result equals that of an unbroken run bit for bit (same device). The resumed frames go
-  to a new USD file, <usd name>.from_step_<N>.<ext>, with the same time codes as before. A checkpoint
-  of other physics (materials, shapes, walls, bodies, gravity, dt) is refused, naming what differs;
-  the summary of a resumed run covers the whole run from t = 0 ("parts": which steps and frames
-  each part wrote, and where).
+  Ctrl-C, or SIGTERM (what a batch scheduler sends), stops after the steps under way (a second one
+  at once); the USD file keeps the frames so far, the summary says "interrupted": true, and
+  interrupted.npz holds the state. While the command starts (imports, Warp, kernel compilation)
+  either stops it at once, writing nothing. Add --resume CHECKPOINT to the same command to
+  continue: --steps and --duration count from t = 0, and the result equals that of an unbroken
+  run bit for bit (same device). The resumed frames go to a new USD file,
+  <usd name>.from_step_<N>.<ext>, with the same time codes as before. A checkpoint of other
+  physics (materials, shapes, walls, bodies, gravity, dt) is refused, naming what differs; the
+  summary of a resumed run covers the whole run from t = 0 ("parts": which steps and frames each
+  part wrote, and where).
 
-exit codes: 0 done; 1 the simulation failed (outputs written) or an internal error; 2 a user error
-(bad option, scene or checkpoint: one message naming the file, the key and the fix); 130 Ctrl-C.
+exit codes: 0 done; 1 the simulation failed or an output could not be written (the other outputs
+written), or an internal error; 2 a user error (bad option, scene or checkpoint: one message
+naming the file, the key and the fix); 130 Ctrl-C (SIGINT); 143 SIGTERM.
 
 examples:
   polydem run                                   the built-in default scene (300 polyhedra)
-  polydem run scenes/cube_drop.toml --device cpu --duration 0.1 --out results/
+  polydem run scenes/cube_drop.toml --device cpu --duration 0.6 --out results/
   polydem run scenes/drum.toml --resume polydem_out/drum/checkpoints/interrupted.npz
 """
 
@@ -1484,7 +1771,8 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog=_para(
             "Run 'polydem COMMAND --help' for the options of a command. Exit codes: 0 success, 1 simulation "
-            "failure or internal error, 2 user error, 130 interrupted."
+            "failure, an output not written or internal error, 2 user error, 130 interrupted (Ctrl-C), 143 stopped "
+            "by SIGTERM."
         ),
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
@@ -1558,7 +1846,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=_size,
         default=(800, 600),
         metavar="WxH",
-        help="size of the pictures of output.pictures in pixels (default 800x600)",
+        help="size of the pictures (pictures/last.png and those of output.pictures) in pixels (default 800x600)",
     )
     run.add_argument(
         "--vtk",
@@ -1595,11 +1883,14 @@ def build_parser() -> argparse.ArgumentParser:
         description=_para(
             "Write a PNG picture of bodies and walls (ray cast with Warp). SOURCE is a scene file "
             "(its initial state, frame 0), a checkpoint (.npz) or a USD file written by polydem run (any of its "
-            "frames). Checkpoints and USD files hold poses only: --scene names the scene they come from."
+            "frames). Checkpoints and USD files hold poses only: --scene names the scene they come from (a USD file "
+            "written by polydem run records it). Fixed and kinematic bodies between the camera and the free bodies "
+            "are left out, so the inside of a container shows."
         ),
         epilog="examples:\n"
         "  polydem render scenes/drum.toml --out drum.png\n"
-        "  polydem render polydem_out/drum/drum.usd --scene scenes/drum.toml --frame 30 --out drum_1s.png\n"
+        "  polydem render polydem_out/drum/drum.usd --frame 30 --out drum_1s.png\n"
+        "  polydem render scenes/drum.toml --elevation 90 --out drum_top.png\n"
         "  polydem render polydem_out/default/checkpoints/final.npz --out settled.png",
         formatter_class=fmt,
     )
@@ -1609,7 +1900,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--scene",
         default=None,
         metavar="SCENE",
-        help="scene file of a checkpoint or USD file (for the shapes, walls and colours); default: the built-in "
+        help="scene file of a checkpoint or USD file (for the shapes, walls and colours); default: for a USD file "
+        "written by polydem run, the scene it records (its file, or the built-in default scene), else the built-in "
         "default scene",
     )
     render.add_argument(
@@ -1634,10 +1926,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="S x S rays per pixel, for smoother edges (default 1)",
     )
     render.add_argument(
-        "--azimuth", type=float, default=-60.0, help="camera direction about the vertical [degrees] (default -60)"
+        "--azimuth",
+        type=_angle(-math.inf, math.inf, "--azimuth 30"),
+        default=-60.0,
+        help="camera direction about the vertical [degrees] (default -60)",
     )
     render.add_argument(
-        "--elevation", type=float, default=50.0, help="camera height above the horizontal [degrees] (default 50)"
+        "--elevation",
+        type=_angle(-90.0, 90.0, "--elevation 90 (from above) or --elevation -90 (from below)"),
+        default=50.0,
+        help="camera height above the horizontal [degrees], from -90 (from straight below) to 90 (from straight "
+        "above) (default 50)",
     )
     render.add_argument(
         "--device",
@@ -1659,17 +1958,31 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Run the ``polydem`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    _signals.install()
+    try:
+        return _main(argv)
+    finally:
+        _signals.uninstall()
+
+
+def _main(argv) -> int:
     parser = build_parser()
     try:
         try:
             args = parser.parse_args(argv)
         except SystemExit as exc:  # --help
             return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USER_ERROR
+        _signals.check()
         return args.func(args)
     except (SceneError, CliError) as err:
         sys.stdout.flush()
         print(f"polydem: error: {err}", file=sys.stderr)
         return EXIT_USER_ERROR
+    except KeyboardInterrupt:  # a signal before the run started, or a second one while it wrote its outputs
+        sys.stdout.flush()
+        what = "nothing was written" if not _signals.started() else "while writing the outputs, some may be missing"
+        print(f"polydem: stopped by {_signals.name()}; {what}", file=sys.stderr)
+        return _signals.exit_code()
 
 
 if __name__ == "__main__":

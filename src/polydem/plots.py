@@ -4,7 +4,22 @@ Matplotlib is an optional dependency (``pip install "polydem[plot]"``): it is im
 plot is asked for, and :func:`write_plots` says so instead of failing when it is missing.
 """
 
+import os
 from pathlib import Path
+
+
+def _save(fig, path: Path) -> None:
+    """Save ``fig`` as a PNG through a temporary file: a failed write leaves no partial picture."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        fig.savefig(tmp, format="png")
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise
 
 
 def write_plots(history, out_dir):
@@ -36,9 +51,11 @@ def write_plots(history, out_dir):
     ax.legend(loc="best", fontsize="small")
     ax.grid(alpha=0.3)
     fig.tight_layout()
+    try:
+        _save(fig, out / "energy.png")
+    finally:
+        plt.close(fig)
     paths.append(out / "energy.png")
-    fig.savefig(paths[-1])
-    plt.close(fig)
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
     phi = [float("nan") if p is None else p for p in history["packing_fraction"]]
     ax.plot(t, phi, "-", color="tab:blue", label="packing fraction (settled region)")
@@ -50,7 +67,9 @@ def write_plots(history, out_dir):
     ax2.set_ylabel("contacts")
     fig.legend(loc="upper left", fontsize="small")
     fig.tight_layout()
+    try:
+        _save(fig, out / "packing.png")
+    finally:
+        plt.close(fig)
     paths.append(out / "packing.png")
-    fig.savefig(paths[-1])
-    plt.close(fig)
     return paths

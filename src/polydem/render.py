@@ -17,6 +17,7 @@ standard library (zlib), so no imaging package is needed; ``render_simulation`` 
 from __future__ import annotations
 
 import math
+import os
 import struct
 import zlib
 from dataclasses import dataclass
@@ -49,7 +50,11 @@ PALETTE = np.array(
 """RGB in [0, 1] of shape index ``s``: ``PALETTE[s % len(PALETTE)]``."""
 
 FIXED_COLOR = (0.74, 0.74, 0.72)
-"""RGB of fixed bodies (container walls) in :func:`render_simulation`."""
+"""RGB of fixed and kinematic bodies (containers, drums) in :func:`render_simulation`."""
+
+CUTAWAY_PIXELS = 240
+"""Longer side [pixels] of the small pictures in which :func:`render_simulation` looks for the
+container bodies that hide free bodies."""
 
 
 def _unit(v, what="vector") -> np.ndarray:
@@ -156,20 +161,23 @@ class Camera:
         """A camera that sees the whole box [lower, upper] from a raised oblique direction.
 
         The view direction comes from ``azimuth`` (degrees about ``up``, 0 along the first axis
-        perpendicular to up: x for up = z) and ``elevation`` (degrees above the horizontal); the
-        box is centred in the image and its corners fill it up to ``margin``.
+        perpendicular to up: x for up = z) and ``elevation`` (degrees above the horizontal, from -90,
+        a view from straight below, to 90, from straight above); the box is centred in the image and
+        its corners fill it up to ``margin``. The image's horizontal axis is perpendicular to the
+        azimuth's direction, so a top view keeps the roll of the views just below it.
         """
         lo = np.asarray(lower, dtype=np.float64).reshape(3)
         hi = np.asarray(upper, dtype=np.float64).reshape(3)
         up_v = _unit(up, "up")
         e1, e2 = _perpendicular_basis(up_v)
         az, el = math.radians(azimuth), math.radians(elevation)
+        if not (math.isfinite(azimuth) and math.isfinite(elevation) and -90.0 <= elevation <= 90.0):
+            raise ValueError(f"azimuth must be finite and elevation in [-90, 90] degrees, got {azimuth}, {elevation}")
         back = math.cos(el) * (math.cos(az) * e1 + math.sin(az) * e2) + math.sin(el) * up_v
         forward = -back
-        right = np.cross(forward, up_v)
-        if np.linalg.norm(right) < 1e-9:  # looking straight down or up: any roll will do
-            right = e1
-        right = _unit(right)
+        # forward x up, normalised, for any elevation below 90 degrees; defined at +-90 as well, where
+        # forward is along up and the cross product vanishes.
+        right = _unit(-math.sin(az) * e1 + math.cos(az) * e2)
         cam_up = np.cross(right, forward)
         ty = math.tan(math.radians(0.5 * fov)) / margin
         tx = ty * width / height
@@ -191,7 +199,7 @@ class Camera:
             target = target + 0.5 * (u.min() + u.max()) * tx * dist * right
             target = target + 0.5 * (v.min() + v.max()) * ty * dist * cam_up
         dist = distance(target)
-        return cls(position=tuple(target + dist * back), target=tuple(target), up=tuple(up_v), fov=fov)
+        return cls(position=tuple(target + dist * back), target=tuple(target), up=tuple(cam_up), fov=fov)
 
 
 def _as_camera(camera) -> Camera:
@@ -441,12 +449,17 @@ def render(
     return _to_uint8(rgb)
 
 
-def render_simulation(sim, path: str | PathLike | None = None, **kw) -> np.ndarray:
+def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool = True, **kw) -> np.ndarray:
     """Renders the current state of a :class:`~polydem.Simulation`; writes a PNG when ``path`` is given.
 
-    The scene's planes are drawn, fixed bodies (container walls) get :data:`FIXED_COLOR` unless
-    ``body_colors`` or ``shape_colors`` is given, ``up`` defaults to minus gravity, and the
-    simulation's device renders. Other keywords go to :func:`render`. Returns the image.
+    The scene's planes are drawn, fixed and kinematic bodies (containers, drums) get
+    :data:`FIXED_COLOR` unless ``body_colors`` or ``shape_colors`` is given, ``up`` defaults to
+    minus gravity, and the simulation's device renders. The camera frames every body.
+
+    ``cutaway`` (default True, unless ``visible`` is given): the fixed and kinematic bodies that
+    stand between the camera and free bodies are left out, so that a closed container (a drum, a
+    box seen from the side) shows the grains inside it; the parts behind the grains stay. Other
+    keywords go to :func:`render`. Returns the image.
     """
     if path is not None:
         _check_png_path(path)
@@ -458,15 +471,46 @@ def render_simulation(sim, path: str | PathLike | None = None, **kw) -> np.ndarr
     if "up" not in kw and np.linalg.norm(g) > 0.0:
         kw["up"] = -g / np.linalg.norm(g)
     body_shape = np.asarray(scene.body_shape)
+    container = np.asarray(sim.model.body_flags_np) != 0
     if "body_colors" not in kw and "shape_colors" not in kw:
         num_shapes = len(scene.shape_names)
         colors = _colors(body_shape, num_shapes, None, None)
-        colors[np.asarray(sim.model.body_flags_np) == 1] = FIXED_COLOR
+        colors[container] = FIXED_COLOR
         kw["body_colors"] = colors
-    image = render(state["body_position"], state["body_orientation"], body_shape, sim.model.shapes, **kw)
+    pos, quat = state["body_position"], state["body_orientation"]
+    if cutaway and kw.get("visible") is None and container.any() and not container.all():
+        kw["camera"], kw["visible"] = _cut_away(pos, quat, body_shape, sim.model.shapes, container, kw)
+    image = render(pos, quat, body_shape, sim.model.shapes, **kw)
     if path is not None:
         save_png(image, path)
     return image
+
+
+def _cut_away(pos, quat, body_shape, shapes, container, kw) -> tuple[Camera, np.ndarray]:
+    """(camera, visible): the picture's camera (framing every body) and the bodies to draw: all but
+    the container bodies that hide a free body in some pixel of a small picture."""
+    width, height = int(kw.get("width", 800)), int(kw.get("height", 600))
+    up = _unit(kw.get("up", (0.0, 0.0, 1.0)), "up")
+    camera = kw.get("camera")
+    if camera is None:
+        q = np.asarray(quat, dtype=np.float64).reshape(-1, 4)
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        shape_set = _shape_set(shapes, wp.get_device(kw.get("device")))
+        lo, hi = _bounds(np.asarray(pos, dtype=np.float64).reshape(-1, 3), q, body_shape, shape_set.shapes)
+        angles = {k: kw[k] for k in ("azimuth", "elevation", "fov") if k in kw}
+        camera = Camera.frame_box(lo, hi, width, height, up=up, **angles)
+    camera = _as_camera(camera)
+    f = min(1.0, CUTAWAY_PIXELS / max(width, height))
+    w, h = max(1, round(width * f)), max(1, round(height * f))
+    common = {k: kw[k] for k in ("device", "up") if k in kw}
+    common.update(camera=camera, shadows=False, width=w, height=h)
+    everything = render_layers(pos, quat, body_shape, shapes, **common)["hit"]
+    grains = render_layers(pos, quat, body_shape, shapes, visible=~container, **common)["hit"]
+    hiding = (grains >= 0) & (everything >= 0)
+    hiding[hiding] = container[everything[hiding]]
+    visible = np.ones(len(container), dtype=bool)
+    visible[np.unique(everything[hiding])] = False
+    return camera, visible
 
 
 # ------------------------------------------------------------------------------------------- PNG
@@ -508,5 +552,11 @@ def save_png(image, path: str | PathLike) -> Path:
     png += _chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0))
     png += _chunk(b"IDAT", zlib.compress(raw, 6))
     png += _chunk(b"IEND", b"")
-    p.write_bytes(png)
+    tmp = p.with_name(p.name + ".tmp")  # a failed write leaves neither a broken picture nor a temporary file
+    try:
+        tmp.write_bytes(png)
+        os.replace(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return p

@@ -704,8 +704,10 @@ _CHECKPOINT_KEYS = ("steps", "seconds", "path")
 class Output:
     """What a run writes: the ``[output]`` table of a scene file (validated on construction).
 
-    The scene only stores these settings; the ``polydem`` command acts on them. Relative paths are
-    taken from the output folder of the run (``polydem run --out DIR``); absolute paths are kept.
+    The scene only stores these settings; the ``polydem`` command acts on them. Paths are relative
+    to the output folder of the run (``polydem run --out DIR``) and must stay inside it: absolute
+    paths and paths that lead out of it with ``..`` are refused (a scene file must not overwrite
+    files elsewhere; the folder itself is the user's choice on the command line).
 
     Attributes:
         usd: USD file of the trajectory (``.usd``, ``.usda`` or ``.usdc``), or None for none. In a
@@ -715,6 +717,8 @@ class Output:
             default) means ``"summary.json"``; ``false`` none; a string is the path.
         pictures: frame numbers to render as pictures (frame k is the state at time k / fps), as a
             sorted tuple of distinct integers >= 0, or ``"last"`` for the final state; ``()`` for none.
+            In a scene file ``pictures = true`` means ``"last"`` and ``false`` none; ``polydem run``
+            renders the last frame when the scene file does not mention ``pictures``.
         checkpoint_steps: write a checkpoint every so many steps, or None.
         checkpoint_seconds: write a checkpoint every so many simulated seconds, or None (at most
             one of the two is set). In a scene file: ``checkpoint = {steps = 10000}`` or
@@ -776,6 +780,31 @@ class Output:
             )
         path = _string(self.checkpoint_path, "output.checkpoint.path", what="a folder path string")
         vtk = _boolean(self.vtk, "output.vtk")
+
+        def inside(value, key, example):
+            # Backslashes count as separators too, so that a scene written on Windows is judged alike.
+            parts = value.replace("\\", "/").split("/")
+            if Path(value).is_absolute() or value.startswith(("/", "\\")) or re.match(r"[A-Za-z]:", value):
+                raise SceneError(
+                    f"{value!r} is an absolute path; outputs stay inside the output folder (polydem run --out DIR): "
+                    f"give a path relative to it, e.g. {example}",
+                    key,
+                )
+            depth = 0
+            for part in parts:
+                depth += -1 if part == ".." else 0 if part in ("", ".") else 1
+                if depth < 0:
+                    raise SceneError(
+                        f"{value!r} leads out of the output folder with '..'; outputs stay inside it: give a path "
+                        f"inside it, e.g. {example}, and choose the folder with polydem run --out DIR",
+                        key,
+                    )
+
+        if usd is not None:
+            inside(usd, "output.usd", "usd = 'trajectory.usd'")
+        if summary is not None:
+            inside(summary, "output.summary", "summary = 'summary.json'")
+        inside(path, "output.checkpoint.path", "checkpoint = {steps = 10000, path = 'checkpoints'}")
         for name, value in (
             ("usd", usd),
             ("fps", fps),
@@ -804,7 +833,8 @@ class Output:
                 summary = table["summary"]
                 kw["summary"] = ("summary.json" if summary else None) if isinstance(summary, bool) else summary
             if "pictures" in table:
-                kw["pictures"] = table["pictures"]
+                pictures = table["pictures"]
+                kw["pictures"] = ("last" if pictures else ()) if isinstance(pictures, bool) else pictures
             if "vtk" in table:
                 kw["vtk"] = table["vtk"]
             if "checkpoint" in table:

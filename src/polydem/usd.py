@@ -75,7 +75,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PALETTE", "UsdRecorder", "read_frame", "read_time_codes", "read_velocities"]
+__all__ = ["PALETTE", "UsdRecorder", "read_frame", "read_metadata", "read_time_codes", "read_velocities"]
 
 EXTENSIONS = (".usda", ".usdc", ".usd")
 """File extensions the recorder writes: text (``.usda``) or binary crate (``.usdc``, ``.usd``)."""
@@ -523,6 +523,16 @@ class UsdRecorder:
     def __exit__(self, *exc) -> None:
         self.close()  # also on an exception: the frames recorded so far are kept
 
+    def set_metadata(self, **entries) -> None:
+        """Add ``polydem:KEY`` entries to the file's customLayerData (saved with the next save), e.g.
+        ``scene_file`` (the scene file's absolute path) or ``default_scene=True``; read them back
+        with :func:`read_metadata`."""
+        if self._closed:
+            raise RuntimeError("the recorder is closed")
+        data = dict(self._layer.customLayerData)
+        data.update({f"polydem:{key}": value for key, value in entries.items()})
+        self._layer.customLayerData = data
+
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"UsdRecorder({str(self.path)!r}, bodies={self.num_bodies}, frames={self.frames}, {state})"
@@ -594,3 +604,11 @@ def read_velocities(path: str | PathLike, time_code: float) -> tuple[np.ndarray,
     v = np.asarray(vel_attr.Get(t), dtype=np.float64).reshape(-1, 3)
     w = np.asarray(ang_attr.Get(t), dtype=np.float64).reshape(-1, 3)
     return v * UsdGeom.GetStageMetersPerUnit(stage) / per_second, np.radians(w) / per_second
+
+
+def read_metadata(path: str | PathLike) -> dict:
+    """The ``polydem:`` entries of a file's customLayerData, without the prefix: ``version``,
+    ``scene`` (its name), ``frame_dt`` and those of :meth:`UsdRecorder.set_metadata`."""
+    stage, _ = _open_instancer(path)
+    data = stage.GetRootLayer().customLayerData
+    return {key[len("polydem:") :]: value for key, value in data.items() if key.startswith("polydem:")}
