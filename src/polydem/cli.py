@@ -354,18 +354,20 @@ def _remove(path: Path) -> None:
         pass  # not there after all (its folder is gone or a file)
 
 
-def _probe_file(path: Path, extra: str = ".tmp") -> None:
-    """OSError unless a file ``path`` can be written (its folder is made; the longest temporary name,
-    ``path`` + ``extra``, is created and removed)."""
+def _probe_file(path: Path, extra: str = ".tmp") -> list[Path]:
+    """OSError unless a file ``path`` can be written (the longest temporary name, ``path`` + ``extra``,
+    is created and removed). Returns the folders it had to make, outermost first."""
+    made = [p for p in reversed(path.parents) if not p.exists()]
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.is_dir():
         raise IsADirectoryError(21, "Is a directory", str(path))  # EISDIR
     probe = path.with_name(path.name + extra)
     if probe.exists():
-        return
+        return made
     fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     os.close(fd)
     os.unlink(probe)
+    return made
 
 
 def _resolve(folder: Path, name) -> Path:
@@ -772,8 +774,6 @@ class _Run:
         self.recorder = None
         self.vtk = None  # the VtkWriter, made by _execute when VTK output is on (--vtk or output.vtk)
         self.vtk_dir = out_dir / "vtk" if (args.vtk or o.vtk) else None
-        if self.vtk_dir is not None and self.vtk_dir.exists() and not self.vtk_dir.is_dir():
-            raise CliError("the VTK output folder is a file; remove it or give another --out", self.vtk_dir, "--vtk")
         self.usd_failed = False
         self.errors: list[str] = []  # outputs that could not be written (one line each)
         self.plot_files: list[str] = []
@@ -1339,12 +1339,25 @@ def _check_outputs(args, scene, out_dir: Path) -> None:
     probes.append((paths["output.checkpoint.path"] / "step_000000000.npz", ".tmp.npz", "output.checkpoint.path"))
     if _pictures_setting(scene):
         probes.append((out_dir / "pictures" / "frame_000000.png", ".tmp", "output.pictures"))
-    for path, extra, key in probes:
-        try:
-            _probe_file(path, extra)
-        except OSError as exc:
-            where = _short(exc.filename) if getattr(exc, "filename", None) else _short(path)
-            raise CliError(f"cannot write {where}: {_why(exc)}", None if key == "--out" else file, key) from None
+    vtk = out_dir / "vtk"
+    if (args.vtk or scene.output.vtk) and vtk.exists() and not vtk.is_dir():
+        raise CliError("the VTK output folder is a file; remove it or give another --out", vtk, "--vtk")
+    made: list[Path] = []
+    try:
+        for path, extra, key in probes:
+            try:
+                made += _probe_file(path, extra)
+            except OSError as exc:
+                where = _short(exc.filename) if getattr(exc, "filename", None) else _short(path)
+                raise CliError(f"cannot write {where}: {_why(exc)}", None if key == "--out" else file, key) from None
+    finally:
+        # The run makes the folders it writes to; the check leaves none behind (an empty checkpoints/
+        # folder after an error would look like a run that wrote nothing).
+        for folder in sorted(set(made), key=lambda p: len(p.parts), reverse=True):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
 
 
 def _target_steps(args, scene, dt: float) -> tuple[int, str]:
