@@ -141,7 +141,8 @@ def test_add_bodies_is_vectorised_and_fast():
     scene = basic_scene()
     n = 100_000
     rng = np.random.default_rng(1)
-    pos = rng.uniform(-1, 1, size=(n, 3))
+    # A grid of pitch 0.2 m (> the cube's bounding diameter 0.17 m): validate() rejects deep initial overlaps.
+    pos = 0.2 * np.stack(np.unravel_index(rng.permutation(47**3)[:n], (47, 47, 47)), axis=1) - 4.6
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     t0 = time.perf_counter()
@@ -384,11 +385,15 @@ def test_validate_rejects_free_body_without_volume():
     flat.volume = 0.0  # a fresh object: stands in for a degenerate shape from elsewhere
     scene.add_shape("flat", flat)
     scene.add_body("flat", "steel", kind="fixed")
+    with pytest.raises(SceneError, match="no body has a mass.*add a free body or give dt") as info:
+        scene.validate()  # nothing to derive the automatic time step from
+    assert info.value.key == "simulation.dt"
+    scene.add_body("cube", "steel", position=(1.0, 0.0, 0.0))
     scene.validate()  # fixed bodies need no mass
-    scene.add_body("flat", "steel")
+    scene.add_body("flat", "steel", position=(-1.0, 0.0, 0.0))
     with pytest.raises(SceneError, match="needs a positive volume") as info:
         scene.validate()
-    assert info.value.key == "bodies[1].shape"
+    assert info.value.key == "bodies[2].shape"
 
 
 def test_add_shape_errors():
@@ -786,7 +791,11 @@ def test_time_step_above_the_limit_names_the_file_and_key(tmp_path):
 
     wp.config.quiet = True
     path = write(tmp_path, (SCENES / "default.toml").read_text().replace('dt = "auto"', "dt = 1.0e-2"))
-    scene = Scene.from_toml(path)
+    # validate() checks it (polydem validate needs no Warp), and so does a Model of an unvalidated scene.
+    err = load_error(tmp_path, path.read_text())
+    assert re.search(r"time step 0\.01 s is above the stable limit \S+ s.*use dt = \"auto\"", err.message), err.message
+    assert err.key == "simulation.dt"
+    scene = Scene.from_toml(path, validate=False)
     with pytest.raises(SceneError, match=r"above the stable limit") as info:
         Model(scene, device="cpu")
     assert info.value.key == "simulation.dt" and info.value.file == path

@@ -2364,7 +2364,9 @@ class Scene:
         cell = spacing * 2.0 * r_low
         cells = np.floor((hi - lo) / cell * (1.0 + 1e-12))
         capacity = math.prod(int(c) for c in cells)
-        if count > capacity:
+        # The grid scan gives the exact number (walls and bodies block cells) and the better message;
+        # only counts whose per-body arrays would be large are cut here.
+        if count > capacity and count > _EMITTER_CHUNK and capacity > 0:
             raise self._err(
                 f"the region holds at most {capacity} bodies, fewer than count = {count}: it fits at most "
                 f"{' x '.join(str(int(c)) for c in cells)} cells of {cell:.4g} m (spacing {spacing:g} x the largest "
@@ -2578,13 +2580,17 @@ class Scene:
         shapes = list(self._shapes.values())
         mass = np.asarray(self.body_mass(), dtype=np.float64)
         free = self.body_kind == KIND_FREE
-        # The lightest free body and the stiffest pair set the time step and default spring.
-        if free.any():
-            light = int(np.argmin(np.where(free, mass, np.inf)))
-            v_ref = shapes[int(self.body_shape[light])].volume
-        else:
-            light = int(np.argmin(mass))
-            v_ref = min(s.volume for s in shapes)
+        # The lightest free body (or, with none, the lightest body with a mass) and the stiffest pair
+        # set the time step and default spring.
+        pool = free if free.any() else mass > 0.0
+        if not pool.any():
+            raise self._err(
+                "no body has a mass (all are fixed with zero volume), so no time step can be derived; add a free "
+                "body or give dt in seconds",
+                "simulation.dt",
+            )
+        light = int(np.argmin(np.where(pool, mass, np.inf)))
+        v_ref = shapes[int(self.body_shape[light])].volume
         k_n = reference_stiffness(law, k, m, v_ref)
         kt = np.where(np.isnan(kt), k_n, kt)
         with np.errstate(all="ignore"):
@@ -2626,18 +2632,17 @@ class Scene:
         shapes = list(self._shapes.values())
         names = self.shape_names
         # Overlap volumes and their first moments (~ size^4) are the largest powers of a length the
-        # narrow phase sums, so a size L needs L^3 and L^4 within [lo, hi].
-        size_lo, size_hi = lo**0.25, hi**0.25
+        # narrow phase sums, so the bounding radius r needs r^4 within [lo, hi].
+        r_lo, r_hi = lo**0.25, hi**0.25
         for s in np.unique(a["shape"]):
             sh = shapes[int(s)]
-            v, vr = sh.volume, sh.volume * sh.radius
-            if not (lo <= v <= hi and lo <= vr <= hi):
+            if not r_lo <= sh.radius <= r_hi:
                 i = int(np.flatnonzero(a["shape"] == s)[0])
                 raise self._err(
-                    f"shape {names[s]!r} (used by body {i}) has a bounding radius of {sh.radius:.3g} m and a volume of "
-                    f"{v:.3g} m^3: too {'small' if v < 1.0 else 'large'} for the simulator's float32 arithmetic, whose "
-                    f"overlap volumes and moments (~ size^4) must stay between {lo:.2g} and {hi:.2g}; give the shape a "
-                    f"size between about {size_lo:.1g} m and {size_hi:.1g} m",
+                    f"shape {names[s]!r} (used by body {i}) has a bounding radius of {sh.radius:.3g} m: too "
+                    f"{'small' if sh.radius < 1.0 else 'large'} for the simulator's float32 arithmetic, whose overlap "
+                    f"volumes and their moments (~ radius^4) must stay between {lo:.2g} and {hi:.2g}; give the shape a "
+                    f"bounding radius between {r_lo:.2g} m and {r_hi:.2g} m",
                     f"shapes.{names[s]}",
                 )
         mats = list(self._materials.values())
@@ -2710,11 +2715,15 @@ class Scene:
         needs the contact area M g / k, which an edge or corner contact reaches at about
         d / L = M g / (k A). Then:
 
-        * d / L above OVERLAP_ERROR: SceneError, the body sinks or passes through and the
-          automatic time step (set at 0.1% overlap) misses the motion; above OVERLAP_WARNING: a
-          warning. The fix names the k that keeps d / L at OVERLAP_WARNING.
-        * m > 2 (stiffening laws): the step must stay stable at d, dt < 2 sqrt(M / K(d)) with the
-          tangent stiffness K(d) = k (m - 1) (A d)^(m - 2) A^2 (1/pi of the local period).
+        * weight, d / L above OVERLAP_ERROR, dt = "auto": SceneError: the body sinks through what
+          carries it, and the automatic time step (set at 0.1% overlap) is far longer than the
+          time the body takes to fall its own size. The fix names the k that keeps d / L at
+          OVERLAP_WARNING.
+        * weight, m > 2 (stiffening laws): SceneError where the step is unstable at d,
+          dt > 2 sqrt(M / K(d)) with the tangent stiffness K(d) = k (m - 1) (A d)^(m - 2) A^2
+          (1/pi of the local period).
+        * otherwise d / L above OVERLAP_WARNING (or an unstable step at the impact overlap): a
+          warning. Initial speeds only warn: the bodies need not meet anything.
         """
         free = a["kind"] == KIND_FREE
         if not free.any():
@@ -2788,39 +2797,42 @@ class Scene:
                 if not unstable and rel <= OVERLAP_WARNING:
                     continue
                 ln_need = _stiffness_for(load, m, ln_target, ln_a, ln_l)
-                if not unstable and rel <= OVERLAP_ERROR:
-                    out.append(
-                        f"the contacts of {label} are soft: {depth}; raise k of {soft!r} to "
-                        f"{_exp(ln_need):.3g} {_LAW_UNITS[law]} for at most {OVERLAP_WARNING:g} of its size "
-                        f"(materials.{soft}.k)"
-                    )
-                    continue
-                if unstable and rel <= OVERLAP_ERROR:
+                weight = load > 0.0
+                if unstable:
                     k_tan = _exp(_ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a)
-                    why = (
-                        f", where the law (m = {m:g} > 2 stiffens with depth) has a stiffness of {k_tan:.3g} N/m: the "
-                        f"time step {dt:.3g} s is above the stable {2.0 * math.sqrt(mass / k_tan):.3g} s"
+                    depth += (
+                        f", where the law (m = {m:g} > 2 stiffens with depth) has a stiffness of {k_tan:.3g} N/m "
+                        f"and the time step {dt:.3g} s is above the stable {2.0 * math.sqrt(mass / k_tan):.3g} s"
                     )
-                    if self.dt != "auto":
-                        message = f"the contacts of {label} are unstable: {depth}{why}; lower dt"
-                        raise self._err(message, "simulation.dt")
-                elif self.dt == "auto":
-                    why = f" (the automatic time step, {dt:.3g} s, is {dt / t_scale:.3g} times {scale})"
-                else:
-                    why = ""
                 if ln_need > _ln(F32_HIGH):
                     fix = f"no k within float32's range (up to {F32_HIGH:.2g}) is stiff enough: " + (
                         "use a smaller m (W = k V^m / m gives almost no force at small overlaps when m is large)"
                         if law == "power"
                         else "use smaller densities or larger bodies"
                     )
+                elif unstable and self.dt != "auto":
+                    fix = 'lower dt (or use dt = "auto" with a larger k)'
                 else:
-                    fix = (
-                        f"raise k of {soft!r} to at least {_exp(ln_need):.3g} {_LAW_UNITS[law]} (a pair's k is the "
-                        "harmonic mean of its materials' k)"
+                    fix = f"raise k of {soft!r} to at least {_exp(ln_need):.3g} {_LAW_UNITS[law]}"
+                if weight and (unstable or (rel > OVERLAP_ERROR and self.dt == "auto")):
+                    why = (
+                        f" (the automatic time step, {dt:.3g} s, is {dt / t_scale:.3g} times {scale})"
+                        if self.dt == "auto" and not unstable
+                        else ""
                     )
-                raise self._err(f"the contacts of {label} are too soft: {depth}{why}; {fix}", f"materials.{soft}.k")
-        return out
+                    head = "too soft" if rel > OVERLAP_ERROR else "unstable at this time step"
+                    raise self._err(
+                        f"the contacts of {label} are {head}: {depth}{why}; {fix}"
+                        + (" (a pair's k is the harmonic mean of its materials' k)" if fix.startswith("raise") else ""),
+                        "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
+                    )
+                out.append((rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"))
+        if not out:
+            return []
+        # One line for the scene: the softest case, and how many more there are.
+        out.sort(key=lambda x: -x[0])
+        more = f" ({len(out) - 1} more shapes or materials are soft too)" if len(out) > 1 else ""
+        return [out[0][1] + more]
 
     def validate(self) -> Scene:
         """Check the whole scene; raise :class:`SceneError` on the first problem, else return self.
