@@ -1541,8 +1541,9 @@ class Scene:
             :class:`SceneError`; :func:`polydem.overlap` offers float64 contact geometry).
         output: what a run writes (:class:`Output`); default ``Output()`` (a summary only).
 
-    Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`) and
-    :attr:`emitters` (one dict per :meth:`emit` call: key, count, first and last body index).
+    Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`),
+    :attr:`emitters` (one dict per :meth:`emit` call: key, count, first and last body index) and
+    :attr:`warnings` (the :class:`SceneWarning` messages of the last :meth:`validate`).
     """
 
     def __init__(
@@ -1590,7 +1591,8 @@ class Scene:
         self._material_index: dict[str, int] = {}
         self._planes: list[PlaneWall] = []
         self._plane_keys: list[str] = []  # where each plane came from, for messages
-        self.warnings: list[str] = []
+        self.warnings: list[str] = []  # of the last validate()
+        self._warned: list[str] = []
         self._n = 0
         self._cap = 0
         self._arrays = {name: np.empty((0, *shape), dtype) for name, dtype, shape in _BODY_FIELDS}
@@ -2852,8 +2854,8 @@ class Scene:
           (by more than INITIAL_OVERLAP_ERROR of its thickness) is an error; overlaps above
           INITIAL_OVERLAP_WARNING are warnings.
 
-        Warnings are issued as :class:`SceneWarning` (:func:`warnings.warn`) and kept in
-        :attr:`warnings` (a list of strings) until the next call.
+        Warnings are issued as :class:`SceneWarning` (:func:`warnings.warn`; not again by a
+        repeated call that finds the same) and kept in :attr:`warnings` (a list of strings).
         """
         self.warnings = []
         f = self.file
@@ -2944,8 +2946,11 @@ class Scene:
         self._check_steps(ts)
         found = self._check_loads(a, ts)
         found += self._check_initial_overlaps(a)
-        for message in found:
-            warnings.warn(f"{self.file}: {message}" if self.file else message, SceneWarning, stacklevel=2)
+        # A run validates twice (loading the file, building the Model): say each thing once.
+        if found != self._warned:
+            for message in found:
+                warnings.warn(f"{self.file}: {message}" if self.file else message, SceneWarning, stacklevel=2)
+        self._warned = found
         self.warnings = found
         return self
 
