@@ -3299,7 +3299,7 @@ class Scene:
 # ---------------------------------------------------------------------- initial overlaps
 
 _BLOCK = 1 << 22  # floats per block of the vectorised overlap tests (32 MiB)
-_MAX_EDGE_AXES = 1024  # edge-direction pairs tested per body pair; beyond, face normals only
+_MAX_EDGE_AXES = 4096  # edge-direction pairs tested per body pair; beyond, face normals only
 
 
 def _blocks(n: int, per_item: int):
@@ -3422,12 +3422,12 @@ def _sat_depth(shape_a, shape_b, ca, cb, ra, rb, edges_a, edges_b):
         lo1 = (s1.vertices @ n1.T).min(axis=0)
         rel_rot = np.einsum("pji,pjk->pik", r1, r2)
         t = np.einsum("pji,pj->pi", r1, c2 - c1)
-        x = np.einsum("pik,vk->pvi", rel_rot, s2.vertices) + t[:, None, :]
+        x = s2.vertices @ rel_rot.transpose(0, 2, 1) + t[:, None, :]
         proj = x @ n1.T
         take(*_interval_overlap(lo1, s1.face_offsets, proj.min(axis=1), proj.max(axis=1)))
     # The line of centres, and the cross products of edge directions.
-    wa = np.einsum("pij,vj->pvi", ra, va) + ca[:, None, :]
-    wb = np.einsum("pij,vj->pvi", rb, vb) + cb[:, None, :]
+    wa = va @ ra.transpose(0, 2, 1) + ca[:, None, :]
+    wb = vb @ rb.transpose(0, 2, 1) + cb[:, None, :]
     axes = (cb - ca)[:, None, :]
     if len(edges_a) * len(edges_b) <= _MAX_EDGE_AXES:
         ea = np.einsum("pij,kj->pki", ra, edges_a)
@@ -3437,8 +3437,9 @@ def _sat_depth(shape_a, shape_b, ca, cb, ra, rb, edges_a, edges_b):
     length = np.linalg.norm(axes, axis=2, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         axes = np.where(length > 1e-9, axes / length, np.nan)
-    pa = np.einsum("pvi,pki->pvk", wa, axes)
-    pb = np.einsum("pvi,pki->pvk", wb, axes)
+    axes_t = np.ascontiguousarray(axes.transpose(0, 2, 1))
+    pa = wa @ axes_t
+    pb = wb @ axes_t
     take(*_interval_overlap(pa.min(axis=1), pa.max(axis=1), pb.min(axis=1), pb.max(axis=1)))
     return best, thin
 
@@ -3473,22 +3474,24 @@ def _pair_overlaps(scene, a) -> list[tuple]:
         # one body even when the other is replaced by its bounding sphere: a cheap first cut.
         for blk in _blocks(len(rows), 9 + sa.num_faces + sb.num_faces):
             i, j = rows[blk, 0], rows[blk, 1]
-            ra = quat_to_matrix(a["orientation"][i])
-            rb = quat_to_matrix(a["orientation"][j])
             d = a["position"][j] - a["position"][i]
-            gap_b = (np.einsum("pji,pj->pi", ra, d) @ sa.face_normals.T - sa.face_offsets).max(axis=1) - sb.radius
-            gap_a = (np.einsum("pji,pj->pi", rb, -d) @ sb.face_normals.T - sb.face_offsets).max(axis=1) - sa.radius
-            near = np.flatnonzero((gap_b < 0.0) & (gap_a < 0.0))
+            gap = (_quat_rotate(_quat_conj(a["orientation"][i]), d) @ sa.face_normals.T - sa.face_offsets).max(axis=1)
+            near = np.flatnonzero(gap < sb.radius)
+            if near.size:
+                d_local = _quat_rotate(_quat_conj(a["orientation"][j[near]]), -d[near])
+                gap = (d_local @ sb.face_normals.T - sb.face_offsets).max(axis=1)
+                near = near[gap < sa.radius]
             if not near.size:
                 continue
-            for sub in _blocks(len(near), 4 * per_pair):
-                k = near[sub]
-                depth, thin = _sat_depth(sa, sb, a["position"][i[k]], a["position"][j[k]], ra[k], rb[k], ea, eb)
+            i, j = i[near], j[near]
+            ra = quat_to_matrix(a["orientation"][i])
+            rb = quat_to_matrix(a["orientation"][j])
+            for sub in _blocks(len(i), 4 * per_pair):
+                ii, jj = i[sub], j[sub]
+                depth, thin = _sat_depth(sa, sb, a["position"][ii], a["position"][jj], ra[sub], rb[sub], ea, eb)
                 rel = depth / thin
                 for h in np.flatnonzero(rel > INITIAL_OVERLAP_WARNING).tolist():
-                    b1, b2 = int(i[k[h]]), int(j[k[h]])
-                    if not free[b1]:
-                        b1, b2 = b2, b1
+                    b1, b2 = (int(ii[h]), int(jj[h])) if free[ii[h]] else (int(jj[h]), int(ii[h]))
                     out.append(
                         (
                             float(rel[h]),
