@@ -1353,8 +1353,9 @@ MAX_STEPS = 2**31 - 1
 """Most steps of one run: the simulator counts steps in a 32-bit integer."""
 
 MAX_BODIES = 10**8
-"""Most bodies of one scene. Each body takes a few hundred bytes of host and device memory (poses,
-velocities, forces, broad-phase cells, contact pairs), so 10^8 of them fill the largest GPUs."""
+"""Most bodies of one scene: 100 times the largest scenes the simulator is meant for (10^6), low
+enough that a mistyped count fails at once instead of allocating tens of gigabytes (every body holds
+some hundred bytes in the scene alone, more on the device)."""
 
 # The simulator stores masses, inertias, stiffnesses and the contact integrals (overlap volumes and
 # their first moments, ~ size^4) in float32. Values must be normal float32 numbers, and products of
@@ -1441,7 +1442,7 @@ def _face_overlap(load, m, ln_k, ln_a, ln_l) -> float:
     if load < 0.0:
         return (_ln(-m * load) - ln_k) / m
     if m == 1.0:
-        return _ln(load) - ln_a - ln_k + ln_a + ln_l
+        return _ln(load) - ln_k + ln_l  # ln(A d) with d / L = F / (k A)
     return (_ln(load) - ln_a - ln_k) / (m - 1.0)
 
 
@@ -1894,8 +1895,7 @@ class Scene:
         n = p.shape[0]
         if self._n + n > MAX_BODIES:
             raise self._err(
-                f"{n} more bodies would make {self._n + n:.3g}, more than a scene can hold ({MAX_BODIES:.0e}: each "
-                "body takes a few hundred bytes of host and device memory)",
+                f"{n} more bodies would make {self._n + n:.3g}, more than a scene can hold ({MAX_BODIES:.0e})",
                 rowkey(0),
             )
         arrays = [("position", p), ("orientation", q), ("velocity", v), ("angular_velocity", w)]
@@ -2356,7 +2356,7 @@ class Scene:
         if self._n + count > MAX_BODIES:
             raise self._err(
                 f"count = {count} would make {self._n + count:.3g} bodies, more than a scene can hold "
-                f"({MAX_BODIES:.0e}: each body takes a few hundred bytes of host and device memory); lower count",
+                f"({MAX_BODIES:.0e}); lower count",
                 f"{key}.count",
             )
         per_shape = _largest_remainder(count, frac)
