@@ -819,6 +819,40 @@ def test_validate_reports_every_bad_file(tmp_path, capsys):
     assert f"OK: {good} is a valid scene" in out
 
 
+@pytest.mark.parametrize(
+    ("replace", "key", "fix"),
+    [
+        # Issue 9: each of these validated (exit 0) and then hung or failed in a run.
+        ([("density = 2500.0", "density = 1e300")], "materials.stone.density", "use a density between"),
+        ([("k = 1.0e8", "k = 1e-10")], "materials.stone.k", "raise k of 'stone' to at least"),
+        ([('law = "hertz"', 'law = "power"\nm = 100')], "materials.stone.m", "use m between 1 and"),
+        ([("size = 0.02", "size = 1e-9")], "shapes.cube", "give the shape a bounding radius between"),
+        ([("count = 12", "count = 1e9")], "emitters[0].count", "lower count"),
+        ([("[[walls]]", '[[bodies]]\nshape = "cube"\nmaterial = "stone"\nposition = [0.0, 0.0, -0.005]\n\n[[walls]]')],
+         "bodies[0].position", "move the two apart"),
+    ],
+)  # fmt: skip
+def test_validate_rejects_what_a_run_cannot_do(tmp_path, capsys, replace, key, fix):
+    bad = write_scene(tmp_path, name="bad.toml", replace=replace)
+    t0 = time.perf_counter()
+    code, out, err = run(["validate", bad], capsys)
+    assert time.perf_counter() - t0 < 5.0
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith(f"polydem: error: {bad}: {key}: ") and fix in err
+
+
+def test_validate_prints_warnings_and_passes(tmp_path, capsys):
+    """A moderate initial overlap (the cube 3 mm into the 1 cm floor slab: 30% of the thinner one) warns."""
+    body = '[[bodies]]\nshape = "cube"\nmaterial = "stone"\nposition = [0.0, 0.0, 0.007]\n\n[[walls]]'
+    path = write_scene(tmp_path, replace=[("[[walls]]", body)])
+    code, out, err = run(["validate", path], capsys)
+    assert code == 0 and f"OK: {path} is a valid scene" in out
+    assert err.count("\n") == 1
+    assert err.startswith(f"polydem: warning: {path}: 1 initial overlaps ")
+    assert "body 0 (shape 'cube', free) 0.003 m into body " in err and ", fixed) (30.0%); move the bodies" in err
+
+
 def test_render_scene_checkpoint_and_usd_frame(tmp_path, capsys, unbroken):
     scene, out_dir = unbroken
     size = ["--width", "64", "--height", "48", "--device", "cpu"]

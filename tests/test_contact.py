@@ -416,6 +416,31 @@ def test_bad_arguments():
         ContactLaw("power", 1.0, 0.5)
 
 
+@pytest.mark.parametrize(
+    "poses, what",
+    [
+        (np.array([False] * 6 + [True]), "booleans"),
+        (np.array([0, 0, 0, 0, 0, 0, 1 + 0j]), "complex numbers"),
+        (np.array(["0"] * 6 + ["1"]), "strings"),
+        (["0", "0", "0", "0", "0", "0", "1"], "strings"),
+        (np.array([0.0] * 6 + [1.0], dtype=object), "Python objects"),
+    ],
+    ids=["bool", "complex", "str-array", "str-list", "object"],
+)
+def test_non_real_poses_are_rejected(poses, what):
+    """Issue 9: bool, complex and string poses were accepted (cast to 0/1, real part, parsed numbers)."""
+    c = cube()
+    good = pose([0, 0, 0])
+    for args in ((c, poses, c, good), (c, good, c, poses)):
+        with pytest.raises(TypeError, match=rf"poses_[ab] must hold real numbers.*got {what} \(dtype") as info:
+            overlap(*args)
+        assert "dtype=float" in str(info.value)  # the fix
+    with pytest.raises(ValueError, match=r"poses_a must be an \(N, 7\).*rows have different lengths"):
+        overlap(c, [[0, 0, 0, 0, 0, 0, 1], [0, 0, 0]], c, good)
+    with pytest.raises(ValueError, match=r"non-finite values in rows \[1\]"):
+        overlap(c, np.array([good, [0, 0, np.inf, 0, 0, 0, 1]]), c, good)
+
+
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_small_body_resting_on_a_huge_one(device, precision):
     """A 1 cm cube pressed 10 um into a 6 m floor plate, flat and slightly tilted: the face

@@ -8,6 +8,8 @@ import math
 import pickle
 import re
 import time
+import tracemalloc
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +28,7 @@ from polydem.scene import (
     PlaneWall,
     Scene,
     SceneError,
+    SceneWarning,
     pair_material,
     quat_from_axis_angle,
     quat_to_matrix,
@@ -141,7 +144,8 @@ def test_add_bodies_is_vectorised_and_fast():
     scene = basic_scene()
     n = 100_000
     rng = np.random.default_rng(1)
-    pos = rng.uniform(-1, 1, size=(n, 3))
+    # A grid of pitch 0.2 m (> the cube's bounding diameter 0.17 m): validate() rejects deep initial overlaps.
+    pos = 0.2 * np.stack(np.unravel_index(rng.permutation(47**3)[:n], (47, 47, 47)), axis=1) - 4.6
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     t0 = time.perf_counter()
@@ -384,11 +388,15 @@ def test_validate_rejects_free_body_without_volume():
     flat.volume = 0.0  # a fresh object: stands in for a degenerate shape from elsewhere
     scene.add_shape("flat", flat)
     scene.add_body("flat", "steel", kind="fixed")
+    with pytest.raises(SceneError, match="no body has a mass.*add a free body or give dt") as info:
+        scene.validate()  # nothing to derive the automatic time step from
+    assert info.value.key == "simulation.dt"
+    scene.add_body("cube", "steel", position=(1.0, 0.0, 0.0))
     scene.validate()  # fixed bodies need no mass
-    scene.add_body("flat", "steel")
+    scene.add_body("flat", "steel", position=(-1.0, 0.0, 0.0))
     with pytest.raises(SceneError, match="needs a positive volume") as info:
         scene.validate()
-    assert info.value.key == "bodies[1].shape"
+    assert info.value.key == "bodies[2].shape"
 
 
 def test_add_shape_errors():
@@ -786,7 +794,11 @@ def test_time_step_above_the_limit_names_the_file_and_key(tmp_path):
 
     wp.config.quiet = True
     path = write(tmp_path, (SCENES / "default.toml").read_text().replace('dt = "auto"', "dt = 1.0e-2"))
-    scene = Scene.from_toml(path)
+    # validate() checks it (polydem validate needs no Warp), and so does a Model of an unvalidated scene.
+    err = load_error(tmp_path, path.read_text())
+    assert re.search(r"time step 0\.01 s is above the stable limit \S+ s.*use dt = \"auto\"", err.message), err.message
+    assert err.key == "simulation.dt"
+    scene = Scene.from_toml(path, validate=False)
     with pytest.raises(SceneError, match=r"above the stable limit") as info:
         Model(scene, device="cpu")
     assert info.value.key == "simulation.dt" and info.value.file == path
@@ -1424,3 +1436,258 @@ def test_toml_emitter_and_settings_errors(tmp_path, old, new, key, match):
     err = load_error(tmp_path, EMITTER_BASE.replace(old, new, 1))
     assert err.key == key, str(err)
     assert re.search(match, err.message), str(err)
+
+
+# ---------------------------------------------------------------------- what a run needs (issue 9)
+# Each case passed validate() before and then hung or failed in a run; the BEFORE behaviour is in
+# the comments. Messages name the key and the fix.
+
+
+def toml_error(tmp_path, old, new, count=1) -> SceneError:
+    assert old in BASE_TOML
+    return load_error(tmp_path, BASE_TOML.replace(old, new, count))
+
+
+def assert_valid_after(tmp_path, old, new):
+    """The fix an error message suggests makes the scene valid (so the message can be trusted)."""
+    scene = Scene.from_toml(write(tmp_path, BASE_TOML.replace(old, new), name="fixed.toml"))
+    assert scene.time_step().dt > 0.0
+
+
+@pytest.mark.parametrize("density", ["1e300", "1e-300"])
+def test_density_beyond_float32(tmp_path, density):
+    # BEFORE: 1e300 gave an automatic dt of 1e143 s (the run hung); 1e-300 a non-finite state at step 1.
+    err = toml_error(tmp_path, "density = 7800.0", f"density = {density}")
+    assert err.key == "materials.steel.density"
+    m = re.search(
+        r"mass of (\S+) kg.*float32.*use a density between (\S+) and (\S+) kg/m\^3 for this shape", err.message
+    )
+    assert m, err.message
+    assert float(m.group(1)) == pytest.approx(float(density) * 1e-3, rel=1e-6)
+    lo, hi = float(m.group(2)), float(m.group(3))
+    assert lo < 7800.0 < hi
+    for ok in (lo * 1.01, hi / 1.01):
+        Material(name="x", **(STEEL | dict(density=ok)))  # the range is the float32 one, not a cap
+        scene = basic_scene()
+        scene.add_material("x", **(STEEL | dict(density=ok, k=1e30)))
+        scene.add_body("cube", "x", position=(0.0, 0.0, 1.0))
+        scene.validate()
+
+
+@pytest.mark.parametrize("size", ["1e-9", "1e9"])
+def test_shape_size_beyond_float32(tmp_path, size):
+    # BEFORE: both validated; the run became non-finite at step 1 (float32 inertia under- or overflow).
+    err = toml_error(tmp_path, "size = [0.1, 0.1, 0.1]", f"size = {size}")
+    assert err.key == "shapes.cube"
+    assert re.search(r"too (small|large) for the simulator's float32 arithmetic", err.message), err.message
+    assert re.search(r"give the shape a bounding radius between 1\S* m and 1\S* m", err.message), err.message
+
+
+def test_soft_contact_under_an_automatic_time_step(tmp_path):
+    # BEFORE: k = 1e-10 validated with an automatic dt of 1.1e5 s; a run ended with total energy -9e13 J.
+    err = toml_error(tmp_path, "k = 2.0e11", "k = 1e-10", count=2)
+    assert err.key == "materials.steel.k"
+    assert "under its own weight" in err.message and "into what carries it" in err.message
+    assert re.search(
+        r"the automatic time step, \S+ s, is \S+ times the \S+ s it takes to fall its own size", err.message
+    )
+    m = re.search(r"raise k of 'steel' to at least (\S+) J/m\^4\.5", err.message)
+    assert m, err.message
+    k_min = float(m.group(1))
+    # The suggested k holds the cube's weight at 10% of its size: a hertz face contact (area A, depth
+    # d) carries k sqrt(A d) A = M g, so k = M g / (sqrt(A 0.1 L) A) with M = 7.8 kg, L = 0.1 m.
+    assert k_min == pytest.approx(7.8 * 9.81 / (math.sqrt(0.01 * 0.01) * 0.01), rel=1e-3)
+    assert_valid_after(tmp_path, "k = 2.0e11", f"k = {2.0 * k_min:g}")
+    # A given dt is the user's choice: the same soft contact then only warns.
+    with pytest.warns(SceneWarning, match=r"materials\.steel\.k"):
+        Scene.from_toml(write(tmp_path, BASE_TOML.replace("k = 2.0e11", "k = 1e-10").replace('"auto"', "1e-6")))
+
+
+@pytest.mark.parametrize("m", [10, 100, 1000])
+def test_power_law_exponent_beyond_float32(tmp_path, m):
+    # BEFORE: m = 10 gave an automatic dt of 3.5e20 s (a hang), m = 100 and 1000 dt = inf and a traceback.
+    text = BASE_TOML.replace('law = "hertz"', f'law = "power"\nm = {m}')
+    err = load_error(tmp_path, text)
+    assert err.key == "materials.steel.m"
+    hit = re.search(
+        r"V = 1e-06 m\^3\) the law's V\^m = 1e-0?(\d+) is outside .*use m between 1 and (\S+) for", err.message
+    )
+    assert hit, err.message
+    assert int(hit.group(1)) == 6 * m
+    m_max = float(hit.group(2))
+    # V^m stays within float32's range with the margin: 1e-6^m_max = 1.2e-32.
+    assert m_max == pytest.approx(math.log(np.finfo(np.float32).tiny * 1e6) / math.log(1e-6), rel=1e-3)
+    # Inside the range the law works once k holds the weight; the check then names that k.
+    inside = text.replace(f"m = {m}", "m = 5").replace("k = 2.0e11", "k = 1e10")
+    err = load_error(tmp_path, inside)
+    assert err.key == "materials.steel.k", err.message
+    k_min = float(re.search(r"raise k of 'steel' to at least (\S+) J/m\^\(3m\)", err.message).group(1))
+    Scene.from_toml(write(tmp_path, inside.replace("k = 1e10", f"k = {2.0 * k_min:g}"), name="ok.toml"))
+
+
+def test_stiffening_law_with_a_given_time_step_too_long_for_its_resting_overlap(tmp_path):
+    """m > 2: the stable limit of dt (taken at 0.1% overlap) is too long where the weight presses the body."""
+    text = BASE_TOML.replace('law = "hertz"', 'law = "power"\nm = 5').replace("k = 2.0e11", "k = 1e25")
+    dt_limit = (
+        Scene.from_toml(write(tmp_path, text.replace('dt = "auto"', "dt = 1e-9"), name="a.toml")).time_step().limit
+    )
+    err = load_error(tmp_path, text.replace('dt = "auto"', f"dt = {0.9 * dt_limit!r}"))
+    assert err.key == "simulation.dt"
+    assert re.search(r"m = 5 > 2 stiffens with depth\) has a stiffness of \S+ N/m and the time step", err.message)
+    assert "lower dt" in err.message
+
+
+def test_run_longer_than_the_step_counter(tmp_path):
+    err = toml_error(tmp_path, "steps = 100", "duration = 1e6")
+    assert err.key == "simulation.duration"
+    assert re.search(r"a run of \S+ steps of \S+ s is more than the simulator counts \(2147483647", err.message)
+    assert "shorten the run" in err.message
+    err = toml_error(tmp_path, "steps = 100", "steps = 3000000000")
+    assert err.key == "simulation.steps"
+
+
+def test_time_step_is_host_side_and_the_model_uses_it():
+    """polydem validate takes dt from Scene.time_step (numpy only); a Model must get the same numbers."""
+    ts = Scene.from_toml(SCENES / "cube_drop.toml").time_step()
+    dt, rec, limit = ts.dt, ts.recommended, ts.limit
+    assert dt == rec and rec < limit
+    import warp as wp
+
+    from polydem.model import Model
+
+    wp.config.quiet = True
+    model = Model(Scene.from_toml(SCENES / "cube_drop.toml"), device="cpu")
+    assert (model.dt, model.dt_recommended, model.dt_limit) == (dt, rec, limit)
+
+
+def test_emitter_count_is_checked_before_allocating():
+    # BEFORE: count = 1e9 allocated 7.5 GiB of per-body arrays before "the region holds at most N".
+    for count, match in (
+        (10**9, r"count = 1000000000 would make 1e\+09 bodies, more than a scene can hold \(1e\+08.*lower count"),
+        (10**7, r"the region holds at most 350 bodies, fewer than count = 10000000: .*lower count or enlarge"),
+    ):
+        scene = stone_scene()
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        with pytest.raises(SceneError, match=match) as info:
+            scene.emit("cube", "stone", count, REGION)
+        elapsed = time.perf_counter() - t0
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert info.value.key == "emitters[0].count"
+        assert elapsed < 1.0 and peak < 10 * 2**20, (elapsed, peak)
+        assert scene.num_bodies == 0
+
+
+def test_body_count_limit(monkeypatch):
+    import polydem.scene as scene_module
+
+    monkeypatch.setattr(scene_module, "MAX_BODIES", 10)
+    scene = basic_scene()
+    scene.add_bodies("cube", "steel", np.arange(30.0).reshape(10, 3))
+    with pytest.raises(SceneError, match=r"1 more bodies would make 11, more than a scene can hold") as info:
+        scene.add_body("cube", "steel", position=(5.0, 5.0, 5.0))
+    assert info.value.key == "bodies[10]" and scene.num_bodies == 10
+
+
+@pytest.mark.parametrize(
+    ("spec", "key", "match"),
+    [
+        ('type = "prism"\nn = 100000\nradius = 0.05\nheight = 0.1', "shapes.big.n", r"<= 1024.*faces of at most 1024"),
+        ('type = "rock"\nn_points = 100000\nsize = 0.1', "shapes.big.n_points", r"<= 10242.*at most 20480"),
+    ],
+)
+def test_shape_size_limits_in_a_scene_file(tmp_path, spec, key, match):
+    # BEFORE: both took minutes to build (n = 10000 already takes 15 s for the prism).
+    t0 = time.perf_counter()
+    err = load_error(tmp_path, BASE_TOML + f"\n[shapes.big]\n{spec}\n")
+    assert time.perf_counter() - t0 < 2.0
+    assert err.key == key and re.search(match, err.message), err.message
+
+
+def test_body_below_a_plane_wall(tmp_path):
+    # BEFORE: validated; the run launched the cube at hundreds of m/s.
+    err = toml_error(tmp_path, "position = [0.0, 0.0, 0.2]", "position = [0.0, 0.0, -0.2]")
+    assert err.key == "bodies[0].position"
+    assert err.message.startswith("body 0 (shape 'cube', free) starts 0.25 m behind the plane wall walls[0] (wholly)")
+    assert "move it by at least 0.25 m along the wall's normal [0, 0, 1]" in err.message
+    err = toml_error(tmp_path, "position = [0.0, 0.0, 0.2]", "position = [0.0, 0.0, -0.02]")  # 70% below
+    assert "0.07 m behind the plane wall walls[0] (70% of its thickness)" in err.message
+    with pytest.warns(
+        SceneWarning, match=r"body 0 \(shape 'cube', free\) 0.01 m behind the plane wall walls\[0\] \(10\.0%\)"
+    ):
+        Scene.from_toml(write(tmp_path, BASE_TOML.replace("0.0, 0.2]", "0.0, 0.04]")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SceneWarning)
+        Scene.from_toml(write(tmp_path, BASE_TOML.replace("0.0, 0.2]", "0.0, 0.05]")))  # resting on it
+
+
+def two_cubes(offset, qa=(0.0, 0.0, 0.0, 1.0), qb=(0.0, 0.0, 0.0, 1.0), kind_b="free"):
+    scene = basic_scene()
+    scene.add_body("cube", "steel", position=(0.0, 0.0, 1.0), orientation=qa)
+    scene.add_body("cube", "steel", position=np.add((0.0, 0.0, 1.0), offset), orientation=qb, kind=kind_b)
+    return scene
+
+
+def test_body_deep_inside_another():
+    for offset, kind, share in (((0.0, 0.0, 0.0), "free", "wholly"), ((0.04, 0.0, 0.0), "fixed", "60% of")):
+        with pytest.raises(SceneError) as info:
+            two_cubes(offset, kind_b=kind).validate()
+        err = info.value
+        assert err.key == "bodies[0].position"
+        assert re.match(
+            rf"body 0 \(shape 'cube', free\) starts \S+ m into body 1 \(shape 'cube', {kind}\) \({share}", err.message
+        )
+        assert "move the two apart by at least" in err.message
+    with pytest.warns(
+        SceneWarning, match=r"1 initial overlaps .* 0.005 m into body 1 .* \(5\.0%\); move the bodies apart"
+    ):
+        two_cubes((0.0, 0.0, 0.095)).validate()
+    # Touching, and crossed edges just apart (a face-normal test alone would call them overlapping).
+    qa, qb = quat_from_axis_angle((1, 0, 0), math.pi / 4), quat_from_axis_angle((0, 1, 0), math.pi / 4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SceneWarning)
+        two_cubes((0.0, 0.0, 0.1)).validate()
+        two_cubes((0.0, 0.0, 0.1 * math.sqrt(2.0) * 1.0001), qa, qb).validate()
+    with pytest.warns(SceneWarning, match=r"\(3\.0%\)"):
+        two_cubes((0.0, 0.0, 0.1 * math.sqrt(2.0) * 0.97), qa, qb).validate()
+
+
+def test_body_inside_a_container_wall():
+    scene = basic_scene()
+    scene.add_box_container((0.0, 0.0, 0.5), (1.0, 1.0, 1.0), "steel", wall_thickness=0.1)
+    scene.add_body("cube", "glass", position=(0.53, 0.0, 0.5))  # 80% of the +x slab's thickness
+    with pytest.raises(
+        SceneError, match=r"body 5 \(shape 'cube', free\) starts 0.08 m into body 2 \(shape 'wall_box_"
+    ) as info:
+        scene.validate()
+    assert info.value.key == "bodies[5].position"
+
+
+def test_initial_overlap_check_is_fast_and_quiet_for_the_shipped_scenes():
+    for path in sorted(SCENES.glob("*.toml")):
+        scene = Scene.from_toml(path, validate=False)
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", SceneWarning)
+            scene.validate()
+        elapsed = time.perf_counter() - t0
+        assert scene.warnings == []
+        assert elapsed < (3.0 if scene.num_bodies > 50_000 else 0.5), f"{path.name}: {elapsed:.2f} s"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SceneWarning)
+        default_scene(2000)
+
+
+def test_mesh_file_errors_in_a_scene_file(tmp_path):
+    (tmp_path / "nan.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv nan 0.5 0.5\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+    )
+    (tmp_path / "noise.stl").write_bytes(np.random.default_rng(1).integers(0, 256, 500, dtype=np.uint8).tobytes())
+    for name, match in (
+        ("nan.obj", r"mesh file '\S+nan.obj', line 5: vertex 5 'v nan 0.5 0.5' has a non-finite coordinate"),
+        ("noise.stl", r"cannot read mesh file '\S+noise.stl': not a valid STL file .*re-export it as OBJ, STL or PLY"),
+    ):
+        err = load_error(tmp_path, BASE_TOML + f'\n[shapes.mesh]\ntype = "mesh"\nfile = "{name}"\n')
+        assert err.key == "shapes.mesh" and re.search(match, err.message), err.message
+        assert "charset_normalizer" not in err.message

@@ -2,6 +2,9 @@
 
 import math
 import re
+import subprocess
+import sys
+import time
 import warnings
 
 import numpy as np
@@ -10,7 +13,7 @@ import trimesh
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from polydem.shapes import ConvexShape
+from polydem.shapes import MAX_FACE_VERTICES, MAX_FACES, ConvexShape
 
 SQRT5 = math.sqrt(5.0)
 
@@ -492,12 +495,33 @@ def test_from_file_missing(tmp_path):
         ConvexShape.from_file(path)
 
 
+def _box_bytes(ext):
+    data = trimesh.creation.box(extents=(1.0, 2.0, 3.0)).export(file_type=ext)
+    return data.encode() if isinstance(data, str) else data
+
+
+def _noise(seed):
+    return np.random.default_rng(seed).integers(0, 256, 500, dtype=np.uint8).tobytes()
+
+
+_PLY_HEAD = b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\n"
+_FORMAT = r"cannot read mesh file .*unknown mesh format '\.xyzq'; use an \.obj, \.stl or \.ply"
+
+
 @pytest.mark.parametrize(
     ("name", "content", "reason"),
     [
         ("empty.obj", b"", "holds no vertices"),
-        ("junk.stl", b"\x00\x01 not an stl", "holds no vertices"),
-        ("shape.xyzq", b"1 2 3\n", "could not read mesh file"),
+        ("text.obj", b"hello\nnot a mesh\n", "holds no vertices"),
+        ("junk.stl", b"\x00\x01 not an stl", r"cannot read mesh file .*not a valid STL file \(it has \d+ bytes"),
+        ("shape.xyzq", b"1 2 3\n", _FORMAT),
+        # Issue 9: random bytes and truncated files gave "No module named 'charset_normalizer'".
+        ("noise.obj", _noise(0), r"not a valid OBJ file \(binary data at byte \d+"),
+        ("noise.stl", _noise(1), r"not a valid STL file \(as binary STL it declares \d+ triangles"),
+        ("noise.ply", _PLY_HEAD + bytes(50), r"not a valid PLY file \("),
+        ("half.stl", _box_bytes("stl")[:342], r"declares 12 triangles \(684 bytes\) but has 342 bytes"),
+        ("half.ply", _box_bytes("ply")[:300], r"not a valid PLY file \("),
+        ("latin1.stl", b"solid \xe9\xff\n", r"not a valid STL file"),
     ],
 )
 def test_from_file_unreadable(tmp_path, name, content, reason):
@@ -505,7 +529,58 @@ def test_from_file_unreadable(tmp_path, name, content, reason):
     path.write_bytes(content)
     with pytest.raises(ValueError, match=reason) as info:
         ConvexShape.from_file(path)
-    assert str(path) in str(info.value)
+    message = str(info.value)
+    assert str(path) in message and "\n" not in message
+    assert "charset_normalizer" not in message and "No module" not in message
+    if "cannot read" in message and "unknown mesh format" not in message:
+        assert "re-export it as OBJ, STL or PLY" in message  # the fix
+
+
+_TET_FACES = "f 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv nan 0.5 0.5\n" + _TET_FACES, "line 5: vertex 5 'v nan 0.5 0.5'"),
+        ("# box\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 inf\n" + _TET_FACES, "line 5: vertex 4 'v 1 1 inf'"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1e999\n" + _TET_FACES, "line 4: vertex 4 'v 0 0 1e999'"),
+    ],
+)
+def test_from_file_obj_with_non_finite_vertex_names_the_line(tmp_path, text, where):
+    """Issue 9: a vertex "v nan 0.5 0.5" (unused by any face) was dropped silently and the shape accepted."""
+    path = tmp_path / "bad.obj"
+    path.write_text(text)
+    with pytest.raises(ValueError, match="non-finite coordinate") as info:
+        ConvexShape.from_file(path)
+    message = str(info.value)
+    assert f"mesh file '{path}', {where}" in message
+    assert "give finite x y z numbers, or remove the vertex and the faces that use it" in message
+
+
+def test_from_file_obj_vertex_without_three_numbers(tmp_path):
+    path = tmp_path / "short.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1\nv 0 0 1\nf 1 2 4\n")
+    with pytest.raises(ValueError, match=r"line 3: vertex 3 'v 0 1' does not hold three numbers x y z; fix the line"):
+        ConvexShape.from_file(path)
+
+
+@pytest.mark.parametrize("ext", ["stl", "ply"])
+def test_from_file_binary_with_non_finite_vertex(tmp_path, ext):
+    mesh = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    vertices = mesh.vertices.copy()
+    vertices[3] = [np.nan, 0.0, 0.0]
+    path = tmp_path / f"bad.{ext}"
+    trimesh.Trimesh(vertices, mesh.faces, process=False).export(path)
+    with pytest.raises(ValueError, match=r"vertex \d+ \(counting from 0\) has non-finite coordinates") as info:
+        ConvexShape.from_file(path)
+    assert str(path) in str(info.value) and "remove them and the faces that use them" in str(info.value)
+
+
+def test_from_file_latin1_obj_comment_reads(tmp_path):
+    path = tmp_path / "accent.obj"
+    path.write_bytes(b"# caf\xe9\n" + _box_bytes("obj"))  # not UTF-8: read as Latin-1
+    assert ConvexShape.from_file(path).volume == pytest.approx(6.0)
 
 
 def test_from_file_directory(tmp_path):
@@ -518,6 +593,46 @@ def test_from_file_flat_mesh(tmp_path):
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n")
     with pytest.raises(ValueError, match="coplanar"):
         ConvexShape.from_file(path)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "at least 4 points are needed for a 3D convex hull, got 3"),
+        ("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 3 0 0\nf 1 2 3\nf 2 3 4\n", "collinear"),
+        # zero volume: the apex merges into a base corner (within trimesh's merge distance of 1e-8)
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1e-12\n" + _TET_FACES, "at least 4 points .*got 3; add points"),
+    ],
+)
+def test_from_file_degenerate_meshes(tmp_path, text, match):
+    path = tmp_path / "degenerate.obj"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        ConvexShape.from_file(path)
+
+
+def test_shape_size_limits_are_checked_before_building():
+    """Issue 9: prism n = 100000 and rock n_points = 100000 took minutes; the kernels take at most
+    MAX_FACES faces of MAX_FACE_VERTICES vertices."""
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match=r"prism: n must be at most 1024 \(the most vertices of a face.*smaller n"):
+        ConvexShape.prism(100_000)
+    with pytest.raises(ValueError, match=r"rock: n_points must be at most 10242 \(a hull of at most 20480 faces\)"):
+        ConvexShape.rock(100_000)
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(50_000, 3))
+    cloud /= np.linalg.norm(cloud, axis=1, keepdims=True)  # every point is a hull vertex
+    with pytest.raises(ValueError, match=r"50000 vertices, so at least 25002 faces: more than the 20480 .*simplify"):
+        ConvexShape.from_points(cloud)
+    assert time.perf_counter() - t0 < 5.0
+    assert (MAX_FACES, MAX_FACE_VERTICES) == (20480, 1024)
+    assert ConvexShape.prism(MAX_FACE_VERTICES).num_faces == MAX_FACE_VERTICES + 2  # the limit itself builds
+
+
+def test_importing_the_scene_module_does_not_import_trimesh_or_scipy_spatial():
+    code = "import sys, polydem.scene; print(sorted(m for m in ('trimesh', 'scipy.spatial') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
 
 
 # ---------------------------------------------------------------------- validation

@@ -1527,20 +1527,31 @@ def _resume(sim, scene, path: Path, ck, args) -> None:
 
 
 def cmd_validate(args) -> int:
-    from polydem.model import Model
+    import warnings
+
+    from polydem.scene import SceneWarning
 
     out, err = sys.stdout, sys.stderr
     status = EXIT_OK
     for k, path in enumerate(args.scenes):
+        # Host-only: the scene's checks and time step need neither Warp nor a device.
         try:
-            scene = _load_scene(path)
-            model = Model(scene, _warp().get_device("cpu"))  # checks the time step; host arrays only
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", SceneWarning)
+                scene = _load_scene(path)
+                ts = scene.time_step()
         except SceneError as exc:
             err.write(f"polydem: error: {exc}\n")
             err.flush()
             status = EXIT_USER_ERROR
             continue
-        dt = model.dt
+        for w in caught:
+            if issubclass(w.category, SceneWarning):
+                err.write(f"polydem: warning: {w.message}\n")
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        err.flush()
+        dt = ts.dt
         if scene.duration is not None:
             steps, how = max(1, _steps_at(scene.duration, dt)), f"duration {scene.duration:g} s"
         elif scene.steps is not None:
@@ -1556,8 +1567,7 @@ def cmd_validate(args) -> int:
         lines = [scene.describe()]
         auto = "auto" if scene.dt == "auto" else "given"
         lines.append(
-            f"  time step: {dt:.4g} s ({auto}; recommended {model.dt_recommended:.4g} s, stable limit "
-            f"{model.dt_limit:.4g} s)"
+            f"  time step: {dt:.4g} s ({auto}; recommended {ts.recommended:.4g} s, stable limit {ts.limit:.4g} s)"
         )
         frames = math.floor(steps * dt * scene.output.fps + 1e-9) + 1
         lines.append(

@@ -120,8 +120,24 @@ class ContactForces:
     energy: np.ndarray  # (N,) W(V) [J]
 
 
+_KIND_NAMES = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "bytes", "O": "Python objects"}
+
+
 def _check_poses(poses, name):
-    p = np.asarray(poses, dtype=np.float64)
+    try:
+        raw = np.asarray(poses)
+    except ValueError:  # nested lists of different lengths
+        raise ValueError(
+            f"{name} must be an (N, 7) or (7,) array [px, py, pz, qx, qy, qz, qw], but its rows have different lengths"
+        ) from None
+    # np.asarray(..., dtype=float) would turn True into 1.0, "0.5" into 0.5 and drop imaginary parts.
+    if raw.dtype.kind not in "iuf":
+        what = _KIND_NAMES.get(raw.dtype.kind, "values")
+        raise TypeError(
+            f"{name} must hold real numbers (float or int) [px, py, pz, qx, qy, qz, qw], got {what} (dtype "
+            f"{raw.dtype}); pass a float array, e.g. np.asarray(poses, dtype=float) of numbers"
+        )
+    p = raw.astype(np.float64)
     if p.ndim == 1:
         p = p[None, :]
     if p.ndim != 2 or p.shape[1] != 7:

@@ -3,33 +3,14 @@
 import numpy as np
 import warp as wp
 
-from polydem.scene import SceneError
+from polydem.scene import (  # noqa: F401  (re-exported: the time step is computed host-side in scene.py)
+    MAX_DT_FRACTION,
+    REFERENCE_DEPTH,
+    STEPS_PER_CONTACT_PERIOD,
+    SceneError,
+    reference_stiffness,
+)
 from polydem.shapeset import ShapeSet
-
-# The time step resolves a contact oscillation at the reference overlap (0.1% of a body's size,
-# over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
-# fast (it is unstable past 1/pi of it).
-STEPS_PER_CONTACT_PERIOD = 50
-MAX_DT_FRACTION = 1.0 / 8.0
-REFERENCE_DEPTH = 0.001
-
-
-def reference_stiffness(law, k, exponent, volume):
-    """Secant normal stiffness [N/m] of a face contact of area V^(2/3) at 0.1% of the size V^(1/3).
-
-    With W'(V) the law, a face of area A pressed to depth d gives V = A d and a force W'(A d) A;
-    the secant stiffness is that force over d.
-    """
-    area = volume ** (2.0 / 3.0)
-    depth = REFERENCE_DEPTH * volume ** (1.0 / 3.0)
-    v = area * depth
-    if law == "linear":
-        dw = k
-    elif law == "hertz":
-        dw = k * np.sqrt(v)
-    else:
-        dw = k * v ** (exponent - 1.0)
-    return dw * area / depth
 
 
 class Model:
@@ -80,34 +61,13 @@ class Model:
         self.law = table["law"]
         self.law_m = float(table["exponent"])
         k = np.asarray(table["k"], dtype=np.float64)
-        kt = np.asarray(table["tangential_stiffness"], dtype=np.float64)
 
-        # The lightest free body and the stiffest pair set the time step and default spring.
-        if free.any():
-            light = int(np.argmin(np.where(free, mass, np.inf)))
-            m_min = mass[light]
-            v_ref = shape_list[body_shape[light]].volume
-        else:
-            m_min = mass.min()
-            v_ref = min(s.volume for s in shape_list)
-        k_n = reference_stiffness(self.law, k, self.law_m, v_ref)
-        kt = np.where(np.isnan(kt), k_n, kt)
-        stiffest = max(float(np.max(k_n)), float(np.max(kt)))
-        period = 2.0 * np.pi * np.sqrt(m_min / stiffest)
-        self.dt_recommended = period / STEPS_PER_CONTACT_PERIOD
-        self.dt_limit = period * MAX_DT_FRACTION
-        if scene.dt == "auto":
-            self.dt = self.dt_recommended
-        else:
-            self.dt = float(scene.dt)
-            if self.dt > self.dt_limit:
-                raise SceneError(
-                    f"time step {self.dt:.3g} s is above the stable limit {self.dt_limit:.3g} s for the stiffest "
-                    f"contact and the lightest body (recommended {self.dt_recommended:.3g} s); "
-                    'use dt = "auto" or a smaller value',
-                    key="simulation.dt",
-                    file=getattr(scene, "file", None),
-                )
+        # Computed host-side so that `polydem validate` gives the same numbers without Warp.
+        ts = scene.time_step()
+        kt = ts.tangential_stiffness
+        self.dt_recommended = ts.recommended
+        self.dt_limit = ts.limit
+        self.dt = ts.dt
         self.gravity = np.asarray(scene.gravity, dtype=np.float64)
         self.friction = bool(np.any(np.asarray(table["friction"]) > 0.0))
 

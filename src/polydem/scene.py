@@ -54,13 +54,14 @@ import math
 import numbers
 import re
 import tomllib
+import warnings
 from dataclasses import dataclass, field, fields
 from os import PathLike
 from pathlib import Path
 
 import numpy as np
 
-from polydem.shapes import ConvexShape
+from polydem.shapes import MAX_FACE_VERTICES, MAX_FACES, ConvexShape
 
 __all__ = [
     "Body",
@@ -77,7 +78,9 @@ __all__ = [
     "PlaneWall",
     "Scene",
     "SceneError",
+    "SceneWarning",
     "SHAPE_TYPES",
+    "TimeStep",
     "pair_material",
     "quat_from_axis_angle",
     "quat_to_matrix",
@@ -148,6 +151,14 @@ class SceneError(ValueError):
 
     def __reduce__(self):
         return (type(self), (self.message, self.key, self.file))
+
+
+class SceneWarning(UserWarning):
+    """A scene that runs but probably not as meant, e.g. bodies that start overlapping moderately.
+
+    :meth:`Scene.validate` issues these with :func:`warnings.warn` (category SceneWarning);
+    ``polydem validate`` prints them as ``polydem: warning: ...`` lines.
+    """
 
 
 def _did_you_mean(word, candidates) -> str:
@@ -977,10 +988,10 @@ _SHAPE_REQUIRED = {
 _SHAPE_HINTS = {
     "size": "edge length(s) in m: size = 0.1 for a cube or size = [sx, sy, sz]; for rock the largest diameter in m",
     "edge": "edge length in m, e.g. edge = 0.1",
-    "n": "number of sides of the base polygon, an integer >= 3",
+    "n": f"number of sides of the base polygon, an integer from 3 to {MAX_FACE_VERTICES}",
     "radius": "circumscribed radius in m",
     "height": "prism height in m",
-    "n_points": "number of hull vertices, an integer >= 4",
+    "n_points": f"number of hull vertices, an integer from 4 to {MAX_FACES // 2 + 2}",
     "subdivisions": "icosphere subdivision level, 0 to 5",
     "file": "mesh file (OBJ, STL, PLY) relative to the scene file, e.g. file = 'meshes/rock.obj'",
     "points": "array of [x, y, z] points in m",
@@ -1007,8 +1018,8 @@ def _build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple
     def pos(k):
         return _number(spec[k], f"{key}.{k}", file, positive=True, hint=f" ({_SHAPE_HINTS.get(k, 'in m')})")
 
-    def count(k, minimum, maximum=None):
-        return _integer(spec[k], f"{key}.{k}", file, minimum=minimum, maximum=maximum)
+    def count(k, minimum, maximum=None, why=""):
+        return _integer(spec[k], f"{key}.{k}", file, minimum=minimum, maximum=maximum, hint=why)
 
     def tol():
         if "tol" not in spec:
@@ -1036,10 +1047,12 @@ def _build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple
             out["edge"] = pos("edge")
             shape = getattr(ConvexShape, kind)(out["edge"], name=name)
         elif kind == "prism":
-            out.update(n=count("n", 3), radius=pos("radius"), height=pos("height"))
+            why = f" (the contact kernels take faces of at most {MAX_FACE_VERTICES} vertices; use a smaller n)"
+            out.update(n=count("n", 3, MAX_FACE_VERTICES, why), radius=pos("radius"), height=pos("height"))
             shape = ConvexShape.prism(out["n"], out["radius"], out["height"], name=name)
         elif kind == "rock":
-            out.update(n_points=count("n_points", 4), size=pos("size"))
+            why = f" (its hull has 2 n_points - 4 faces, and the contact kernels take at most {MAX_FACES})"
+            out.update(n_points=count("n_points", 4, MAX_FACES // 2 + 2, why), size=pos("size"))
             out["seed"] = count("seed", 0) if "seed" in spec else 0
             extra = {}
             if "elongation" in spec:
@@ -1366,6 +1379,121 @@ class _Obstacles:
                 out[local_of(gi[hit])] = True
 
 
+# ---------------------------------------------------------------------- time step and float32 limits
+
+# The time step resolves a contact oscillation at the reference overlap (0.1% of a body's size,
+# over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
+# fast (it is unstable past 1/pi of it).
+STEPS_PER_CONTACT_PERIOD = 50
+MAX_DT_FRACTION = 1.0 / 8.0
+REFERENCE_DEPTH = 0.001
+
+MAX_STEPS = 2**31 - 1
+"""Most steps of one run: the simulator counts steps in a 32-bit integer."""
+
+MAX_BODIES = 10**8
+"""Most bodies of one scene: 100 times the largest scenes the simulator is meant for (10^6), low
+enough that a mistyped count fails at once instead of allocating tens of gigabytes (every body holds
+some hundred bytes in the scene alone, more on the device)."""
+
+# The simulator stores masses, inertias, stiffnesses and the contact integrals (overlap volumes and
+# their first moments, ~ size^4) in float32. Values must be normal float32 numbers, and products of
+# them (inertia times angular velocity squared, k times volume powers, ...) must stay normal too,
+# so they are kept this factor away from both ends of the range: 1.2e-32 to 3.4e32.
+_F32_MARGIN = 1.0e6
+F32_LOW = float(np.finfo(np.float32).tiny) * _F32_MARGIN
+F32_HIGH = float(np.finfo(np.float32).max) / _F32_MARGIN
+
+# Expected overlap depths (of a face contact under a body's weight or at the initial speeds), as a
+# fraction of the body's size V^(1/3): above the first a warning, above the second an error.
+OVERLAP_WARNING = 0.1
+OVERLAP_ERROR = 0.5
+# Initial overlaps, as a fraction of the thinner body's thickness along the separating axis.
+INITIAL_OVERLAP_WARNING = 0.01
+INITIAL_OVERLAP_ERROR = 0.5
+
+
+def reference_stiffness(law, k, exponent, volume):
+    """Secant normal stiffness [N/m] of a face contact of area V^(2/3) at 0.1% of the size V^(1/3).
+
+    With W'(V) the law, a face of area A pressed to depth d gives V = A d and a force W'(A d) A;
+    the secant stiffness is that force over d. Computed in float64 numpy (never an OverflowError:
+    out-of-range values become 0 or inf, which :meth:`Scene.validate` rejects beforehand).
+    """
+    volume = np.float64(volume)
+    with np.errstate(all="ignore"):
+        area = volume ** (2.0 / 3.0)
+        depth = REFERENCE_DEPTH * np.cbrt(volume)
+        v = area * depth
+        if law == "linear":
+            dw = np.asarray(k, dtype=np.float64)
+        elif law == "hertz":
+            dw = np.asarray(k, dtype=np.float64) * np.sqrt(v)
+        else:
+            dw = np.asarray(k, dtype=np.float64) * v ** (np.float64(exponent) - 1.0)
+        return dw * area / depth
+
+
+@dataclass(frozen=True)
+class TimeStep:
+    """The time step of a run (see :meth:`Scene.time_step`).
+
+    Attributes:
+        dt: the step a run uses [s]: the scene's dt, or ``recommended`` for dt = "auto".
+        recommended: 1/50 of the period of the stiffest contact of the lightest free body at the
+            reference overlap (0.1% of its size) [s].
+        limit: 1/8 of that period, the largest accurate step [s].
+        period: that period [s].
+        lightest: index of the body whose mass sets the period.
+        tangential_stiffness: (M, M) tangential stiffness of every material pair [N/m], the derived
+            value (the reference normal stiffness) where the materials give none.
+    """
+
+    dt: float
+    recommended: float
+    limit: float
+    period: float
+    lightest: int
+    tangential_stiffness: np.ndarray
+
+
+def _ln(x) -> float:
+    """Natural log of a positive float, -inf for 0 (log-space arithmetic of the range checks)."""
+    return math.log(x) if x > 0.0 else -math.inf
+
+
+def _exp(x) -> float:
+    return math.exp(min(x, 700.0))
+
+
+def _fmt_exp(x) -> str:
+    """exp(x) for a message, also beyond the range of a float."""
+    return f"{math.exp(x):.3g}" if abs(x) < 700.0 else f"1e{x / math.log(10.0):+.0f}"
+
+
+def _face_overlap(load, m, ln_k, ln_a, ln_l) -> float:
+    """ln(A d) of a face contact (area A, size L, law W = k V^m / m) under a load.
+
+    ``load > 0`` is a force F: W'(A d) A = F, so k (A d)^(m - 1) = F / A; for m = 1 the force
+    k A does not depend on d, and d / L = F / (k A) stands in (see Scene._check_loads).
+    ``load < 0`` is an energy E = -load: W(A d) = E, so (A d)^m = m E / k.
+    """
+    if load < 0.0:
+        return (_ln(-m * load) - ln_k) / m
+    if m == 1.0:
+        return _ln(load) - ln_k + ln_l  # ln(A d) with d / L = F / (k A)
+    return (_ln(load) - ln_a - ln_k) / (m - 1.0)
+
+
+def _stiffness_for(load, m, ln_ad, ln_a, ln_l) -> float:
+    """ln k for which a face contact under ``load`` has ln(A d) = ``ln_ad`` (inverse of _face_overlap)."""
+    if load < 0.0:
+        return _ln(-m * load) - m * ln_ad
+    if m == 1.0:
+        return _ln(load) - ln_a - (ln_ad - ln_a - ln_l)
+    return _ln(load) - ln_a - (m - 1.0) * ln_ad
+
+
 # ---------------------------------------------------------------------- the scene
 
 
@@ -1453,8 +1581,9 @@ class Scene:
             :class:`SceneError`; :func:`polydem.overlap` offers float64 contact geometry).
         output: what a run writes (:class:`Output`); default ``Output()`` (a summary only).
 
-    Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`) and
-    :attr:`emitters` (one dict per :meth:`emit` call: key, count, first and last body index).
+    Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`),
+    :attr:`emitters` (one dict per :meth:`emit` call: key, count, first and last body index) and
+    :attr:`warnings` (the :class:`SceneWarning` messages of the last :meth:`validate`).
     """
 
     def __init__(
@@ -1501,6 +1630,9 @@ class Scene:
         self._materials: dict[str, Material] = {}
         self._material_index: dict[str, int] = {}
         self._planes: list[PlaneWall] = []
+        self._plane_keys: list[str] = []  # where each plane came from, for messages
+        self.warnings: list[str] = []  # of the last validate()
+        self._warned: list[str] = []
         self._n = 0
         self._cap = 0
         self._arrays = {name: np.empty((0, *shape), dtype) for name, dtype, shape in _BODY_FIELDS}
@@ -1800,6 +1932,11 @@ class Scene:
     def _append(self, s, m, p, q, v, w, kind_code, rowkey, pivot=None) -> np.ndarray:
         """Store n bodies. ``s`` and ``m`` are one index or (n,) arrays; p, q, v, w are (n, k)."""
         n = p.shape[0]
+        if self._n + n > MAX_BODIES:
+            raise self._err(
+                f"{n} more bodies would make {self._n + n:.3g}, more than a scene can hold ({MAX_BODIES:.0e})",
+                rowkey(0),
+            )
         arrays = [("position", p), ("orientation", q), ("velocity", v), ("angular_velocity", w)]
         if pivot is not None:
             arrays.append(("pivot", pivot))
@@ -1930,6 +2067,7 @@ class Scene:
         name = material.name if isinstance(material, Material) else material
         plane = PlaneWall(point=_tuple(p), normal=_tuple(n), material=name)
         self._planes.append(plane)
+        self._plane_keys.append(key)
         return plane
 
     def add_box_container(
@@ -2213,6 +2351,7 @@ class Scene:
                 "fixed bodies cannot move; remove velocity and velocity_jitter or use kind = 'kinematic'",
                 f"{key}.velocity",
             )
+        self._check_capacity(count, lo, hi, base, frac, sample_scales, spacing, key)
 
         streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)]
         rng_shape, rng_scale, rng_cells, rng_jitter, rng_orient, rng_vel = streams
@@ -2246,6 +2385,35 @@ class Scene:
         idx = self._append(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
         self.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
         return idx
+
+    def _check_capacity(self, count, lo, hi, base, frac, sample_scales, spacing, key):
+        """Reject a count the scene or the region cannot hold, by arithmetic before any per-body array.
+
+        Every cell is at least ``spacing`` times the largest bounding diameter among the shapes that
+        get bodies, each at its smallest size factor, so the region holds at most that many cells.
+        """
+        if self._n + count > MAX_BODIES:
+            raise self._err(
+                f"count = {count} would make {self._n + count:.3g} bodies, more than a scene can hold "
+                f"({MAX_BODIES:.0e}); lower count",
+                f"{key}.count",
+            )
+        per_shape = _largest_remainder(count, frac)
+        _, factors = sample_scales(np.random.default_rng(0), 0)
+        shapes = list(self._shapes.values())
+        r_low = max(shapes[b].radius for b, c in zip(base, per_shape, strict=True) if c > 0) * float(np.min(factors))
+        cell = spacing * 2.0 * r_low
+        cells = np.floor((hi - lo) / cell * (1.0 + 1e-12))
+        capacity = math.prod(int(c) for c in cells)
+        # The grid scan gives the exact number (walls and bodies block cells) and the better message;
+        # only counts whose per-body arrays would be large are cut here.
+        if count > capacity and count > _EMITTER_CHUNK and capacity > 0:
+            raise self._err(
+                f"the region holds at most {capacity} bodies, fewer than count = {count}: it fits at most "
+                f"{' x '.join(str(int(c)) for c in cells)} cells of {cell:.4g} m (spacing {spacing:g} x the largest "
+                f"bounding diameter at the smallest size, {2.0 * r_low:.4g} m); lower count or enlarge the region",
+                f"{key}.count",
+            )
 
     def _emitter_shapes(self, shape, weights, key) -> tuple[list[int], np.ndarray]:
         """Shape indices and normalised weights of an emitter's ``shape`` (and ``weights``)."""
@@ -2435,6 +2603,278 @@ class Scene:
                     f"materials.{mat.name}.law",
                 )
 
+    def time_step(self) -> TimeStep:
+        """The time step of a run and its bounds (host-only: ``polydem validate`` needs no Warp).
+
+        The period is ``2 pi sqrt(m / k_n)`` of the lightest free body (mass m) against the stiffest
+        pair: ``k_n`` is the secant stiffness of a face contact of area ``V^(2/3)`` pressed to 0.1%
+        of the size ``V^(1/3)`` (:func:`reference_stiffness`), or a larger tangential stiffness.
+        ``dt = "auto"`` takes 1/50 of it; a given dt must not exceed 1/8 of it (SceneError, key
+        ``simulation.dt``).
+        """
+        if self._n == 0:
+            raise self._err("the scene has no bodies; add at least one with [[bodies]] or Scene.add_body()", "bodies")
+        table = self.pair_table()
+        law, m = table["law"], float(table["exponent"])
+        k = np.asarray(table["k"], dtype=np.float64)
+        kt = np.asarray(table["tangential_stiffness"], dtype=np.float64)
+        shapes = list(self._shapes.values())
+        mass = np.asarray(self.body_mass(), dtype=np.float64)
+        free = self.body_kind == KIND_FREE
+        # The lightest free body (or, with none, the lightest body with a mass) and the stiffest pair
+        # set the time step and default spring.
+        pool = free if free.any() else mass > 0.0
+        if not pool.any():
+            raise self._err(
+                "no body has a mass (all are fixed with zero volume), so no time step can be derived; add a free "
+                "body or give dt in seconds",
+                "simulation.dt",
+            )
+        light = int(np.argmin(np.where(pool, mass, np.inf)))
+        v_ref = shapes[int(self.body_shape[light])].volume
+        k_n = reference_stiffness(law, k, m, v_ref)
+        kt = np.where(np.isnan(kt), k_n, kt)
+        with np.errstate(all="ignore"):
+            stiffest = max(float(np.max(k_n)), float(np.max(kt)))
+            period = float(2.0 * np.pi * np.sqrt(mass[light] / stiffest))
+        recommended = period / STEPS_PER_CONTACT_PERIOD
+        limit = period * MAX_DT_FRACTION
+        if not (math.isfinite(period) and period > 0.0):
+            raise self._err(
+                f"the contact period 2 pi sqrt(m / k) of body {light} (mass {mass[light]:.3g} kg, stiffest contact "
+                f"{stiffest:.3g} N/m) is {period:.3g} s, so no time step can be derived; check the materials' density "
+                "and k",
+                "simulation.dt",
+            )
+        if self.dt == "auto":
+            dt = recommended
+        else:
+            dt = float(self.dt)
+            if dt > limit:
+                raise self._err(
+                    f"time step {dt:.3g} s is above the stable limit {limit:.3g} s for the stiffest contact and the "
+                    f'lightest body (recommended {recommended:.3g} s); use dt = "auto" or a smaller value',
+                    "simulation.dt",
+                )
+        return TimeStep(
+            dt=dt, recommended=recommended, limit=limit, period=period, lightest=light, tangential_stiffness=kt
+        )
+
+    def _body_label(self, i: int) -> str:
+        """``body 12 (shape 'cube', free, from emitters[0])``: how messages name a body."""
+        s = self.shape_names[int(self._arrays["shape"][i])]
+        kind = KINDS[int(self._arrays["kind"][i])]
+        where = next((f", from {e['key']}" for e in self.emitters if e["first"] <= i <= e["last"]), "")
+        return f"body {i} (shape {s!r}, {kind}{where})"
+
+    def _check_float32(self, a):
+        """Shapes, masses, inertias, stiffnesses and the power law within float32 (see F32_LOW)."""
+        lo, hi = F32_LOW, F32_HIGH
+        shapes = list(self._shapes.values())
+        names = self.shape_names
+        # Overlap volumes and their first moments (~ size^4) are the largest powers of a length the
+        # narrow phase sums, so the bounding radius r needs r^4 within [lo, hi].
+        r_lo, r_hi = lo**0.25, hi**0.25
+        for s in np.unique(a["shape"]):
+            sh = shapes[int(s)]
+            if not r_lo <= sh.radius <= r_hi:
+                i = int(np.flatnonzero(a["shape"] == s)[0])
+                raise self._err(
+                    f"shape {names[s]!r} (used by body {i}) has a bounding radius of {sh.radius:.3g} m: too "
+                    f"{'small' if sh.radius < 1.0 else 'large'} for the simulator's float32 arithmetic, whose overlap "
+                    f"volumes and their moments (~ radius^4) must stay between {lo:.2g} and {hi:.2g}; give the shape a "
+                    f"bounding radius between {r_lo:.2g} m and {r_hi:.2g} m",
+                    f"shapes.{names[s]}",
+                )
+        mats = list(self._materials.values())
+        for mat in mats:
+            for attr in ("k", "tangential_stiffness"):
+                value = getattr(mat, attr)
+                if value is not None and not lo <= value <= hi:
+                    raise self._err(
+                        f"{value:g} is outside the range the simulator's float32 arithmetic can use ({lo:.2g} to "
+                        f"{hi:.2g}, float32's normal range with a margin of {_F32_MARGIN:g} for products); give a "
+                        "value in that range",
+                        f"materials.{mat.name}.{attr}",
+                    )
+        free = a["kind"] == KIND_FREE
+        if not free.any():
+            return
+        combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])
+        for c in combo.tolist():
+            sh, mat = shapes[c // len(mats)], mats[c % len(mats)]
+            mass = mat.density * sh.volume
+            inertia = mat.density * np.asarray(sh.inertia)
+            if lo <= mass <= hi and lo <= inertia.min() and inertia.max() <= hi:
+                continue
+            i = int(np.flatnonzero(free & (a["shape"] == c // len(mats)) & (a["material"] == c % len(mats)))[0])
+            rho_lo = max(lo / sh.volume, lo / float(np.min(sh.inertia)))
+            rho_hi = min(hi / sh.volume, hi / float(np.max(sh.inertia)))
+            fix = (
+                f"use a density between {rho_lo:.3g} and {rho_hi:.3g} kg/m^3 for this shape"
+                if rho_lo <= rho_hi
+                else "no density works for this shape: make it less elongated or change its size"
+            )
+            raise self._err(
+                f"{self._body_label(i)} of material {mat.name!r} would have a mass of {mass:.3g} kg and principal "
+                f"moments of inertia of {inertia.min():.3g} to {inertia.max():.3g} kg m^2; the simulator stores them "
+                f"in float32, which needs values between {lo:.2g} and {hi:.2g} (float32's normal range with a margin "
+                f"of {_F32_MARGIN:g} for products); {fix}",
+                f"materials.{mat.name}.density",
+            )
+        law, m = mats[0].law, mats[0].exponent
+        if law != "power":
+            return
+        # The kernels evaluate W = k V^m / m and W' = k V^(m-1) in float32; at the reference
+        # overlap (0.1% of a free body's volume) V^m must stay in range, which bounds m.
+        vols = np.array([sh.volume for sh in shapes])[np.unique(a["shape"][free])]
+        caps = []
+        v_small, v_large = REFERENCE_DEPTH * vols.min(), REFERENCE_DEPTH * vols.max()
+        if v_small < 1.0:
+            caps.append((_ln(lo) / _ln(v_small), v_small))
+        if v_large > 1.0:
+            caps.append((_ln(hi) / _ln(v_large), v_large))
+        if caps:
+            m_max, v_ref = min(caps)
+            if m > m_max:
+                raise self._err(
+                    f"m = {m:g} is too large for the simulator's float32 arithmetic with these bodies: at the "
+                    f"reference overlap of a contact (0.1% of a free body's volume, V = {v_ref:.3g} m^3) the law's "
+                    f"V^m = {_fmt_exp(m * _ln(v_ref))} is outside {lo:.2g} to {hi:.2g}; use m between 1 and "
+                    f"{m_max:.3g} for bodies of these sizes (or law = 'hertz')",
+                    f"materials.{mats[0].name}.m",
+                )
+
+    def _check_loads(self, a, ts: TimeStep) -> list[str]:
+        """Contacts stiff enough for the bodies' weight and initial speeds; returns warnings.
+
+        For each free (shape, material) the overlap depth d of a face contact (area A = V^(2/3),
+        size L = V^(1/3)) is solved from the law W = k V^m / m (k of the softest pair it can
+        meet): under the body's weight M g, where something can carry it (a plane or a fixed or
+        kinematic body), W'(A d) A = M g; at the fastest initial speed v, where something can be
+        hit, W(A d) = M v^2 / 2. The linear law's force k A does not grow with depth: the weight
+        needs the contact area M g / k, which an edge or corner contact reaches at about
+        d / L = M g / (k A). Then:
+
+        * weight, d / L above OVERLAP_ERROR, dt = "auto": SceneError: the body sinks through what
+          carries it, and the automatic time step (set at 0.1% overlap) is far longer than the
+          time the body takes to fall its own size. The fix names the k that keeps d / L at
+          OVERLAP_WARNING.
+        * weight, m > 2 (stiffening laws): SceneError where the step is unstable at d,
+          dt > 2 sqrt(M / K(d)) with the tangent stiffness K(d) = k (m - 1) (A d)^(m - 2) A^2
+          (1/pi of the local period).
+        * otherwise d / L above OVERLAP_WARNING (or an unstable step at the impact overlap): a
+          warning. Initial speeds only warn: the bodies need not meet anything.
+        """
+        free = a["kind"] == KIND_FREE
+        if not free.any():
+            return []
+        table = self.pair_table()
+        mats = list(self._materials.values())
+        law, m = table["law"], float(table["exponent"])
+        k_pair = np.asarray(table["k"], dtype=np.float64)
+        present = set(np.unique(a["material"]).tolist())
+        present.update(self._material_index[p.material] for p in self._planes)
+        present = np.array(sorted(present))
+        support = bool(self._planes) or bool((a["kind"] != KIND_FREE).any())
+        partners = bool(self._planes) or self._n >= 2
+        g = float(np.linalg.norm(self.gravity))
+        speeds = np.linalg.norm(a["velocity"][a["kind"] != KIND_FIXED], axis=1)
+        v_hit = float(speeds.max()) if partners and speeds.size else 0.0
+        if not ((support and g > 0.0) or v_hit > 0.0):
+            return []
+        shapes = list(self._shapes.values())
+        dt = ts.dt
+        out = []
+        combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])
+        for c in combo.tolist():
+            sh, mi = shapes[c // len(mats)], c % len(mats)
+            mat = mats[mi]
+            i = int(np.flatnonzero(free & (a["shape"] == c // len(mats)) & (a["material"] == mi))[0])
+            mass = mat.density * sh.volume
+            ln_a, ln_l = (2.0 / 3.0) * _ln(sh.volume), _ln(sh.volume) / 3.0
+            j = int(present[np.argmin(k_pair[mi, present])])
+            k = float(k_pair[mi, j])
+            soft = min((mats[mi], mats[j]), key=lambda x: x.k).name
+            label = f"{self._body_label(i)} of material {mat.name!r}"
+            label += f" against {mats[j].name!r}" if j != mi else ""
+            loads = []
+            if support and g > 0.0:
+                t_scale = math.sqrt(2.0 * _exp(ln_l) / g)
+                loads.append(
+                    (
+                        mass * g,
+                        f"under its own weight ({mass * g:.3g} N) it would sink",
+                        "into what carries it",
+                        f"the {t_scale:.3g} s it takes to fall its own size",
+                        t_scale,
+                    )
+                )
+            if v_hit > 0.0:
+                t_scale = _exp(ln_l) / v_hit
+                loads.append(
+                    (
+                        -0.5 * mass * v_hit * v_hit,  # negative: an energy, not a force
+                        f"hitting a body or wall at the scene's fastest initial speed ({v_hit:.3g} m/s) it would sink",
+                        "into what it hits",
+                        f"the {t_scale:.3g} s it takes to cross its own size at that speed",
+                        t_scale,
+                    )
+                )
+            for load, cause, into, scale, t_scale in loads:
+                ln_ad = _face_overlap(load, m, _ln(k), ln_a, ln_l)
+                rel = _exp(ln_ad - ln_a - ln_l)
+                ln_target = _ln(OVERLAP_WARNING) + ln_a + ln_l
+                unstable = False
+                if m > 2.0:
+                    ln_kt = _ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a
+                    unstable = ln_kt > _ln(4.0 * mass) - 2.0 * _ln(dt)
+                    if self.dt == "auto":
+                        # The auto step goes like 1/sqrt(k), so K(d) dt^2 / k depends on d only: the fix
+                        # keeps d where dt is at most 1/8 of the local period, K dt^2 <= M (pi / 4)^2.
+                        ln_bound = 2.0 * _ln(math.pi / 4.0) + _ln(mass) - 2.0 * _ln(dt) - _ln(k) - _ln(m - 1.0)
+                        ln_target = min(ln_target, (ln_bound - 2.0 * ln_a) / (m - 2.0))
+                depth = f"{cause} about {_fmt_exp(ln_ad - ln_a - ln_l)} times its size ({_exp(ln_l):.3g} m) {into}"
+                if not unstable and rel <= OVERLAP_WARNING:
+                    continue
+                ln_need = _stiffness_for(load, m, ln_target, ln_a, ln_l)
+                weight = load > 0.0
+                if unstable:
+                    k_tan = _exp(_ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a)
+                    depth += (
+                        f", where the law (m = {m:g} > 2 stiffens with depth) has a stiffness of {k_tan:.3g} N/m "
+                        f"and the time step {dt:.3g} s is above the stable {2.0 * math.sqrt(mass / k_tan):.3g} s"
+                    )
+                if ln_need > _ln(F32_HIGH):
+                    fix = f"no k within float32's range (up to {F32_HIGH:.2g}) is stiff enough: " + (
+                        "use a smaller m (W = k V^m / m gives almost no force at small overlaps when m is large)"
+                        if law == "power"
+                        else "use smaller densities or larger bodies"
+                    )
+                elif unstable and self.dt != "auto":
+                    fix = 'lower dt (or use dt = "auto" with a larger k)'
+                else:
+                    fix = f"raise k of {soft!r} to at least {_exp(ln_need):.3g} {_LAW_UNITS[law]}"
+                if weight and (unstable or (rel > OVERLAP_ERROR and self.dt == "auto")):
+                    why = (
+                        f" (the automatic time step, {dt:.3g} s, is {dt / t_scale:.3g} times {scale})"
+                        if self.dt == "auto" and not unstable
+                        else ""
+                    )
+                    head = "too soft" if rel > OVERLAP_ERROR else "unstable at this time step"
+                    raise self._err(
+                        f"the contacts of {label} are {head}: {depth}{why}; {fix}"
+                        + (" (a pair's k is the harmonic mean of its materials' k)" if fix.startswith("raise") else ""),
+                        "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
+                    )
+                out.append((rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"))
+        if not out:
+            return []
+        # One line for the scene: the softest case, and how many more there are.
+        out.sort(key=lambda x: -x[0])
+        more = f" ({len(out) - 1} more shapes or materials are soft too)" if len(out) > 1 else ""
+        return [out[0][1] + more]
+
     def validate(self) -> Scene:
         """Check the whole scene; raise :class:`SceneError` on the first problem, else return self.
 
@@ -2442,8 +2882,21 @@ class Scene:
         body's shape and material index exists; all numbers finite; unit quaternions; valid kinds;
         fixed bodies at rest; free bodies have a shape with positive volume and inertia; planes use
         registered materials and have unit normals; only kinematic bodies have pivots; precision is
-        float32; the device name and the output settings are valid.
+        float32; the device name and the output settings are valid. Then what a run needs:
+
+        * float32: shape sizes, masses, inertias, stiffnesses and the power law's V^m within
+          [F32_LOW, F32_HIGH] (float32's normal range, 10^6 from both ends);
+        * the time step (:meth:`time_step`): finite, a given dt within the stable limit, and the
+          steps of the run (``duration / dt``) at most MAX_STEPS;
+        * contacts stiff enough for the bodies' weight and initial speeds (see ``_check_loads``);
+        * initial overlaps: a free body deep behind a plane wall or deep inside another body
+          (by more than INITIAL_OVERLAP_ERROR of its thickness) is an error; overlaps above
+          INITIAL_OVERLAP_WARNING are warnings.
+
+        Warnings are issued as :class:`SceneWarning` (:func:`warnings.warn`; not again by a
+        repeated call that finds the same) and kept in :attr:`warnings` (a list of strings).
         """
+        self.warnings = []
         f = self.file
         self.gravity = tuple(_vector(list(self.gravity), 3, "simulation.gravity", f).tolist())
         self.dt = self._check_dt(self.dt)
@@ -2527,7 +2980,66 @@ class Scene:
             nrm = np.asarray(plane.normal)
             if not (np.all(np.isfinite(nrm)) and abs(np.linalg.norm(nrm) - 1.0) < 1e-9):
                 raise self._err(f"normal {list(plane.normal)} is not a unit vector", f"planes[{j}].normal")
+        self._check_float32(a)
+        ts = self.time_step()
+        self._check_steps(ts)
+        found = self._check_loads(a, ts)
+        found += self._check_initial_overlaps(a)
+        # A run validates twice (loading the file, building the Model): say each thing once.
+        if found != self._warned:
+            for message in found:
+                warnings.warn(f"{self.file}: {message}" if self.file else message, SceneWarning, stacklevel=2)
+        self._warned = found
+        self.warnings = found
         return self
+
+    def _check_steps(self, ts: TimeStep):
+        if self.duration is not None:
+            steps, key = math.ceil(self.duration / ts.dt - 1e-9), "simulation.duration"
+        elif self.steps is not None:
+            steps, key = self.steps, "simulation.steps"
+        else:
+            return
+        if steps > MAX_STEPS:
+            raise self._err(
+                f"a run of {steps:.3g} steps of {ts.dt:.3g} s is more than the simulator counts ({MAX_STEPS}, a "
+                "32-bit step counter); shorten the run"
+                + (" or use a larger time step (a softer k gives a longer automatic one)" if self.duration else ""),
+                key,
+            )
+
+    def _check_initial_overlaps(self, a) -> list[str]:
+        """Free bodies that start behind a plane wall or inside another body (see :meth:`validate`).
+
+        Plane walls: the exact depth of the body's lowest vertex behind the plane, over the body's
+        thickness along the normal. Body pairs: candidates from a k-d tree on the centres (bounding
+        spheres that meet, one body free), then the separating-axis test over both bodies' face
+        normals, the line of centres and, for bodies with few edge directions, the cross products
+        of their edges: the smallest overlap of the projections is the penetration depth (an upper
+        bound where edge axes are skipped), taken over the thinner body's thickness along that axis.
+        """
+        records = _plane_overlaps(self, a) + _pair_overlaps(self, a)
+        if not records:
+            return []
+        records.sort(key=lambda r: -r[0])
+        deep = [r for r in records if r[0] > INITIAL_OVERLAP_ERROR]
+        if deep:
+            rel, depth, i, what, basis, fix = deep[0]
+            more = f" ({len(deep) - 1} more bodies start this deep)" if len(deep) > 1 else ""
+            share = "wholly" if rel >= 1.0 else f"{rel:.0%} of {basis}"
+            raise self._err(
+                f"{self._body_label(i)} starts {depth:.3g} m {what} ({share}): the contact would throw it out at a "
+                f"high speed{more}; {fix}",
+                f"bodies[{i}].position",
+            )
+        shown = "; ".join(
+            f"{self._body_label(i)} {d:.3g} m {what} ({rel:.1%})" for rel, d, i, what, _, _ in records[:3]
+        )
+        more = f", and {len(records) - 3} more" if len(records) > 3 else ""
+        return [
+            f"{len(records)} initial overlaps of more than {INITIAL_OVERLAP_WARNING:.0%} of a body's thickness, "
+            f"pushed apart at the start: {shown}{more}; move the bodies apart"
+        ]
 
     # ------------------------------------------------------------------ scene files
 
@@ -2823,6 +3335,215 @@ class Scene:
             f"Scene(name={self.name!r}, bodies={self._n}, shapes={len(self._shapes)}, "
             f"materials={len(self._materials)}, planes={len(self._planes)})"
         )
+
+
+# ---------------------------------------------------------------------- initial overlaps
+
+_BLOCK = 1 << 22  # floats per block of the vectorised overlap tests (32 MiB)
+_MAX_EDGE_AXES = 4096  # edge-direction pairs tested per body pair; beyond, face normals only
+
+
+def _blocks(n: int, per_item: int):
+    step = max(1, _BLOCK // max(1, per_item))
+    for start in range(0, n, step):
+        yield slice(start, min(n, start + step))
+
+
+def _plane_overlaps(scene, a) -> list[tuple]:
+    """(relative depth, depth, body, where, of what, fix) of free bodies reaching behind a plane wall."""
+    free = np.flatnonzero(a["kind"] == KIND_FREE)
+    if not scene._planes or not free.size:
+        return []
+    shapes = list(scene._shapes.values())
+    sid = a["shape"][free]
+    reach = np.array([s.radius for s in shapes])[sid]
+    out = []
+    for plane, key in zip(scene._planes, scene._plane_keys, strict=True):
+        nrm = np.asarray(plane.normal, dtype=np.float64)
+        height = a["position"][free] @ nrm - float(nrm @ np.asarray(plane.point))
+        near = np.flatnonzero(height < reach)
+        for s in np.unique(sid[near]).tolist():
+            verts = shapes[s].vertices
+            rows = near[sid[near] == s]
+            for blk in _blocks(len(rows), len(verts)):
+                pick = rows[blk]
+                local = np.einsum("pji,j->pi", quat_to_matrix(a["orientation"][free[pick]]), nrm)
+                proj = local @ verts.T
+                low = height[pick] + proj.min(axis=1)
+                thick = proj.max(axis=1) - proj.min(axis=1)
+                rel = -low / thick
+                for h in np.flatnonzero(rel > INITIAL_OVERLAP_WARNING).tolist():
+                    normal = ", ".join(f"{x:.3g}" for x in nrm)
+                    out.append(
+                        (
+                            float(rel[h]),
+                            float(-low[h]),
+                            int(free[pick[h]]),
+                            f"behind the plane wall {key}",
+                            "its thickness",
+                            f"move it by at least {-low[h]:.3g} m along the wall's normal [{normal}], to the side it "
+                            "points to, or move the wall",
+                        )
+                    )
+    return out
+
+
+def _candidate_pairs(pos: np.ndarray, rad: np.ndarray) -> np.ndarray:
+    """(K, 2) body pairs whose bounding spheres meet, from k-d trees on the centres.
+
+    Bodies more than 4 times the median radius (container slabs, drums, boulders) would make one
+    tree's search radius huge, so they search the tree of the others one by one instead.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(pos)
+    if n < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    big_mask = rad > 4.0 * float(np.median(rad))
+    small, big = np.flatnonzero(~big_mask), np.flatnonzero(big_mask)
+    parts = []
+    tree = cKDTree(pos[small]) if small.size else None
+    if small.size >= 2:
+        parts.append(small[tree.query_pairs(2.0 * float(rad[small].max()), output_type="ndarray")])
+    if big.size and small.size:
+        found = tree.query_ball_point(pos[big], rad[big] + float(rad[small].max()), return_sorted=False)
+        counts = np.fromiter((len(x) for x in found), dtype=np.int64, count=len(big))
+        if counts.sum():
+            others = np.concatenate([np.asarray(x, dtype=np.int64) for x in found if len(x)])
+            parts.append(np.column_stack([np.repeat(big, counts), small[others]]))
+    if big.size >= 2:
+        if big.size <= 2048:
+            ii, jj = np.triu_indices(big.size, 1)
+            parts.append(np.column_stack([big[ii], big[jj]]))
+        else:
+            parts.append(big[cKDTree(pos[big]).query_pairs(2.0 * float(rad[big].max()), output_type="ndarray")])
+    if not parts:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = np.concatenate(parts).astype(np.int64)
+    d = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
+    return pairs[d < rad[pairs[:, 0]] + rad[pairs[:, 1]]]
+
+
+def _edge_directions(shape) -> np.ndarray:
+    """(k, 3) unit edge directions of a shape (body frame), parallel edges once."""
+    v = shape.vertices
+    loops = shape.faces
+    starts = np.concatenate([lp for lp in loops])
+    ends = np.concatenate([np.roll(lp, -1) for lp in loops])
+    e = v[ends] - v[starts]
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    lead = np.take_along_axis(e, np.argmax(np.abs(e) > 1e-9, axis=1)[:, None], axis=1)
+    e *= np.sign(lead)
+    return np.unique(np.round(e, 9), axis=0)
+
+
+def _interval_overlap(a_lo, a_hi, b_lo, b_hi):
+    """Overlap of projection intervals (> 0: they overlap) and the thinner one's length."""
+    return np.minimum(a_hi - b_lo, b_hi - a_lo), np.minimum(a_hi - a_lo, b_hi - b_lo)
+
+
+def _sat_depth(shape_a, shape_b, ca, cb, ra, rb, edges_a, edges_b):
+    """Penetration depth of P pairs by the separating-axis test (<= 0: apart), over the thinner body's
+    thickness along the axis of least overlap. ca, cb: (P, 3) centres; ra, rb: (P, 3, 3) rotations."""
+    va, vb = shape_a.vertices, shape_b.vertices
+    best = np.full(len(ca), np.inf)
+    thin = np.ones(len(ca))
+
+    def take(ov, th):
+        ov = np.where(np.isnan(ov), np.inf, ov)
+        k = np.argmin(ov, axis=1)
+        o = np.take_along_axis(ov, k[:, None], axis=1)[:, 0]
+        better = o < best
+        best[better] = o[better]
+        thin[better] = np.take_along_axis(th, k[:, None], axis=1)[better, 0]
+
+    # Face normals of A, in A's frame (then of B in B's frame): the other body's vertices moved there.
+    for s1, s2, c1, c2, r1, r2 in ((shape_a, shape_b, ca, cb, ra, rb), (shape_b, shape_a, cb, ca, rb, ra)):
+        n1 = s1.face_normals
+        lo1 = (s1.vertices @ n1.T).min(axis=0)
+        rel_rot = np.einsum("pji,pjk->pik", r1, r2)
+        t = np.einsum("pji,pj->pi", r1, c2 - c1)
+        x = s2.vertices @ rel_rot.transpose(0, 2, 1) + t[:, None, :]
+        proj = x @ n1.T
+        take(*_interval_overlap(lo1, s1.face_offsets, proj.min(axis=1), proj.max(axis=1)))
+    # The line of centres, and the cross products of edge directions.
+    wa = va @ ra.transpose(0, 2, 1) + ca[:, None, :]
+    wb = vb @ rb.transpose(0, 2, 1) + cb[:, None, :]
+    axes = (cb - ca)[:, None, :]
+    if len(edges_a) * len(edges_b) <= _MAX_EDGE_AXES:
+        ea = np.einsum("pij,kj->pki", ra, edges_a)
+        eb = np.einsum("pij,kj->pki", rb, edges_b)
+        cross = np.cross(ea[:, :, None, :], eb[:, None, :, :]).reshape(len(ca), -1, 3)
+        axes = np.concatenate([axes, cross], axis=1)
+    length = np.linalg.norm(axes, axis=2, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axes = np.where(length > 1e-9, axes / length, np.nan)
+    axes_t = np.ascontiguousarray(axes.transpose(0, 2, 1))
+    pa = wa @ axes_t
+    pb = wb @ axes_t
+    take(*_interval_overlap(pa.min(axis=1), pa.max(axis=1), pb.min(axis=1), pb.max(axis=1)))
+    return best, thin
+
+
+def _pair_overlaps(scene, a) -> list[tuple]:
+    """(relative depth, depth, body, where, of what, fix) of body pairs (one free at least) that overlap."""
+    n = len(a["kind"])
+    if n < 2:
+        return []
+    shapes = list(scene._shapes.values())
+    rad = np.array([s.radius for s in shapes])[a["shape"]]
+    pairs = _candidate_pairs(a["position"], rad)
+    free = a["kind"] == KIND_FREE
+    pairs = pairs[free[pairs[:, 0]] | free[pairs[:, 1]]]
+    if not len(pairs):
+        return []
+    sid = a["shape"].astype(np.int64)
+    group = sid[pairs[:, 0]] * len(shapes) + sid[pairs[:, 1]]
+    edges = {}
+    out = []
+    for g in np.unique(group).tolist():
+        sa, sb = shapes[g // len(shapes)], shapes[g % len(shapes)]
+        for s in (g // len(shapes), g % len(shapes)):
+            if s not in edges:
+                edges[s] = _edge_directions(shapes[s])
+        ea, eb = edges[g // len(shapes)], edges[g % len(shapes)]
+        n_axes = 1 + (len(ea) * len(eb) if len(ea) * len(eb) <= _MAX_EDGE_AXES else 0)
+        per_pair = max(len(sb.vertices) * sa.num_faces, len(sa.vertices) * sb.num_faces)
+        per_pair = max(per_pair, (len(sa.vertices) + len(sb.vertices)) * n_axes)
+        rows = pairs[group == g]
+        # Most candidates (a small body beside a container slab) are apart along a face normal of
+        # one body even when the other is replaced by its bounding sphere: a cheap first cut.
+        for blk in _blocks(len(rows), 9 + sa.num_faces + sb.num_faces):
+            i, j = rows[blk, 0], rows[blk, 1]
+            d = a["position"][j] - a["position"][i]
+            gap = (_quat_rotate(_quat_conj(a["orientation"][i]), d) @ sa.face_normals.T - sa.face_offsets).max(axis=1)
+            near = np.flatnonzero(gap < sb.radius)
+            if near.size:
+                d_local = _quat_rotate(_quat_conj(a["orientation"][j[near]]), -d[near])
+                gap = (d_local @ sb.face_normals.T - sb.face_offsets).max(axis=1)
+                near = near[gap < sa.radius]
+            if not near.size:
+                continue
+            i, j = i[near], j[near]
+            ra = quat_to_matrix(a["orientation"][i])
+            rb = quat_to_matrix(a["orientation"][j])
+            for sub in _blocks(len(i), 4 * per_pair):
+                ii, jj = i[sub], j[sub]
+                depth, thin = _sat_depth(sa, sb, a["position"][ii], a["position"][jj], ra[sub], rb[sub], ea, eb)
+                rel = depth / thin
+                for h in np.flatnonzero(rel > INITIAL_OVERLAP_WARNING).tolist():
+                    b1, b2 = (int(ii[h]), int(jj[h])) if free[ii[h]] else (int(jj[h]), int(ii[h]))
+                    out.append(
+                        (
+                            float(rel[h]),
+                            float(depth[h]),
+                            b1,
+                            f"into {scene._body_label(b2)}",
+                            "the thinner one's thickness",
+                            f"move the two apart by at least {depth[h]:.3g} m",
+                        )
+                    )
+    return out
 
 
 def _rotation(value, key, file) -> np.ndarray:

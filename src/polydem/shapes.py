@@ -37,17 +37,23 @@ Tolerances, relative to the size ``L`` = bounding-box diagonal of the input poin
 
 from __future__ import annotations
 
+import io
 import math
 import operator
 import warnings
 from os import PathLike
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
-from scipy.spatial import ConvexHull, QhullError
 
-__all__ = ["ConvexShape", "DEFAULT_TOL"]
+# trimesh (0.4 s) and scipy.spatial are imported where they are used, so that importing polydem
+# (polydem --help, polydem info) does not pay for them.
+if TYPE_CHECKING:
+    import trimesh
+    from scipy.spatial import ConvexHull
+
+__all__ = ["ConvexShape", "DEFAULT_TOL", "MAX_FACES", "MAX_FACE_VERTICES"]
 
 DEFAULT_TOL = 1e-9
 """Default relative coplanarity tolerance (times the bounding-box diagonal) for merging hull faces."""
@@ -71,6 +77,19 @@ _MOMENT_RTOL = 1e-9
 _CONVEX_VOLUME_RTOL = 1e-6
 # Limit for sphere(): subdivision 5 already has 20480 faces.
 _MAX_SUBDIVISIONS = 5
+
+MAX_FACES = 20480
+"""Most faces of a shape (as many as ``sphere(5)``). The narrow phase is compiled for the largest
+face count in use and keeps, per thread, a list of that many face planes (4 floats) and ids (1 int):
+400 KiB at this limit in float32, within the 512 KiB of local memory a CUDA thread can have."""
+
+MAX_FACE_VERTICES = 1024
+"""Most vertices of one face: the narrow phase clips faces in a per-thread buffer of 2 x (face
+vertices + 16) points (24 KiB at this limit, beside the plane list of MAX_FACES)."""
+
+# A convex polyhedron with V vertices has at least V / 2 + 2 faces (every vertex has 3 edges or
+# more, and V - E + F = 2), so hulls with more vertices than this exceed MAX_FACES.
+_MAX_HULL_VERTICES = 2 * (MAX_FACES - 2)
 
 
 class _HullBuildError(Exception):
@@ -162,26 +181,22 @@ class ConvexShape:
 
         Raises:
             FileNotFoundError: the path does not exist.
-            ValueError: the path is not a file, or the file cannot be parsed or holds no vertices.
+            ValueError: the path is not a file; the file cannot be read or parsed ("cannot read mesh file
+                X: not a valid OBJ file (...)"); a vertex is not finite (naming its line in an OBJ file,
+                its index otherwise); or the file holds no vertices.
         """
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"shape file not found: '{path}' (absolute: '{path.absolute()}'); check the path")
         if not path.is_file():
             raise ValueError(f"shape path '{path}' is not a regular file; pass the path of an OBJ, STL or PLY file")
-        try:
-            mesh = trimesh.load(path, force="mesh")
-        except Exception as exc:  # trimesh raises many types for bad files; all mean "unreadable"
-            raise ValueError(f"could not read mesh file '{path}': {type(exc).__name__}: {exc}") from exc
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0:
-            raise ValueError(
-                f"mesh file '{path}' holds no vertices (empty, corrupt, or not a mesh); "
-                "export the shape as OBJ, STL or PLY with at least 4 non-coplanar vertices"
-            )
+        mesh = _load_mesh(path)
         return cls._from_mesh(mesh, path.stem if name is None else name, tol, stacklevel=3)
 
     @classmethod
     def _from_mesh(cls, mesh, name, tol, stacklevel) -> ConvexShape:
+        import trimesh
+
         if not isinstance(mesh, trimesh.Trimesh):
             raise TypeError(
                 f"from_mesh expects a trimesh.Trimesh, got {type(mesh).__name__}; "
@@ -269,11 +284,12 @@ class ConvexShape:
         """Right prism on a regular ``n``-gon (n >= 3).
 
         Args:
-            n: number of sides.
+            n: number of sides, 3 to MAX_FACE_VERTICES (1024): the two n-gon faces must fit the narrow
+                phase's face buffer.
             radius: radius of the n-gon's circumscribed circle [m].
             height: prism height along the input z axis [m].
         """
-        n = _count("prism", "n", n, 3)
+        n = _count("prism", "n", n, 3, MAX_FACE_VERTICES, "the most vertices of a face the contact kernels take")
         r = _positive("prism", "radius", radius)
         h = _positive("prism", "height", height)
         ang = 2.0 * np.pi * np.arange(n) / n
@@ -300,13 +316,14 @@ class ConvexShape:
         ``n_points`` vertices (unless two land within the merge tolerance of each other).
 
         Args:
-            n_points: number of points (= hull vertices), >= 4.
+            n_points: number of points (= hull vertices), 4 to 10242 (a hull of n points has 2 n - 4
+                triangles, at most MAX_FACES = 20480).
             size: largest diameter of the ellipsoid [m].
             seed: seed for :func:`numpy.random.default_rng`.
             elongation: relative ellipsoid diameters along x, y, z [-]; scaled so the largest is ``size``.
             roughness: radial jitter in [0, 1) [-]; 0 puts every point on the ellipsoid.
         """
-        n = _count("rock", "n_points", n_points, 4)
+        n = _count("rock", "n_points", n_points, 4, MAX_FACES // 2 + 2, f"a hull of at most {MAX_FACES} faces")
         size = _positive("rock", "size", size)
         try:
             e = np.asarray(elongation, dtype=np.float64).reshape(3)
@@ -317,6 +334,8 @@ class ConvexShape:
         roughness = float(roughness)
         if not 0.0 <= roughness < 1.0:
             raise ValueError(f"rock: roughness must be in [0, 1); got {roughness}")
+        from scipy.spatial import ConvexHull, QhullError
+
         rng = np.random.default_rng(seed)
         dirs = rng.normal(size=(n, 3))
         dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-300)
@@ -345,6 +364,8 @@ class ConvexShape:
         if s > _MAX_SUBDIVISIONS:
             raise ValueError(f"sphere: subdivisions must be <= {_MAX_SUBDIVISIONS} (20480 faces); got {s}")
         r = _positive("sphere", "radius", radius)
+        import trimesh
+
         pts = trimesh.creation.icosphere(subdivisions=s, radius=r).vertices
         return cls(np.asarray(pts, dtype=np.float64), name=f"sphere{s}" if name is None else name)
 
@@ -381,6 +402,8 @@ class ConvexShape:
 
     def to_trimesh(self) -> trimesh.Trimesh:
         """Triangulated copy in the body frame (each face fanned from its first vertex)."""
+        import trimesh
+
         return trimesh.Trimesh(vertices=self.vertices.copy(), faces=_fan(self.faces), process=False)
 
     def scaled(self, factor: float) -> ConvexShape:
@@ -467,7 +490,7 @@ def _positive(func: str, arg: str, value, what: str = "a length in metres") -> f
     return v
 
 
-def _count(func: str, arg: str, value, minimum: int) -> int:
+def _count(func: str, arg: str, value, minimum: int, maximum: int | None = None, why: str = "") -> int:
     try:
         if isinstance(value, bool):
             raise TypeError
@@ -476,6 +499,8 @@ def _count(func: str, arg: str, value, minimum: int) -> int:
         raise ValueError(f"{func}: {arg} must be an integer >= {minimum}, got {value!r}") from None
     if v < minimum:
         raise ValueError(f"{func}: {arg} must be an integer >= {minimum}, got {v}")
+    if maximum is not None and v > maximum:
+        raise ValueError(f"{func}: {arg} must be at most {maximum} ({why}), got {v}; use a smaller {arg}")
     return v
 
 
@@ -527,11 +552,118 @@ def _validate_points(points) -> np.ndarray:
     return pts
 
 
+# ---------------------------------------------------------------------- mesh files
+
+_MESH_HINT = "re-export it as OBJ, STL or PLY (e.g. from the modelling program or with trimesh)"
+
+
+def _load_mesh(path: Path):
+    """A :class:`trimesh.Trimesh` from a mesh file, or ValueError saying what is wrong with the file."""
+    import trimesh
+
+    suffix = path.suffix.lower().lstrip(".")
+    fmt = suffix.upper() or "mesh"
+    if suffix not in trimesh.available_formats():
+        raise ValueError(
+            f"cannot read mesh file '{path}': unknown mesh format {path.suffix!r}; use an .obj, .stl or .ply file"
+        )
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"cannot read mesh file '{path}': {exc.strerror or exc}") from exc
+    if suffix == "obj":
+        data = _check_obj(data, path)
+    elif suffix == "stl":
+        _check_stl(data, path)
+    try:
+        # process=False keeps every vertex as read (trimesh would drop non-finite ones silently).
+        mesh = trimesh.load(io.BytesIO(data), file_type=suffix, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files; all mean "unreadable"
+        detail = f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, ImportError):  # trimesh wants charset_normalizer to guess a text encoding
+            detail = "the file is not UTF-8 text"
+        raise ValueError(f"cannot read mesh file '{path}': not a valid {fmt} file ({detail}); {_MESH_HINT}") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0:
+        raise ValueError(
+            f"mesh file '{path}' holds no vertices (empty, truncated, corrupt, or not a mesh); "
+            "export the shape as OBJ, STL or PLY with at least 4 non-coplanar vertices"
+        )
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(verts).all(axis=1))
+    if bad.size:
+        raise ValueError(
+            f"mesh file '{path}': vertex {bad[0]} (counting from 0) has non-finite coordinates {verts[bad[0]].tolist()}"
+            f"{f' ({bad.size} such vertices)' if bad.size > 1 else ''}; fix those vertices or remove them and the "
+            "faces that use them"
+        )
+    # Merge duplicate vertices as trimesh.load does by default (an STL repeats them per triangle), so
+    # that watertightness and the volume can be checked.
+    return trimesh.Trimesh(vertices=verts, faces=np.asarray(mesh.faces), process=True)
+
+
+def _check_obj(data: bytes, path: Path) -> bytes:
+    """OBJ text as UTF-8, after checking that every vertex line holds three finite numbers."""
+    nul = data.find(b"\0")
+    if nul >= 0:
+        raise ValueError(
+            f"cannot read mesh file '{path}': not a valid OBJ file (binary data at byte {nul}, where an OBJ file is "
+            f"text); {_MESH_HINT}"
+        )
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        text = data.decode("latin-1")  # only comments and names can hold non-ASCII text
+    count = 0
+    for number, line in enumerate(text.splitlines(), 1):
+        fields = line.split()
+        if not fields or fields[0] != "v":
+            continue
+        count += 1
+        try:
+            xyz = [float(x) for x in fields[1:4]]
+        except ValueError:
+            xyz = []
+        if len(xyz) < 3:
+            raise ValueError(
+                f"mesh file '{path}', line {number}: vertex {count} {line.strip()!r} does not hold three numbers "
+                "x y z; fix the line"
+            )
+        if not all(math.isfinite(x) for x in xyz):
+            raise ValueError(
+                f"mesh file '{path}', line {number}: vertex {count} {line.strip()!r} has a non-finite coordinate; "
+                "give finite x y z numbers, or remove the vertex and the faces that use it"
+            )
+    return text.encode("utf-8")
+
+
+def _check_stl(data: bytes, path: Path) -> None:
+    """Binary STL of the right length, or text starting with 'solid' (ASCII STL)."""
+    if len(data) >= 84:
+        n = int.from_bytes(data[80:84], "little")
+        if len(data) == 84 + 50 * n:
+            return
+        binary = f"as binary STL it declares {n} triangles ({84 + 50 * n} bytes) but has {len(data)} bytes"
+    else:
+        binary = f"it has {len(data)} bytes, fewer than the 84 of a binary STL header"
+    if data.lstrip()[:5].lower() == b"solid" and b"\0" not in data:
+        try:
+            data.decode("utf-8")
+            return
+        except UnicodeDecodeError:
+            pass
+    raise ValueError(
+        f"cannot read mesh file '{path}': not a valid STL file ({binary}, and it is not ASCII STL text starting "
+        f"with 'solid'; truncated or not an STL file); {_MESH_HINT}"
+    )
+
+
 # ---------------------------------------------------------------------- hull construction
 
 
 def _build(points: np.ndarray, tol: float) -> dict:
     """Polygon hull, mass properties and body frame of validated points (see the module docstring)."""
+    from scipy.spatial import ConvexHull, QhullError
+
     origin = 0.5 * (points.min(axis=0) + points.max(axis=0))
     # Centring first keeps qhull and the mass integrals accurate for shapes placed far from the origin.
     centred = points - origin
@@ -540,6 +672,12 @@ def _build(points: np.ndarray, tol: float) -> dict:
         first_hull = ConvexHull(centred)
     except QhullError as exc:
         raise ValueError(f"the convex hull of the points could not be computed (degenerate input?): {exc}") from exc
+    if len(first_hull.vertices) > _MAX_HULL_VERTICES:
+        raise ValueError(
+            f"the convex hull of the points has {len(first_hull.vertices)} vertices, so at least "
+            f"{len(first_hull.vertices) // 2 + 2} faces: more than the {MAX_FACES} faces the contact kernels take; "
+            "simplify the shape (fewer points, or decimate the mesh, e.g. with trimesh's simplify_quadric_decimation)"
+        )
     if first_hull.volume < _VOLUME_RTOL * size**3:
         raise ValueError(
             f"hull volume {first_hull.volume:.3g} m^3 is below {_VOLUME_RTOL:g} * bbox_diagonal^3 = "
@@ -559,10 +697,20 @@ def _build(points: np.ndarray, tol: float) -> dict:
     for rel in ladder:
         try:
             verts, loops = _polygon_hull(centred, rel * size, first_hull)
-            return _body_frame(verts, loops, origin, 4.0 * rel * size)
+            out = _body_frame(verts, loops, origin, 4.0 * rel * size)
+            break
         except _HullBuildError as exc:
             errors.append(f"tol={rel:g}: {exc}")
-    raise RuntimeError("could not build a consistent polygon hull; " + "; ".join(errors))
+    else:
+        raise RuntimeError("could not build a consistent polygon hull; " + "; ".join(errors))
+    longest = max(len(lp) for lp in out["faces"])
+    if len(out["faces"]) > MAX_FACES or longest > MAX_FACE_VERTICES:
+        raise ValueError(
+            f"the shape has {len(out['faces'])} faces, the longest with {longest} vertices: the contact kernels take "
+            f"at most {MAX_FACES} faces of at most {MAX_FACE_VERTICES} vertices; simplify the shape (fewer points, "
+            "or decimate the mesh, e.g. with trimesh's simplify_quadric_decimation)"
+        )
+    return out
 
 
 def _polygon_hull(points: np.ndarray, dist_tol: float, first_hull: ConvexHull) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -572,6 +720,8 @@ def _polygon_hull(points: np.ndarray, dist_tol: float, first_hull: ConvexHull) -
     their loop neighbours) are removed and the hull rebuilt, so that every face and its neighbours
     agree on the vertex set. ``first_hull`` is the qhull hull of all ``points``.
     """
+    from scipy.spatial import ConvexHull, QhullError
+
     active = np.arange(len(points))
     hull = first_hull
     for _ in range(len(points)):
@@ -825,6 +975,8 @@ def _body_frame(verts: np.ndarray, loops: list[np.ndarray], origin: np.ndarray, 
         raise _HullBuildError("face loops do not form a closed, consistently oriented surface")
     if nv - len(edges) // 2 + len(loops) != 2:
         raise _HullBuildError("face loops do not satisfy Euler's formula V - E + F = 2")
+
+    import trimesh
 
     props = trimesh.triangles.mass_properties(verts[_fan(loops)], density=1.0)
     if not props.volume > 0.0:
