@@ -853,6 +853,17 @@ def test_validate_prints_warnings_and_passes(tmp_path, capsys):
     assert "body 0 (shape 'cube', free) 0.003 m into body " in err and ", fixed) (30.0%); move the bodies" in err
 
 
+def test_run_prints_a_scene_warning_as_one_line(tmp_path, capsys):
+    """The same moderate overlap in a run: one "polydem: warning:" line, not Python's warning format."""
+    body = '[[bodies]]\nshape = "cube"\nmaterial = "stone"\nposition = [0.0, 0.0, 0.007]\n\n[[walls]]'
+    path = write_scene(tmp_path, replace=[("[[walls]]", body)])
+    code, out, err = run(["run", path, "--device", "cpu", "--steps", "2", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"polydem: warning: {path}: 1 initial overlaps "), err
+    assert "SceneWarning" not in err
+
+
 def test_render_scene_checkpoint_and_usd_frame(tmp_path, capsys, unbroken):
     scene, out_dir = unbroken
     size = ["--width", "64", "--height", "48", "--device", "cpu"]

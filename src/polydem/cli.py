@@ -1981,11 +1981,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Run the ``polydem`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    import warnings
+
     _signals.install()
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        # polydem's own warnings (scene, shapes, checkpoints) as one line, like its errors.
+        if issubclass(category, UserWarning) and _is_ours(category, filename):
+            sys.stdout.flush()
+            print(f"polydem: warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
     try:
         return _main(argv)
     finally:
+        warnings.showwarning = shown
         _signals.uninstall()
+
+
+def _is_ours(category, filename) -> bool:
+    package = Path(__file__).resolve().parent
+    return category.__module__.startswith("polydem") or Path(filename).resolve().is_relative_to(package)
 
 
 def _main(argv) -> int:
