@@ -1,7 +1,7 @@
 """Final states of a few CPU runs, as SHA-256 digests, to prove that a refactoring changes no result.
 
-    python benchmarks/reference_states.py --save     # before the change: writes benchmarks/results/reference_states.json
-    python benchmarks/reference_states.py            # after it: runs the same cases and compares, bit for bit
+    python benchmarks/reference_states.py --save   # before a change: benchmarks/results/reference_states.json
+    python benchmarks/reference_states.py          # after it: the same cases, compared bit for bit
 
 The cases cover the paths a redesign touches: the built-in default scene (mixed shapes, friction,
 box container), the drum (kinematic walls turning about a pivot), the cube drop on a plane wall,
