@@ -268,8 +268,34 @@ def test_supersample_shape_and_agreement(device):
 # ------------------------------------------------------------------------------------ PNG
 
 
+def _unfilter(rows, channels):
+    """Undo PNG's per-row filters (0 None, 1 Sub, 2 Up, 3 Average, 4 Paeth) of 8-bit rows."""
+    h = rows.shape[0]
+    out = np.zeros((h, rows.shape[1] - 1), dtype=np.int64)
+    for y in range(h):
+        kind, line = int(rows[y, 0]), rows[y, 1:].astype(np.int64)
+        up = out[y - 1] if y else np.zeros_like(line)
+        if kind in (0, 2):
+            out[y] = (line + (up if kind == 2 else 0)) % 256
+            continue
+        row = out[y]
+        for i in range(len(line)):
+            left = row[i - channels] if i >= channels else 0
+            up_left = up[i - channels] if i >= channels else 0
+            if kind == 1:
+                pred = left
+            elif kind == 3:
+                pred = (left + up[i]) // 2
+            else:
+                p = left + up[i] - up_left
+                pa, pb, pc = abs(p - left), abs(p - up[i]), abs(p - up_left)
+                pred = left if pa <= pb and pa <= pc else up[i] if pb <= pc else up_left
+            row[i] = (line[i] + pred) % 256
+    return out
+
+
 def decode_png(data):
-    """(width, height, colour type, pixels) of an 8-bit PNG written with filters None or Sub."""
+    """(width, height, colour type, pixels) of an 8-bit, non-interlaced PNG, decoded here independently."""
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     pos, chunks = 8, []
     while pos < len(data):
@@ -286,10 +312,8 @@ def decode_png(data):
     raw = zlib.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT"))
     assert len(raw) == h * (1 + w * channels)
     rows = np.frombuffer(raw, dtype=np.uint8).reshape(h, 1 + w * channels)
-    assert set(np.unique(rows[:, 0])) <= {0, 1}
-    out = rows[:, 1:].reshape(h, w, channels).astype(np.int64)
-    sub = rows[:, 0] == 1
-    out[sub] = np.cumsum(out[sub], axis=1) % 256  # undo Sub: each byte plus the one to its left
+    assert set(np.unique(rows[:, 0])) <= {0, 1, 2, 3, 4}
+    out = _unfilter(rows, channels).reshape(h, w, channels)
     return w, h, ctype, out.astype(np.uint8)
 
 

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import math
 import os
-import struct
-import zlib
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -523,38 +521,24 @@ def _check_png_path(path) -> Path:
     return p
 
 
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-
 def save_png(image, path: str | PathLike) -> Path:
-    """Writes an 8-bit image as a PNG file (standard library only); returns the path.
+    """Writes an 8-bit image as a PNG file (Pillow); returns the path.
 
-    ``image``: uint8 array (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA. Rows use PNG's "Sub"
-    filter (each byte minus the same channel of the pixel to its left), which compresses the
-    smooth regions of a rendering well.
+    ``image``: uint8 array (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA.
     """
+    from PIL import Image
+
     p = _check_png_path(path)
     img = np.asarray(image)
     if img.dtype != np.uint8:
         raise ValueError(f"image must be uint8 (0-255), got dtype {img.dtype}")
-    if img.ndim == 2:
-        img = img[:, :, None]
-    if img.ndim != 3 or img.shape[2] not in (1, 3, 4) or img.shape[0] < 1 or img.shape[1] < 1:
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4))) or img.shape[0] < 1 or img.shape[1] < 1:
         raise ValueError(f"image must have shape (H, W), (H, W, 3) or (H, W, 4), got {np.shape(image)}")
-    h, w, c = img.shape
-    rows = np.ascontiguousarray(img).reshape(h, w * c)
-    filtered = rows.copy()
-    filtered[:, c:] = rows[:, c:] - rows[:, :-c]  # uint8 arithmetic wraps modulo 256, as PNG wants
-    raw = np.hstack([np.ones((h, 1), dtype=np.uint8), filtered]).tobytes()
-    color_type = {1: 0, 3: 2, 4: 6}[c]
-    png = b"\x89PNG\r\n\x1a\n"
-    png += _chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0))
-    png += _chunk(b"IDAT", zlib.compress(raw, 6))
-    png += _chunk(b"IEND", b"")
     tmp = p.with_name(p.name + ".tmp")  # a failed write leaves neither a broken picture nor a temporary file
     try:
-        tmp.write_bytes(png)
+        Image.fromarray(np.ascontiguousarray(img)).save(tmp, format="PNG")
         os.replace(tmp, p)
     except BaseException:
         tmp.unlink(missing_ok=True)
