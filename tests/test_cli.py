@@ -1084,6 +1084,39 @@ def test_progress_lines_off_a_terminal_also_follow_the_clock(monkeypatch):
     assert "left" in lines[0] and "2 h 4" in lines[0]
 
 
+def test_progress_on_a_terminal_costs_no_diagnostics_pass(monkeypatch):
+    """On a terminal the line is redrawn every quarter second: it shows the numbers of the last
+    frame recorded instead of computing the contacts and energies again."""
+    clock = {"t": 0.0}
+    monkeypatch.setattr(cli_progress.time, "perf_counter", lambda: clock["t"])
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    class Sim:
+        steps_done = 0
+        time = 0.0
+        passes = 0
+
+        def energy(self):
+            Sim.passes += 1
+            return {"kinetic": 1.0}
+
+        def contacts(self):
+            Sim.passes += 1
+            return {"volume": np.zeros(2)}
+
+    sim, stream = Sim(), Terminal()
+    progress = cli_progress.Progress(stream, 0, 10000, 1e-4, enabled=True)
+    progress.note(0, 7, 2.5)  # frame 0
+    for k in range(1, 100):
+        clock["t"], sim.steps_done = 0.5 * k, 100 * k
+        progress.update(sim)
+    assert Sim.passes == 0 and stream.getvalue().count("\r") == 99
+    assert "7 contacts  kinetic 2.500e+00 J" in stream.getvalue().split("\r")[-1]
+
+
 # ---------------------------------------------------------------------- outputs stay inside --out
 
 
