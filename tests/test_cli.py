@@ -17,7 +17,10 @@ import pytest
 
 import polydem
 from polydem import cli
-from polydem.cli import main
+from polydem.cli import main, parser
+from polydem.cli import progress as cli_progress
+from polydem.cli.progress import duration
+from polydem.cli.report import Report
 from polydem.simulation import Simulation, SimulationError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -1028,7 +1031,7 @@ def test_without_matplotlib_one_note_line(tmp_path, capsys, monkeypatch):
 def test_progress_says_how_long_it_will_take(monkeypatch):
     """The time left follows the recent rate (a pour slows down as its contacts grow)."""
     clock = {"t": 100.0}
-    monkeypatch.setattr(cli.time, "perf_counter", lambda: clock["t"])
+    monkeypatch.setattr(cli_progress.time, "perf_counter", lambda: clock["t"])
 
     class Sim:
         steps_done = 0
@@ -1041,7 +1044,7 @@ def test_progress_says_how_long_it_will_take(monkeypatch):
             return {"volume": np.zeros(3)}
 
     sim, stream = Sim(), io.StringIO()
-    progress = cli._Progress(stream, 0, 10000, 1e-4, enabled=True)
+    progress = cli_progress.Progress(stream, 0, 10000, 1e-4, enabled=True)
     # 1000 steps per second, then 100 per second from step 5000 on.
     for steps, t in [(100, 100.5), (500, 100.9), (1000, 101.4), (2000, 102.4), (5000, 105.4), (5500, 110.4)]:
         clock["t"], sim.steps_done, sim.time = t, steps, steps * 1e-4
@@ -1055,12 +1058,12 @@ def test_progress_says_how_long_it_will_take(monkeypatch):
     clock["t"], sim.steps_done = 160.0, 10000
     progress.update(sim)
     assert "took 1 min 00 s" in stream.getvalue().splitlines()[-1]
-    assert cli._duration(3.14) == "3.1 s" and cli._duration(75) == "1 min 15 s" and cli._duration(7322) == "2 h 02 min"
+    assert duration(3.14) == "3.1 s" and duration(75) == "1 min 15 s" and duration(7322) == "2 h 02 min"
 
 
 def test_progress_lines_off_a_terminal_also_follow_the_clock(monkeypatch):
     clock = {"t": 0.0}
-    monkeypatch.setattr(cli.time, "perf_counter", lambda: clock["t"])
+    monkeypatch.setattr(cli_progress.time, "perf_counter", lambda: clock["t"])
 
     class Sim:
         time = 0.0
@@ -1072,13 +1075,46 @@ def test_progress_lines_off_a_terminal_also_follow_the_clock(monkeypatch):
             return {"volume": np.zeros(0)}
 
     sim, stream = Sim(), io.StringIO()
-    progress = cli._Progress(stream, 0, 10**6, 1e-4, enabled=True)
+    progress = cli_progress.Progress(stream, 0, 10**6, 1e-4, enabled=True)
     for k in range(1, 200):  # a slow run: 100 steps per second, far from the first 5% mark
         clock["t"], sim.steps_done = float(k), 100 * k
         progress.update(sim)
     lines = stream.getvalue().splitlines()
     assert 3 <= len(lines) <= 5  # after 10 s, then a minute apart
     assert "left" in lines[0] and "2 h 4" in lines[0]
+
+
+def test_progress_on_a_terminal_costs_no_diagnostics_pass(monkeypatch):
+    """On a terminal the line is redrawn every quarter second: it shows the numbers of the last
+    frame recorded instead of computing the contacts and energies again."""
+    clock = {"t": 0.0}
+    monkeypatch.setattr(cli_progress.time, "perf_counter", lambda: clock["t"])
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    class Sim:
+        steps_done = 0
+        time = 0.0
+        passes = 0
+
+        def energy(self):
+            Sim.passes += 1
+            return {"kinetic": 1.0}
+
+        def contacts(self):
+            Sim.passes += 1
+            return {"volume": np.zeros(2)}
+
+    sim, stream = Sim(), Terminal()
+    progress = cli_progress.Progress(stream, 0, 10000, 1e-4, enabled=True)
+    progress.note(0, 7, 2.5)  # frame 0
+    for k in range(1, 100):
+        clock["t"], sim.steps_done = 0.5 * k, 100 * k
+        progress.update(sim)
+    assert Sim.passes == 0 and stream.getvalue().count("\r") == 99
+    assert "7 contacts  kinetic 2.500e+00 J" in stream.getvalue().split("\r")[-1]
 
 
 # ---------------------------------------------------------------------- outputs stay inside --out
@@ -1213,13 +1249,13 @@ def test_a_summary_that_cannot_be_written_after_the_run(tmp_path, capsys, monkey
     """The summary's place is taken by a folder once the run is over: exit code 1, the rest kept."""
     scene = write_scene(tmp_path, replace=[("pictures = [1]", "")])
     out_dir = tmp_path / "out"
-    original = cli._Run.summary
+    original = Report.summary
 
     def summary(self, *args):
         (out_dir / "summary.json").mkdir()
         return original(self, *args)
 
-    monkeypatch.setattr(cli._Run, "summary", summary)
+    monkeypatch.setattr(Report, "summary", summary)
     code, out, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "-q"], capsys)
     assert code == 1
     lines = [line for line in err.splitlines() if line.strip()]
@@ -1315,7 +1351,7 @@ def test_readme_cube_drop_example_includes_the_landing():
     m = re.search(r"polydem run scenes/cube_drop\.toml [^`]*--duration ([0-9.]+)", readme)
     assert m, "the README gives no cube_drop example with --duration"
     duration = float(m.group(1))
-    assert f"--duration {m.group(1)}" in cli._RUN_EPILOG  # polydem run --help gives the same example
+    assert f"--duration {m.group(1)}" in parser.RUN_EPILOG  # polydem run --help gives the same example
     scene = polydem.Scene.from_toml(REPO / "scenes" / "cube_drop.toml")
     g = -scene.gravity[2]
     drop = scene.body_vertices(0)[:, 2].min() - scene.planes[0].point[2]

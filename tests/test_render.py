@@ -426,12 +426,12 @@ def test_drum_scene_shows_its_grains(device):
     """The shipped drum: closed by its slabs and end plates, its grains show once the near parts go."""
     from pathlib import Path
 
-    from polydem.cli import _Poses
+    from polydem.cli.poses import Poses
 
     scene = polydem.Scene.from_toml(Path(__file__).resolve().parents[1] / "scenes" / "drum.toml")
     free = np.asarray(scene.body_kind) == 0
     colors = np.where(free[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    poses = _Poses(scene, scene.body_position, scene.body_orientation, device)
+    poses = Poses(scene, scene.body_position, scene.body_orientation, device)
     image = render_simulation(poses, width=80, height=60, body_colors=colors, shadows=False)
     grains = np.sum((image[..., 0] > 40) & (image[..., 1] < 20))
     assert grains > 0.1 * 80 * 60

@@ -1,0 +1,341 @@
+"""The command line of ``polydem``: one function per command adds its options, help and epilog.
+
+Nothing heavy is imported here (no numpy, Warp or trimesh), so that ``polydem --help`` is quick;
+each command's module is imported only when the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import textwrap
+
+from polydem.cli.errors import CliError
+from polydem.cli.settings import DEFAULT_STEPS
+
+__all__ = ["RUN_EPILOG", "build_parser"]
+
+
+def _count(what: str, example: str, one: str):
+    def parse(text: str) -> int:
+        value = None
+        try:
+            value = int(text, 10)
+        except ValueError:
+            try:
+                f = float(text)
+                if math.isfinite(f) and f.is_integer():
+                    value = int(f)
+            except ValueError:
+                pass
+        if value is None:
+            raise argparse.ArgumentTypeError(f"expected a whole number of {what}, got {text!r}; e.g. {example}")
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"expected at least 1 {one}, got {value}; e.g. {example}")
+        return value
+
+    return parse
+
+
+def _positive(what: str, example: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}; e.g. {example}") from None
+        if not (math.isfinite(value) and value > 0.0):
+            raise argparse.ArgumentTypeError(f"expected {what} > 0, got {text!r}; e.g. {example}")
+        return value
+
+    return parse
+
+
+def _angle(lowest: float, highest: float, example: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an angle in degrees, got {text!r}; e.g. {example}") from None
+        if not math.isfinite(value) or not lowest <= value <= highest:
+            span = "finite" if math.isinf(lowest) else f"from {lowest:g} to {highest:g}"
+            raise argparse.ArgumentTypeError(f"expected an angle {span} degrees, got {text!r}; e.g. {example}")
+        return value
+
+    return parse
+
+
+def _size(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels, got {text!r}; e.g. 800x600")
+    return int(m.group(1)), int(m.group(2))
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line (a CliError: exit code 2)."""
+
+    def error(self, message):
+        raise CliError(f"{message} (see '{self.prog} --help')", key=None)
+
+
+RUN_EPILOG = """\
+outputs (in --out, default polydem_out/<scene name>/; the scene's [output] table names them, as
+paths inside that folder; the closing lines name every file written):
+  USD animation   output.usd (trajectory.usdc when the scene file does not mention usd; none for
+                  usd = false). Frame k is the state at simulated time k / fps, time code k. It
+                  records the scene file, so that polydem render finds the scene.
+  summary         output.summary (summary.json): steps, simulated and wall time, bodies, contacts
+                  (final, mean and max over the frames), energies (start and end), the largest
+                  overlap relative to the smaller body's volume, and the packing fraction and mean
+                  coordination number of the settled region. That region is a box: horizontally the
+                  bounding box of the free bodies' centres shrunk by 2 mean body diameters (of
+                  equal-volume spheres) on each side, vertically from the lowest point of any free
+                  body to the 80th percentile of their centre heights. Packing fraction = volume of
+                  the free bodies whose centres lie in it / its volume; coordination number = mean
+                  number of contacts (with bodies or walls) of those bodies.
+  pictures        pictures/last.png, the final state (unless the scene sets output.pictures: frame
+                  numbers for pictures/frame_NNNNNN.png, "last", or false for none).
+  plots           energy.png and packing.png (energies, contacts, packing fraction against time)
+                  when matplotlib is installed: pip install "polydem[plot]".
+  VTK (ParaView)  --vtk or output.vtk = true: vtk/particles.pvd (the polyhedra), vtk/centres.pvd
+                  (one point per body), vtk/contacts.pvd (a line per contact with its forces: the
+                  force chains), each a series of frames (vtk/<series>/<series>_NNNNNN.vtu), and
+                  vtk/walls.vtu. Open the .pvd files in ParaView.
+  checkpoints     checkpoints/final.npz at the end, checkpoints/interrupted.npz when the run stops
+                  early; with output.checkpoint = {steps = N} or {seconds = T} also
+                  checkpoints/step_NNNNNNNNN.npz.
+  An output that cannot be written (a name too long, a file in the way of a folder, no
+  permission) stops the command before the run (exit code 2); after the start, the others are
+  still written (exit code 1).
+
+progress: one line per 5% of the steps on stderr (one line kept up to date on a terminal), with
+the wall time left once it can be estimated.
+
+interruption and resuming:
+  Ctrl-C, or SIGTERM (what a batch scheduler sends), stops after the steps under way (a second one
+  at once); the USD file keeps the frames so far, the summary says "interrupted": true, and
+  interrupted.npz holds the state. While the command starts (imports, Warp, kernel compilation)
+  either stops it at once, writing nothing. Add --resume CHECKPOINT to the same command to
+  continue: --steps and --duration count from t = 0, and the result equals that of an unbroken
+  run bit for bit (same device). The resumed frames go to a new USD file,
+  <usd name>.from_step_<N>.<ext>, with the same time codes as before. A checkpoint of other
+  physics (materials, shapes, walls, bodies, gravity, dt) is refused, naming what differs; the
+  summary of a resumed run covers the whole run from t = 0 ("parts": which steps and frames each
+  part wrote, and where).
+
+exit codes: 0 done; 1 the simulation failed or an output could not be written (the other outputs
+written), or an internal error; 2 a user error (bad option, scene or checkpoint: one message
+naming the file, the key and the fix); 130 Ctrl-C (SIGINT); 143 SIGTERM.
+
+examples:
+  polydem run                                   the built-in default scene (300 polyhedra)
+  polydem run scenes/cube_drop.toml --device cpu --duration 0.6 --out results/
+  polydem run scenes/drum.toml --resume polydem_out/drum/checkpoints/interrupted.npz
+"""
+
+
+def _para(text: str) -> str:
+    return textwrap.fill(text, 100)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    fmt = argparse.RawDescriptionHelpFormatter
+    parser = _Parser(
+        prog="polydem",
+        formatter_class=fmt,
+        description=_para(
+            "Discrete element simulation of rigid convex polyhedra (energy-based volume contact model) "
+            "with NVIDIA Warp."
+        ),
+        epilog=_para(
+            "Run 'polydem COMMAND --help' for the options of a command. Exit codes: 0 success, 1 simulation "
+            "failure, an output not written or internal error, 2 user error, 130 interrupted (Ctrl-C), 143 stopped "
+            "by SIGTERM."
+        ),
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
+    for add in (_add_run, _add_validate, _add_render, _add_info):
+        add(sub, fmt)
+    return parser
+
+
+def _add_run(sub, fmt) -> None:
+    run = sub.add_parser(
+        "run",
+        help="run a scene (the built-in default when none is given)",
+        description=_para(
+            "Run a scene: progress on stderr, a USD animation, a summary, pictures and checkpoints in "
+            "the output folder, and a short summary at the end."
+        ),
+        epilog=RUN_EPILOG,
+        formatter_class=fmt,
+    )
+    run.add_argument(
+        "scene", nargs="?", default=None, metavar="SCENE", help="scene file (TOML); default: the built-in default scene"
+    )
+    run.add_argument(
+        "--device",
+        default=None,
+        metavar="DEV",
+        help='Warp device: "cpu", "cuda" or "cuda:N"; default: the scene\'s [simulation] device, else the GPU '
+        "when there is one",
+    )
+    length = run.add_mutually_exclusive_group()
+    length.add_argument(
+        "--steps",
+        type=_count("steps", "--steps 10000", "step"),
+        default=None,
+        metavar="N",
+        help="run until step N (counted from t = 0, also when resuming); default: the scene's duration or steps, "
+        f"else {DEFAULT_STEPS}",
+    )
+    length.add_argument(
+        "--duration",
+        type=_positive("a simulated time in seconds", "--duration 0.5"),
+        default=None,
+        metavar="T",
+        help="run until simulated time T [s] (counted from t = 0, also when resuming); replaces the scene's "
+        "duration or steps",
+    )
+    run.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="output folder (made if missing); default: polydem_out/<scene name>/",
+    )
+    run.add_argument(
+        "--fps",
+        type=_positive("frames per simulated second", "--fps 60"),
+        default=None,
+        metavar="F",
+        help="frames per simulated second of the USD file, the picture frames and the contact statistics; "
+        "default: the scene's output.fps (60)",
+    )
+    run.add_argument(
+        "--precision",
+        choices=("float32", "float64"),
+        default=None,
+        help="floating-point precision of the simulation; the simulator runs float32 only (the default)",
+    )
+    run.add_argument(
+        "--resume",
+        default=None,
+        metavar="CHECKPOINT",
+        help="continue from a checkpoint (.npz) written by a run of the same scene; the result equals an "
+        "unbroken run's",
+    )
+    run.add_argument(
+        "--picture-size",
+        type=_size,
+        default=(800, 600),
+        metavar="WxH",
+        help="size of the pictures (pictures/last.png and those of output.pictures) in pixels (default 800x600)",
+    )
+    run.add_argument(
+        "--vtk",
+        action="store_true",
+        help="also write every frame as VTK files for ParaView in vtk/ of the output folder (as output.vtk = true)",
+    )
+    run.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress on stderr (the closing summary is still printed)"
+    )
+
+
+def _add_validate(sub, fmt) -> None:
+    validate = sub.add_parser(
+        "validate",
+        help="check scene files without running them",
+        description=_para(
+            "Check scene files without running them: load each one (every key and value), build the "
+            "model on the CPU to check the time step against the stable limit, and print a short description."
+        ),
+        epilog=_para(
+            "exit codes: 0 every scene is valid; 2 some scene is not (one message per bad file on stderr, "
+            "naming the file, the key and the fix)."
+        ),
+        formatter_class=fmt,
+    )
+    validate.add_argument("scenes", nargs="+", metavar="SCENE", help="scene file(s) (TOML)")
+    validate.add_argument(
+        "-q", "--quiet", action="store_true", help="one line per valid scene instead of a description"
+    )
+
+
+def _add_render(sub, fmt) -> None:
+    render = sub.add_parser(
+        "render",
+        help="write a PNG picture of a scene, a checkpoint or a frame of a USD file",
+        description=_para(
+            "Write a PNG picture of bodies and walls (ray cast with Warp). SOURCE is a scene file "
+            "(its initial state, frame 0), a checkpoint (.npz) or a USD file written by polydem run (any of its "
+            "frames). Checkpoints and USD files hold poses only: --scene names the scene they come from (a USD file "
+            "written by polydem run records it). Fixed and kinematic bodies between the camera and the free bodies "
+            "are left out, so the inside of a container shows."
+        ),
+        epilog="examples:\n"
+        "  polydem render scenes/drum.toml --out drum.png\n"
+        "  polydem render polydem_out/drum/drum.usd --frame 30 --out drum_1s.png\n"
+        "  polydem render scenes/drum.toml --elevation 90 --out drum_top.png\n"
+        "  polydem render polydem_out/default/checkpoints/final.npz --out settled.png",
+        formatter_class=fmt,
+    )
+    render.add_argument("source", metavar="SOURCE", help="scene file (.toml), checkpoint (.npz) or USD file")
+    render.add_argument("--out", required=True, metavar="IMAGE.png", help="the PNG file to write")
+    render.add_argument(
+        "--scene",
+        default=None,
+        metavar="SCENE",
+        help="scene file of a checkpoint or USD file (for the shapes, walls and colours); default: for a USD file "
+        "written by polydem run, the scene it records (its file, or the built-in default scene), else the built-in "
+        "default scene",
+    )
+    render.add_argument(
+        "--frame",
+        type=int,
+        default=None,
+        metavar="K",
+        help="frame of a USD file (time code K: simulated time K / fps); default: its last frame. A scene file "
+        "has frame 0 only; a checkpoint one state",
+    )
+    render.add_argument(
+        "--width", type=_count("pixels", "--width 800", "pixel"), default=800, help="width in pixels (800)"
+    )
+    render.add_argument(
+        "--height", type=_count("pixels", "--height 600", "pixel"), default=600, help="height in pixels (600)"
+    )
+    render.add_argument(
+        "--supersample",
+        type=_count("rays per pixel side", "--supersample 2", "ray per pixel side"),
+        default=1,
+        metavar="S",
+        help="S x S rays per pixel, for smoother edges (default 1)",
+    )
+    render.add_argument(
+        "--azimuth",
+        type=_angle(-math.inf, math.inf, "--azimuth 30"),
+        default=-60.0,
+        help="camera direction about the vertical [degrees] (default -60)",
+    )
+    render.add_argument(
+        "--elevation",
+        type=_angle(-90.0, 90.0, "--elevation 90 (from above) or --elevation -90 (from below)"),
+        default=50.0,
+        help="camera height above the horizontal [degrees], from -90 (from straight below) to 90 (from straight "
+        "above) (default 50)",
+    )
+    render.add_argument(
+        "--device",
+        default=None,
+        metavar="DEV",
+        help='Warp device that renders: "cpu", "cuda" or "cuda:N" (default: the GPU when there is one)',
+    )
+
+
+def _add_info(sub, fmt) -> None:
+    sub.add_parser(
+        "info",
+        help="print the versions and the Warp devices",
+        description=_para("Print the versions of polydem, Python, numpy, Warp and usd-core, and the Warp devices."),
+        formatter_class=fmt,
+    )

@@ -1,0 +1,133 @@
+"""``polydem render``: a PNG picture of a scene file, a checkpoint or a frame of a USD file."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from polydem import _signals
+from polydem.cli.common import plural, shorten
+from polydem.cli.device import device
+from polydem.cli.errors import EXIT_OK, CliError, why
+from polydem.cli.poses import Poses, check_poses, read_checkpoint_poses
+from polydem.cli.settings import load_scene
+
+__all__ = ["cmd_render"]
+
+_USD_SUFFIXES = (".usd", ".usda", ".usdc")
+
+
+_FIX = "give the scene it was written from with --scene SCENE"
+
+
+def _scene_file(args, source: Path):
+    """Frame 0 of a scene file: (scene, positions, orientations, what is rendered)."""
+    if args.scene is not None:
+        raise CliError("--scene is for checkpoints and USD files; a scene file renders itself", key="--scene")
+    if args.frame not in (None, 0):
+        raise CliError(
+            f"a scene file holds frame 0 only (its initial state), not frame {args.frame}; run it with "
+            "polydem run and render a frame of its USD file or a checkpoint",
+            source,
+            "--frame",
+        )
+    scene = load_scene(source)
+    return scene, scene.body_position, scene.body_orientation, f"frame 0 of {source}"
+
+
+def _checkpoint(args, source: Path):
+    """The state in a checkpoint: (scene, positions, orientations, what is rendered)."""
+    if args.frame is not None:
+        raise CliError(
+            "a checkpoint holds one state: leave --frame out (or render a frame of the run's USD file)",
+            source,
+            "--frame",
+        )
+    scene = load_scene(args.scene)
+    body_q = read_checkpoint_poses(source)
+    check_poses(source, body_q[:, :3], scene, args.scene, "checkpoint", _FIX)
+    return scene, body_q[:, :3], body_q[:, 3:7], f"the checkpoint {source}"
+
+
+def _usd_frame(args, source: Path):
+    """A frame of a USD file written by polydem run: (scene, positions, orientations, what is rendered)."""
+    from polydem.usd import read_frame, read_metadata, read_time_codes
+
+    try:
+        codes = read_time_codes(source)
+        recorded = read_metadata(source)
+    except (ValueError, OSError) as exc:
+        raise CliError(f"{exc}; give a USD file written by polydem run", source) from None
+    scene_arg = args.scene
+    if scene_arg is None and recorded.get("scene_file"):
+        scene_arg = recorded["scene_file"]
+        if not Path(scene_arg).is_file():
+            raise CliError(
+                f"the scene file it was written from, '{scene_arg}', is gone; give the scene with --scene SCENE",
+                source,
+            )
+    scene = load_scene(scene_arg)
+    if not len(codes):
+        raise CliError("the USD file has no frames; render a checkpoint or the scene instead", source)
+    frame = int(codes[-1]) if args.frame is None else args.frame
+    if frame not in set(codes.astype(np.int64).tolist()):
+        raise CliError(
+            f"the USD file has no frame {frame}: it holds {len(codes)} frames, {int(codes[0])} to "
+            f"{int(codes[-1])}; give one of them with --frame",
+            source,
+            "--frame",
+        )
+    positions, orientations = read_frame(source, frame)
+    check_poses(source, positions, scene, scene_arg, "USD file", _FIX)
+    return scene, positions, orientations, f"frame {frame} of {source}"
+
+
+def _source(args) -> Path:
+    """The file to render (CliError when it is of no known kind or not there)."""
+    source = Path(args.source)
+    if source.suffix.lower() not in (".toml", ".npz", *_USD_SUFFIXES):
+        raise CliError(
+            "give a scene file (.toml, frame 0), a checkpoint (.npz) or a USD file written by polydem run "
+            "(.usd, .usda, .usdc)",
+            source,
+        )
+    try:
+        found = source.is_file()
+    except OSError as exc:  # a name too long for the file system
+        raise CliError(f"cannot read the file ({why(exc)}); check the path", shorten(source)) from None
+    if not found:
+        raise CliError(f"file not found (looked for '{source.absolute()}'); check the path", source)
+    return source
+
+
+def cmd_render(args) -> int:
+    from polydem.render import render_simulation
+
+    out_png = Path(args.out)
+    if out_png.suffix.lower() != ".png":
+        raise CliError("the picture must be a .png file, e.g. --out frame.png", out_png, "--out")
+    source = _source(args)
+    dev = device(args.device)
+    read = {".toml": _scene_file, ".npz": _checkpoint}.get(source.suffix.lower(), _usd_frame)
+    scene, positions, orientations, what = read(args, source)
+    poses = Poses(scene, positions, orientations, dev)
+    _signals.check()
+    try:
+        out_png.parent.mkdir(parents=True, exist_ok=True)
+        render_simulation(
+            poses,
+            out_png,
+            width=args.width,
+            height=args.height,
+            supersample=args.supersample,
+            azimuth=args.azimuth,
+            elevation=args.elevation,
+        )
+    except OSError as exc:
+        raise CliError(f"cannot write the picture ({why(exc)})", shorten(out_png), "--out") from None
+    sys.stdout.write(
+        f"wrote {out_png} ({args.width} x {args.height}): {what}, {plural(scene.num_bodies, 'body', 'bodies')}\n"
+    )
+    return EXIT_OK

@@ -1,0 +1,247 @@
+"""The end of a run: the summary (``summary.json``) and the closing lines on stdout."""
+
+from __future__ import annotations
+
+import os
+import shlex
+
+import numpy as np
+
+from polydem.cli.common import listing, plural, relative, shorten
+from polydem.cli.diagnostics import relative_overlaps, settled_region
+from polydem.cli.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
+from polydem.cli.outputs import scene_metadata
+
+__all__ = ["Report"]
+
+
+class Report:
+    """The summary and the closing lines of a run of ``sim`` (``args``: the command line), from
+    its ``log``, ``outputs`` and ``schedule``; ``pictures``: the scene's pictures setting."""
+
+    def __init__(self, args, scene, sim, *, log, outputs, schedule, pictures, energy_at_start):
+        self.args = args
+        self.scene = scene
+        self.sim = sim
+        self.log = log
+        self.outputs = outputs
+        self.schedule = schedule
+        self.pictures = pictures
+        self.energy_at_start = energy_at_start
+
+    def _largest_overlap(self, contacts) -> dict | None:
+        rel = relative_overlaps(contacts, self.log.volumes) if contacts is not None else np.zeros(0)
+        if not len(rel):
+            return None
+        i = int(np.argmax(rel))
+        b = int(contacts["body_b"][i])
+        return {
+            "relative": float(rel[i]),
+            "volume": float(contacts["volume"][i]),
+            "body_a": int(contacts["body_a"][i]),
+            "body_b": b if b >= 0 else None,
+            "wall": -1 - b if b < 0 else None,
+        }
+
+    def _files(self) -> dict:
+        """The ``outputs`` entry of the summary: the files of the whole run, relative to the folder."""
+        o = self.outputs
+        e = self.log.earlier or {}
+        folder = o.out_dir
+        return {
+            "folder": str(folder),
+            "usd": relative(o.usd_path, folder) if o.usd_path is not None and not o.usd_failed else None,
+            "usd_frames": o.usd.frames if o.usd is not None and not o.usd_failed else 0,
+            "vtk": {
+                "files": [relative(p, folder) for p in o.vtk.files],
+                "frames": o.vtk.frames,
+            }
+            if o.vtk is not None
+            else None,
+            "pictures": [*(relative(p, folder) for p in e.get("pictures", [])), *o.picture_files],
+            "checkpoints": list(
+                dict.fromkeys([*(relative(p, folder) for p in e.get("checkpoints", [])), *o.checkpoints])
+            ),
+            "summary": relative(o.summary_path, folder) if o.summary_path is not None else None,
+        }
+
+    def _notes(self, notes: list[str]) -> list[str]:
+        if isinstance(self.pictures, tuple):
+            missing = [k for k in self.pictures if k >= self.schedule.frame]
+            if missing:
+                notes.append(f"picture frames {missing} were not reached by this run")
+        if self.outputs.resumed_from is not None and self.log.earlier is None:
+            notes.append(
+                f"the checkpoint holds no record of the run before step {self.outputs.start}: the history, contact "
+                "counts, initial energy, wall time and files cover the resumed part only"
+            )
+        return notes
+
+    def summary(self, wall, reason, notes, consistent) -> dict:
+        from polydem import __version__
+
+        sim, scene, log, o = self.sim, self.scene, self.log, self.outputs
+        kind = np.asarray(scene.body_kind)
+        start, resumed_from = o.start, o.resumed_from
+        run_steps = sim.steps_done - start
+        energy = sim.energy() if consistent else None
+        contacts = sim.contacts() if consistent else None
+        frames = log.frame_contacts
+        e = log.earlier or {}
+        parts = [dict(p) for p in [*e.get("parts", []), o.part(sim.steps_done, wall)]]
+        for p in parts:
+            for k in ("usd", "resumed_from"):
+                if p.get(k) is not None:
+                    p[k] = relative(p[k], o.out_dir)
+        summary = {
+            "polydem": __version__,
+            "scene": scene.name,
+            "scene_file": scene_metadata(self.args.scene).get("scene_file"),
+            "default_scene": self.args.scene is None,
+            "device": str(sim.device),
+            "precision": scene.precision,
+            "interrupted": reason is not None,
+            "reason": reason,
+            "resumed_from": str(resumed_from) if resumed_from is not None else None,
+            "resumed_at_step": start if resumed_from is not None else None,
+            "history_from_step": parts[0]["from_step"],
+            "parts": parts,
+            "steps": sim.steps_done,
+            "steps_this_run": run_steps,
+            "target_steps": self.schedule.target,
+            "dt": sim.dt,
+            "simulated_time": sim.time,
+            "wall_time": e.get("wall_time", 0.0) + wall,
+            "wall_time_this_run": wall,
+            "steps_per_second": run_steps / wall if wall > 0 else None,
+            "body_steps_per_second": run_steps * sim.num_bodies / wall if wall > 0 else None,
+            "bodies": {
+                "total": int(sim.num_bodies),
+                "free": int(np.sum(kind == 0)),
+                "fixed": int(np.sum(kind == 1)),
+                "kinematic": int(np.sum(kind == 2)),
+            },
+            "fps": self.schedule.fps,
+            "frames": len(frames),
+            "contacts": {
+                "final": len(contacts["volume"]) if contacts is not None else None,
+                "mean": float(np.mean(frames)) if frames else None,
+                "max": int(np.max(frames)) if frames else None,
+            },
+            "largest_overlap": {
+                "final": self._largest_overlap(contacts),
+                "max_over_frames": log.frame_overlap if frames else None,
+            },
+            "energy": {
+                "initial": log.energy_initial,
+                "at_resume": self.energy_at_start if resumed_from is not None else None,
+                "final": energy,
+            },
+            "settled_region": settled_region(scene, sim.state(), contacts) if consistent else None,
+            "outputs": self._files(),
+        }
+        notes = self._notes(notes)
+        if notes:
+            summary["notes"] = notes
+        return summary
+
+    def closing_lines(self, s) -> list[str]:
+        """The closing lines of the summary ``s``: what the run did and every file written."""
+        frames = s["frames"]
+        c = s["contacts"]
+        lines = []
+        if c["final"] is not None:
+            over = ""
+            if frames:
+                over = f" (mean {c['mean']:.1f}, max {c['max']} over {plural(frames, 'frame')})"
+            lines.append(f"  contacts: {c['final']}{over}")
+        lo = s["largest_overlap"]
+        parts = []
+        if lo["final"] is not None:
+            parts.append(f"{lo['final']['relative']:.3%} now")
+        if lo["max_over_frames"] is not None:
+            parts.append(f"{lo['max_over_frames']:.3%} at most in the frames")
+        if parts:
+            lines.append(f"  largest overlap (of the smaller body's volume): {', '.join(parts)}")
+        region = s["settled_region"]
+        if region is not None and region["packing_fraction"] is not None:
+            lines.append(
+                f"  settled region ({plural(region['bodies'], 'body', 'bodies')}): packing fraction "
+                f"{region['packing_fraction']:.3f}, "
+                f"coordination number {region['coordination_number']:.2f}"
+            )
+        e = s["energy"]["final"]
+        if e is not None:
+            lines.append(
+                f"  energy [J]: kinetic {e['kinetic']:.4g}, contact {e['contact']:.4g}, dissipated "
+                f"{e['dissipated']:.4g}, total {e['total']:.6g} (at the start {s['energy']['initial']['total']:.6g})"
+            )
+        lines.append(f"  written to {self.outputs.out_dir}{os.sep}:")
+        files = self.written(s)
+        width = min(max((len(name) for name, _ in files), default=0), 40)
+        lines += [f"    {name:<{width}}  {what}" for name, what in files] or ["    nothing"]
+        for note in s.get("notes", []):
+            lines.append(f"  note: {note}")
+        for error in self.outputs.errors:
+            lines.append(f"  not written: {error}")
+        return lines
+
+    def report(self, out, err, s, cp_path, reason, status) -> None:
+        """Print the closing lines of the summary ``s`` and, after a signal, how to resume."""
+        head = "interrupted" if status in (EXIT_INTERRUPTED, EXIT_TERMINATED) else "stopped" if reason else "done"
+        rate = f" ({s['steps_per_second']:.0f} steps/s)" if s["steps_per_second"] else ""
+        first = (
+            f"{head}: {s['steps_this_run']} steps to step {s['steps']} (t = {s['simulated_time']:.6g} s) in "
+            f"{s['wall_time_this_run']:.2f} s{rate}, {plural(s['bodies']['total'], 'body', 'bodies')}"
+        )
+        out.write("\n".join([first, *self.closing_lines(s)]) + "\n")
+        out.flush()
+        if reason is not None and cp_path is not None and status in (EXIT_INTERRUPTED, EXIT_TERMINATED):
+            err.write(
+                f"polydem: run interrupted at step {s['steps']}; continue with:\n  {self.resume_command(cp_path)}\n"
+            )
+            err.flush()
+
+    def written(self, s) -> list[tuple[str, str]]:
+        """The files written (relative to the output folder) as (names, what) pairs, by kind."""
+        o = s["outputs"]
+        files = []
+        if o["usd"]:
+            files.append((shorten(o["usd"]), f"USD animation, {plural(o['usd_frames'], 'frame')}"))
+        if o.get("vtk"):
+            vtk = o["vtk"]
+            names = ", ".join(shorten(f) for f in vtk["files"] if f.endswith(".pvd"))
+            files.append((names, f"VTK series for ParaView, {plural(vtk['frames'], 'frame')} (and vtk/walls.vtu)"))
+        if o["summary"] and self.outputs.summary_written:
+            files.append((shorten(o["summary"]), "summary"))
+        pictures = o["pictures"]
+        if pictures:
+            last = pictures[-1] == "pictures/last.png"
+            what = ("picture of the final state" if last else "picture") if len(pictures) == 1 else "pictures"
+            files.append((listing(pictures, "pictures", 6), what))
+        if self.outputs.plot_files:
+            files.append((", ".join(self.outputs.plot_files), "plots"))
+        if o["checkpoints"]:
+            what = "checkpoint" if len(o["checkpoints"]) == 1 else "checkpoints"
+            files.append((listing(o["checkpoints"], "checkpoints", 4), what))
+        return files
+
+    def resume_command(self, cp_path) -> str:
+        a = self.args
+        cmd = ["polydem", "run"]
+        if a.scene is not None:
+            cmd.append(str(a.scene))
+        cmd += ["--resume", str(cp_path)]
+        if a.device is not None:
+            cmd += ["--device", a.device]
+        if a.steps is not None:
+            cmd += ["--steps", str(a.steps)]
+        if a.duration is not None:
+            cmd += ["--duration", repr(a.duration)]
+        if a.fps is not None:
+            cmd += ["--fps", repr(a.fps)]
+        if a.vtk:
+            cmd.append("--vtk")
+        if a.out is not None:
+            cmd += ["--out", str(a.out)]
+        return shlex.join(cmd)

@@ -1,0 +1,332 @@
+"""``polydem run``: set up a run (scene, device, output folder, resuming) and drive it.
+
+:class:`Run` steps the simulation from stop to stop of its :class:`~polydem.cli.schedule.Schedule`;
+at each stop it records the frames due (:class:`~polydem.cli.record.RunLog` and
+:class:`~polydem.cli.outputs.Outputs`), writes a checkpoint when one is due and updates the
+progress line. Whatever stops the run, it then writes the outputs, the summary and the closing
+lines (:class:`~polydem.cli.report.Report`).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from polydem import _signals
+from polydem.cli.common import plural, safe_name, shorten, steps_at
+from polydem.cli.device import device, warp
+from polydem.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, OutputError, why
+from polydem.cli.outputs import Outputs, scene_metadata
+from polydem.cli.poses import check_poses, read_checkpoint
+from polydem.cli.progress import Progress
+from polydem.cli.record import RunLog, run_record_problem
+from polydem.cli.report import Report
+from polydem.cli.schedule import Schedule
+from polydem.cli.settings import DEFAULT_STEPS, check_outputs, load_scene, pictures_setting
+
+__all__ = ["Run", "cmd_run", "roll_back"]
+
+
+def roll_back(sim) -> bool:
+    """Bring ``sim`` back to a consistent state after an exception inside ``Simulation.step``.
+
+    A step interrupted part-way through a chunk has advanced the device state beyond
+    ``sim.steps_done`` (and a SimulationError leaves a non-finite state); the copy saved at the
+    start of that chunk is restored. Returns whether the state now matches ``sim.steps_done``.
+    """
+    try:
+        if int(sim.step_count.numpy()[0]) == sim.steps_done and np.all(np.isfinite(sim.body_q.numpy())):
+            return True
+        saved = getattr(sim, "_saved", None)
+        if saved is None or int(saved["step"].numpy()[0]) != sim.steps_done:
+            return False
+        sim._restore()
+        return int(sim.step_count.numpy()[0]) == sim.steps_done and bool(np.all(np.isfinite(sim.body_q.numpy())))
+    except Exception:
+        return False
+
+
+class Run:
+    """One ``polydem run`` of ``sim`` to step ``target``, writing into ``out_dir``."""
+
+    def __init__(self, args, scene, sim, out_dir: Path, target: int, resumed_from):
+        self.args = args
+        self.scene = scene
+        self.sim = sim
+        self.start = sim.steps_done
+        o = scene.output
+        fps = args.fps if args.fps is not None else o.fps
+        self.schedule = Schedule(sim.dt, fps, target, self.start, o.checkpoint_steps, o.checkpoint_seconds)
+        self.outputs = Outputs(
+            scene, out_dir, self.start, resumed_from, vtk=bool(args.vtk or o.vtk), picture_size=args.picture_size
+        )
+        self.log = RunLog(scene, fps)
+        self.pictures = pictures_setting(scene)
+        self.progress: Progress | None = None
+        self.report: Report | None = None
+        self.t0 = time.perf_counter()
+
+    @property
+    def fps(self) -> float:
+        return self.schedule.fps
+
+    def continue_record(self, checkpoint) -> None:
+        """Continue the record of the run that wrote ``checkpoint`` (see :meth:`RunLog.continue_from`)."""
+        self.log.continue_from(checkpoint)
+
+    def run_record(self, writing=None) -> dict:
+        """The record of the run up to now, kept in its checkpoints (``writing``: the checkpoint
+        being written). Paths are absolute, so a run resumed into another folder still finds them."""
+        o = self.outputs
+        wall = time.perf_counter() - self.t0
+        checkpoints = o.absolute(o.checkpoints)
+        if writing is not None:
+            checkpoints.append(str(Path(writing).resolve()))
+        return self.log.record(wall, o.part(self.sim.steps_done, wall), o.absolute(o.picture_files), checkpoints)
+
+    # -- at each stop
+
+    def record_frames(self) -> None:
+        """Record the frame due at this step, if any (and pass the frames up to it, with their pictures)."""
+        sim, schedule = self.sim, self.schedule
+        steps = sim.steps_done
+        if not schedule.at_frame(steps):
+            return
+        contacts = sim.contacts()
+        if not self.log.holds(sim.time, sim.dt):
+            energy = self.log.add_frame(sim, contacts)
+            if self.progress is not None:
+                self.progress.note(steps, len(contacts["volume"]), energy["kinetic"])
+        self.outputs.record_frame(sim, contacts, schedule.frame)
+        while schedule.frame_step(schedule.frame) <= steps:
+            if isinstance(self.pictures, tuple) and schedule.frame in self.pictures:
+                self.outputs.picture(sim, f"frame_{schedule.frame:06d}.png")
+            schedule.frame += 1
+
+    def periodic_checkpoint(self) -> None:
+        steps = self.sim.steps_done
+        if self.schedule.checkpoint_due(steps):
+            self.outputs.checkpoint(self.sim, f"step_{steps:09d}.npz", self.run_record)
+
+    # -- the run
+
+    def execute(self, out, err) -> int:
+        """Run to the target step; whatever stops the run, write the outputs. Returns the exit code."""
+        self.outputs.out_dir.mkdir(parents=True, exist_ok=True)
+        self.progress = Progress(err, self.start, self.schedule.target, self.sim.dt, enabled=not self.args.quiet)
+        energy = self.sim.energy()
+        log = self.log
+        log.energy_initial = energy if log.earlier is None else log.earlier["energy_initial"]
+        self.report = Report(
+            self.args,
+            self.scene,
+            self.sim,
+            log=log,
+            outputs=self.outputs,
+            schedule=self.schedule,
+            pictures=self.pictures,
+            energy_at_start=energy,
+        )
+        self.t0 = time.perf_counter()
+        return self._execute(out, err)
+
+    def _steps(self) -> None:
+        sim, progress = self.sim, self.progress
+        self.outputs.open(self.fps, self.schedule.frame_dt, scene_metadata(self.args.scene))
+        self.record_frames()
+        while sim.steps_done < self.schedule.target:
+            sim.step(self.schedule.next_stop(sim.steps_done, progress.next_mark(sim.steps_done)) - sim.steps_done)
+            self.record_frames()
+            self.periodic_checkpoint()
+            progress.update(sim)
+            if _signals.received():
+                raise KeyboardInterrupt
+
+    def _execute(self, out, err) -> int:
+        from polydem.simulation import SimulationError
+
+        reason = failure = internal = None
+        status = EXIT_OK
+        _signals.running()
+        try:
+            self._steps()
+        except CliError:
+            raise
+        except KeyboardInterrupt:
+            status = _signals.exit_code()
+            reason = "interrupted by the user (Ctrl-C)" if status == EXIT_INTERRUPTED else "stopped by SIGTERM"
+        except SimulationError as exc:
+            reason = f"SimulationError: {exc}"
+            failure = f"the simulation failed: {exc}"
+            status = EXIT_FAILED
+        except OutputError as exc:
+            reason = f"an output could not be written: {exc}"
+            self.outputs.errors.append(str(exc))
+            status = EXIT_FAILED
+        except Exception as exc:
+            reason = f"internal error: {type(exc).__name__}: {exc}"
+            internal = exc
+            status = EXIT_FAILED
+        finally:
+            _signals.finishing()
+            self.outputs.close()
+        try:
+            self._finish(out, err, reason, status)
+        except Exception:
+            if internal is None:
+                raise
+            err.write("polydem: the outputs could not be completed after the internal error below\n")
+        if internal is not None:
+            raise internal
+        errors = ([failure] if failure else []) + self.outputs.errors
+        if errors:
+            more = f" (and {plural(len(errors) - 1, 'other error')}: see the lines above)" if len(errors) > 1 else ""
+            err.write(f"polydem: error: {errors[0]}{more}\n")
+            err.flush()
+            if status == EXIT_OK:
+                status = EXIT_FAILED
+        return status
+
+    def _finish(self, out, err, reason, status) -> None:
+        """Final checkpoint and picture, plots, the summary, and the closing lines (also after an interruption)."""
+        sim, o = self.sim, self.outputs
+        wall = time.perf_counter() - self.t0
+        notes = []
+        consistent = True if reason is None else roll_back(sim)
+        self.progress.finish(sim if consistent else None)
+        cp_path = None
+        if consistent:
+            name = "final.npz" if reason is None else "interrupted.npz"
+            cp_path = o.attempt(o.checkpoint, sim, name, self.run_record)
+            if self.pictures == "last":
+                o.attempt(o.picture, sim, "last.png")
+        else:
+            notes.append("no checkpoint: the state could not be brought back to a completed step")
+        note = o.write_plots(self.log.history)
+        if note is not None:
+            notes.append(note)
+        summary = self.report.summary(wall, reason, notes, consistent)
+        summary["outputs"]["plots"] = o.plot_files
+        if o.errors:
+            summary["not_written"] = list(o.errors)
+        summary["history"] = self.log.history
+        o.write_summary(summary)
+        self.report.report(out, err, summary, cp_path, reason, status)
+
+
+def _target_steps(args, scene, dt: float) -> tuple[int, str]:
+    """Total steps from t = 0 and where they come from."""
+    if args.steps is not None:
+        return args.steps, "--steps"
+    if args.duration is not None:
+        return max(1, steps_at(args.duration, dt)), f"--duration {args.duration:g} s"
+    if scene.duration is not None:
+        return max(1, steps_at(scene.duration, dt)), f"duration {scene.duration:g} s"
+    if scene.steps is not None:
+        return scene.steps, "the scene's steps"
+    return DEFAULT_STEPS, "the default"
+
+
+def _checkpoint_to_resume(args):
+    """The path and the checked checkpoint of ``--resume`` (None, None without it)."""
+    if args.resume is None:
+        return None, None
+    resume = Path(args.resume)
+    if not resume.is_file():
+        raise CliError(
+            f"checkpoint not found (looked for '{resume.absolute()}'); give a .npz file from a run's "
+            "checkpoint folder, e.g. polydem_out/<scene>/checkpoints/final.npz",
+            resume,
+            "--resume",
+        )
+    return resume, read_checkpoint(resume, "--resume")
+
+
+def _output_folder(args, scene) -> Path:
+    """The output folder (``--out``, default ``polydem_out/<scene name>/``), made if missing."""
+    out_dir = Path(args.out) if args.out is not None else Path("polydem_out") / safe_name(scene.name)
+    try:
+        if out_dir.exists() and not out_dir.is_dir():
+            raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"cannot create the output folder ({why(exc)})", shorten(out_dir), "--out") from None
+    return out_dir
+
+
+def cmd_run(args) -> int:
+    out, err = sys.stdout, sys.stderr
+    warp()
+    _signals.check()
+    if args.precision == "float64":
+        raise CliError(
+            "the simulator runs in float32 only; use --precision float32 (or leave it out). Float64 contact geometry "
+            'is offered by polydem.overlap(..., precision="float64")',
+            key="--precision",
+        )
+    resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
+    scene = load_scene(args.scene)
+    if args.precision is not None:
+        scene.precision = args.precision
+    dev = device(args.device) if args.device is not None else None
+    if dev is None and scene.device is not None:
+        dev = device(scene.device, file=scene.file, key="simulation.device")
+    out_dir = _output_folder(args, scene)
+    check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
+    _signals.check()
+
+    from polydem.simulation import Simulation
+
+    sim = Simulation(scene, device=dev)
+    _signals.check()
+    target, source = _target_steps(args, scene, sim.dt)
+    if resume is not None:
+        _resume(sim, scene, resume, checkpoint, args)
+        if sim.steps_done >= target:
+            raise CliError(
+                f"the checkpoint is at step {sim.steps_done} (t = {sim.time:.6g} s), which already reaches the "
+                f"{target} steps asked for ({source}); ask for more with --steps or --duration (counted from t = 0)",
+                resume,
+                "--resume",
+            )
+    run = Run(args, scene, sim, out_dir, target, resume)
+    if checkpoint is not None:
+        run.continue_record(checkpoint)
+    kind = np.asarray(scene.body_kind)
+    what = f"from step {sim.steps_done} (t = {sim.time:.6g} s) " if resume is not None else ""
+    out.write(
+        f"{scene.name}: {plural(sim.num_bodies, 'body', 'bodies')} ({int(np.sum(kind == 0))} free) on {sim.device}, "
+        f"dt {sim.dt:.4g} s; "
+        f"{what}to step {target} (t = {target * sim.dt:.6g} s, {source}); frames at {run.fps:g} per simulated s; "
+        f"output in {out_dir}{os.sep}\n"
+    )
+    out.flush()
+    return run.execute(out, err)
+
+
+def _resume(sim, scene, path: Path, ck, args) -> None:
+    """Put the checkpoint ``ck`` (read from ``path``) into ``sim`` after checking it against ``scene``."""
+    from polydem.checkpoint import CheckpointError, check_scene, restore_checkpoint
+
+    fix = "resume with the scene the checkpoint was written from: polydem run SCENE --resume CHECKPOINT"
+    check_poses(path, ck.arrays["body_q"][:, :3], scene, args.scene, "checkpoint", fix, "--resume")
+    try:
+        check_scene(ck, sim, fix=f"{fix} (or leave --resume out to run this scene from t = 0)")
+    except CheckpointError as err:
+        raise CliError(err.message, path, "--resume") from None
+    fps = args.fps if args.fps is not None else scene.output.fps
+    problem = run_record_problem(ck.run, fps, ck.time, sim.dt) if ck.run is not None else None
+    if problem is not None:
+        raise CliError(problem, path, "--resume")
+    if ck.physics is None:
+        sys.stderr.write(
+            f"polydem: warning: {path}: a checkpoint of the older format {ck.format!r} holds no record of its "
+            "scene's physics or of the run so far: it cannot be checked to come from this scene, and the summary "
+            "covers the resumed part only\n"
+        )
+        sys.stderr.flush()
+    restore_checkpoint(sim, ck)
