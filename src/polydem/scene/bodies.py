@@ -337,6 +337,18 @@ class BodyMethods:
             pivot=None if np.isnan(a["pivot"][i]).any() else as_tuple(a["pivot"][i]),
         )
 
+    def input_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) positions [m] and (N, 4) xyzw orientations of the bodies' input frames: the poses as
+        given to :meth:`add_body` (see the module docstring of :mod:`polydem.scene` for the frames)."""
+        n = self._n
+        a = {name: self._arrays[name][:n] for name in ("shape", "position", "orientation")}
+        frames = self._shape_frames
+        q_in = np.array([fr[0] for fr in frames]).reshape(-1, 4)[a["shape"]]
+        t_in = np.array([fr[1] for fr in frames]).reshape(-1, 3)[a["shape"]]
+        q_user = quat_multiply(a["orientation"], quat_conjugate(q_in))
+        q_user /= np.sqrt(np.einsum("ij,ij->i", q_user, q_user))[:, None]
+        return a["position"] - quat_rotate(q_user, t_in), q_user
+
     def body_vertices(self, i: int) -> np.ndarray:
         """(nv, 3) world coordinates of body ``i``'s vertices [m]."""
         shape = self._shapes[self.shape_names[int(self.body_shape[i])]]

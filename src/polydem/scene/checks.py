@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KINDS
+from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
 from polydem.scene.materials import LAW_UNITS
+from polydem.scene.values import check_quats
 
 # The time step resolves a contact oscillation at the reference overlap (0.1% of a body's size,
 # over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
@@ -118,8 +119,99 @@ def _stiffness_for(load, m, ln_ad, ln_a, ln_l) -> float:
     return _ln(load) - ln_a - (m - 1.0) * ln_ad
 
 
+def _loads(mass, ln_l, g, v_hit) -> list[tuple]:
+    """The loads a free body of mass ``mass`` and size exp(ln_l) puts on its contacts: its weight where ``g``
+    > 0 (something carries it), the energy of its impact at ``v_hit`` > 0. Each is ``(load, cause, into,
+    time scale text, time scale)``: a force F > 0 or an energy -E < 0 (see :func:`_face_overlap`)."""
+    loads = []
+    if g > 0.0:
+        t_scale = math.sqrt(2.0 * _exp(ln_l) / g)
+        loads.append(
+            (
+                mass * g,
+                f"under its own weight ({mass * g:.3g} N) it would sink",
+                "into what carries it",
+                f"the {t_scale:.3g} s it takes to fall its own size",
+                t_scale,
+            )
+        )
+    if v_hit > 0.0:
+        t_scale = _exp(ln_l) / v_hit
+        loads.append(
+            (
+                -0.5 * mass * v_hit * v_hit,  # negative: an energy, not a force
+                f"hitting a body or wall at the scene's fastest initial speed ({v_hit:.3g} m/s) it would sink",
+                "into what it hits",
+                f"the {t_scale:.3g} s it takes to cross its own size at that speed",
+                t_scale,
+            )
+        )
+    return loads
+
+
 class CheckMethods:
     """The :class:`~polydem.scene.Scene` methods that check what a run needs (called by ``validate``)."""
+
+    def _check_body_arrays(self, a):
+        """Indices in range, finite numbers, unit quaternions, valid kinds, pivots only on kinematic bodies,
+        fixed bodies at rest and free bodies with a mass; ``a`` holds the scene's body arrays."""
+        for name, count in (("shape", len(self._shapes)), ("material", len(self._materials))):
+            bad = np.flatnonzero((a[name] < 0) | (a[name] >= count))
+            if bad.size:
+                i = int(bad[0])
+                raise self._err(
+                    f"{name} index {int(a[name][i])} out of range: the scene has {count} {name}s", f"bodies[{i}].{name}"
+                )
+        for name in ("position", "orientation", "velocity", "angular_velocity"):
+            bad = np.flatnonzero(~np.isfinite(a[name]).all(axis=1))
+            if bad.size:
+                i = int(bad[0])
+                raise self._err(f"expected finite numbers, got {a[name][i].tolist()}", f"bodies[{i}].{name}")
+        check_quats(a["orientation"], lambda i: f"bodies[{i}].orientation", self.file)
+        bad = np.flatnonzero((a["kind"] < 0) | (a["kind"] >= len(KINDS)))
+        if bad.size:
+            i = int(bad[0])
+            raise self._err(
+                f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)", f"bodies[{i}].kind"
+            )
+        pivoted = np.flatnonzero(~np.isnan(a["pivot"]).any(axis=1) & (a["kind"] != KIND_KINEMATIC))
+        if pivoted.size:
+            i = int(pivoted[0])
+            raise self._err(
+                "only a kinematic body can turn about a pivot; use kind = 'kinematic' or leave pivot out",
+                f"bodies[{i}].pivot",
+            )
+        fixed = a["kind"] == KIND_FIXED
+        moving = np.flatnonzero(
+            fixed & (np.any(a["velocity"] != 0, axis=1) | np.any(a["angular_velocity"] != 0, axis=1))
+        )
+        if moving.size:
+            i = int(moving[0])
+            raise self._err(
+                "a fixed body cannot move; set its velocity and angular_velocity to zero or use kind = 'kinematic'",
+                f"bodies[{i}].velocity",
+            )
+        shapes = list(self._shapes.values())
+        massless = np.array(
+            [
+                not (
+                    s.volume > 0.0
+                    and math.isfinite(s.volume)
+                    and np.all(np.asarray(s.inertia) > 0.0)
+                    and np.all(np.isfinite(s.inertia))
+                )
+                for s in shapes
+            ]
+        )
+        bad = np.flatnonzero((a["kind"] == KIND_FREE) & massless[a["shape"]])
+        if bad.size:
+            i = int(bad[0])
+            s = shapes[int(a["shape"][i])]
+            raise self._err(
+                f"free body uses shape {s.name!r} with volume {s.volume:g} m^3 and inertia {np.asarray(s.inertia)}; a "
+                "free body needs a positive volume and inertia to have mass: use a solid shape or kind = 'fixed'",
+                f"bodies[{i}].shape",
+            )
 
     def time_step(self) -> TimeStep:
         """The time step of a run and its bounds (host-only: ``polydem validate`` needs no Warp).
@@ -316,82 +408,67 @@ class CheckMethods:
             soft = min((mats[mi], mats[j]), key=lambda x: x.k).name
             label = f"{self._body_label(i)} of material {mat.name!r}"
             label += f" against {mats[j].name!r}" if j != mi else ""
-            loads = []
-            if support and g > 0.0:
-                t_scale = math.sqrt(2.0 * _exp(ln_l) / g)
-                loads.append(
-                    (
-                        mass * g,
-                        f"under its own weight ({mass * g:.3g} N) it would sink",
-                        "into what carries it",
-                        f"the {t_scale:.3g} s it takes to fall its own size",
-                        t_scale,
-                    )
-                )
-            if v_hit > 0.0:
-                t_scale = _exp(ln_l) / v_hit
-                loads.append(
-                    (
-                        -0.5 * mass * v_hit * v_hit,  # negative: an energy, not a force
-                        f"hitting a body or wall at the scene's fastest initial speed ({v_hit:.3g} m/s) it would sink",
-                        "into what it hits",
-                        f"the {t_scale:.3g} s it takes to cross its own size at that speed",
-                        t_scale,
-                    )
-                )
-            for load, cause, into, scale, t_scale in loads:
-                ln_ad = _face_overlap(load, m, _ln(k), ln_a, ln_l)
-                rel = _exp(ln_ad - ln_a - ln_l)
-                ln_target = _ln(OVERLAP_WARNING) + ln_a + ln_l
-                unstable = False
-                if m > 2.0:
-                    ln_kt = _ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a
-                    unstable = ln_kt > _ln(4.0 * mass) - 2.0 * _ln(dt)
-                    if self.dt == "auto":
-                        # The auto step goes like 1/sqrt(k), so K(d) dt^2 / k depends on d only: the fix
-                        # keeps d where dt is at most 1/8 of the local period, K dt^2 <= M (pi / 4)^2.
-                        ln_bound = 2.0 * _ln(math.pi / 4.0) + _ln(mass) - 2.0 * _ln(dt) - _ln(k) - _ln(m - 1.0)
-                        ln_target = min(ln_target, (ln_bound - 2.0 * ln_a) / (m - 2.0))
-                depth = f"{cause} about {_fmt_exp(ln_ad - ln_a - ln_l)} times its size ({_exp(ln_l):.3g} m) {into}"
-                if not unstable and rel <= OVERLAP_WARNING:
-                    continue
-                ln_need = _stiffness_for(load, m, ln_target, ln_a, ln_l)
-                weight = load > 0.0
-                if unstable:
-                    k_tan = _exp(_ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a)
-                    depth += (
-                        f", where the law (m = {m:g} > 2 stiffens with depth) has a stiffness of {k_tan:.3g} N/m "
-                        f"and the time step {dt:.3g} s is above the stable {2.0 * math.sqrt(mass / k_tan):.3g} s"
-                    )
-                if ln_need > _ln(F32_HIGH):
-                    fix = f"no k within float32's range (up to {F32_HIGH:.2g}) is stiff enough: " + (
-                        "use a smaller m (W = k V^m / m gives almost no force at small overlaps when m is large)"
-                        if law == "power"
-                        else "use smaller densities or larger bodies"
-                    )
-                elif unstable and self.dt != "auto":
-                    fix = 'lower dt (or use dt = "auto" with a larger k)'
-                else:
-                    fix = f"raise k of {soft!r} to at least {_exp(ln_need):.3g} {LAW_UNITS[law]}"
-                if weight and (unstable or (rel > OVERLAP_ERROR and self.dt == "auto")):
-                    why = (
-                        f" (the automatic time step, {dt:.3g} s, is {dt / t_scale:.3g} times {scale})"
-                        if self.dt == "auto" and not unstable
-                        else ""
-                    )
-                    head = "too soft" if rel > OVERLAP_ERROR else "unstable at this time step"
-                    raise self._err(
-                        f"the contacts of {label} are {head}: {depth}{why}; {fix}"
-                        + (" (a pair's k is the harmonic mean of its materials' k)" if fix.startswith("raise") else ""),
-                        "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
-                    )
-                out.append((rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"))
+            for case in _loads(mass, ln_l, g if support else 0.0, v_hit):
+                found = self._judge_load(case, m, law, k, soft, mass, ln_a, ln_l, dt, label)
+                if found is not None:
+                    out.append(found)
         if not out:
             return []
         # One line for the scene: the softest case, and how many more there are.
         out.sort(key=lambda x: -x[0])
         more = f" ({len(out) - 1} more shapes or materials are soft too)" if len(out) > 1 else ""
         return [out[0][1] + more]
+
+    def _judge_load(self, case, m, law, k, soft, mass, ln_a, ln_l, dt, label):
+        """One load of :func:`_loads` on a face contact of stiffness ``k``: raise a SceneError where it
+        fails (see :meth:`_check_loads`), return ``(relative depth, warning)`` where it is soft, else None."""
+        load, cause, into, scale, t_scale = case
+        ln_ad = _face_overlap(load, m, _ln(k), ln_a, ln_l)
+        rel = _exp(ln_ad - ln_a - ln_l)
+        ln_target = _ln(OVERLAP_WARNING) + ln_a + ln_l
+        unstable = False
+        if m > 2.0:
+            ln_kt = _ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a
+            unstable = ln_kt > _ln(4.0 * mass) - 2.0 * _ln(dt)
+            if self.dt == "auto":
+                # The auto step goes like 1/sqrt(k), so K(d) dt^2 / k depends on d only: the fix
+                # keeps d where dt is at most 1/8 of the local period, K dt^2 <= M (pi / 4)^2.
+                ln_bound = 2.0 * _ln(math.pi / 4.0) + _ln(mass) - 2.0 * _ln(dt) - _ln(k) - _ln(m - 1.0)
+                ln_target = min(ln_target, (ln_bound - 2.0 * ln_a) / (m - 2.0))
+        depth = f"{cause} about {_fmt_exp(ln_ad - ln_a - ln_l)} times its size ({_exp(ln_l):.3g} m) {into}"
+        if not unstable and rel <= OVERLAP_WARNING:
+            return None
+        ln_need = _stiffness_for(load, m, ln_target, ln_a, ln_l)
+        weight = load > 0.0
+        if unstable:
+            k_tan = _exp(_ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a)
+            depth += (
+                f", where the law (m = {m:g} > 2 stiffens with depth) has a stiffness of {k_tan:.3g} N/m "
+                f"and the time step {dt:.3g} s is above the stable {2.0 * math.sqrt(mass / k_tan):.3g} s"
+            )
+        if ln_need > _ln(F32_HIGH):
+            fix = f"no k within float32's range (up to {F32_HIGH:.2g}) is stiff enough: " + (
+                "use a smaller m (W = k V^m / m gives almost no force at small overlaps when m is large)"
+                if law == "power"
+                else "use smaller densities or larger bodies"
+            )
+        elif unstable and self.dt != "auto":
+            fix = 'lower dt (or use dt = "auto" with a larger k)'
+        else:
+            fix = f"raise k of {soft!r} to at least {_exp(ln_need):.3g} {LAW_UNITS[law]}"
+        if weight and (unstable or (rel > OVERLAP_ERROR and self.dt == "auto")):
+            why = (
+                f" (the automatic time step, {dt:.3g} s, is {dt / t_scale:.3g} times {scale})"
+                if self.dt == "auto" and not unstable
+                else ""
+            )
+            head = "too soft" if rel > OVERLAP_ERROR else "unstable at this time step"
+            raise self._err(
+                f"the contacts of {label} are {head}: {depth}{why}; {fix}"
+                + (" (a pair's k is the harmonic mean of its materials' k)" if fix.startswith("raise") else ""),
+                "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
+            )
+        return rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"
 
     def _check_steps(self, ts: TimeStep):
         if self.duration is not None:

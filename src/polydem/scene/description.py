@@ -11,19 +11,20 @@ from __future__ import annotations
 import math
 import re
 import warnings
+from os import PathLike
 
 import numpy as np
 
 from polydem.quaternions import quat_from_matrix
-from polydem.scene.bodies import BODY_FIELDS, KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS, BodyMethods
+from polydem.scene import loader
+from polydem.scene.bodies import BODY_FIELDS, BodyMethods
 from polydem.scene.checks import CheckMethods
 from polydem.scene.emitters import EmitterMethods
 from polydem.scene.errors import SceneError, SceneWarning, did_you_mean, unknown_name
-from polydem.scene.loader import FileMethods
 from polydem.scene.materials import LAW_UNITS, Material, MaterialMethods
 from polydem.scene.output import Output
 from polydem.scene.overlaps import OverlapMethods
-from polydem.scene.values import check_quats, read_choice, read_integer, read_number, read_string, read_vector, typename
+from polydem.scene.values import read_choice, read_integer, read_number, read_string, read_vector, typename
 from polydem.scene.walls import Drum, PlaneWall, WallMethods
 from polydem.shapes import ConvexShape
 
@@ -32,7 +33,7 @@ PRECISIONS = ("float32", "float64")
 a message pointing to :func:`polydem.overlap`, which offers it for contact geometry)."""
 
 
-class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMethods, OverlapMethods, FileMethods):
+class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMethods, OverlapMethods):
     """Validated, host-only description of a simulation (see the module docstring for frames).
 
     Bodies are stored as per-body numpy arrays (read-only views; scenes reach 10^6 bodies):
@@ -250,6 +251,13 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             return self._shape_index[shape.name]
         return self._lookup_shape(shape, key)
 
+    def shape_spec(self, name: str) -> dict | None:
+        """The ``[shapes.NAME]`` table shape ``name`` was built from (a copy), or None for a shape given as
+        a :class:`ConvexShape` (scaled shapes of emitters have the spec of theirs scaled, where it has one)."""
+        self._lookup_shape(name, "shape")
+        spec = self._shape_specs.get(name)
+        return None if spec is None else dict(spec)
+
     def validate(self) -> Scene:
         """Check the whole scene; raise :class:`SceneError` on the first problem, else return self.
 
@@ -272,18 +280,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         repeated call that finds the same) and kept in :attr:`warnings` (a list of strings).
         """
         self.warnings = []
-        f = self.file
-        self.gravity = tuple(read_vector(list(self.gravity), 3, "simulation.gravity", f).tolist())
-        self.dt = self._check_dt(self.dt)
-        self.device = self._check_device(self.device)
-        self.precision = self._check_precision(self.precision)
-        self.output = self._check_output(self.output)
-        if self.steps is not None and self.duration is not None:
-            raise self._err("give either steps or duration, not both", "simulation.duration")
-        if self.steps is not None:
-            self.steps = read_integer(self.steps, "simulation.steps", f, minimum=1)
-        if self.duration is not None:
-            self.duration = read_number(self.duration, "simulation.duration", f, positive=True)
+        self._check_settings()
         self._check_laws()
         n = self._n
         if n == 0:
@@ -293,63 +290,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 "bodies",
             )
         a = {name: self._arrays[name][:n] for name, _, _ in BODY_FIELDS}
-        for name, count in (("shape", len(self._shapes)), ("material", len(self._materials))):
-            bad = np.flatnonzero((a[name] < 0) | (a[name] >= count))
-            if bad.size:
-                i = int(bad[0])
-                raise self._err(
-                    f"{name} index {int(a[name][i])} out of range: the scene has {count} {name}s", f"bodies[{i}].{name}"
-                )
-        for name in ("position", "orientation", "velocity", "angular_velocity"):
-            bad = np.flatnonzero(~np.isfinite(a[name]).all(axis=1))
-            if bad.size:
-                i = int(bad[0])
-                raise self._err(f"expected finite numbers, got {a[name][i].tolist()}", f"bodies[{i}].{name}")
-        check_quats(a["orientation"], lambda i: f"bodies[{i}].orientation", f)
-        bad = np.flatnonzero((a["kind"] < 0) | (a["kind"] >= len(KINDS)))
-        if bad.size:
-            i = int(bad[0])
-            raise self._err(
-                f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)", f"bodies[{i}].kind"
-            )
-        pivoted = np.flatnonzero(~np.isnan(a["pivot"]).any(axis=1) & (a["kind"] != KIND_KINEMATIC))
-        if pivoted.size:
-            i = int(pivoted[0])
-            raise self._err(
-                "only a kinematic body can turn about a pivot; use kind = 'kinematic' or leave pivot out",
-                f"bodies[{i}].pivot",
-            )
-        fixed = a["kind"] == KIND_FIXED
-        moving = np.flatnonzero(
-            fixed & (np.any(a["velocity"] != 0, axis=1) | np.any(a["angular_velocity"] != 0, axis=1))
-        )
-        if moving.size:
-            i = int(moving[0])
-            raise self._err(
-                "a fixed body cannot move; set its velocity and angular_velocity to zero or use kind = 'kinematic'",
-                f"bodies[{i}].velocity",
-            )
-        shapes = list(self._shapes.values())
-        massless = np.array(
-            [
-                not (
-                    s.volume > 0.0
-                    and math.isfinite(s.volume)
-                    and np.all(np.asarray(s.inertia) > 0.0)
-                    and np.all(np.isfinite(s.inertia))
-                )
-                for s in shapes
-            ]
-        )
-        bad = np.flatnonzero((a["kind"] == KIND_FREE) & massless[a["shape"]])
-        if bad.size:
-            i = int(bad[0])
-            s = shapes[int(a["shape"][i])]
-            raise self._err(
-                f"free body uses shape {s.name!r} with volume {s.volume:g} m^3 and inertia {np.asarray(s.inertia)}; a "
-                "free body needs a positive volume and inertia to have mass: use a solid shape or kind = 'fixed'",
-                f"bodies[{i}].shape",
-            )
+        self._check_body_arrays(a)
         for j, plane in enumerate(self._planes):
             self._lookup_material(plane.material, f"planes[{j}].material")
             nrm = np.asarray(plane.normal)
@@ -367,6 +308,41 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self._warned = found
         self.warnings = found
         return self
+
+    def _check_settings(self):
+        """The simulation settings again: they are attributes a user may have changed since __init__."""
+        f = self.file
+        self.gravity = tuple(read_vector(list(self.gravity), 3, "simulation.gravity", f).tolist())
+        self.dt = self._check_dt(self.dt)
+        self.device = self._check_device(self.device)
+        self.precision = self._check_precision(self.precision)
+        self.output = self._check_output(self.output)
+        if self.steps is not None and self.duration is not None:
+            raise self._err("give either steps or duration, not both", "simulation.duration")
+        if self.steps is not None:
+            self.steps = read_integer(self.steps, "simulation.steps", f, minimum=1)
+        if self.duration is not None:
+            self.duration = read_number(self.duration, "simulation.duration", f, positive=True)
+
+    # ------------------------------------------------------------------ scene files (see loader.py)
+
+    @classmethod
+    def from_toml(cls, path: str | PathLike, *, validate: bool = True) -> Scene:
+        """Load a scene file (TOML; see ``scenes/*.toml`` for examples) and validate it.
+
+        Relative mesh paths are taken from the folder of the scene file. Every problem raises
+        :class:`SceneError` naming the file and the key.
+        """
+        return loader.load_toml(cls, path, validate)
+
+    @classmethod
+    def from_dict(cls, data: dict, *, file=None, base_dir=None, validate: bool = True) -> Scene:
+        """Settings from an ``[output]`` table (errors name ``output.KEY`` and ``file``)."""
+        return loader.load_dict(cls, data, file, base_dir, validate)
+
+    def to_dict(self) -> dict:
+        """The ``[materials.NAME]`` table of a scene file (without the name)."""
+        return loader.scene_dict(self)
 
     def describe(self) -> str:
         """A human-readable summary."""

@@ -16,6 +16,27 @@ _OUTPUT_KEYS = ("usd", "fps", "summary", "pictures", "checkpoint", "vtk")
 _CHECKPOINT_KEYS = ("steps", "seconds", "path")
 
 
+def _check_inside(value, key, example):
+    """Refuse an output path that is absolute or leads out of the output folder."""
+    # Backslashes count as separators too, so that a scene written on Windows is judged alike.
+    parts = value.replace("\\", "/").split("/")
+    if Path(value).is_absolute() or value.startswith(("/", "\\")) or re.match(r"[A-Za-z]:", value):
+        raise SceneError(
+            f"{value!r} is an absolute path; outputs stay inside the output folder (polydem run --out DIR): "
+            f"give a path relative to it, e.g. {example}",
+            key,
+        )
+    depth = 0
+    for part in parts:
+        depth += -1 if part == ".." else 0 if part in ("", ".") else 1
+        if depth < 0:
+            raise SceneError(
+                f"{value!r} leads out of the output folder with '..'; outputs stay inside it: give a path "
+                f"inside it, e.g. {example}, and choose the folder with polydem run --out DIR",
+                key,
+            )
+
+
 @dataclass(frozen=True, kw_only=True)
 class Output:
     """What a run writes: the ``[output]`` table of a scene file (validated on construction).
@@ -99,30 +120,11 @@ class Output:
         path = read_string(self.checkpoint_path, "output.checkpoint.path", what="a folder path string")
         vtk = read_boolean(self.vtk, "output.vtk")
 
-        def inside(value, key, example):
-            # Backslashes count as separators too, so that a scene written on Windows is judged alike.
-            parts = value.replace("\\", "/").split("/")
-            if Path(value).is_absolute() or value.startswith(("/", "\\")) or re.match(r"[A-Za-z]:", value):
-                raise SceneError(
-                    f"{value!r} is an absolute path; outputs stay inside the output folder (polydem run --out DIR): "
-                    f"give a path relative to it, e.g. {example}",
-                    key,
-                )
-            depth = 0
-            for part in parts:
-                depth += -1 if part == ".." else 0 if part in ("", ".") else 1
-                if depth < 0:
-                    raise SceneError(
-                        f"{value!r} leads out of the output folder with '..'; outputs stay inside it: give a path "
-                        f"inside it, e.g. {example}, and choose the folder with polydem run --out DIR",
-                        key,
-                    )
-
         if usd is not None:
-            inside(usd, "output.usd", "usd = 'trajectory.usd'")
+            _check_inside(usd, "output.usd", "usd = 'trajectory.usd'")
         if summary is not None:
-            inside(summary, "output.summary", "summary = 'summary.json'")
-        inside(path, "output.checkpoint.path", "checkpoint = {steps = 10000, path = 'checkpoints'}")
+            _check_inside(summary, "output.summary", "summary = 'summary.json'")
+        _check_inside(path, "output.checkpoint.path", "checkpoint = {steps = 10000, path = 'checkpoints'}")
         for name, value in (
             ("usd", usd),
             ("fps", fps),
