@@ -253,6 +253,15 @@ class _Obstacles:
                 out[local_of(gi[hit])] = True
 
 
+def _orientations(orientation, count, rng) -> np.ndarray:
+    """(count, 4) xyzw orientations: uniformly random, or the identity for ``"aligned"``."""
+    if orientation == "random":
+        q = rng.normal(size=(count, 4))
+        norm = np.sqrt(np.einsum("ij,ij->i", q, q))
+        return np.where(norm[:, None] > 1e-12, q / np.maximum(norm, 1e-300)[:, None], [0.0, 0.0, 0.0, 1.0])
+    return np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), (count, 4))
+
+
 class EmitterMethods:
     """The :class:`~polydem.scene.Scene` method :meth:`emit` and its helpers."""
 
@@ -359,6 +368,25 @@ class EmitterMethods:
 
         streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)]
         rng_shape, rng_scale, rng_cells, rng_jitter, rng_orient, rng_vel = streams
+        rows, radius = self._emitted_shapes(base, frac, sample_scales, count, rng_shape, rng_scale)
+        r_max = float(radius.max())
+        cell = spacing * 2.0 * r_max
+        centres = self._emitter_cells(lo, hi, cell, count, fill, rng_cells, key, r_max, spacing)
+        room = jitter * np.maximum(0.5 * cell - radius, 0.0)
+        centres = centres + rng_jitter.uniform(-1.0, 1.0, size=(count, 3)) * room[:, None]
+        q = _orientations(orientation, count, rng_orient)
+        v = np.broadcast_to(vel, (count, 3))
+        if vj > 0.0:
+            v = v + rng_vel.uniform(-vj, vj, size=(count, 3))
+        t_in = np.array([self._shape_frames[s][1] for s in range(len(self._shape_frames))])[rows]
+        positions = centres - quat_rotate(q, t_in) if np.any(t_in) else centres
+        idx = self._append(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
+        self.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
+        return idx
+
+    def _emitted_shapes(self, base, frac, sample_scales, count, rng_shape, rng_scale):
+        """(count,) shape index and bounding radius of each emitted body: the mix of ``base`` shapes in the
+        proportions ``frac``, each scaled by a factor drawn from ``sample_scales``."""
         label = rng_shape.permutation(np.repeat(np.arange(len(base)), _largest_remainder(count, frac)))
         bin_index, values = sample_scales(rng_scale, count)
         combo, inverse = np.unique(label * len(values) + bin_index, return_inverse=True)
@@ -368,27 +396,7 @@ class EmitterMethods:
         )
         shapes = list(self._shapes.values())
         combo_radius = np.array([shapes[s].radius for s in combo_shape])
-        rows = combo_shape[inverse]
-        radius = combo_radius[inverse]
-        r_max = float(combo_radius.max())
-        cell = spacing * 2.0 * r_max
-        centres = self._emitter_cells(lo, hi, cell, count, fill, rng_cells, key, r_max, spacing)
-        room = jitter * np.maximum(0.5 * cell - radius, 0.0)
-        centres = centres + rng_jitter.uniform(-1.0, 1.0, size=(count, 3)) * room[:, None]
-        if orientation == "random":
-            q = rng_orient.normal(size=(count, 4))
-            norm = np.sqrt(np.einsum("ij,ij->i", q, q))
-            q = np.where(norm[:, None] > 1e-12, q / np.maximum(norm, 1e-300)[:, None], [0.0, 0.0, 0.0, 1.0])
-        else:
-            q = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), (count, 4))
-        v = np.broadcast_to(vel, (count, 3))
-        if vj > 0.0:
-            v = v + rng_vel.uniform(-vj, vj, size=(count, 3))
-        t_in = np.array([self._shape_frames[s][1] for s in range(len(self._shape_frames))])[rows]
-        positions = centres - quat_rotate(q, t_in) if np.any(t_in) else centres
-        idx = self._append(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
-        self.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
-        return idx
+        return combo_shape[inverse], combo_radius[inverse]
 
     def _check_capacity(self, count, lo, hi, base, frac, sample_scales, spacing, key):
         """Reject a count the scene or the region cannot hold, by arithmetic before any per-body array.

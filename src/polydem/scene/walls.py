@@ -173,13 +173,17 @@ class WallMethods:
     def _box_shape(self, dims) -> str:
         dims = [float(d) for d in dims]
         name = "wall_box_" + "x".join(f"{d:.6g}" for d in dims)
-        spec = {"type": "box", "size": dims}
+        return self._shape_for_spec(name, {"type": "box", "size": dims}, lambda nm: ConvexShape.box(*dims, name=nm))
+
+    def _shape_for_spec(self, name, spec, build) -> str:
+        """Name of the registered shape of this spec: ``name``, or ``name_2``, ... where ``name`` is taken by
+        another spec; ``build(name)`` makes it when there is none yet."""
         base, k = name, 1
         while name in self._shapes and self._shape_specs.get(name) != spec:
             k += 1
             name = f"{base}_{k}"
         if name not in self._shapes:
-            self.add_shape(name, ConvexShape.box(*dims, name=name), _spec=spec)
+            self.add_shape(name, build(name), _spec=spec)
         return name
 
     # ------------------------------------------------------------------ drums
@@ -275,31 +279,7 @@ class WallMethods:
             )
         ]
         if caps:
-            rho = (r + t) / math.cos(math.pi / n) ** 2
-            cap_name = f"drum_cap_{n}_{rho:.6g}x{t:.6g}"
-            spec = {"type": "prism", "n": n, "radius": rho, "height": t}
-            base, k = cap_name, 1
-            while cap_name in self._shapes and self._shape_specs.get(cap_name) != spec:
-                k += 1
-                cap_name = f"{base}_{k}"
-            if cap_name not in self._shapes:
-                self.add_shape(cap_name, ConvexShape.prism(n, rho, t, name=cap_name), _spec=spec)
-            e1, e2 = _perpendicular_basis(a)
-            q_cap = quat_from_matrix(np.column_stack([e1, e2, a]))
-            ends = np.array([c + (0.5 * length + 0.5 * t) * a, c - (0.5 * length + 0.5 * t) * a])
-            idx.append(
-                self._append(
-                    self._shape_index[cap_name],
-                    mat,
-                    ends,
-                    np.tile(q_cap, (2, 1)),
-                    np.zeros((2, 3)),
-                    np.tile(w * a, (2, 1)),
-                    KIND_KINEMATIC,
-                    lambda i: key,
-                    np.tile(c, (2, 1)),
-                )
-            )
+            idx.append(self._drum_caps(c, a, n, r, t, length, w, mat, key))
         drum = Drum(
             center=as_tuple(c),
             axis=as_tuple(a),
@@ -314,3 +294,25 @@ class WallMethods:
         )
         self.drums.append(drum)
         return drum
+
+    def _drum_caps(self, c, a, n, r, t, length, w, mat, key) -> np.ndarray:
+        """Add the two end plates of a drum (see :meth:`add_drum`); returns their indices."""
+        rho = (r + t) / math.cos(math.pi / n) ** 2
+        spec = {"type": "prism", "n": n, "radius": rho, "height": t}
+        cap_name = self._shape_for_spec(
+            f"drum_cap_{n}_{rho:.6g}x{t:.6g}", spec, lambda nm: ConvexShape.prism(n, rho, t, name=nm)
+        )
+        e1, e2 = _perpendicular_basis(a)
+        q_cap = quat_from_matrix(np.column_stack([e1, e2, a]))
+        ends = np.array([c + (0.5 * length + 0.5 * t) * a, c - (0.5 * length + 0.5 * t) * a])
+        return self._append(
+            self._shape_index[cap_name],
+            mat,
+            ends,
+            np.tile(q_cap, (2, 1)),
+            np.zeros((2, 3)),
+            np.tile(w * a, (2, 1)),
+            KIND_KINEMATIC,
+            lambda i: key,
+            np.tile(c, (2, 1)),
+        )
