@@ -91,6 +91,15 @@ class Body:
 class BodyMethods:
     """The :class:`~polydem.scene.Scene` methods that add bodies and read them back."""
 
+    def _init_bodies(self):
+        self._n = 0
+        self._cap = 0
+        self._arrays = {name: np.empty((0, *shape), dtype) for name, dtype, shape in BODY_FIELDS}
+
+    def _body_arrays(self) -> dict[str, np.ndarray]:
+        """The stored body arrays by field name (see BODY_FIELDS), trimmed to the bodies."""
+        return {name: self._arrays[name][: self._n] for name, _, _ in BODY_FIELDS}
+
     @property
     def num_bodies(self) -> int:
         return self._n
@@ -272,10 +281,10 @@ class BodyMethods:
                     f"{rowkey(i)}.velocity",
                 )
         if np.ndim(s) == 0:
-            q_in, t_in = self._shape_frames[int(s)]
+            q_in, t_in = self._input_frames()[int(s)]
         else:
             s = np.asarray(s, dtype=np.int32)
-            frames = self._shape_frames
+            frames = self._input_frames()
             q_in = np.array([frames[k][0] for k in range(len(frames))])[s]
             t_in = np.array([frames[k][1] for k in range(len(frames))])[s]
         # Most generated shapes are built in their principal frame: skip the no-op transforms.
@@ -319,7 +328,7 @@ class BodyMethods:
         i = int(i) % self._n
         a = self._arrays
         s = int(a["shape"][i])
-        q_in, t_in = self._shape_frames[s]
+        q_in, t_in = self._input_frames()[s]
         q_body = a["orientation"][i]
         q_user = quat_multiply(q_body, quat_conjugate(q_in))
         q_user /= np.linalg.norm(q_user)
@@ -342,7 +351,7 @@ class BodyMethods:
         given to :meth:`add_body` (see the module docstring of :mod:`polydem.scene` for the frames)."""
         n = self._n
         a = {name: self._arrays[name][:n] for name in ("shape", "position", "orientation")}
-        frames = self._shape_frames
+        frames = self._input_frames()
         q_in = np.array([fr[0] for fr in frames]).reshape(-1, 4)[a["shape"]]
         t_in = np.array([fr[1] for fr in frames]).reshape(-1, 3)[a["shape"]]
         q_user = quat_multiply(a["orientation"], quat_conjugate(q_in))
@@ -351,17 +360,17 @@ class BodyMethods:
 
     def body_vertices(self, i: int) -> np.ndarray:
         """(nv, 3) world coordinates of body ``i``'s vertices [m]."""
-        shape = self._shapes[self.shape_names[int(self.body_shape[i])]]
+        shape = self.shapes[self.shape_names[int(self.body_shape[i])]]
         return shape.vertices @ quat_to_matrix(self.body_orientation[i]).T + self.body_position[i]
 
     def body_mass(self) -> np.ndarray:
         """(N,) mass of each body [kg] (density times volume, whatever the kind)."""
-        vol = np.array([s.volume for s in self._shapes.values()])
-        rho = np.array([m.density for m in self._materials.values()])
+        vol = np.array([s.volume for s in self.shapes.values()])
+        rho = np.array([m.density for m in self.materials.values()])
         return rho[self.body_material] * vol[self.body_shape]
 
     def body_inertia(self) -> np.ndarray:
         """(N, 3) principal moments of inertia of each body [kg m^2], about its body-frame axes."""
-        inertia = np.array([s.inertia for s in self._shapes.values()]).reshape(-1, 3)
-        rho = np.array([m.density for m in self._materials.values()])
+        inertia = np.array([s.inertia for s in self.shapes.values()]).reshape(-1, 3)
+        rho = np.array([m.density for m in self.materials.values()])
         return rho[self.body_material][:, None] * inertia[self.body_shape]

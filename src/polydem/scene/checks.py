@@ -155,7 +155,7 @@ class CheckMethods:
     def _check_body_arrays(self, a):
         """Indices in range, finite numbers, unit quaternions, valid kinds, pivots only on kinematic bodies,
         fixed bodies at rest and free bodies with a mass; ``a`` holds the scene's body arrays."""
-        for name, count in (("shape", len(self._shapes)), ("material", len(self._materials))):
+        for name, count in (("shape", len(self.shape_names)), ("material", len(self.material_names))):
             bad = np.flatnonzero((a[name] < 0) | (a[name] >= count))
             if bad.size:
                 i = int(bad[0])
@@ -191,7 +191,7 @@ class CheckMethods:
                 "a fixed body cannot move; set its velocity and angular_velocity to zero or use kind = 'kinematic'",
                 f"bodies[{i}].velocity",
             )
-        shapes = list(self._shapes.values())
+        shapes = list(self.shapes.values())
         massless = np.array(
             [
                 not (
@@ -222,13 +222,13 @@ class CheckMethods:
         ``dt = "auto"`` takes 1/50 of it; a given dt must not exceed 1/8 of it (SceneError, key
         ``simulation.dt``).
         """
-        if self._n == 0:
+        if self.num_bodies == 0:
             raise self._err("the scene has no bodies; add at least one with [[bodies]] or Scene.add_body()", "bodies")
         table = self.pair_table()
         law, m = table["law"], float(table["exponent"])
         k = np.asarray(table["k"], dtype=np.float64)
         kt = np.asarray(table["tangential_stiffness"], dtype=np.float64)
-        shapes = list(self._shapes.values())
+        shapes = list(self.shapes.values())
         mass = np.asarray(self.body_mass(), dtype=np.float64)
         free = self.body_kind == KIND_FREE
         # The lightest free body (or, with none, the lightest body with a mass) and the stiffest pair
@@ -272,15 +272,15 @@ class CheckMethods:
 
     def _body_label(self, i: int) -> str:
         """``body 12 (shape 'cube', free, from emitters[0])``: how messages name a body."""
-        s = self.shape_names[int(self._arrays["shape"][i])]
-        kind = KINDS[int(self._arrays["kind"][i])]
+        s = self.shape_names[int(self.body_shape[i])]
+        kind = KINDS[int(self.body_kind[i])]
         where = next((f", from {e['key']}" for e in self.emitters if e["first"] <= i <= e["last"]), "")
         return f"body {i} (shape {s!r}, {kind}{where})"
 
     def _check_float32(self, a):
         """Shapes, masses, inertias, stiffnesses and the power law within float32 (see F32_LOW)."""
         lo, hi = F32_LOW, F32_HIGH
-        shapes = list(self._shapes.values())
+        shapes = list(self.shapes.values())
         names = self.shape_names
         # Overlap volumes and their first moments (~ size^4) are the largest powers of a length the
         # narrow phase sums, so the bounding radius r needs r^4 within [lo, hi].
@@ -296,7 +296,7 @@ class CheckMethods:
                     f"bounding radius between {r_lo:.2g} m and {r_hi:.2g} m",
                     f"shapes.{names[s]}",
                 )
-        mats = list(self._materials.values())
+        mats = list(self.materials.values())
         for mat in mats:
             for attr in ("k", "tangential_stiffness"):
                 value = getattr(mat, attr)
@@ -380,20 +380,21 @@ class CheckMethods:
         if not free.any():
             return []
         table = self.pair_table()
-        mats = list(self._materials.values())
+        mats = list(self.materials.values())
         law, m = table["law"], float(table["exponent"])
         k_pair = np.asarray(table["k"], dtype=np.float64)
         present = set(np.unique(a["material"]).tolist())
-        present.update(self._material_index[p.material] for p in self._planes)
+        planes = self.planes
+        present.update(self.material_index(p.material) for p in planes)
         present = np.array(sorted(present))
-        support = bool(self._planes) or bool((a["kind"] != KIND_FREE).any())
-        partners = bool(self._planes) or self._n >= 2
+        support = bool(planes) or bool((a["kind"] != KIND_FREE).any())
+        partners = bool(planes) or self.num_bodies >= 2
         g = float(np.linalg.norm(self.gravity))
         speeds = np.linalg.norm(a["velocity"][a["kind"] != KIND_FIXED], axis=1)
         v_hit = float(speeds.max()) if partners and speeds.size else 0.0
         if not ((support and g > 0.0) or v_hit > 0.0):
             return []
-        shapes = list(self._shapes.values())
+        shapes = list(self.shapes.values())
         dt = ts.dt
         out = []
         combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])

@@ -1,9 +1,12 @@
-"""The Scene class: simulation settings, the shape and material registries, validate and describe.
+"""The Scene class: simulation settings, the shape registry, validate and describe.
 
-What a scene holds beyond that comes from the module of its concern, as methods of :class:`Scene`:
-bodies (:mod:`.bodies`), materials (:mod:`.materials`), walls and drums (:mod:`.walls`), emitters
-(:mod:`.emitters`), the checks of a run (:mod:`.checks`, :mod:`.overlaps`) and scene files
-(:mod:`.loader`).
+Every other concern is a group of methods in the module of that concern, which also sets up and
+owns the state it keeps (``_init_*``): bodies and their arrays (:mod:`.bodies`), materials
+(:mod:`.materials`), plane walls, box containers and drums (:mod:`.walls`), emitters
+(:mod:`.emitters`), and the checks of :meth:`Scene.validate` (:mod:`.checks`, :mod:`.overlaps`).
+Scene files are read and written by :mod:`.loader` through the public methods only. The groups
+reach each other through methods (``_err``, ``_lookup_material``, ``_append``, ...), never
+through another group's attributes.
 """
 
 from __future__ import annotations
@@ -17,15 +20,15 @@ import numpy as np
 
 from polydem.quaternions import quat_from_matrix
 from polydem.scene import loader
-from polydem.scene.bodies import BODY_FIELDS, BodyMethods
+from polydem.scene.bodies import BodyMethods
 from polydem.scene.checks import CheckMethods
 from polydem.scene.emitters import EmitterMethods
 from polydem.scene.errors import SceneError, SceneWarning, did_you_mean, unknown_name
-from polydem.scene.materials import LAW_UNITS, Material, MaterialMethods
+from polydem.scene.materials import LAW_UNITS, MaterialMethods
 from polydem.scene.output import Output
 from polydem.scene.overlaps import OverlapMethods
 from polydem.scene.values import read_choice, read_integer, read_number, read_string, read_vector, typename
-from polydem.scene.walls import Drum, PlaneWall, WallMethods
+from polydem.scene.walls import WallMethods
 from polydem.shapes import ConvexShape
 
 PRECISIONS = ("float32", "float64")
@@ -96,22 +99,17 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self.device = self._check_device(device)
         self.precision = self._check_precision(precision)
         self.output = self._check_output(output)
-        self.drums: list[Drum] = []
-        self.emitters: list[dict] = []
-        self._scaled: dict[tuple[int, float], int] = {}
         self._shapes: dict[str, ConvexShape] = {}
         self._shape_index: dict[str, int] = {}
         self._shape_specs: dict[str, dict] = {}
         self._shape_frames: list[tuple[np.ndarray, np.ndarray]] = []  # (q(R_in), t_in) per shape
-        self._materials: dict[str, Material] = {}
-        self._material_index: dict[str, int] = {}
-        self._planes: list[PlaneWall] = []
-        self._plane_keys: list[str] = []  # where each plane came from, for messages
         self.warnings: list[str] = []  # of the last validate()
         self._warned: list[str] = []
-        self._n = 0
-        self._cap = 0
-        self._arrays = {name: np.empty((0, *shape), dtype) for name, dtype, shape in BODY_FIELDS}
+        # Each concern keeps its own state, set up by its module.
+        self._init_materials()
+        self._init_bodies()
+        self._init_walls()
+        self._init_emitters()
 
     def _check_dt(self, dt):
         if isinstance(dt, str):
@@ -169,30 +167,12 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         return dict(self._shapes)
 
     @property
-    def materials(self) -> dict[str, Material]:
-        """Registered materials, name -> :class:`Material`, in insertion (= index) order (a copy)."""
-        return dict(self._materials)
-
-    @property
-    def planes(self) -> list[PlaneWall]:
-        """Plane walls (a copy of the list)."""
-        return list(self._planes)
-
-    @property
     def shape_names(self) -> list[str]:
         return list(self._shapes)
-
-    @property
-    def material_names(self) -> list[str]:
-        return list(self._materials)
 
     def shape_index(self, name: str) -> int:
         """Index of a shape in :attr:`shapes` (the value stored in :attr:`body_shape`)."""
         return self._lookup_shape(name, "shape")
-
-    def material_index(self, name: str) -> int:
-        """Index of a material in :attr:`materials` (the value stored in :attr:`body_material`)."""
-        return self._lookup_material(name, "material")
 
     def _lookup_shape(self, name, key) -> int:
         if not isinstance(name, str):
@@ -202,22 +182,6 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 unknown_name(name, self._shapes, "shape", "define one with [shapes.NAME] or Scene.add_shape()"), key
             )
         return self._shape_index[name]
-
-    def _lookup_material(self, name, key) -> int:
-        if isinstance(name, Material):
-            if self._materials.get(name.name) is not name:
-                raise self._err(f"material {name.name!r} is not registered in this scene; use add_material()", key)
-            name = name.name
-        if not isinstance(name, str):
-            raise self._err(f"expected a material name, got {typename(name)}", key)
-        if name not in self._material_index:
-            raise self._err(
-                unknown_name(
-                    name, self._materials, "material", "define one with [materials.NAME] or Scene.add_material()"
-                ),
-                key,
-            )
-        return self._material_index[name]
 
     def add_shape(self, name: str, shape: ConvexShape, *, _spec: dict | None = None) -> ConvexShape:
         """Register ``shape`` under ``name`` (bodies refer to it by name); returns the shape.
@@ -251,6 +215,10 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             return self._shape_index[shape.name]
         return self._lookup_shape(shape, key)
 
+    def _input_frames(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``(q(R_in), t_in)`` of every shape, in index order: its input frame in its body frame."""
+        return self._shape_frames
+
     def shape_spec(self, name: str) -> dict | None:
         """The ``[shapes.NAME]`` table shape ``name`` was built from (a copy), or None for a shape given as
         a :class:`ConvexShape` (scaled shapes of emitters have the spec of theirs scaled, where it has one)."""
@@ -282,16 +250,15 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self.warnings = []
         self._check_settings()
         self._check_laws()
-        n = self._n
-        if n == 0:
+        if self.num_bodies == 0:
             raise self._err(
                 "the scene has no bodies; add at least one with a [[bodies]] table in the scene file or "
                 "Scene.add_body() / add_bodies() in Python",
                 "bodies",
             )
-        a = {name: self._arrays[name][:n] for name, _, _ in BODY_FIELDS}
+        a = self._body_arrays()
         self._check_body_arrays(a)
-        for j, plane in enumerate(self._planes):
+        for j, plane in enumerate(self.planes):
             self._lookup_material(plane.material, f"planes[{j}].material")
             nrm = np.asarray(plane.normal)
             if not (np.all(np.isfinite(nrm)) and abs(np.linalg.norm(nrm) - 1.0) < 1e-9):
@@ -357,8 +324,8 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         ]
         if self.description:
             lines.append(f"  {self.description}")
-        lines.append(f"  materials ({len(self._materials)}):")
-        for m in self._materials.values():
+        lines.append(f"  materials ({len(self.material_names)}):")
+        for m in self.materials.values():
             extra = f", m={m.m:g}" if m.m is not None else ""
             extra += f", kt={m.tangential_stiffness:g} N/m" if m.tangential_stiffness is not None else ""
             lines.append(
@@ -366,17 +333,19 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 f"e={m.restitution:g}, mu={m.friction:g}"
             )
         lines.append(f"  shapes ({len(self._shapes)}):")
-        counts = np.bincount(self.body_shape, minlength=len(self._shapes)) if self._n else [0] * len(self._shapes)
+        counts = (
+            np.bincount(self.body_shape, minlength=len(self._shapes)) if self.num_bodies else [0] * len(self._shapes)
+        )
         for (name, s), c in zip(self._shapes.items(), counts, strict=True):
             kind = self._shape_specs.get(name, {}).get("type", "custom")
             lines.append(
                 f"    {name}: {kind}, {s.num_vertices} vertices, {s.num_faces} faces, volume {s.volume:.4g} "
                 f"m^3, radius {s.radius:.4g} m; {int(c)} bodies"
             )
-        kinds = np.bincount(self.body_kind, minlength=3) if self._n else [0, 0, 0]
-        lines.append(f"  bodies: {self._n} ({kinds[0]} free, {kinds[1]} fixed, {kinds[2]} kinematic)")
-        lines.append(f"  planes ({len(self._planes)}):")
-        for p in self._planes:
+        kinds = np.bincount(self.body_kind, minlength=3) if self.num_bodies else [0, 0, 0]
+        lines.append(f"  bodies: {self.num_bodies} ({kinds[0]} free, {kinds[1]} fixed, {kinds[2]} kinematic)")
+        lines.append(f"  planes ({len(self.planes)}):")
+        for p in self.planes:
             lines.append(
                 f"    point [{', '.join(f'{x:g}' for x in p.point)}], normal "
                 f"[{', '.join(f'{x:.4g}' for x in p.normal)}], material {p.material}"
@@ -408,6 +377,6 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
 
     def __repr__(self) -> str:
         return (
-            f"Scene(name={self.name!r}, bodies={self._n}, shapes={len(self._shapes)}, "
-            f"materials={len(self._materials)}, planes={len(self._planes)})"
+            f"Scene(name={self.name!r}, bodies={self.num_bodies}, shapes={len(self._shapes)}, "
+            f"materials={len(self.material_names)}, planes={len(self.planes)})"
         )

@@ -265,6 +265,10 @@ def _orientations(orientation, count, rng) -> np.ndarray:
 class EmitterMethods:
     """The :class:`~polydem.scene.Scene` method :meth:`emit` and its helpers."""
 
+    def _init_emitters(self):
+        self.emitters: list[dict] = []
+        self._scaled: dict[tuple[int, float], int] = {}  # (shape index, factor) -> index of the scaled shape
+
     def emit(
         self,
         shape,
@@ -378,7 +382,8 @@ class EmitterMethods:
         v = np.broadcast_to(vel, (count, 3))
         if vj > 0.0:
             v = v + rng_vel.uniform(-vj, vj, size=(count, 3))
-        t_in = np.array([self._shape_frames[s][1] for s in range(len(self._shape_frames))])[rows]
+        frames = self._input_frames()
+        t_in = np.array([frames[s][1] for s in range(len(frames))])[rows]
         positions = centres - quat_rotate(q, t_in) if np.any(t_in) else centres
         idx = self._append(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
         self.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
@@ -394,7 +399,7 @@ class EmitterMethods:
             [self._scaled_shape(base[int(cb) // len(values)], float(values[int(cb) % len(values)])) for cb in combo],
             dtype=np.int32,
         )
-        shapes = list(self._shapes.values())
+        shapes = list(self.shapes.values())
         combo_radius = np.array([shapes[s].radius for s in combo_shape])
         return combo_shape[inverse], combo_radius[inverse]
 
@@ -404,15 +409,15 @@ class EmitterMethods:
         Every cell is at least ``spacing`` times the largest bounding diameter among the shapes that
         get bodies, each at its smallest size factor, so the region holds at most that many cells.
         """
-        if self._n + count > scene_bodies.MAX_BODIES:
+        if self.num_bodies + count > scene_bodies.MAX_BODIES:
             raise self._err(
-                f"count = {count} would make {self._n + count:.3g} bodies, more than a scene can hold "
+                f"count = {count} would make {self.num_bodies + count:.3g} bodies, more than a scene can hold "
                 f"({scene_bodies.MAX_BODIES:.0e}); lower count",
                 f"{key}.count",
             )
         per_shape = _largest_remainder(count, frac)
         _, factors = sample_scales(np.random.default_rng(0), 0)
-        shapes = list(self._shapes.values())
+        shapes = list(self.shapes.values())
         r_low = max(shapes[b].radius for b, c in zip(base, per_shape, strict=True) if c > 0) * float(np.min(factors))
         cell = spacing * 2.0 * r_low
         cells = np.floor((hi - lo) / cell * (1.0 + 1e-12))
@@ -480,13 +485,13 @@ class EmitterMethods:
         src = self.shape_names[base]
         name = stem = f"{src}_x{factor:.6g}"
         k = 1
-        while name in self._shapes:
+        while name in self.shape_names:
             k += 1
             name = f"{stem}_{k}"
-        shape = list(self._shapes.values())[base].scaled(factor)
+        shape = list(self.shapes.values())[base].scaled(factor)
         shape.name = name
-        self.add_shape(name, shape, _spec=scaled_spec(self._shape_specs.get(src), factor))
-        self._scaled[cache] = self._shape_index[name]
+        self.add_shape(name, shape, _spec=scaled_spec(self.shape_spec(src), factor))
+        self._scaled[cache] = self.shape_index(name)
         return self._scaled[cache]
 
     def _emitter_cells(self, lo, hi, cell, count, fill, rng, key, r_max, spacing) -> np.ndarray:

@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from polydem.scene.errors import SceneError
+from polydem.scene.errors import SceneError, unknown_name
 from polydem.scene.values import check_keys, read_choice, read_number, typename
 
 LAWS = ("linear", "hertz", "power")
@@ -189,6 +189,39 @@ def pair_material(a: Material, b: Material) -> PairMaterial:
 
 class MaterialMethods:
     """The :class:`~polydem.scene.Scene` methods that register materials and mix material pairs."""
+
+    def _init_materials(self):
+        self._materials: dict[str, Material] = {}
+        self._material_index: dict[str, int] = {}
+
+    @property
+    def materials(self) -> dict[str, Material]:
+        """Registered materials, name -> :class:`Material`, in insertion (= index) order (a copy)."""
+        return dict(self._materials)
+
+    @property
+    def material_names(self) -> list[str]:
+        return list(self._materials)
+
+    def material_index(self, name: str) -> int:
+        """Index of a material in :attr:`materials` (the value stored in :attr:`body_material`)."""
+        return self._lookup_material(name, "material")
+
+    def _lookup_material(self, name, key) -> int:
+        if isinstance(name, Material):
+            if self._materials.get(name.name) is not name:
+                raise self._err(f"material {name.name!r} is not registered in this scene; use add_material()", key)
+            name = name.name
+        if not isinstance(name, str):
+            raise self._err(f"expected a material name, got {typename(name)}", key)
+        if name not in self._material_index:
+            raise self._err(
+                unknown_name(
+                    name, self._materials, "material", "define one with [materials.NAME] or Scene.add_material()"
+                ),
+                key,
+            )
+        return self._material_index[name]
 
     def add_material(self, name: str, **props) -> Material:
         """Register a material; ``props`` are the :class:`Material` fields (density, law, k,

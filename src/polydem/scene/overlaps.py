@@ -231,10 +231,8 @@ class OverlapMethods:
         of their edges: the smallest overlap of the projections is the penetration depth (an upper
         bound where edge axes are skipped), taken over the thinner body's thickness along that axis.
         """
-        shapes = list(self._shapes.values())
-        records = _plane_overlaps(self._planes, self._plane_keys, shapes, a) + _pair_overlaps(
-            shapes, self._body_label, a
-        )
+        shapes = list(self.shapes.values())
+        records = _plane_overlaps(self.planes, self.plane_keys, shapes, a) + _pair_overlaps(shapes, self._body_label, a)
         if not records:
             return []
         records.sort(key=lambda r: -r[0])

@@ -119,6 +119,21 @@ def _drum_radial(axis: np.ndarray, sides: int) -> np.ndarray:
 class WallMethods:
     """The :class:`~polydem.scene.Scene` methods that add plane walls, box containers and drums."""
 
+    def _init_walls(self):
+        self._planes: list[PlaneWall] = []
+        self._plane_keys: list[str] = []
+        self.drums: list[Drum] = []
+
+    @property
+    def planes(self) -> list[PlaneWall]:
+        """Plane walls (a copy of the list)."""
+        return list(self._planes)
+
+    @property
+    def plane_keys(self) -> list[str]:
+        """Where each plane wall came from, e.g. ``walls[0]`` of a scene file or ``planes[1]`` (for messages)."""
+        return list(self._plane_keys)
+
     def add_plane(self, point, normal, material, *, _key: str | None = None) -> PlaneWall:
         """Add an infinite plane through ``point`` [m] facing ``normal`` (normalised; non-zero)."""
         key = _key or f"planes[{len(self._planes)}]"
@@ -179,10 +194,10 @@ class WallMethods:
         """Name of the registered shape of this spec: ``name``, or ``name_2``, ... where ``name`` is taken by
         another spec; ``build(name)`` makes it when there is none yet."""
         base, k = name, 1
-        while name in self._shapes and self._shape_specs.get(name) != spec:
+        while name in self.shape_names and self.shape_spec(name) != spec:
             k += 1
             name = f"{base}_{k}"
-        if name not in self._shapes:
+        if name not in self.shape_names:
             self.add_shape(name, build(name), _spec=spec)
         return name
 
@@ -267,7 +282,7 @@ class WallMethods:
         zeros = np.zeros((n, 3))
         idx = [
             self._append(
-                self._shape_index[slab],
+                self.shape_index(slab),
                 mat,
                 c + (r + 0.5 * t) * radial,
                 quats,
@@ -306,7 +321,7 @@ class WallMethods:
         q_cap = quat_from_matrix(np.column_stack([e1, e2, a]))
         ends = np.array([c + (0.5 * length + 0.5 * t) * a, c - (0.5 * length + 0.5 * t) * a])
         return self._append(
-            self._shape_index[cap_name],
+            self.shape_index(cap_name),
             mat,
             ends,
             np.tile(q_cap, (2, 1)),
