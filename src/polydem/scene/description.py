@@ -37,7 +37,7 @@ a message pointing to :func:`polydem.overlap`, which offers it for contact geome
 
 
 class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMethods, OverlapMethods):
-    """Validated, host-only description of a simulation (see the module docstring for frames).
+    """Validated, host-only description of a simulation (see :mod:`polydem.scene` for the frames).
 
     Bodies are stored as per-body numpy arrays (read-only views; scenes reach 10^6 bodies):
     :attr:`body_shape`, :attr:`body_material` (int32 indices into :attr:`shapes` and
@@ -159,7 +159,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
     def _err(self, message, key) -> SceneError:
         return SceneError(message, key, self.file)
 
-    # ------------------------------------------------------------------ registries
+    # ------------------------------------------------------------------ shapes
 
     @property
     def shapes(self) -> dict[str, ConvexShape]:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from polydem.quaternions import quat_rotate, quat_to_matrix
-from polydem.scene import bodies as scene_bodies
+from polydem.scene import bodies as scene_bodies  # MAX_BODIES read at call time: one setting for both checks
 from polydem.scene.bodies import KIND_FIXED, KINDS
 from polydem.scene.errors import SceneError
 from polydem.scene.shape_specs import scaled_spec

@@ -100,7 +100,7 @@ class Material:
 
     def contact_law(self):
         """This material's :class:`polydem.contact.ContactLaw` (for contacts with itself)."""
-        from polydem.contact import ContactLaw  # imports Warp; keep the scene module host-only
+        from polydem.contact import ContactLaw  # imports Warp; keep the scene package host-only
 
         return ContactLaw(kind=self.law, k=self.k, m=self.exponent)
 
