@@ -1580,7 +1580,7 @@ def test_emitter_count_is_checked_before_allocating():
 
 
 def test_body_count_limit(monkeypatch):
-    import polydem.scene as scene_module
+    import polydem.scene.bodies as scene_module
 
     monkeypatch.setattr(scene_module, "MAX_BODIES", 10)
     scene = basic_scene()

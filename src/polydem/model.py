@@ -3,7 +3,7 @@
 import numpy as np
 import warp as wp
 
-from polydem.scene import (  # noqa: F401  (re-exported: the time step is computed host-side in scene.py)
+from polydem.scene import (  # noqa: F401  (re-exported: the time step is computed host-side in polydem.scene)
     MAX_DT_FRACTION,
     REFERENCE_DEPTH,
     STEPS_PER_CONTACT_PERIOD,

@@ -26,7 +26,7 @@ import numpy as np
 import warp as wp
 
 from polydem.kernels.raycast import launch_raycast
-from polydem.scene import quat_to_matrix
+from polydem.quaternions import quat_to_matrix
 from polydem.shapeset import ShapeSet
 
 __all__ = ["Camera", "FIXED_COLOR", "PALETTE", "render", "render_layers", "render_simulation", "save_png"]

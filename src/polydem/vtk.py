@@ -263,7 +263,7 @@ class VtkWriter:
         return self.record(sim.time, sim.state(), sim.contacts(), index)
 
     def _write_particles(self, meshio, path, x, q, v, w) -> None:
-        from polydem.scene import quat_to_matrix
+        from polydem.quaternions import quat_to_matrix
 
         rot = quat_to_matrix(q) if len(q) else np.zeros((0, 3, 3))
         points, cells, data = (

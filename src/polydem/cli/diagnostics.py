@@ -60,7 +60,7 @@ def settled_region(scene, state, contacts) -> dict:
     axis 1, horizontal axis 2, height [m]); the three values are None, with a ``note``, when the
     region is empty (a bed narrower than about 4 D, or too few bodies).
     """
-    from polydem.scene import quat_to_matrix
+    from polydem.quaternions import quat_to_matrix
 
     kind = np.asarray(scene.body_kind)
     free = kind == 0

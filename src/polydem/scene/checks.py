@@ -1,0 +1,487 @@
+"""What a run needs of a scene: float32 ranges, the time step, contacts stiff enough for the loads."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
+from polydem.scene.materials import LAW_UNITS
+from polydem.scene.values import check_quats
+
+# The time step resolves a contact oscillation at the reference overlap (0.1% of a body's size,
+# over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
+# fast (it is unstable past 1/pi of it).
+STEPS_PER_CONTACT_PERIOD = 50
+MAX_DT_FRACTION = 1.0 / 8.0
+REFERENCE_DEPTH = 0.001
+
+MAX_STEPS = 2**31 - 1
+"""Most steps of one run: the simulator counts steps in a 32-bit integer."""
+
+# The simulator stores masses, inertias, stiffnesses and the contact integrals (overlap volumes and
+# their first moments, ~ size^4) in float32. Values must be normal float32 numbers, and products of
+# them (inertia times angular velocity squared, k times volume powers, ...) must stay normal too,
+# so they are kept this factor away from both ends of the range: 1.2e-32 to 3.4e32.
+_F32_MARGIN = 1.0e6
+F32_LOW = float(np.finfo(np.float32).tiny) * _F32_MARGIN
+F32_HIGH = float(np.finfo(np.float32).max) / _F32_MARGIN
+
+# Expected overlap depths (of a face contact under a body's weight or at the initial speeds), as a
+# fraction of the body's size V^(1/3): above the first a warning, above the second an error.
+OVERLAP_WARNING = 0.1
+OVERLAP_ERROR = 0.5
+# Initial overlaps, as a fraction of the thinner body's thickness along the separating axis.
+INITIAL_OVERLAP_WARNING = 0.01
+INITIAL_OVERLAP_ERROR = 0.5
+
+
+def reference_stiffness(law, k, exponent, volume):
+    """Secant normal stiffness [N/m] of a face contact of area V^(2/3) at 0.1% of the size V^(1/3).
+
+    With W'(V) the law, a face of area A pressed to depth d gives V = A d and a force W'(A d) A;
+    the secant stiffness is that force over d. Computed in float64 numpy (never an OverflowError:
+    out-of-range values become 0 or inf, which :meth:`Scene.validate` rejects beforehand).
+    """
+    volume = np.float64(volume)
+    with np.errstate(all="ignore"):
+        area = volume ** (2.0 / 3.0)
+        depth = REFERENCE_DEPTH * np.cbrt(volume)
+        v = area * depth
+        if law == "linear":
+            dw = np.asarray(k, dtype=np.float64)
+        elif law == "hertz":
+            dw = np.asarray(k, dtype=np.float64) * np.sqrt(v)
+        else:
+            dw = np.asarray(k, dtype=np.float64) * v ** (np.float64(exponent) - 1.0)
+        return dw * area / depth
+
+
+@dataclass(frozen=True)
+class TimeStep:
+    """The time step of a run (see :meth:`Scene.time_step`).
+
+    Attributes:
+        dt: the step a run uses [s]: the scene's dt, or ``recommended`` for dt = "auto".
+        recommended: 1/50 of the period of the stiffest contact of the lightest free body at the
+            reference overlap (0.1% of its size) [s].
+        limit: 1/8 of that period, the largest accurate step [s].
+        period: that period [s].
+        lightest: index of the body whose mass sets the period.
+        tangential_stiffness: (M, M) tangential stiffness of every material pair [N/m], the derived
+            value (the reference normal stiffness) where the materials give none.
+    """
+
+    dt: float
+    recommended: float
+    limit: float
+    period: float
+    lightest: int
+    tangential_stiffness: np.ndarray
+
+
+def _ln(x) -> float:
+    """Natural log of a positive float, -inf for 0 (log-space arithmetic of the range checks)."""
+    return math.log(x) if x > 0.0 else -math.inf
+
+
+def _exp(x) -> float:
+    return math.exp(min(x, 700.0))
+
+
+def _fmt_exp(x) -> str:
+    """exp(x) for a message, also beyond the range of a float."""
+    return f"{math.exp(x):.3g}" if abs(x) < 700.0 else f"1e{x / math.log(10.0):+.0f}"
+
+
+def _face_overlap(load, m, ln_k, ln_a, ln_l) -> float:
+    """ln(A d) of a face contact (area A, size L, law W = k V^m / m) under a load.
+
+    ``load > 0`` is a force F: W'(A d) A = F, so k (A d)^(m - 1) = F / A; for m = 1 the force
+    k A does not depend on d, and d / L = F / (k A) stands in (see Scene._check_loads).
+    ``load < 0`` is an energy E = -load: W(A d) = E, so (A d)^m = m E / k.
+    """
+    if load < 0.0:
+        return (_ln(-m * load) - ln_k) / m
+    if m == 1.0:
+        return _ln(load) - ln_k + ln_l  # ln(A d) with d / L = F / (k A)
+    return (_ln(load) - ln_a - ln_k) / (m - 1.0)
+
+
+def _stiffness_for(load, m, ln_ad, ln_a, ln_l) -> float:
+    """ln k for which a face contact under ``load`` has ln(A d) = ``ln_ad`` (inverse of _face_overlap)."""
+    if load < 0.0:
+        return _ln(-m * load) - m * ln_ad
+    if m == 1.0:
+        return _ln(load) - ln_a - (ln_ad - ln_a - ln_l)
+    return _ln(load) - ln_a - (m - 1.0) * ln_ad
+
+
+def _loads(mass, ln_l, g, v_hit) -> list[tuple]:
+    """The loads a free body of mass ``mass`` and size exp(ln_l) puts on its contacts: its weight where ``g``
+    > 0 (something carries it), the energy of its impact at ``v_hit`` > 0. Each is ``(load, cause, into,
+    time scale text, time scale)``: a force F > 0 or an energy -E < 0 (see :func:`_face_overlap`)."""
+    loads = []
+    if g > 0.0:
+        t_scale = math.sqrt(2.0 * _exp(ln_l) / g)
+        loads.append(
+            (
+                mass * g,
+                f"under its own weight ({mass * g:.3g} N) it would sink",
+                "into what carries it",
+                f"the {t_scale:.3g} s it takes to fall its own size",
+                t_scale,
+            )
+        )
+    if v_hit > 0.0:
+        t_scale = _exp(ln_l) / v_hit
+        loads.append(
+            (
+                -0.5 * mass * v_hit * v_hit,  # negative: an energy, not a force
+                f"hitting a body or wall at the scene's fastest initial speed ({v_hit:.3g} m/s) it would sink",
+                "into what it hits",
+                f"the {t_scale:.3g} s it takes to cross its own size at that speed",
+                t_scale,
+            )
+        )
+    return loads
+
+
+class CheckMethods:
+    """The :class:`~polydem.scene.Scene` methods that check what a run needs (called by ``validate``)."""
+
+    def _check_body_arrays(self, a):
+        """Indices in range, finite numbers, unit quaternions, valid kinds, pivots only on kinematic bodies,
+        fixed bodies at rest and free bodies with a mass; ``a`` holds the scene's body arrays."""
+        for name, count in (("shape", len(self.shape_names)), ("material", len(self.material_names))):
+            bad = np.flatnonzero((a[name] < 0) | (a[name] >= count))
+            if bad.size:
+                i = int(bad[0])
+                raise self._err(
+                    f"{name} index {int(a[name][i])} out of range: the scene has {count} {name}s", f"bodies[{i}].{name}"
+                )
+        for name in ("position", "orientation", "velocity", "angular_velocity"):
+            bad = np.flatnonzero(~np.isfinite(a[name]).all(axis=1))
+            if bad.size:
+                i = int(bad[0])
+                raise self._err(f"expected finite numbers, got {a[name][i].tolist()}", f"bodies[{i}].{name}")
+        check_quats(a["orientation"], lambda i: f"bodies[{i}].orientation", self.file)
+        bad = np.flatnonzero((a["kind"] < 0) | (a["kind"] >= len(KINDS)))
+        if bad.size:
+            i = int(bad[0])
+            raise self._err(
+                f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)", f"bodies[{i}].kind"
+            )
+        pivoted = np.flatnonzero(~np.isnan(a["pivot"]).any(axis=1) & (a["kind"] != KIND_KINEMATIC))
+        if pivoted.size:
+            i = int(pivoted[0])
+            raise self._err(
+                "only a kinematic body can turn about a pivot; use kind = 'kinematic' or leave pivot out",
+                f"bodies[{i}].pivot",
+            )
+        fixed = a["kind"] == KIND_FIXED
+        moving = np.flatnonzero(
+            fixed & (np.any(a["velocity"] != 0, axis=1) | np.any(a["angular_velocity"] != 0, axis=1))
+        )
+        if moving.size:
+            i = int(moving[0])
+            raise self._err(
+                "a fixed body cannot move; set its velocity and angular_velocity to zero or use kind = 'kinematic'",
+                f"bodies[{i}].velocity",
+            )
+        shapes = list(self.shapes.values())
+        massless = np.array(
+            [
+                not (
+                    s.volume > 0.0
+                    and math.isfinite(s.volume)
+                    and np.all(np.asarray(s.inertia) > 0.0)
+                    and np.all(np.isfinite(s.inertia))
+                )
+                for s in shapes
+            ]
+        )
+        bad = np.flatnonzero((a["kind"] == KIND_FREE) & massless[a["shape"]])
+        if bad.size:
+            i = int(bad[0])
+            s = shapes[int(a["shape"][i])]
+            raise self._err(
+                f"free body uses shape {s.name!r} with volume {s.volume:g} m^3 and inertia {np.asarray(s.inertia)}; a "
+                "free body needs a positive volume and inertia to have mass: use a solid shape or kind = 'fixed'",
+                f"bodies[{i}].shape",
+            )
+
+    def time_step(self) -> TimeStep:
+        """The time step of a run and its bounds (host-only: ``polydem validate`` needs no Warp).
+
+        The period is ``2 pi sqrt(m / k_n)`` of the lightest free body (mass m) against the stiffest
+        pair: ``k_n`` is the secant stiffness of a face contact of area ``V^(2/3)`` pressed to 0.1%
+        of the size ``V^(1/3)`` (:func:`reference_stiffness`), or a larger tangential stiffness.
+        ``dt = "auto"`` takes 1/50 of it; a given dt must not exceed 1/8 of it (SceneError, key
+        ``simulation.dt``).
+        """
+        if self.num_bodies == 0:
+            raise self._err("the scene has no bodies; add at least one with [[bodies]] or Scene.add_body()", "bodies")
+        table = self.pair_table()
+        law, m = table["law"], float(table["exponent"])
+        k = np.asarray(table["k"], dtype=np.float64)
+        kt = np.asarray(table["tangential_stiffness"], dtype=np.float64)
+        shapes = list(self.shapes.values())
+        mass = np.asarray(self.body_mass(), dtype=np.float64)
+        free = self.body_kind == KIND_FREE
+        # The lightest free body (or, with none, the lightest body with a mass) and the stiffest pair
+        # set the time step and default spring.
+        pool = free if free.any() else mass > 0.0
+        if not pool.any():
+            raise self._err(
+                "no body has a mass (all are fixed with zero volume), so no time step can be derived; add a free "
+                "body or give dt in seconds",
+                "simulation.dt",
+            )
+        light = int(np.argmin(np.where(pool, mass, np.inf)))
+        v_ref = shapes[int(self.body_shape[light])].volume
+        k_n = reference_stiffness(law, k, m, v_ref)
+        kt = np.where(np.isnan(kt), k_n, kt)
+        with np.errstate(all="ignore"):
+            stiffest = max(float(np.max(k_n)), float(np.max(kt)))
+            period = float(2.0 * np.pi * np.sqrt(mass[light] / stiffest))
+        recommended = period / STEPS_PER_CONTACT_PERIOD
+        limit = period * MAX_DT_FRACTION
+        if not (math.isfinite(period) and period > 0.0):
+            raise self._err(
+                f"the contact period 2 pi sqrt(m / k) of body {light} (mass {mass[light]:.3g} kg, stiffest contact "
+                f"{stiffest:.3g} N/m) is {period:.3g} s, so no time step can be derived; check the materials' density "
+                "and k",
+                "simulation.dt",
+            )
+        if self.dt == "auto":
+            dt = recommended
+        else:
+            dt = float(self.dt)
+            if dt > limit:
+                raise self._err(
+                    f"time step {dt:.3g} s is above the stable limit {limit:.3g} s for the stiffest contact and the "
+                    f'lightest body (recommended {recommended:.3g} s); use dt = "auto" or a smaller value',
+                    "simulation.dt",
+                )
+        return TimeStep(
+            dt=dt, recommended=recommended, limit=limit, period=period, lightest=light, tangential_stiffness=kt
+        )
+
+    def _body_label(self, i: int) -> str:
+        """``body 12 (shape 'cube', free, from emitters[0])``: how messages name a body."""
+        s = self.shape_names[int(self.body_shape[i])]
+        kind = KINDS[int(self.body_kind[i])]
+        where = next((f", from {e['key']}" for e in self.emitters if e["first"] <= i <= e["last"]), "")
+        return f"body {i} (shape {s!r}, {kind}{where})"
+
+    def _check_float32(self, a):
+        """Shapes, masses, inertias, stiffnesses and the power law within float32 (see F32_LOW)."""
+        lo, hi = F32_LOW, F32_HIGH
+        shapes = list(self.shapes.values())
+        names = self.shape_names
+        # Overlap volumes and their first moments (~ size^4) are the largest powers of a length the
+        # narrow phase sums, so the bounding radius r needs r^4 within [lo, hi].
+        r_lo, r_hi = lo**0.25, hi**0.25
+        for s in np.unique(a["shape"]):
+            sh = shapes[int(s)]
+            if not r_lo <= sh.radius <= r_hi:
+                i = int(np.flatnonzero(a["shape"] == s)[0])
+                raise self._err(
+                    f"shape {names[s]!r} (used by body {i}) has a bounding radius of {sh.radius:.3g} m: too "
+                    f"{'small' if sh.radius < 1.0 else 'large'} for the simulator's float32 arithmetic, whose overlap "
+                    f"volumes and their moments (~ radius^4) must stay between {lo:.2g} and {hi:.2g}; give the shape a "
+                    f"bounding radius between {r_lo:.2g} m and {r_hi:.2g} m",
+                    f"shapes.{names[s]}",
+                )
+        mats = list(self.materials.values())
+        for mat in mats:
+            for attr in ("k", "tangential_stiffness"):
+                value = getattr(mat, attr)
+                if value is not None and not lo <= value <= hi:
+                    raise self._err(
+                        f"{value:g} is outside the range the simulator's float32 arithmetic can use ({lo:.2g} to "
+                        f"{hi:.2g}, float32's normal range with a margin of {_F32_MARGIN:g} for products); give a "
+                        "value in that range",
+                        f"materials.{mat.name}.{attr}",
+                    )
+        free = a["kind"] == KIND_FREE
+        if not free.any():
+            return
+        combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])
+        for c in combo.tolist():
+            sh, mat = shapes[c // len(mats)], mats[c % len(mats)]
+            mass = mat.density * sh.volume
+            inertia = mat.density * np.asarray(sh.inertia)
+            if lo <= mass <= hi and lo <= inertia.min() and inertia.max() <= hi:
+                continue
+            i = int(np.flatnonzero(free & (a["shape"] == c // len(mats)) & (a["material"] == c % len(mats)))[0])
+            rho_lo = max(lo / sh.volume, lo / float(np.min(sh.inertia)))
+            rho_hi = min(hi / sh.volume, hi / float(np.max(sh.inertia)))
+            fix = (
+                f"use a density between {rho_lo:.3g} and {rho_hi:.3g} kg/m^3 for this shape"
+                if rho_lo <= rho_hi
+                else "no density works for this shape: make it less elongated or change its size"
+            )
+            raise self._err(
+                f"{self._body_label(i)} of material {mat.name!r} would have a mass of {mass:.3g} kg and principal "
+                f"moments of inertia of {inertia.min():.3g} to {inertia.max():.3g} kg m^2; the simulator stores them "
+                f"in float32, which needs values between {lo:.2g} and {hi:.2g} (float32's normal range with a margin "
+                f"of {_F32_MARGIN:g} for products); {fix}",
+                f"materials.{mat.name}.density",
+            )
+        law, m = mats[0].law, mats[0].exponent
+        if law != "power":
+            return
+        # The kernels evaluate W = k V^m / m and W' = k V^(m-1) in float32; at the reference
+        # overlap (0.1% of a free body's volume) V^m must stay in range, which bounds m.
+        vols = np.array([sh.volume for sh in shapes])[np.unique(a["shape"][free])]
+        caps = []
+        v_small, v_large = REFERENCE_DEPTH * vols.min(), REFERENCE_DEPTH * vols.max()
+        if v_small < 1.0:
+            caps.append((_ln(lo) / _ln(v_small), v_small))
+        if v_large > 1.0:
+            caps.append((_ln(hi) / _ln(v_large), v_large))
+        if caps:
+            m_max, v_ref = min(caps)
+            if m > m_max:
+                raise self._err(
+                    f"m = {m:g} is too large for the simulator's float32 arithmetic with these bodies: at the "
+                    f"reference overlap of a contact (0.1% of a free body's volume, V = {v_ref:.3g} m^3) the law's "
+                    f"V^m = {_fmt_exp(m * _ln(v_ref))} is outside {lo:.2g} to {hi:.2g}; use m between 1 and "
+                    f"{m_max:.3g} for bodies of these sizes (or law = 'hertz')",
+                    f"materials.{mats[0].name}.m",
+                )
+
+    def _check_loads(self, a, ts: TimeStep) -> list[str]:
+        """Contacts stiff enough for the bodies' weight and initial speeds; returns warnings.
+
+        For each free (shape, material) the overlap depth d of a face contact (area A = V^(2/3),
+        size L = V^(1/3)) is solved from the law W = k V^m / m (k of the softest pair it can
+        meet): under the body's weight M g, where something can carry it (a plane or a fixed or
+        kinematic body), W'(A d) A = M g; at the fastest initial speed v, where something can be
+        hit, W(A d) = M v^2 / 2. The linear law's force k A does not grow with depth: the weight
+        needs the contact area M g / k, which an edge or corner contact reaches at about
+        d / L = M g / (k A). Then:
+
+        * weight, d / L above OVERLAP_ERROR, dt = "auto": SceneError: the body sinks through what
+          carries it, and the automatic time step (set at 0.1% overlap) is far longer than the
+          time the body takes to fall its own size. The fix names the k that keeps d / L at
+          OVERLAP_WARNING.
+        * weight, m > 2 (stiffening laws): SceneError where the step is unstable at d,
+          dt > 2 sqrt(M / K(d)) with the tangent stiffness K(d) = k (m - 1) (A d)^(m - 2) A^2
+          (1/pi of the local period).
+        * otherwise d / L above OVERLAP_WARNING (or an unstable step at the impact overlap): a
+          warning. Initial speeds only warn: the bodies need not meet anything.
+        """
+        free = a["kind"] == KIND_FREE
+        if not free.any():
+            return []
+        table = self.pair_table()
+        mats = list(self.materials.values())
+        law, m = table["law"], float(table["exponent"])
+        k_pair = np.asarray(table["k"], dtype=np.float64)
+        present = set(np.unique(a["material"]).tolist())
+        planes = self.planes
+        present.update(self.material_index(p.material) for p in planes)
+        present = np.array(sorted(present))
+        support = bool(planes) or bool((a["kind"] != KIND_FREE).any())
+        partners = bool(planes) or self.num_bodies >= 2
+        g = float(np.linalg.norm(self.gravity))
+        speeds = np.linalg.norm(a["velocity"][a["kind"] != KIND_FIXED], axis=1)
+        v_hit = float(speeds.max()) if partners and speeds.size else 0.0
+        if not ((support and g > 0.0) or v_hit > 0.0):
+            return []
+        shapes = list(self.shapes.values())
+        dt = ts.dt
+        out = []
+        combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])
+        for c in combo.tolist():
+            sh, mi = shapes[c // len(mats)], c % len(mats)
+            mat = mats[mi]
+            i = int(np.flatnonzero(free & (a["shape"] == c // len(mats)) & (a["material"] == mi))[0])
+            mass = mat.density * sh.volume
+            ln_a, ln_l = (2.0 / 3.0) * _ln(sh.volume), _ln(sh.volume) / 3.0
+            j = int(present[np.argmin(k_pair[mi, present])])
+            k = float(k_pair[mi, j])
+            soft = min((mats[mi], mats[j]), key=lambda x: x.k).name
+            label = f"{self._body_label(i)} of material {mat.name!r}"
+            label += f" against {mats[j].name!r}" if j != mi else ""
+            for case in _loads(mass, ln_l, g if support else 0.0, v_hit):
+                found = self._judge_load(case, m, law, k, soft, mass, ln_a, ln_l, dt, label)
+                if found is not None:
+                    out.append(found)
+        if not out:
+            return []
+        # One line for the scene: the softest case, and how many more there are.
+        out.sort(key=lambda x: -x[0])
+        more = f" ({len(out) - 1} more shapes or materials are soft too)" if len(out) > 1 else ""
+        return [out[0][1] + more]
+
+    def _judge_load(self, case, m, law, k, soft, mass, ln_a, ln_l, dt, label):
+        """One load of :func:`_loads` on a face contact of stiffness ``k``: raise a SceneError where it
+        fails (see :meth:`_check_loads`), return ``(relative depth, warning)`` where it is soft, else None."""
+        load, cause, into, scale, t_scale = case
+        ln_ad = _face_overlap(load, m, _ln(k), ln_a, ln_l)
+        rel = _exp(ln_ad - ln_a - ln_l)
+        ln_target = _ln(OVERLAP_WARNING) + ln_a + ln_l
+        unstable = False
+        if m > 2.0:
+            ln_kt = _ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a
+            unstable = ln_kt > _ln(4.0 * mass) - 2.0 * _ln(dt)
+            if self.dt == "auto":
+                # The auto step goes like 1/sqrt(k), so K(d) dt^2 / k depends on d only: the fix
+                # keeps d where dt is at most 1/8 of the local period, K dt^2 <= M (pi / 4)^2.
+                ln_bound = 2.0 * _ln(math.pi / 4.0) + _ln(mass) - 2.0 * _ln(dt) - _ln(k) - _ln(m - 1.0)
+                ln_target = min(ln_target, (ln_bound - 2.0 * ln_a) / (m - 2.0))
+        depth = f"{cause} about {_fmt_exp(ln_ad - ln_a - ln_l)} times its size ({_exp(ln_l):.3g} m) {into}"
+        if not unstable and rel <= OVERLAP_WARNING:
+            return None
+        ln_need = _stiffness_for(load, m, ln_target, ln_a, ln_l)
+        weight = load > 0.0
+        if unstable:
+            k_tan = _exp(_ln(k) + _ln(m - 1.0) + (m - 2.0) * ln_ad + 2.0 * ln_a)
+            depth += (
+                f", where the law (m = {m:g} > 2 stiffens with depth) has a stiffness of {k_tan:.3g} N/m "
+                f"and the time step {dt:.3g} s is above the stable {2.0 * math.sqrt(mass / k_tan):.3g} s"
+            )
+        if ln_need > _ln(F32_HIGH):
+            fix = f"no k within float32's range (up to {F32_HIGH:.2g}) is stiff enough: " + (
+                "use a smaller m (W = k V^m / m gives almost no force at small overlaps when m is large)"
+                if law == "power"
+                else "use smaller densities or larger bodies"
+            )
+        elif unstable and self.dt != "auto":
+            fix = 'lower dt (or use dt = "auto" with a larger k)'
+        else:
+            fix = f"raise k of {soft!r} to at least {_exp(ln_need):.3g} {LAW_UNITS[law]}"
+        if weight and (unstable or (rel > OVERLAP_ERROR and self.dt == "auto")):
+            why = (
+                f" (the automatic time step, {dt:.3g} s, is {dt / t_scale:.3g} times {scale})"
+                if self.dt == "auto" and not unstable
+                else ""
+            )
+            head = "too soft" if rel > OVERLAP_ERROR else "unstable at this time step"
+            raise self._err(
+                f"the contacts of {label} are {head}: {depth}{why}; {fix}"
+                + (" (a pair's k is the harmonic mean of its materials' k)" if fix.startswith("raise") else ""),
+                "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
+            )
+        return rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"
+
+    def _check_steps(self, ts: TimeStep):
+        if self.duration is not None:
+            steps, key = math.ceil(self.duration / ts.dt - 1e-9), "simulation.duration"
+        elif self.steps is not None:
+            steps, key = self.steps, "simulation.steps"
+        else:
+            return
+        if steps > MAX_STEPS:
+            raise self._err(
+                f"a run of {steps:.3g} steps of {ts.dt:.3g} s is more than the simulator counts ({MAX_STEPS}, a "
+                "32-bit step counter); shorten the run"
+                + (" or use a larger time step (a softer k gives a longer automatic one)" if self.duration else ""),
+                key,
+            )
