@@ -53,10 +53,9 @@ scaling.
 Streaming. Frames are not kept: the file is saved every ``save_every`` frames (if given), once the
 unsaved frames reach ``max_unsaved_mb``, every ``save_interval`` seconds of wall time, and on
 :meth:`~UsdRecorder.close`. ``.usdc`` and ``.usd`` (binary crate) saves append the new time samples
-to the file, so memory stays bounded (measured with 10^6 bodies, saving every frame: about 0.25 s
-and 60 MB of file per frame with float orientations and velocities, 0.1 s and 20 MB with half
-orientations only) and the file on disk is a valid, complete recording of every frame up to the last save, should the
-run be interrupted. Each save rewrites the (small) index, which grows with the number of frames: for
+to the file, so memory stays bounded (BENCHMARKS.md gives the time and bytes per frame) and the file
+on disk is a valid, complete recording of every frame up to the last save, should the run be
+interrupted. Each save rewrites the (small) index, which grows with the number of frames: for
 long runs of few bodies, save less often. ``.usda`` (text) keeps every frame in memory and rewrites
 the whole file on each save: meant for small scenes and for reading by eye.
 

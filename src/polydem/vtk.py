@@ -43,9 +43,8 @@ scalars): the force chains.
 
 The ``.pvd`` files are rewritten (atomically) after every frame, so an interrupted run leaves a
 valid series of the frames so far. ``meshio`` writes the ``.vtu`` files (binary, zlib-compressed;
-empty ones uncompressed); it is imported only when a writer is made. Cost (measured, one CPU core):
-10^5 bodies (cubes and icosahedra) and 3 * 10^5 contacts take about 3 s and 76 MB per frame, most
-of it zlib; a few hundred bodies take milliseconds.
+empty ones uncompressed); it is imported only when a writer is made. BENCHMARKS.md gives the time
+and bytes per frame.
 """
 
 from __future__ import annotations
