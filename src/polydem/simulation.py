@@ -305,6 +305,10 @@ class Stepper:
             out[k] = out[k][:count]
         return out
 
+    def release_diagnostics(self):
+        """Let the buffers of :meth:`diagnose` go (they are allocated again when needed)."""
+        self._diag = None
+
     def kinetic_energy(self, state):
         """Host float64 (translational, rotational) kinetic energy of the free bodies [J]."""
         m = self.model
