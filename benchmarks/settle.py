@@ -229,6 +229,9 @@ def device_bytes(sim):
         "stepper": sim.stepper,
         "broadphase": sim.current_contacts.broadphase,
     }
+    if sim.last_good is not None:  # the copy a chunk starts from, for a redo
+        owners["snapshot_state"] = sim.last_good.state
+        owners["snapshot_pairs"] = sim.last_good.pairs
     ranges = []
     per_owner = {}
     for name, obj in owners.items():

@@ -450,6 +450,11 @@ class Simulation:
         )
         self.restore(Snapshot(state, pairs, steps_done, time))
 
+    @property
+    def last_good(self):
+        """The :class:`Snapshot` taken at the start of the last chunk of :meth:`step` (None before the first)."""
+        return self._last_good
+
     def is_consistent(self):
         """Whether the device state is that of step ``steps_done`` and finite (synchronises)."""
         st = self.current_state
