@@ -31,7 +31,7 @@ a step in contact), then ``--steps`` timed steps through ``Simulation.step`` (th
 one CUDA graph launch per step on CUDA, the host loop on the CPU). Reported: body-steps per
 second, time per step, candidate pairs (broad phase ``pair_count``) and contacts (pairs with
 overlap volume > 0, from ``Simulation.contacts()``), broad-phase rebuilds in the window, device
-bytes per body (every Warp array of the Simulation, Model, ShapeSet and BroadPhase, views counted
+bytes per body (every Warp array of the Simulation, Model, ShapeSet, State, Contacts and BroadPhase, views counted
 once, plus an estimate of the BVH's own buffers; on CUDA also the growth of the mempool's used
 memory).
 
@@ -47,7 +47,7 @@ kernels, copies and memsets): broad-phase check (the Verlet test, every step), b
 (when the check asks; the device refit + query + sort on CUDA, a host build on the CPU; both also
 timed on their own), pair contacts (narrow phase and wrench per candidate pair), gather (per body
 sums plus the plane walls), integrate, and the rest (step counter, finiteness check). The launches
-of ``Simulation._contacts_and_integrate`` are timed one by one by wrapping ``wp.launch`` for the
+of ``Stepper.forces`` and ``Stepper.integrate`` are timed one by one by wrapping ``wp.launch`` for the
 pass. These are not a breakdown of the timed steps; the broad phase per step is reported as the
 check plus the rebuild cost times the rebuilds per timed step.
 
@@ -214,7 +214,7 @@ def _arrays_of(obj):
 
 
 def device_bytes(sim):
-    """Bytes of the Warp arrays owned by the Simulation, its Model, ShapeSet and BroadPhase.
+    """Bytes of the Warp arrays owned by the Simulation, its Model, ShapeSet, State, Contacts and BroadPhase.
 
     Views (e.g. ``pair_key`` into the sort buffer) are counted once: the address ranges are merged.
     The BVH's own buffers are estimated from its node count. Returns a dict.
@@ -223,8 +223,15 @@ def device_bytes(sim):
         "simulation": sim,
         "model": sim.model,
         "shapes": sim.model.shapes,
-        "broadphase": sim.broadphase,
+        "state": sim.current_state,
+        "contacts": sim.current_contacts,
+        "pair_history": sim.current_contacts.previous,
+        "stepper": sim.stepper,
+        "broadphase": sim.current_contacts.broadphase,
     }
+    if sim.last_good is not None:  # the copy a chunk starts from, for a redo
+        owners["snapshot_state"] = sim.last_good.state
+        owners["snapshot_pairs"] = sim.last_good.pairs
     ranges = []
     per_owner = {}
     for name, obj in owners.items():
@@ -237,7 +244,7 @@ def device_bytes(sim):
         ranges += rs
     total = _merged_size(ranges)
     bvh = 0
-    bp = sim.broadphase
+    bp = sim.current_contacts.broadphase
     if getattr(bp, "bvh", None) is not None:
         items = len(bp.box_lower)
         bvh = (2 * items - 1) * BVH_NODE_BYTES + items * BVH_ITEM_BYTES
@@ -321,13 +328,21 @@ def _launch_stage(kernel):
 def measure_stages(sim, steps, rebuild_reps):
     """Run ``steps`` steps stage by stage (see the module docstring); seconds per call of each stage.
 
-    ``wp.launch`` is wrapped for the duration, so that the launches of ``_contacts_and_integrate``
-    are timed one by one and sorted into stages by kernel name. Returns a dict.
+    ``wp.launch`` is wrapped for the duration, so that the launches of ``Stepper.forces`` and
+    ``Stepper.integrate`` are timed one by one and sorted into stages by kernel name. Returns a dict.
     """
     clock = StageClock(sim.device)
-    bp = sim.broadphase
+    state, contacts, stepper = sim.current_state, sim.current_contacts, sim.stepper
+    bp = contacts.broadphase
     m = sim.model
     device_rebuild = sim.use_graph
+
+    def host_build():
+        contacts.build(state.body_q)
+
+    def device_rebuild_once():
+        contacts.rebuild_on_device(state.body_q)
+
     original = wp.launch
 
     def timed_launch(kernel, *args, **kwargs):
@@ -335,23 +350,24 @@ def measure_stages(sim, steps, rebuild_reps):
 
     rebuilds = 0
     for _ in range(steps):
-        clock.run("broadphase_check", lambda: bp.needs_rebuild(sim.body_q, m.body_radius, m.body_flags))
+        clock.run("broadphase_check", lambda: bp.needs_rebuild(state.body_q, m.body_radius, m.body_flags))
         if int(bp.rebuild_flag.numpy()[0]):
             rebuilds += 1
-            clock.run("broadphase_rebuild", sim._device_rebuild if device_rebuild else sim._host_build)
-            if device_rebuild and bp.check_host_build_needed():
-                sim._host_build()
+            clock.run("broadphase_rebuild", device_rebuild_once if device_rebuild else host_build)
+            if device_rebuild and contacts.host_build_needed():
+                host_build()
         wp.launch = timed_launch
         try:
-            sim._contacts_and_integrate()
+            stepper.forces(state, contacts, sim.dt)
+            stepper.integrate(state, sim.dt)
         finally:
             wp.launch = original
     # Rebuild costs on their own (the window above may hold none): a host build always; on CUDA
     # also the device rebuild that the graph runs (refit, query, sort of the whole capacity).
     for _ in range(rebuild_reps):
-        clock.run("host_build", sim._host_build)
+        clock.run("host_build", host_build)
         if device_rebuild:
-            clock.run("device_rebuild", sim._device_rebuild)
+            clock.run("device_rebuild", device_rebuild_once)
     out = {"steps": steps, "rebuilds_in_pass": rebuilds, "wall_s": {}, "gpu_s": {}}
     for stage, total in clock.wall.items():
         per = steps if stage in ("broadphase_check", "pair_contacts", "gather", "integrate", "other") else None
@@ -366,7 +382,7 @@ def measure_stages(sim, steps, rebuild_reps):
 
 def timed_steps(sim, steps):
     """Seconds for ``sim.step(steps)`` and what the broad phase did meanwhile."""
-    bp = sim.broadphase
+    bp = sim.current_contacts.broadphase
     builds0 = bp.num_builds
     dev0 = int(bp.device_rebuilds.numpy()[0])
     wp.synchronize_device(sim.device)
@@ -383,7 +399,7 @@ def timed_steps(sim, steps):
 
 def contact_stats(sim, grains):
     """Candidate pairs (broad phase) and contacts (overlap volume > 0, from ``Simulation.contacts``)."""
-    bp = sim.broadphase
+    bp = sim.current_contacts.broadphase
     count = int(bp.pair_count.numpy()[0])
     b = bp.pair_b.numpy()[:count]
     c = sim.contacts()
@@ -432,7 +448,7 @@ def warm_up(sim, steps, record):
         done += k
         log(
             f"    {1 + done}/{steps} steps, t = {1e3 * sim.time:.1f} ms, {time.perf_counter() - t1:.1f} s, "
-            f"{int(sim.broadphase.pair_count.numpy()[0])} candidate pairs"
+            f"{int(sim.current_contacts.broadphase.pair_count.numpy()[0])} candidate pairs"
         )
     wp.synchronize_device(dev)
     record.update({"first_step_s": first, "warmup_steps": steps, "warmup_s": time.perf_counter() - t1})
@@ -454,8 +470,7 @@ def run_size(n, args, device, record, save):
     t2 = time.perf_counter()
     warmup = args.warmup if args.warmup is not None else max(CHUNK, math.ceil(args.warmup_time / sim.dt))
     initial = sim.contacts()
-    if hasattr(sim, "_diag"):
-        sim._diag = None  # the diagnostics buffers of contacts(): not part of stepping, let them go
+    sim.stepper.release_diagnostics()  # the buffers of contacts(): not part of stepping
     record.update(info)
     record.update(
         {
@@ -465,7 +480,7 @@ def run_size(n, args, device, record, save):
             "use_graph": sim.use_graph,
             "scene_s": t1 - t0,
             "simulation_init_s": t2 - t1,
-            "first_pairs": int(sim.broadphase.num_pairs),
+            "first_pairs": int(sim.current_contacts.broadphase.num_pairs),
             "initial_contacts": len(initial["volume"]),
             "initial_max_overlap_volume_fraction": float(initial["volume"].max() / sim.model.shapes.shapes[0].volume)
             if len(initial["volume"])
@@ -475,8 +490,8 @@ def run_size(n, args, device, record, save):
     del initial
     log(
         f"N={n}: scene {t1 - t0:.2f} s, Simulation() {t2 - t1:.2f} s, dt {sim.dt:.3g} s, grid {info['grid']}, "
-        f"{sim.broadphase.num_pairs} candidate pairs, {record['initial_contacts']} initial contacts; {warmup} warm-up "
-        "steps"
+        f"{sim.current_contacts.broadphase.num_pairs} candidate pairs, {record['initial_contacts']} initial contacts; "
+        f"{warmup} warm-up steps"
     )
     save()
 

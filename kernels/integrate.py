@@ -69,15 +69,11 @@ pivot p (a part of a drum) turns about it instead: x <- p + exp(w dt)(x - p), v 
 Layout of this file: ``@wp.func`` helpers, the kernels, then the plain launch functions.
 """
 
-import numpy as np
 import warp as wp
 
 BODY_FREE = wp.constant(0)
 BODY_FIXED = wp.constant(1)
 BODY_KINEMATIC = wp.constant(2)
-
-# Initial value of the "first offending body" slot of the finiteness check (int32 max).
-NO_BODY = 2147483647
 
 
 # ---------------------------------------------------------------------------------------------
@@ -159,12 +155,6 @@ def angular_velocity(q: wp.quat, inertia: wp.vec3, inv_inertia: wp.vec3, pi: wp.
     w = wp.quat_rotate(q, wp.cw_mul(inv_inertia, pi))
     err = pi - body_momentum(q, inertia, w)
     return w + wp.quat_rotate(q, wp.cw_mul(inv_inertia, err))
-
-
-@wp.func
-def world_inertia_times(q: wp.quat, inertia: wp.vec3, w: wp.vec3):
-    # R I R^T w: angular momentum [kg m^2/s] of angular velocity w (world axes).
-    return wp.quat_rotate(q, body_momentum(q, inertia, w))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,56 +255,6 @@ def kinetic_energy_kernel(
         e_ang = 0.5 * wp.dot(wb, wp.cw_mul(body_inertia[i], wb))
     energy_lin[i] = e_lin
     energy_ang[i] = e_ang
-
-
-@wp.kernel(enable_backward=False)
-def momentum_kernel(
-    # Model
-    body_inv_mass: wp.array(dtype=float),
-    body_inertia: wp.array(dtype=wp.vec3),
-    body_flags: wp.array(dtype=int),
-    # State in
-    body_q: wp.array(dtype=wp.transform),
-    body_v: wp.array(dtype=wp.vec3),
-    body_w: wp.array(dtype=wp.vec3),
-    # Out
-    linear: wp.array(dtype=wp.vec3),
-    angular: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid()
-    p = wp.vec3(0.0)
-    h = wp.vec3(0.0)
-    inv_mass = body_inv_mass[i]
-    if body_flags[i] == BODY_FREE and inv_mass > 0.0:
-        tf = body_q[i]
-        p = body_v[i] / inv_mass
-        spin = world_inertia_times(wp.transform_get_rotation(tf), body_inertia[i], body_w[i])
-        h = wp.cross(wp.transform_get_translation(tf), p) + spin
-    linear[i] = p
-    angular[i] = h
-
-
-@wp.kernel(enable_backward=False)
-def check_finite_kernel(
-    # State in
-    body_q: wp.array(dtype=wp.transform),
-    body_v: wp.array(dtype=wp.vec3),
-    body_w: wp.array(dtype=wp.vec3),
-    # Out
-    flag: wp.array(dtype=int),
-    first_body: wp.array(dtype=int),
-):
-    i = wp.tid()
-    tf = body_q[i]
-    ok = (
-        wp.isfinite(wp.transform_get_translation(tf))
-        and wp.isfinite(wp.transform_get_rotation(tf))
-        and wp.isfinite(body_v[i])
-        and wp.isfinite(body_w[i])
-    )
-    if not ok:
-        flag[0] = 1
-        wp.atomic_min(first_body, 0, i)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -420,74 +360,3 @@ def kinetic_energy(
         device=device,
     )
     return energy_lin, energy_ang
-
-
-def momentum(
-    body_inv_mass,
-    body_inertia,
-    body_flags,
-    body_q,
-    body_v,
-    body_w,
-    linear=None,
-    angular=None,
-    device=None,
-):
-    """Per-body linear momentum m v [kg m/s] and angular momentum about the world origin
-    x x m v + R I R^T w [kg m^2/s].
-
-    Arguments as in :func:`integrate_bodies`; ``linear`` and ``angular`` are optional ``(n,)``
-    vec3 output arrays. Fixed, kinematic and infinite-mass bodies count 0.
-
-    Returns:
-        ``(linear, angular)``, two ``(n,)`` vec3 Warp arrays.
-    """
-    device = _device(device, body_q)
-    n = body_q.shape[0]
-    if linear is None:
-        linear = wp.empty(n, dtype=wp.vec3, device=device)
-    if angular is None:
-        angular = wp.empty(n, dtype=wp.vec3, device=device)
-    wp.launch(
-        momentum_kernel,
-        dim=n,
-        inputs=[body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w],
-        outputs=[linear, angular],
-        device=device,
-    )
-    return linear, angular
-
-
-def reset_finite_check(flag, first_body):
-    """Clear a finiteness flag (to 0) and its first-offending-body slot (to ``NO_BODY``)."""
-    flag.zero_()
-    first_body.fill_(NO_BODY)
-
-
-def check_finite(body_q, body_v, body_w, flag=None, first_body=None, device=None):
-    """Flag bodies whose position, orientation, velocity or angular velocity is not finite.
-
-    Args:
-        body_q, body_v, body_w: ``(n,)`` state arrays as in :func:`integrate_bodies`.
-        flag: optional ``(1,)`` int32 array, set to 1 when any body is not finite. Given arrays are
-            not cleared, so the check is sticky across steps (clear with :func:`reset_finite_check`).
-        first_body: optional ``(1,)`` int32 array receiving the lowest offending body index
-            (atomic min; ``NO_BODY`` when none).
-        device: Warp device; defaults to the device of ``body_q``.
-
-    Returns:
-        ``(flag, first_body)``. Read them with ``.numpy()`` (this synchronises).
-    """
-    device = _device(device, body_q)
-    if flag is None:
-        flag = wp.zeros(1, dtype=int, device=device)
-    if first_body is None:
-        first_body = wp.array(np.array([NO_BODY], dtype=np.int32), dtype=int, device=device)
-    wp.launch(
-        check_finite_kernel,
-        dim=body_q.shape[0],
-        inputs=[body_q, body_v, body_w],
-        outputs=[flag, first_body],
-        device=device,
-    )
-    return flag, first_body

@@ -267,3 +267,29 @@ def test_old_format_loads_with_a_warning(saved, tmp_path):
     with pytest.warns(CheckpointWarning, match="cannot be checked to come from this scene"):
         load_checkpoint(sim, tmp_path / "old.npz")
     assert sim.steps_done == 300
+
+
+def test_checkpoint_of_the_format_before_the_state_redesign_resumes(tmp_path):
+    """tests/data/stack_base_format.npz was written by polydem before State and Contacts existed
+    (the stack after 300 steps on the CPU): it loads, and the resumed run equals an unbroken one bit for bit."""
+    from polydem.checkpoint import read_checkpoint
+
+    path = Path(__file__).resolve().parent / "data" / "stack_base_format.npz"
+    assert read_checkpoint(path).run == {"note": "written by polydem before issue 10"}
+    unbroken = polydem.Simulation(stack(), device="cpu")
+    unbroken.step(600)
+    resumed = polydem.Simulation(stack(), device="cpu")
+    load_checkpoint(resumed, path)
+    assert resumed.steps_done == 300 and len(resumed.current_contacts.history_numpy()["pair_key"]) >= 3
+    resumed.step(300)
+    a, b = unbroken.state(), resumed.state()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert unbroken.energy() == resumed.energy()
+    # Written again, it holds the same arrays as a checkpoint of the unbroken run.
+    save_checkpoint(unbroken, tmp_path / "a.npz")
+    save_checkpoint(resumed, tmp_path / "b.npz")
+    with np.load(tmp_path / "a.npz") as fa, np.load(tmp_path / "b.npz") as fb:
+        assert fa.files == fb.files
+        for key in fa.files:
+            np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)

@@ -10,17 +10,110 @@ from polydem.kernels.integrate import (
     BODY_FIXED,
     BODY_FREE,
     BODY_KINEMATIC,
-    NO_BODY,
-    check_finite,
+    body_momentum,
     integrate_bodies,
     kinetic_energy,
-    momentum,
-    reset_finite_check,
 )
 from scipy.spatial.transform import Rotation
 
 EPS = 2.0**-24
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+# -------------------------------------------------------------------------------------------------
+# Reference kernels of the tests (the simulation needs neither: it checks finiteness per step in
+# polydem.simulation and reports momenta from the host state)
+# -------------------------------------------------------------------------------------------------
+
+# Initial value of the "first offending body" slot of the finiteness check (int32 max).
+NO_BODY = 2147483647
+
+
+@wp.kernel(enable_backward=False)
+def momentum_kernel(
+    body_inv_mass: wp.array(dtype=float),
+    body_inertia: wp.array(dtype=wp.vec3),
+    body_flags: wp.array(dtype=int),
+    body_q: wp.array(dtype=wp.transform),
+    body_v: wp.array(dtype=wp.vec3),
+    body_w: wp.array(dtype=wp.vec3),
+    linear: wp.array(dtype=wp.vec3),
+    angular: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()
+    p = wp.vec3(0.0)
+    h = wp.vec3(0.0)
+    inv_mass = body_inv_mass[i]
+    if body_flags[i] == BODY_FREE and inv_mass > 0.0:
+        tf = body_q[i]
+        q = wp.transform_get_rotation(tf)
+        p = body_v[i] / inv_mass
+        # R I R^T w: the spin's angular momentum, with the integrator's own body_momentum.
+        spin = wp.quat_rotate(q, body_momentum(q, body_inertia[i], body_w[i]))
+        h = wp.cross(wp.transform_get_translation(tf), p) + spin
+    linear[i] = p
+    angular[i] = h
+
+
+def momentum(body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w):
+    """Per-body linear momentum m v [kg m/s] and angular momentum about the world origin
+    x x m v + R I R^T w [kg m^2/s] (float32, on the device); fixed and kinematic bodies count 0."""
+    n = body_q.shape[0]
+    linear = wp.empty(n, dtype=wp.vec3, device=body_q.device)
+    angular = wp.empty(n, dtype=wp.vec3, device=body_q.device)
+    wp.launch(
+        momentum_kernel,
+        dim=n,
+        inputs=[body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w],
+        outputs=[linear, angular],
+        device=body_q.device,
+    )
+    return linear, angular
+
+
+@wp.kernel(enable_backward=False)
+def check_finite_kernel(
+    body_q: wp.array(dtype=wp.transform),
+    body_v: wp.array(dtype=wp.vec3),
+    body_w: wp.array(dtype=wp.vec3),
+    flag: wp.array(dtype=int),
+    first_body: wp.array(dtype=int),
+):
+    i = wp.tid()
+    tf = body_q[i]
+    ok = (
+        wp.isfinite(wp.transform_get_translation(tf))
+        and wp.isfinite(wp.transform_get_rotation(tf))
+        and wp.isfinite(body_v[i])
+        and wp.isfinite(body_w[i])
+    )
+    if not ok:
+        flag[0] = 1
+        wp.atomic_min(first_body, 0, i)
+
+
+def reset_finite_check(flag, first_body):
+    """Clear a finiteness flag (to 0) and its first-offending-body slot (to ``NO_BODY``)."""
+    flag.zero_()
+    first_body.fill_(NO_BODY)
+
+
+def check_finite(body_q, body_v, body_w, flag=None, first_body=None):
+    """``(flag, first_body)``: flag[0] = 1 when a body's state is not finite, first_body[0] the lowest
+    such body (``NO_BODY``: none). Given arrays are not cleared (sticky until reset_finite_check)."""
+    device = body_q.device
+    if flag is None:
+        flag = wp.zeros(1, dtype=int, device=device)
+    if first_body is None:
+        first_body = wp.array(np.array([NO_BODY], dtype=np.int32), dtype=int, device=device)
+    wp.launch(
+        check_finite_kernel,
+        dim=body_q.shape[0],
+        inputs=[body_q, body_v, body_w],
+        outputs=[flag, first_body],
+        device=device,
+    )
+    return flag, first_body
 
 
 class Bodies:

@@ -12,7 +12,7 @@ map the conserved quantity is, to O(dt^2),
 
 so H itself swings by O(dt) F.v inside every contact and comes back afterwards; H~ does not swing
 (in free fall it is conserved exactly: H drifts by -m g^2 dt^2 / 2 per step, the correction by the
-opposite amount). F and tau are the contact wrench of the last step (sim.body_f, sim.body_t),
+opposite amount). F and tau are the contact wrench of the last step (State.body_f, State.body_t),
 evaluated one step earlier than v, which changes H~ only at O(dt^2).
 """
 
@@ -48,10 +48,11 @@ def modified_energy(sim, energy=None):
     m = sim.model
     free = m.body_flags_np == 0
     mass = m.body_mass[free].astype(np.float64)
-    v = sim.body_v.numpy()[free].astype(np.float64)
-    w = sim.body_w.numpy()[free].astype(np.float64)
-    f = sim.body_f.numpy()[free].astype(np.float64) + mass[:, None] * np.asarray(m.gravity, dtype=np.float64)
-    tau = sim.body_t.numpy()[free].astype(np.float64)
+    st = sim.current_state
+    v = st.body_v.numpy()[free].astype(np.float64)
+    w = st.body_w.numpy()[free].astype(np.float64)
+    f = st.body_f.numpy()[free].astype(np.float64) + mass[:, None] * np.asarray(m.gravity, dtype=np.float64)
+    tau = st.body_t.numpy()[free].astype(np.float64)
     return e["total"] + 0.5 * sim.dt * (np.sum(f * v) + np.sum(tau * w))
 
 
@@ -577,6 +578,80 @@ def test_same_scene_twice_is_bit_identical(device):
         assert np.array_equal(c1[k], c2[k]), k
 
 
+def test_stepper_writes_the_next_state(device):
+    """Stepper.step(state_in, state_out, ...) leaves state_in as it was and gives state_out the state
+    that stepping in place gives; a snapshot brings a simulation back to its step, bit for bit."""
+    from polydem.simulation import Stepper
+
+    scene = single_material_scene(restitution=0.5, friction=0.5, k=1.0e7)
+    shapes = mixed_shapes(scene)
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    quats = random_quats(4, 7)
+    for i in range(4):  # two stacks: the upper bodies fall onto the lower ones, on the floor
+        x, z = 0.4 * (i // 2) + 0.03 * (i % 2), 0.09 + 0.17 * (i % 2)
+        scene.add_body(shapes[i % 3].name, "m", position=(x, 0.0, z), orientation=quats[i], velocity=(0.0, 0.0, -1.0))
+    sim = Simulation(scene, device, use_graph=False)
+    sim.step(700)  # in contact with the floor and each other: springs and turning volumes to carry
+    c = sim.contacts()
+    assert np.count_nonzero(c["body_b"] >= 0) >= 1 and np.count_nonzero(c["body_b"] < 0) >= 1
+    snap = sim.snapshot()
+    before = sim.current_state.numpy(sim.current_state.FIELDS)
+
+    assert np.any(sim.current_contacts.pair_xi.numpy() != 0.0)  # friction springs are stretched
+
+    stepper = Stepper(sim.model)
+    state_in = sim.current_state
+    state_out = state_in.copy()
+    state_out.body_v.zero_()
+    stepper.step(state_in, state_out, sim.current_contacts, sim.dt)  # the step also moves the pair history on
+    for k, a in state_in.numpy(state_in.FIELDS).items():
+        assert np.array_equal(a, before[k]), k  # the state in is only read
+    out = state_out.numpy(state_out.FIELDS)
+    assert int(out["step_count"][0]) == 701 and not np.array_equal(out["body_q"], before["body_q"])
+    sim.restore(snap)  # the history of step 700 again (the pair list found afresh)
+    stepper.step(sim.current_state, sim.current_state, sim.current_contacts, sim.dt)
+    for k, a in sim.current_state.numpy(state_in.FIELDS).items():
+        assert np.array_equal(a, out[k]), k
+
+    sim.restore(snap)
+    sim.step(40)
+    first = sim.state(), sim.energy()
+    sim.restore(snap)
+    assert sim.steps_done == 700 and sim.time == snap.time
+    sim.step(40)
+    second = sim.state(), sim.energy()
+    for k in first[0]:
+        assert np.array_equal(first[0][k], second[0][k]), k
+    assert first[1] == second[1]
+
+
+def test_restore_last_good_after_an_interrupted_step(device):
+    """A step interrupted inside a chunk (Ctrl-C) is rolled back to the step count it started from."""
+    scene = single_material_scene()
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("cube", "m", position=(0.0, 0.0, 1.0))
+    sim = Simulation(scene, device, use_graph=False)
+    sim.step(10)
+    assert sim.restore_last_good()  # nothing to undo
+    expected = sim.state()
+    step, calls = sim.stepper.step, []
+
+    def interrupted(*args):
+        step(*args)
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+
+    sim.stepper.step = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        sim.step(20)
+    sim.stepper.step = step
+    assert sim.steps_done == 10 and not sim.is_consistent()  # the state moved on 5 steps
+    assert sim.restore_last_good() and sim.steps_done == 10
+    for k, a in sim.state().items():
+        assert np.array_equal(a, expected[k]), k
+
+
 # ---------------------------------------------------------------------------------------------
 # 8, 9. Errors
 
@@ -588,9 +663,9 @@ def test_nonfinite_state_names_step_and_body(device):
         scene.add_body("cube", "m", position=(0.5 * i, 0.0, 1.0))  # far apart: no contacts
     sim = Simulation(scene, device)
     sim.step(100)  # more than one chunk of steps
-    v = sim.body_v.numpy()
+    v = sim.current_state.body_v.numpy()
     v[2, 1] = np.nan
-    sim.body_v.assign(v)
+    sim.current_state.body_v.assign(v)
     with pytest.raises(SimulationError) as info:
         sim.step(10)
     msg = str(info.value)

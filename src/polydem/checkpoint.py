@@ -28,6 +28,7 @@ import json
 import math
 import os
 import warnings
+import weakref
 
 import numpy as np
 
@@ -155,14 +156,18 @@ def _fingerprint(text: str, arrays) -> str:
     return h.hexdigest()
 
 
+_PHYSICS_RECORDS = weakref.WeakKeyDictionary()
+"""The physics record of each Model, computed once (a run writes many checkpoints)."""
+
+
 def _sim_physics(sim):
-    """(json text, arrays, fingerprint) of a simulation's physics, computed once per simulation."""
-    cached = getattr(sim, "_physics_record", None)
+    """(description, json text, arrays, fingerprint) of a simulation's physics."""
+    cached = _PHYSICS_RECORDS.get(sim.model)
     if cached is None:
         desc, arrays = physics_description(sim.model.scene, sim.dt)
         text = _physics_json(desc)
         cached = (desc, text, arrays, _fingerprint(text, arrays))
-        sim._physics_record = cached
+        _PHYSICS_RECORDS[sim.model] = cached
     return cached
 
 
@@ -274,8 +279,6 @@ def save_checkpoint(sim, path, run=None):
     path = os.fspath(path)
     if not path.endswith(".npz"):
         raise ValueError(f"checkpoint path must end with .npz, got {path!r}")
-    bp = sim.broadphase
-    count = int(bp.pair_count.numpy()[0])
     _, text, arrays, fingerprint = _sim_physics(sim)
     data = {
         "format": np.array(FORMAT),
@@ -283,16 +286,8 @@ def save_checkpoint(sim, path, run=None):
         "steps_done": np.array(sim.steps_done),
         "time": np.array(sim.time),
         "dt": np.array(sim.dt),
-        "body_q": sim.body_q.numpy(),
-        "body_v": sim.body_v.numpy(),
-        "body_w": sim.body_w.numpy(),
-        "body_dissipated": sim.body_dissipated.numpy(),
-        "plane_xi": sim.plane_xi.numpy(),
-        "plane_turn": sim.plane_turn.numpy(),
-        "step_count": sim.step_count.numpy(),
-        "pair_key": bp.pair_key.numpy()[:count],
-        "pair_xi": sim.pair_xi.numpy()[:count] if sim.model.friction else np.zeros((0, 3), np.float32),
-        "pair_turn": sim.pair_turn.numpy()[:count],
+        **sim.current_state.numpy(_STATE),
+        **sim.current_contacts.history_numpy(),
         "physics_fingerprint": np.array(fingerprint),
         "physics_json": np.array(text),
     }
@@ -557,8 +552,9 @@ def check_scene(ck, sim, fix="use the scene the checkpoint was written from") ->
             f"checkpoint time step {ck.dt:.6g} s differs from the scene's {sim.dt:.6g} s; {fix}", ck.path
         )
     arrays = ck.arrays
-    if arrays["plane_turn"].shape != tuple(sim.plane_turn.shape) or (
-        arrays["plane_xi"].shape[:2] != tuple(sim.plane_xi.shape)
+    state = sim.current_state
+    if arrays["plane_turn"].shape != tuple(state.plane_turn.shape) or (
+        arrays["plane_xi"].shape[:2] != tuple(state.plane_xi.shape)
     ):
         raise CheckpointError(
             f"wall contacts of shape {arrays['plane_turn'].shape} do not fit this scene's walls; {fix}", ck.path
@@ -574,35 +570,7 @@ def check_scene(ck, sim, fix="use the scene the checkpoint was written from") ->
 
 def restore_checkpoint(sim, ck):
     """Put the state of the checked checkpoint ``ck`` (:func:`read_checkpoint`) into ``sim``."""
-    import warp as wp
-
-    arrays = ck.arrays
-    dev = sim.device
-    count = len(arrays["pair_key"])
-    cap = max(count, 1)
-    key = np.zeros(cap, dtype=np.int64)
-    key[:count] = arrays["pair_key"]
-    xi = np.zeros((cap, 3), dtype=np.float32)
-    if sim.model.friction and count:
-        xi[:count] = arrays["pair_xi"]
-    turn = np.zeros(cap, dtype=np.float32)
-    turn[:count] = arrays["pair_turn"]
-    sim._saved = {
-        "q": wp.array(arrays["body_q"], dtype=wp.transform, device=dev),
-        "v": wp.array(arrays["body_v"], dtype=wp.vec3, device=dev),
-        "w": wp.array(arrays["body_w"], dtype=wp.vec3, device=dev),
-        "diss": wp.array(arrays["body_dissipated"], dtype=float, device=dev),
-        "plane_xi": wp.array(arrays["plane_xi"], dtype=wp.vec3, device=dev),
-        "plane_turn": wp.array(arrays["plane_turn"], dtype=float, device=dev),
-        "xi": wp.array(xi, dtype=wp.vec3, device=dev),
-        "turn": wp.array(turn, dtype=float, device=dev),
-        "key": wp.array(key, dtype=wp.int64, device=dev),
-        "count": wp.array(np.array([count], dtype=np.int32), dtype=int, device=dev),
-        "step": wp.array(arrays["step_count"], dtype=int, device=dev),
-    }
-    sim._restore()
-    sim.steps_done = ck.steps_done
-    sim.time = ck.time
+    sim.restore_from_arrays(ck.arrays, ck.steps_done, ck.time)
     return sim
 
 

@@ -1,4 +1,8 @@
-"""Model: the static device arrays of a simulation, built once from a validated Scene."""
+"""Model: the static device arrays of a simulation, built once from a validated Scene.
+
+What changes during a run is not here: see :class:`~polydem.state.State` (bodies, wall contacts) and
+:class:`~polydem.contacts.Contacts` (the pair list and its history).
+"""
 
 import numpy as np
 import warp as wp
@@ -11,6 +15,7 @@ from polydem.scene import (  # noqa: F401  (re-exported: the time step is comput
     reference_stiffness,
 )
 from polydem.shapeset import ShapeSet
+from polydem.state import State
 
 
 class Model:
@@ -109,3 +114,12 @@ class Model:
         )
         if n == 0:
             raise SceneError("the scene has no bodies", key="bodies")
+
+    def state(self):
+        """The scene's initial :class:`~polydem.state.State`: its bodies' poses and velocities, no contact history."""
+        scene = self.scene
+        state = State(self.num_bodies, self.num_planes, self.friction, self.device)
+        state.body_q.assign(np.hstack([scene.body_position, scene.body_orientation]).astype(np.float32))
+        state.body_v.assign(np.asarray(scene.body_velocity, dtype=np.float32))
+        state.body_w.assign(np.asarray(scene.body_angular_velocity, dtype=np.float32))
+        return state

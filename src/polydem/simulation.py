@@ -1,33 +1,38 @@
-"""Simulation: owns the Model, the State and the contact buffers, and steps them.
+"""Simulation: a Model, its State and Contacts, and the Stepper that advances them.
 
-Each step: broad phase (Verlet skin; rebuilt only when some body moved far enough) -> pair
-contacts (narrow phase and wrench per candidate pair) -> gather per body (plus the walls) ->
-integrate -> finiteness check. On a CUDA device the step is captured once as a CUDA graph, the
-broad-phase rebuild as a conditional node inside it, and replayed; the CPU runs the same kernels.
+Data flows one way::
 
-Steps run in chunks between host checks. A chunk starts from a saved copy of the state; when
-something overflowed during the chunk (the candidate-pair buffer in a device rebuild, or a
-clipped polygon) the state is restored, the buffer grown, and the chunk run again, so no contact
-is ever dropped. A non-finite value stops the run with an error naming the step and the bodies.
+    Scene --> Model (static) + State (bodies, wall contacts) + Contacts (pair list and its history)
+    each step: state_in -> broad phase (Contacts) -> pair contacts -> gather per body (plus the
+               walls) -> integrate -> finiteness check -> state_out
+
+:class:`Stepper` is the step: ``step(state_in, state_out, contacts, dt)``. The broad phase is a
+Verlet list: it is rebuilt only when some body moved far enough. :class:`Simulation` is the
+front: it builds the three from a scene, steps them in place, and reads energies and contacts.
+On a CUDA device the step is captured once as a CUDA graph, the broad-phase rebuild as a
+conditional node inside it, and replayed; the CPU runs the same kernels.
+
+Steps run in chunks between host checks. A chunk starts from a saved copy of the state and the
+pair history; when something overflowed during the chunk (the candidate-pair buffer in a device
+rebuild, or a clipped polygon) the copy is restored, the buffer grown, and the chunk run again, so
+no contact is ever dropped. A non-finite value stops the run with an error naming the step and
+the bodies.
 """
 
 import numpy as np
 import warp as wp
 
-from polydem.kernels.broadphase import BroadPhase
-from polydem.kernels.forces import (
-    b_keys_kernel,
-    body_ranges_kernel,
-    make_contact_kernels,
-    remap_history_kernel,
-)
+from polydem.contacts import Contacts, PairHistory
+from polydem.kernels.forces import make_contact_kernels
 from polydem.kernels.integrate import integrate_bodies, kinetic_energy
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.model import Model
+from polydem.state import State
 
-__all__ = ["Simulation", "SimulationError"]
+__all__ = ["Simulation", "SimulationError", "Snapshot", "Stepper"]
 
 CHUNK_STEPS = 64
+NO_STEP = 2**31 - 1
 
 
 class SimulationError(RuntimeError):
@@ -63,195 +68,134 @@ def advance_step_kernel(step: wp.array(dtype=int)):
     step[0] = step[0] + 1
 
 
-class Simulation:
-    """Steps a :class:`~polydem.Scene` on a Warp device.
+class Stepper:
+    """One time step of a :class:`~polydem.model.Model`: ``step(state_in, state_out, contacts, dt)``.
+
+    Stages: :meth:`collide` (the broad phase: rebuild the pair list when needed), :meth:`forces`
+    (pair contacts, then the gather per body with the walls), :meth:`integrate` (and the
+    finiteness check). The kernels update their arrays in place; ``state_out`` may be
+    ``state_in`` (the :class:`Simulation` steps in place, so one captured graph serves every step).
 
     Args:
-        scene: the scene (validated here).
-        device: Warp device, default Warp's default device ("cuda:0" when there is one).
-        skin: Verlet skin [m]; default a fifth of the smallest free body's bounding radius.
-        use_graph: capture the step as a CUDA graph (default: on CUDA devices).
+        model: the model.
+        device_rebuild: rebuild the pair list on the device, without host synchronisation (for
+            CUDA graph capture); an overflow is then reported by ``contacts.host_build_needed()``.
+
+    Attributes:
+        poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_polygons`).
+        poly_overflow: (1,) int32, set when a clipped polygon did not fit (the step must be redone).
+        bad_step: (1,) int32, the first step whose state was not finite (``NO_STEP``: none yet).
     """
 
-    def __init__(self, scene, device=None, skin=None, use_graph=None):
-        self.model = model = Model(scene, device)
-        self.device = dev = model.device
-        self.dt = model.dt
-        n = model.num_bodies
-        self.num_bodies = n
-        self.use_graph = dev.is_cuda if use_graph is None else (bool(use_graph) and dev.is_cuda)
-
-        # State
-        self.body_q = wp.array(
-            np.hstack([scene.body_position, scene.body_orientation]).astype(np.float32), dtype=wp.transform, device=dev
-        )
-        self.body_v = wp.array(np.asarray(scene.body_velocity, dtype=np.float32), dtype=wp.vec3, device=dev)
-        self.body_w = wp.array(np.asarray(scene.body_angular_velocity, dtype=np.float32), dtype=wp.vec3, device=dev)
-        self.body_f = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.body_t = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.body_dissipated = wp.zeros(n, dtype=float, device=dev)
-        # Friction springs of the wall contacts (a placeholder when the scene has no friction).
-        shape = (n, max(model.num_planes, 1)) if model.friction else (1, 1)
-        self.plane_xi = wp.zeros(shape, dtype=wp.vec3, device=dev)
-        # Turning volumes of the wall contacts (the normal hysteresis, kernels/forces.py).
-        self.plane_turn = wp.zeros((n, max(model.num_planes, 1)), dtype=float, device=dev)
-        self._diag = None
-        self.step_count = wp.zeros(1, dtype=int, device=dev)
-        self.bad_step = wp.full(1, 2**31 - 1, dtype=int, device=dev)
-        self.poly_overflow = wp.zeros(1, dtype=int, device=dev)
-        self.steps_done = 0
-        self.time = 0.0
-
-        radius = model.body_radius.numpy()
-        free = model.body_flags_np == 0
-        r_min = float(radius[free].min()) if free.any() else float(radius.min())
-        self.skin = 0.2 * r_min if skin is None else float(skin)
-        # Bounding spheres about the centre do not change as a body turns: no rotation term.
-        shape_list = [scene.shapes[name] for name in scene.shape_names]
-        lower = np.array([s.vertices.min(axis=0) for s in shape_list])[scene.body_shape]
-        upper = np.array([s.vertices.max(axis=0) for s in shape_list])[scene.body_shape]
-        # Settled packings of convex grains have 3-4 candidate pairs per body at this skin: start
-        # with room for 5 (an overflow grows the buffers and redoes the step).
-        self.broadphase = BroadPhase(
-            n, dev, self.skin, capacity=max(1024, 5 * n), rotation_term=False, body_box=(lower, upper)
-        )
+    def __init__(self, model, device_rebuild=False):
+        self.model = model
+        self.device = model.device
+        self.device_rebuild = bool(device_rebuild)
         self.poly_capacity = model.shapes.default_poly_capacity
+        self.poly_overflow = wp.zeros(1, dtype=int, device=self.device)
+        self.bad_step = wp.full(1, NO_STEP, dtype=int, device=self.device)
         self._kernels()
-        self._graph = None
-        self._capacity = 0
-        self._host_build(history=False)
-
-    # -- buffers --------------------------------------------------------------------------------
+        self._diag = None
+        self._diag_generation = None
+        self._empty = None
 
     def _kernels(self):
-        shapes = self.model.shapes
-        self.kernels = make_contact_kernels(self.model.law, self.model.friction, self.poly_capacity, shapes.max_faces)
-
-    def _allocate_pairs(self, capacity):
-        dev = self.device
-        self._capacity = capacity
-        springs = capacity if self.model.friction else 1
-        self.pair_xi = wp.zeros(springs, dtype=wp.vec3, device=dev)
-        self.pair_turn = wp.zeros(capacity, dtype=float, device=dev)
-        self.pair_force = wp.zeros(capacity, dtype=wp.vec3, device=dev)
-        self.pair_torque_a = wp.zeros(capacity, dtype=wp.vec3, device=dev)
-        self.pair_dissipated = wp.zeros(capacity, dtype=float, device=dev)
-        # History of the previous pair list, for the turning volumes and springs across a rebuild.
-        self.old_key = wp.zeros(capacity, dtype=wp.int64, device=dev)
-        self.old_xi = wp.zeros(springs, dtype=wp.vec3, device=dev)
-        self.old_turn = wp.zeros(capacity, dtype=float, device=dev)
-        self.old_count = wp.zeros(1, dtype=int, device=dev)
-        # Pairs ordered by their B body (radix sort needs twice the room).
-        self._keys_b = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
-        self._by_b = wp.zeros(2 * capacity, dtype=int, device=dev)
-        self.pair_by_b = self._by_b[:capacity]
-        self.body_pairs_a = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
-        self.body_pairs_b = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
-        self._diag = None
-        self._graph = None
-
-    def _save_history(self):
-        bp = self.broadphase
-        wp.copy(self.old_key, bp.pair_key, count=self._capacity)
-        wp.copy(self.old_turn, self.pair_turn)
-        if self.model.friction:
-            wp.copy(self.old_xi, self.pair_xi)
-        wp.copy(self.old_count, bp.pair_count)
-
-    def _after_rebuild(self):
-        """Turning volumes and friction springs carried over by pair key; per-body ranges for the gather."""
-        bp = self.broadphase
-        dev = self.device
-        cap = self._capacity
-        wp.launch(
-            remap_history_kernel,
-            dim=cap,
-            inputs=[
-                self.old_key,
-                self.old_count,
-                self.old_xi,
-                self.old_turn,
-                bp.pair_key,
-                bp.pair_count,
-                int(self.model.friction),
-            ],
-            outputs=[self.pair_xi, self.pair_turn],
-            device=dev,
-        )
-        wp.launch(
-            b_keys_kernel,
-            dim=cap,
-            inputs=[self.num_bodies, bp.sentinel, bp.pair_a, bp.pair_b, bp.pair_count],
-            outputs=[self._keys_b, self._by_b],
-            device=dev,
-        )
-        wp.utils.radix_sort_pairs(self._keys_b, self._by_b, cap, 0, bp.key_bits)
-        wp.launch(
-            body_ranges_kernel,
-            dim=self.num_bodies,
-            inputs=[self.num_bodies, bp.pair_key, self._keys_b, bp.pair_count],
-            outputs=[self.body_pairs_a, self.body_pairs_b],
-            device=dev,
-        )
-
-    def _host_build(self, history=True):
-        bp = self.broadphase
         m = self.model
-        if history and self._capacity:
-            self._save_history()
-        elif self._capacity:
-            self.old_count.zero_()
-        bp.build(self.body_q, m.body_radius, m.body_flags)
-        if bp.capacity != self._capacity:
-            old = (self.old_key, self.old_xi, self.old_turn, self.old_count) if self._capacity else None
-            self._allocate_pairs(bp.capacity)
-            if old is not None and history:
-                n_old = min(len(old[0]), bp.capacity)
-                wp.copy(self.old_key, old[0], count=n_old)
-                if self.model.friction:
-                    wp.copy(self.old_xi, old[1], count=n_old)
-                wp.copy(self.old_turn, old[2], count=n_old)
-                wp.copy(self.old_count, old[3])
-        self._after_rebuild()
+        self.kernels = make_contact_kernels(m.law, m.friction, self.poly_capacity, m.shapes.max_faces)
 
-    def _device_rebuild(self):
-        self._save_history()
-        m = self.model
-        self.broadphase.rebuild_on_device(self.body_q, m.body_radius, m.body_flags)
-        self._after_rebuild()
+    def grow_polygons(self):
+        """Double the room for clipped polygons (after an overflow); new kernels, so recapture a graph."""
+        self.poly_overflow.zero_()
+        self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
+        self._kernels()
+
+    def polygons_overflowed(self):
+        """Host: whether a clipped polygon did not fit since :meth:`grow_polygons`."""
+        return bool(int(self.poly_overflow.numpy()[0]))
+
+    def first_bad_step(self):
+        """Host: the first step whose state was not finite, or None."""
+        bad = int(self.bad_step.numpy()[0])
+        return None if bad == NO_STEP else bad
 
     # -- one step ------------------------------------------------------------------------------
 
-    def _launch_contacts(self, kernels, diag):
+    def step(self, state_in, state_out, contacts, dt):
+        """Advance ``state_in`` by ``dt`` into ``state_out`` (which may be ``state_in``); updates ``contacts``."""
+        if state_out is not state_in:
+            state_out.assign(state_in)
+        self.collide(state_out, contacts)
+        self.forces(state_out, contacts, dt)
+        self.integrate(state_out, dt)
+
+    def collide(self, state, contacts):
+        """The broad phase: rebuild the pair list when some body may have left its skin."""
+        if self.device_rebuild:
+            contacts.update_on_device(state.body_q)
+        else:
+            contacts.update(state.body_q)
+
+    def forces(self, state, contacts, dt):
+        """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``."""
+        self._launch_contacts(self.kernels, None, state, contacts, dt)
+
+    def integrate(self, state, dt):
+        """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
+        m = self.model
+        dev = self.device
+        integrate_bodies(
+            m.body_inv_mass,
+            m.body_inertia,
+            m.body_flags,
+            m.gravity,
+            state.body_q,
+            state.body_v,
+            state.body_w,
+            state.body_f,
+            state.body_t,
+            dt,
+            device=dev,
+            body_pivot=m.body_pivot,
+        )
+        wp.launch(advance_step_kernel, dim=1, inputs=[state.step_count], device=dev)
+        wp.launch(
+            check_state_kernel,
+            dim=m.num_bodies,
+            inputs=[m.body_flags, state.step_count, state.body_q, state.body_v, state.body_w],
+            outputs=[self.bad_step],
+            device=dev,
+        )
+
+    def _launch_contacts(self, kernels, diag, state, contacts, dt):
         """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``."""
         m = self.model
         s = m.shapes
-        bp = self.broadphase
+        bp = contacts.broadphase
         dev = self.device
-        materials = [m.num_materials, m.material_k, m.material_e, m.material_mu, m.material_kt, m.law_m, self.dt]
+        materials = [m.num_materials, m.material_k, m.material_e, m.material_mu, m.material_kt, m.law_m, dt]
         d = diag if diag is not None else self._placeholders()
         wp.launch(
             kernels.pair_contact_kernel,
-            dim=self._capacity,
+            dim=contacts.capacity,
             inputs=[
                 *s.kernel_args(),
                 m.body_shape,
                 m.body_material,
                 m.body_inv_mass,
                 *materials,
-                self.body_q,
-                self.body_v,
-                self.body_w,
+                state.body_q,
+                state.body_v,
+                state.body_w,
                 bp.pair_a,
                 bp.pair_b,
                 bp.pair_count,
-                self.pair_xi,
-                self.pair_turn,
+                contacts.pair_xi,
+                contacts.pair_turn,
             ],
             outputs=[
-                self.pair_force,
-                self.pair_torque_a,
-                self.pair_dissipated,
+                contacts.pair_force,
+                contacts.pair_torque_a,
+                contacts.pair_dissipated,
                 self.poly_overflow,
                 d["pair_volume"],
                 d["pair_energy"],
@@ -265,7 +209,7 @@ class Simulation:
         )
         wp.launch(
             kernels.gather_kernel,
-            dim=self.num_bodies,
+            dim=m.num_bodies,
             inputs=[
                 s.shape_radius,
                 s.shape_face_start,
@@ -281,24 +225,24 @@ class Simulation:
                 m.plane_normal,
                 m.plane_offset,
                 m.plane_material,
-                self.body_q,
-                self.body_v,
-                self.body_w,
+                state.body_q,
+                state.body_v,
+                state.body_w,
                 bp.pair_a,
                 bp.pair_b,
-                self.body_pairs_a,
-                self.body_pairs_b,
-                self.pair_by_b,
-                self.pair_force,
-                self.pair_torque_a,
-                self.pair_dissipated,
-                self.plane_xi,
-                self.plane_turn,
-                self.body_dissipated,
+                contacts.body_pairs_a,
+                contacts.body_pairs_b,
+                contacts.pair_by_b,
+                contacts.pair_force,
+                contacts.pair_torque_a,
+                contacts.pair_dissipated,
+                state.plane_xi,
+                state.plane_turn,
+                state.body_dissipated,
             ],
             outputs=[
-                self.body_f,
-                self.body_t,
+                state.body_f,
+                state.body_t,
                 d["plane_volume"],
                 d["plane_energy"],
                 d["plane_fn"],
@@ -326,18 +270,19 @@ class Simulation:
             }
         return self._empty
 
-    def _diagnostics(self):
-        """Runs the diagnostics variant at the current state; returns its host arrays.
+    def diagnose(self, state, contacts, dt):
+        """Runs the diagnostics variant of the contact kernels at ``state``; returns its host arrays.
 
-        energy() and contacts() at the same state share one run (the cache is dropped whenever
-        the state changes: a step, a restore)."""
-        if getattr(self, "_diag_cache", None) is not None:
-            return self._diag_cache
+        Per pair (the first ``count`` candidates): ``pair_volume`` [m^3], ``pair_energy`` [J],
+        ``pair_normal``, ``pair_point`` [m], ``pair_fn`` [N], ``pair_ft`` [N]; per (body, wall):
+        ``plane_volume``, ``plane_energy``, ``plane_fn``, ``plane_point``, ``plane_ft``.
+        """
         dev = self.device
-        cap = self._capacity
-        n = self.num_bodies
+        cap = contacts.capacity
+        n = self.model.num_bodies
         p = max(self.model.num_planes, 1)
-        if self._diag is None:
+        if self._diag is None or self._diag_generation != contacts.generation:
+            self._diag_generation = contacts.generation
             self._diag = {
                 "pair_volume": wp.zeros(cap, dtype=float, device=dev),
                 "pair_energy": wp.zeros(cap, dtype=float, device=dev),
@@ -353,115 +298,208 @@ class Simulation:
             }
         m = self.model
         kernels = make_contact_kernels(m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True)
-        self._launch_contacts(kernels, self._diag)
-        count = int(self.broadphase.pair_count.numpy()[0])
+        self._launch_contacts(kernels, self._diag, state, contacts, dt)
+        count = contacts.count()
         out = {k: v.numpy() for k, v in self._diag.items()}
         for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft"):
             out[k] = out[k][:count]
-        self._diag_cache = out
         return out
 
-    def _contacts_and_integrate(self):
+    def release_diagnostics(self):
+        """Let the buffers of :meth:`diagnose` go (they are allocated again when needed)."""
+        self._diag = None
+
+    def kinetic_energy(self, state):
+        """Host float64 (translational, rotational) kinetic energy of the free bodies [J]."""
         m = self.model
-        dev = self.device
-        self._launch_contacts(self.kernels, None)
-        integrate_bodies(
-            m.body_inv_mass,
-            m.body_inertia,
-            m.body_flags,
-            m.gravity,
-            self.body_q,
-            self.body_v,
-            self.body_w,
-            self.body_f,
-            self.body_t,
-            self.dt,
-            device=dev,
-            body_pivot=m.body_pivot,
+        lin, ang = kinetic_energy(
+            m.body_inv_mass, m.body_inertia, m.body_flags, state.body_q, state.body_v, state.body_w, device=self.device
         )
-        wp.launch(advance_step_kernel, dim=1, inputs=[self.step_count], device=dev)
-        wp.launch(
-            check_state_kernel,
-            dim=self.num_bodies,
-            inputs=[m.body_flags, self.step_count, self.body_q, self.body_v, self.body_w],
-            outputs=[self.bad_step],
-            device=dev,
+        return np.sum(lin.numpy(), dtype=np.float64), np.sum(ang.numpy(), dtype=np.float64)
+
+
+class Snapshot:
+    """A copy of a simulation at one step: :class:`~polydem.state.State`, pair history, step count and time.
+
+    From :meth:`Simulation.snapshot`; give it to :meth:`Simulation.restore` to go back to that step.
+    """
+
+    def __init__(self, state, pairs, steps_done, time):
+        self.state = state
+        self.pairs = pairs
+        self.steps_done = int(steps_done)
+        self.time = float(time)
+
+
+class Simulation:
+    """Steps a :class:`~polydem.Scene` on a Warp device.
+
+    Args:
+        scene: the scene (validated here).
+        device: Warp device, default Warp's default device ("cuda:0" when there is one).
+        skin: Verlet skin [m]; default a fifth of the smallest free body's bounding radius.
+        use_graph: capture the step as a CUDA graph (default: on CUDA devices).
+
+    Attributes:
+        model: the :class:`~polydem.model.Model` (static).
+        current_state: the :class:`~polydem.state.State` after the last step (stepped in place).
+        current_contacts: the :class:`~polydem.contacts.Contacts` (pair list and its history).
+        stepper: the :class:`Stepper`.
+        steps_done: steps taken; time: ``steps_done * dt`` [s]; dt: time step [s].
+    """
+
+    def __init__(self, scene, device=None, skin=None, use_graph=None):
+        self.model = model = Model(scene, device)
+        self.device = dev = model.device
+        self.dt = model.dt
+        n = model.num_bodies
+        self.num_bodies = n
+        self.use_graph = dev.is_cuda if use_graph is None else (bool(use_graph) and dev.is_cuda)
+        self.current_state = model.state()
+        self.steps_done = 0
+        self.time = 0.0
+
+        radius = model.body_radius.numpy()
+        free = model.body_flags_np == 0
+        r_min = float(radius[free].min()) if free.any() else float(radius.min())
+        self.skin = 0.2 * r_min if skin is None else float(skin)
+        # Bounding spheres about the centre do not change as a body turns: no rotation term.
+        shape_list = [scene.shapes[name] for name in scene.shape_names]
+        lower = np.array([s.vertices.min(axis=0) for s in shape_list])[scene.body_shape]
+        upper = np.array([s.vertices.max(axis=0) for s in shape_list])[scene.body_shape]
+        # Settled packings of convex grains have 3-4 candidate pairs per body at this skin: start
+        # with room for 5 (an overflow grows the buffers and redoes the step).
+        self.current_contacts = Contacts(model, self.skin, body_box=(lower, upper), capacity=max(1024, 5 * n))
+        self.stepper = Stepper(model, device_rebuild=self.use_graph)
+        self._graph = None
+        self._graph_key = None
+        self._last_good = None
+        self._diag_cache = None
+        self.current_contacts.build(self.current_state.body_q, keep_history=False)
+
+    # -- the arrays of the current state, by their former names --------------------------------
+
+    @property
+    def body_q(self):
+        """``current_state.body_q``."""
+        return self.current_state.body_q
+
+    @property
+    def body_v(self):
+        """``current_state.body_v``."""
+        return self.current_state.body_v
+
+    @property
+    def body_w(self):
+        """``current_state.body_w``."""
+        return self.current_state.body_w
+
+    @property
+    def body_f(self):
+        """``current_state.body_f``."""
+        return self.current_state.body_f
+
+    @property
+    def body_t(self):
+        """``current_state.body_t``."""
+        return self.current_state.body_t
+
+    @property
+    def step_count(self):
+        """``current_state.step_count``."""
+        return self.current_state.step_count
+
+    @property
+    def broadphase(self):
+        """``current_contacts.broadphase``."""
+        return self.current_contacts.broadphase
+
+    # -- snapshots -----------------------------------------------------------------------------
+
+    def snapshot(self, into=None):
+        """A :class:`Snapshot` (device copies) of the current step; reuses the arrays of ``into`` where they fit."""
+        st = self.current_state
+        if into is not None and into.state.same_shapes(st):
+            into.state.assign(st)
+            state = into.state
+        else:
+            state = st.copy()
+        pairs = self.current_contacts.history(into.pairs if into is not None else None)
+        if into is None:
+            return Snapshot(state, pairs, self.steps_done, self.time)
+        into.state, into.pairs, into.steps_done, into.time = state, pairs, self.steps_done, self.time
+        return into
+
+    def restore(self, snapshot):
+        """Go back to the step of ``snapshot`` (from :meth:`snapshot`, or a checkpoint's).
+
+        The candidate pairs are found afresh at the restored poses; each pair gets its history back by key.
+        """
+        self._diag_cache = None
+        self.current_state.assign(snapshot.state)
+        self.current_contacts.restore(snapshot.pairs, self.current_state.body_q)
+        self.steps_done = snapshot.steps_done
+        self.time = snapshot.time
+
+    def restore_from_arrays(self, arrays, steps_done, time):
+        """:meth:`restore` from host arrays named as a checkpoint's: ``State.SAVED``, ``pair_key``, ``pair_xi``,
+        ``pair_turn``."""
+        state = State.from_numpy({k: arrays[k] for k in State.SAVED}, self.device)
+        pairs = PairHistory.from_numpy(
+            arrays["pair_key"], arrays["pair_xi"], arrays["pair_turn"], self.model.friction, self.device
         )
+        self.restore(Snapshot(state, pairs, steps_done, time))
 
-    def _step_device(self):
-        m = self.model
-        bp = self.broadphase
-        bp.needs_rebuild(self.body_q, m.body_radius, m.body_flags)
-        wp.capture_if(bp.rebuild_flag, on_true=self._device_rebuild)
-        self._contacts_and_integrate()
+    @property
+    def last_good(self):
+        """The :class:`Snapshot` taken at the start of the last chunk of :meth:`step` (None before the first)."""
+        return self._last_good
 
-    def _step_host(self):
-        m = self.model
-        flag = self.broadphase.needs_rebuild(self.body_q, m.body_radius, m.body_flags)
-        if int(flag.numpy()[0]):
-            self._host_build()
-        self._contacts_and_integrate()
+    def is_consistent(self):
+        """Whether the device state is that of step ``steps_done`` and finite (synchronises)."""
+        st = self.current_state
+        return int(st.step_count.numpy()[0]) == self.steps_done and bool(np.all(np.isfinite(st.body_q.numpy())))
 
-    # -- public --------------------------------------------------------------------------------
+    def restore_last_good(self):
+        """Bring the simulation back to step ``steps_done`` after an exception inside :meth:`step`.
 
-    def _backup(self):
-        """Copies the state at the start of a chunk into buffers kept between chunks."""
-        bp = self.broadphase
-        live = {
-            "q": self.body_q,
-            "v": self.body_v,
-            "w": self.body_w,
-            "diss": self.body_dissipated,
-            "plane_xi": self.plane_xi,
-            "plane_turn": self.plane_turn,
-            "xi": self.pair_xi,
-            "turn": self.pair_turn,
-            "key": bp.pair_key,
-            "count": bp.pair_count,
-            "step": self.step_count,
-        }
-        saved = getattr(self, "_saved", None)
-        if saved is None or any(saved[k].shape != a.shape for k, a in live.items()):
-            self._saved = {k: wp.clone(a) for k, a in live.items()}
-            return
-        for k, a in live.items():
-            wp.copy(saved[k], a)
+        A step interrupted part-way through a chunk (Ctrl-C) has moved the state beyond
+        ``steps_done``, and a :class:`SimulationError` leaves a non-finite one: the copy saved at
+        the start of that chunk is restored. Returns whether the state now is that of ``steps_done``.
+        """
+        if self.is_consistent():
+            return True
+        last = self._last_good
+        if last is None or int(last.state.step_count.numpy()[0]) != self.steps_done:
+            return False
+        self.restore(last)
+        return self.is_consistent()
+
+    # Until cli.py calls restore_last_good(): the names its _roll_back used.
+    @property
+    def _saved(self):
+        return None if self._last_good is None else {"step": self._last_good.state.step_count}
 
     def _restore(self):
-        self._diag_cache = None
-        s = self._saved
-        wp.copy(self.body_q, s["q"])
-        wp.copy(self.body_v, s["v"])
-        wp.copy(self.body_w, s["w"])
-        wp.copy(self.body_dissipated, s["diss"])
-        wp.copy(self.plane_xi, s["plane_xi"])
-        wp.copy(self.plane_turn, s["plane_turn"])
-        wp.copy(self.step_count, s["step"])
-        # A fresh host build from the restored poses; the pair histories come back through their keys.
-        bp = self.broadphase
-        bp.build(self.body_q, self.model.body_radius, self.model.body_flags)
-        if bp.capacity != self._capacity:
-            self._allocate_pairs(bp.capacity)
-        n_old = min(int(s["count"].numpy()[0]), len(s["key"]), self._capacity)
-        wp.copy(self.old_key, s["key"], count=n_old)
-        wp.copy(self.old_turn, s["turn"], count=n_old)
-        if self.model.friction:
-            wp.copy(self.old_xi, s["xi"], count=n_old)
-        self.old_count.fill_(n_old)
-        self._after_rebuild()
+        self.restore(self._last_good)
+
+    # -- stepping ------------------------------------------------------------------------------
 
     def _run_chunk(self, steps):
         self._diag_cache = None
+        state, contacts = self.current_state, self.current_contacts
         if self.use_graph:
-            if self._graph is None:
+            key = (contacts.generation, self.stepper.poly_capacity)
+            if self._graph is None or self._graph_key != key:
                 with wp.ScopedCapture(device=self.device) as capture:
-                    self._step_device()
+                    self.stepper.step(state, state, contacts, self.dt)
                 self._graph = capture.graph
+                self._graph_key = key
             for _ in range(steps):
                 wp.capture_launch(self._graph)
         else:
             for _ in range(steps):
-                self._step_host()
+                self.stepper.step(state, state, contacts, self.dt)
 
     def step(self, n=1):
         """Advance ``n`` steps of length ``dt``."""
@@ -471,22 +509,19 @@ class Simulation:
         done = 0
         while done < n:
             chunk = min(CHUNK_STEPS, n - done)
-            self._backup()
+            self._last_good = self.snapshot(into=self._last_good)
             self._run_chunk(chunk)
             redo = False
-            if int(self.poly_overflow.numpy()[0]):
-                self.poly_overflow.zero_()
-                self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
-                self._kernels()
-                self._graph = None
+            if self.stepper.polygons_overflowed():
+                self.stepper.grow_polygons()
                 redo = True
-            if self.use_graph and self.broadphase.check_host_build_needed():
+            if self.use_graph and self.current_contacts.host_build_needed():
                 redo = True
             if redo:
-                self._restore()
+                self.restore(self._last_good)
                 continue
-            bad = int(self.bad_step.numpy()[0])
-            if bad != 2**31 - 1:
+            bad = self.stepper.first_bad_step()
+            if bad is not None:
                 self._report_nonfinite(bad)
             done += chunk
             self.steps_done += chunk
@@ -504,18 +539,27 @@ class Simulation:
             f"{self.model.dt_recommended:.3g} s), the stiffness and the initial overlaps."
         )
 
+    # -- reading the current step --------------------------------------------------------------
+
+    def _diagnostics(self):
+        # energy() and contacts() at the same step share one run (dropped by a step and a restore).
+        if self._diag_cache is None:
+            self._diag_cache = self.stepper.diagnose(self.current_state, self.current_contacts, self.dt)
+        return self._diag_cache
+
     def state(self):
         """Current state as numpy arrays (world frame, body frame = centroid and principal axes).
 
         Returns a dict: ``body_position`` (N,3) [m], ``body_orientation`` (N,4) quaternion xyzw,
         ``body_velocity`` (N,3) [m/s], ``body_angular_velocity`` (N,3) world axes [rad/s].
         """
-        q = self.body_q.numpy()
+        st = self.current_state
+        q = st.body_q.numpy()
         return {
             "body_position": q[:, :3].astype(np.float64),
             "body_orientation": q[:, 3:].astype(np.float64),
-            "body_velocity": self.body_v.numpy().astype(np.float64),
-            "body_angular_velocity": self.body_w.numpy().astype(np.float64),
+            "body_velocity": st.body_v.numpy().astype(np.float64),
+            "body_angular_velocity": st.body_w.numpy().astype(np.float64),
         }
 
     def energy(self):
@@ -523,18 +567,17 @@ class Simulation:
         springs), ``gravity`` (-sum m g.x over free bodies), ``dissipated`` (by damping and friction
         so far), and ``total`` (their sum, constant up to the integrator's error)."""
         m = self.model
-        lin, ang = kinetic_energy(
-            m.body_inv_mass, m.body_inertia, m.body_flags, self.body_q, self.body_v, self.body_w, device=self.device
-        )
+        st = self.current_state
+        lin, ang = self.stepper.kinetic_energy(st)
         d = self._diagnostics()
         contact = float(np.sum(d["pair_energy"], dtype=np.float64))
         if m.num_planes:
             contact += float(np.sum(d["plane_energy"], dtype=np.float64))
         free = m.body_flags_np == 0
-        x = self.body_q.numpy()[:, :3].astype(np.float64)
+        x = st.body_q.numpy()[:, :3].astype(np.float64)
         grav = -float(np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity)))
-        kin = float(np.sum(lin.numpy(), dtype=np.float64) + np.sum(ang.numpy(), dtype=np.float64))
-        diss = float(np.sum(self.body_dissipated.numpy(), dtype=np.float64))
+        kin = float(lin + ang)
+        diss = float(np.sum(st.body_dissipated.numpy(), dtype=np.float64))
         return {
             "kinetic": kin,
             "contact": contact,
@@ -550,7 +593,7 @@ class Simulation:
         into B, ``point`` (N,3) [m], ``normal_force`` (N,) [N], ``tangential_force`` (N,3) on A [N],
         ``volume`` (N,) [m^3]. Computed at the current state (after the last step).
         """
-        bp = self.broadphase
+        bp = self.current_contacts.broadphase
         d = self._diagnostics()
         count = len(d["pair_volume"])
         vol = d["pair_volume"]
