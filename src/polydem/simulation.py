@@ -475,14 +475,6 @@ class Simulation:
         self.restore(last)
         return self.is_consistent()
 
-    # Until cli.py calls restore_last_good(): the names its _roll_back used.
-    @property
-    def _saved(self):
-        return None if self._last_good is None else {"step": self._last_good.state.step_count}
-
-    def _restore(self):
-        self.restore(self._last_good)
-
     # -- stepping ------------------------------------------------------------------------------
 
     def _run_chunk(self, steps):

@@ -39,13 +39,7 @@ def roll_back(sim) -> bool:
     start of that chunk is restored. Returns whether the state now matches ``sim.steps_done``.
     """
     try:
-        if int(sim.step_count.numpy()[0]) == sim.steps_done and np.all(np.isfinite(sim.body_q.numpy())):
-            return True
-        saved = getattr(sim, "_saved", None)
-        if saved is None or int(saved["step"].numpy()[0]) != sim.steps_done:
-            return False
-        sim._restore()
-        return int(sim.step_count.numpy()[0]) == sim.steps_done and bool(np.all(np.isfinite(sim.body_q.numpy())))
+        return sim.restore_last_good()
     except Exception:
         return False
 
