@@ -84,6 +84,9 @@ class Primitives:
     plane_distance: Any
     crosses: Any
     edge_cut: Any
+    support: Any
+    all_outside: Any
+    sphere_misses: Any
     twice_area: Any
     fan_add: Any
     cone: Any
@@ -143,6 +146,29 @@ def make_primitives(scalar) -> Primitives:
     def edge_cut(prev: vec3, s_prev: scalar, v: vec3, s: scalar):
         # Where the edge prev -> v, of signed distances s_prev and s, meets the plane.
         return prev + (s_prev / (s_prev - s)) * (v - prev)
+
+    @wp.func
+    def support(shapes: Shapes, s: int, u: vec3, floor: scalar):
+        # The reach of shape s along u (the largest u.x over its vertices), at least `floor`.
+        h = floor
+        for iv in range(shapes.shape_vert_start[s], shapes.shape_vert_start[s + 1]):
+            h = wp.max(h, wp.dot(u, shapes.vert[iv]))
+        return h
+
+    @wp.func
+    def all_outside(shapes: Shapes, s: int, n: vec3, d: scalar):
+        # Whether every vertex of shape s lies beyond the plane n.x = d: a separating plane.
+        for iv in range(shapes.shape_vert_start[s], shapes.shape_vert_start[s + 1]):
+            if wp.dot(n, shapes.vert[iv]) <= d:
+                return False
+        return True
+
+    @wp.func
+    def sphere_misses(c: vec3, r: scalar, u: vec3, lo: scalar, hi: scalar, centre: vec3, reach: scalar):
+        # Whether the sphere (c, r) around a face misses the slab lo <= u.x <= hi or the other
+        # body's bounding sphere (centre, reach): then the face cannot bound the overlap.
+        uc = wp.dot(u, c)
+        return uc + r < lo or uc - r > hi or wp.length_sq(c - centre) > (r + reach) * (r + reach)
 
     @wp.func
     def twice_area(p0: vec3, p1: vec3, p2: vec3, n: vec3):
@@ -231,6 +257,9 @@ def make_primitives(scalar) -> Primitives:
         plane_distance=plane_distance,
         crosses=crosses,
         edge_cut=edge_cut,
+        support=support,
+        all_outside=all_outside,
+        sphere_misses=sphere_misses,
         twice_area=twice_area,
         fan_add=fan_add,
         cone=cone,
@@ -269,6 +298,9 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
     crosses = prim.crosses
     edge_cut = prim.edge_cut
     twice_area = prim.twice_area
+    support = prim.support
+    all_outside = prim.all_outside
+    sphere_misses = prim.sphere_misses
     cone = prim.cone
 
     @wp.func
@@ -335,13 +367,8 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
         hi = ra + rb
         if dist > tol:
             u = pos / dist
-            h_a = -(ra + rb)
-            for iv in range(shapes.shape_vert_start[sa], shapes.shape_vert_start[sa + 1]):
-                h_a = wp.max(h_a, wp.dot(u, shapes.vert[iv]))
-            u_b = rot_t * u
-            h_b = -(ra + rb)
-            for iv in range(shapes.shape_vert_start[sb], shapes.shape_vert_start[sb + 1]):
-                h_b = wp.max(h_b, -wp.dot(u_b, shapes.vert[iv]))
+            h_a = support(shapes, sa, u, -(ra + rb))
+            h_b = support(shapes, sb, -(rot_t * u), -(ra + rb))
             lo = dist - h_b - tol
             hi = h_a + tol
             if lo > hi:
@@ -367,21 +394,13 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
             if s > rb:
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             if s > scalar(0.0):
-                nb = rot_t * n
-                db = pl[3] - wp.dot(n, pos)
-                sep = bool(True)
-                for iv in range(shapes.shape_vert_start[sb], shapes.shape_vert_start[sb + 1]):
-                    if wp.dot(nb, shapes.vert[iv]) <= db:
-                        sep = False
-                        break
-                if sep:
+                # The other body's centre lies outside: is the plane separating?
+                if all_outside(shapes, sb, rot_t * n, pl[3] - wp.dot(n, pos)):
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             if s <= -rb:
                 continue  # B lies wholly inside this plane: the face cannot reach B
             sph = shapes.face_sphere[f]
-            c = vec3(sph[0], sph[1], sph[2])
-            uc = wp.dot(u, c)
-            if uc + sph[3] < lo or uc - sph[3] > hi or wp.length_sq(c - pos) > (sph[3] + rb) * (sph[3] + rb):
+            if sphere_misses(vec3(sph[0], sph[1], sph[2]), sph[3], u, lo, hi, pos, rb):
                 continue
             ids_a[num_a] = f
             num_a += 1
@@ -399,19 +418,12 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             na, da = plane_to_frame(pl, rot, pos)
             if s > scalar(0.0):
-                sep = bool(True)
-                for iv in range(shapes.shape_vert_start[sa], shapes.shape_vert_start[sa + 1]):
-                    if wp.dot(na, shapes.vert[iv]) <= da:
-                        sep = False
-                        break
-                if sep:
+                if all_outside(shapes, sa, na, da):
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             if s <= -ra:
                 continue
             sph = shapes.face_sphere[g]
-            c = point_to_frame(rot, pos, vec3(sph[0], sph[1], sph[2]))
-            uc = wp.dot(u, c)
-            if uc + sph[3] < lo or uc - sph[3] > hi or wp.length_sq(c) > (sph[3] + ra) * (sph[3] + ra):
+            if sphere_misses(point_to_frame(rot, pos, vec3(sph[0], sph[1], sph[2])), sph[3], u, lo, hi, zero3, ra):
                 continue
             planes_b[num_b] = vec4(na[0], na[1], na[2], da)
             ids_b[num_b] = g
