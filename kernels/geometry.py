@@ -148,18 +148,18 @@ def make_primitives(scalar) -> Primitives:
         return prev + (s_prev / (s_prev - s)) * (v - prev)
 
     @wp.func
-    def support(shapes: Shapes, s: int, u: vec3, floor: scalar):
-        # The reach of shape s along u (the largest u.x over its vertices), at least `floor`.
+    def support(vert: wp.array(dtype=vec3), v0: int, v1: int, u: vec3, floor: scalar):
+        # The reach of the vertices v0 <= i < v1 along u (the largest u.x), at least `floor`.
         h = floor
-        for iv in range(shapes.shape_vert_start[s], shapes.shape_vert_start[s + 1]):
-            h = wp.max(h, wp.dot(u, shapes.vert[iv]))
+        for iv in range(v0, v1):
+            h = wp.max(h, wp.dot(u, vert[iv]))
         return h
 
     @wp.func
-    def all_outside(shapes: Shapes, s: int, n: vec3, d: scalar):
-        # Whether every vertex of shape s lies beyond the plane n.x = d: a separating plane.
-        for iv in range(shapes.shape_vert_start[s], shapes.shape_vert_start[s + 1]):
-            if wp.dot(n, shapes.vert[iv]) <= d:
+    def all_outside(vert: wp.array(dtype=vec3), v0: int, v1: int, n: vec3, d: scalar):
+        # Whether every vertex v0 <= i < v1 lies beyond the plane n.x = d: a separating plane.
+        for iv in range(v0, v1):
+            if wp.dot(n, vert[iv]) <= d:
                 return False
         return True
 
@@ -357,6 +357,10 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
         fa1 = shapes.shape_face_start[sa + 1]
         fb0 = shapes.shape_face_start[sb]
         fb1 = shapes.shape_face_start[sb + 1]
+        va0 = shapes.shape_vert_start[sa]
+        va1 = shapes.shape_vert_start[sa + 1]
+        vb0 = shapes.shape_vert_start[sb]
+        vb1 = shapes.shape_vert_start[sb + 1]
 
         # The overlap lies in the slab lo <= u.x <= hi across the line of centres u: beyond the
         # reach of B's support towards A and A's towards B. An empty slab separates the bodies;
@@ -367,8 +371,8 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
         hi = ra + rb
         if dist > tol:
             u = pos / dist
-            h_a = support(shapes, sa, u, -(ra + rb))
-            h_b = support(shapes, sb, -(rot_t * u), -(ra + rb))
+            h_a = support(shapes.vert, va0, va1, u, -(ra + rb))
+            h_b = support(shapes.vert, vb0, vb1, -(rot_t * u), -(ra + rb))
             lo = dist - h_b - tol
             hi = h_a + tol
             if lo > hi:
@@ -395,7 +399,7 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             if s > scalar(0.0):
                 # The other body's centre lies outside: is the plane separating?
-                if all_outside(shapes, sb, rot_t * n, pl[3] - wp.dot(n, pos)):
+                if all_outside(shapes.vert, vb0, vb1, rot_t * n, pl[3] - wp.dot(n, pos)):
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             if s <= -rb:
                 continue  # B lies wholly inside this plane: the face cannot reach B
@@ -418,7 +422,7 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             na, da = plane_to_frame(pl, rot, pos)
             if s > scalar(0.0):
-                if all_outside(shapes, sa, na, da):
+                if all_outside(shapes.vert, va0, va1, na, da):
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
             if s <= -ra:
                 continue
