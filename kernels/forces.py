@@ -1,7 +1,7 @@
 """Contact forces: energy-model wrenches, hysteretic normal damping, Coulomb friction, walls.
 
-Per candidate pair one thread runs the narrow phase (:mod:`polydem.kernels.narrowphase`) and turns
-the overlap geometry into a wrench:
+Per candidate pair one thread computes the overlap geometry (:mod:`polydem.kernels.geometry`) and
+turns it into a wrench (:func:`polydem.kernels.response.respond`):
 
 * elastic: force on A ``-W'(V) S_A``, torque about A's centre ``-W'(V) (M_A - x_A x S_A)``;
 * normal damping from the restitution coefficient e, as hysteresis in the overlap volume with a
@@ -47,16 +47,31 @@ that a run is bit-for-bit repeatable on a device: no floating-point atomics. The
 the contacts with the infinite planes (walls), which clip the body by one plane with the same
 energy model.
 
-Layout: the factory :func:`make_contact_kernels` holds the ``@wp.func`` helpers and kernels for
-one contact law and friction setting; the launch functions follow it.
+Layout: the factory :func:`make_contact_kernels` builds the pair and gather kernels for one contact
+law and friction setting from the shared geometry and response functions; the pair bookkeeping
+kernels of a broad-phase rebuild follow it.
 """
 
 import functools
+from dataclasses import dataclass
+from typing import Any
 
 import warp as wp
-from polydem.kernels.narrowphase import ENCLOSED_MIN_VOLUME, ENCLOSED_RATIO, make_narrowphase
+from polydem.kernels.geometry import make_geometry
+from polydem.kernels.response import make_response
 
-LAWS = ("linear", "hertz", "power")
+
+@dataclass(frozen=True)
+class ContactKernels:
+    """The contact kernels of one law, friction setting and polygon capacity."""
+
+    law: str
+    friction: bool
+    diagnostics: bool
+    geometry: Any  # polydem.kernels.geometry.Geometry
+    respond: Any
+    pair_contact_kernel: Any
+    gather_kernel: Any
 
 
 @functools.cache
@@ -65,267 +80,19 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
 
     ``diagnostics`` builds the variant that reports contacts and energies without stepping.
     """
-    if law not in LAWS:
-        raise ValueError(f"unknown contact law {law!r}")
-    nphase = make_narrowphase(wp.float32, max_poly, max_faces)
-    pair_geometry = nphase.pair_geometry
+    resp = make_response(wp.float32, law, friction, diagnostics)
+    law_energy = resp.law_energy
+    respond = resp.respond
+    geom = make_geometry(wp.float32, max_poly, max_faces)
+    Shapes = geom.shapes
+    pair_geometry = geom.pair_geometry
+    plane_geometry = geom.primitives.plane_geometry
     zero3 = wp.constant(wp.vec3(0.0, 0.0, 0.0))
-
-    @wp.func
-    def law_derivative(volume: float, k: float, m: float):
-        # W'(V) [Pa]
-        if wp.static(law == "linear"):
-            return k
-        elif wp.static(law == "hertz"):
-            return k * wp.sqrt(volume)
-        else:
-            return k * wp.pow(volume, m - 1.0)
-
-    @wp.func
-    def law_energy(volume: float, k: float, m: float):
-        # W(V) [J]
-        if wp.static(law == "linear"):
-            return k * volume
-        elif wp.static(law == "hertz"):
-            return (2.0 / 3.0) * k * volume * wp.sqrt(volume)
-        else:
-            return k * wp.pow(volume, m) / m
-
-    @wp.func
-    def elastic_volume(volume: float, turn: float, e2: float):
-        # u on the unloading branch from the turning volume: du = dV / e^2, u(turn) = turn.
-        return turn - (turn - volume) / e2
-
-    @wp.func
-    def branch_pressure(volume: float, turn: float, k: float, m: float, e2: float):
-        # dE/dV on the branch of (V, turn) [Pa]: W'(V) loading, W'(u) unloading, 0 once u <= 0.
-        p = float(0.0)
-        if volume >= turn:
-            p = law_derivative(volume, k, m)
-        else:
-            u = elastic_volume(volume, turn, e2)
-            if u > 0.0:
-                p = law_derivative(u, k, m)
-        return p
-
-    @wp.func
-    def branch_energy(volume: float, turn: float, k: float, m: float, e2: float):
-        # E(V; turn) [J]: W(V) loading; unloading, (1 - e^2) W(turn) + e^2 W(u) (what is left to
-        # return plus what will never come back), so that -dE/dV is the branch's pressure.
-        en = float(0.0)
-        if volume >= turn:
-            en = law_energy(volume, k, m)
-        else:
-            en = (1.0 - e2) * law_energy(turn, k, m)
-            u = elastic_volume(volume, turn, e2)
-            if u > 0.0:
-                en += e2 * law_energy(u, k, m)
-        return en
-
-    @wp.func
-    def respond(
-        volume: float,
-        first_moment: wp.vec3,
-        area: wp.vec3,
-        moment: wp.vec3,
-        r_ab: wp.vec3,
-        v_a: wp.vec3,
-        w_a: wp.vec3,
-        v_b: wp.vec3,
-        w_b: wp.vec3,
-        k: float,
-        m: float,
-        e: float,
-        mu: float,
-        kt: float,
-        xi: wp.vec3,
-        turn: float,
-        dt: float,
-        r_min: float,
-        inv_mass: float,
-    ):
-        """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
-
-        ``r_ab`` is x_B - x_A (its direction is the push of an enclosed pair); ``turn`` the pair's
-        turning volume (0 for a new contact; unused for e = 1). Returns (force on A, torque on A about x_A, new spring
-        xi, new turning volume, stored energy, energy dissipated this step, unit normal, contact
-        point relative to x_A, normal force magnitude, tangential force).
-        """
-        e2 = e * e
-        if e2 >= 1.0:
-            turn = 0.0
-        c = first_moment / volume
-        s = area
-        mom = moment
-        s_norm = wp.length(s)
-        v23 = wp.pow(volume, 2.0 / 3.0)
-        if s_norm < ENCLOSED_RATIO * v23:
-            line = wp.vec3(0.0, 0.0, 1.0)
-            dist = wp.length(r_ab)
-            if dist > 0.0:
-                line = r_ab / dist
-            if volume <= ENCLOSED_MIN_VOLUME * r_min * r_min * r_min:
-                # A sliver between faces found merely touching: no gradient, no force.
-                lost0 = float(0.0)
-                if wp.static(friction):
-                    lost0 = 0.5 * kt * wp.dot(xi, xi)
-                en0 = branch_energy(volume, turn, k, m, e2)
-                return zero3, zero3, zero3, turn, en0, lost0, line, c, 0.0, zero3
-            # One body (nearly) inside the other: the gradient of V vanishes; push along the line
-            # of centres instead (the module docstring of polydem.contact).
-            s = v23 * line
-            mom = wp.cross(c, s)
-            s_norm = v23
-        n = s / s_norm
-        axis = wp.cross(s, mom) / (s_norm * s_norm)
-        point = axis + wp.dot(c - axis, n) * n
-
-        dvdt = wp.dot(s, v_a - v_b) + wp.dot(mom, w_a) + wp.dot(wp.cross(r_ab, s) - mom, w_b)
-        lost = float(0.0)
-        turn_new = turn
-        if wp.static(not diagnostics):
-            # Growing, or past the turning volume: the loading branch, whose turning volume follows V.
-            # Reloading from below the turning volume drops the part of E(V; turn) that the loading
-            # branch does not hold: the hysteresis loop's area, dissipated.
-            if e2 < 1.0 and (dvdt >= 0.0 or volume >= turn):
-                turn_new = volume
-                if volume < turn:
-                    lost = branch_energy(volume, turn, k, m, e2) - law_energy(volume, k, m)
-        wd = branch_pressure(volume, turn_new, k, m, e2)
-        fn = wd * s_norm
-        force = -wd * s
-        torque = -wd * mom
-        energy = branch_energy(volume, turn_new, k, m, e2)
-        ft = wp.vec3(0.0, 0.0, 0.0)
-        xi_new = wp.vec3(0.0, 0.0, 0.0)
-        if wp.static(friction):
-            v_rel = v_a + wp.cross(w_a, point) - v_b - wp.cross(w_b, point - r_ab)
-            vt = v_rel - wp.dot(v_rel, n) * n
-            # Turn the spring into the current tangent plane, keeping its length.
-            l0 = wp.length(xi)
-            xt = xi - wp.dot(xi, n) * n
-            l1 = wp.length(xt)
-            if l1 > 0.0:
-                xt = xt * (l0 / l1)
-            stored = 0.5 * kt * wp.dot(xt, xt)
-            xt = xt + vt * dt
-            # A tangential dashpot with the damping ratio of e keeps a sticking contact from ringing
-            # (an undamped spring rings, slips at each swing and lets a block creep down a slope).
-            ln_e = wp.log(wp.max(e, 1.0e-6))
-            zeta = -ln_e / wp.sqrt(ln_e * ln_e + 9.8696044)
-            ct = 2.0 * zeta * wp.sqrt(kt / wp.max(inv_mass, 1.0e-30))
-            if inv_mass <= 0.0:
-                ct = 0.0
-            ft = -kt * xt - ct * vt
-            cap = mu * fn
-            ft_norm = wp.length(ft)
-            if ft_norm > cap:
-                ft = ft * (cap / ft_norm)
-                # Sliding: the spring takes the capped force, but never more length than the
-                # displacement xt gave it: when the dashpot pushed the force over the cap,
-                # xi = -ft / kt would lengthen the spring and store energy that no work put there.
-                xi_new = ft * (-1.0 / kt)
-                l_new = wp.length(xi_new)
-                l_max = wp.length(xt)
-                if l_new > l_max:
-                    xi_new = xi_new * (l_max / l_new)
-            else:
-                xi_new = xt
-            # Work taken from the bodies less what the spring stored is what friction dissipated.
-            lost += wp.max(-wp.dot(ft, vt) * dt - (0.5 * kt * wp.dot(xi_new, xi_new) - stored), 0.0)
-            energy += 0.5 * kt * wp.dot(xi_new, xi_new)
-            force += ft
-            torque += wp.cross(point, ft)
-        return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
-
-    @wp.func
-    def fan_add(first: wp.vec3, prev: wp.vec3, cur: wp.vec3, count: int, nf: wp.vec3, area: float, area_c: wp.vec3):
-        # Adds the fan triangle (first, prev, cur) of a polygon streamed vertex by vertex.
-        if count >= 2:
-            a2 = wp.dot(wp.cross(prev - first, cur - first), nf)
-            area += 0.5 * a2
-            area_c += (a2 / 6.0) * (first + prev + cur)
-        return area, area_c
-
-    @wp.func
-    def plane_geometry(
-        # Shapes
-        shape_radius: wp.array(dtype=float),
-        shape_face_start: wp.array(dtype=int),
-        face_plane: wp.array(dtype=wp.vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=wp.vec3),
-        # Body and wall
-        s: int,
-        xa: wp.transform,
-        normal: wp.vec3,
-        offset: float,
-    ):
-        """Overlap of shape ``s`` at pose ``xa`` with the half-space n.x <= offset (the wall).
-
-        Returns (V, V * centroid, S_A, M_A about x_A), positions relative to x_A, world axes.
-        """
-        q = wp.transform_get_rotation(xa)
-        dd = offset - wp.dot(normal, wp.transform_get_translation(xa))
-        if dd <= -shape_radius[s]:
-            return 0.0, zero3, zero3, zero3
-        nb = wp.quat_rotate_inv(q, normal)
-        origin = dd * nb  # on the plane, so the cap facet's cone is flat and adds nothing
-        vol = float(0.0)
-        vol_c = wp.vec3(0.0, 0.0, 0.0)
-        s_a = wp.vec3(0.0, 0.0, 0.0)
-        m_a = wp.vec3(0.0, 0.0, 0.0)
-        for f in range(shape_face_start[s], shape_face_start[s + 1]):
-            pl = face_plane[f]
-            nf = wp.vec3(pl[0], pl[1], pl[2])
-            begin = face_loop_start[f]
-            count = face_loop_start[f + 1] - begin
-            area = float(0.0)
-            area_c = wp.vec3(0.0, 0.0, 0.0)
-            emitted = int(0)
-            first = wp.vec3(0.0, 0.0, 0.0)
-            prev = wp.vec3(0.0, 0.0, 0.0)
-            vp = vert[face_loop[begin + count - 1]]
-            sp = wp.dot(nb, vp) - dd
-            for k in range(count):
-                v = vert[face_loop[begin + k]]
-                sv = wp.dot(nb, v) - dd
-                if (sv <= 0.0) != (sp <= 0.0):
-                    cut = vp + (sp / (sp - sv)) * (v - vp)
-                    area, area_c = fan_add(first, prev, cut, emitted, nf, area, area_c)
-                    if emitted == 0:
-                        first = cut
-                    prev = cut
-                    emitted += 1
-                if sv <= 0.0:
-                    area, area_c = fan_add(first, prev, v, emitted, nf, area, area_c)
-                    if emitted == 0:
-                        first = v
-                    prev = v
-                    emitted += 1
-                vp = v
-                sp = sv
-            if emitted >= 3:
-                s_a += area * nf
-                m_a += wp.cross(area_c, nf)
-                h = pl[3] - wp.dot(nf, origin)
-                vol += area * h / 3.0
-                vol_c += (h / 3.0) * (0.25 * area * origin + 0.75 * area_c)
-        return vol, wp.quat_rotate(q, vol_c), wp.quat_rotate(q, s_a), wp.quat_rotate(q, m_a)
 
     @wp.kernel(enable_backward=False, module="unique")
     def pair_contact_kernel(
-        # Shapes
-        shape_vert_start: wp.array(dtype=int),
-        shape_face_start: wp.array(dtype=int),
-        shape_radius: wp.array(dtype=float),
-        face_plane: wp.array(dtype=wp.vec4),
-        face_sphere: wp.array(dtype=wp.vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=wp.vec3),
         # Model
+        shapes: Shapes,
         body_shape: wp.array(dtype=int),
         body_material: wp.array(dtype=int),
         body_inv_mass: wp.array(dtype=float),
@@ -369,10 +136,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         b = pair_b[p]
         xa = body_q[a]
         xb = body_q[b]
-        vol, first_moment, s_a, m_a, s_b, m_b, of = pair_geometry(
-            shape_vert_start, shape_face_start, shape_radius, face_plane, face_sphere, face_loop_start, face_loop,
-            vert, body_shape[a], body_shape[b], xa, xb,
-        )  # fmt: skip
+        vol, first_moment, s_a, m_a, s_b, m_b, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa, xb)
         if of != 0:
             wp.atomic_max(overflow, 0, 1)
         mat = body_material[a] * num_materials + body_material[b]
@@ -408,7 +172,8 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
             vol, first_moment, s_a, m_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
             material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], step,
-            wp.min(shape_radius[body_shape[a]], shape_radius[body_shape[b]]), body_inv_mass[a] + body_inv_mass[b],
+            wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]]),
+            body_inv_mass[a] + body_inv_mass[b],
         )  # fmt: skip
         if wp.static(diagnostics):
             pair_volume[p] = vol
@@ -427,14 +192,8 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
 
     @wp.kernel(enable_backward=False, module="unique")
     def gather_kernel(
-        # Shapes
-        shape_radius: wp.array(dtype=float),
-        shape_face_start: wp.array(dtype=int),
-        face_plane: wp.array(dtype=wp.vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=wp.vec3),
         # Model
+        shapes: Shapes,
         body_shape: wp.array(dtype=int),
         body_material: wp.array(dtype=int),
         body_flags: wp.array(dtype=int),
@@ -511,10 +270,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             s = body_shape[i]
             for j in range(plane_normal.shape[0]):
                 pn = plane_normal[j]
-                vol, first_moment, s_a, m_a = plane_geometry(
-                    shape_radius, shape_face_start, face_plane, face_loop_start, face_loop, vert, s, xa, pn,
-                    plane_offset[j],
-                )  # fmt: skip
+                vol, first_moment, s_a, m_a = plane_geometry(shapes, s, xa, pn, plane_offset[j])
                 mat = body_material[i] * num_materials + plane_material[j]
                 if vol <= 0.0:
                     e_mat = material_e[mat]
@@ -542,7 +298,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                     vol, first_moment, s_a, m_a, -pn, body_v[i], body_w[i], zero3, zero3,
                     material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
                     plane_turn[i, j], step,
-                    shape_radius[s], body_inv_mass[i],
+                    shapes.shape_radius[s], body_inv_mass[i],
                 )  # fmt: skip
                 if wp.static(diagnostics):
                     plane_volume[i, j] = vol
@@ -562,18 +318,15 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             body_t[i] = t
             body_dissipated[i] = body_dissipated[i] + lost
 
-    class ContactKernels:
-        pass
-
-    ns = ContactKernels()
-    ns.law = law
-    ns.friction = friction
-    ns.narrowphase = nphase
-    ns.respond = respond
-    ns.plane_geometry = plane_geometry
-    ns.pair_contact_kernel = pair_contact_kernel
-    ns.gather_kernel = gather_kernel
-    return ns
+    return ContactKernels(
+        law=law,
+        friction=friction,
+        diagnostics=diagnostics,
+        geometry=geom,
+        respond=respond,
+        pair_contact_kernel=pair_contact_kernel,
+        gather_kernel=gather_kernel,
+    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,474 +1,71 @@
-"""Narrow phase: the exact energy-based contact geometry of two convex polyhedra.
+"""Narrow phase: the overlap geometry of many pairs of convex polyhedra, one thread per pair.
 
-For a candidate pair (A, B) one thread clips every face polygon of A by the face planes of B and
-every face of B by the planes of A. The surviving pieces are the facets of the overlap polyhedron
-A n B. Summed over A's facets k (area A_k, A's outward normal n_k, centroid c_k):
-
-    S_A = sum A_k n_k              (= gradient of the overlap volume V under translation of A)
-    M_A = sum A_k (c_k x n_k)      (about A's centre; = gradient of V under rotation of A)
-
-and V with the overlap centroid come from the divergence theorem over all facets.
-
-All clipping happens in A's body frame, so the numbers that meet in a subtraction are of the size
-of the shapes whatever the distance from the world origin.
-
-Coincident facets: when a face f of A and a face g of B lie in one plane (every vertex of both
-faces within ``tol = tol_rel * min(r_A, r_B) + noise * (r_A + r_B)`` of the other face's plane;
-tol_rel 2e-5 in float32 and 1e-10 in float64, noise a few units of rounding, 5e-7 and 1e-15) the
-pair is decided once, by one function evaluated identically from both sides:
-
-* same outward normal: f is not clipped by g (nor g by f) and both pieces count with weight 1/2,
-  so the shared region is split half to each body and S_A + S_B = 0 holds to rounding;
-* opposite outward normals: the bodies merely touch through that plane; both pieces are left out
-  of S and M (the overlap there has a thickness below the tolerance, and the linear law would
-  otherwise give a finite force at zero overlap) but still count for V, which stays exact.
-
-Layout of this file: ``@wp.func`` helpers inside the factory :func:`make_narrowphase`, the
-kernels it returns, then the launch function used by the host code.
+The geometry itself (clipping, fan triangles, cones, the coincident-face rule) lives in
+:mod:`polydem.kernels.geometry`; this module holds the kernel that runs it over a batch of
+pairs (the batch API :func:`polydem.overlap` and the pair benchmarks) and its launcher, which
+grows the per-thread polygon buffer when a facet overflowed it.
 """
 
 import functools
+from dataclasses import dataclass
+from typing import Any
 
 import warp as wp
+from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, make_geometry
 
-# Relative tolerance of the coincident-face test, per precision (see the module docstring).
-COINCIDENT_TOL = {wp.float32: 2.0e-5, wp.float64: 1.0e-10}
-# Plus a few units of rounding of the coordinates, which grow with the larger body (a grain on a
-# container wall meets the wall's far corners in its frame).
-COORDINATE_NOISE = {wp.float32: 5.0e-7, wp.float64: 1.0e-15}
+__all__ = [
+    "COINCIDENT_TOL",
+    "COORDINATE_NOISE",
+    "NARROWPHASE_BLOCK_DIM",
+    "Narrowphase",
+    "launch_overlap",
+    "make_narrowphase",
+]
 
 # Threads per block of the pair kernels: small blocks suit their large per-thread stack (measured
 # on an H200, 64 is 3-7% faster than 256).
 NARROWPHASE_BLOCK_DIM = 64
 
-# A pair whose |S_A| falls below this fraction of V^(2/3) is "enclosed": one body (nearly) inside
-# the other, or two identical bodies on top of each other. The gradient of V vanishes there.
-ENCLOSED_RATIO = 1.0e-4
-# ... and only when the overlap is a real share of the smaller body (V > this times r_min^3): a
-# sliver whose faces were found merely touching has no gradient either, and no force.
-ENCLOSED_MIN_VOLUME = 1.0e-3
+
+@dataclass(frozen=True)
+class Narrowphase:
+    """The batch overlap kernel of one precision and polygon capacity, with its geometry."""
+
+    scalar: Any
+    vec3: Any
+    vec4: Any
+    transform: Any
+    quat: Any
+    max_poly: int
+    tol_rel: float
+    geometry: Any  # polydem.kernels.geometry.Geometry
+    pair_geometry: Any
+    overlap_kernel: Any
 
 
 @functools.cache
 def make_narrowphase(
     scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None, max_registers: int | None = 128
-):
-    """Build the narrow-phase functions and kernels for one precision and polygon capacity.
+) -> Narrowphase:
+    """Build the batch overlap kernel for one precision and polygon capacity.
 
     Args:
         scalar: ``wp.float32`` or ``wp.float64``.
-        max_poly: capacity of the per-thread polygon buffer (vertices of one clipped facet). A
-            facet that would exceed it raises the ``overflow`` flag of the launch; the host then
-            rebuilds with a larger capacity and runs again.
-        max_faces: the most faces of any shape in use (capacity of the per-thread plane lists).
-        coincident_tol: relative tolerance of the coincident-face test (default per precision).
-        max_registers: CUDA register cap per thread (measured on an H200: 128 is 10% faster than no cap
-            for 20-vertex rocks and 2% slower for cubes; 64 is 25% slower; see benchmarks/tune_pair_kernel.py).
-
-    Returns:
-        A namespace with ``pair_geometry`` (the ``@wp.func``) and ``overlap_kernel``.
+        max_poly, max_faces, coincident_tol: as for :func:`polydem.kernels.geometry.make_geometry`.
+        max_registers: CUDA register cap per thread (128 is faster than no cap for 20-vertex rocks
+            and slightly slower for cubes; see benchmarks/tune_pair_kernel.py and BENCHMARKS.md).
     """
-    vec3 = wp.types.vector(3, scalar)
-    vec4 = wp.types.vector(4, scalar)
-    mat33 = wp.types.matrix(shape=(3, 3), dtype=scalar)
-    quat = wp.types.quaternion(scalar)
-    transform = wp.types.transformation(scalar)
-    poly_t = wp.types.matrix(shape=(2 * max_poly, 3), dtype=scalar)
-    planes_t = wp.types.matrix(shape=(max_faces, 4), dtype=scalar)
-    ids_t = wp.types.vector(length=max_faces, dtype=int)
-    tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
-    noise_rel = float(COORDINATE_NOISE[scalar])
-    # Cheap pre-filter before the exact coincidence test: normals within about 2.5 degrees.
-    parallel_cos = 0.999
-
-    @wp.func
-    def plane_in_a(plane: vec4, rot: mat33, pos: vec3):
-        # A plane n.x = d of B, expressed in A's frame where B's points are rot x + pos.
-        n = rot * vec3(plane[0], plane[1], plane[2])
-        return n, plane[3] + wp.dot(n, pos)
-
-    @wp.func
-    def coplanar_relation(
-        fa: int,
-        gb: int,
-        face_plane: wp.array(dtype=vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=vec3),
-        rot: mat33,
-        pos: vec3,
-        tol: scalar,
-    ):
-        # Decides whether face fa of A and face gb of B share a plane: +1 same outward normal,
-        # -1 opposite normals, 0 otherwise. Evaluated in A's frame with the same expressions
-        # whichever side calls it, so both sides reach the same decision bit for bit.
-        pa = face_plane[fa]
-        na = vec3(pa[0], pa[1], pa[2])
-        nb, db = plane_in_a(face_plane[gb], rot, pos)
-        c = wp.dot(na, nb)
-        if wp.abs(c) < scalar(parallel_cos):
-            return 0
-        for k in range(face_loop_start[fa], face_loop_start[fa + 1]):
-            if wp.abs(wp.dot(nb, vert[face_loop[k]]) - db) > tol:
-                return 0
-        for k in range(face_loop_start[gb], face_loop_start[gb + 1]):
-            if wp.abs(wp.dot(na, rot * vert[face_loop[k]] + pos) - pa[3]) > tol:
-                return 0
-        if c > scalar(0.0):
-            return 1
-        return -1
-
-    @wp.func
-    def cone(area: scalar, area_c: vec3, plane: vec4, origin: vec3):
-        # Volume and first moment of the pyramid from `origin` over a facet of the given area and
-        # area-weighted centroid in `plane` (its centroid lies 3/4 of the way to the facet's).
-        h = plane[3] - wp.dot(vec3(plane[0], plane[1], plane[2]), origin)
-        v = area * h / scalar(3.0)
-        return v, (h / scalar(3.0)) * (scalar(0.25) * area * origin + scalar(0.75) * area_c)
-
-    @wp.func
-    def pair_geometry_in_a(
-        # Shapes
-        shape_vert_start: wp.array(dtype=int),
-        shape_face_start: wp.array(dtype=int),
-        shape_radius: wp.array(dtype=scalar),
-        face_plane: wp.array(dtype=vec4),
-        face_sphere: wp.array(dtype=vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=vec3),
-        # Pair
-        sa: int,
-        sb: int,
-        xa: transform,
-        xb: transform,
-    ):
-        """:func:`pair_geometry`, clipping in A's frame."""
-        zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        ra = shape_radius[sa]
-        rb = shape_radius[sb]
-        qa = wp.transform_get_rotation(xa)
-        qa_inv = wp.quat_inverse(qa)
-        pos = wp.quat_rotate(qa_inv, wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
-        dist2 = wp.length_sq(pos)
-        if dist2 >= (ra + rb) * (ra + rb):
-            return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-        rot = wp.quat_to_matrix(qa_inv * wp.transform_get_rotation(xb))
-        rot_t = wp.transpose(rot)
-        pos_b = -(rot_t * pos)  # A's centre in B's frame
-        tol = scalar(tol_rel) * wp.min(ra, rb) + scalar(noise_rel) * (ra + rb)
-        fa0 = shape_face_start[sa]
-        fa1 = shape_face_start[sa + 1]
-        fb0 = shape_face_start[sb]
-        fb1 = shape_face_start[sb + 1]
-
-        # The overlap lies in the slab lo <= u.x <= hi across the line of centres u: beyond the
-        # reach of B's support towards A and A's towards B. An empty slab separates the bodies;
-        # otherwise faces (and their planes) that miss the slab cannot bound the overlap.
-        dist = wp.sqrt(dist2)
-        u = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
-        lo = -(ra + rb)
-        hi = ra + rb
-        if dist > tol:
-            u = pos / dist
-            h_a = -(ra + rb)
-            for iv in range(shape_vert_start[sa], shape_vert_start[sa + 1]):
-                h_a = wp.max(h_a, wp.dot(u, vert[iv]))
-            u_b = rot_t * u
-            h_b = -(ra + rb)
-            for iv in range(shape_vert_start[sb], shape_vert_start[sb + 1]):
-                h_b = wp.max(h_b, -wp.dot(u_b, vert[iv]))
-            lo = dist - h_b - tol
-            hi = h_a + tol
-            if lo > hi:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-
-        # Separating face planes, by bounding spheres first and exactly (all of the other body's
-        # vertices outside) only for planes the other body's centre lies outside of. Meanwhile find
-        # where the line of centres leaves A (tau_a, as a fraction of the way from A's centre to
-        # B's) and enters B (tau_b): the cones that integrate V start from the middle of that
-        # stretch, inside the overlap whenever the line crosses it, so the cone volumes do not
-        # cancel and V and its centroid keep their precision for shallow overlaps.
-        tau_a = scalar(1.0)
-        tau_b = scalar(0.0)
-        ids_a = ids_t()
-        num_a = int(0)
-        for f in range(fa0, fa1):
-            pl = face_plane[f]
-            n = vec3(pl[0], pl[1], pl[2])
-            sigma = wp.dot(n, pos)
-            if sigma * tau_a > pl[3]:  # d / sigma < tau_a: the line leaves A earlier here
-                tau_a = pl[3] / sigma
-            s = sigma - pl[3]
-            if s > rb:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            if s > scalar(0.0):
-                nb = rot_t * n
-                db = pl[3] - wp.dot(n, pos)
-                sep = bool(True)
-                for iv in range(shape_vert_start[sb], shape_vert_start[sb + 1]):
-                    if wp.dot(nb, vert[iv]) <= db:
-                        sep = False
-                        break
-                if sep:
-                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            if s <= -rb:
-                continue  # B lies wholly inside this plane: the face cannot reach B
-            sph = face_sphere[f]
-            c = vec3(sph[0], sph[1], sph[2])
-            uc = wp.dot(u, c)
-            if uc + sph[3] < lo or uc - sph[3] > hi or wp.length_sq(c - pos) > (sph[3] + rb) * (sph[3] + rb):
-                continue
-            ids_a[num_a] = f
-            num_a += 1
-        planes_b = planes_t()
-        ids_b = ids_t()
-        num_b = int(0)
-        for g in range(fb0, fb1):
-            pl = face_plane[g]
-            n = vec3(pl[0], pl[1], pl[2])
-            sigma = wp.dot(n, pos_b)
-            if sigma * (scalar(1.0) - tau_b) > pl[3]:  # 1 - d / sigma > tau_b: it enters B later here
-                tau_b = scalar(1.0) - pl[3] / sigma
-            s = sigma - pl[3]
-            if s > ra:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            na = rot * n
-            if s > scalar(0.0):
-                da = pl[3] + wp.dot(na, pos)
-                sep = bool(True)
-                for iv in range(shape_vert_start[sa], shape_vert_start[sa + 1]):
-                    if wp.dot(na, vert[iv]) <= da:
-                        sep = False
-                        break
-                if sep:
-                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            if s <= -ra:
-                continue
-            sph = face_sphere[g]
-            c = rot * vec3(sph[0], sph[1], sph[2]) + pos
-            uc = wp.dot(u, c)
-            if uc + sph[3] < lo or uc - sph[3] > hi or wp.length_sq(c) > (sph[3] + ra) * (sph[3] + ra):
-                continue
-            planes_b[num_b] = vec4(na[0], na[1], na[2], pl[3] + wp.dot(na, pos))
-            ids_b[num_b] = g
-            num_b += 1
-
-        origin = pos * (scalar(0.5) * (tau_a + tau_b))
-        if tau_b > tau_a:
-            # The line of centres misses the overlap (it leaves A before it enters B: a body lying
-            # on a big face of the other, away from its centre). The apex would lie outside the
-            # overlap, up to metres from it, and in float32 the facets close only to ~1e-3 of their
-            # area: that gap times the apex's distance came out as V errors of 10-100x for shallow
-            # face contacts of a cube on a floor box (and flickering forces). Take instead the foot
-            # of B's centre on the active plane of A it lies farthest above: within B's sphere, and
-            # on the contact face, whose cones then vanish exactly.
-            s_top = -(ra + rb)
-            foot = pos
-            for j in range(num_a):
-                pl = face_plane[ids_a[j]]
-                n = vec3(pl[0], pl[1], pl[2])
-                sj = wp.dot(n, pos) - pl[3]
-                if sj > s_top:
-                    s_top = sj
-                    foot = pos - sj * n
-            origin = pos
-            if s_top > scalar(0.0):
-                origin = foot
-        vol = scalar(0.0)
-        vol_c = zero3
-        s_a = zero3
-        m_a = zero3
-        s_b = zero3
-        m_b = zero3
-        overflow = int(0)
-        # Clip each active face polygon by the other body's active planes and integrate the
-        # surviving piece. This loop is written out here rather than in a helper called per face:
-        # a @wp.func takes its arguments by value, and the per-thread buffers (polygon, planes, ids)
-        # live in local memory, so a call per face copied and zero-filled them again each time.
-        # One polygon buffer serves every face; its halves [0, max_poly) and [max_poly, 2 max_poly)
-        # take turns as input and output of the Sutherland-Hodgman passes.
-        poly = poly_t()
-        for j in range(num_a + num_b):
-            face_is_a = j < num_a
-            face = int(0)
-            num_planes = int(0)
-            if face_is_a:
-                face = ids_a[j]
-                num_planes = num_b
-            else:
-                face = ids_b[j - num_a]
-                num_planes = num_a
-            begin = face_loop_start[face]
-            count = face_loop_start[face + 1] - begin
-            sph = face_sphere[face]
-            centre = vec3(sph[0], sph[1], sph[2])
-            pf = face_plane[face]
-            nf = vec3(pf[0], pf[1], pf[2])
-            if not face_is_a:
-                centre = rot * centre + pos
-                nf = rot * nf
-            for k in range(count):
-                v = vert[face_loop[begin + k]]
-                if not face_is_a:
-                    v = rot * v + pos
-                poly[k] = v
-            weight = scalar(1.0)
-            surface = int(1)  # 0: a face merely touching an opposite face of the other body
-            alive = bool(True)
-            cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
-            for i in range(num_planes):
-                pl = vec4()
-                plane_id = int(0)
-                if face_is_a:
-                    pl = planes_b[i]
-                    plane_id = ids_b[i]
-                else:
-                    plane_id = ids_a[i]
-                    pl = face_plane[plane_id]  # A's own planes are read where they are
-                n = vec3(pl[0], pl[1], pl[2])
-                d = pl[3]
-                dist = wp.dot(n, centre) - d
-                if dist <= -sph[3]:
-                    continue  # the whole face lies inside this plane
-                if dist > sph[3]:
-                    alive = False
-                    break
-                if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
-                    # Coincident or touching faces: decided by one function evaluated the same way
-                    # from both sides (A's face first), so both sides agree bit for bit.
-                    rel = int(0)
-                    if face_is_a:
-                        rel = coplanar_relation(
-                            face, plane_id, face_plane, face_loop_start, face_loop, vert, rot, pos, tol
-                        )
-                    else:
-                        rel = coplanar_relation(
-                            plane_id, face, face_plane, face_loop_start, face_loop, vert, rot, pos, tol
-                        )
-                    if rel == 1:
-                        weight = scalar(0.5)
-                        continue
-                    if rel == -1:
-                        surface = int(0)
-                        continue
-                # Sutherland-Hodgman against n.x <= d, from rows [cur, cur+count) into the other half.
-                out = max_poly - cur
-                n_out = int(0)
-                full = int(0)
-                prev = poly[cur + count - 1]
-                s_prev = wp.dot(n, prev) - d
-                for k in range(count):
-                    v = poly[cur + k]
-                    sk = wp.dot(n, v) - d
-                    if (sk <= scalar(0.0)) != (s_prev <= scalar(0.0)):
-                        if n_out >= max_poly:
-                            full = 1
-                            break
-                        t = s_prev / (s_prev - sk)
-                        poly[out + n_out] = prev + t * (v - prev)
-                        n_out += 1
-                    if sk <= scalar(0.0):
-                        if n_out >= max_poly:
-                            full = 1
-                            break
-                        poly[out + n_out] = v
-                        n_out += 1
-                    prev = v
-                    s_prev = sk
-                if full != 0:
-                    overflow = 1
-                if n_out < 3 or full != 0:
-                    alive = False
-                    break
-                cur = out
-                count = n_out
-            if not alive:
-                continue
-            # Fan triangulation: facet area and area-weighted centroid.
-            p0 = poly[cur]
-            area = scalar(0.0)
-            area_c = zero3
-            for k in range(1, count - 1):
-                p1 = poly[cur + k]
-                p2 = poly[cur + k + 1]
-                a2 = wp.dot(wp.cross(p1 - p0, p2 - p0), nf)  # twice the signed triangle area
-                area += a2
-                area_c += a2 * (p0 + p1 + p2)
-            area = weight * scalar(0.5) * area
-            area_c = (weight * scalar(0.5) / scalar(3.0)) * area_c
-            plane = vec4()
-            if face_is_a:
-                plane = pf
-            else:
-                plane = planes_b[j - num_a]
-            dv, dv_c = cone(area, area_c, plane, origin)
-            vol += dv
-            vol_c += dv_c
-            if surface != 0:
-                n = vec3(plane[0], plane[1], plane[2])
-                if face_is_a:
-                    s_a += area * n
-                    m_a += wp.cross(area_c, n)
-                else:
-                    s_b += area * n
-                    m_b += wp.cross(area_c, n)
-        rot_a = wp.quat_to_matrix(qa)
-        return vol, rot_a * vol_c, rot_a * s_a, rot_a * m_a, rot_a * s_b, rot_a * m_b, overflow
-
-    @wp.func
-    def pair_geometry(
-        # Shapes
-        shape_vert_start: wp.array(dtype=int),
-        shape_face_start: wp.array(dtype=int),
-        shape_radius: wp.array(dtype=scalar),
-        face_plane: wp.array(dtype=vec4),
-        face_sphere: wp.array(dtype=vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=vec3),
-        # Pair
-        sa: int,
-        sb: int,
-        xa: transform,
-        xb: transform,
-    ):
-        """Overlap geometry of shape ``sa`` at pose ``xa`` and shape ``sb`` at pose ``xb``.
-
-        Returns ``(V, first moment of V, S_A, M_A, S_B, M_B, overflow)``, with vectors in world
-        axes and every position relative to A's centre (the first moment is V times the overlap
-        centroid; M_A and M_B are about A's centre).
-
-        The clipping runs in the frame of the larger body, whose big faces are then exact: in the
-        small body's frame the far corners of, say, a container wall carry rounding that moves
-        the wall's face polygon off its plane (in float32 a 1 cm cube on a 6 m floor had S wrong
-        by 17% that way).
-        """
-        if shape_radius[sb] <= shape_radius[sa]:
-            return pair_geometry_in_a(
-                shape_vert_start, shape_face_start, shape_radius, face_plane, face_sphere, face_loop_start,
-                face_loop, vert, sa, sb, xa, xb,
-            )  # fmt: skip
-        vol, vol_c, s_b, m_b, s_a, m_a, overflow = pair_geometry_in_a(
-            shape_vert_start, shape_face_start, shape_radius, face_plane, face_sphere, face_loop_start,
-            face_loop, vert, sb, sa, xb, xa,
-        )  # fmt: skip
-        # Positions came relative to B's centre: move them to A's.
-        r = wp.transform_get_translation(xb) - wp.transform_get_translation(xa)
-        return vol, vol_c + vol * r, s_a, m_a + wp.cross(r, s_a), s_b, m_b + wp.cross(r, s_b), overflow
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol)
+    vec3 = geom.vec3
+    transform = geom.transform
+    Shapes = geom.shapes
+    pair_geometry = geom.pair_geometry
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def overlap_kernel(
-        # Shapes
-        shape_vert_start: wp.array(dtype=int),
-        shape_face_start: wp.array(dtype=int),
-        shape_radius: wp.array(dtype=scalar),
-        face_plane: wp.array(dtype=vec4),
-        face_sphere: wp.array(dtype=vec4),
-        face_loop_start: wp.array(dtype=int),
-        face_loop: wp.array(dtype=int),
-        vert: wp.array(dtype=vec3),
-        # Pairs in
+        # Model
+        shapes: Shapes,
+        # State in
         pair_shape_a: wp.array(dtype=int),
         pair_shape_b: wp.array(dtype=int),
         pair_pose_a: wp.array(dtype=transform),
@@ -484,18 +81,7 @@ def make_narrowphase(
     ):
         i = wp.tid()
         vol, vol_c, s_a, m_a, s_b, m_b, of = pair_geometry(
-            shape_vert_start,
-            shape_face_start,
-            shape_radius,
-            face_plane,
-            face_sphere,
-            face_loop_start,
-            face_loop,
-            vert,
-            pair_shape_a[i],
-            pair_shape_b[i],
-            pair_pose_a[i],
-            pair_pose_b[i],
+            shapes, pair_shape_a[i], pair_shape_b[i], pair_pose_a[i], pair_pose_b[i]
         )
         if of != 0:
             wp.atomic_add(overflow, 0, 1)
@@ -506,27 +92,35 @@ def make_narrowphase(
         pair_area_b[i] = s_b
         pair_moment_b[i] = m_b
 
-    class Narrowphase:
-        pass
+    return Narrowphase(
+        scalar=scalar,
+        vec3=vec3,
+        vec4=geom.vec4,
+        transform=transform,
+        quat=geom.quat,
+        max_poly=max_poly,
+        tol_rel=geom.tol_rel,
+        geometry=geom,
+        pair_geometry=pair_geometry,
+        overlap_kernel=overlap_kernel,
+    )
 
-    ns = Narrowphase()
-    ns.scalar = scalar
-    ns.vec3 = vec3
-    ns.vec4 = vec4
-    ns.transform = transform
-    ns.quat = quat
-    ns.max_poly = max_poly
-    ns.tol_rel = tol_rel
-    ns.pair_geometry = pair_geometry
-    ns.overlap_kernel = overlap_kernel
-    return ns
+
+OVERLAP_OUTPUTS = (
+    "pair_volume",
+    "pair_volume_moment",
+    "pair_area_a",
+    "pair_moment_a",
+    "pair_area_b",
+    "pair_moment_b",
+)
 
 
 def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, out, max_poly=None):
     """Run the overlap kernel over all pairs; grow the polygon buffer and redo on overflow.
 
     ``shapes`` is a :class:`polydem.shapeset.ShapeSet`; ``out`` a dict of output arrays named as
-    the kernel's ``# Out`` arguments. Returns the narrow-phase namespace that ran.
+    the kernel's ``# Out`` arguments. Returns the :class:`Narrowphase` that ran.
     """
     n = len(pair_shape_a)
     capacity = shapes.default_poly_capacity if max_poly is None else max_poly
@@ -537,15 +131,7 @@ def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b,
             nphase.overlap_kernel,
             dim=n,
             inputs=[*shapes.kernel_args(), pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b],
-            outputs=[
-                out["pair_volume"],
-                out["pair_volume_moment"],
-                out["pair_area_a"],
-                out["pair_moment_a"],
-                out["pair_area_b"],
-                out["pair_moment_b"],
-                overflow,
-            ],
+            outputs=[*(out[name] for name in OVERLAP_OUTPUTS), overflow],
             device=shapes.device,
             block_dim=NARROWPHASE_BLOCK_DIM,
         )

@@ -2,14 +2,15 @@
 
 :func:`overlap` runs the narrow-phase kernel over N pairs of poses of two shapes and returns the
 exact energy-model quantities as numpy arrays; :func:`contact_forces` turns them and a
-:class:`ContactLaw` into forces and torques.
+:class:`ContactLaw` into forces and torques. Both launch the Warp functions that the simulator's
+contacts use (:mod:`polydem.kernels.geometry` and :mod:`polydem.kernels.response`).
 
 Degenerate pairs. When one body lies (almost) wholly inside the other, or two identical bodies
 sit on top of each other, the gradient of the overlap volume vanishes and so would the force.
 Such a pair is flagged ``enclosed`` (|S_A| < 1e-4 V^(2/3) while V > 1e-3 r_min^3, r_min the
 smaller bounding radius) and gets a push along the line of centres instead: the effective area
 vector is V^(2/3) times the unit vector from A's centre to B's (the world +z axis when the
-centres coincide to 1e-9 of the size), so the force on A is
+centres coincide), so the force on A is
 ``-W'(V) V^(2/3) n``, applied at the overlap centroid. Pairs without overlap have V = 0, S = 0,
 zero force, their normal along the line of centres and their centroid and contact point on it,
 between the bounding spheres. A thin sliver whose faces were found merely touching (|S_A| small
@@ -22,13 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from polydem.kernels.narrowphase import ENCLOSED_MIN_VOLUME, ENCLOSED_RATIO, launch_overlap
+from polydem.kernels.narrowphase import launch_overlap
+from polydem.kernels.response import ENCLOSED, LAWS, launch_contact_force, launch_contact_frame
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
 
 __all__ = ["ContactLaw", "OverlapResult", "ContactForces", "overlap", "contact_forces"]
-
-_LAWS = ("linear", "hertz", "power")
 
 
 @dataclass(frozen=True)
@@ -45,8 +45,8 @@ class ContactLaw:
     m: float = 1.0
 
     def __post_init__(self):
-        if self.kind not in _LAWS:
-            raise ValueError(f"contact law must be one of {', '.join(_LAWS)}, got {self.kind!r}")
+        if self.kind not in LAWS:
+            raise ValueError(f"contact law must be one of {', '.join(LAWS)}, got {self.kind!r}")
         if not np.isfinite(self.k) or self.k <= 0.0:
             raise ValueError(f"contact stiffness k must be a positive finite number, got {self.k!r}")
         if self.kind == "power" and (not np.isfinite(self.m) or self.m < 1.0):
@@ -219,40 +219,22 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
         out,
     )
     res = {k: v.numpy().astype(np.float64) for k, v in out.items()}
-    return _finish(res, origin, pb[:, :3], local_b[:, :3], shape_a.radius, shape_b.radius)
+    return _finish(res, origin, pb[:, :3], local_b[:, :3], shape_a.radius, shape_b.radius, dev)
 
 
-def _finish(res, origin, position_b, rel_b, radius_a, radius_b):
+def _finish(res, origin, position_b, rel_b, radius_a, radius_b, device):
     volume = np.maximum(res["pair_volume"], 0.0)
     s_a = res["pair_area_a"]
     m_local = res["pair_moment_a"]  # about A's centre
-    size = radius_a + radius_b
-
-    dist = np.linalg.norm(rel_b, axis=1)
-    line = np.tile([0.0, 0.0, 1.0], (len(volume), 1))
-    apart = dist > 1e-9 * size
-    line[apart] = rel_b[apart] / dist[apart, None]
-
+    # Normal, enclosed push and contact point: the Warp function of the simulator's contacts, in
+    # float64 whatever the precision of the overlap.
+    kind, normal, point_local = launch_contact_frame(
+        wp.float64, device, volume, res["pair_volume_moment"], s_a, m_local, rel_b,
+        min(radius_a, radius_b), radius_a / (radius_a + radius_b),
+    )  # fmt: skip
     touching = volume > 0.0
-    centroid_local = rel_b * (radius_a / size)
+    centroid_local = point_local.copy()  # between the bounding spheres where nothing overlaps
     centroid_local[touching] = res["pair_volume_moment"][touching] / volume[touching, None]
-
-    s_norm = np.linalg.norm(s_a, axis=1)
-    flat = touching & (s_norm < ENCLOSED_RATIO * np.cbrt(volume) ** 2)
-    enclosed = flat & (volume > ENCLOSED_MIN_VOLUME * min(radius_a, radius_b) ** 3)
-    regular = touching & ~flat
-    normal = line.copy()
-    normal[regular] = s_a[regular] / s_norm[regular, None]
-
-    # Central axis of the wrench (S_A, M_A) about A's centre, met with the contact plane.
-    point_local = centroid_local.copy()
-    if regular.any():
-        s = s_a[regular]
-        n = normal[regular]
-        axis_point = np.cross(s, m_local[regular]) / (s_norm[regular] ** 2)[:, None]
-        c = centroid_local[regular]
-        point_local[regular] = axis_point + (np.einsum("ij,ij->i", c - axis_point, n))[:, None] * n
-
     return OverlapResult(
         volume=volume,
         centroid=centroid_local + origin,
@@ -262,35 +244,35 @@ def _finish(res, origin, position_b, rel_b, radius_a, radius_b):
         contact_point=point_local + origin,
         area_vector_b=res["pair_area_b"],
         moment_b=res["pair_moment_b"] + np.cross(origin, res["pair_area_b"]),
-        enclosed=enclosed,
+        enclosed=kind == ENCLOSED,
         position_a=origin,
         position_b=np.asarray(position_b, dtype=np.float64),
     )
 
 
-def contact_forces(result, law):
+def contact_forces(result, law, *, device=None):
     """Forces and torques of the energy model for an :class:`OverlapResult` and a :class:`ContactLaw`.
 
     Force on A ``-W'(V) S_A``, torque on A about its centre ``-W'(V) (M_A - x_A x S_A)``; B gets the
     exact opposite force and the torque that balances the pair. Enclosed pairs are pushed apart
-    along the line of centres (module docstring).
+    along the line of centres (module docstring). Computed in float64 by the simulator's contact
+    response function on ``device`` (default Warp's default device).
     """
     if not isinstance(result, OverlapResult):
         raise TypeError(f"result must be an OverlapResult from polydem.overlap(), got {type(result).__name__}")
     if not isinstance(law, ContactLaw):
         raise TypeError(f"law must be a polydem.ContactLaw, got {type(law).__name__}")
-    dw = np.where(result.volume > 0.0, law.derivative(result.volume), 0.0)
     xa = result.position_a
     xb = result.position_b
-    s_eff = result.area_vector.copy()
-    m_eff = result.moment - np.cross(xa, result.area_vector)  # about A's centre
-    enc = result.enclosed
-    if enc.any():
-        s_eff[enc] = np.cbrt(result.volume[enc])[:, None] ** 2 * result.normal[enc]
-        m_eff[enc] = np.cross(result.centroid[enc] - xa[enc], s_eff[enc])
-    force_a = -dw[:, None] * s_eff
-    torque_a = -dw[:, None] * m_eff
+    volume = result.volume
+    # The decision overlap() took: a radius of 0 keeps an enclosed pair enclosed, an infinite one
+    # leaves any other pair with a vanishing S_A without force (a sliver).
+    r_min = np.where(result.enclosed, 0.0, np.inf)
+    force_a, torque_a, energy = launch_contact_force(
+        law.kind, law.k, law.exponent, wp.get_device(device), volume, volume[:, None] * (result.centroid - xa),
+        result.area_vector, result.moment - np.cross(xa, result.area_vector), xb - xa, r_min,
+    )  # fmt: skip
     force_b = -force_a
     # Moment of the pair's wrench about B's centre: balance with A's about a common point.
     torque_b = -torque_a - np.cross(xa - xb, force_a)
-    return ContactForces(force_a, torque_a, force_b, torque_b, law.energy(result.volume))
+    return ContactForces(force_a, torque_a, force_b, torque_b, energy)

@@ -3,6 +3,8 @@
 import numpy as np
 import warp as wp
 
+from polydem.kernels.geometry import shapes_struct
+
 PRECISIONS = {"float32": wp.float32, "float64": wp.float64}
 
 
@@ -25,7 +27,19 @@ class ShapeSet:
         face_loop_start: (F+1,) int32, first entry of each face in ``face_loop``.
         face_loop: (L,) int32, global vertex indices of each face, counter-clockwise from outside.
         vert: (V,) vec3 vertex positions [m].
+        arrays: all of the above in one ``wp.struct`` (:func:`polydem.kernels.geometry.shapes_struct`).
     """
+
+    ARRAYS = (
+        "shape_vert_start",
+        "shape_face_start",
+        "shape_radius",
+        "face_plane",
+        "face_sphere",
+        "face_loop_start",
+        "face_loop",
+        "vert",
+    )
 
     def __init__(self, shapes, device=None, precision="float32"):
         shapes = list(shapes)
@@ -72,6 +86,10 @@ class ShapeSet:
         self.face_loop_start = arr(np.array(loop_start, dtype=np.int32), int)
         self.face_loop = arr(np.concatenate(loops).astype(np.int32), int)
         self.vert = arr(np.concatenate(verts).astype(np_scalar), vec3)
+        # The same arrays as one kernel argument (the ``shapes`` of the geometry functions).
+        self.arrays = shapes_struct(self.scalar)()
+        for name in self.ARRAYS:
+            setattr(self.arrays, name, getattr(self, name))
 
         max_face_verts = max(s.max_face_vertices for s in shapes)
         max_faces = max(s.num_faces for s in shapes)
@@ -83,14 +101,5 @@ class ShapeSet:
         self.max_faces = max_faces
 
     def kernel_args(self):
-        """The ``# Shapes`` arguments of the narrow-phase kernels, in order."""
-        return [
-            self.shape_vert_start,
-            self.shape_face_start,
-            self.shape_radius,
-            self.face_plane,
-            self.face_sphere,
-            self.face_loop_start,
-            self.face_loop,
-            self.vert,
-        ]
+        """The shape arguments of the geometry kernels: one ``shapes`` struct."""
+        return [self.arrays]

@@ -211,12 +211,7 @@ class Stepper:
             kernels.gather_kernel,
             dim=m.num_bodies,
             inputs=[
-                s.shape_radius,
-                s.shape_face_start,
-                s.face_plane,
-                s.face_loop_start,
-                s.face_loop,
-                s.vert,
+                *s.kernel_args(),
                 m.body_shape,
                 m.body_material,
                 m.body_flags,

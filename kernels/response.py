@@ -1,0 +1,442 @@
+"""Contact response: from the overlap geometry of a contact to its normal, point and wrench.
+
+One function, :func:`respond` (built by :func:`make_response`), turns the overlap of a contact
+(V, V times the centroid, S_A and M_A, see :mod:`polydem.kernels.geometry`) into the wrench of
+the energy model; the pair kernel, the wall contacts and the diagnostics of
+:mod:`polydem.kernels.forces` all call it, and so do the batch kernels at the end of this file,
+which :func:`polydem.overlap` and :func:`polydem.contact_forces` launch.
+
+Normal and contact point (:func:`contact_frame`): the normal is S_A / |S_A|, from A into B; the
+contact point is where the central axis of the wrench (S_A, M_A) meets the plane through the
+overlap's centroid normal to it. When one body lies (almost) wholly inside the other, or two
+identical bodies sit on top of each other, S_A vanishes with the gradient of V: such a pair is
+"enclosed" (|S_A| < ENCLOSED_RATIO V^(2/3) while V > ENCLOSED_MIN_VOLUME r_min^3) and is pushed
+along the line of centres instead, with the effective area vector V^(2/3) times the unit vector
+from A's centre to B's (+z when the centres coincide), applied at the centroid. A thin sliver
+whose faces were found merely touching (|S_A| small and V below that bound) gets no force.
+
+The contact law and the damping are described in :mod:`polydem.kernels.forces`.
+"""
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+# A pair whose |S_A| falls below this fraction of V^(2/3) is "enclosed": one body (nearly) inside
+# the other, or two identical bodies on top of each other. The gradient of V vanishes there.
+ENCLOSED_RATIO = 1.0e-4
+# ... and only when the overlap is a real share of the smaller body (V > this times r_min^3): a
+# sliver whose faces were found merely touching has no gradient either, and no force.
+ENCLOSED_MIN_VOLUME = 1.0e-3
+
+LAWS = ("linear", "hertz", "power")
+
+# What contact_frame found: a regular contact, an enclosed pair (pushed along the line of
+# centres) or a sliver (no force).
+REGULAR = 0
+ENCLOSED = 1
+SLIVER = 2
+
+
+@dataclass(frozen=True)
+class Frame:
+    """:func:`contact_frame` and :func:`centre_line` of one precision."""
+
+    scalar: Any
+    vec3: Any
+    centre_line: Any
+    contact_frame: Any
+
+
+@dataclass(frozen=True)
+class Response:
+    """The contact law and :func:`respond` of one precision, law, friction setting and purpose."""
+
+    scalar: Any
+    law: str
+    friction: bool
+    diagnostics: bool
+    frame: Frame
+    law_derivative: Any
+    law_energy: Any
+    branch_pressure: Any
+    branch_energy: Any
+    respond: Any
+
+
+@functools.cache
+def make_frame(scalar) -> Frame:
+    """The contact normal, the enclosed push and the contact point (module docstring)."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.func
+    def centre_line(r_ab: vec3):
+        # Unit vector from A's centre to B's; +z when they coincide.
+        line = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+        dist = wp.length(r_ab)
+        if dist > scalar(0.0):
+            line = r_ab / dist
+        return line
+
+    @wp.func
+    def contact_frame(volume: scalar, first_moment: vec3, area: vec3, moment: vec3, r_ab: vec3, r_min: scalar):
+        """Kind (REGULAR, ENCLOSED or SLIVER), unit normal, contact point, effective S_A and M_A,
+        and |S_A| of an overlap V > 0 (V * centroid, S_A, M_A about x_A; all relative to x_A).
+        ``r_ab`` is x_B - x_A, ``r_min`` the smaller bounding radius."""
+        c = first_moment / volume
+        s = area
+        mom = moment
+        s_norm = wp.length(s)
+        v23 = wp.pow(volume, scalar(2.0) / scalar(3.0))
+        kind = int(REGULAR)
+        if s_norm < scalar(ENCLOSED_RATIO) * v23:
+            line = centre_line(r_ab)
+            if volume <= scalar(ENCLOSED_MIN_VOLUME) * r_min * r_min * r_min:
+                # A sliver between faces found merely touching: no gradient, no force.
+                return int(SLIVER), line, c, s, mom, s_norm
+            # One body (nearly) inside the other: the gradient of V vanishes; push along the line
+            # of centres instead.
+            s = v23 * line
+            mom = wp.cross(c, s)
+            s_norm = v23
+            kind = int(ENCLOSED)
+        n = s / s_norm
+        axis = wp.cross(s, mom) / (s_norm * s_norm)
+        point = axis + wp.dot(c - axis, n) * n
+        return kind, n, point, s, mom, s_norm
+
+    return Frame(scalar=scalar, vec3=vec3, centre_line=centre_line, contact_frame=contact_frame)
+
+
+@functools.cache
+def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -> Response:
+    """:func:`respond` for one contact law ("linear", "hertz" or "power"), with or without friction.
+
+    ``diagnostics`` builds the variant that reports a contact without stepping it (the turning
+    volume stays as it is).
+    """
+    if law not in LAWS:
+        raise ValueError(f"unknown contact law {law!r}")
+    frame = make_frame(scalar)
+    vec3 = frame.vec3
+    contact_frame = frame.contact_frame
+    zero3 = wp.constant(vec3(scalar(0.0), scalar(0.0), scalar(0.0)))
+
+    @wp.func
+    def law_derivative(volume: scalar, k: scalar, m: scalar):
+        # W'(V) [Pa]
+        if wp.static(law == "linear"):
+            return k
+        elif wp.static(law == "hertz"):
+            return k * wp.sqrt(volume)
+        else:
+            return k * wp.pow(volume, m - scalar(1.0))
+
+    @wp.func
+    def law_energy(volume: scalar, k: scalar, m: scalar):
+        # W(V) [J]
+        if wp.static(law == "linear"):
+            return k * volume
+        elif wp.static(law == "hertz"):
+            return (scalar(2.0) / scalar(3.0)) * k * volume * wp.sqrt(volume)
+        else:
+            return k * wp.pow(volume, m) / m
+
+    @wp.func
+    def elastic_volume(volume: scalar, turn: scalar, e2: scalar):
+        # u on the unloading branch from the turning volume: du = dV / e^2, u(turn) = turn.
+        return turn - (turn - volume) / e2
+
+    @wp.func
+    def branch_pressure(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar):
+        # dE/dV on the branch of (V, turn) [Pa]: W'(V) loading, W'(u) unloading, 0 once u <= 0.
+        p = scalar(0.0)
+        if volume >= turn:
+            p = law_derivative(volume, k, m)
+        else:
+            u = elastic_volume(volume, turn, e2)
+            if u > scalar(0.0):
+                p = law_derivative(u, k, m)
+        return p
+
+    @wp.func
+    def branch_energy(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar):
+        # E(V; turn) [J]: W(V) loading; unloading, (1 - e^2) W(turn) + e^2 W(u) (what is left to
+        # return plus what will never come back), so that -dE/dV is the branch's pressure.
+        en = scalar(0.0)
+        if volume >= turn:
+            en = law_energy(volume, k, m)
+        else:
+            en = (scalar(1.0) - e2) * law_energy(turn, k, m)
+            u = elastic_volume(volume, turn, e2)
+            if u > scalar(0.0):
+                en += e2 * law_energy(u, k, m)
+        return en
+
+    @wp.func
+    def respond(
+        # Overlap (positions relative to x_A)
+        volume: scalar,
+        first_moment: vec3,
+        area: vec3,
+        moment: vec3,
+        r_ab: vec3,
+        # Motion
+        v_a: vec3,
+        w_a: vec3,
+        v_b: vec3,
+        w_b: vec3,
+        # Material
+        k: scalar,
+        m: scalar,
+        e: scalar,
+        mu: scalar,
+        kt: scalar,
+        # History
+        xi: vec3,
+        turn: scalar,
+        # Step
+        dt: scalar,
+        r_min: scalar,
+        inv_mass: scalar,
+    ):
+        """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
+
+        ``r_ab`` is x_B - x_A (its direction is the push of an enclosed pair); ``turn`` the pair's
+        turning volume (0 for a new contact; unused for e = 1). Returns (force on A, torque on A
+        about x_A, new spring xi, new turning volume, stored energy, energy dissipated this step,
+        unit normal, contact point relative to x_A, normal force magnitude, tangential force).
+        """
+        e2 = e * e
+        if e2 >= scalar(1.0):
+            turn = scalar(0.0)
+        kind, n, point, s, mom, s_norm = contact_frame(volume, first_moment, area, moment, r_ab, r_min)
+        if kind == SLIVER:
+            lost0 = scalar(0.0)
+            if wp.static(friction):
+                lost0 = scalar(0.5) * kt * wp.dot(xi, xi)
+            en0 = branch_energy(volume, turn, k, m, e2)
+            return zero3, zero3, zero3, turn, en0, lost0, n, point, scalar(0.0), zero3
+
+        dvdt = wp.dot(s, v_a - v_b) + wp.dot(mom, w_a) + wp.dot(wp.cross(r_ab, s) - mom, w_b)
+        lost = scalar(0.0)
+        turn_new = turn
+        if wp.static(not diagnostics):
+            # Growing, or past the turning volume: the loading branch, whose turning volume follows V.
+            # Reloading from below the turning volume drops the part of E(V; turn) that the loading
+            # branch does not hold: the hysteresis loop's area, dissipated.
+            if e2 < scalar(1.0) and (dvdt >= scalar(0.0) or volume >= turn):
+                turn_new = volume
+                if volume < turn:
+                    lost = branch_energy(volume, turn, k, m, e2) - law_energy(volume, k, m)
+        wd = branch_pressure(volume, turn_new, k, m, e2)
+        fn = wd * s_norm
+        force = -wd * s
+        torque = -wd * mom
+        energy = branch_energy(volume, turn_new, k, m, e2)
+        ft = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        xi_new = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        if wp.static(friction):
+            v_rel = v_a + wp.cross(w_a, point) - v_b - wp.cross(w_b, point - r_ab)
+            vt = v_rel - wp.dot(v_rel, n) * n
+            # Turn the spring into the current tangent plane, keeping its length.
+            l0 = wp.length(xi)
+            xt = xi - wp.dot(xi, n) * n
+            l1 = wp.length(xt)
+            if l1 > scalar(0.0):
+                xt = xt * (l0 / l1)
+            stored = scalar(0.5) * kt * wp.dot(xt, xt)
+            xt = xt + vt * dt
+            # A tangential dashpot with the damping ratio of e keeps a sticking contact from ringing
+            # (an undamped spring rings, slips at each swing and lets a block creep down a slope).
+            ln_e = wp.log(wp.max(e, scalar(1.0e-6)))
+            zeta = -ln_e / wp.sqrt(ln_e * ln_e + scalar(9.8696044))
+            ct = scalar(2.0) * zeta * wp.sqrt(kt / wp.max(inv_mass, scalar(1.0e-30)))
+            if inv_mass <= scalar(0.0):
+                ct = scalar(0.0)
+            ft = -kt * xt - ct * vt
+            cap = mu * fn
+            ft_norm = wp.length(ft)
+            if ft_norm > cap:
+                ft = ft * (cap / ft_norm)
+                # Sliding: the spring takes the capped force, but never more length than the
+                # displacement xt gave it: when the dashpot pushed the force over the cap,
+                # xi = -ft / kt would lengthen the spring and store energy that no work put there.
+                xi_new = ft * (-scalar(1.0) / kt)
+                l_new = wp.length(xi_new)
+                l_max = wp.length(xt)
+                if l_new > l_max:
+                    xi_new = xi_new * (l_max / l_new)
+            else:
+                xi_new = xt
+            # Work taken from the bodies less what the spring stored is what friction dissipated.
+            lost += wp.max(-wp.dot(ft, vt) * dt - (scalar(0.5) * kt * wp.dot(xi_new, xi_new) - stored), scalar(0.0))
+            energy += scalar(0.5) * kt * wp.dot(xi_new, xi_new)
+            force += ft
+            torque += wp.cross(point, ft)
+        return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
+
+    return Response(
+        scalar=scalar,
+        law=law,
+        friction=friction,
+        diagnostics=diagnostics,
+        frame=frame,
+        law_derivative=law_derivative,
+        law_energy=law_energy,
+        branch_pressure=branch_pressure,
+        branch_energy=branch_energy,
+        respond=respond,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Batch kernels for polydem.overlap and polydem.contact_forces: the same functions, one thread
+# per pair.
+
+
+@functools.cache
+def make_frame_kernel(scalar):
+    """Kernel: normal, contact point and kind of N overlaps (kind -1 where V <= 0)."""
+    frame = make_frame(scalar)
+    vec3 = frame.vec3
+    centre_line = frame.centre_line
+    contact_frame = frame.contact_frame
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def contact_frame_kernel(
+        # Model
+        r_min: scalar,
+        share_a: scalar,
+        # State in
+        pair_volume: wp.array(dtype=scalar),
+        pair_volume_moment: wp.array(dtype=vec3),
+        pair_area_a: wp.array(dtype=vec3),
+        pair_moment_a: wp.array(dtype=vec3),
+        pair_r_ab: wp.array(dtype=vec3),
+        # Out
+        pair_kind: wp.array(dtype=int),
+        pair_normal: wp.array(dtype=vec3),
+        pair_point: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        vol = pair_volume[i]
+        r_ab = pair_r_ab[i]
+        if vol <= scalar(0.0):
+            # No overlap: the normal along the line of centres, the point on it where the
+            # bounding spheres would meet in proportion to their radii.
+            pair_kind[i] = -1
+            pair_normal[i] = centre_line(r_ab)
+            pair_point[i] = share_a * r_ab
+            return
+        kind, n, point, s, mom, s_norm = contact_frame(
+            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], r_ab, r_min
+        )
+        pair_kind[i] = kind
+        pair_normal[i] = n
+        pair_point[i] = point
+
+    return contact_frame_kernel
+
+
+@functools.cache
+def make_force_kernel(scalar, law: str):
+    """Kernel: elastic wrench on A and energy of N overlaps under one contact law (no damping,
+    no friction)."""
+    resp = make_response(scalar, law, friction=False, diagnostics=True)
+    vec3 = resp.frame.vec3
+    respond = resp.respond
+    zero3 = wp.constant(vec3(scalar(0.0), scalar(0.0), scalar(0.0)))
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def contact_force_kernel(
+        # Model
+        k: scalar,
+        m: scalar,
+        # State in
+        pair_volume: wp.array(dtype=scalar),
+        pair_volume_moment: wp.array(dtype=vec3),
+        pair_area_a: wp.array(dtype=vec3),
+        pair_moment_a: wp.array(dtype=vec3),
+        pair_r_ab: wp.array(dtype=vec3),
+        pair_r_min: wp.array(dtype=scalar),
+        # Out
+        pair_force: wp.array(dtype=vec3),
+        pair_torque_a: wp.array(dtype=vec3),
+        pair_energy: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        vol = pair_volume[i]
+        if vol <= scalar(0.0):
+            pair_force[i] = zero3
+            pair_torque_a[i] = zero3
+            pair_energy[i] = scalar(0.0)
+            return
+        zero = scalar(0.0)
+        force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
+            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], pair_r_ab[i],
+            zero3, zero3, zero3, zero3,
+            k, m, scalar(1.0), zero, zero,
+            zero3, zero,
+            zero, pair_r_min[i], zero,
+        )  # fmt: skip
+        pair_force[i] = force
+        pair_torque_a[i] = torque
+        pair_energy[i] = energy
+
+    return contact_force_kernel
+
+
+def _arrays(device, scalar, **columns):
+    vec3 = wp.types.vector(3, scalar)
+    np_scalar = np.float32 if scalar == wp.float32 else np.float64
+    return {
+        name: wp.array(
+            np.ascontiguousarray(a, dtype=np_scalar), dtype=vec3 if np.ndim(a) == 2 else scalar, device=device
+        )
+        for name, a in columns.items()
+    }
+
+
+def launch_contact_frame(scalar, device, volume, first_moment, area, moment, r_ab, r_min, share_a):
+    """Kind (-1 no overlap, REGULAR, ENCLOSED, SLIVER), normal and contact point (relative to x_A)
+    of N overlaps given as numpy arrays relative to x_A; runs in ``scalar`` precision."""
+    n = len(volume)
+    vec3 = wp.types.vector(3, scalar)
+    ins = _arrays(device, scalar, volume=volume, first_moment=first_moment, area=area, moment=moment, r_ab=r_ab)
+    kind = wp.zeros(n, dtype=int, device=device)
+    normal = wp.zeros(n, dtype=vec3, device=device)
+    point = wp.zeros(n, dtype=vec3, device=device)
+    wp.launch(
+        make_frame_kernel(scalar),
+        dim=n,
+        inputs=[scalar(r_min), scalar(share_a), *ins.values()],
+        outputs=[kind, normal, point],
+        device=device,
+    )
+    return kind.numpy(), normal.numpy().astype(np.float64), point.numpy().astype(np.float64)
+
+
+def launch_contact_force(law, k, m, device, volume, first_moment, area, moment, r_ab, r_min):
+    """Force on A, torque on A about x_A and energy of N overlaps (numpy arrays relative to x_A;
+    ``r_min`` per pair) under a contact law, in float64."""
+    n = len(volume)
+    scalar = wp.float64
+    vec3 = wp.types.vector(3, scalar)
+    ins = _arrays(
+        device, scalar, volume=volume, first_moment=first_moment, area=area, moment=moment, r_ab=r_ab, r_min=r_min
+    )
+    force = wp.zeros(n, dtype=vec3, device=device)
+    torque = wp.zeros(n, dtype=vec3, device=device)
+    energy = wp.zeros(n, dtype=scalar, device=device)
+    wp.launch(
+        make_force_kernel(scalar, law),
+        dim=n,
+        inputs=[scalar(k), scalar(m), *ins.values()],
+        outputs=[force, torque, energy],
+        device=device,
+    )
+    return force.numpy(), torque.numpy(), energy.numpy()
