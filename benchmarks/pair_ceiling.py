@@ -63,15 +63,7 @@ def io_bytes(shapes):
         outputs[k] = wp.zeros(1, dtype=vec3, device=dev)
     read = {k: a.strides[0] for k, a in inputs.items()}
     write = {k: a.strides[0] for k, a in outputs.items()}
-    shape_arrays = dict(
-        zip(
-            (
-                "shape_vert_start shape_face_start shape_radius face_plane face_sphere face_loop_start face_loop vert"
-            ).split(),
-            shapes.kernel_args(),
-            strict=True,
-        )
-    )
+    shape_arrays = {name: getattr(shapes, name) for name in ShapeSet.ARRAYS}
     shape_bytes = {k: int(a.size * wp.types.type_size_in_bytes(a.dtype)) for k, a in shape_arrays.items()}
     return {
         "precision": shapes.precision,
