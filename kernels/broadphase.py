@@ -30,12 +30,8 @@ largest diameter (or a hierarchy of grids) for the same. Query threads run in th
 the body centres (sorted at each host build), so that the threads of a warp walk the same part of
 the tree.
 
-Measured on an H200 (random centres at solid fraction 0.3, skin 0.1 r_min; host build / query
-alone): 1M equal spheres 2.7 / 1.1 ms, 4M 8.5 / 4.5 ms; the Morton order halves the query time
-of bodies indexed in random order. For 1M bodies of a 20:1 bimodal mix (equal volumes) the query
-took 0.87 ms with ``class_ratio`` 8 and 2.7 ms with a single class; for radii spread evenly in
-log over 20:1 it took 0.95 ms with ratio 8, 0.91 ms with a single class and 1.1 ms with ratio 4,
-hence the default 8. The sort is a small part (0.2 ms for 1.4M pairs).
+The class ratio 8, the Morton order and one atomic per pair were chosen by measurement:
+BENCHMARKS.md, "Design measurements".
 
 Threads append the int64 key ``a * num_bodies + b`` through one atomic counter. Past the capacity
 nothing is written but the counter keeps counting, so the host build knows the true count, grows
@@ -371,8 +367,8 @@ def query_pairs_kernel(
                     gap = local - wp.min(wp.max(local, body_box_lower[j]), body_box_upper[j])
                     near = wp.dot(gap, gap) < (ri + skin) * (ri + skin)
                 if near:
-                    # One atomic per pair: measured on an H200 no slower than batching the keys
-                    # of a thread in local memory (the tree walk dominates).
+                    # One atomic per pair: no slower than batching a thread's keys in local memory,
+                    # since the tree walk dominates (BENCHMARKS.md, "Design measurements").
                     slot = wp.atomic_add(pair_counter, 0, 1)
                     if slot < capacity:
                         pair_key[slot] = make_pair_key(i, j, num_bodies)

@@ -54,9 +54,8 @@ steps). Two places did that and are treated:
   rounding of w itself.
 
 What remains is unbiased: a torque-free body keeps |L| and L to about 3e-7 * sqrt(steps)
-relative (a random walk of a few float32 units per step). Measured over 10^4 steps at
-|w| dt = 0.03 for 1:2:3 inertias: 1e-5 to 3e-5 relative, against 1e-3 to 3e-3 without the two
-treatments. The five sub-rotations are composed
+relative (a random walk of a few float32 units per step; BENCHMARKS.md, "Design measurements",
+has the drift with and without the two treatments). The five sub-rotations are composed
 into one quaternion applied to q once, and q is renormalised every step.
 
 A principal moment I_k = 0 locks the rotation about that axis (I_k^-1 is taken as 0).

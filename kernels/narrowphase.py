@@ -22,8 +22,8 @@ __all__ = [
     "make_narrowphase",
 ]
 
-# Threads per block of the pair kernels: small blocks suit their large per-thread stack (measured
-# on an H200, 64 is 3-7% faster than 256).
+# Threads per block of the pair kernels: small blocks suit their large per-thread stack
+# (BENCHMARKS.md, "Design measurements").
 NARROWPHASE_BLOCK_DIM = 64
 
 
