@@ -5,9 +5,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# The file-format tests need one device that runs (the GPU machine's Warp has no CPU compiler).
+from conftest import DEVICES
+
 import polydem
 from polydem.checkpoint import load_checkpoint, save_checkpoint
 from polydem.default_scene import default_scene
+
+HOST = DEVICES[0]
 
 
 def test_resume_equals_unbroken_run(device, tmp_path):
@@ -65,7 +70,7 @@ def stack(friction=0.5, restitution=0.4, k=1.0e8, density=2500.0, size=0.02, gra
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
     """A checkpoint of the stack after 300 steps (with pairs, springs and a run record): its path."""
-    sim = polydem.Simulation(stack(), device="cpu")
+    sim = polydem.Simulation(stack(), device=HOST)
     sim.step(300)
     path = tmp_path_factory.mktemp("ck") / "stack.npz"
     save_checkpoint(sim, path, run={"note": "the run so far"})
@@ -221,7 +226,7 @@ def test_truncated_and_damaged_files_are_refused(saved, tmp_path):
 def test_checkpoint_of_other_physics_is_refused(saved, other, words):
     from polydem.checkpoint import CheckpointError
 
-    sim = polydem.Simulation(stack(**other), device="cpu")
+    sim = polydem.Simulation(stack(**other), device=HOST)
     with pytest.raises(CheckpointError) as info:
         load_checkpoint(sim, saved)
     message = str(info.value)
@@ -263,7 +268,7 @@ def test_old_format_loads_with_a_warning(saved, tmp_path):
     data["format"] = np.array("polydem-checkpoint-2")
     np.savez(tmp_path / "old.npz", **data)
     assert read_checkpoint(tmp_path / "old.npz").physics is None
-    sim = polydem.Simulation(stack(), device="cpu")
+    sim = polydem.Simulation(stack(), device=HOST)
     with pytest.warns(CheckpointWarning, match="cannot be checked to come from this scene"):
         load_checkpoint(sim, tmp_path / "old.npz")
     assert sim.steps_done == 300
@@ -276,9 +281,9 @@ def test_checkpoint_of_the_format_before_the_state_redesign_resumes(tmp_path):
 
     path = Path(__file__).resolve().parent / "data" / "stack_base_format.npz"
     assert read_checkpoint(path).run == {"note": "written by polydem before issue 10"}
-    unbroken = polydem.Simulation(stack(), device="cpu")
+    unbroken = polydem.Simulation(stack(), device=HOST)
     unbroken.step(600)
-    resumed = polydem.Simulation(stack(), device="cpu")
+    resumed = polydem.Simulation(stack(), device=HOST)
     load_checkpoint(resumed, path)
     assert resumed.steps_done == 300 and len(resumed.current_contacts.history_numpy()["pair_key"]) >= 3
     resumed.step(300)
