@@ -1410,7 +1410,7 @@ def finish(proc, timeout=120.0):
 @pytest.mark.parametrize(
     "marker",
     [
-        "module:polydem._signals",  # the handlers are in, polydem.cli is not imported yet
+        "module:polydem.signals",  # the handlers are in, polydem.cli is not imported yet
         "module:trimesh.",  # inside trimesh's import, which catches BaseException around its own imports
         "module:warp._src",  # inside Warp's import
     ],

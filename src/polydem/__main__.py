@@ -11,9 +11,9 @@ import sys
 
 def main() -> int:
     try:
-        from polydem import _signals
+        from polydem import signals
 
-        _signals.install()
+        signals.install()
     except KeyboardInterrupt:  # before the handlers were in
         sys.stderr.write("polydem: stopped by Ctrl-C; nothing was written\n")
         return 130
@@ -21,13 +21,13 @@ def main() -> int:
         try:
             from polydem.cli import main as cli_main
 
-            _signals.check()
+            signals.check()
         except KeyboardInterrupt:
-            sys.stderr.write(f"polydem: stopped by {_signals.name()}; nothing was written\n")
-            return _signals.exit_code()
+            sys.stderr.write(f"polydem: stopped by {signals.name()}; nothing was written\n")
+            return signals.exit_code()
         return cli_main()
     finally:
-        _signals.uninstall()
+        signals.uninstall()
 
 
 if __name__ == "__main__":

@@ -150,7 +150,7 @@ def _positive(name: str, value) -> float:
     return v
 
 
-def _plane_quad(point, normal, center, half: float) -> np.ndarray:
+def plane_quad(point, normal, center, half: float) -> np.ndarray:
     """(4, 3) corners of a square of half-size ``half`` in the plane, counter-clockwise seen from
     the side the normal points to, centred on ``center``'s projection onto the plane."""
     n = np.asarray(normal, dtype=np.float64)
@@ -331,7 +331,7 @@ class UsdRecorder:
             size = wall_size or 2.0 * float(np.linalg.norm(hi - lo)) or 1.0
             UsdGeom.Scope.Define(stage, WALLS_PATH)
             for k, plane in enumerate(scene.planes):
-                quad = _plane_quad(plane.point, plane.normal, center, 0.5 * size)
+                quad = plane_quad(plane.point, plane.normal, center, 0.5 * size)
                 mesh = UsdGeom.Mesh.Define(stage, f"{WALLS_PATH}/plane_{k}")
                 self._author_mesh(mesh, quad, [np.arange(4)], np.asarray(plane.normal, dtype=np.float64)[None])
                 mesh.CreateDoubleSidedAttr(False)  # seen from outside the box, walls let the view through

@@ -174,7 +174,7 @@ class VtkWriter:
     def _write_walls(self, scene, radius, wall_size) -> None:
         import meshio
 
-        from polydem.usd import _plane_quad
+        from polydem.usd import plane_quad
 
         n = self.num_bodies
         p0 = np.asarray(scene.body_position, dtype=np.float64).reshape(n, 3)
@@ -184,7 +184,7 @@ class VtkWriter:
         else:
             lo = hi = np.zeros(3)
         size = wall_size or 2.0 * float(np.linalg.norm(hi - lo)) or 1.0
-        quads = [_plane_quad(p.point, p.normal, 0.5 * (lo + hi), 0.5 * size) for p in scene.planes]
+        quads = [plane_quad(p.point, p.normal, 0.5 * (lo + hi), 0.5 * size) for p in scene.planes]
         k = len(quads)
         _write_vtu(
             meshio,

@@ -45,7 +45,7 @@ and ``interrupted.npz`` holds the state after the last completed step (after a S
 the last finite state). The first Ctrl-C or SIGTERM (what a batch scheduler sends) stops the run
 after the steps under way (at most ``MAX_CHUNK_STEPS``); a second one stops at once. While the
 command starts (modules importing, Warp initialising, kernels compiling) either signal stops it at
-once with one line (see :mod:`polydem._signals`).
+once with one line (see :mod:`polydem.signals`).
 
 Resuming. ``polydem run SCENE --resume CHECKPOINT`` continues from a checkpoint of the same scene;
 ``--steps`` and ``--duration`` count from t = 0, so the same command line with ``--resume`` added
@@ -75,7 +75,7 @@ import importlib
 import sys
 from pathlib import Path
 
-from polydem import _signals
+from polydem import signals
 from polydem.cli.errors import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
@@ -119,7 +119,7 @@ def main(argv=None) -> int:
     """Run the ``polydem`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
     import warnings
 
-    _signals.install()
+    signals.install()
     shown = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
@@ -135,7 +135,7 @@ def main(argv=None) -> int:
         return _main(argv)
     finally:
         warnings.showwarning = shown
-        _signals.uninstall()
+        signals.uninstall()
 
 
 def _is_ours(category, filename) -> bool:
@@ -158,13 +158,13 @@ def _main(argv) -> int:
             return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USER_ERROR
         module, name = _COMMANDS[args.command]
         command = getattr(importlib.import_module(module), name)
-        _signals.check()
+        signals.check()
         return command(args)
     except KeyboardInterrupt:  # a signal before the run started, or a second one while it wrote its outputs
         sys.stdout.flush()
-        what = "nothing was written" if not _signals.started() else "while writing the outputs, some may be missing"
-        print(f"polydem: stopped by {_signals.name()}; {what}", file=sys.stderr)
-        return _signals.exit_code()
+        what = "nothing was written" if not signals.started() else "while writing the outputs, some may be missing"
+        print(f"polydem: stopped by {signals.name()}; {what}", file=sys.stderr)
+        return signals.exit_code()
     except Exception as err:
         if not _is_user_error(err):
             raise

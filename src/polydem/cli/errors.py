@@ -5,7 +5,7 @@ Nothing heavy is imported here: ``polydem --help`` loads this module.
 
 from __future__ import annotations
 
-from polydem import _signals
+from polydem import signals
 
 __all__ = [
     "EXIT_FAILED",
@@ -21,8 +21,8 @@ __all__ = [
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USER_ERROR = 2
-EXIT_INTERRUPTED = _signals.EXIT_SIGINT
-EXIT_TERMINATED = _signals.EXIT_SIGTERM
+EXIT_INTERRUPTED = signals.EXIT_SIGINT
+EXIT_TERMINATED = signals.EXIT_SIGTERM
 
 
 class CliError(Exception):

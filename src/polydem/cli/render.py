@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polydem import _signals
+from polydem import signals
 from polydem.cli.common import plural, shorten
 from polydem.cli.device import device
 from polydem.cli.errors import EXIT_OK, CliError, why
@@ -113,7 +113,7 @@ def cmd_render(args) -> int:
     read = {".toml": _scene_file, ".npz": _checkpoint}.get(source.suffix.lower(), _usd_frame)
     scene, positions, orientations, what = read(args, source)
     poses = Poses(scene, positions, orientations, dev)
-    _signals.check()
+    signals.check()
     try:
         out_png.parent.mkdir(parents=True, exist_ok=True)
         render_simulation(

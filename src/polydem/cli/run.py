@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polydem import _signals
+from polydem import signals
 from polydem.cli.common import plural, safe_name, shorten, steps_at
 from polydem.cli.device import device, warp
 from polydem.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, OutputError, why
@@ -137,7 +137,7 @@ class Run:
             self.record_frames()
             self.periodic_checkpoint()
             progress.update(sim)
-            if _signals.received():
+            if signals.received():
                 raise KeyboardInterrupt
 
     def _execute(self, out, err) -> int:
@@ -145,13 +145,13 @@ class Run:
 
         reason = failure = internal = None
         status = EXIT_OK
-        _signals.running()
+        signals.running()
         try:
             self._steps()
         except CliError:
             raise
         except KeyboardInterrupt:
-            status = _signals.exit_code()
+            status = signals.exit_code()
             reason = "interrupted by the user (Ctrl-C)" if status == EXIT_INTERRUPTED else "stopped by SIGTERM"
         except SimulationError as exc:
             reason = f"SimulationError: {exc}"
@@ -166,7 +166,7 @@ class Run:
             internal = exc
             status = EXIT_FAILED
         finally:
-            _signals.finishing()
+            signals.finishing()
             self.outputs.close()
         try:
             self._finish(out, err, reason, status)
@@ -255,7 +255,7 @@ def _output_folder(args, scene) -> Path:
 def cmd_run(args) -> int:
     out, err = sys.stdout, sys.stderr
     warp()
-    _signals.check()
+    signals.check()
     if args.precision == "float64":
         raise CliError(
             "the simulator runs in float32 only; use --precision float32 (or leave it out). Float64 contact geometry "
@@ -271,12 +271,12 @@ def cmd_run(args) -> int:
         dev = device(scene.device, file=scene.file, key="simulation.device")
     out_dir = _output_folder(args, scene)
     check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
-    _signals.check()
+    signals.check()
 
     from polydem.simulation import Simulation
 
     sim = Simulation(scene, device=dev)
-    _signals.check()
+    signals.check()
     target, source = _target_steps(args, scene, sim.dt)
     if resume is not None:
         _resume(sim, scene, resume, checkpoint, args)
