@@ -99,7 +99,7 @@ class BodyMethods:
         super().__init__()
 
     def body_arrays(self) -> dict[str, np.ndarray]:
-        """The stored body arrays by field name (see BODY_FIELDS), trimmed to the bodies."""
+        """The stored body arrays by field name (see BODY_FIELDS), trimmed to the bodies: not copies, for reading."""
         return {name: self._arrays[name][: self._n] for name, _, _ in BODY_FIELDS}
 
     @property
