@@ -91,13 +91,15 @@ class Body:
 class BodyMethods:
     """The :class:`~polydem.scene.Scene` methods that add bodies and read them back."""
 
-    def _init_bodies(self):
+    def __init__(self):
+        # The state of this group; Scene.__init__ reaches every group's __init__ through super().
         self._n = 0
         self._cap = 0
         self._arrays = {name: np.empty((0, *shape), dtype) for name, dtype, shape in BODY_FIELDS}
+        super().__init__()
 
-    def _body_arrays(self) -> dict[str, np.ndarray]:
-        """The stored body arrays by field name (see BODY_FIELDS), trimmed to the bodies."""
+    def body_arrays(self) -> dict[str, np.ndarray]:
+        """The stored body arrays by field name (see BODY_FIELDS), trimmed to the bodies: not copies, for reading."""
         return {name: self._arrays[name][: self._n] for name, _, _ in BODY_FIELDS}
 
     @property
@@ -165,7 +167,7 @@ class BodyMethods:
         kind: str = "free",
         *,
         pivot=None,
-        _key: str | None = None,
+        key: str | None = None,
     ) -> int:
         """Add one body; returns its index.
 
@@ -181,18 +183,19 @@ class BodyMethods:
             pivot: (3,) for a kinematic body only: a fixed point [m] the body turns about at
                 ``angular_velocity``; its velocity is then derived, ``angular_velocity x (centroid -
                 pivot)``, so leave ``velocity`` at zero.
+            key: where the value came from, for error messages (default ``bodies[N]``).
         """
-        key = _key or f"bodies[{self._n}]"
+        key = key or f"bodies[{self._n}]"
         f = self.file
-        s = self._resolve_shape(shape, f"{key}.shape")
-        m = self._lookup_material(material, f"{key}.material")
+        s = self.resolve_shape(shape, f"{key}.shape")
+        m = self.material_index(material, key=f"{key}.material")
         kind_code = KINDS.index(read_choice(kind, KINDS, f"{key}.kind", f, what="body kind"))
         p = read_vector(position, 3, f"{key}.position", f)
         q = read_vector(orientation, 4, f"{key}.orientation", f)
         v = read_vector(velocity, 3, f"{key}.velocity", f)
         w = read_vector(angular_velocity, 3, f"{key}.angular_velocity", f)
         piv = None if pivot is None else read_vector(pivot, 3, f"{key}.pivot", f)[None]
-        return int(self._append(s, m, p[None], q[None], v[None], w[None], kind_code, lambda i: key, piv)[0])
+        return int(self.append_bodies(s, m, p[None], q[None], v[None], w[None], kind_code, lambda i: key, piv)[0])
 
     def add_bodies(
         self,
@@ -221,8 +224,8 @@ class BodyMethods:
         p = read_rows(positions, 3, f"bodies[{start}:].position", f)
         n = p.shape[0]
         label = f"bodies[{start}:{start + n}]"
-        s = self._resolve_shape(shape, f"{label}.shape")
-        m = self._lookup_material(material, f"{label}.material")
+        s = self.resolve_shape(shape, f"{label}.shape")
+        m = self.material_index(material, key=f"{label}.material")
         kind_code = KINDS.index(read_choice(kind, KINDS, f"{label}.kind", f, what="body kind"))
         q = read_rows((0.0, 0.0, 0.0, 1.0) if orientations is None else orientations, 4, f"{label}.orientation", f, n=n)
         v = read_rows((0.0, 0.0, 0.0) if velocities is None else velocities, 3, f"{label}.velocity", f, n=n)
@@ -234,13 +237,13 @@ class BodyMethods:
             n=n,
         )
         piv = None if pivots is None else read_rows(pivots, 3, f"{label}.pivot", f, n=n)
-        return self._append(s, m, p, q, v, w, kind_code, lambda i: f"bodies[{start + i}]", piv)
+        return self.append_bodies(s, m, p, q, v, w, kind_code, lambda i: f"bodies[{start + i}]", piv)
 
-    def _append(self, s, m, p, q, v, w, kind_code, rowkey, pivot=None) -> np.ndarray:
+    def append_bodies(self, s, m, p, q, v, w, kind_code, rowkey, pivot=None) -> np.ndarray:
         """Store n bodies. ``s`` and ``m`` are one index or (n,) arrays; p, q, v, w are (n, k)."""
         n = p.shape[0]
         if self._n + n > MAX_BODIES:
-            raise self._err(
+            raise self.error(
                 f"{n} more bodies would make {self._n + n:.3g}, more than a scene can hold ({MAX_BODIES:.0e})",
                 rowkey(0),
             )
@@ -253,21 +256,21 @@ class BodyMethods:
             bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
             if bad.size:
                 i = int(bad[0])
-                raise self._err(f"expected finite numbers, got {arr[i].tolist()}", f"{rowkey(i)}.{name}")
+                raise self.error(f"expected finite numbers, got {arr[i].tolist()}", f"{rowkey(i)}.{name}")
         q = check_quats(q, lambda i: f"{rowkey(i)}.orientation", self.file)
         if kind_code == KIND_FIXED and (np.any(v != 0.0) or np.any(w != 0.0)):
             moving = np.flatnonzero(np.any(v != 0.0, axis=1) | np.any(w != 0.0, axis=1))
             if moving.size:
                 i = int(moving[0])
                 which, val = ("velocity", v[i]) if np.any(v[i] != 0.0) else ("angular_velocity", w[i])
-                raise self._err(
+                raise self.error(
                     f"a fixed body cannot move, but its {which} is {val.tolist()}; set it to [0, 0, 0], or use "
                     "kind = 'kinematic' for a body that moves at a prescribed velocity",
                     f"{rowkey(i)}.{which}",
                 )
         if pivot is not None:
             if kind_code != KIND_KINEMATIC:
-                raise self._err(
+                raise self.error(
                     f"only a kinematic body can turn about a pivot, this one is {KINDS[kind_code]!r}; use kind = "
                     "'kinematic' or leave pivot out",
                     f"{rowkey(0)}.pivot",
@@ -275,16 +278,16 @@ class BodyMethods:
             moving = np.flatnonzero(np.any(v != 0.0, axis=1))
             if moving.size:
                 i = int(moving[0])
-                raise self._err(
+                raise self.error(
                     f"a body turning about a pivot has the velocity angular_velocity x (centroid - pivot), derived "
                     f"from its pose; leave velocity out (got {v[i].tolist()})",
                     f"{rowkey(i)}.velocity",
                 )
         if np.ndim(s) == 0:
-            q_in, t_in = self._input_frames()[int(s)]
+            q_in, t_in = self.shape_input_frames()[int(s)]
         else:
             s = np.asarray(s, dtype=np.int32)
-            frames = self._input_frames()
+            frames = self.shape_input_frames()
             q_in = np.array([frames[k][0] for k in range(len(frames))])[s]
             t_in = np.array([frames[k][1] for k in range(len(frames))])[s]
         # Most generated shapes are built in their principal frame: skip the no-op transforms.
@@ -321,6 +324,13 @@ class BodyMethods:
             self._arrays[name] = new
         self._cap = cap
 
+    def body_label(self, i: int) -> str:
+        """``body 12 (shape 'cube', free, from emitters[0])``: how messages name a body."""
+        s = self.shape_names[int(self.body_shape[i])]
+        kind = KINDS[int(self.body_kind[i])]
+        where = next((f", from {e['key']}" for e in self.emitters if e["first"] <= i <= e["last"]), "")
+        return f"body {i} (shape {s!r}, {kind}{where})"
+
     def body(self, i: int) -> Body:
         """Body ``i`` as a :class:`Body` (input-frame pose as given, plus its centroid and body frame)."""
         if not isinstance(i, numbers.Integral) or not -self._n <= int(i) < self._n:
@@ -328,7 +338,7 @@ class BodyMethods:
         i = int(i) % self._n
         a = self._arrays
         s = int(a["shape"][i])
-        q_in, t_in = self._input_frames()[s]
+        q_in, t_in = self.shape_input_frames()[s]
         q_body = a["orientation"][i]
         q_user = quat_multiply(q_body, quat_conjugate(q_in))
         q_user /= np.linalg.norm(q_user)
@@ -351,7 +361,7 @@ class BodyMethods:
         given to :meth:`add_body` (see the module docstring of :mod:`polydem.scene` for the frames)."""
         n = self._n
         a = {name: self._arrays[name][:n] for name in ("shape", "position", "orientation")}
-        frames = self._input_frames()
+        frames = self.shape_input_frames()
         q_in = np.array([fr[0] for fr in frames]).reshape(-1, 4)[a["shape"]]
         t_in = np.array([fr[1] for fr in frames]).reshape(-1, 3)[a["shape"]]
         q_user = quat_multiply(a["orientation"], quat_conjugate(q_in))

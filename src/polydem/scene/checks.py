@@ -100,7 +100,7 @@ def _face_overlap(load, m, ln_k, ln_a, ln_l) -> float:
     """ln(A d) of a face contact (area A, size L, law W = k V^m / m) under a load.
 
     ``load > 0`` is a force F: W'(A d) A = F, so k (A d)^(m - 1) = F / A; for m = 1 the force
-    k A does not depend on d, and d / L = F / (k A) stands in (see Scene._check_loads).
+    k A does not depend on d, and d / L = F / (k A) stands in (see Scene.check_loads).
     ``load < 0`` is an energy E = -load: W(A d) = E, so (A d)^m = m E / k.
     """
     if load < 0.0:
@@ -152,32 +152,32 @@ def _loads(mass, ln_l, g, v_hit) -> list[tuple]:
 class CheckMethods:
     """The :class:`~polydem.scene.Scene` methods that check what a run needs (called by ``validate``)."""
 
-    def _check_body_arrays(self, a):
+    def check_body_arrays(self, a):
         """Indices in range, finite numbers, unit quaternions, valid kinds, pivots only on kinematic bodies,
         fixed bodies at rest and free bodies with a mass; ``a`` holds the scene's body arrays."""
         for name, count in (("shape", len(self.shape_names)), ("material", len(self.material_names))):
             bad = np.flatnonzero((a[name] < 0) | (a[name] >= count))
             if bad.size:
                 i = int(bad[0])
-                raise self._err(
+                raise self.error(
                     f"{name} index {int(a[name][i])} out of range: the scene has {count} {name}s", f"bodies[{i}].{name}"
                 )
         for name in ("position", "orientation", "velocity", "angular_velocity"):
             bad = np.flatnonzero(~np.isfinite(a[name]).all(axis=1))
             if bad.size:
                 i = int(bad[0])
-                raise self._err(f"expected finite numbers, got {a[name][i].tolist()}", f"bodies[{i}].{name}")
+                raise self.error(f"expected finite numbers, got {a[name][i].tolist()}", f"bodies[{i}].{name}")
         check_quats(a["orientation"], lambda i: f"bodies[{i}].orientation", self.file)
         bad = np.flatnonzero((a["kind"] < 0) | (a["kind"] >= len(KINDS)))
         if bad.size:
             i = int(bad[0])
-            raise self._err(
+            raise self.error(
                 f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)", f"bodies[{i}].kind"
             )
         pivoted = np.flatnonzero(~np.isnan(a["pivot"]).any(axis=1) & (a["kind"] != KIND_KINEMATIC))
         if pivoted.size:
             i = int(pivoted[0])
-            raise self._err(
+            raise self.error(
                 "only a kinematic body can turn about a pivot; use kind = 'kinematic' or leave pivot out",
                 f"bodies[{i}].pivot",
             )
@@ -187,7 +187,7 @@ class CheckMethods:
         )
         if moving.size:
             i = int(moving[0])
-            raise self._err(
+            raise self.error(
                 "a fixed body cannot move; set its velocity and angular_velocity to zero or use kind = 'kinematic'",
                 f"bodies[{i}].velocity",
             )
@@ -207,7 +207,7 @@ class CheckMethods:
         if bad.size:
             i = int(bad[0])
             s = shapes[int(a["shape"][i])]
-            raise self._err(
+            raise self.error(
                 f"free body uses shape {s.name!r} with volume {s.volume:g} m^3 and inertia {np.asarray(s.inertia)}; a "
                 "free body needs a positive volume and inertia to have mass: use a solid shape or kind = 'fixed'",
                 f"bodies[{i}].shape",
@@ -223,7 +223,7 @@ class CheckMethods:
         ``simulation.dt``).
         """
         if self.num_bodies == 0:
-            raise self._err("the scene has no bodies; add at least one with [[bodies]] or Scene.add_body()", "bodies")
+            raise self.error("the scene has no bodies; add at least one with [[bodies]] or Scene.add_body()", "bodies")
         table = self.pair_table()
         law, m = table["law"], float(table["exponent"])
         k = np.asarray(table["k"], dtype=np.float64)
@@ -235,7 +235,7 @@ class CheckMethods:
         # set the time step and default spring.
         pool = free if free.any() else mass > 0.0
         if not pool.any():
-            raise self._err(
+            raise self.error(
                 "no body has a mass (all are fixed with zero volume), so no time step can be derived; add a free "
                 "body or give dt in seconds",
                 "simulation.dt",
@@ -250,7 +250,7 @@ class CheckMethods:
         recommended = period / STEPS_PER_CONTACT_PERIOD
         limit = period * MAX_DT_FRACTION
         if not (math.isfinite(period) and period > 0.0):
-            raise self._err(
+            raise self.error(
                 f"the contact period 2 pi sqrt(m / k) of body {light} (mass {mass[light]:.3g} kg, stiffest contact "
                 f"{stiffest:.3g} N/m) is {period:.3g} s, so no time step can be derived; check the materials' density "
                 "and k",
@@ -261,7 +261,7 @@ class CheckMethods:
         else:
             dt = float(self.dt)
             if dt > limit:
-                raise self._err(
+                raise self.error(
                     f"time step {dt:.3g} s is above the stable limit {limit:.3g} s for the stiffest contact and the "
                     f'lightest body (recommended {recommended:.3g} s); use dt = "auto" or a smaller value',
                     "simulation.dt",
@@ -270,14 +270,7 @@ class CheckMethods:
             dt=dt, recommended=recommended, limit=limit, period=period, lightest=light, tangential_stiffness=kt
         )
 
-    def _body_label(self, i: int) -> str:
-        """``body 12 (shape 'cube', free, from emitters[0])``: how messages name a body."""
-        s = self.shape_names[int(self.body_shape[i])]
-        kind = KINDS[int(self.body_kind[i])]
-        where = next((f", from {e['key']}" for e in self.emitters if e["first"] <= i <= e["last"]), "")
-        return f"body {i} (shape {s!r}, {kind}{where})"
-
-    def _check_float32(self, a):
+    def check_float32(self, a):
         """Shapes, masses, inertias, stiffnesses and the power law within float32 (see F32_LOW)."""
         lo, hi = F32_LOW, F32_HIGH
         shapes = list(self.shapes.values())
@@ -289,7 +282,7 @@ class CheckMethods:
             sh = shapes[int(s)]
             if not r_lo <= sh.radius <= r_hi:
                 i = int(np.flatnonzero(a["shape"] == s)[0])
-                raise self._err(
+                raise self.error(
                     f"shape {names[s]!r} (used by body {i}) has a bounding radius of {sh.radius:.3g} m: too "
                     f"{'small' if sh.radius < 1.0 else 'large'} for the simulator's float32 arithmetic, whose overlap "
                     f"volumes and their moments (~ radius^4) must stay between {lo:.2g} and {hi:.2g}; give the shape a "
@@ -301,7 +294,7 @@ class CheckMethods:
             for attr in ("k", "tangential_stiffness"):
                 value = getattr(mat, attr)
                 if value is not None and not lo <= value <= hi:
-                    raise self._err(
+                    raise self.error(
                         f"{value:g} is outside the range the simulator's float32 arithmetic can use ({lo:.2g} to "
                         f"{hi:.2g}, float32's normal range with a margin of {_F32_MARGIN:g} for products); give a "
                         "value in that range",
@@ -325,8 +318,8 @@ class CheckMethods:
                 if rho_lo <= rho_hi
                 else "no density works for this shape: make it less elongated or change its size"
             )
-            raise self._err(
-                f"{self._body_label(i)} of material {mat.name!r} would have a mass of {mass:.3g} kg and principal "
+            raise self.error(
+                f"{self.body_label(i)} of material {mat.name!r} would have a mass of {mass:.3g} kg and principal "
                 f"moments of inertia of {inertia.min():.3g} to {inertia.max():.3g} kg m^2; the simulator stores them "
                 f"in float32, which needs values between {lo:.2g} and {hi:.2g} (float32's normal range with a margin "
                 f"of {_F32_MARGIN:g} for products); {fix}",
@@ -347,7 +340,7 @@ class CheckMethods:
         if caps:
             m_max, v_ref = min(caps)
             if m > m_max:
-                raise self._err(
+                raise self.error(
                     f"m = {m:g} is too large for the simulator's float32 arithmetic with these bodies: at the "
                     f"reference overlap of a contact (0.1% of a free body's volume, V = {v_ref:.3g} m^3) the law's "
                     f"V^m = {_fmt_exp(m * _ln(v_ref))} is outside {lo:.2g} to {hi:.2g}; use m between 1 and "
@@ -355,7 +348,7 @@ class CheckMethods:
                     f"materials.{mats[0].name}.m",
                 )
 
-    def _check_loads(self, a, ts: TimeStep) -> list[str]:
+    def check_loads(self, a, ts: TimeStep) -> list[str]:
         """Contacts stiff enough for the bodies' weight and initial speeds; returns warnings.
 
         For each free (shape, material) the overlap depth d of a face contact (area A = V^(2/3),
@@ -407,7 +400,7 @@ class CheckMethods:
             j = int(present[np.argmin(k_pair[mi, present])])
             k = float(k_pair[mi, j])
             soft = min((mats[mi], mats[j]), key=lambda x: x.k).name
-            label = f"{self._body_label(i)} of material {mat.name!r}"
+            label = f"{self.body_label(i)} of material {mat.name!r}"
             label += f" against {mats[j].name!r}" if j != mi else ""
             for case in _loads(mass, ln_l, g if support else 0.0, v_hit):
                 found = self._judge_load(case, m, law, k, soft, mass, ln_a, ln_l, dt, label)
@@ -422,7 +415,7 @@ class CheckMethods:
 
     def _judge_load(self, case, m, law, k, soft, mass, ln_a, ln_l, dt, label):
         """One load of :func:`_loads` on a face contact of stiffness ``k``: raise a SceneError where it
-        fails (see :meth:`_check_loads`), return ``(relative depth, warning)`` where it is soft, else None."""
+        fails (see :meth:`check_loads`), return ``(relative depth, warning)`` where it is soft, else None."""
         load, cause, into, scale, t_scale = case
         ln_ad = _face_overlap(load, m, _ln(k), ln_a, ln_l)
         rel = _exp(ln_ad - ln_a - ln_l)
@@ -464,14 +457,15 @@ class CheckMethods:
                 else ""
             )
             head = "too soft" if rel > OVERLAP_ERROR else "unstable at this time step"
-            raise self._err(
+            raise self.error(
                 f"the contacts of {label} are {head}: {depth}{why}; {fix}"
                 + (" (a pair's k is the harmonic mean of its materials' k)" if fix.startswith("raise") else ""),
                 "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
             )
         return rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"
 
-    def _check_steps(self, ts: TimeStep):
+    def check_steps(self, ts: TimeStep):
+        """The steps of the run (``duration / dt``) at most MAX_STEPS."""
         if self.duration is not None:
             steps, key = math.ceil(self.duration / ts.dt - 1e-9), "simulation.duration"
         elif self.steps is not None:
@@ -479,7 +473,7 @@ class CheckMethods:
         else:
             return
         if steps > MAX_STEPS:
-            raise self._err(
+            raise self.error(
                 f"a run of {steps:.3g} steps of {ts.dt:.3g} s is more than the simulator counts ({MAX_STEPS}, a "
                 "32-bit step counter); shorten the run"
                 + (" or use a larger time step (a softer k gives a longer automatic one)" if self.duration else ""),

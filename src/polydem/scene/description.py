@@ -1,12 +1,12 @@
 """The Scene class: simulation settings, the shape registry, validate and describe.
 
 Every other concern is a group of methods in the module of that concern, which also sets up and
-owns the state it keeps (``_init_*``): bodies and their arrays (:mod:`.bodies`), materials
+owns the state it keeps (in its ``__init__``): bodies and their arrays (:mod:`.bodies`), materials
 (:mod:`.materials`), plane walls, box containers and drums (:mod:`.walls`), emitters
 (:mod:`.emitters`), and the checks of :meth:`Scene.validate` (:mod:`.checks`, :mod:`.overlaps`).
 Scene files are read and written by :mod:`.loader` through the public methods only. The groups
-reach each other through methods (``_err``, ``_lookup_material``, ``_append``, ...), never
-through another group's attributes.
+reach each other only through public methods (:meth:`Scene.error`, :meth:`Scene.material_index`,
+:meth:`Scene.append_bodies`, ...): a private name is used only in the module that defines it.
 """
 
 from __future__ import annotations
@@ -105,11 +105,8 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self._shape_frames: list[tuple[np.ndarray, np.ndarray]] = []  # (q(R_in), t_in) per shape
         self.warnings: list[str] = []  # of the last validate()
         self._warned: list[str] = []
-        # Each concern keeps its own state, set up by its module.
-        self._init_materials()
-        self._init_bodies()
-        self._init_walls()
-        self._init_emitters()
+        # Each concern keeps its own state, set up by the __init__ of its method group.
+        super().__init__()
 
     def _check_dt(self, dt):
         if isinstance(dt, str):
@@ -156,7 +153,8 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             )
         return output
 
-    def _err(self, message, key) -> SceneError:
+    def error(self, message: str, key: str) -> SceneError:
+        """A :class:`SceneError` about ``key`` of this scene's file, for its method groups to raise."""
         return SceneError(message, key, self.file)
 
     # ------------------------------------------------------------------ shapes
@@ -176,37 +174,40 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
 
     def _lookup_shape(self, name, key) -> int:
         if not isinstance(name, str):
-            raise self._err(f"expected a shape name, got {typename(name)}", key)
+            raise self.error(f"expected a shape name, got {typename(name)}", key)
         if name not in self._shape_index:
-            raise self._err(
+            raise self.error(
                 unknown_name(name, self._shapes, "shape", "define one with [shapes.NAME] or Scene.add_shape()"), key
             )
         return self._shape_index[name]
 
-    def add_shape(self, name: str, shape: ConvexShape, *, _spec: dict | None = None) -> ConvexShape:
+    def add_shape(self, name: str, shape: ConvexShape, *, spec: dict | None = None) -> ConvexShape:
         """Register ``shape`` under ``name`` (bodies refer to it by name); returns the shape.
 
-        Registering the same object again under the same name is a no-op.
+        Registering the same object again under the same name is a no-op. ``spec`` is where the shape
+        came from, for :meth:`shape_spec` and :meth:`describe`: the ``[shapes.NAME]`` table it was built
+        from, or None.
         """
         key = f"shapes.{name}"
         if not isinstance(name, str) or not name:
-            raise self._err(f"shape name must be a non-empty string, got {typename(name)}", "shapes")
+            raise self.error(f"shape name must be a non-empty string, got {typename(name)}", "shapes")
         if not isinstance(shape, ConvexShape):
-            raise self._err(
+            raise self.error(
                 f"expected a polydem.ConvexShape, got {typename(shape)}; build one with e.g. ConvexShape.box(0.1)", key
             )
         if name in self._shapes:
             if self._shapes[name] is shape:
                 return shape
-            raise self._err(f"a different shape is already registered as {name!r}; choose another name", key)
+            raise self.error(f"a different shape is already registered as {name!r}; choose another name", key)
         self._shape_index[name] = len(self._shapes)
         self._shapes[name] = shape
-        if _spec is not None:
-            self._shape_specs[name] = _spec
+        if spec is not None:
+            self._shape_specs[name] = spec
         self._shape_frames.append((quat_from_matrix(shape.input_rotation), np.array(shape.input_translation)))
         return shape
 
-    def _resolve_shape(self, shape, key) -> int:
+    def resolve_shape(self, shape, key: str) -> int:
+        """Index of ``shape``, a registered name or a :class:`ConvexShape` (registered if new); errors name ``key``."""
         if isinstance(shape, ConvexShape):
             for name, s in self._shapes.items():
                 if s is shape:
@@ -215,7 +216,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             return self._shape_index[shape.name]
         return self._lookup_shape(shape, key)
 
-    def _input_frames(self) -> list[tuple[np.ndarray, np.ndarray]]:
+    def shape_input_frames(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """``(q(R_in), t_in)`` of every shape, in index order: its input frame in its body frame."""
         return self._shape_frames
 
@@ -239,7 +240,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
           [F32_LOW, F32_HIGH] (float32's normal range, 10^6 from both ends);
         * the time step (:meth:`time_step`): finite, a given dt within the stable limit, and the
           steps of the run (``duration / dt``) at most MAX_STEPS;
-        * contacts stiff enough for the bodies' weight and initial speeds (see ``_check_loads``);
+        * contacts stiff enough for the bodies' weight and initial speeds (see :meth:`check_loads`);
         * initial overlaps: a free body deep behind a plane wall or deep inside another body
           (by more than INITIAL_OVERLAP_ERROR of its thickness) is an error; overlaps above
           INITIAL_OVERLAP_WARNING are warnings.
@@ -249,25 +250,25 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         """
         self.warnings = []
         self._check_settings()
-        self._check_laws()
+        self.check_laws()
         if self.num_bodies == 0:
-            raise self._err(
+            raise self.error(
                 "the scene has no bodies; add at least one with a [[bodies]] table in the scene file or "
                 "Scene.add_body() / add_bodies() in Python",
                 "bodies",
             )
-        a = self._body_arrays()
-        self._check_body_arrays(a)
+        a = self.body_arrays()
+        self.check_body_arrays(a)
         for j, plane in enumerate(self.planes):
-            self._lookup_material(plane.material, f"planes[{j}].material")
+            self.material_index(plane.material, key=f"planes[{j}].material")
             nrm = np.asarray(plane.normal)
             if not (np.all(np.isfinite(nrm)) and abs(np.linalg.norm(nrm) - 1.0) < 1e-9):
-                raise self._err(f"normal {list(plane.normal)} is not a unit vector", f"planes[{j}].normal")
-        self._check_float32(a)
+                raise self.error(f"normal {list(plane.normal)} is not a unit vector", f"planes[{j}].normal")
+        self.check_float32(a)
         ts = self.time_step()
-        self._check_steps(ts)
-        found = self._check_loads(a, ts)
-        found += self._check_initial_overlaps(a)
+        self.check_steps(ts)
+        found = self.check_loads(a, ts)
+        found += self.check_initial_overlaps(a)
         # A run validates twice (loading the file, building the Model): say each thing once.
         if found != self._warned:
             for message in found:
@@ -285,7 +286,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self.precision = self._check_precision(self.precision)
         self.output = self._check_output(self.output)
         if self.steps is not None and self.duration is not None:
-            raise self._err("give either steps or duration, not both", "simulation.duration")
+            raise self.error("give either steps or duration, not both", "simulation.duration")
         if self.steps is not None:
             self.steps = read_integer(self.steps, "simulation.steps", f, minimum=1)
         if self.duration is not None:

@@ -265,9 +265,11 @@ def _orientations(orientation, count, rng) -> np.ndarray:
 class EmitterMethods:
     """The :class:`~polydem.scene.Scene` method :meth:`emit` and its helpers."""
 
-    def _init_emitters(self):
+    def __init__(self):
+        # The state of this group; Scene.__init__ reaches every group's __init__ through super().
         self.emitters: list[dict] = []
         self._scaled: dict[tuple[int, float], int] = {}  # (shape index, factor) -> index of the scaled shape
+        super().__init__()
 
     def emit(
         self,
@@ -289,7 +291,7 @@ class EmitterMethods:
         spacing=1.1,
         jitter=0.9,
         fill="bottom",
-        _key: str | None = None,
+        key: str | None = None,
     ) -> np.ndarray:
         """Place ``count`` bodies in a box region without overlaps; returns their indices.
 
@@ -339,13 +341,14 @@ class EmitterMethods:
             spacing: cell side over the largest bounding diameter, >= 1 (default 1.1).
             jitter: fraction of each body's free room used for its random offset, in [0, 1].
             fill: ``"bottom"`` (default) or ``"random"``.
+            key: where the value came from, for error messages (default ``emitters[N]``).
         """
-        key = _key or f"emitters[{len(self.emitters)}]"
+        key = key or f"emitters[{len(self.emitters)}]"
         f = self.file
         count = read_integer(count, f"{key}.count", f, minimum=1, hint=" (number of bodies to place)")
         lo, hi = _region(region, f"{key}.region", f)
         base, frac = self._emitter_shapes(shape, weights, key)
-        mat = self._lookup_material(material, f"{key}.material")
+        mat = self.material_index(material, key=f"{key}.material")
         kind_code = KINDS.index(read_choice(kind, KINDS, f"{key}.kind", f, what="body kind"))
         orientation = read_choice(orientation, ORIENTATIONS, f"{key}.orientation", f, what="orientation")
         fill = read_choice(fill, FILLS, f"{key}.fill", f, what="fill order")
@@ -354,17 +357,19 @@ class EmitterMethods:
         vj = read_number(velocity_jitter, f"{key}.velocity_jitter", f, nonneg=True, hint=" (in m/s)")
         spacing = read_number(spacing, f"{key}.spacing", f, hint=" (cell side over the largest bounding diameter)")
         if spacing < 1.0:
-            raise self._err(
+            raise self.error(
                 f"must be >= 1 (narrower cells would let bounding spheres overlap), got {spacing:g}",
                 f"{key}.spacing",
             )
         jitter = read_number(jitter, f"{key}.jitter", f, nonneg=True)
         if jitter > 1.0:
-            raise self._err(f"must be in [0, 1] (a fraction of each body's free room), got {jitter:g}", f"{key}.jitter")
+            raise self.error(
+                f"must be in [0, 1] (a fraction of each body's free room), got {jitter:g}", f"{key}.jitter"
+            )
         bins = read_integer(scale_bins, f"{key}.scale_bins", f, minimum=1, maximum=64)
         sample_scales = _scale_sampler(scale, scale_range, scale_lognormal, bins, key, f)
         if kind_code == KIND_FIXED and (vj > 0.0 or np.any(vel != 0.0)):
-            raise self._err(
+            raise self.error(
                 "fixed bodies cannot move; remove velocity and velocity_jitter or use kind = 'kinematic'",
                 f"{key}.velocity",
             )
@@ -382,10 +387,10 @@ class EmitterMethods:
         v = np.broadcast_to(vel, (count, 3))
         if vj > 0.0:
             v = v + rng_vel.uniform(-vj, vj, size=(count, 3))
-        frames = self._input_frames()
+        frames = self.shape_input_frames()
         t_in = np.array([frames[s][1] for s in range(len(frames))])[rows]
         positions = centres - quat_rotate(q, t_in) if np.any(t_in) else centres
-        idx = self._append(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
+        idx = self.append_bodies(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
         self.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
         return idx
 
@@ -410,7 +415,7 @@ class EmitterMethods:
         get bodies, each at its smallest size factor, so the region holds at most that many cells.
         """
         if self.num_bodies + count > scene_bodies.MAX_BODIES:
-            raise self._err(
+            raise self.error(
                 f"count = {count} would make {self.num_bodies + count:.3g} bodies, more than a scene can hold "
                 f"({scene_bodies.MAX_BODIES:.0e}); lower count",
                 f"{key}.count",
@@ -425,7 +430,7 @@ class EmitterMethods:
         # The grid scan gives the exact number (walls and bodies block cells) and the better message;
         # only counts whose per-body arrays would be large are cut here.
         if count > capacity and count > _EMITTER_CHUNK and capacity > 0:
-            raise self._err(
+            raise self.error(
                 f"the region holds at most {capacity} bodies, fewer than count = {count}: it fits at most "
                 f"{' x '.join(str(int(c)) for c in cells)} cells of {cell:.4g} m (spacing {spacing:g} x the largest "
                 f"bounding diameter at the smallest size, {2.0 * r_low:.4g} m); lower count or enlarge the region",
@@ -437,7 +442,7 @@ class EmitterMethods:
         f = self.file
         if isinstance(shape, dict):
             if weights is not None:
-                raise self._err("give the weights either in the shape table or as weights, not both", f"{key}.weights")
+                raise self.error("give the weights either in the shape table or as weights, not both", f"{key}.weights")
             names = list(shape)
             weights = [shape[n] for n in names]
             wkey = [f"{key}.shape.{n}" for n in names]
@@ -446,32 +451,32 @@ class EmitterMethods:
             wkey = [f"{key}.weights[{i}]" for i in range(len(names))]
         else:
             if weights is not None:
-                raise self._err(
+                raise self.error(
                     "weights go with a list of shapes, e.g. shape = ['cube', 'rock'] and weights = [2, 1]",
                     f"{key}.weights",
                 )
             names, weights, wkey = [shape], None, [f"{key}.weights"]
         if not names:
-            raise self._err("the list of shapes is empty; give at least one shape name", f"{key}.shape")
+            raise self.error("the list of shapes is empty; give at least one shape name", f"{key}.shape")
         index = []
         for i, name in enumerate(names):
             sub = f"{key}.shape" if len(names) == 1 else f"{key}.shape[{i}]"
             if isinstance(shape, dict):
                 sub = f"{key}.shape.{name}"
-            s = self._resolve_shape(name, sub)
+            s = self.resolve_shape(name, sub)
             if s in index:
-                raise self._err(f"shape {self.shape_names[s]!r} is listed twice; list each shape once", sub)
+                raise self.error(f"shape {self.shape_names[s]!r} is listed twice; list each shape once", sub)
             index.append(s)
         if weights is None:
             frac = np.full(len(index), 1.0 / len(index))
         else:
             if not isinstance(weights, list | tuple | np.ndarray) or len(weights) != len(index):
-                raise self._err(
+                raise self.error(
                     f"expected {len(index)} weights, one per shape, got {typename(weights)}", f"{key}.weights"
                 )
             frac = np.array([read_number(wt, wkey[i], f, nonneg=True) for i, wt in enumerate(weights)])
             if frac.sum() <= 0.0:
-                raise self._err("the weights are all zero; give at least one positive weight", f"{key}.weights")
+                raise self.error("the weights are all zero; give at least one positive weight", f"{key}.weights")
             frac = frac / frac.sum()
         return index, frac
 
@@ -490,7 +495,7 @@ class EmitterMethods:
             name = f"{stem}_{k}"
         shape = list(self.shapes.values())[base].scaled(factor)
         shape.name = name
-        self.add_shape(name, shape, _spec=scaled_spec(self.shape_spec(src), factor))
+        self.add_shape(name, shape, spec=scaled_spec(self.shape_spec(src), factor))
         self._scaled[cache] = self.shape_index(name)
         return self._scaled[cache]
 
@@ -501,7 +506,7 @@ class EmitterMethods:
         sizes = f"cells of {cell:.4g} m (spacing {spacing:g} x the largest bounding diameter {2.0 * r_max:.4g} m)"
         if np.any(n < 1):
             ax = int(np.flatnonzero(n < 1)[0])
-            raise self._err(
+            raise self.error(
                 f"the region is {ext[ax]:.4g} m along {'xyz'[ax]}, too small for one body: bodies are placed in "
                 f"{sizes}; make the region at least {cell:.4g} m along {'xyz'[ax]}, or use smaller shapes or a "
                 "smaller spacing",
@@ -518,7 +523,7 @@ class EmitterMethods:
         total = per_layer * nk
         if per_layer > _MAX_EMITTER_CELLS or (fill == "random" and total > _MAX_EMITTER_CELLS):
             what = "one layer of" if per_layer > _MAX_EMITTER_CELLS else "the"
-            raise self._err(
+            raise self.error(
                 f"{what} region holds {per_layer if what != 'the' else total:.3g} {sizes}, far more than "
                 f"{count} bodies need (the limit is {_MAX_EMITTER_CELLS:.0e} cells); make the region smaller"
                 + (' or use fill = "bottom"' if fill == "random" else ""),
@@ -558,7 +563,7 @@ class EmitterMethods:
                 f". Lower count to {found}, or enlarge the region (to about {need:.3g} m along {'xyz'[k]} at this "
                 "width, or wider), or lower spacing"
             )
-            raise self._err(msg, f"{key}.count")
+            raise self.error(msg, f"{key}.count")
         layer = np.concatenate(got_layer)
         m = np.concatenate(got_m)
         if fill == "bottom":

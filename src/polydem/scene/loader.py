@@ -148,7 +148,7 @@ def _read_shapes(scene, data, file, base_dir: Path):
     shapes = read_table(data.get("shapes", {}), "shapes", file, what="tables [shapes.NAME], one per shape")
     for name, spec in shapes.items():
         shape, spec = build_shape(name, spec, f"shapes.{name}", file, base_dir)
-        scene.add_shape(name, shape, _spec=spec)
+        scene.add_shape(name, shape, spec=spec)
 
 
 def _read_bodies(scene, data, file):
@@ -184,7 +184,7 @@ def _read_bodies(scene, data, file):
             angular_velocity=body.get("angular_velocity", (0.0, 0.0, 0.0)),
             kind=body.get("kind", "free"),
             pivot=body.get("pivot"),
-            _key=key,
+            key=key,
         )
 
 
@@ -200,7 +200,7 @@ def _read_walls(scene, data, file):
         kind = read_choice(wall["type"], _WALL_KEYS, f"{key}.type", file, what="wall type")
         check_keys(wall, _WALL_KEYS[kind], key, file, required=_WALL_REQUIRED[kind], context=f" for type = {kind!r}")
         if kind == "plane":
-            scene.add_plane(wall["point"], wall["normal"], wall["material"], _key=key)
+            scene.add_plane(wall["point"], wall["normal"], wall["material"], key=key)
         elif kind == "box":
             scene.add_box_container(
                 wall["center"],
@@ -208,7 +208,7 @@ def _read_walls(scene, data, file):
                 wall["material"],
                 wall_thickness=wall.get("wall_thickness"),
                 open_top=wall.get("open_top", True),
-                _key=key,
+                key=key,
             )
         else:
             scene.add_drum(
@@ -222,7 +222,7 @@ def _read_walls(scene, data, file):
                 sides=wall.get("sides", 24),
                 thickness=wall.get("thickness"),
                 caps=wall.get("caps", True),
-                _key=key,
+                key=key,
             )
 
 
@@ -241,7 +241,7 @@ def _read_emitters(scene, data, file):
             required=("shape", "material", "count", "region"),
             hints=_EMITTER_HINTS,
         )
-        scene.emit(**emitter, _key=key)
+        scene.emit(**emitter, key=key)
 
 
 def scene_dict(scene: Scene) -> dict:

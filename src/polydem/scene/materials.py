@@ -190,9 +190,11 @@ def pair_material(a: Material, b: Material) -> PairMaterial:
 class MaterialMethods:
     """The :class:`~polydem.scene.Scene` methods that register materials and mix material pairs."""
 
-    def _init_materials(self):
+    def __init__(self):
+        # The state of this group; Scene.__init__ reaches every group's __init__ through super().
         self._materials: dict[str, Material] = {}
         self._material_index: dict[str, int] = {}
+        super().__init__()
 
     @property
     def materials(self) -> dict[str, Material]:
@@ -203,19 +205,20 @@ class MaterialMethods:
     def material_names(self) -> list[str]:
         return list(self._materials)
 
-    def material_index(self, name: str) -> int:
-        """Index of a material in :attr:`materials` (the value stored in :attr:`body_material`)."""
-        return self._lookup_material(name, "material")
+    def material_index(self, name: str, *, key: str = "material") -> int:
+        """Index of a material in :attr:`materials` (the value stored in :attr:`body_material`).
 
-    def _lookup_material(self, name, key) -> int:
+        ``name`` may also be a registered :class:`Material`; ``key`` is where the name came from, for
+        error messages.
+        """
         if isinstance(name, Material):
             if self._materials.get(name.name) is not name:
-                raise self._err(f"material {name.name!r} is not registered in this scene; use add_material()", key)
+                raise self.error(f"material {name.name!r} is not registered in this scene; use add_material()", key)
             name = name.name
         if not isinstance(name, str):
-            raise self._err(f"expected a material name, got {typename(name)}", key)
+            raise self.error(f"expected a material name, got {typename(name)}", key)
         if name not in self._material_index:
-            raise self._err(
+            raise self.error(
                 unknown_name(
                     name, self._materials, "material", "define one with [materials.NAME] or Scene.add_material()"
                 ),
@@ -229,7 +232,7 @@ class MaterialMethods:
         key = f"materials.{name}"
         check_keys(props, MATERIAL_FIELDS, key, self.file, required=MATERIAL_REQUIRED, hints=MATERIAL_HINTS)
         if name in self._materials:
-            raise self._err(f"material {name!r} is already defined; choose another name", key)
+            raise self.error(f"material {name!r} is already defined; choose another name", key)
         try:
             mat = Material(name=name, **props)
         except SceneError as err:
@@ -241,8 +244,8 @@ class MaterialMethods:
 
     def pair_material(self, a, b) -> PairMaterial:
         """Contact properties between two materials (names or :class:`Material`); see :func:`pair_material`."""
-        ma = self._materials[self.material_names[self._lookup_material(a, "material")]]
-        mb = self._materials[self.material_names[self._lookup_material(b, "material")]]
+        ma = self._materials[self.material_names[self.material_index(a, key="material")]]
+        mb = self._materials[self.material_names[self.material_index(b, key="material")]]
         try:
             return pair_material(ma, mb)
         except SceneError as err:
@@ -255,8 +258,8 @@ class MaterialMethods:
         the simulator derives it); plus ``law`` (str) and ``exponent`` (float) shared by all."""
         mats = list(self._materials.values())
         if not mats:
-            raise self._err("the scene has no materials; add one with [materials.NAME] or add_material()", "materials")
-        self._check_laws()
+            raise self.error("the scene has no materials; add one with [materials.NAME] or add_material()", "materials")
+        self.check_laws()
         nm = len(mats)
         out = {k: np.empty((nm, nm)) for k in ("k", "restitution", "friction", "tangential_stiffness")}
         for i, a in enumerate(mats):
@@ -271,14 +274,15 @@ class MaterialMethods:
         out["exponent"] = mats[0].exponent
         return out
 
-    def _check_laws(self):
+    def check_laws(self):
+        """All materials share one contact law (the simulator runs one)."""
         mats = list(self._materials.values())
         if not mats:
             return
         ref = mats[0]
         for mat in mats[1:]:
             if (mat.law, mat.exponent) != (ref.law, ref.exponent):
-                raise self._err(
+                raise self.error(
                     f"material {mat.name!r} uses law {mat.law!r} (exponent {mat.exponent:g}) but material {ref.name!r} "
                     f"uses law {ref.law!r} (exponent {ref.exponent:g}); all materials of a scene must share one "
                     f"contact law and exponent, since a contact between two of them needs a single W(V): use law = "

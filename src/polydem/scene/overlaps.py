@@ -221,7 +221,7 @@ def _pair_overlaps(shapes, body_label, a) -> list[tuple]:
 class OverlapMethods:
     """The :class:`~polydem.scene.Scene` check of initial overlaps (called by ``validate``)."""
 
-    def _check_initial_overlaps(self, a) -> list[str]:
+    def check_initial_overlaps(self, a) -> list[str]:
         """Free bodies that start behind a plane wall or inside another body (see :meth:`validate`).
 
         Plane walls: the exact depth of the body's lowest vertex behind the plane, over the body's
@@ -232,7 +232,7 @@ class OverlapMethods:
         bound where edge axes are skipped), taken over the thinner body's thickness along that axis.
         """
         shapes = list(self.shapes.values())
-        records = _plane_overlaps(self.planes, self.plane_keys, shapes, a) + _pair_overlaps(shapes, self._body_label, a)
+        records = _plane_overlaps(self.planes, self.plane_keys, shapes, a) + _pair_overlaps(shapes, self.body_label, a)
         if not records:
             return []
         records.sort(key=lambda r: -r[0])
@@ -241,14 +241,12 @@ class OverlapMethods:
             rel, depth, i, what, basis, fix = deep[0]
             more = f" ({len(deep) - 1} more bodies start this deep)" if len(deep) > 1 else ""
             share = "wholly" if rel >= 1.0 else f"{rel:.0%} of {basis}"
-            raise self._err(
-                f"{self._body_label(i)} starts {depth:.3g} m {what} ({share}): the contact would throw it out at a "
+            raise self.error(
+                f"{self.body_label(i)} starts {depth:.3g} m {what} ({share}): the contact would throw it out at a "
                 f"high speed{more}; {fix}",
                 f"bodies[{i}].position",
             )
-        shown = "; ".join(
-            f"{self._body_label(i)} {d:.3g} m {what} ({rel:.1%})" for rel, d, i, what, _, _ in records[:3]
-        )
+        shown = "; ".join(f"{self.body_label(i)} {d:.3g} m {what} ({rel:.1%})" for rel, d, i, what, _, _ in records[:3])
         more = f", and {len(records) - 3} more" if len(records) > 3 else ""
         return [
             f"{len(records)} initial overlaps of more than {INITIAL_OVERLAP_WARNING:.0%} of a body's thickness, "

@@ -119,10 +119,12 @@ def _drum_radial(axis: np.ndarray, sides: int) -> np.ndarray:
 class WallMethods:
     """The :class:`~polydem.scene.Scene` methods that add plane walls, box containers and drums."""
 
-    def _init_walls(self):
+    def __init__(self):
+        # The state of this group; Scene.__init__ reaches every group's __init__ through super().
         self._planes: list[PlaneWall] = []
         self._plane_keys: list[str] = []
         self.drums: list[Drum] = []
+        super().__init__()
 
     @property
     def planes(self) -> list[PlaneWall]:
@@ -134,12 +136,15 @@ class WallMethods:
         """Where each plane wall came from, e.g. ``walls[0]`` of a scene file or ``planes[1]`` (for messages)."""
         return list(self._plane_keys)
 
-    def add_plane(self, point, normal, material, *, _key: str | None = None) -> PlaneWall:
-        """Add an infinite plane through ``point`` [m] facing ``normal`` (normalised; non-zero)."""
-        key = _key or f"planes[{len(self._planes)}]"
+    def add_plane(self, point, normal, material, *, key: str | None = None) -> PlaneWall:
+        """Add an infinite plane through ``point`` [m] facing ``normal`` (normalised; non-zero).
+
+        ``key`` is where the value came from, for error messages (default ``planes[N]``).
+        """
+        key = key or f"planes[{len(self._planes)}]"
         p = read_vector(point, 3, f"{key}.point", self.file)
         n = unit_normal(normal, f"{key}.normal", self.file)
-        self._lookup_material(material, f"{key}.material")
+        self.material_index(material, key=f"{key}.material")
         name = material.name if isinstance(material, Material) else material
         plane = PlaneWall(point=as_tuple(p), normal=as_tuple(n), material=name)
         self._planes.append(plane)
@@ -147,7 +152,7 @@ class WallMethods:
         return plane
 
     def add_box_container(
-        self, center, inner_size, material, wall_thickness=None, open_top: bool = True, *, _key: str | None = None
+        self, center, inner_size, material, wall_thickness=None, open_top: bool = True, *, key: str | None = None
     ) -> list[int]:
         """Add an axis-aligned box container made of fixed box-shaped bodies; returns their indices.
 
@@ -155,20 +160,21 @@ class WallMethods:
         ``wall_thickness`` [m] thick (default 10% of the smallest inner size), are: a floor plate
         covering the whole outer footprint, two x walls spanning the outer y extent, two y walls
         between them, and a lid like the floor unless ``open_top``. Walls touch but do not overlap.
-        The needed box shapes are registered as ``"wall_box_{sx}x{sy}x{sz}"``.
+        The needed box shapes are registered as ``"wall_box_{sx}x{sy}x{sz}"``. ``key`` is where the
+        value came from, for error messages (default ``box_container``).
         """
-        key = _key or "box_container"
+        key = key or "box_container"
         f = self.file
         c = read_vector(center, 3, f"{key}.center", f)
         size = read_vector(inner_size, 3, f"{key}.inner_size", f, label="[lx, ly, lz]")
         if size.min() <= 0.0:
-            raise self._err(f"inner sizes must be positive, got {size.tolist()}", f"{key}.inner_size")
+            raise self.error(f"inner sizes must be positive, got {size.tolist()}", f"{key}.inner_size")
         if wall_thickness is None:
             t = 0.1 * float(size.min())
         else:
             t = read_number(wall_thickness, f"{key}.wall_thickness", f, positive=True, hint=" (in m)")
         open_top = read_boolean(open_top, f"{key}.open_top", f)
-        self._lookup_material(material, f"{key}.material")
+        self.material_index(material, key=f"{key}.material")
         lx, ly, lz = size
         walls = [
             ((lx + 2 * t, ly + 2 * t, t), (0.0, 0.0, -0.5 * (lz + t))),  # floor
@@ -198,7 +204,7 @@ class WallMethods:
             k += 1
             name = f"{base}_{k}"
         if name not in self.shape_names:
-            self.add_shape(name, build(name), _spec=spec)
+            self.add_shape(name, build(name), spec=spec)
         return name
 
     # ------------------------------------------------------------------ drums
@@ -216,7 +222,7 @@ class WallMethods:
         sides=24,
         thickness=None,
         caps=True,
-        _key: str | None = None,
+        key: str | None = None,
     ) -> Drum:
         """Add a rotating polygonal drum made of kinematic bodies; returns its :class:`Drum` record.
 
@@ -244,13 +250,14 @@ class WallMethods:
             sides: number of slabs, >= 3 (default 24).
             thickness: slab and cap thickness [m], default a tenth of ``radius``.
             caps: close the ends with rotating plates (default True).
+            key: where the value came from, for error messages (default ``drums[N]``).
         """
-        key = _key or f"drums[{len(self.drums)}]"
+        key = key or f"drums[{len(self.drums)}]"
         f = self.file
         c = read_vector(center, 3, f"{key}.center", f)
         a = read_vector(axis, 3, f"{key}.axis", f)
         if np.linalg.norm(a) < 1e-12:
-            raise self._err(
+            raise self.error(
                 f"axis {a.tolist()} is zero; give the direction of the drum axis, e.g. [0, 1, 0]", f"{key}.axis"
             )
         a = a / np.linalg.norm(a)
@@ -264,7 +271,7 @@ class WallMethods:
         )
         caps = read_boolean(caps, f"{key}.caps", f)
         if (omega is None) == (rpm is None):
-            raise self._err(
+            raise self.error(
                 "give the rotation speed as exactly one of omega (rad/s) or rpm (revolutions per minute)",
                 f"{key}.omega" if omega is None else f"{key}.rpm",
             )
@@ -272,7 +279,7 @@ class WallMethods:
             w = read_number(omega, f"{key}.omega", f, hint=" (angular speed in rad/s)")
         else:
             w = read_number(rpm, f"{key}.rpm", f, hint=" (revolutions per minute)") * 2.0 * math.pi / 60.0
-        mat = self._lookup_material(material, f"{key}.material")
+        mat = self.material_index(material, key=f"{key}.material")
         name = self.material_names[mat]
         radial = _drum_radial(a, n)
         tangent = np.cross(np.broadcast_to(a, radial.shape), radial)
@@ -281,7 +288,7 @@ class WallMethods:
         omega_vec = np.broadcast_to(w * a, (n, 3))
         zeros = np.zeros((n, 3))
         idx = [
-            self._append(
+            self.append_bodies(
                 self.shape_index(slab),
                 mat,
                 c + (r + 0.5 * t) * radial,
@@ -320,7 +327,7 @@ class WallMethods:
         e1, e2 = _perpendicular_basis(a)
         q_cap = quat_from_matrix(np.column_stack([e1, e2, a]))
         ends = np.array([c + (0.5 * length + 0.5 * t) * a, c - (0.5 * length + 0.5 * t) * a])
-        return self._append(
+        return self.append_bodies(
             self.shape_index(cap_name),
             mat,
             ends,
