@@ -89,6 +89,8 @@ class Primitives:
     sphere_misses: Any
     twice_area: Any
     fan_add: Any
+    fan_push: Any
+    fan_close: Any
     cone: Any
     plane_geometry: Any
 
@@ -176,13 +178,26 @@ def make_primitives(scalar) -> Primitives:
         return wp.dot(wp.cross(p1 - p0, p2 - p0), n)
 
     @wp.func
-    def fan_add(first: vec3, prev: vec3, cur: vec3, count: int, nf: vec3, area: scalar, area_c: vec3):
-        # Adds the fan triangle (first, prev, cur) of a polygon streamed vertex by vertex.
+    def fan_add(p0: vec3, p1: vec3, p2: vec3, nf: vec3, sum_a2: scalar, sum_c: vec3):
+        # Adds the fan triangle (p0, p1, p2) to the running sums of twice the area and of twice the
+        # area times three times the centroid; fan_close scales them once per facet, not per triangle.
+        a2 = twice_area(p0, p1, p2, nf)
+        return sum_a2 + a2, sum_c + a2 * (p0 + p1 + p2)
+
+    @wp.func
+    def fan_push(v: vec3, first: vec3, prev: vec3, count: int, nf: vec3, sum_a2: scalar, sum_c: vec3):
+        # Appends vertex v to a polygon that streams past without a buffer: the fan from its first
+        # vertex gains the triangle (first, prev, v) once two vertices came before.
+        if count == 0:
+            first = v
         if count >= 2:
-            a2 = twice_area(first, prev, cur, nf)
-            area += scalar(0.5) * a2
-            area_c += (a2 / scalar(6.0)) * (first + prev + cur)
-        return area, area_c
+            sum_a2, sum_c = fan_add(first, prev, v, nf, sum_a2, sum_c)
+        return first, v, count + 1, sum_a2, sum_c
+
+    @wp.func
+    def fan_close(sum_a2: scalar, sum_c: vec3, weight: scalar):
+        # The facet's area and area-weighted centroid, times weight, from the sums of fan_add.
+        return weight * scalar(0.5) * sum_a2, (weight * scalar(0.5) / scalar(3.0)) * sum_c
 
     @wp.func
     def cone(area: scalar, area_c: vec3, plane: vec4, origin: vec3):
@@ -214,8 +229,8 @@ def make_primitives(scalar) -> Primitives:
             nf = vec3(pl[0], pl[1], pl[2])
             begin = shapes.face_loop_start[f]
             count = shapes.face_loop_start[f + 1] - begin
-            area = scalar(0.0)
-            area_c = zero3
+            sum_a2 = scalar(0.0)
+            sum_c = zero3
             emitted = int(0)
             first = zero3
             prev = zero3
@@ -226,20 +241,13 @@ def make_primitives(scalar) -> Primitives:
                 sv = plane_distance(nb, dd, v)
                 if crosses(sp, sv):
                     cut = edge_cut(vp, sp, v, sv)
-                    area, area_c = fan_add(first, prev, cut, emitted, nf, area, area_c)
-                    if emitted == 0:
-                        first = cut
-                    prev = cut
-                    emitted += 1
+                    first, prev, emitted, sum_a2, sum_c = fan_push(cut, first, prev, emitted, nf, sum_a2, sum_c)
                 if sv <= scalar(0.0):
-                    area, area_c = fan_add(first, prev, v, emitted, nf, area, area_c)
-                    if emitted == 0:
-                        first = v
-                    prev = v
-                    emitted += 1
+                    first, prev, emitted, sum_a2, sum_c = fan_push(v, first, prev, emitted, nf, sum_a2, sum_c)
                 vp = v
                 sp = sv
             if emitted >= 3:
+                area, area_c = fan_close(sum_a2, sum_c, scalar(1.0))
                 s_a += area * nf
                 m_a += wp.cross(area_c, nf)
                 dv, dv_c = cone(area, area_c, pl, origin)
@@ -262,6 +270,8 @@ def make_primitives(scalar) -> Primitives:
         sphere_misses=sphere_misses,
         twice_area=twice_area,
         fan_add=fan_add,
+        fan_push=fan_push,
+        fan_close=fan_close,
         cone=cone,
         plane_geometry=plane_geometry,
     )
@@ -297,7 +307,8 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
     plane_distance = prim.plane_distance
     crosses = prim.crosses
     edge_cut = prim.edge_cut
-    twice_area = prim.twice_area
+    fan_add = prim.fan_add
+    fan_close = prim.fan_close
     support = prim.support
     all_outside = prim.all_outside
     sphere_misses = prim.sphere_misses
@@ -561,16 +572,11 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
                 continue
             # Fan triangulation: facet area and area-weighted centroid.
             p0 = poly[cur]
-            area = scalar(0.0)
-            area_c = zero3
+            sum_a2 = scalar(0.0)
+            sum_c = zero3
             for k in range(1, count - 1):
-                p1 = poly[cur + k]
-                p2 = poly[cur + k + 1]
-                a2 = twice_area(p0, p1, p2, nf)
-                area += a2
-                area_c += a2 * (p0 + p1 + p2)
-            area = weight * scalar(0.5) * area
-            area_c = (weight * scalar(0.5) / scalar(3.0)) * area_c
+                sum_a2, sum_c = fan_add(p0, poly[cur + k], poly[cur + k + 1], nf, sum_a2, sum_c)
+            area, area_c = fan_close(sum_a2, sum_c, weight)
             plane = vec4()
             if face_is_a:
                 plane = pf
