@@ -247,8 +247,9 @@ def _add_validate(sub, fmt) -> None:
         "validate",
         help="check scene files without running them",
         description=_para(
-            "Check scene files without running them: load each one (every key and value), build the "
-            "model on the CPU to check the time step against the stable limit, and print a short description."
+            "Check scene files without running them: load each one (every key and value), check what a run "
+            "could not honour (float32 ranges, the time step against the stable limit, initial overlaps), "
+            "and print a short description. Needs no Warp and no device."
         ),
         epilog=_para(
             "exit codes: 0 every scene is valid; 2 some scene is not (one message per bad file on stderr, "
