@@ -12,8 +12,10 @@ import sys
 import time
 from pathlib import Path
 
+import cli_helpers
 import numpy as np
 import pytest
+from cli_helpers import run
 
 import polydem
 from polydem import cli
@@ -76,19 +78,7 @@ STATE_KEYS = ("steps_done", "body_q", "body_v", "body_w", "body_dissipated", "pl
 
 
 def write_scene(folder, text=TINY, name="tiny.toml", replace=()):
-    for old, new in replace:
-        assert old in text, old
-        text = text.replace(old, new)
-    path = Path(folder) / name
-    path.write_text(text)
-    return path
-
-
-def run(args, capsys):
-    """main(args) in this process: (exit code, stdout, stderr)."""
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
+    return cli_helpers.write_scene(folder, text, name, replace)
 
 
 def expected_frames(steps, dt, fps):

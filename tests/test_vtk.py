@@ -3,15 +3,16 @@
 import json
 import math
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 meshio = pytest.importorskip("meshio")
 
+import cli_helpers  # noqa: E402
+from cli_helpers import run  # noqa: E402
+
 import polydem  # noqa: E402
-from polydem.cli import main  # noqa: E402
 from polydem.scene import quat_from_axis_angle, quat_to_matrix  # noqa: E402
 from polydem.vtk import SERIES, VtkWriter, read_pvd  # noqa: E402
 
@@ -340,19 +341,7 @@ usd = "run.usda"
 
 
 def write_scene(folder, replace=()):
-    text = SCENE
-    for old, new in replace:
-        assert old in text, old
-        text = text.replace(old, new)
-    path = Path(folder) / "scene.toml"
-    path.write_text(text)
-    return path
-
-
-def run(args, capsys):
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
+    return cli_helpers.write_scene(folder, SCENE, replace=replace)
 
 
 def assert_user_error(code, err, *needles):
