@@ -1180,19 +1180,21 @@ def test_pivot_bodies():
 
 def test_device_and_precision():
     assert Scene(device="cuda:1").device == "cuda:1" and Scene().device is None
-    assert Scene(precision="float32").precision == "float32"
-    with pytest.raises(SceneError, match=r"runs in float32 only.*polydem.overlap") as info:
-        Scene(precision="float64")
-    assert info.value.key == "simulation.precision"
-    with pytest.raises(SceneError, match=r"unknown precision 'float16'.*Valid precisions: float32, float64"):
+    assert Scene().precision == "float32"
+    for precision in ("float32", "mixed", "float64"):
+        assert Scene(precision=precision).precision == precision
+    with pytest.raises(SceneError, match=r"unknown precision 'float16'.*Valid precisions: float32, mixed, float64") as info:
         Scene(precision="float16")
+    assert info.value.key == "simulation.precision"
     with pytest.raises(SceneError, match=r"unknown device 'gpu'.*\"cuda:N\"") as info:
         Scene(device="gpu")
     assert info.value.key == "simulation.device"
     scene = stone_scene()
     scene.add_body("cube", "stone")
     scene.precision = "float64"
-    with pytest.raises(SceneError, match="float32 only"):
+    scene.validate()
+    scene.precision = "double"
+    with pytest.raises(SceneError, match="unknown precision 'double'"):
         scene.validate()
 
 
@@ -1398,7 +1400,12 @@ region = { min = [-0.5, -0.5, 0.5], max = [0.5, 0.5, 1.0] }
         ("count = 20", "count = 20\nscale_bins = 0", "emitters[0].scale_bins", r"must be an integer >= 1"),
         ("[[emitters]]", "[emitters]", "emitters", r"expected an array of tables \[\[emitters\]\]"),
         # simulation settings
-        ("steps = 100", 'steps = 100\nprecision = "float64"', "simulation.precision", r"float32 only.*float64"),
+        (
+            "steps = 100",
+            'steps = 100\nprecision = "float16"',
+            "simulation.precision",
+            r"unknown precision 'float16'.*float32, mixed, float64",
+        ),
         ("steps = 100", 'steps = 100\ndevice = "gpu"', "simulation.device", r"unknown device 'gpu'"),
         ("steps = 100", "steps = 100\ndevice = 0", "simulation.device", r"expected a device name"),
         ("steps = 100", "steps = 100\nprecison = 'float32'", "simulation.precison", r"did you mean 'precision'\?"),

@@ -312,7 +312,8 @@ class Checkpoint:
     """A checkpoint read and checked by :func:`read_checkpoint`.
 
     Attributes: ``path``, ``format``, ``num_bodies``, ``steps_done``, ``time`` [s], ``dt`` [s],
-    ``arrays`` (the state: ``body_q`` (N, 7) float32, ``body_v``, ``body_w``, ``body_dissipated``,
+    ``arrays`` (the state: ``body_q`` (N, 7) float32, or float64 as written by a "mixed" or
+    "float64" run, ``body_v``, ``body_w``, ``body_dissipated``,
     ``plane_xi``, ``plane_turn``, ``step_count``, ``pair_key``, ``pair_xi``, ``pair_turn``),
     ``physics`` (the description, None for the old format), ``physics_arrays``, ``fingerprint``
     and ``run`` (the run record, or None).
@@ -378,9 +379,14 @@ def _scalar(path, data, name, kind):
     return float(a)
 
 
-def _real(path, data, name, shape, dtype=np.float32):
-    """``data[name]`` as ``dtype`` after checking its shape (None entries match any size) and values."""
+def _real(path, data, name, shape, dtype=None):
+    """``data[name]`` as ``dtype`` after checking its shape (None entries match any size) and values.
+
+    ``dtype`` None keeps float64 arrays (a "mixed" or "float64" run's) and reads the rest as float32.
+    """
     a = data[name]
+    if dtype is None:
+        dtype = np.float64 if a.dtype == np.float64 else np.float32
     if a.dtype.kind not in "iuf":
         raise _damaged(path, f"{name} holds {a.dtype} values, expected real numbers ({np.dtype(dtype).name})")
     if a.ndim != len(shape) or any(s is not None and s != t for s, t in zip(shape, a.shape, strict=True)):
