@@ -1183,7 +1183,8 @@ def test_device_and_precision():
     assert Scene().precision == "float32"
     for precision in ("float32", "mixed", "float64"):
         assert Scene(precision=precision).precision == precision
-    with pytest.raises(SceneError, match=r"unknown precision 'float16'.*Valid precisions: float32, mixed, float64") as info:
+    valid = r"unknown precision 'float16'.*Valid precisions: float32, mixed, float64"
+    with pytest.raises(SceneError, match=valid) as info:
         Scene(precision="float16")
     assert info.value.key == "simulation.precision"
     with pytest.raises(SceneError, match=r"unknown device 'gpu'.*\"cuda:N\"") as info:
