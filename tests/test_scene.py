@@ -1199,6 +1199,17 @@ def test_device_and_precision():
         scene.validate()
 
 
+@pytest.mark.parametrize("precision", ["mixed", "float64"])
+def test_toml_precision(tmp_path, precision):
+    """Before: precision = "float64" in a scene file was refused ("float32 only"); now it and "mixed"
+    load, and write back."""
+    scene = Scene.from_toml(
+        write(tmp_path, BASE_TOML.replace("steps = 100", f'steps = 100\nprecision = "{precision}"'))
+    )
+    assert scene.precision == precision
+    assert scene.to_dict()["simulation"]["precision"] == precision
+
+
 def test_output_settings():
     out = Output.from_dict(
         {"usd": "run/traj.usda", "fps": 24, "summary": "s.json", "pictures": [30, 0, 30], "checkpoint": {"steps": 500}}
