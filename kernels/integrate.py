@@ -298,7 +298,7 @@ def _device(device, array):
 
 def _integrator(body_q):
     # The integrator in the scalar of the poses (float32 or float64 transforms).
-    return make_integrator(body_q.dtype._wp_scalar_type_)
+    return make_integrator(wp.float64 if wp.types.types_equal(body_q.dtype, wp.transformd) else wp.float32)
 
 
 def integrate_bodies(

@@ -91,11 +91,12 @@ class State:
         state.device = dev
         state.precision = precision
         n = len(arrays["body_q"])
+        body, history = (numpy_dtype(x) for x in scalars(precision))
         for name, dtype in cls.dtypes(precision).items():
             if name in arrays:
                 a = np.asarray(arrays[name])
                 if name != "step_count":
-                    a = a.astype(numpy_dtype(dtype._wp_scalar_type_ if hasattr(dtype, "_wp_scalar_type_") else dtype))
+                    a = a.astype(body if name.startswith("body_") else history)
                 a = wp.array(a, dtype=dtype, device=dev)
             else:
                 a = wp.zeros(n, dtype=dtype, device=dev)
