@@ -12,6 +12,11 @@ front: it builds the three from a scene, steps them in place, and reads energies
 On a CUDA device the step is captured once as a CUDA graph, the broad-phase rebuild as a
 conditional node inside it, and replayed; the CPU runs the same kernels.
 
+The scene's ``precision`` ("float32", "mixed" or "float64"; :mod:`polydem.kernels.precision`) sets
+the dtypes of the Model, State and Contacts arrays and the variant of every kernel; what
+:meth:`Simulation.state`, :meth:`Simulation.contacts` and :meth:`Simulation.energy` return is float64
+numpy in every precision.
+
 Steps run in chunks between host checks. A chunk starts from a saved copy of the state and the
 pair history; when something overflowed during the chunk (the candidate-pair buffer in a device
 rebuild, or a clipped polygon) the copy is restored, the buffer grown, and the chunk run again, so
