@@ -233,6 +233,39 @@ def bounds_kernel(
         wp.atomic_max(host_build_needed, 0, 1)
 
 
+# Relative rounding of a float32 coordinate, 2^-24, and how many such roundings the radius of a
+# body fed to the broad phase from float64 poses covers: its centre is rounded at the build and now
+# (the skin test), its partner's too, each by up to sqrt(3) 2^-24 |x|_max; 8 leaves room for the
+# arithmetic of the tests and for |x| growing by the skin between the two.
+CAST_ROUNDINGS = 8.0
+
+
+@wp.kernel(enable_backward=False)
+def float32_input_kernel(
+    # Model
+    body_radius: wp.array(dtype=float),
+    # State in
+    body_q: wp.array(dtype=wp.transformd),
+    # Out
+    body_q32: wp.array(dtype=wp.transform),
+    body_radius32: wp.array(dtype=float),
+):
+    """Float32 poses and radii for the broad phase from float64 poses. Launch dim: bodies.
+
+    The radii grow by the rounding of the cast (``CAST_ROUNDINGS`` times 2^-24 of the largest
+    coordinate and the radius), so that a pair whose float64 bounding spheres overlap is never
+    missed; extra candidates are harmless.
+    """
+    i = wp.tid()
+    q = body_q[i]
+    x = wp.transform_get_translation(q)
+    r = wp.float64(body_radius[i])
+    m = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
+    pad = wp.float64(CAST_ROUNDINGS) * wp.float64(5.960464477539063e-08) * (m + r)
+    body_q32[i] = wp.transform(wp.vec3(x), wp.quat(wp.transform_get_rotation(q)))
+    body_radius32[i] = float(r + pad)
+
+
 @wp.kernel(enable_backward=False)
 def reset_extent_kernel(
     # Out

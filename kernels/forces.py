@@ -58,6 +58,7 @@ from typing import Any
 
 import warp as wp
 from polydem.kernels.geometry import make_geometry
+from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
 
 
@@ -68,6 +69,7 @@ class ContactKernels:
     law: str
     friction: bool
     diagnostics: bool
+    precision: str
     geometry: Any  # polydem.kernels.geometry.Geometry
     respond: Any
     pair_contact_kernel: Any
@@ -75,19 +77,58 @@ class ContactKernels:
 
 
 @functools.cache
-def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int, diagnostics: bool = False):
+def make_contact_kernels(
+    law: str, friction: bool, max_poly: int, max_faces: int, diagnostics: bool = False, precision: str = "float32"
+):
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
     ``diagnostics`` builds the variant that reports contacts and energies without stepping.
+    ``precision`` (:mod:`polydem.kernels.precision`) sets the scalar S of the body state (poses,
+    velocities, body forces, torques and dissipated energy, wall normals and offsets, contact
+    points) and the scalar C of the geometry, the response, the material table and the per-pair
+    and per-wall arrays. In "mixed" (S float64, C float32) each pair is clipped in a frame centred
+    on A, and each wall contact in one centred on the body, so that the float32 geometry sees
+    coordinates of the bodies' size however far they are from the origin.
     """
-    resp = make_response(wp.float32, law, friction, diagnostics)
+    S, C = scalars(precision)
+    local = S != C
+    vec3s = wp.types.vector(3, S)
+    vec3c = wp.types.vector(3, C)
+    transform_s = wp.types.transformation(S)
+    transform_c = wp.types.transformation(C)
+    quat_c = wp.types.quaternion(C)
+    resp = make_response(C, law, friction, diagnostics)
     law_energy = resp.law_energy
     respond = resp.respond
-    geom = make_geometry(wp.float32, max_poly, max_faces)
+    geom = make_geometry(C, max_poly, max_faces)
     Shapes = geom.shapes
     pair_geometry = geom.pair_geometry
     plane_geometry = geom.primitives.plane_geometry
-    zero3 = wp.constant(wp.vec3(0.0, 0.0, 0.0))
+    zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
+
+    # Until the geometry takes poses in S itself, the float64 poses of a pair become float32 poses
+    # relative to A's centre here (the geometry returns positions relative to A's centre anyway).
+    @wp.func
+    def pair_poses(xa: transform_s, xb: transform_s):
+        # The poses of a pair for the geometry: in C, relative to A's centre when S != C.
+        if wp.static(local):
+            r = wp.transform_get_translation(xb) - wp.transform_get_translation(xa)
+            qa = quat_c(wp.transform_get_rotation(xa))
+            qb = quat_c(wp.transform_get_rotation(xb))
+            return transform_c(vec3c(C(0.0), C(0.0), C(0.0)), qa), transform_c(vec3c(r), qb)
+        else:
+            return xa, xb
+
+    @wp.func
+    def wall_pose(xa: transform_s, normal: vec3s, offset: S):
+        # Pose, normal and offset of a wall contact for the geometry: in C, relative to the body's
+        # centre when S != C (the offset n.x_A is taken off in S).
+        if wp.static(local):
+            dd = offset - wp.dot(normal, wp.transform_get_translation(xa))
+            xa_c = transform_c(vec3c(C(0.0), C(0.0), C(0.0)), quat_c(wp.transform_get_rotation(xa)))
+            return xa_c, vec3c(normal), C(dd)
+        else:
+            return xa, normal, offset
 
     @wp.kernel(enable_backward=False, module="unique")
     def pair_contact_kernel(
@@ -95,36 +136,36 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         shapes: Shapes,
         body_shape: wp.array(dtype=int),
         body_material: wp.array(dtype=int),
-        body_inv_mass: wp.array(dtype=float),
+        body_inv_mass: wp.array(dtype=S),
         num_materials: int,
-        material_k: wp.array(dtype=float),
-        material_e: wp.array(dtype=float),
-        material_mu: wp.array(dtype=float),
-        material_kt: wp.array(dtype=float),
-        law_m: float,
-        dt: float,
+        material_k: wp.array(dtype=C),
+        material_e: wp.array(dtype=C),
+        material_mu: wp.array(dtype=C),
+        material_kt: wp.array(dtype=C),
+        law_m: C,
+        dt: C,
         # State in
-        body_q: wp.array(dtype=wp.transform),
-        body_v: wp.array(dtype=wp.vec3),
-        body_w: wp.array(dtype=wp.vec3),
+        body_q: wp.array(dtype=transform_s),
+        body_v: wp.array(dtype=vec3s),
+        body_w: wp.array(dtype=vec3s),
         pair_a: wp.array(dtype=int),
         pair_b: wp.array(dtype=int),
         pair_count: wp.array(dtype=int),
         # State in/out
-        pair_xi: wp.array(dtype=wp.vec3),
-        pair_turn: wp.array(dtype=float),
+        pair_xi: wp.array(dtype=vec3c),
+        pair_turn: wp.array(dtype=C),
         # Out (step)
-        pair_force: wp.array(dtype=wp.vec3),
-        pair_torque_a: wp.array(dtype=wp.vec3),
-        pair_dissipated: wp.array(dtype=float),
+        pair_force: wp.array(dtype=vec3c),
+        pair_torque_a: wp.array(dtype=vec3c),
+        pair_dissipated: wp.array(dtype=C),
         overflow: wp.array(dtype=int),
         # Out (diagnostics)
-        pair_volume: wp.array(dtype=float),
-        pair_energy: wp.array(dtype=float),
-        pair_normal: wp.array(dtype=wp.vec3),
-        pair_point: wp.array(dtype=wp.vec3),
-        pair_fn: wp.array(dtype=float),
-        pair_ft: wp.array(dtype=wp.vec3),
+        pair_volume: wp.array(dtype=C),
+        pair_energy: wp.array(dtype=C),
+        pair_normal: wp.array(dtype=vec3c),
+        pair_point: wp.array(dtype=vec3s),
+        pair_fn: wp.array(dtype=C),
+        pair_ft: wp.array(dtype=vec3c),
     ):
         """The step variant writes the wrench on A, the spring and the energy dissipated; the
         diagnostics variant (run on request only) writes what contacts() and energy() report,
@@ -136,50 +177,52 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         b = pair_b[p]
         xa = body_q[a]
         xb = body_q[b]
-        vol, first_moment, s_a, m_a, s_b, m_b, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa, xb)
+        xa_c, xb_c = pair_poses(xa, xb)
+        vol, first_moment, s_a, m_a, s_b, m_b, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa_c, xb_c)
         if of != 0:
             wp.atomic_max(overflow, 0, 1)
         mat = body_material[a] * num_materials + body_material[b]
-        if vol <= 0.0:
+        if vol <= C(0.0):
             # What the last impact never gave back, (1 - e^2) W(turn), is dissipated when the
             # contact opens (its force may have ended before, at u = 0); until the step books it,
             # it is still part of the contact's energy.
             e_mat = material_e[mat]
-            kept = (1.0 - e_mat * e_mat) * law_energy(pair_turn[p], material_k[mat], law_m)
+            kept = (C(1.0) - e_mat * e_mat) * law_energy(pair_turn[p], material_k[mat], law_m)
             if wp.static(diagnostics):
-                pair_volume[p] = 0.0
+                pair_volume[p] = C(0.0)
                 pair_energy[p] = kept
-                pair_fn[p] = 0.0
+                pair_fn[p] = C(0.0)
                 pair_ft[p] = zero3
             else:
                 lost = kept
-                pair_turn[p] = 0.0
+                pair_turn[p] = C(0.0)
                 if wp.static(friction):
                     xi = pair_xi[p]
-                    lost += 0.5 * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
+                    lost += C(0.5) * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
                     pair_xi[p] = zero3
                 pair_force[p] = zero3
                 pair_torque_a[p] = zero3
                 pair_dissipated[p] = lost
             return
-        r_ab = wp.transform_get_translation(xb) - wp.transform_get_translation(xa)
+        r_ab = vec3c(wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
         step = dt
         if wp.static(diagnostics):
-            step = 0.0
+            step = C(0.0)
         xi_in = zero3
         if wp.static(friction):
             xi_in = pair_xi[p]
         force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
-            vol, first_moment, s_a, m_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
+            vol, first_moment, s_a, m_a, r_ab,
+            vec3c(body_v[a]), vec3c(body_w[a]), vec3c(body_v[b]), vec3c(body_w[b]),
             material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], step,
             wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]]),
-            body_inv_mass[a] + body_inv_mass[b],
+            C(body_inv_mass[a] + body_inv_mass[b]),
         )  # fmt: skip
         if wp.static(diagnostics):
             pair_volume[p] = vol
             pair_energy[p] = energy
             pair_normal[p] = n
-            pair_point[p] = point + wp.transform_get_translation(xa)
+            pair_point[p] = vec3s(point) + wp.transform_get_translation(xa)
             pair_fn[p] = fn
             pair_ft[p] = ft
         else:
@@ -197,49 +240,49 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         body_shape: wp.array(dtype=int),
         body_material: wp.array(dtype=int),
         body_flags: wp.array(dtype=int),
-        body_inv_mass: wp.array(dtype=float),
+        body_inv_mass: wp.array(dtype=S),
         num_materials: int,
-        material_k: wp.array(dtype=float),
-        material_e: wp.array(dtype=float),
-        material_mu: wp.array(dtype=float),
-        material_kt: wp.array(dtype=float),
-        law_m: float,
-        dt: float,
-        plane_normal: wp.array(dtype=wp.vec3),
-        plane_offset: wp.array(dtype=float),
+        material_k: wp.array(dtype=C),
+        material_e: wp.array(dtype=C),
+        material_mu: wp.array(dtype=C),
+        material_kt: wp.array(dtype=C),
+        law_m: C,
+        dt: C,
+        plane_normal: wp.array(dtype=vec3s),
+        plane_offset: wp.array(dtype=S),
         plane_material: wp.array(dtype=int),
         # State in
-        body_q: wp.array(dtype=wp.transform),
-        body_v: wp.array(dtype=wp.vec3),
-        body_w: wp.array(dtype=wp.vec3),
+        body_q: wp.array(dtype=transform_s),
+        body_v: wp.array(dtype=vec3s),
+        body_w: wp.array(dtype=vec3s),
         pair_a: wp.array(dtype=int),
         pair_b: wp.array(dtype=int),
         body_pairs_a: wp.array(dtype=wp.vec2i),
         body_pairs_b: wp.array(dtype=wp.vec2i),
         pair_by_b: wp.array(dtype=int),
-        pair_force: wp.array(dtype=wp.vec3),
-        pair_torque_a: wp.array(dtype=wp.vec3),
-        pair_dissipated: wp.array(dtype=float),
+        pair_force: wp.array(dtype=vec3c),
+        pair_torque_a: wp.array(dtype=vec3c),
+        pair_dissipated: wp.array(dtype=C),
         # State in/out
-        plane_xi: wp.array2d(dtype=wp.vec3),
-        plane_turn: wp.array2d(dtype=float),
-        body_dissipated: wp.array(dtype=float),
+        plane_xi: wp.array2d(dtype=vec3c),
+        plane_turn: wp.array2d(dtype=C),
+        body_dissipated: wp.array(dtype=S),
         # Out (step)
-        body_f: wp.array(dtype=wp.vec3),
-        body_t: wp.array(dtype=wp.vec3),
+        body_f: wp.array(dtype=vec3s),
+        body_t: wp.array(dtype=vec3s),
         # Out (diagnostics)
-        plane_volume: wp.array2d(dtype=float),
-        plane_energy: wp.array2d(dtype=float),
-        plane_fn: wp.array2d(dtype=float),
-        plane_point: wp.array2d(dtype=wp.vec3),
-        plane_ft: wp.array2d(dtype=wp.vec3),
+        plane_volume: wp.array2d(dtype=C),
+        plane_energy: wp.array2d(dtype=C),
+        plane_fn: wp.array2d(dtype=C),
+        plane_point: wp.array2d(dtype=vec3s),
+        plane_ft: wp.array2d(dtype=vec3c),
     ):
         """Sums each body's pair wrenches in key order and adds its wall contacts (step variant);
         the diagnostics variant only reports the wall contacts."""
         i = wp.tid()
-        f = wp.vec3(0.0, 0.0, 0.0)
-        t = wp.vec3(0.0, 0.0, 0.0)
-        lost = float(0.0)
+        f = vec3s(S(0.0), S(0.0), S(0.0))
+        t = vec3s(S(0.0), S(0.0), S(0.0))
+        lost = S(0.0)
         xi_pos = wp.transform_get_translation(body_q[i])
         # A fixed or kinematic body needs no force, and a container wall may touch a whole pile:
         # it skips its pairs (one thread would walk them all), and its free partners book the
@@ -247,72 +290,72 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         if wp.static(not diagnostics) and body_flags[i] == 0:
             ra = body_pairs_a[i]
             for p in range(ra[0], ra[1]):
-                f += pair_force[p]
-                t += pair_torque_a[p]
-                share = float(0.5)
+                f += vec3s(pair_force[p])
+                t += vec3s(pair_torque_a[p])
+                share = S(0.5)
                 if body_flags[pair_b[p]] != 0:
-                    share = 1.0
-                lost += share * pair_dissipated[p]
+                    share = S(1.0)
+                lost += share * S(pair_dissipated[p])
             rb = body_pairs_b[i]
             for k in range(rb[0], rb[1]):
                 p = pair_by_b[k]
-                fa = pair_force[p]
+                fa = vec3s(pair_force[p])
                 a = pair_a[p]
                 r_ab = xi_pos - wp.transform_get_translation(body_q[a])
                 f -= fa
-                t += wp.cross(r_ab, fa) - pair_torque_a[p]
-                share = float(0.5)
+                t += wp.cross(r_ab, fa) - vec3s(pair_torque_a[p])
+                share = S(0.5)
                 if body_flags[a] != 0:
-                    share = 1.0
-                lost += share * pair_dissipated[p]
+                    share = S(1.0)
+                lost += share * S(pair_dissipated[p])
         if body_flags[i] == 0:
             xa = body_q[i]
             s = body_shape[i]
             for j in range(plane_normal.shape[0]):
-                pn = plane_normal[j]
-                vol, first_moment, s_a, m_a = plane_geometry(shapes, s, xa, pn, plane_offset[j])
+                xa_c, pn, offset = wall_pose(xa, plane_normal[j], plane_offset[j])
+                vol, first_moment, s_a, m_a = plane_geometry(shapes, s, xa_c, pn, offset)
                 mat = body_material[i] * num_materials + plane_material[j]
-                if vol <= 0.0:
+                if vol <= C(0.0):
                     e_mat = material_e[mat]
-                    kept = (1.0 - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m)
+                    kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m)
                     if wp.static(diagnostics):
-                        plane_volume[i, j] = 0.0
+                        plane_volume[i, j] = C(0.0)
                         plane_energy[i, j] = kept
-                        plane_fn[i, j] = 0.0
+                        plane_fn[i, j] = C(0.0)
                         plane_ft[i, j] = zero3
                     else:
-                        lost += kept
-                        plane_turn[i, j] = 0.0
+                        lost += S(kept)
+                        plane_turn[i, j] = C(0.0)
                         if wp.static(friction):
                             xi = plane_xi[i, j]
-                            lost += 0.5 * material_kt[mat] * wp.dot(xi, xi)
+                            lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
                             plane_xi[i, j] = zero3
                     continue
                 step = dt
                 if wp.static(diagnostics):
-                    step = 0.0
+                    step = C(0.0)
                 xi_in = zero3
                 if wp.static(friction):
                     xi_in = plane_xi[i, j]
                 force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
-                    vol, first_moment, s_a, m_a, -pn, body_v[i], body_w[i], zero3, zero3,
+                    vol, first_moment, s_a, m_a, -pn, vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3,
                     material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
                     plane_turn[i, j], step,
-                    shapes.shape_radius[s], body_inv_mass[i],
+                    shapes.shape_radius[s], C(body_inv_mass[i]),
                 )  # fmt: skip
                 if wp.static(diagnostics):
                     plane_volume[i, j] = vol
                     plane_energy[i, j] = energy
                     plane_fn[i, j] = fn
-                    plane_point[i, j] = point + xi_pos
+                    plane_point[i, j] = vec3s(point) + xi_pos
                     plane_ft[i, j] = ft
                 else:
                     if wp.static(friction):
                         plane_xi[i, j] = xi
                     plane_turn[i, j] = turn
-                    f += force
-                    t += torque
-                    lost += dl
+                    f += vec3s(force)
+                    t += vec3s(torque)
+                    lost += S(dl)
         if wp.static(not diagnostics):
             body_f[i] = f
             body_t[i] = t
@@ -322,6 +365,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         law=law,
         friction=friction,
         diagnostics=diagnostics,
+        precision=precision,
         geometry=geom,
         respond=respond,
         pair_contact_kernel=pair_contact_kernel,
@@ -390,33 +434,40 @@ def body_ranges_kernel(
     body_pairs_b[i] = wp.vec2i(lower_bound(keys_b, count, lo), lower_bound(keys_b, count, hi))
 
 
-@wp.kernel(enable_backward=False)
-def remap_history_kernel(
-    # State in
-    old_key: wp.array(dtype=wp.int64),
-    old_count: wp.array(dtype=int),
-    old_xi: wp.array(dtype=wp.vec3),
-    old_turn: wp.array(dtype=float),
-    new_key: wp.array(dtype=wp.int64),
-    new_count: wp.array(dtype=int),
-    friction: int,
-    # Out
-    new_xi: wp.array(dtype=wp.vec3),
-    new_turn: wp.array(dtype=float),
-):
-    """Carries each pair's history (turning volume; friction spring, with ``friction``) over a
-    rebuild, matched by the pair's key."""
-    p = wp.tid()
-    xi = wp.vec3(0.0, 0.0, 0.0)
-    turn = float(0.0)
-    if p < new_count[0]:
-        key = new_key[p]
-        count = old_count[0]
-        j = lower_bound(old_key, count, key)
-        if j < count and old_key[j] == key:
-            turn = old_turn[j]
-            if friction != 0:
-                xi = old_xi[j]
-    new_turn[p] = turn
-    if friction != 0:
-        new_xi[p] = xi
+@functools.cache
+def make_remap_history_kernel(scalar):
+    """The kernel that carries the pair history (in ``scalar``) over a rebuild."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def remap_history_kernel(
+        # State in
+        old_key: wp.array(dtype=wp.int64),
+        old_count: wp.array(dtype=int),
+        old_xi: wp.array(dtype=vec3),
+        old_turn: wp.array(dtype=scalar),
+        new_key: wp.array(dtype=wp.int64),
+        new_count: wp.array(dtype=int),
+        friction: int,
+        # Out
+        new_xi: wp.array(dtype=vec3),
+        new_turn: wp.array(dtype=scalar),
+    ):
+        """Carries each pair's history (turning volume; friction spring, with ``friction``) over a
+        rebuild, matched by the pair's key."""
+        p = wp.tid()
+        xi = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        turn = scalar(0.0)
+        if p < new_count[0]:
+            key = new_key[p]
+            count = old_count[0]
+            j = lower_bound(old_key, count, key)
+            if j < count and old_key[j] == key:
+                turn = old_turn[j]
+                if friction != 0:
+                    xi = old_xi[j]
+        new_turn[p] = turn
+        if friction != 0:
+            new_xi[p] = xi
+
+    return remap_history_kernel

@@ -1,6 +1,7 @@
 """Time integration of the rigid bodies: a symplectic kick-drift step for translation and rotation.
 
-State (float32, one entry per body): ``body_q`` transform (centroid position [m], unit quaternion
+State (one entry per body; float32, or float64 in the "mixed" and "float64" precisions of
+:mod:`polydem.kernels.precision`): ``body_q`` transform (centroid position [m], unit quaternion
 xyzw from the body frame, i.e. the principal axes, to the world), ``body_v`` linear velocity [m/s],
 ``body_w`` angular velocity in world axes [rad/s]. The force stage accumulates ``body_f`` [N] and
 ``body_t`` (torque about the centroid, world axes) [N m]; gravity is added here.
@@ -30,7 +31,7 @@ pi = I R^T w the angular momentum in body axes (so L = R pi in world axes):
 
 Every sub-step is an exact rotation, so the world angular momentum L = R pi is unchanged by the
 drift and |pi| = |L| is unchanged by every sub-step: a torque-free body keeps L exactly in exact
-arithmetic (here: up to float32 rounding), and the gyroscopic term of Euler's equations is
+arithmetic (here: up to rounding), and the gyroscopic term of Euler's equations is
 contained in the drift without any iteration. The splitting is symmetric, hence second order for
 the free rigid body: it exactly conserves a modified energy H + O(dt^2), so the energy error of a
 torque-free body stays bounded at O((|w| dt)^2) relative without drift over long runs. The map
@@ -41,9 +42,10 @@ Order with forces: kick-drift is symplectic Euler. Read with the velocities as m
 and orientations; read synchronously it is first order, e.g. a free fall gives
 x_n = x_0 + t v_0 + g t^2 / 2 + g t dt / 2.
 
-Float32 details. Rounding along a smooth trajectory is correlated from step to step, so an
-error of 1e-7 relative made the same way every step would add up linearly (1e-3 after 10^4
-steps). Two places did that and are treated:
+Rounding details (float32; the same code runs in float64, see :func:`make_integrator`). Rounding
+along a smooth trajectory is correlated from step to step, so an error of 1e-7 relative made the
+same way every step would add up linearly (1e-3 after 10^4 steps). Two places did that and are
+treated:
 
 * the cosine and sine of each sub-rotation angle are rounded, so they turn pi by a matrix whose
   scale is 1 only to rounding, nearly the same scale every step for a steady spin. The drift
@@ -68,6 +70,10 @@ pivot p (a part of a drum) turns about it instead: x <- p + exp(w dt)(x - p), v 
 Layout of this file: ``@wp.func`` helpers, the kernels, then the plain launch functions.
 """
 
+import functools
+from dataclasses import dataclass
+from typing import Any
+
 import warp as wp
 
 BODY_FREE = wp.constant(0)
@@ -75,185 +81,210 @@ BODY_FIXED = wp.constant(1)
 BODY_KINEMATIC = wp.constant(2)
 
 
-# ---------------------------------------------------------------------------------------------
-# Helpers
-# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Integrator:
+    """The integrator's functions and kernels in one scalar (``wp.float32`` or ``wp.float64``)."""
+
+    scalar: Any
+    vec3: Any
+    quat: Any
+    transform: Any
+    body_momentum: Any
+    angular_velocity: Any
+    integrate_bodies_kernel: Any
+    kinetic_energy_kernel: Any
 
 
-@wp.func
-def quat_exp(v: wp.vec3):
-    # Unit quaternion of the rotation vector v (angle |v| [rad] about v / |v|), smooth at v = 0.
-    theta = wp.length(v)
-    half = 0.5 * theta
-    # sin(half) / theta by its series below 1e-3, where the truncation error is ~1e-14.
-    s = 0.5 * (1.0 - half * half / 6.0)
-    if half >= 1.0e-3:
-        s = wp.sin(half) / theta
-    return wp.quat(v[0] * s, v[1] * s, v[2] * s, wp.cos(half))
+@functools.cache
+def make_integrator(scalar) -> Integrator:
+    """The helpers and kernels of this module, with every float in ``scalar``."""
+    vec3 = wp.types.vector(3, scalar)
+    quat = wp.types.quaternion(scalar)
+    transform = wp.types.transformation(scalar)
 
+    # -----------------------------------------------------------------------------------------
+    # Helpers
 
-@wp.func
-def safe_inv(x: float):
-    # 1 / x for x > 0, else 0 (a zero principal moment locks rotation about that axis).
-    r = float(0.0)
-    if x > 0.0:
-        r = 1.0 / x
-    return r
+    @wp.func
+    def quat_exp(v: vec3):
+        # Unit quaternion of the rotation vector v (angle |v| [rad] about v / |v|), smooth at v = 0.
+        theta = wp.length(v)
+        half = scalar(0.5) * theta
+        # sin(half) / theta by its series below 1e-3, where the truncation error is ~1e-14.
+        s = scalar(0.5) * (scalar(1.0) - half * half / scalar(6.0))
+        if half >= scalar(1.0e-3):
+            s = wp.sin(half) / theta
+        return quat(v[0] * s, v[1] * s, v[2] * s, wp.cos(half))
 
+    @wp.func
+    def safe_inv(x: scalar):
+        # 1 / x for x > 0, else 0 (a zero principal moment locks rotation about that axis).
+        r = scalar(0.0)
+        if x > scalar(0.0):
+            r = scalar(1.0) / x
+        return r
 
-@wp.func
-def principal_rotation(axis: int, h: float, pi: wp.vec3, inv_inertia: wp.vec3, dq: wp.quat):
-    # Exact flow for time h of H_axis = pi_axis^2 / (2 I_axis): the body turns about its principal
-    # axis `axis` by theta = h pi_axis / I_axis. Returns the body momentum Rot(theta)^T pi and the
-    # accumulated body-frame rotation dq * Rot(theta).
-    b = (axis + 1) % 3
-    c = (axis + 2) % 3
-    theta = h * pi[axis] * inv_inertia[axis]
-    sh = wp.sin(0.5 * theta)
-    ch = wp.cos(0.5 * theta)
-    # cos and sin of theta from the half angle: the same rotation as the quaternion below.
-    cs = 1.0 - 2.0 * sh * sh
-    sn = 2.0 * sh * ch
-    out = pi
-    out[b] = cs * pi[b] + sn * pi[c]
-    out[c] = cs * pi[c] - sn * pi[b]
-    r = wp.quat(0.0, 0.0, 0.0, ch)
-    r[axis] = sh
-    return out, dq * r
+    @wp.func
+    def principal_rotation(axis: int, h: scalar, pi: vec3, inv_inertia: vec3, dq: quat):
+        # Exact flow for time h of H_axis = pi_axis^2 / (2 I_axis): the body turns about its principal
+        # axis `axis` by theta = h pi_axis / I_axis. Returns the body momentum Rot(theta)^T pi and the
+        # accumulated body-frame rotation dq * Rot(theta).
+        b = (axis + 1) % 3
+        c = (axis + 2) % 3
+        theta = h * pi[axis] * inv_inertia[axis]
+        sh = wp.sin(scalar(0.5) * theta)
+        ch = wp.cos(scalar(0.5) * theta)
+        # cos and sin of theta from the half angle: the same rotation as the quaternion below.
+        cs = scalar(1.0) - scalar(2.0) * sh * sh
+        sn = scalar(2.0) * sh * ch
+        out = pi
+        out[b] = cs * pi[b] + sn * pi[c]
+        out[c] = cs * pi[c] - sn * pi[b]
+        r = quat(scalar(0.0), scalar(0.0), scalar(0.0), ch)
+        r[axis] = sh
+        return out, dq * r
 
+    @wp.func
+    def free_rotor_drift(pi: vec3, inv_inertia: vec3, dt: scalar):
+        # Strang splitting 1(dt/2) 2(dt/2) 3(dt) 2(dt/2) 1(dt/2) of the free rigid body. Returns the new
+        # body momentum and the body-frame rotation dq of the step (new R = R * rot(dq)).
+        norm = wp.length(pi)
+        dq = wp.quat_identity(dtype=scalar)
+        half = scalar(0.5) * dt
+        pi, dq = principal_rotation(0, half, pi, inv_inertia, dq)
+        pi, dq = principal_rotation(1, half, pi, inv_inertia, dq)
+        pi, dq = principal_rotation(2, dt, pi, inv_inertia, dq)
+        pi, dq = principal_rotation(1, half, pi, inv_inertia, dq)
+        pi, dq = principal_rotation(0, half, pi, inv_inertia, dq)
+        # The exact flow keeps |pi|: remove the scale error of the rounded sub-rotations (module docstring).
+        n = wp.length(pi)
+        if n > scalar(0.0):
+            pi = pi + pi * ((norm - n) / n)
+        return pi, dq
 
-@wp.func
-def free_rotor_drift(pi: wp.vec3, inv_inertia: wp.vec3, dt: float):
-    # Strang splitting 1(dt/2) 2(dt/2) 3(dt) 2(dt/2) 1(dt/2) of the free rigid body. Returns the new
-    # body momentum and the body-frame rotation dq of the step (new R = R * rot(dq)).
-    norm = wp.length(pi)
-    dq = wp.quat_identity()
-    half = 0.5 * dt
-    pi, dq = principal_rotation(0, half, pi, inv_inertia, dq)
-    pi, dq = principal_rotation(1, half, pi, inv_inertia, dq)
-    pi, dq = principal_rotation(2, dt, pi, inv_inertia, dq)
-    pi, dq = principal_rotation(1, half, pi, inv_inertia, dq)
-    pi, dq = principal_rotation(0, half, pi, inv_inertia, dq)
-    # The exact flow keeps |pi|: remove the scale error of the rounded sub-rotations (module docstring).
-    n = wp.length(pi)
-    if n > 0.0:
-        pi = pi + pi * ((norm - n) / n)
-    return pi, dq
+    @wp.func
+    def body_momentum(q: quat, inertia: vec3, w: vec3):
+        # pi = I R^T w: angular momentum in body axes of the world angular velocity w.
+        return wp.cw_mul(inertia, wp.quat_rotate_inv(q, w))
 
+    @wp.func
+    def angular_velocity(q: quat, inertia: vec3, inv_inertia: vec3, pi: vec3):
+        # w = R I^-1 pi, corrected once so that body_momentum(q, inertia, w) reproduces pi to rounding:
+        # the state stores w, and the next step rebuilds pi from it with body_momentum.
+        w = wp.quat_rotate(q, wp.cw_mul(inv_inertia, pi))
+        err = pi - body_momentum(q, inertia, w)
+        return w + wp.quat_rotate(q, wp.cw_mul(inv_inertia, err))
 
-@wp.func
-def body_momentum(q: wp.quat, inertia: wp.vec3, w: wp.vec3):
-    # pi = I R^T w: angular momentum in body axes of the world angular velocity w.
-    return wp.cw_mul(inertia, wp.quat_rotate_inv(q, w))
+    # -----------------------------------------------------------------------------------------
+    # Kernels
 
+    @wp.kernel(enable_backward=False, module="unique")
+    def integrate_bodies_kernel(
+        # Model
+        body_inv_mass: wp.array(dtype=scalar),
+        body_inertia: wp.array(dtype=vec3),
+        body_flags: wp.array(dtype=int),
+        body_pivot: wp.array(dtype=vec3),
+        has_pivot: int,
+        gravity: vec3,
+        dt: scalar,
+        # State in
+        body_q_in: wp.array(dtype=transform),
+        body_v_in: wp.array(dtype=vec3),
+        body_w_in: wp.array(dtype=vec3),
+        body_f: wp.array(dtype=vec3),
+        body_t: wp.array(dtype=vec3),
+        # Out (may alias the state in: each thread reads its body before writing it)
+        body_q_out: wp.array(dtype=transform),
+        body_v_out: wp.array(dtype=vec3),
+        body_w_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        flag = body_flags[i]
+        tf = body_q_in[i]
+        x = wp.transform_get_translation(tf)
+        q = wp.transform_get_rotation(tf)
+        v = body_v_in[i]
+        w = body_w_in[i]
 
-@wp.func
-def angular_velocity(q: wp.quat, inertia: wp.vec3, inv_inertia: wp.vec3, pi: wp.vec3):
-    # w = R I^-1 pi, corrected once so that body_momentum(q, inertia, w) reproduces pi to rounding:
-    # the state stores w, and the next step rebuilds pi from it with body_momentum.
-    w = wp.quat_rotate(q, wp.cw_mul(inv_inertia, pi))
-    err = pi - body_momentum(q, inertia, w)
-    return w + wp.quat_rotate(q, wp.cw_mul(inv_inertia, err))
+        if flag == BODY_FIXED:
+            body_q_out[i] = tf
+            body_v_out[i] = v
+            body_w_out[i] = w
+            return
 
+        if flag == BODY_KINEMATIC:
+            dq = quat_exp(w * dt)
+            q_new = wp.normalize(dq * q)
+            x_new = x + v * dt
+            v_new = v
+            if has_pivot != 0:
+                p = body_pivot[i]
+                if wp.isfinite(p[0] + p[1] + p[2]):
+                    # A part of a drum turns about its pivot: its centre goes round, not along a tangent.
+                    x_new = p + wp.quat_rotate(dq, x - p)
+                    v_new = wp.cross(w, x_new - p)
+            body_q_out[i] = transform(x_new, q_new)
+            body_v_out[i] = v_new
+            body_w_out[i] = w
+            return
 
-# ---------------------------------------------------------------------------------------------
-# Kernels
-# ---------------------------------------------------------------------------------------------
+        # Translation: symplectic Euler.
+        v_new = v + (body_f[i] * body_inv_mass[i] + gravity) * dt
+        x_new = x + v_new * dt
 
+        # Rotation: kick the body-frame momentum, then drift the free rotor.
+        inertia = body_inertia[i]
+        inv_inertia = vec3(safe_inv(inertia[0]), safe_inv(inertia[1]), safe_inv(inertia[2]))
+        pi = body_momentum(q, inertia, w) + wp.quat_rotate_inv(q, body_t[i] * dt)
+        pi, dq = free_rotor_drift(pi, inv_inertia, dt)
+        q_new = wp.normalize(q * dq)
+        w_new = angular_velocity(q_new, inertia, inv_inertia, pi)
 
-@wp.kernel(enable_backward=False)
-def integrate_bodies_kernel(
-    # Model
-    body_inv_mass: wp.array(dtype=float),
-    body_inertia: wp.array(dtype=wp.vec3),
-    body_flags: wp.array(dtype=int),
-    body_pivot: wp.array(dtype=wp.vec3),
-    has_pivot: int,
-    gravity: wp.vec3,
-    dt: float,
-    # State in
-    body_q_in: wp.array(dtype=wp.transform),
-    body_v_in: wp.array(dtype=wp.vec3),
-    body_w_in: wp.array(dtype=wp.vec3),
-    body_f: wp.array(dtype=wp.vec3),
-    body_t: wp.array(dtype=wp.vec3),
-    # Out (may alias the state in: each thread reads its body before writing it)
-    body_q_out: wp.array(dtype=wp.transform),
-    body_v_out: wp.array(dtype=wp.vec3),
-    body_w_out: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid()
-    flag = body_flags[i]
-    tf = body_q_in[i]
-    x = wp.transform_get_translation(tf)
-    q = wp.transform_get_rotation(tf)
-    v = body_v_in[i]
-    w = body_w_in[i]
-
-    if flag == BODY_FIXED:
-        body_q_out[i] = tf
-        body_v_out[i] = v
-        body_w_out[i] = w
-        return
-
-    if flag == BODY_KINEMATIC:
-        dq = quat_exp(w * dt)
-        q_new = wp.normalize(dq * q)
-        x_new = x + v * dt
-        v_new = v
-        if has_pivot != 0:
-            p = body_pivot[i]
-            if wp.isfinite(p[0] + p[1] + p[2]):
-                # A part of a drum turns about its pivot: its centre goes round, not along a tangent.
-                x_new = p + wp.quat_rotate(dq, x - p)
-                v_new = wp.cross(w, x_new - p)
-        body_q_out[i] = wp.transform(x_new, q_new)
+        body_q_out[i] = transform(x_new, q_new)
         body_v_out[i] = v_new
-        body_w_out[i] = w
-        return
+        body_w_out[i] = w_new
 
-    # Translation: symplectic Euler.
-    v_new = v + (body_f[i] * body_inv_mass[i] + gravity) * dt
-    x_new = x + v_new * dt
+    @wp.kernel(enable_backward=False, module="unique")
+    def kinetic_energy_kernel(
+        # Model
+        body_inv_mass: wp.array(dtype=scalar),
+        body_inertia: wp.array(dtype=vec3),
+        body_flags: wp.array(dtype=int),
+        # State in
+        body_q: wp.array(dtype=transform),
+        body_v: wp.array(dtype=vec3),
+        body_w: wp.array(dtype=vec3),
+        # Out
+        energy_lin: wp.array(dtype=scalar),
+        energy_ang: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        e_lin = scalar(0.0)
+        e_ang = scalar(0.0)
+        inv_mass = body_inv_mass[i]
+        if body_flags[i] == BODY_FREE and inv_mass > scalar(0.0):
+            v = body_v[i]
+            e_lin = scalar(0.5) * wp.dot(v, v) / inv_mass
+            wb = wp.quat_rotate_inv(wp.transform_get_rotation(body_q[i]), body_w[i])
+            e_ang = scalar(0.5) * wp.dot(wb, wp.cw_mul(body_inertia[i], wb))
+        energy_lin[i] = e_lin
+        energy_ang[i] = e_ang
 
-    # Rotation: kick the body-frame momentum, then drift the free rotor.
-    inertia = body_inertia[i]
-    inv_inertia = wp.vec3(safe_inv(inertia[0]), safe_inv(inertia[1]), safe_inv(inertia[2]))
-    pi = body_momentum(q, inertia, w) + wp.quat_rotate_inv(q, body_t[i] * dt)
-    pi, dq = free_rotor_drift(pi, inv_inertia, dt)
-    q_new = wp.normalize(q * dq)
-    w_new = angular_velocity(q_new, inertia, inv_inertia, pi)
+    return Integrator(
+        scalar=scalar,
+        vec3=vec3,
+        quat=quat,
+        transform=transform,
+        body_momentum=body_momentum,
+        angular_velocity=angular_velocity,
+        integrate_bodies_kernel=integrate_bodies_kernel,
+        kinetic_energy_kernel=kinetic_energy_kernel,
+    )
 
-    body_q_out[i] = wp.transform(x_new, q_new)
-    body_v_out[i] = v_new
-    body_w_out[i] = w_new
 
-
-@wp.kernel(enable_backward=False)
-def kinetic_energy_kernel(
-    # Model
-    body_inv_mass: wp.array(dtype=float),
-    body_inertia: wp.array(dtype=wp.vec3),
-    body_flags: wp.array(dtype=int),
-    # State in
-    body_q: wp.array(dtype=wp.transform),
-    body_v: wp.array(dtype=wp.vec3),
-    body_w: wp.array(dtype=wp.vec3),
-    # Out
-    energy_lin: wp.array(dtype=float),
-    energy_ang: wp.array(dtype=float),
-):
-    i = wp.tid()
-    e_lin = float(0.0)
-    e_ang = float(0.0)
-    inv_mass = body_inv_mass[i]
-    if body_flags[i] == BODY_FREE and inv_mass > 0.0:
-        v = body_v[i]
-        e_lin = 0.5 * wp.dot(v, v) / inv_mass
-        wb = wp.quat_rotate_inv(wp.transform_get_rotation(body_q[i]), body_w[i])
-        e_ang = 0.5 * wp.dot(wb, wp.cw_mul(body_inertia[i], wb))
-    energy_lin[i] = e_lin
-    energy_ang[i] = e_ang
+# The float32 helpers, for callers that build their own float32 kernels (the tests do).
+body_momentum = make_integrator(wp.float32).body_momentum
 
 
 # ---------------------------------------------------------------------------------------------
@@ -263,6 +294,11 @@ def kinetic_energy_kernel(
 
 def _device(device, array):
     return array.device if device is None else wp.get_device(device)
+
+
+def _integrator(body_q):
+    # The integrator in the scalar of the poses (float32 or float64 transforms).
+    return make_integrator(wp.float64 if wp.types.types_equal(body_q.dtype, wp.transformd) else wp.float32)
 
 
 def integrate_bodies(
@@ -282,7 +318,7 @@ def integrate_bodies(
     """Advance every body by one step of length ``dt``, updating the state in place.
 
     Args:
-        body_inv_mass: ``(n,)`` float32 inverse masses [1/kg] (0 for fixed and kinematic bodies).
+        body_inv_mass: ``(n,)`` inverse masses [1/kg] (0 for fixed and kinematic bodies).
         body_inertia: ``(n,)`` vec3 principal moments of inertia in the body frame [kg m^2].
         body_flags: ``(n,)`` int32, ``BODY_FREE`` (0), ``BODY_FIXED`` (1) or ``BODY_KINEMATIC`` (2).
         gravity: gravitational acceleration [m/s^2], a ``wp.vec3`` or three numbers.
@@ -297,14 +333,17 @@ def integrate_bodies(
             (x <- p + R(w dt)(x - p), v = w x (x - p)) instead of moving along its velocity.
 
     The scheme (symplectic Euler for translation; momentum kick and Strang-split free-rotor
-    drift for rotation) is described in the module docstring. Capturable in a CUDA graph.
+    drift for rotation) is described in the module docstring. Capturable in a CUDA graph. Every float
+    array is in the scalar of ``body_q`` (float32 or float64 transforms).
     """
     device = _device(device, body_q)
+    ig = _integrator(body_q)
+    scalar = ig.scalar
     has_pivot = int(body_pivot is not None)
     if body_pivot is None:
-        body_pivot = wp.zeros(1, dtype=wp.vec3, device=device)
+        body_pivot = wp.zeros(1, dtype=ig.vec3, device=device)
     wp.launch(
-        integrate_bodies_kernel,
+        ig.integrate_bodies_kernel,
         dim=body_q.shape[0],
         inputs=[
             body_inv_mass,
@@ -312,8 +351,8 @@ def integrate_bodies(
             body_flags,
             body_pivot,
             has_pivot,
-            wp.vec3(*[float(g) for g in gravity]),
-            float(dt),
+            ig.vec3(*[scalar(float(g)) for g in gravity]),
+            scalar(float(dt)),
             body_q,
             body_v,
             body_w,
@@ -339,20 +378,21 @@ def kinetic_energy(
     """Per-body kinetic energy, translational m |v|^2 / 2 and rotational w . R I R^T w / 2 [J].
 
     Arguments as in :func:`integrate_bodies`; ``energy_lin`` and ``energy_ang`` are optional
-    ``(n,)`` float32 output arrays (allocated when None). Fixed, kinematic and infinite-mass
+    ``(n,)`` output arrays in the scalar of ``body_q`` (allocated when None). Fixed, kinematic and infinite-mass
     bodies are driven from outside the system and count 0.
 
     Returns:
-        ``(energy_lin, energy_ang)``, two ``(n,)`` float32 Warp arrays [J].
+        ``(energy_lin, energy_ang)``, two ``(n,)`` Warp arrays [J].
     """
     device = _device(device, body_q)
+    ig = _integrator(body_q)
     n = body_q.shape[0]
     if energy_lin is None:
-        energy_lin = wp.empty(n, dtype=float, device=device)
+        energy_lin = wp.empty(n, dtype=ig.scalar, device=device)
     if energy_ang is None:
-        energy_ang = wp.empty(n, dtype=float, device=device)
+        energy_ang = wp.empty(n, dtype=ig.scalar, device=device)
     wp.launch(
-        kinetic_energy_kernel,
+        ig.kinetic_energy_kernel,
         dim=n,
         inputs=[body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w],
         outputs=[energy_lin, energy_ang],

@@ -299,3 +299,49 @@ def test_checkpoint_of_the_format_before_the_state_redesign_resumes(tmp_path):
         assert fa.files == fb.files
         for key in fa.files:
             np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)
+
+
+@pytest.mark.parametrize("precision", ["mixed", "float64"])
+def test_resume_equals_unbroken_run_in_float64_precisions(device, tmp_path, precision):
+    """A checkpoint of a "mixed" or "float64" run keeps the float64 state (and the history in its
+    precision) and resumes bit for bit; before, precision = "float64" was refused and "mixed" did
+    not exist."""
+    from polydem.checkpoint import read_checkpoint
+
+    scene = stack()
+    scene.precision = precision
+    unbroken = polydem.Simulation(scene, device=device)
+    unbroken.step(600)
+    first = polydem.Simulation(scene, device=device)
+    first.step(300)
+    save_checkpoint(first, tmp_path / "run.npz")
+    with np.load(tmp_path / "run.npz") as data:
+        assert data["body_q"].dtype == np.float64 and data["body_dissipated"].dtype == np.float64
+        history = np.float64 if precision == "float64" else np.float32
+        assert data["pair_turn"].dtype == history and data["plane_turn"].dtype == history
+        assert len(data["pair_key"]) >= 3 and np.any(data["pair_xi"] != 0.0)
+    assert read_checkpoint(tmp_path / "run.npz").arrays["body_q"].dtype == np.float64
+    resumed = polydem.Simulation(scene, device=device)
+    load_checkpoint(resumed, tmp_path / "run.npz")
+    resumed.step(300)
+    a, b = unbroken.state(), resumed.state()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert unbroken.energy()["dissipated"] == resumed.energy()["dissipated"]
+
+
+def test_checkpoint_of_another_precision_is_refused(tmp_path):
+    """A float64 checkpoint resumed in float32 (or the other way) is refused, naming the precisions."""
+    from polydem.checkpoint import CheckpointError
+
+    scene = stack()
+    scene.precision = "float64"
+    sim = polydem.Simulation(scene, device=HOST)
+    sim.step(10)
+    save_checkpoint(sim, tmp_path / "f64.npz")
+    for other in ("float32", "mixed"):
+        scene.precision = other
+        with pytest.raises(
+            CheckpointError, match=f"simulation.precision differs: checkpoint 'float64', scene '{other}'"
+        ):
+            load_checkpoint(polydem.Simulation(scene, device=HOST), tmp_path / "f64.npz")

@@ -253,6 +253,24 @@ def test_usd_false_writes_no_usd(tmp_path, capsys):
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["outputs"]["usd"] is None
 
 
+@pytest.mark.parametrize("precision", ["mixed", "float64"])
+def test_run_in_float64_precisions(tmp_path, capsys, precision):
+    """Before: --precision float64 was refused (exit 2, "float32 only") and "mixed" was no choice.
+    Now the run goes through, the summary says which, the checkpoint holds float64 poses, and a
+    resume in another precision is refused naming both."""
+    scene = write_scene(tmp_path, replace=[('usd = "tiny.usda"', "usd = false"), ("pictures = [1]", "")])
+    base = ["run", scene, "--device", "cpu", "--steps", "150", "--out", tmp_path / "o", "-q"]
+    code, _, err = run([*base, "--precision", precision], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["precision"] == precision
+    checkpoint = tmp_path / "o" / "checkpoints" / "step_000000150.npz"
+    with np.load(checkpoint) as data:
+        assert data["body_q"].dtype == np.float64
+    other = ["run", scene, "--device", "cpu", "--out", tmp_path / "p", "--resume", checkpoint]
+    code, _, err = run([*other, "--precision", "float32"], capsys)
+    assert_user_error(code, err, f"simulation.precision differs: checkpoint '{precision}', scene 'float32'")
+
+
 # ---------------------------------------------------------------------- user errors
 
 
@@ -292,8 +310,7 @@ def test_missing_scene_file(tmp_path, capsys):
         (["--steps", "10", "--duration", "0.1"], ["--duration", "not allowed with", "--steps"]),
         (["--duration", "-1"], ["--duration", "> 0"]),
         (["--fps", "0"], ["--fps", "> 0"]),
-        (["--precision", "float64"], ["--precision", "float32 only"]),
-        (["--precision", "double"], ["--precision", "invalid choice"]),
+        (["--precision", "double"], ["--precision", "invalid choice", "'float32', 'mixed', 'float64'"]),
         (["--device", "gpu"], ["--device", "unknown device 'gpu'"]),
         (["--device", "cuda:97"], ["--device", "'cuda:97' is not available"]),
         (["--picture-size", "big"], ["--picture-size", "WIDTHxHEIGHT"]),

@@ -1180,20 +1180,34 @@ def test_pivot_bodies():
 
 def test_device_and_precision():
     assert Scene(device="cuda:1").device == "cuda:1" and Scene().device is None
-    assert Scene(precision="float32").precision == "float32"
-    with pytest.raises(SceneError, match=r"runs in float32 only.*polydem.overlap") as info:
-        Scene(precision="float64")
-    assert info.value.key == "simulation.precision"
-    with pytest.raises(SceneError, match=r"unknown precision 'float16'.*Valid precisions: float32, float64"):
+    assert Scene().precision == "float32"
+    for precision in ("float32", "mixed", "float64"):
+        assert Scene(precision=precision).precision == precision
+    valid = r"unknown precision 'float16'.*Valid precisions: float32, mixed, float64"
+    with pytest.raises(SceneError, match=valid) as info:
         Scene(precision="float16")
+    assert info.value.key == "simulation.precision"
     with pytest.raises(SceneError, match=r"unknown device 'gpu'.*\"cuda:N\"") as info:
         Scene(device="gpu")
     assert info.value.key == "simulation.device"
     scene = stone_scene()
     scene.add_body("cube", "stone")
     scene.precision = "float64"
-    with pytest.raises(SceneError, match="float32 only"):
+    scene.validate()
+    scene.precision = "double"
+    with pytest.raises(SceneError, match="unknown precision 'double'"):
         scene.validate()
+
+
+@pytest.mark.parametrize("precision", ["mixed", "float64"])
+def test_toml_precision(tmp_path, precision):
+    """Before: precision = "float64" in a scene file was refused ("float32 only"); now it and "mixed"
+    load, and write back."""
+    scene = Scene.from_toml(
+        write(tmp_path, BASE_TOML.replace("steps = 100", f'steps = 100\nprecision = "{precision}"'))
+    )
+    assert scene.precision == precision
+    assert scene.to_dict()["simulation"]["precision"] == precision
 
 
 def test_output_settings():
@@ -1398,7 +1412,12 @@ region = { min = [-0.5, -0.5, 0.5], max = [0.5, 0.5, 1.0] }
         ("count = 20", "count = 20\nscale_bins = 0", "emitters[0].scale_bins", r"must be an integer >= 1"),
         ("[[emitters]]", "[emitters]", "emitters", r"expected an array of tables \[\[emitters\]\]"),
         # simulation settings
-        ("steps = 100", 'steps = 100\nprecision = "float64"', "simulation.precision", r"float32 only.*float64"),
+        (
+            "steps = 100",
+            'steps = 100\nprecision = "float16"',
+            "simulation.precision",
+            r"unknown precision 'float16'.*float32, mixed, float64",
+        ),
         ("steps = 100", 'steps = 100\ndevice = "gpu"', "simulation.device", r"unknown device 'gpu'"),
         ("steps = 100", "steps = 100\ndevice = 0", "simulation.device", r"expected a device name"),
         ("steps = 100", "steps = 100\nprecison = 'float32'", "simulation.precison", r"did you mean 'precision'\?"),

@@ -312,7 +312,8 @@ class Checkpoint:
     """A checkpoint read and checked by :func:`read_checkpoint`.
 
     Attributes: ``path``, ``format``, ``num_bodies``, ``steps_done``, ``time`` [s], ``dt`` [s],
-    ``arrays`` (the state: ``body_q`` (N, 7) float32, ``body_v``, ``body_w``, ``body_dissipated``,
+    ``arrays`` (the state, in the dtypes of the recorded precision (float32 for the older format):
+    ``body_q`` (N, 7), ``body_v``, ``body_w``, ``body_dissipated``,
     ``plane_xi``, ``plane_turn``, ``step_count``, ``pair_key``, ``pair_xi``, ``pair_turn``),
     ``physics`` (the description, None for the old format), ``physics_arrays``, ``fingerprint``
     and ``run`` (the run record, or None).
@@ -378,6 +379,17 @@ def _scalar(path, data, name, kind):
     return float(a)
 
 
+def _dtypes(data):
+    """(dtype of the body arrays, dtype of the contact history) of the precision the checkpoint
+    records; float32 for a checkpoint of the older format (a damaged record is refused later)."""
+    try:
+        precision = json.loads(str(data["physics_json"]))["simulation.precision"]
+    except Exception:
+        precision = "float32"
+    body = np.float64 if precision in ("mixed", "float64") else np.float32
+    return body, np.float64 if precision == "float64" else np.float32
+
+
 def _real(path, data, name, shape, dtype=np.float32):
     """``data[name]`` as ``dtype`` after checking its shape (None entries match any size) and values."""
     a = data[name]
@@ -438,7 +450,8 @@ def read_checkpoint(path) -> Checkpoint:
             path, f"time = {t!r} s does not match steps_done = {steps} at dt = {dt:.6g} s ({steps * dt:.6g} s)"
         )
     arrays = {}
-    arrays["body_q"] = q = _real(path, data, "body_q", (n, 7))
+    body, history = _dtypes(data) if "physics_json" in data else (np.float32, np.float32)
+    arrays["body_q"] = q = _real(path, data, "body_q", (n, 7), body)
     norm = np.linalg.norm(q[:, 3:].astype(np.float64), axis=1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > QUAT_TOLERANCE)
     if len(bad):
@@ -449,11 +462,11 @@ def read_checkpoint(path) -> Checkpoint:
             + (f" ({len(bad)} bodies)" if len(bad) > 1 else ""),
         )
     for name in ("body_v", "body_w"):
-        arrays[name] = _real(path, data, name, (n, 3))
-    arrays["body_dissipated"] = _real(path, data, "body_dissipated", (n,))
-    plane_turn = arrays["plane_turn"] = _real(path, data, "plane_turn", (n, None))
+        arrays[name] = _real(path, data, name, (n, 3), body)
+    arrays["body_dissipated"] = _real(path, data, "body_dissipated", (n,), body)
+    plane_turn = arrays["plane_turn"] = _real(path, data, "plane_turn", (n, None), history)
     xi = data["plane_xi"]
-    arrays["plane_xi"] = _real(path, data, "plane_xi", (1, 1, 3) if xi.shape[:2] == (1, 1) else (n, None, 3))
+    arrays["plane_xi"] = _real(path, data, "plane_xi", (1, 1, 3) if xi.shape[:2] == (1, 1) else (n, None, 3), history)
     if arrays["plane_xi"].shape[:2] not in ((1, 1), plane_turn.shape):
         raise _damaged(path, f"plane_xi has shape {xi.shape}, plane_turn {plane_turn.shape}: they do not fit")
     step_count = data["step_count"]
@@ -482,9 +495,9 @@ def read_checkpoint(path) -> Checkpoint:
             what = "repeats" if step[i - 1] == 0 else "is smaller than the one before"
             raise _damaged(path, f"pair_key[{i}] = {int(key[i])} (bodies {int(a[i])}, {int(b[i])}) {what}")
     arrays["pair_key"] = key
-    arrays["pair_turn"] = _real(path, data, "pair_turn", (count,))
+    arrays["pair_turn"] = _real(path, data, "pair_turn", (count,), history)
     pair_xi = data["pair_xi"]
-    arrays["pair_xi"] = _real(path, data, "pair_xi", (0 if len(pair_xi) == 0 else count, 3))
+    arrays["pair_xi"] = _real(path, data, "pair_xi", (0 if len(pair_xi) == 0 else count, 3), history)
     ck = Checkpoint(
         path=path,
         format=fmt,

@@ -7,13 +7,19 @@ across a rebuild, a redone chunk or a checkpoint keeps it, and a new pair starts
 
 The wall contacts' history is per (body, wall), has no list to follow, and lives in the
 :class:`~polydem.state.State`.
+
+The history is in the contact scalar of the model's precision (float32 in "float32" and "mixed",
+float64 in "float64"). The broad phase runs in float32 in every precision: with float64 poses it
+gets float32 copies of the centres and radii grown by the rounding of the cast
+(``kernels/broadphase.py`` ``float32_input_kernel``), so no candidate pair is missed.
 """
 
 import numpy as np
 import warp as wp
 
-from polydem.kernels.broadphase import BroadPhase
-from polydem.kernels.forces import b_keys_kernel, body_ranges_kernel, remap_history_kernel
+from polydem.kernels.broadphase import BroadPhase, float32_input_kernel
+from polydem.kernels.forces import b_keys_kernel, body_ranges_kernel, make_remap_history_kernel
+from polydem.kernels.precision import numpy_dtype
 
 __all__ = ["Contacts", "PairHistory"]
 
@@ -23,8 +29,9 @@ class PairHistory:
 
     Attributes:
         key: (C,) int64 pair keys ``a * N + b`` (a < b), increasing over the first ``count[0]`` entries.
-        xi: (C,) ``wp.vec3`` friction springs [m]; (1,) when the scene has no friction.
-        turn: (C,) float32 turning volumes [m^3].
+        xi: (C,) vec3 friction springs [m]; (1,) when the scene has no friction.
+        turn: (C,) turning volumes [m^3].
+        (``xi`` and ``turn`` in float32, or float64 in the "float64" precision.)
         count: (1,) int32 number of pairs.
     """
 
@@ -37,30 +44,31 @@ class PairHistory:
         self.count = count
 
     @classmethod
-    def zeros(cls, capacity, friction, device):
+    def zeros(cls, capacity, friction, device, scalar=wp.float32):
         return cls(
             wp.zeros(capacity, dtype=wp.int64, device=device),
-            wp.zeros(capacity if friction else 1, dtype=wp.vec3, device=device),
-            wp.zeros(capacity, dtype=float, device=device),
+            wp.zeros(capacity if friction else 1, dtype=wp.types.vector(3, scalar), device=device),
+            wp.zeros(capacity, dtype=scalar, device=device),
             wp.zeros(1, dtype=int, device=device),
         )
 
     @classmethod
-    def from_numpy(cls, key, xi, turn, friction, device):
-        """The history of ``len(key)`` pairs from host arrays (``xi`` is ignored without ``friction``)."""
+    def from_numpy(cls, key, xi, turn, friction, device, scalar=wp.float32):
+        """The history of ``len(key)`` pairs from host arrays (``xi`` is ignored without ``friction``),
+        in ``scalar``."""
         count = len(key)
         cap = max(count, 1)
         k = np.zeros(cap, dtype=np.int64)
         k[:count] = key
-        x = np.zeros((cap, 3), dtype=np.float32)
+        x = np.zeros((cap, 3), dtype=numpy_dtype(scalar))
         if friction and count:
             x[:count] = xi
-        t = np.zeros(cap, dtype=np.float32)
+        t = np.zeros(cap, dtype=numpy_dtype(scalar))
         t[:count] = turn
         return cls(
             wp.array(k, dtype=wp.int64, device=device),
-            wp.array(x, dtype=wp.vec3, device=device),
-            wp.array(t, dtype=float, device=device),
+            wp.array(x, dtype=wp.types.vector(3, scalar), device=device),
+            wp.array(t, dtype=scalar, device=device),
             wp.array(np.array([count], dtype=np.int32), dtype=int, device=device),
         )
 
@@ -87,11 +95,13 @@ class Contacts:
     Attributes (device arrays; C = :attr:`capacity`, N bodies):
         broadphase: the :class:`~polydem.kernels.broadphase.BroadPhase`, which owns the pair list
             ``pair_a``, ``pair_b`` (C,) int32, ``pair_key`` (C,) int64, ``pair_count`` (1,) int32.
-        pair_xi: (C,) ``wp.vec3`` friction springs [m] ((1,) without friction).
-        pair_turn: (C,) float32 turning volumes [m^3].
-        pair_force: (C,) ``wp.vec3`` contact force of the pair in the last step [N] (kernels/forces.py).
-        pair_torque_a: (C,) ``wp.vec3`` torque of the pair on body A about its centroid [N m].
-        pair_dissipated: (C,) float32 energy the pair dissipated in the last step [J].
+        pair_xi: (C,) vec3 friction springs [m] ((1,) without friction).
+        pair_turn: (C,) turning volumes [m^3].
+        pair_force: (C,) vec3 contact force of the pair in the last step [N] (kernels/forces.py).
+        pair_torque_a: (C,) vec3 torque of the pair on body A about its centroid [N m].
+        pair_dissipated: (C,) energy the pair dissipated in the last step [J].
+        (These five in the model's contact scalar: float32 in "float32" and "mixed", float64 in
+        "float64".)
         pair_by_b: (C,) int32 pair indices ordered by body B.
         body_pairs_a, body_pairs_b: (N,) ``wp.vec2i`` each body's range in the pairs ordered by
             A (``pair_key``) and by B (``pair_by_b``).
@@ -106,11 +116,32 @@ class Contacts:
         self.device = model.device
         self.num_bodies = model.num_bodies
         self.friction = model.friction
+        self.scalar = model.contact_scalar
         self.broadphase = BroadPhase(
             self.num_bodies, self.device, skin, capacity=capacity, rotation_term=False, body_box=body_box
         )
         self.capacity = 0
         self.generation = 0
+        self._remap = make_remap_history_kernel(self.scalar)
+        # Float64 poses reach the broad phase through float32 copies (module docstring).
+        self._cast = model.scalar != wp.float32
+        if self._cast:
+            self._q32 = wp.zeros(self.num_bodies, dtype=wp.transform, device=self.device)
+            self._radius32 = wp.zeros(self.num_bodies, dtype=float, device=self.device)
+
+    def _inputs(self, body_q):
+        """The poses and radii for the broad phase: float32 copies when the poses are float64."""
+        m = self.model
+        if not self._cast:
+            return body_q, m.body_radius
+        wp.launch(
+            float32_input_kernel,
+            dim=self.num_bodies,
+            inputs=[m.body_radius, body_q],
+            outputs=[self._q32, self._radius32],
+            device=self.device,
+        )
+        return self._q32, self._radius32
 
     # -- the pair list (the broad phase replaces its arrays when it grows) ------------------------
 
@@ -141,12 +172,14 @@ class Contacts:
         self.capacity = capacity
         self.generation += 1
         springs = capacity if self.friction else 1
-        self.pair_xi = wp.zeros(springs, dtype=wp.vec3, device=dev)
-        self.pair_turn = wp.zeros(capacity, dtype=float, device=dev)
-        self.pair_force = wp.zeros(capacity, dtype=wp.vec3, device=dev)
-        self.pair_torque_a = wp.zeros(capacity, dtype=wp.vec3, device=dev)
-        self.pair_dissipated = wp.zeros(capacity, dtype=float, device=dev)
-        self.previous = PairHistory.zeros(capacity, self.friction, dev)
+        scalar = self.scalar
+        vec3 = wp.types.vector(3, scalar)
+        self.pair_xi = wp.zeros(springs, dtype=vec3, device=dev)
+        self.pair_turn = wp.zeros(capacity, dtype=scalar, device=dev)
+        self.pair_force = wp.zeros(capacity, dtype=vec3, device=dev)
+        self.pair_torque_a = wp.zeros(capacity, dtype=vec3, device=dev)
+        self.pair_dissipated = wp.zeros(capacity, dtype=scalar, device=dev)
+        self.previous = PairHistory.zeros(capacity, self.friction, dev, scalar)
         # Pairs ordered by their B body (radix sort needs twice the room).
         self._keys_b = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
         self._by_b = wp.zeros(2 * capacity, dtype=int, device=dev)
@@ -170,7 +203,7 @@ class Contacts:
         cap = self.capacity
         prev = self.previous
         wp.launch(
-            remap_history_kernel,
+            self._remap,
             dim=cap,
             inputs=[prev.key, prev.count, prev.xi, prev.turn, bp.pair_key, bp.pair_count, int(self.friction)],
             outputs=[self.pair_xi, self.pair_turn],
@@ -205,7 +238,7 @@ class Contacts:
             self._keep_previous()
         elif self.capacity:
             self.previous.count.zero_()
-        bp.build(body_q, m.body_radius, m.body_flags)
+        bp.build(*self._inputs(body_q), m.body_flags)
         if bp.capacity != self.capacity:
             old = self.previous if self.capacity else None
             self._allocate(bp.capacity)
@@ -227,13 +260,13 @@ class Contacts:
         """
         self._keep_previous()
         m = self.model
-        self.broadphase.rebuild_on_device(body_q, m.body_radius, m.body_flags)
+        self.broadphase.rebuild_on_device(*self._inputs(body_q), m.body_flags)
         self._after_rebuild()
 
     def update(self, body_q):
         """Host: :meth:`build` when some body may have left its skin since the last build."""
         m = self.model
-        flag = self.broadphase.needs_rebuild(body_q, m.body_radius, m.body_flags)
+        flag = self.broadphase.needs_rebuild(*self._inputs(body_q), m.body_flags)
         if int(flag.numpy()[0]):
             self.build(body_q)
 
@@ -241,7 +274,7 @@ class Contacts:
         """:meth:`update` without host synchronisation: the test and a conditional :meth:`rebuild_on_device`."""
         bp = self.broadphase
         m = self.model
-        bp.needs_rebuild(body_q, m.body_radius, m.body_flags)
+        bp.needs_rebuild(*self._inputs(body_q), m.body_flags)
         wp.capture_if(bp.rebuild_flag, on_true=self.rebuild_on_device, body_q=body_q)
 
     def host_build_needed(self):
@@ -263,7 +296,7 @@ class Contacts:
         """Find the pairs at ``body_q`` afresh (host build) and give each pair of ``history`` its history back."""
         bp = self.broadphase
         m = self.model
-        bp.build(body_q, m.body_radius, m.body_flags)
+        bp.build(*self._inputs(body_q), m.body_flags)
         if bp.capacity != self.capacity:
             self._allocate(bp.capacity)
         prev = self.previous
@@ -281,6 +314,6 @@ class Contacts:
         count = self.count()
         return {
             "pair_key": self.broadphase.pair_key.numpy()[:count],
-            "pair_xi": self.pair_xi.numpy()[:count] if self.friction else np.zeros((0, 3), np.float32),
+            "pair_xi": self.pair_xi.numpy()[:count] if self.friction else np.zeros((0, 3), numpy_dtype(self.scalar)),
             "pair_turn": self.pair_turn.numpy()[:count],
         }

@@ -7,6 +7,7 @@ What changes during a run is not here: see :class:`~polydem.state.State` (bodies
 import numpy as np
 import warp as wp
 
+from polydem.kernels.precision import numpy_dtype, scalars
 from polydem.scene import (  # noqa: F401  (re-exported: the time step is computed host-side in polydem.scene)
     MAX_DT_FRACTION,
     REFERENCE_DEPTH,
@@ -19,24 +20,30 @@ from polydem.state import State
 
 
 class Model:
-    """Static device arrays of a simulation (float32), from a :class:`~polydem.Scene`.
+    """Static device arrays of a simulation, from a :class:`~polydem.Scene`.
+
+    The scene's ``precision`` (:mod:`polydem.kernels.precision`) sets two scalars: S, that of the
+    bodies (inverse mass, inertia, pivot) and walls (normal, offset), and C, that of the shapes and
+    the material table. "float32": S = C = float32; "mixed": S = float64, C = float32;
+    "float64": S = C = float64. The bounding radii feed the broad phase and stay float32.
 
     Attributes:
+        precision: "float32", "mixed" or "float64"; scalar, contact_scalar: the Warp scalars S, C.
         shapes: :class:`~polydem.shapeset.ShapeSet` of the scene's shapes (``shape_*``, ``face_*``).
         body_shape: (N,) int32 shape index.
         body_material: (N,) int32 material index.
         body_flags: (N,) int32: 0 free, 1 fixed, 2 kinematic.
-        body_mass: (N,) float32 mass [kg] (numpy, host).
-        body_inv_mass: (N,) float32 inverse mass [1/kg], 0 for fixed and kinematic bodies.
-        body_inertia: (N,) vec3 principal moments of inertia [kg m^2].
+        body_mass: (N,) mass [kg] (numpy, host; float32 in "float32", else float64).
+        body_inv_mass: (N,) S inverse mass [1/kg], 0 for fixed and kinematic bodies.
+        body_inertia: (N,) S vec3 principal moments of inertia [kg m^2].
         body_radius: (N,) float32 bounding radius about the centre [m].
-        body_pivot: (N,) vec3 point a kinematic body turns about [m] (NaN: none), or None when no
+        body_pivot: (N,) S vec3 point a kinematic body turns about [m] (NaN: none), or None when no
             body has one.
-        material_k, material_e, material_mu, material_kt: (M*M,) float32 mixed pair properties,
+        material_k, material_e, material_mu, material_kt: (M*M,) C mixed pair properties,
             row-major by (material of A, material of B): stiffness (units of the law),
             restitution, friction coefficient, tangential stiffness [N/m].
         law: "linear", "hertz" or "power"; law_m: its exponent m (W = k V^m / m).
-        plane_normal: (P,) vec3 outward unit normals of the walls; plane_offset: (P,) float32 [m]
+        plane_normal: (P,) S vec3 outward unit normals of the walls; plane_offset: (P,) S [m]
             (the wall is n.x <= offset); plane_material: (P,) int32.
         gravity: (3,) [m/s^2]; dt: time step [s]; dt_limit: largest accurate step [s].
     """
@@ -48,7 +55,11 @@ class Model:
         self.scene = scene
         names = scene.shape_names
         shape_list = [scene.shapes[n] for n in names]
-        self.shapes = ShapeSet(shape_list, device=dev, precision="float32")
+        self.precision = scene.precision
+        self.scalar, self.contact_scalar = scalars(self.precision)
+        s_np, c_np = numpy_dtype(self.scalar), numpy_dtype(self.contact_scalar)
+        vec3s = wp.types.vector(3, self.scalar)
+        self.shapes = ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name)
         self.num_bodies = n = scene.num_bodies
         self.num_materials = len(scene.material_names)
 
@@ -58,7 +69,7 @@ class Model:
         inertia = np.asarray(scene.body_inertia(), dtype=np.float64)
         radius = np.array([s.radius for s in shape_list])[body_shape]
         free = kind == 0
-        self.body_mass = mass.astype(np.float32)
+        self.body_mass = mass.astype(s_np)
         self.body_flags_np = kind
         inv_mass = np.where(free, 1.0 / np.maximum(mass, 1e-300), 0.0)
 
@@ -82,24 +93,25 @@ class Model:
         self.body_shape = arr(body_shape, int)
         self.body_material = arr(np.asarray(scene.body_material, dtype=np.int32), int)
         self.body_flags = arr(kind, int)
-        self.body_inv_mass = arr(inv_mass.astype(np.float32), float)
-        self.body_inertia = arr(inertia.astype(np.float32), wp.vec3)
+        self.body_inv_mass = arr(inv_mass.astype(s_np), self.scalar)
+        self.body_inertia = arr(inertia.astype(s_np), vec3s)
         self.body_radius = arr(radius.astype(np.float32), float)
         pivot = np.asarray(getattr(scene, "body_pivot", np.full((n, 3), np.nan)), dtype=np.float64)
         # Only kinematic bodies turning about a pivot (drum parts) need the array.
-        self.body_pivot = arr(pivot.astype(np.float32), wp.vec3) if np.isfinite(pivot).any() else None
-        self.material_k = arr(k.astype(np.float32).ravel(), float)
-        self.material_e = arr(np.asarray(table["restitution"], dtype=np.float32).ravel(), float)
-        self.material_mu = arr(np.asarray(table["friction"], dtype=np.float32).ravel(), float)
-        self.material_kt = arr(kt.astype(np.float32).ravel(), float)
+        self.body_pivot = arr(pivot.astype(s_np), vec3s) if np.isfinite(pivot).any() else None
+        c = self.contact_scalar
+        self.material_k = arr(k.astype(c_np).ravel(), c)
+        self.material_e = arr(np.asarray(table["restitution"], dtype=c_np).ravel(), c)
+        self.material_mu = arr(np.asarray(table["friction"], dtype=c_np).ravel(), c)
+        self.material_kt = arr(kt.astype(c_np).ravel(), c)
 
         planes = scene.planes
         mat_index = {name: i for i, name in enumerate(scene.material_names)}
         normals = np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3)
         offsets = np.array([np.dot(p.normal, p.point) for p in planes], dtype=np.float64)
         self.num_planes = len(planes)
-        self.plane_normal = arr(normals.astype(np.float32), wp.vec3)
-        self.plane_offset = arr(offsets.astype(np.float32), float)
+        self.plane_normal = arr(normals.astype(s_np), vec3s)
+        self.plane_offset = arr(offsets.astype(s_np), self.scalar)
         self.plane_material = arr(np.array([mat_index[p.material] for p in planes], dtype=np.int32), int)
         self.bytes = sum(
             a.capacity
@@ -118,8 +130,9 @@ class Model:
     def state(self):
         """The scene's initial :class:`~polydem.state.State`: its bodies' poses and velocities, no contact history."""
         scene = self.scene
-        state = State(self.num_bodies, self.num_planes, self.friction, self.device)
-        state.body_q.assign(np.hstack([scene.body_position, scene.body_orientation]).astype(np.float32))
-        state.body_v.assign(np.asarray(scene.body_velocity, dtype=np.float32))
-        state.body_w.assign(np.asarray(scene.body_angular_velocity, dtype=np.float32))
+        state = State(self.num_bodies, self.num_planes, self.friction, self.device, self.precision)
+        s_np = numpy_dtype(self.scalar)
+        state.body_q.assign(np.hstack([scene.body_position, scene.body_orientation]).astype(s_np))
+        state.body_v.assign(np.asarray(scene.body_velocity, dtype=s_np))
+        state.body_w.assign(np.asarray(scene.body_angular_velocity, dtype=s_np))
         return state

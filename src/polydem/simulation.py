@@ -12,12 +12,19 @@ front: it builds the three from a scene, steps them in place, and reads energies
 On a CUDA device the step is captured once as a CUDA graph, the broad-phase rebuild as a
 conditional node inside it, and replayed; the CPU runs the same kernels.
 
+The scene's ``precision`` ("float32", "mixed" or "float64"; :mod:`polydem.kernels.precision`) sets
+the dtypes of the Model, State and Contacts arrays and the variant of every kernel; what
+:meth:`Simulation.state`, :meth:`Simulation.contacts` and :meth:`Simulation.energy` return is float64
+numpy in every precision.
+
 Steps run in chunks between host checks. A chunk starts from a saved copy of the state and the
 pair history; when something overflowed during the chunk (the candidate-pair buffer in a device
 rebuild, or a clipped polygon) the copy is restored, the buffer grown, and the chunk run again, so
 no contact is ever dropped. A non-finite value stops the run with an error naming the step and
 the bodies.
 """
+
+import functools
 
 import numpy as np
 import warp as wp
@@ -39,28 +46,35 @@ class SimulationError(RuntimeError):
     """The run cannot go on (a non-finite state); the message names the step and the bodies."""
 
 
-@wp.kernel(enable_backward=False)
-def check_state_kernel(
-    # Model
-    body_flags: wp.array(dtype=int),
-    # State in
-    step: wp.array(dtype=int),
-    body_q: wp.array(dtype=wp.transform),
-    body_v: wp.array(dtype=wp.vec3),
-    body_w: wp.array(dtype=wp.vec3),
-    # Out
-    bad_step: wp.array(dtype=int),
-):
-    """Records (atomic min) the first step at which a body's state is not finite."""
-    i = wp.tid()
-    q = body_q[i]
-    p = wp.transform_get_translation(q)
-    r = wp.transform_get_rotation(q)
-    v = body_v[i]
-    w = body_w[i]
-    total = p[0] + p[1] + p[2] + r[0] + r[1] + r[2] + r[3] + v[0] + v[1] + v[2] + w[0] + w[1] + w[2]
-    if not wp.isfinite(total):
-        wp.atomic_min(bad_step, 0, step[0])
+@functools.cache
+def make_check_state_kernel(scalar):
+    """The finiteness check of a state in ``scalar``."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def check_state_kernel(
+        # Model
+        body_flags: wp.array(dtype=int),
+        # State in
+        step: wp.array(dtype=int),
+        body_q: wp.array(dtype=wp.types.transformation(scalar)),
+        body_v: wp.array(dtype=vec3),
+        body_w: wp.array(dtype=vec3),
+        # Out
+        bad_step: wp.array(dtype=int),
+    ):
+        """Records (atomic min) the first step at which a body's state is not finite."""
+        i = wp.tid()
+        q = body_q[i]
+        p = wp.transform_get_translation(q)
+        r = wp.transform_get_rotation(q)
+        v = body_v[i]
+        w = body_w[i]
+        total = p[0] + p[1] + p[2] + r[0] + r[1] + r[2] + r[3] + v[0] + v[1] + v[2] + w[0] + w[1] + w[2]
+        if not wp.isfinite(total):
+            wp.atomic_min(bad_step, 0, step[0])
+
+    return check_state_kernel
 
 
 @wp.kernel(enable_backward=False)
@@ -101,7 +115,9 @@ class Stepper:
 
     def _kernels(self):
         m = self.model
-        self.kernels = make_contact_kernels(m.law, m.friction, self.poly_capacity, m.shapes.max_faces)
+        self.kernels = make_contact_kernels(
+            m.law, m.friction, self.poly_capacity, m.shapes.max_faces, precision=m.precision
+        )
 
     def grow_polygons(self):
         """Double the room for clipped polygons (after an overflow); new kernels, so recapture a graph."""
@@ -159,7 +175,7 @@ class Stepper:
         )
         wp.launch(advance_step_kernel, dim=1, inputs=[state.step_count], device=dev)
         wp.launch(
-            check_state_kernel,
+            make_check_state_kernel(m.scalar),
             dim=m.num_bodies,
             inputs=[m.body_flags, state.step_count, state.body_q, state.body_v, state.body_w],
             outputs=[self.bad_step],
@@ -247,22 +263,28 @@ class Stepper:
             device=dev,
         )
 
+    def _diag_arrays(self, pairs, bodies, planes):
+        # The outputs of the diagnostics variant: contact points in the state's scalar (they are
+        # world positions), the rest in the contact scalar.
+        dev = self.device
+        m = self.model
+        c = m.contact_scalar
+        vec3c = wp.types.vector(3, c)
+        vec3s = wp.types.vector(3, m.scalar)
+        out = {}
+        for prefix, shape in (("pair", pairs), ("plane", (bodies, planes))):
+            out[f"{prefix}_volume"] = wp.zeros(shape, dtype=c, device=dev)
+            out[f"{prefix}_energy"] = wp.zeros(shape, dtype=c, device=dev)
+            if prefix == "pair":
+                out["pair_normal"] = wp.zeros(shape, dtype=vec3c, device=dev)
+            out[f"{prefix}_point"] = wp.zeros(shape, dtype=vec3s, device=dev)
+            out[f"{prefix}_fn"] = wp.zeros(shape, dtype=c, device=dev)
+            out[f"{prefix}_ft"] = wp.zeros(shape, dtype=vec3c, device=dev)
+        return out
+
     def _placeholders(self):
         if getattr(self, "_empty", None) is None:
-            dev = self.device
-            self._empty = {
-                "pair_volume": wp.zeros(1, dtype=float, device=dev),
-                "pair_energy": wp.zeros(1, dtype=float, device=dev),
-                "pair_normal": wp.zeros(1, dtype=wp.vec3, device=dev),
-                "pair_point": wp.zeros(1, dtype=wp.vec3, device=dev),
-                "pair_fn": wp.zeros(1, dtype=float, device=dev),
-                "pair_ft": wp.zeros(1, dtype=wp.vec3, device=dev),
-                "plane_volume": wp.zeros((1, 1), dtype=float, device=dev),
-                "plane_energy": wp.zeros((1, 1), dtype=float, device=dev),
-                "plane_fn": wp.zeros((1, 1), dtype=float, device=dev),
-                "plane_point": wp.zeros((1, 1), dtype=wp.vec3, device=dev),
-                "plane_ft": wp.zeros((1, 1), dtype=wp.vec3, device=dev),
-            }
+            self._empty = self._diag_arrays(1, 1, 1)
         return self._empty
 
     def diagnose(self, state, contacts, dt):
@@ -272,27 +294,16 @@ class Stepper:
         ``pair_normal``, ``pair_point`` [m], ``pair_fn`` [N], ``pair_ft`` [N]; per (body, wall):
         ``plane_volume``, ``plane_energy``, ``plane_fn``, ``plane_point``, ``plane_ft``.
         """
-        dev = self.device
         cap = contacts.capacity
         n = self.model.num_bodies
         p = max(self.model.num_planes, 1)
         if self._diag is None or self._diag_generation != contacts.generation:
             self._diag_generation = contacts.generation
-            self._diag = {
-                "pair_volume": wp.zeros(cap, dtype=float, device=dev),
-                "pair_energy": wp.zeros(cap, dtype=float, device=dev),
-                "pair_normal": wp.zeros(cap, dtype=wp.vec3, device=dev),
-                "pair_point": wp.zeros(cap, dtype=wp.vec3, device=dev),
-                "pair_fn": wp.zeros(cap, dtype=float, device=dev),
-                "pair_ft": wp.zeros(cap, dtype=wp.vec3, device=dev),
-                "plane_volume": wp.zeros((n, p), dtype=float, device=dev),
-                "plane_energy": wp.zeros((n, p), dtype=float, device=dev),
-                "plane_fn": wp.zeros((n, p), dtype=float, device=dev),
-                "plane_point": wp.zeros((n, p), dtype=wp.vec3, device=dev),
-                "plane_ft": wp.zeros((n, p), dtype=wp.vec3, device=dev),
-            }
+            self._diag = self._diag_arrays(cap, n, p)
         m = self.model
-        kernels = make_contact_kernels(m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True)
+        kernels = make_contact_kernels(
+            m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True, precision=m.precision
+        )
         self._launch_contacts(kernels, self._diag, state, contacts, dt)
         count = contacts.count()
         out = {k: v.numpy() for k, v in self._diag.items()}
@@ -439,9 +450,10 @@ class Simulation:
     def restore_from_arrays(self, arrays, steps_done, time):
         """:meth:`restore` from host arrays named as a checkpoint's: ``State.SAVED``, ``pair_key``, ``pair_xi``,
         ``pair_turn``."""
-        state = State.from_numpy({k: arrays[k] for k in State.SAVED}, self.device)
+        m = self.model
+        state = State.from_numpy({k: arrays[k] for k in State.SAVED}, self.device, m.precision)
         pairs = PairHistory.from_numpy(
-            arrays["pair_key"], arrays["pair_xi"], arrays["pair_turn"], self.model.friction, self.device
+            arrays["pair_key"], arrays["pair_xi"], arrays["pair_turn"], m.friction, self.device, m.contact_scalar
         )
         self.restore(Snapshot(state, pairs, steps_done, time))
 

@@ -9,13 +9,20 @@ dt)`` writes the next one.
 import numpy as np
 import warp as wp
 
+from polydem.kernels.precision import numpy_dtype, scalars
+
 __all__ = ["State"]
 
 
 class State:
-    """Device arrays (float32) of the bodies and of their contacts with the walls.
+    """Device arrays of the bodies and of their contacts with the walls.
 
     N bodies, P wall planes (P >= 1: a scene without walls keeps a placeholder column).
+
+    Dtypes by ``precision`` (:mod:`polydem.kernels.precision`): the body arrays (``body_*``) are
+    float32 in "float32" and float64 in "mixed" and "float64" (``wp.transformd``, ``wp.vec3d``);
+    the wall-contact history (``plane_*``) is float32 in "float32" and "mixed", float64 in
+    "float64".
 
     Attributes:
         body_q: (N,) ``wp.transform``: centroid position [m] and unit quaternion xyzw from the body
@@ -25,13 +32,14 @@ class State:
         body_f: (N,) ``wp.vec3`` force of the contacts and walls in the last step, without
             gravity [N].
         body_t: (N,) ``wp.vec3`` torque of those forces about the centroid, world axes [N m].
-        body_dissipated: (N,) float32 energy dissipated so far by damping and friction at the
+        body_dissipated: (N,) energy dissipated so far by damping and friction at the
             body's contacts [J].
         plane_xi: (N, P) ``wp.vec3`` friction springs of the wall contacts [m]; (1, 1) when the
             scene has no friction.
-        plane_turn: (N, P) float32 turning volumes of the wall contacts (the normal hysteresis,
+        plane_turn: (N, P) turning volumes of the wall contacts (the normal hysteresis,
             kernels/forces.py) [m^3].
         step_count: (1,) int32 steps done; counted on the device so that a captured step counts.
+        precision: "float32", "mixed" or "float64".
     """
 
     FIELDS = ("body_q", "body_v", "body_w", "body_f", "body_t", "body_dissipated", "plane_xi", "plane_turn")
@@ -41,50 +49,57 @@ class State:
     SAVED = ("body_q", "body_v", "body_w", "body_dissipated", "plane_xi", "plane_turn", "step_count")
     """What a checkpoint keeps: ``body_f`` and ``body_t`` are written by every step before they are read."""
 
-    _DTYPES = {
-        "body_q": wp.transform,
-        "body_v": wp.vec3,
-        "body_w": wp.vec3,
-        "body_f": wp.vec3,
-        "body_t": wp.vec3,
-        "body_dissipated": float,
-        "plane_xi": wp.vec3,
-        "plane_turn": float,
-        "step_count": int,
-    }
+    @staticmethod
+    def dtypes(precision="float32"):
+        """The Warp dtype of every field in ``precision``, by name."""
+        s, c = scalars(precision)
+        vec3s, vec3c = wp.types.vector(3, s), wp.types.vector(3, c)
+        return {
+            "body_q": wp.types.transformation(s),
+            "body_v": vec3s,
+            "body_w": vec3s,
+            "body_f": vec3s,
+            "body_t": vec3s,
+            "body_dissipated": s,
+            "plane_xi": vec3c,
+            "plane_turn": c,
+            "step_count": int,
+        }
 
-    def __init__(self, num_bodies, num_planes, friction, device=None):
+    def __init__(self, num_bodies, num_planes, friction, device=None, precision="float32"):
         """A state of ``num_bodies`` bodies at rest at the origin, with no contact history."""
         dev = wp.get_device(device)
         n = int(num_bodies)
         planes = max(int(num_planes), 1)
         self.device = dev
-        self.body_q = wp.zeros(n, dtype=wp.transform, device=dev)
-        self.body_v = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.body_w = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.body_f = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.body_t = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.body_dissipated = wp.zeros(n, dtype=float, device=dev)
-        self.plane_xi = wp.zeros((n, planes) if friction else (1, 1), dtype=wp.vec3, device=dev)
-        self.plane_turn = wp.zeros((n, planes), dtype=float, device=dev)
-        self.step_count = wp.zeros(1, dtype=int, device=dev)
+        self.precision = precision
+        shapes = {name: n for name in self.FIELDS}
+        shapes.update(plane_xi=(n, planes) if friction else (1, 1), plane_turn=(n, planes), step_count=1)
+        for name, dtype in self.dtypes(precision).items():
+            setattr(self, name, wp.zeros(shapes[name], dtype=dtype, device=dev))
 
     @property
     def num_bodies(self):
         return len(self.body_q)
 
     @classmethod
-    def from_numpy(cls, arrays, device=None):
-        """A state from host arrays named as :attr:`FIELDS` (``body_f`` and ``body_t`` may be left out: zeros)."""
+    def from_numpy(cls, arrays, device=None, precision="float32"):
+        """A state in ``precision`` from host arrays named as :attr:`FIELDS` (``body_f`` and
+        ``body_t`` may be left out: zeros); the arrays are converted to the precision's dtypes."""
         dev = wp.get_device(device)
         state = cls.__new__(cls)
         state.device = dev
+        state.precision = precision
         n = len(arrays["body_q"])
-        for name in cls.FIELDS:
+        body, history = (numpy_dtype(x) for x in scalars(precision))
+        for name, dtype in cls.dtypes(precision).items():
             if name in arrays:
-                a = wp.array(np.asarray(arrays[name]), dtype=cls._DTYPES[name], device=dev)
+                a = np.asarray(arrays[name])
+                if name != "step_count":
+                    a = a.astype(body if name.startswith("body_") else history)
+                a = wp.array(a, dtype=dtype, device=dev)
             else:
-                a = wp.zeros(n, dtype=cls._DTYPES[name], device=dev)
+                a = wp.zeros(n, dtype=dtype, device=dev)
             setattr(state, name, a)
         return state
 
@@ -101,6 +116,7 @@ class State:
         """A new state with copies of every array."""
         state = State.__new__(State)
         state.device = self.device
+        state.precision = self.precision
         for name in self.FIELDS:
             setattr(state, name, wp.clone(getattr(self, name)))
         return state

@@ -214,9 +214,11 @@ def _add_run(sub, fmt) -> None:
     )
     run.add_argument(
         "--precision",
-        choices=("float32", "float64"),
+        choices=("float32", "mixed", "float64"),  # polydem.scene.PRECISIONS (no numpy here)
         default=None,
-        help="floating-point precision of the simulation; the simulator runs float32 only (the default)",
+        help="floating-point precision of the simulation (overrides the scene's): float32 everywhere; mixed, "
+        "float64 positions, velocities and force sums with float32 contact geometry local to each contact; "
+        "float64 everywhere. Default: the scene's (float32)",
     )
     run.add_argument(
         "--resume",

@@ -256,12 +256,6 @@ def cmd_run(args) -> int:
     out, err = sys.stdout, sys.stderr
     warp()
     signals.check()
-    if args.precision == "float64":
-        raise CliError(
-            "the simulator runs in float32 only; use --precision float32 (or leave it out). Float64 contact geometry "
-            'is offered by polydem.overlap(..., precision="float64")',
-            key="--precision",
-        )
     resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
     scene = load_scene(args.scene)
     if args.precision is not None:

@@ -31,9 +31,10 @@ from polydem.scene.values import read_choice, read_integer, read_number, read_st
 from polydem.scene.walls import WallMethods
 from polydem.shapes import ConvexShape
 
-PRECISIONS = ("float32", "float64")
-"""Values of ``[simulation] precision``; the simulator runs float32 only (float64 is rejected with
-a message pointing to :func:`polydem.overlap`, which offers it for contact geometry)."""
+PRECISIONS = ("float32", "mixed", "float64")
+"""Values of ``[simulation] precision`` (:mod:`polydem.kernels.precision`): everything in float32;
+"mixed", float64 positions, velocities and force sums with float32 contact geometry in a frame local
+to each contact; everything in float64."""
 
 
 class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMethods, OverlapMethods):
@@ -56,8 +57,9 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         file: scene file the scene came from (used in error messages), or None.
         device: Warp device to run on (``"cpu"``, ``"cuda"``, ``"cuda:N"``), or None for the default;
             a command-line ``--device`` overrides it.
-        precision: ``"float32"``, the simulator's only precision (``"float64"`` raises
-            :class:`SceneError`; :func:`polydem.overlap` offers float64 contact geometry).
+        precision: ``"float32"`` (the default), ``"mixed"`` (float64 positions, velocities and
+            force sums; float32 contact geometry in a frame local to each contact, so a grain far
+            from the origin moves as one at the origin) or ``"float64"`` (everything in float64).
         output: what a run writes (:class:`Output`); default ``Output()`` (a summary only).
 
     Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`),
@@ -132,15 +134,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         return device
 
     def _check_precision(self, precision):
-        precision = read_choice(precision, PRECISIONS, "simulation.precision", self.file, what="precision")
-        if precision == "float64":
-            raise SceneError(
-                'the simulator runs in float32 only; use precision = "float32" (or leave it out). Float64 is offered '
-                'for contact geometry by polydem.overlap(..., precision="float64")',
-                "simulation.precision",
-                self.file,
-            )
-        return precision
+        return read_choice(precision, PRECISIONS, "simulation.precision", self.file, what="precision")
 
     def _check_output(self, output):
         if output is None:
