@@ -699,3 +699,85 @@ def test_time_step_above_stable_limit(device):
 def test_package_exports():
     assert polydem.Simulation is Simulation and polydem.SimulationError is SimulationError
     assert issubclass(SimulationError, RuntimeError)
+
+
+# ---------------------------------------------------------------------------------------------
+# 10. Redone chunks and the diagnostics pass (polygon overflow)
+
+
+def overlapping_spheres_scene():
+    """Two overlapping icospheres (triangular faces: a buffer of 3 vertices overflows on any clip)
+    and a cube far away from both, in zero gravity."""
+    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), k=1.0e7, friction=0.4)
+    scene.add_shape("ball", ConvexShape.sphere(subdivisions=2, radius=0.05))
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("ball", "m", position=(0.0, 0.0, 0.0))
+    scene.add_body("ball", "m", position=(0.0975, 0.01, 0.005), velocity=(-0.1, 0.0, 0.0))
+    scene.add_body("cube", "m", position=(5.0, 0.0, 0.0))
+    return scene
+
+
+def test_redone_chunk_forgets_its_nonfinite_step(device):
+    """A chunk redone after a polygon overflow does not raise for a NaN of the discarded chunk.
+
+    BEFORE: SimulationError "non-finite at step 2" although the redone chunk stays finite.
+    """
+    reference = Simulation(overlapping_spheres_scene(), device, use_graph=False)
+    reference.step(10)
+    sim = Simulation(overlapping_spheres_scene(), device, use_graph=False)
+    sim.stepper.poly_capacity = 3
+    sim.stepper._kernels()
+    step, calls = sim.stepper.step, []
+
+    def poisoned_once(state_in, state_out, contacts, dt):
+        step(state_in, state_out, contacts, dt)
+        calls.append(1)
+        if len(calls) == 1:  # the first chunk only: the one that overflows and is redone
+            v = state_out.body_v.numpy()
+            v[2, 0] = np.nan
+            state_out.body_v.assign(v)
+
+    sim.stepper.step = poisoned_once
+    sim.step(10)
+    assert sim.stepper.poly_capacity > 3  # the overflow was real: the chunk was redone
+    assert len(calls) > 10
+    for k, a in sim.state().items():
+        np.testing.assert_array_equal(a, reference.state()[k], err_msg=k)
+
+
+def test_restore_forgets_a_nonfinite_step(device):
+    """After a SimulationError, restoring a good snapshot lets the run go on."""
+    scene = single_material_scene()
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("cube", "m", position=(0.0, 0.0, 1.0))
+    sim = Simulation(scene, device, use_graph=False)
+    sim.step(5)
+    good = sim.snapshot()
+    v = sim.current_state.body_v.numpy()
+    v[0, 2] = np.inf
+    sim.current_state.body_v.assign(v)
+    with pytest.raises(SimulationError):
+        sim.step(3)
+    sim.restore(good)
+    sim.step(3)  # BEFORE: raised again for the step of the discarded state
+    assert sim.steps_done == 8 and np.all(np.isfinite(sim.state()["body_velocity"]))
+
+
+def test_contacts_regrow_the_polygon_buffer(device):
+    """contacts() and energy() with a polygon buffer too small for the contact: grown and rerun.
+
+    BEFORE: the diagnostics pass ignored its overflow flag: a wrong volume and energy, and the
+    step's flag left set (the next chunk was redone for nothing).
+    """
+    ref = Simulation(overlapping_spheres_scene(), device)
+    expected, expected_energy = ref.contacts(), ref.energy()
+    assert len(expected["volume"]) == 1 and not ref.stepper.polygons_overflowed()
+    sim = Simulation(overlapping_spheres_scene(), device)
+    sim.stepper.poly_capacity = 3
+    sim.stepper._kernels()
+    got = sim.contacts()
+    print(f"\nvolume {got['volume']} expected {expected['volume']}")
+    assert sim.stepper.poly_capacity > 3 and not sim.stepper.polygons_overflowed()
+    for k in ("body_a", "body_b", "volume", "normal", "normal_force"):
+        np.testing.assert_array_equal(got[k], expected[k], err_msg=k)
+    assert sim.energy() == expected_energy

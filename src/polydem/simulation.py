@@ -93,6 +93,8 @@ class Stepper:
         self.device_rebuild = bool(device_rebuild)
         self.poly_capacity = model.shapes.default_poly_capacity
         self.poly_overflow = wp.zeros(1, dtype=int, device=self.device)
+        # The diagnostics pass has its own flag: it must not leave one set for the next chunk.
+        self._diag_overflow = wp.zeros(1, dtype=int, device=self.device)
         self.bad_step = wp.full(1, NO_STEP, dtype=int, device=self.device)
         self._kernels()
         self._diag = None
@@ -108,6 +110,10 @@ class Stepper:
         self.poly_overflow.zero_()
         self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
         self._kernels()
+
+    def clear_bad_step(self):
+        """Forget the non-finite steps recorded so far (their states were discarded by a restore)."""
+        self.bad_step.fill_(NO_STEP)
 
     def polygons_overflowed(self):
         """Host: whether a clipped polygon did not fit since :meth:`grow_polygons`."""
@@ -137,7 +143,7 @@ class Stepper:
 
     def forces(self, state, contacts, dt):
         """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``."""
-        self._launch_contacts(self.kernels, None, state, contacts, dt)
+        self._launch_contacts(self.kernels, None, state, contacts, dt, self.poly_overflow)
 
     def integrate(self, state, dt):
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
@@ -166,8 +172,9 @@ class Stepper:
             device=dev,
         )
 
-    def _launch_contacts(self, kernels, diag, state, contacts, dt):
-        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``."""
+    def _launch_contacts(self, kernels, diag, state, contacts, dt, overflow):
+        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``;
+        a clipped polygon that did not fit sets ``overflow``."""
         m = self.model
         s = m.shapes
         bp = contacts.broadphase
@@ -196,7 +203,7 @@ class Stepper:
                 contacts.pair_force,
                 contacts.pair_torque_a,
                 contacts.pair_dissipated,
-                self.poly_overflow,
+                overflow,
                 d["pair_volume"],
                 d["pair_energy"],
                 d["pair_normal"],
@@ -292,8 +299,16 @@ class Stepper:
                 "plane_ft": wp.zeros((n, p), dtype=wp.vec3, device=dev),
             }
         m = self.model
-        kernels = make_contact_kernels(m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True)
-        self._launch_contacts(kernels, self._diag, state, contacts, dt)
+        while True:
+            self._diag_overflow.zero_()
+            kernels = make_contact_kernels(m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True)
+            self._launch_contacts(kernels, self._diag, state, contacts, dt, self._diag_overflow)
+            if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= m.shapes.max_poly_bound:
+                break
+            # A clipped polygon did not fit: its contact is wrong. Grow the room (the steps use it
+            # too from now on: their kernels and graph are rebuilt) and run the pass again.
+            self.poly_capacity = min(2 * self.poly_capacity, m.shapes.max_poly_bound)
+            self._kernels()
         count = contacts.count()
         out = {k: v.numpy() for k, v in self._diag.items()}
         for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft"):
@@ -431,6 +446,8 @@ class Simulation:
         The candidate pairs are found afresh at the restored poses; each pair gets its history back by key.
         """
         self._diag_cache = None
+        # A non-finite step recorded after the snapshot belongs to the states that are discarded now.
+        self.stepper.clear_bad_step()
         self.current_state.assign(snapshot.state)
         self.current_contacts.restore(snapshot.pairs, self.current_state.body_q)
         self.steps_done = snapshot.steps_done
