@@ -19,6 +19,8 @@ no contact is ever dropped. A non-finite value stops the run with an error namin
 the bodies.
 """
 
+import warnings
+
 import numpy as np
 import warp as wp
 
@@ -29,7 +31,7 @@ from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.model import Model
 from polydem.state import State
 
-__all__ = ["Simulation", "SimulationError", "Snapshot", "Stepper"]
+__all__ = ["Simulation", "SimulationError", "SimulationWarning", "Snapshot", "Stepper"]
 
 CHUNK_STEPS = 64
 NO_STEP = 2**31 - 1
@@ -39,10 +41,16 @@ class SimulationError(RuntimeError):
     """The run cannot go on (a non-finite state); the message names the step and the bodies."""
 
 
+class SimulationWarning(UserWarning):
+    """Something in the run is suspect but it goes on (a body fast enough to tunnel)."""
+
+
 @wp.kernel(enable_backward=False)
 def check_state_kernel(
     # Model
     body_flags: wp.array(dtype=int),
+    body_radius: wp.array(dtype=float),
+    body_speed_limit: wp.array(dtype=float),
     # State in
     step: wp.array(dtype=int),
     body_q: wp.array(dtype=wp.transform),
@@ -50,9 +58,18 @@ def check_state_kernel(
     body_w: wp.array(dtype=wp.vec3),
     # Out
     bad_step: wp.array(dtype=int),
+    body_peak_speed: wp.array(dtype=float),
+    too_fast: wp.array(dtype=int),
 ):
-    """Records (atomic min) the first step at which a body's state is not finite."""
+    """Records (atomic min) the first step at which a body's state is not finite, each body's
+    largest speed of its fastest point (|v| + |w| r), and whether one went above its speed limit."""
     i = wp.tid()
+    speed = wp.length(body_v[i]) + wp.length(body_w[i]) * body_radius[i]
+    # One thread per body: a plain running maximum, no atomics.
+    if speed > body_peak_speed[i]:
+        body_peak_speed[i] = speed
+    if speed > body_speed_limit[i]:
+        wp.atomic_max(too_fast, 0, 1)
     q = body_q[i]
     p = wp.transform_get_translation(q)
     r = wp.transform_get_rotation(q)
@@ -96,6 +113,10 @@ class Stepper:
         # The diagnostics pass has its own flag: it must not leave one set for the next chunk.
         self._diag_overflow = wp.zeros(1, dtype=int, device=self.device)
         self.bad_step = wp.full(1, NO_STEP, dtype=int, device=self.device)
+        n = model.num_bodies
+        self.body_speed_limit = wp.full(n, float("inf"), dtype=float, device=self.device)
+        self.body_peak_speed = wp.zeros(n, dtype=float, device=self.device)
+        self.too_fast = wp.zeros(1, dtype=int, device=self.device)
         self._kernels()
         self._diag = None
         self._diag_generation = None
@@ -111,9 +132,15 @@ class Stepper:
         self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
         self._kernels()
 
-    def clear_bad_step(self):
-        """Forget the non-finite steps recorded so far (their states were discarded by a restore)."""
+    def clear_checks(self):
+        """Forget the non-finite steps and the speeds recorded so far (their states were discarded by a restore)."""
         self.bad_step.fill_(NO_STEP)
+        self.body_peak_speed.zero_()
+        self.too_fast.zero_()
+
+    def went_too_fast(self):
+        """Host: whether a body went above its ``body_speed_limit`` since :meth:`clear_checks`."""
+        return bool(int(self.too_fast.numpy()[0]))
 
     def polygons_overflowed(self):
         """Host: whether a clipped polygon did not fit since :meth:`grow_polygons`."""
@@ -167,8 +194,16 @@ class Stepper:
         wp.launch(
             check_state_kernel,
             dim=m.num_bodies,
-            inputs=[m.body_flags, state.step_count, state.body_q, state.body_v, state.body_w],
-            outputs=[self.bad_step],
+            inputs=[
+                m.body_flags,
+                m.body_radius,
+                self.body_speed_limit,
+                state.step_count,
+                state.body_q,
+                state.body_v,
+                state.body_w,
+            ],
+            outputs=[self.bad_step, self.body_peak_speed, self.too_fast],
             device=dev,
         )
 
@@ -381,6 +416,11 @@ class Simulation:
         # with room for 5 (an overflow grows the buffers and redoes the step).
         self.current_contacts = Contacts(model, self.skin, body_box=(lower, upper), capacity=max(1024, 5 * n))
         self.stepper = Stepper(model, device_rebuild=self.use_graph)
+        arrays = scene.body_arrays()
+        self._tunnel = scene.tunnelling_limits(arrays, self.dt)
+        self.stepper.body_speed_limit.assign(self._tunnel.body_speed_limit.astype(np.float32))
+        # Warned once a run: already by the scene's validation where the initial speeds are too high.
+        self._tunnel_warned = bool(scene.check_tunnelling(arrays, self.dt))
         self._graph = None
         self._graph_key = None
         self._last_good = None
@@ -447,7 +487,7 @@ class Simulation:
         """
         self._diag_cache = None
         # A non-finite step recorded after the snapshot belongs to the states that are discarded now.
-        self.stepper.clear_bad_step()
+        self.stepper.clear_checks()
         self.current_state.assign(snapshot.state)
         self.current_contacts.restore(snapshot.pairs, self.current_state.body_q)
         self.steps_done = snapshot.steps_done
@@ -527,9 +567,24 @@ class Simulation:
             bad = self.stepper.first_bad_step()
             if bad is not None:
                 self._report_nonfinite(bad)
+            if not self._tunnel_warned and self.stepper.went_too_fast():
+                self._warn_too_fast(chunk)
             done += chunk
             self.steps_done += chunk
             self.time += chunk * self.dt
+
+    def _warn_too_fast(self, chunk):
+        # Once a run: the body the furthest above its limit, at its largest speed so far.
+        self._tunnel_warned = True
+        peak = self.stepper.body_peak_speed.numpy().astype(np.float64)
+        i = int(np.argmax(peak / self._tunnel.body_speed_limit))
+        scene = self.model.scene
+        warnings.warn(
+            f"{scene.body_label(i)} reached {self._tunnel.describe(i, float(peak[i]), self.dt)} "
+            f"(in steps {self.steps_done + 1} to {self.steps_done + chunk})",
+            SimulationWarning,
+            stacklevel=3,
+        )
 
     def _report_nonfinite(self, bad):
         st = self.state()
