@@ -16,7 +16,8 @@ Steps run in chunks between host checks. A chunk starts from a saved copy of the
 pair history; when something overflowed during the chunk (the candidate-pair buffer in a device
 rebuild, or a clipped polygon) the copy is restored, the buffer grown, and the chunk run again, so
 no contact is ever dropped. A non-finite value stops the run with an error naming the step and
-the bodies.
+the bodies; a body faster than a step or its contacts can stop before it has crossed the thinnest
+body (:meth:`polydem.Scene.tunnelling_limits`) is warned about once (:class:`SimulationWarning`).
 """
 
 import warnings
@@ -102,6 +103,10 @@ class Stepper:
         poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_polygons`).
         poly_overflow: (1,) int32, set when a clipped polygon did not fit (the step must be redone).
         bad_step: (1,) int32, the first step whose state was not finite (``NO_STEP``: none yet).
+        body_speed_limit: (N,) float32 speed of a body's fastest point above which it may tunnel
+            [m/s] (:meth:`polydem.Scene.tunnelling_limits`; inf until the Simulation sets it).
+        body_peak_speed: (N,) float32 largest speed of each body's fastest point so far [m/s].
+        too_fast: (1,) int32, set when a body went above its speed limit.
     """
 
     def __init__(self, model, device_rebuild=False):
