@@ -909,3 +909,60 @@ def test_friction_energy_error_of_a_sticking_block_is_second_order(device):
     _, _, fine, _ = friction_energy_run(device, incline_scene(20.0, 0.3), 0.1, dt_factor=0.5)
     print(f"\nsticking block, e = 0.3: change of the modified energy {coarse:.3e} J at dt, {fine:.3e} J at dt/2")
     assert abs(fine) < 0.45 * abs(coarse)
+
+
+def test_friction_books_no_negative_dissipation_in_one_step(device):
+    """respond() in float64 for random springs, tilted normals (the spring is turned), velocities,
+    spins, restitutions (the dashpot) and caps: the booked loss of a step is >= 0 to rounding."""
+    import warp as wp
+    from polydem.kernels.response import make_response
+
+    sc = wp.float64
+    vec3 = wp.types.vector(3, sc)
+    respond = make_response(sc, "linear", True).respond
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def one_step(
+        area: wp.array(dtype=vec3),
+        v_a: wp.array(dtype=vec3),
+        w_a: wp.array(dtype=vec3),
+        xi: wp.array(dtype=vec3),
+        e: wp.array(dtype=sc),
+        mu: wp.array(dtype=sc),
+        lost: wp.array(dtype=sc),
+        scale: wp.array(dtype=sc),
+    ):
+        i = wp.tid()
+        z = vec3(sc(0.0), sc(0.0), sc(0.0))
+        c = vec3(sc(0.0), sc(0.0), sc(0.05))
+        vol = sc(1.0e-8)
+        kt = sc(1.0e6)
+        dt = sc(1.0e-4)
+        out = respond(
+            vol, c * vol, area[i], wp.cross(c, area[i]), c * sc(2.0), v_a[i], w_a[i], z, z,
+            sc(1.0e4), sc(1.0), e[i], mu[i], kt, xi[i], sc(0.0), dt, sc(0.05), sc(1.0),
+        )  # fmt: skip
+        lost[i] = out[5]
+        xi_new = out[2]
+        scale[i] = (
+            sc(0.5) * kt * (wp.dot(xi[i], xi[i]) + wp.dot(xi_new, xi_new)) + wp.length(out[9]) * wp.length(v_a[i]) * dt
+        )
+
+    rng = np.random.default_rng(3)
+    n = 20000
+    normal = np.array([0.0, 0.0, 1.0]) + rng.normal(size=(n, 3)) * rng.choice([0.0, 0.01, 0.3], size=(n, 1))
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    arrays = {
+        "area": -0.01 * normal,
+        "v_a": rng.normal(size=(n, 3)) * rng.choice([1e-4, 1e-2, 1.0], size=(n, 1)),
+        "w_a": rng.normal(size=(n, 3)) * rng.choice([0.0, 1.0], size=(n, 1)),
+        "xi": rng.normal(size=(n, 3)) * rng.choice([1e-7, 1e-5, 1e-3], size=(n, 1)),
+    }
+    ins = [wp.array(a, dtype=vec3, device=device) for a in arrays.values()]
+    ins += [wp.array(rng.choice(c, size=n), dtype=sc, device=device) for c in ([1.0, 0.9, 0.3, 0.05], [0.1, 0.5, 1.0])]
+    lost = wp.zeros(n, dtype=sc, device=device)
+    scale = wp.zeros(n, dtype=sc, device=device)
+    wp.launch(one_step, dim=n, inputs=ins, outputs=[lost, scale], device=device)
+    rel = lost.numpy() / np.maximum(scale.numpy(), 1e-300)
+    print(f"\nbooked loss of one step over the energies in play: min {rel.min():.2e}")
+    assert rel.min() > -1e-12
