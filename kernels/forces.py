@@ -39,8 +39,8 @@ turns it into a wrench (:func:`polydem.kernels.response.respond`):
   carried from step to step for each persisting pair, turned into the current tangent plane
   (length kept), loaded by the tangential velocity at the contact point, with a dashpot of the
   damping ratio that e gives a linear oscillator, the sum capped at mu times the normal force; it
-  acts at the contact point. Work taken from the bodies and not stored in the spring, and the
-  spring energy left when a contact opens, are counted as dissipated.
+  acts at the contact point. The slip (at the spring's force), the dashpot's work and the spring
+  energy left when a contact opens are counted as dissipated (see :func:`respond`).
 
 Forces are written per pair and gathered per body in a fixed order (the pairs' sorted keys), so
 that a run is bit-for-bit repeatable on a device: no floating-point atomics. The gather also adds
@@ -205,16 +205,13 @@ def make_contact_kernels(
                 pair_dissipated[p] = lost
             return
         r_ab = vec3c(wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
-        step = dt
-        if wp.static(diagnostics):
-            step = C(0.0)
         xi_in = zero3
         if wp.static(friction):
             xi_in = pair_xi[p]
         force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
             vol, first_moment, s_a, m_a, r_ab,
             vec3c(body_v[a]), vec3c(body_w[a]), vec3c(body_v[b]), vec3c(body_w[b]),
-            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], step,
+            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], dt,
             wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]]),
             C(body_inv_mass[a] + body_inv_mass[b]),
         )  # fmt: skip
@@ -331,16 +328,13 @@ def make_contact_kernels(
                             lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
                             plane_xi[i, j] = zero3
                     continue
-                step = dt
-                if wp.static(diagnostics):
-                    step = C(0.0)
                 xi_in = zero3
                 if wp.static(friction):
                     xi_in = plane_xi[i, j]
                 force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
                     vol, first_moment, s_a, m_a, -pn, vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3,
                     material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
-                    plane_turn[i, j], step,
+                    plane_turn[i, j], dt,
                     shapes.shape_radius[s], C(body_inv_mass[i]),
                 )  # fmt: skip
                 if wp.static(diagnostics):

@@ -242,13 +242,14 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         if wp.static(friction):
             v_rel = v_a + wp.cross(w_a, point) - v_b - wp.cross(w_b, point - r_ab)
             vt = v_rel - wp.dot(v_rel, n) * n
-            # Turn the spring into the current tangent plane, keeping its length.
+            # Turn the spring into the current tangent plane, keeping its length (and its energy).
             l0 = wp.length(xi)
             xt = xi - wp.dot(xi, n) * n
             l1 = wp.length(xt)
             if l1 > scalar(0.0):
                 xt = xt * (l0 / l1)
-            stored = scalar(0.5) * kt * wp.dot(xt, xt)
+            # The spring at the current poses: the last step moved the bodies by vt dt (symplectic
+            # Euler: x_n = x_(n-1) + v_n dt). Like the normal force it is a function of the poses.
             xt = xt + vt * dt
             # A tangential dashpot with the damping ratio of e keeps a sticking contact from ringing
             # (an undamped spring rings, slips at each swing and lets a block creep down a slope).
@@ -260,6 +261,8 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             ft = -kt * xt - ct * vt
             cap = mu * fn
             ft_norm = wp.length(ft)
+            # The dashpot's work, what of the force is not the spring's, times vt dt: it opposes vt.
+            damped = ct * wp.dot(vt, vt) * dt
             if ft_norm > cap:
                 ft = ft * (cap / ft_norm)
                 # Sliding: the spring takes the capped force, but never more length than the
@@ -270,11 +273,22 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
                 l_max = wp.length(xt)
                 if l_new > l_max:
                     xi_new = xi_new * (l_max / l_new)
+                # (>= 0: the cap only hits the dashpot's share where kt xt . vt > -ct |vt|^2 / 2.)
+                damped = -wp.dot(ft + kt * xi_new, vt) * dt
             else:
                 xi_new = xt
-            # Work taken from the bodies less what the spring stored is what friction dissipated.
-            lost += wp.max(-wp.dot(ft, vt) * dt - (scalar(0.5) * kt * wp.dot(xi_new, xi_new) - stored), scalar(0.0))
-            energy += scalar(0.5) * kt * wp.dot(xi_new, xi_new)
+            # Dissipated: the dashpot's work and the slip xt - xi_new at the spring's force averaged
+            # over the step (kt |xi| before it, kt |xi_new| after: exact where the spring lets go as
+            # the cap falls and where it slides at a constant cap; where the cap changes while it
+            # slides, a residue of first order in dt). Both >= 0, and a sticking contact books only
+            # its dashpot: its spring is a potential that the step integrates like the normal force.
+            # Booking instead the work of this step's force, -ft.vt dt, less the change of the
+            # spring's energy pairs this step's force with the last step's displacement: it books
+            # kt |vt|^2 dt^2 / 2 too much every step a contact sticks, an error of first order in dt.
+            plastic = scalar(0.5) * kt * (l0 + wp.length(xi_new)) * wp.length(xt - xi_new)
+            lost += plastic + damped
+            # The contact's energy: the spring, and the slip's loss until the step books it.
+            energy += scalar(0.5) * kt * wp.dot(xi_new, xi_new) + plastic
             force += ft
             torque += wp.cross(point, ft)
         return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft

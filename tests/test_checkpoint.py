@@ -291,14 +291,19 @@ def test_checkpoint_of_the_format_before_the_state_redesign_resumes(tmp_path):
     a, b = unbroken.state(), resumed.state()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
-    assert unbroken.energy() == resumed.energy()
+    # The file's dissipated energy was booked by the friction of its time (issue 11 changed how
+    # friction books its loss, not the motion): all but that, and the total that holds it, agree.
+    books = ("dissipated", "total")
+    ea, eb = unbroken.energy(), resumed.energy()
+    assert {k: v for k, v in ea.items() if k not in books} == {k: v for k, v in eb.items() if k not in books}
     # Written again, it holds the same arrays as a checkpoint of the unbroken run.
     save_checkpoint(unbroken, tmp_path / "a.npz")
     save_checkpoint(resumed, tmp_path / "b.npz")
     with np.load(tmp_path / "a.npz") as fa, np.load(tmp_path / "b.npz") as fb:
         assert fa.files == fb.files
         for key in fa.files:
-            np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)
+            if key != "body_dissipated":
+                np.testing.assert_array_equal(fa[key], fb[key], err_msg=key)
 
 
 @pytest.mark.parametrize("precision", ["mixed", "float64"])

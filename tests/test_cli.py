@@ -874,6 +874,17 @@ def test_run_prints_a_scene_warning_as_one_line(tmp_path, capsys):
     assert "SceneWarning" not in err
 
 
+def test_validate_and_run_print_the_tunnelling_warning(tmp_path, capsys):
+    """Emitted grains at 300 m/s into a box of 1 cm walls: one warning line in validate and in run."""
+    path = write_scene(tmp_path, replace=[("velocity = [0.0, 0.0, -1.5]", "velocity = [0.0, 0.0, -300.0]")])
+    for args in (["validate", path], ["run", path, "--device", "cpu", "--steps", "2", "--out", tmp_path / "o", "-q"]):
+        code, out, err = run(args, capsys)
+        assert code == 0, err
+        lines = [line for line in err.splitlines() if "may pass through" in line]
+        assert len(lines) == 1 and lines[0].startswith(f"polydem: warning: {path}: body "), err
+        assert " starts at 300 m/s, above the " in lines[0] and "Warning" not in err
+
+
 def test_render_scene_checkpoint_and_usd_frame(tmp_path, capsys, unbroken):
     scene, out_dir = unbroken
     size = ["--width", "64", "--height", "48", "--device", "cpu"]

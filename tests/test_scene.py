@@ -1683,6 +1683,51 @@ def test_body_inside_a_container_wall():
     assert info.value.key == "bodies[5].position"
 
 
+def fast_cube(speed, slab):
+    """A 0.1 m steel cube (hertz, k = 1e10) at ``speed`` down onto a plane or a fixed 1 cm slab."""
+    scene = Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("steel", density=7800.0, law="hertz", k=1.0e10, restitution=0.5, friction=0.3)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("cube", "steel", position=(0.0, 0.0, 0.2), velocity=(0.0, 0.0, -speed))
+    if slab:
+        scene.add_shape("slab", ConvexShape.box(1.0, 1.0, 0.01))
+        scene.add_body("slab", "steel", kind="fixed")
+    else:
+        scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "steel")
+    return scene
+
+
+@pytest.mark.parametrize(
+    "speed, slab, limit", [(1000.0, False, r"164 m/s"), (100.0, True, r"29\.2 m/s"), (1.0, True, None)]
+)
+def test_initial_speed_that_tunnels_is_warned(speed, slab, limit):
+    # BEFORE: no warning; the 1000 m/s cube passed through the plane, the 100 m/s one through the slab.
+    # The limits: half the kinetic energy at which the cube has crossed the plane (its own 1e-3 m^3
+    # in it) or the slab (1e-4 m^3: its face times 1 cm) on the loading curve 2/3 k V^1.5.
+    scene = fast_cube(speed, slab)
+    if limit is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", SceneWarning)
+            scene.validate()
+        return
+    with pytest.warns(SceneWarning, match=rf"body 0 \(shape 'cube', free\) starts at \S+ m/s, above the {limit} "):
+        scene.validate()
+    assert any("may pass through what it hits" in w for w in scene.warnings)
+
+
+def test_time_step_bound_of_tunnelling():
+    # A 2 mm slab and a dt near the stable limit: at 8 m/s the cube moves 0.52 mm a step, above half
+    # the slab's 1 mm half-thickness, before its energy (limit 8.7 m/s) could carry it through.
+    scene = Scene(gravity=(0.0, 0.0, -9.81), dt=6.5e-5)
+    scene.add_material("steel", density=7800.0, law="hertz", k=1.0e10, restitution=0.5, friction=0.3)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_shape("slab", ConvexShape.box(1.0, 1.0, 0.002))
+    scene.add_body("cube", "steel", position=(0.0, 0.0, 0.2), velocity=(0.0, 0.0, -8.0))
+    scene.add_body("slab", "steel", kind="fixed")
+    with pytest.warns(SceneWarning, match=r"above the 7\.69 m/s at which a step of 6\.5e-05 s moves it 0\.5 .*dt"):
+        scene.validate()
+
+
 def test_initial_overlap_check_is_fast_and_quiet_for_the_shipped_scenes():
     for path in sorted(SCENES.glob("*.toml")):
         scene = Scene.from_toml(path, validate=False)

@@ -24,6 +24,7 @@ _EXPORTS = {
     "ConvexShape": "polydem.shapes",
     "Simulation": "polydem.simulation",
     "SimulationError": "polydem.simulation",
+    "SimulationWarning": "polydem.simulation",
 }
 
 
@@ -52,6 +53,7 @@ __all__ = [
     "pair_material",
     "Simulation",
     "SimulationError",
+    "SimulationWarning",
     "ContactLaw",
     "ContactForces",
     "OverlapResult",

@@ -21,10 +21,12 @@ Steps run in chunks between host checks. A chunk starts from a saved copy of the
 pair history; when something overflowed during the chunk (the candidate-pair buffer in a device
 rebuild, or a clipped polygon) the copy is restored, the buffer grown, and the chunk run again, so
 no contact is ever dropped. A non-finite value stops the run with an error naming the step and
-the bodies.
+the bodies; a body faster than a step or its contacts can stop before it has crossed the thinnest
+body (:meth:`polydem.Scene.tunnelling_limits`) is warned about once (:class:`SimulationWarning`).
 """
 
 import functools
+import warnings
 
 import numpy as np
 import warp as wp
@@ -36,7 +38,7 @@ from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.model import Model
 from polydem.state import State
 
-__all__ = ["Simulation", "SimulationError", "Snapshot", "Stepper"]
+__all__ = ["Simulation", "SimulationError", "SimulationWarning", "Snapshot", "Stepper"]
 
 CHUNK_STEPS = 64
 NO_STEP = 2**31 - 1
@@ -46,15 +48,21 @@ class SimulationError(RuntimeError):
     """The run cannot go on (a non-finite state); the message names the step and the bodies."""
 
 
+class SimulationWarning(UserWarning):
+    """Something in the run is suspect but it goes on (a body fast enough to tunnel)."""
+
+
 @functools.cache
 def make_check_state_kernel(scalar):
-    """The finiteness check of a state in ``scalar``."""
+    """The check of a state in ``scalar``: finiteness, and each body's peak speed against its limit."""
     vec3 = wp.types.vector(3, scalar)
 
     @wp.kernel(enable_backward=False, module="unique")
     def check_state_kernel(
         # Model
         body_flags: wp.array(dtype=int),
+        body_radius: wp.array(dtype=float),
+        body_speed_limit: wp.array(dtype=float),
         # State in
         step: wp.array(dtype=int),
         body_q: wp.array(dtype=wp.types.transformation(scalar)),
@@ -62,9 +70,18 @@ def make_check_state_kernel(scalar):
         body_w: wp.array(dtype=vec3),
         # Out
         bad_step: wp.array(dtype=int),
+        body_peak_speed: wp.array(dtype=float),
+        too_fast: wp.array(dtype=int),
     ):
-        """Records (atomic min) the first step at which a body's state is not finite."""
+        """Records (atomic min) the first step at which a body's state is not finite, each body's
+        largest speed of its fastest point (|v| + |w| r), and whether one went above its speed limit."""
         i = wp.tid()
+        speed = float(wp.length(body_v[i]) + wp.length(body_w[i]) * scalar(body_radius[i]))
+        # One thread per body: a plain running maximum, no atomics.
+        if speed > body_peak_speed[i]:
+            body_peak_speed[i] = speed
+        if speed > body_speed_limit[i]:
+            wp.atomic_max(too_fast, 0, 1)
         q = body_q[i]
         p = wp.transform_get_translation(q)
         r = wp.transform_get_rotation(q)
@@ -99,6 +116,10 @@ class Stepper:
         poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_polygons`).
         poly_overflow: (1,) int32, set when a clipped polygon did not fit (the step must be redone).
         bad_step: (1,) int32, the first step whose state was not finite (``NO_STEP``: none yet).
+        body_speed_limit: (N,) float32 speed of a body's fastest point above which it may tunnel
+            [m/s] (:meth:`polydem.Scene.tunnelling_limits`; inf until the Simulation sets it).
+        body_peak_speed: (N,) float32 largest speed of each body's fastest point so far [m/s].
+        too_fast: (1,) int32, set when a body went above its speed limit.
     """
 
     def __init__(self, model, device_rebuild=False):
@@ -107,7 +128,13 @@ class Stepper:
         self.device_rebuild = bool(device_rebuild)
         self.poly_capacity = model.shapes.default_poly_capacity
         self.poly_overflow = wp.zeros(1, dtype=int, device=self.device)
+        # The diagnostics pass has its own flag: it must not leave one set for the next chunk.
+        self._diag_overflow = wp.zeros(1, dtype=int, device=self.device)
         self.bad_step = wp.full(1, NO_STEP, dtype=int, device=self.device)
+        n = model.num_bodies
+        self.body_speed_limit = wp.full(n, float("inf"), dtype=float, device=self.device)
+        self.body_peak_speed = wp.zeros(n, dtype=float, device=self.device)
+        self.too_fast = wp.zeros(1, dtype=int, device=self.device)
         self._kernels()
         self._diag = None
         self._diag_generation = None
@@ -124,6 +151,16 @@ class Stepper:
         self.poly_overflow.zero_()
         self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
         self._kernels()
+
+    def clear_checks(self):
+        """Forget the non-finite steps and the speeds recorded so far (their states were discarded by a restore)."""
+        self.bad_step.fill_(NO_STEP)
+        self.body_peak_speed.zero_()
+        self.too_fast.zero_()
+
+    def went_too_fast(self):
+        """Host: whether a body went above its ``body_speed_limit`` since :meth:`clear_checks`."""
+        return bool(int(self.too_fast.numpy()[0]))
 
     def polygons_overflowed(self):
         """Host: whether a clipped polygon did not fit since :meth:`grow_polygons`."""
@@ -153,7 +190,7 @@ class Stepper:
 
     def forces(self, state, contacts, dt):
         """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``."""
-        self._launch_contacts(self.kernels, None, state, contacts, dt)
+        self._launch_contacts(self.kernels, None, state, contacts, dt, self.poly_overflow)
 
     def integrate(self, state, dt):
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
@@ -177,13 +214,22 @@ class Stepper:
         wp.launch(
             make_check_state_kernel(m.scalar),
             dim=m.num_bodies,
-            inputs=[m.body_flags, state.step_count, state.body_q, state.body_v, state.body_w],
-            outputs=[self.bad_step],
+            inputs=[
+                m.body_flags,
+                m.body_radius,
+                self.body_speed_limit,
+                state.step_count,
+                state.body_q,
+                state.body_v,
+                state.body_w,
+            ],
+            outputs=[self.bad_step, self.body_peak_speed, self.too_fast],
             device=dev,
         )
 
-    def _launch_contacts(self, kernels, diag, state, contacts, dt):
-        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``."""
+    def _launch_contacts(self, kernels, diag, state, contacts, dt, overflow):
+        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``;
+        a clipped polygon that did not fit sets ``overflow``."""
         m = self.model
         s = m.shapes
         bp = contacts.broadphase
@@ -212,7 +258,7 @@ class Stepper:
                 contacts.pair_force,
                 contacts.pair_torque_a,
                 contacts.pair_dissipated,
-                self.poly_overflow,
+                overflow,
                 d["pair_volume"],
                 d["pair_energy"],
                 d["pair_normal"],
@@ -301,10 +347,18 @@ class Stepper:
             self._diag_generation = contacts.generation
             self._diag = self._diag_arrays(cap, n, p)
         m = self.model
-        kernels = make_contact_kernels(
-            m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True, precision=m.precision
-        )
-        self._launch_contacts(kernels, self._diag, state, contacts, dt)
+        while True:
+            self._diag_overflow.zero_()
+            kernels = make_contact_kernels(
+                m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True, precision=m.precision
+            )
+            self._launch_contacts(kernels, self._diag, state, contacts, dt, self._diag_overflow)
+            if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= m.shapes.max_poly_bound:
+                break
+            # A clipped polygon did not fit: its contact is wrong. Grow the room (the steps use it
+            # too from now on: their kernels and graph are rebuilt) and run the pass again.
+            self.poly_capacity = min(2 * self.poly_capacity, m.shapes.max_poly_bound)
+            self._kernels()
         count = contacts.count()
         out = {k: v.numpy() for k, v in self._diag.items()}
         for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft"):
@@ -377,6 +431,11 @@ class Simulation:
         # with room for 5 (an overflow grows the buffers and redoes the step).
         self.current_contacts = Contacts(model, self.skin, body_box=(lower, upper), capacity=max(1024, 5 * n))
         self.stepper = Stepper(model, device_rebuild=self.use_graph)
+        arrays = scene.body_arrays()
+        self._tunnel = scene.tunnelling_limits(arrays, self.dt)
+        self.stepper.body_speed_limit.assign(self._tunnel.body_speed_limit.astype(np.float32))
+        # Warned once a run: already by the scene's validation where the initial speeds are too high.
+        self._tunnel_warned = bool(scene.check_tunnelling(arrays, self.dt))
         self._graph = None
         self._graph_key = None
         self._last_good = None
@@ -442,6 +501,8 @@ class Simulation:
         The candidate pairs are found afresh at the restored poses; each pair gets its history back by key.
         """
         self._diag_cache = None
+        # A non-finite step recorded after the snapshot belongs to the states that are discarded now.
+        self.stepper.clear_checks()
         self.current_state.assign(snapshot.state)
         self.current_contacts.restore(snapshot.pairs, self.current_state.body_q)
         self.steps_done = snapshot.steps_done
@@ -522,9 +583,24 @@ class Simulation:
             bad = self.stepper.first_bad_step()
             if bad is not None:
                 self._report_nonfinite(bad)
+            if not self._tunnel_warned and self.stepper.went_too_fast():
+                self._warn_too_fast(chunk)
             done += chunk
             self.steps_done += chunk
             self.time += chunk * self.dt
+
+    def _warn_too_fast(self, chunk):
+        # Once a run: the body the furthest above its limit, at its largest speed so far.
+        self._tunnel_warned = True
+        peak = self.stepper.body_peak_speed.numpy().astype(np.float64)
+        i = int(np.argmax(peak / self._tunnel.body_speed_limit))
+        scene = self.model.scene
+        warnings.warn(
+            f"{scene.body_label(i)} reached {self._tunnel.describe(i, float(peak[i]), self.dt)} "
+            f"(in steps {self.steps_done + 1} to {self.steps_done + chunk})",
+            SimulationWarning,
+            stacklevel=3,
+        )
 
     def _report_nonfinite(self, bad):
         st = self.state()

@@ -36,6 +36,16 @@ OVERLAP_ERROR = 0.5
 # Initial overlaps, as a fraction of the thinner body's thickness along the separating axis.
 INITIAL_OVERLAP_WARNING = 0.01
 INITIAL_OVERLAP_ERROR = 0.5
+# Tunnelling (see CheckMethods.tunnelling_limits). Per step a body moves at most this fraction of
+# the smallest half-thickness in the scene: a contact across the thinnest body (thickness 2 h) then
+# spans at least 4 steps, the fewest in which a step-wise force can turn a body round; beyond it the
+# first step that sees the overlap may already find the body past the middle of the thin one.
+TUNNEL_STEP_FRACTION = 0.5
+# ... and its kinetic energy is at most this fraction of what a contact stores before the thinner
+# body is crossed through (past that the overlap stops growing and its gradient, the force, ends):
+# the margin covers the estimate of the crossing area (an oblique body meets the thin one with more
+# or less than its mean cross-section) and the partner's own motion.
+TUNNEL_ENERGY_FRACTION = 0.5
 
 
 def reference_stiffness(law, k, exponent, volume):
@@ -147,6 +157,47 @@ def _loads(mass, ln_l, g, v_hit) -> list[tuple]:
             )
         )
     return loads
+
+
+def shape_width(shape) -> float:
+    """Smallest width of a shape's hull over its face normals [m] (the thickness of a plate)."""
+    proj = np.asarray(shape.vertices, dtype=np.float64) @ np.asarray(shape.face_normals, dtype=np.float64).T
+    return float(np.min(proj.max(axis=0) - proj.min(axis=0)))
+
+
+@dataclass(frozen=True)
+class TunnelLimits:
+    """The speeds above which a body may pass through a thin body or wall (see
+    :meth:`CheckMethods.tunnelling_limits`).
+
+    Attributes:
+        body_speed_limit: (N,) largest safe speed of each body's fastest point [m/s].
+        body_step_bound: (N,) whether the step bound (not the energy one) sets that limit.
+        half_thickness: the smallest half-thickness of any body [m].
+        thinnest: index of the body that has it.
+    """
+
+    body_speed_limit: np.ndarray
+    body_step_bound: np.ndarray
+    half_thickness: float
+    thinnest: int
+
+    def describe(self, i: int, speed: float, dt: float) -> str:
+        """Why ``speed`` [m/s] of body ``i`` is too fast (the end of a warning)."""
+        limit = float(self.body_speed_limit[i])
+        if self.body_step_bound[i]:
+            why = (
+                f"above the {limit:.3g} m/s at which a step of {dt:.3g} s moves it {TUNNEL_STEP_FRACTION:g} times the "
+                f"smallest half-thickness ({self.half_thickness:.3g} m)"
+            )
+            fix = "lower dt"
+        else:
+            why = (
+                f"above the {limit:.3g} m/s at which its kinetic energy is {TUNNEL_ENERGY_FRACTION:g} times what its "
+                f"contact stores before it has crossed the thinnest body ({2.0 * self.half_thickness:.3g} m thick)"
+            )
+            fix = "raise k, or make the thin bodies thicker"
+        return f"{speed:.3g} m/s, {why}: it may pass through what it hits; {fix}"
 
 
 class CheckMethods:
@@ -463,6 +514,68 @@ class CheckMethods:
                 "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
             )
         return rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"
+
+    def tunnelling_limits(self, a, dt: float) -> TunnelLimits:
+        """Per body, the speed of its fastest point (``|v| + |w| r``, r its bounding radius) above which
+        it may tunnel at time step ``dt`` [s]; host-only (the simulator checks it once per chunk).
+
+        Two bounds, with h the smallest half-thickness of any body (its hull's smallest width over
+        its face normals, halved) and k the softest pair the body can meet:
+
+        * step: ``v dt <= TUNNEL_STEP_FRACTION h``;
+        * energy: a body of volume V and width w meets the thin one with its mean cross-section A = V / w
+          (a cube's face, a plate lying flat); the overlap stops growing once it has crossed the
+          thinnest thickness, or its own (a plane wall), at ``V_c = A min(w, 2 h)``, so
+          ``m v^2 / 2 <= TUNNEL_ENERGY_FRACTION W(V_c)`` with the law ``W = k V^m / m``.
+        """
+        shapes = list(self.shapes.values())
+        width = np.array([shape_width(sh) for sh in shapes])[a["shape"]]
+        volume = np.array([sh.volume for sh in shapes], dtype=np.float64)[a["shape"]]
+        thinnest = int(np.argmin(width))
+        h = 0.5 * float(width[thinnest])
+        table = self.pair_table()
+        m = float(table["exponent"])
+        k_pair = np.asarray(table["k"], dtype=np.float64)
+        present = set(np.unique(a["material"]).tolist())
+        present.update(self.material_index(p.material) for p in self.planes)
+        present = np.array(sorted(present))
+        k = k_pair[:, present].min(axis=1)[a["material"]]
+        mass = np.asarray(self.body_mass(), dtype=np.float64)
+        with np.errstate(all="ignore"):
+            v_cross = volume / width * np.minimum(width, 2.0 * h)
+            ln_w = np.log(k) + m * np.log(v_cross) - math.log(m)
+            v_energy = np.exp(0.5 * (math.log(2.0 * TUNNEL_ENERGY_FRACTION) + ln_w - np.log(mass)))
+        v_energy = np.where(mass > 0.0, v_energy, np.inf)
+        v_step = TUNNEL_STEP_FRACTION * h / dt
+        limit = np.minimum(v_step, v_energy)
+        if self.num_bodies < 2 and not self.planes:
+            limit = np.full(self.num_bodies, np.inf)  # nothing to pass through
+        return TunnelLimits(
+            body_speed_limit=limit,
+            body_step_bound=v_step <= v_energy,
+            half_thickness=h,
+            thinnest=thinnest,
+        )
+
+    def check_tunnelling(self, a, dt: float) -> list[str]:
+        """A warning when a body's initial speed (of its fastest point) is above its
+        :meth:`tunnelling_limits`; the run still starts (the body may slow down before it meets anything)."""
+        moving = a["kind"] != KIND_FIXED
+        if not moving.any():
+            return []
+        shapes = list(self.shapes.values())
+        radius = np.array([sh.radius for sh in shapes])[a["shape"]]
+        speed = np.linalg.norm(a["velocity"], axis=1) + np.linalg.norm(a["angular_velocity"], axis=1) * radius
+        limits = self.tunnelling_limits(a, dt)
+        ratio = np.where(moving, speed / limits.body_speed_limit, 0.0)
+        i = int(np.argmax(ratio))
+        if not ratio[i] > 1.0:
+            return []
+        more = int(np.count_nonzero(ratio > 1.0)) - 1
+        return [
+            f"{self.body_label(i)} starts at {limits.describe(i, float(speed[i]), dt)}"
+            + (f" ({more} more bodies are that fast)" if more else "")
+        ]
 
     def check_steps(self, ts: TimeStep):
         """The steps of the run (``duration / dt``) at most MAX_STEPS."""

@@ -235,6 +235,8 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         * the time step (:meth:`time_step`): finite, a given dt within the stable limit, and the
           steps of the run (``duration / dt``) at most MAX_STEPS;
         * contacts stiff enough for the bodies' weight and initial speeds (see :meth:`check_loads`);
+        * tunnelling: a warning where a body starts faster than a step or its contacts can stop it
+          before it is through the thinnest body (:meth:`tunnelling_limits`);
         * initial overlaps: a free body deep behind a plane wall or deep inside another body
           (by more than INITIAL_OVERLAP_ERROR of its thickness) is an error; overlaps above
           INITIAL_OVERLAP_WARNING are warnings.
@@ -263,6 +265,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self.check_steps(ts)
         found = self.check_loads(a, ts)
         found += self.check_initial_overlaps(a)
+        found += self.check_tunnelling(a, ts.dt)
         # A run validates twice (loading the file, building the Model): say each thing once.
         if found != self._warned:
             for message in found:
