@@ -136,7 +136,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         b = pair_b[p]
         xa = body_q[a]
         xb = body_q[b]
-        vol, first_moment, s_a, m_a, s_b, m_b, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa, xb)
+        vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa, xb)
         if of != 0:
             wp.atomic_max(overflow, 0, 1)
         mat = body_material[a] * num_materials + body_material[b]
@@ -170,7 +170,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
         if wp.static(friction):
             xi_in = pair_xi[p]
         force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
-            vol, first_moment, s_a, m_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
+            vol, first_moment, s_a, m_a, fb_a, r_ab, body_v[a], body_w[a], body_v[b], body_w[b],
             material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], step,
             wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]]),
             body_inv_mass[a] + body_inv_mass[b],
@@ -270,7 +270,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
             s = body_shape[i]
             for j in range(plane_normal.shape[0]):
                 pn = plane_normal[j]
-                vol, first_moment, s_a, m_a = plane_geometry(shapes, s, xa, pn, plane_offset[j])
+                vol, first_moment, s_a, m_a, fb_a = plane_geometry(shapes, s, xa, pn, plane_offset[j])
                 mat = body_material[i] * num_materials + plane_material[j]
                 if vol <= 0.0:
                     e_mat = material_e[mat]
@@ -295,7 +295,7 @@ def make_contact_kernels(law: str, friction: bool, max_poly: int, max_faces: int
                 if wp.static(friction):
                     xi_in = plane_xi[i, j]
                 force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
-                    vol, first_moment, s_a, m_a, -pn, body_v[i], body_w[i], zero3, zero3,
+                    vol, first_moment, s_a, m_a, fb_a, -pn, body_v[i], body_w[i], zero3, zero3,
                     material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
                     plane_turn[i, j], step,
                     shapes.shape_radius[s], body_inv_mass[i],
