@@ -4,10 +4,10 @@ The pair kernel (:mod:`polydem.kernels.narrowphase`), the contact step and its d
 (:mod:`polydem.kernels.forces`) and the batch API (:func:`polydem.overlap`) all call the
 ``@wp.func`` built here:
 
-* primitives (:func:`make_primitives`): frame changes, signed plane distances, the
+* primitives (:func:`make_primitives`): float64 promotion and casts, signed plane distances, the
   Sutherland-Hodgman edge test and cut, the fan triangle, the cone from an apex over a facet,
-  and :func:`plane_geometry`, a body against one half-space (a wall);
-* :func:`make_geometry`: :func:`pair_geometry`, two convex polyhedra.
+  :func:`plane_geometry`, a body against one half-space (a wall), and :func:`plane_depth`;
+* :func:`make_geometry`: :func:`pair_geometry`, two convex polyhedra, and :func:`pair_depth`.
 
 For a pair (A, B) one thread clips every face polygon of A by the face planes of B and every
 face of B by the planes of A. The surviving pieces are the facets of the overlap polyhedron
@@ -18,19 +18,39 @@ A n B. Summed over A's facets k (area A_k, A's outward normal n_k, centroid c_k)
 
 and V with the overlap centroid come from the divergence theorem over all facets.
 
-All clipping happens in A's body frame, so the numbers that meet in a subtraction are of the size
-of the shapes whatever the distance from the world origin.
+Precision. The set-up of a pair (relative pose, the plane offsets and vertex positions of both
+bodies) runs in float64 whatever the precision, from poses promoted to float64 (exact), and the
+clipping, in the geometry's precision, runs in a pair-local frame: the larger body's axes (its big
+faces stay exact: their vertices share their coordinates along the normal) with the origin at the
+apex of the cones, which lies within the smaller body. Numbers are rounded to the clipping
+precision only after the subtraction, so a flat contact 1e-8 m deep under a floor box whose
+centre is 0.5 m (or a kilometre from the origin) away keeps its depth in float32. Edges are cut
+from their end nearer the plane. The poses may come in float64 while the clipping runs in float32
+(``pose_scalar``, the mixed mode).
 
-Coincident facets: when a face f of A and a face g of B lie in one plane (every vertex of both
-faces within ``tol = tol_rel * min(r_A, r_B) + noise * (r_A + r_B)`` of the other face's plane;
-tol_rel 2e-5 in float32 and 1e-10 in float64, noise a few units of rounding, 5e-7 and 1e-15) the
-pair is decided once, by one function evaluated identically from both sides:
+Coincident facets: when a face g of the smaller body lies in the plane of a face f of the larger
+one with the same outward normal (every vertex of g within ``tol_rel * r_min + noise * (|v| +
+|d|)`` of f's plane in the pair-local frame: a tolerance of the smaller body and of the rounding
+of the numbers the test meets; tol_rel 1e-7 in float32 and 1e-13 in float64, noise two units of
+rounding), f is not clipped by g's plane nor g by f's, and both pieces count with weight 1/2: the
+shared region is split half to each body, and S_A + S_B = 0 holds to rounding. One function
+decides, evaluated with the same arguments from both sides, so both reach the same decision.
 
-* same outward normal: f is not clipped by g (nor g by f) and both pieces count with weight 1/2,
-  so the shared region is split half to each body and S_A + S_B = 0 holds to rounding;
-* opposite outward normals: the bodies merely touch through that plane; both pieces are left out
-  of S and M (the overlap there has a thickness below the tolerance, and the linear law would
-  otherwise give a finite force at zero overlap) but still count for V, which stays exact.
+Faces with opposite outward normals in one plane need no rule: the bodies overlap through that
+plane by some thickness, and both faces are clipped like any other, so a flat contact of any
+positive thickness has S_A = area * n (exactly touching faces give V = 0 and no contact).
+
+Enclosed pairs: when |S_A| < ENCLOSED_RATIO V^(2/3) (one body (nearly) wholly inside the other,
+or two identical bodies on top of each other), :func:`pair_geometry` also returns a fallback area
+vector, which :func:`polydem.kernels.response.contact_frame` uses in place of S_A: the direction
+of least penetration u (among the face normals of both bodies, the one along which the shorter
+translation of A, along -u, separates the bodies) times the projected area of the smaller body
+along it, 1/2 sum |u.n_f| A_f. A body wholly inside a wall gets -(its projected area along the
+wall's normal n) n.
+
+Depth (:func:`pair_depth`, :func:`plane_depth`): the deepest vertex of either body inside the
+other, i.e. the largest, over the vertices of one body, of the least distance inside the other's
+face planes; for a wall, offset - min n.v. Computed in float64.
 
 The shape arrays reach every function as one :func:`shapes_struct` value (see
 :class:`polydem.shapeset.ShapeSet` for the meaning of each array).
@@ -91,14 +111,9 @@ class Primitives:
     vec3: Any
     vec4: Any
     shapes: Any  # the wp.struct type of the shape arrays
-    plane_to_frame: Any
-    point_to_frame: Any
     plane_distance: Any
     crosses: Any
     edge_cut: Any
-    support: Any
-    all_outside: Any
-    sphere_misses: Any
     twice_area: Any
     fan_add: Any
     fan_push: Any
@@ -135,7 +150,7 @@ class Geometry:
 
 @functools.cache
 def make_primitives(scalar, pose_scalar=None) -> Primitives:
-    """Frame changes, plane tests, the clipping step, fan triangles, cones and the wall overlap.
+    """Plane tests, the clipping step, fan triangles, cones, precision casts and the wall overlap.
 
     ``pose_scalar`` (default ``scalar``) is the precision of the poses, wall normals and offsets
     that :func:`plane_geometry` and :func:`plane_depth` take: ``wp.float64`` with a ``wp.float32``
@@ -145,7 +160,6 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         pose_scalar = scalar
     vec3 = wp.types.vector(3, scalar)
     vec4 = wp.types.vector(4, scalar)
-    mat33 = wp.types.matrix(shape=(3, 3), dtype=scalar)
     transform = wp.types.transformation(pose_scalar)
     vec3p = wp.types.vector(3, pose_scalar)
     Shapes = shapes_struct(scalar)
@@ -195,17 +209,6 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         return wp.float64(0.5) * total
 
     @wp.func
-    def plane_to_frame(plane: vec4, rot: mat33, pos: vec3):
-        # A plane n.x = d of B, expressed in A's frame where B's points are rot x + pos.
-        n = rot * vec3(plane[0], plane[1], plane[2])
-        return n, plane[3] + wp.dot(n, pos)
-
-    @wp.func
-    def point_to_frame(rot: mat33, pos: vec3, x: vec3):
-        # A point of B in A's frame.
-        return rot * x + pos
-
-    @wp.func
     def plane_distance(n: vec3, d: scalar, x: vec3):
         # Signed distance of x from the plane n.x = d (unit n), positive outside.
         return wp.dot(n, x) - d
@@ -225,29 +228,6 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         if wp.abs(s) < wp.abs(s_prev):
             return v + (s / (s - s_prev)) * (prev - v)
         return prev + (s_prev / (s_prev - s)) * (v - prev)
-
-    @wp.func
-    def support(vert: wp.array(dtype=vec3), v0: int, v1: int, u: vec3, floor: scalar):
-        # The reach of the vertices v0 <= i < v1 along u (the largest u.x), at least `floor`.
-        h = floor
-        for iv in range(v0, v1):
-            h = wp.max(h, wp.dot(u, vert[iv]))
-        return h
-
-    @wp.func
-    def all_outside(vert: wp.array(dtype=vec3), v0: int, v1: int, n: vec3, d: scalar):
-        # Whether every vertex v0 <= i < v1 lies beyond the plane n.x = d: a separating plane.
-        for iv in range(v0, v1):
-            if wp.dot(n, vert[iv]) <= d:
-                return False
-        return True
-
-    @wp.func
-    def sphere_misses(c: vec3, r: scalar, u: vec3, lo: scalar, hi: scalar, centre: vec3, reach: scalar):
-        # Whether the sphere (c, r) around a face misses the slab lo <= u.x <= hi or the other
-        # body's bounding sphere (centre, reach): then the face cannot bound the overlap.
-        uc = wp.dot(u, c)
-        return uc + r < lo or uc - r > hi or wp.length_sq(c - centre) > (r + reach) * (r + reach)
 
     @wp.func
     def twice_area(p0: vec3, p1: vec3, p2: vec3, n: vec3):
@@ -376,14 +356,9 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         vec3=vec3,
         vec4=vec4,
         shapes=Shapes,
-        plane_to_frame=plane_to_frame,
-        point_to_frame=point_to_frame,
         plane_distance=plane_distance,
         crosses=crosses,
         edge_cut=edge_cut,
-        support=support,
-        all_outside=all_outside,
-        sphere_misses=sphere_misses,
         twice_area=twice_area,
         fan_add=fan_add,
         fan_push=fan_push,
