@@ -19,8 +19,9 @@ A n B. Summed over A's facets k (area A_k, A's outward normal n_k, centroid c_k)
 and V with the overlap centroid come from the divergence theorem over all facets.
 
 Precision. The set-up of a pair (relative pose, the plane offsets and vertex positions of both
-bodies) runs in float64 whatever the precision, from poses promoted to float64 (exact), and the
-clipping, in the geometry's precision, runs in a pair-local frame: the larger body's axes (its big
+bodies) runs in float64 whatever the precision, from poses promoted to float64 (exact) and the
+float64 shape tables (``vert64``, ``face_plane64``: a float32 size of 0.018 m is 4e-10 m off), and
+the clipping, in the geometry's precision, runs in a pair-local frame: the larger body's axes (its big
 faces stay exact: their vertices share their coordinates along the normal) with the origin at the
 apex of the cones, which lies within the smaller body. Numbers are rounded to the clipping
 precision only after the subtraction, so a flat contact 1e-8 m deep under a floor box whose
@@ -97,6 +98,9 @@ def shapes_struct(scalar):
         "face_loop_start": wp.array(dtype=int),
         "face_loop": wp.array(dtype=int),
         "vert": wp.array(dtype=vec3),
+        # The same in float64 (the same arrays in float64), for the pair set-up.
+        "face_plane64": wp.array(dtype=wp.types.vector(4, wp.float64)),
+        "vert64": wp.array(dtype=vec3d),
     }
     name = f"Shapes{wp.types.type_size_in_bytes(scalar) * 8}"
     cls = type(name, (), {"__annotations__": fields, "__module__": __name__, "__qualname__": name})
@@ -190,11 +194,11 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         # Area of face f (its fan's cross products, in float64).
         begin = shapes.face_loop_start[f]
         end = shapes.face_loop_start[f + 1]
-        p0 = to_f64(shapes.vert[shapes.face_loop[begin]])
+        p0 = shapes.vert64[shapes.face_loop[begin]]
         a = zero3d
         for k in range(begin + 1, end - 1):
-            e1 = to_f64(shapes.vert[shapes.face_loop[k]]) - p0
-            a += wp.cross(e1, to_f64(shapes.vert[shapes.face_loop[k + 1]]) - p0)
+            e1 = shapes.vert64[shapes.face_loop[k]] - p0
+            a += wp.cross(e1, shapes.vert64[shapes.face_loop[k + 1]] - p0)
         return wp.float64(0.5) * wp.length(a)
 
     @wp.func
@@ -203,8 +207,8 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         # |u . n_f| A_f over its faces.
         total = wp.float64(0.0)
         for f in range(shapes.shape_face_start[s], shapes.shape_face_start[s + 1]):
-            pl = shapes.face_plane[f]
-            c = wp.float64(pl[0]) * u[0] + wp.float64(pl[1]) * u[1] + wp.float64(pl[2]) * u[2]
+            pl = shapes.face_plane64[f]
+            c = pl[0] * u[0] + pl[1] * u[1] + pl[2] * u[2]
             total += wp.abs(c) * face_area(shapes, f)
         return wp.float64(0.5) * total
 
@@ -294,7 +298,9 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         for f in range(shapes.shape_face_start[s], shapes.shape_face_start[s + 1]):
             pl = shapes.face_plane[f]
             nf = vec3(pl[0], pl[1], pl[2])
-            pl_local = vec4(pl[0], pl[1], pl[2], scalar(wp.float64(pl[3]) - wp.dot(to_f64(nf), foot)))
+            p64 = shapes.face_plane64[f]
+            d_local = p64[3] - wp.dot(vec3d(p64[0], p64[1], p64[2]), foot)
+            pl_local = vec4(pl[0], pl[1], pl[2], scalar(d_local))
             begin = shapes.face_loop_start[f]
             count = shapes.face_loop_start[f + 1] - begin
             sum_a2 = scalar(0.0)
@@ -302,10 +308,10 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
             emitted = int(0)
             first = zero3
             prev = zero3
-            vp = to_scalar3(to_f64(shapes.vert[shapes.face_loop[begin + count - 1]]) - foot)
+            vp = to_scalar3(shapes.vert64[shapes.face_loop[begin + count - 1]] - foot)
             sp = plane_distance(nb, zero, vp)
             for k in range(count):
-                v = to_scalar3(to_f64(shapes.vert[shapes.face_loop[begin + k]]) - foot)
+                v = to_scalar3(shapes.vert64[shapes.face_loop[begin + k]] - foot)
                 sv = plane_distance(nb, zero, v)
                 if crosses(sp, sv):
                     cut = edge_cut(vp, sp, v, sv)
@@ -348,7 +354,7 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
         nb64 = wp.quat_rotate_inv(q64, n64)
         depth = wp.float64(0.0)
         for iv in range(shapes.shape_vert_start[s], shapes.shape_vert_start[s + 1]):
-            depth = wp.max(depth, dd - wp.dot(nb64, to_f64(shapes.vert[iv])))
+            depth = wp.max(depth, dd - wp.dot(nb64, shapes.vert64[iv]))
         return scalar(depth)
 
     return Primitives(
@@ -421,22 +427,22 @@ def make_geometry(
 
     @wp.func
     def plane64(shapes: Shapes, f: int):
-        pl = shapes.face_plane[f]
-        return vec3d(wp.float64(pl[0]), wp.float64(pl[1]), wp.float64(pl[2])), wp.float64(pl[3])
+        pl = shapes.face_plane64[f]
+        return vec3d(pl[0], pl[1], pl[2]), pl[3]
 
     @wp.func
     def support64(shapes: Shapes, v0: int, v1: int, rot: mat33d, off: vec3d, u: vec3d, floor: wp.float64):
         # The reach along u of the vertices v0 <= i < v1 placed at rot v + off, at least `floor`.
         h = floor
         for iv in range(v0, v1):
-            h = wp.max(h, wp.dot(u, rot * to_f64(shapes.vert[iv]) + off))
+            h = wp.max(h, wp.dot(u, rot * shapes.vert64[iv] + off))
         return h
 
     @wp.func
     def all_outside64(shapes: Shapes, v0: int, v1: int, n: vec3d, d: wp.float64):
         # Whether every vertex v0 <= i < v1 (in its own frame) lies beyond the plane n.x = d.
         for iv in range(v0, v1):
-            if wp.dot(n, to_f64(shapes.vert[iv])) <= d:
+            if wp.dot(n, shapes.vert64[iv]) <= d:
                 return False
         return True
 
@@ -460,7 +466,7 @@ def make_geometry(
         if wp.dot(nl, to_scalar3(rot * n64)) < scalar(parallel_cos):
             return False
         for k in range(shapes.face_loop_start[gs], shapes.face_loop_start[gs + 1]):
-            v = to_scalar3(rot * to_f64(shapes.vert[shapes.face_loop[k]]) + off)
+            v = to_scalar3(rot * shapes.vert64[shapes.face_loop[k]] + off)
             t = tol + scalar(noise_rel) * (wp.length(v) + wp.abs(pl[3]))
             if wp.abs(plane_distance(nl, pl[3], v)) > t:
                 return False
@@ -700,11 +706,11 @@ def make_geometry(
             if face_is_1:
                 centre = to_scalar3(c64 - apex)
                 for k in range(count):
-                    poly[k] = to_scalar3(to_f64(shapes.vert[shapes.face_loop[begin + k]]) - apex)
+                    poly[k] = to_scalar3(shapes.vert64[shapes.face_loop[begin + k]] - apex)
             else:
                 centre = to_scalar3(rot * c64 + off_2)
                 for k in range(count):
-                    poly[k] = to_scalar3(rot * to_f64(shapes.vert[shapes.face_loop[begin + k]]) + off_2)
+                    poly[k] = to_scalar3(rot * shapes.vert64[shapes.face_loop[begin + k]] + off_2)
             weight = scalar(1.0)
             alive = bool(True)
             cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
@@ -830,7 +836,7 @@ def make_geometry(
         # its vertices of the least distance inside body 1's face planes (negative: none inside).
         best = wp.float64(-1.0e300)
         for iv in range(shapes.shape_vert_start[s2], shapes.shape_vert_start[s2 + 1]):
-            v = rot * to_f64(shapes.vert[iv]) + pos
+            v = rot * shapes.vert64[iv] + pos
             inside = wp.float64(1.0e300)
             for f in range(shapes.shape_face_start[s1], shapes.shape_face_start[s1 + 1]):
                 n, d = plane64(shapes, f)

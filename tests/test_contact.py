@@ -516,9 +516,9 @@ def test_small_body_resting_on_a_huge_one(device, precision):
         pa = pose([2.5067, 0.3273, 0.005 - depth], Rotation.from_rotvec([tilt, 0.3 * tilt, 0.0]))
         res = overlap(c, pa, plate, pb, device=device, precision=precision)
         ref = reference_overlap(world_vertices(c, pa), world_vertices(plate, pb))
-        # float32: the cube's and the plate's decimal sizes are held to ~1e-10 and ~7e-10 m, a few
-        # 1e-5 of the 10 um depth (the pair set-up in float64 adds nothing to that).
-        rtol = 1e-9 if precision == "float64" else 3e-4
+        # float32: the pair is set up in float64 (float64 shape tables), so only the clipping's
+        # rounding of pair-local numbers is left (before, the float32 sizes were 6e-5 of V off).
+        rtol = 1e-9 if precision == "float64" else 1e-5
         np.testing.assert_allclose(res.volume[0], ref["volume"], rtol=rtol)
         np.testing.assert_allclose(res.area_vector[0], ref["area_vector"], atol=rtol * 1e-4)
         assert not res.enclosed[0]
@@ -548,10 +548,10 @@ def test_float32_cubes_resting_flat_on_a_floor_box(device):
     the cube, so the cones of V must take their apex elsewhere. A wrong choice (found in a pour:
     a resting cube's V came out 10-170x too large, its force flickered between 0 and 75 weights)
     put the apex millimetres from the overlap, where float32 facets, which close only to ~1e-3 of
-    their area, leave V errors of 1e-3 of the cube's volume. The sizes are ones float32 holds
-    exactly, so both precisions see the same bodies: float32 V is within 1e-5 of itself and S_A
-    within 1e-4 of its length of float64 (before the float64 pair set-up, 2% for V and S_A = 0 for
-    the thinner ones, whose faces were taken as merely touching)."""
+    their area, leave V errors of 1e-3 of the cube's volume. With the pair set up in float64 (from
+    float64 shape tables), float32 V is within 1e-5 of itself and S_A within 1e-4 of its length of
+    float64 (before: V within 2% from 1e-5 of the cube's volume up, and S_A = 0 for the thinner
+    overlaps, whose faces were taken as merely touching)."""
 
     def tilted_face_down(rng):
         axis = rng.normal(size=3)
@@ -560,9 +560,8 @@ def test_float32_cubes_resting_flat_on_a_floor_box(device):
         tilt = Rotation.from_rotvec(axis * 10.0 ** rng.uniform(-7, -4))
         return tilt * Rotation.from_euler("z", rng.uniform(0.0, 90.0), degrees=True)
 
-    f32 = np.float32
-    cube = ConvexShape.box(float(f32(0.01)))
-    plate = ConvexShape.box(float(f32(0.2)), float(f32(0.2)), float(f32(0.018)))
+    cube = ConvexShape.box(0.01)
+    plate = ConvexShape.box(0.2, 0.2, 0.018)
     r32, r64 = cubes_pressed_into_a_plate(
         device, cube, plate, np.random.default_rng(7), 300, tilted_face_down, 0.09, (-8, -6)
     )
