@@ -59,7 +59,7 @@ def io_bytes(shapes):
         "pair_pose_b": wp.zeros(1, dtype=tf, device=dev),
     }
     outputs = {"pair_volume": wp.zeros(1, dtype=scalar, device=dev)}
-    for k in ("pair_volume_moment", "pair_area_a", "pair_moment_a", "pair_area_b", "pair_moment_b"):
+    for k in pk.OVERLAP_OUTPUTS[1:]:
         outputs[k] = wp.zeros(1, dtype=vec3, device=dev)
     read = {k: a.strides[0] for k, a in inputs.items()}
     write = {k: a.strides[0] for k, a in outputs.items()}

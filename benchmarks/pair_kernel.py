@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 import warp as wp
-from polydem.kernels.narrowphase import make_narrowphase
+from polydem.kernels.narrowphase import OVERLAP_OUTPUTS, make_narrowphase
 
 from polydem import ConvexShape
 from polydem.shapeset import ShapeSet
@@ -96,7 +96,8 @@ def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=
         wp.array(poses_a.astype(np_scalar), dtype=tf, device=dev),
         wp.array(poses_b.astype(np_scalar), dtype=tf, device=dev),
     ]
-    outs = [wp.zeros(n, dtype=scalar, device=dev)] + [wp.zeros(n, dtype=vec3, device=dev) for _ in range(5)]
+    outs = [wp.zeros(n, dtype=scalar, device=dev)]
+    outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
     overflow = wp.zeros(1, dtype=int, device=dev)
     launch = {"dim": n, "inputs": args, "outputs": [*outs, overflow], "device": dev, "block_dim": block_dim}
     wp.launch(ns.overlap_kernel, **launch)  # compile, warm

@@ -91,44 +91,19 @@ def make_contact_kernels(
     coordinates of the bodies' size however far they are from the origin.
     """
     S, C = scalars(precision)
-    local = S != C
     vec3s = wp.types.vector(3, S)
     vec3c = wp.types.vector(3, C)
     transform_s = wp.types.transformation(S)
-    transform_c = wp.types.transformation(C)
-    quat_c = wp.types.quaternion(C)
     resp = make_response(C, law, friction, diagnostics)
     law_energy = resp.law_energy
     respond = resp.respond
-    geom = make_geometry(C, max_poly, max_faces)
+    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S)
     Shapes = geom.shapes
     pair_geometry = geom.pair_geometry
     plane_geometry = geom.primitives.plane_geometry
+    pair_depth_of = geom.pair_depth
+    plane_depth_of = geom.primitives.plane_depth
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
-
-    # Until the geometry takes poses in S itself, the float64 poses of a pair become float32 poses
-    # relative to A's centre here (the geometry returns positions relative to A's centre anyway).
-    @wp.func
-    def pair_poses(xa: transform_s, xb: transform_s):
-        # The poses of a pair for the geometry: in C, relative to A's centre when S != C.
-        if wp.static(local):
-            r = wp.transform_get_translation(xb) - wp.transform_get_translation(xa)
-            qa = quat_c(wp.transform_get_rotation(xa))
-            qb = quat_c(wp.transform_get_rotation(xb))
-            return transform_c(vec3c(C(0.0), C(0.0), C(0.0)), qa), transform_c(vec3c(r), qb)
-        else:
-            return xa, xb
-
-    @wp.func
-    def wall_pose(xa: transform_s, normal: vec3s, offset: S):
-        # Pose, normal and offset of a wall contact for the geometry: in C, relative to the body's
-        # centre when S != C (the offset n.x_A is taken off in S).
-        if wp.static(local):
-            dd = offset - wp.dot(normal, wp.transform_get_translation(xa))
-            xa_c = transform_c(vec3c(C(0.0), C(0.0), C(0.0)), quat_c(wp.transform_get_rotation(xa)))
-            return xa_c, vec3c(normal), C(dd)
-        else:
-            return xa, normal, offset
 
     @wp.kernel(enable_backward=False, module="unique")
     def pair_contact_kernel(
@@ -166,6 +141,7 @@ def make_contact_kernels(
         pair_point: wp.array(dtype=vec3s),
         pair_fn: wp.array(dtype=C),
         pair_ft: wp.array(dtype=vec3c),
+        pair_depth: wp.array(dtype=C),
     ):
         """The step variant writes the wrench on A, the spring and the energy dissipated; the
         diagnostics variant (run on request only) writes what contacts() and energy() report,
@@ -177,8 +153,7 @@ def make_contact_kernels(
         b = pair_b[p]
         xa = body_q[a]
         xb = body_q[b]
-        xa_c, xb_c = pair_poses(xa, xb)
-        vol, first_moment, s_a, m_a, s_b, m_b, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa_c, xb_c)
+        vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa, xb)
         if of != 0:
             wp.atomic_max(overflow, 0, 1)
         mat = body_material[a] * num_materials + body_material[b]
@@ -193,6 +168,7 @@ def make_contact_kernels(
                 pair_energy[p] = kept
                 pair_fn[p] = C(0.0)
                 pair_ft[p] = zero3
+                pair_depth[p] = C(0.0)
             else:
                 lost = kept
                 pair_turn[p] = C(0.0)
@@ -209,7 +185,7 @@ def make_contact_kernels(
         if wp.static(friction):
             xi_in = pair_xi[p]
         force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
-            vol, first_moment, s_a, m_a, r_ab,
+            vol, first_moment, s_a, m_a, fb_a, r_ab,
             vec3c(body_v[a]), vec3c(body_w[a]), vec3c(body_v[b]), vec3c(body_w[b]),
             material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], dt,
             wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]]),
@@ -222,6 +198,7 @@ def make_contact_kernels(
             pair_point[p] = vec3s(point) + wp.transform_get_translation(xa)
             pair_fn[p] = fn
             pair_ft[p] = ft
+            pair_depth[p] = C(pair_depth_of(shapes, body_shape[a], body_shape[b], xa, xb))
         else:
             if wp.static(friction):
                 pair_xi[p] = xi
@@ -273,6 +250,7 @@ def make_contact_kernels(
         plane_fn: wp.array2d(dtype=C),
         plane_point: wp.array2d(dtype=vec3s),
         plane_ft: wp.array2d(dtype=vec3c),
+        plane_depth: wp.array2d(dtype=C),
     ):
         """Sums each body's pair wrenches in key order and adds its wall contacts (step variant);
         the diagnostics variant only reports the wall contacts."""
@@ -309,8 +287,8 @@ def make_contact_kernels(
             xa = body_q[i]
             s = body_shape[i]
             for j in range(plane_normal.shape[0]):
-                xa_c, pn, offset = wall_pose(xa, plane_normal[j], plane_offset[j])
-                vol, first_moment, s_a, m_a = plane_geometry(shapes, s, xa_c, pn, offset)
+                pn = plane_normal[j]
+                vol, first_moment, s_a, m_a, fb_a = plane_geometry(shapes, s, xa, pn, plane_offset[j])
                 mat = body_material[i] * num_materials + plane_material[j]
                 if vol <= C(0.0):
                     e_mat = material_e[mat]
@@ -320,6 +298,7 @@ def make_contact_kernels(
                         plane_energy[i, j] = kept
                         plane_fn[i, j] = C(0.0)
                         plane_ft[i, j] = zero3
+                        plane_depth[i, j] = C(0.0)
                     else:
                         lost += S(kept)
                         plane_turn[i, j] = C(0.0)
@@ -332,7 +311,7 @@ def make_contact_kernels(
                 if wp.static(friction):
                     xi_in = plane_xi[i, j]
                 force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
-                    vol, first_moment, s_a, m_a, -pn, vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3,
+                    vol, first_moment, s_a, m_a, fb_a, -vec3c(pn), vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3,
                     material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
                     plane_turn[i, j], dt,
                     shapes.shape_radius[s], C(body_inv_mass[i]),
@@ -343,6 +322,7 @@ def make_contact_kernels(
                     plane_fn[i, j] = fn
                     plane_point[i, j] = vec3s(point) + xi_pos
                     plane_ft[i, j] = ft
+                    plane_depth[i, j] = C(plane_depth_of(shapes, s, xa, pn, plane_offset[j]))
                 else:
                     if wp.static(friction):
                         plane_xi[i, j] = xi

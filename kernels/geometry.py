@@ -4,10 +4,10 @@ The pair kernel (:mod:`polydem.kernels.narrowphase`), the contact step and its d
 (:mod:`polydem.kernels.forces`) and the batch API (:func:`polydem.overlap`) all call the
 ``@wp.func`` built here:
 
-* primitives (:func:`make_primitives`): frame changes, signed plane distances, the
+* primitives (:func:`make_primitives`): float64 promotion and casts, signed plane distances, the
   Sutherland-Hodgman edge test and cut, the fan triangle, the cone from an apex over a facet,
-  and :func:`plane_geometry`, a body against one half-space (a wall);
-* :func:`make_geometry`: :func:`pair_geometry`, two convex polyhedra.
+  :func:`plane_geometry`, a body against one half-space (a wall), and :func:`plane_depth`;
+* :func:`make_geometry`: :func:`pair_geometry`, two convex polyhedra, and :func:`pair_depth`.
 
 For a pair (A, B) one thread clips every face polygon of A by the face planes of B and every
 face of B by the planes of A. The surviving pieces are the facets of the overlap polyhedron
@@ -18,19 +18,40 @@ A n B. Summed over A's facets k (area A_k, A's outward normal n_k, centroid c_k)
 
 and V with the overlap centroid come from the divergence theorem over all facets.
 
-All clipping happens in A's body frame, so the numbers that meet in a subtraction are of the size
-of the shapes whatever the distance from the world origin.
+Precision. The set-up of a pair (relative pose, the plane offsets and vertex positions of both
+bodies) runs in float64 whatever the precision, from poses promoted to float64 (exact) and the
+float64 shape tables (``vert64``, ``face_plane64``: a float32 size of 0.018 m is 4e-10 m off), and
+the clipping, in the geometry's precision, runs in a pair-local frame: the larger body's axes (its big
+faces stay exact: their vertices share their coordinates along the normal) with the origin at the
+apex of the cones, which lies within the smaller body. Numbers are rounded to the clipping
+precision only after the subtraction, so a flat contact 1e-8 m deep under a floor box whose
+centre is 0.5 m (or a kilometre from the origin) away keeps its depth in float32. Edges are cut
+from their end nearer the plane. The poses may come in float64 while the clipping runs in float32
+(``pose_scalar``, the mixed mode).
 
-Coincident facets: when a face f of A and a face g of B lie in one plane (every vertex of both
-faces within ``tol = tol_rel * min(r_A, r_B) + noise * (r_A + r_B)`` of the other face's plane;
-tol_rel 2e-5 in float32 and 1e-10 in float64, noise a few units of rounding, 5e-7 and 1e-15) the
-pair is decided once, by one function evaluated identically from both sides:
+Coincident facets: when a face g of the smaller body lies in the plane of a face f of the larger
+one with the same outward normal (every vertex of g within ``tol_rel * r_min + noise * (|v| +
+|d|)`` of f's plane in the pair-local frame: a tolerance of the smaller body and of the rounding
+of the numbers the test meets; tol_rel 1e-7 in float32 and 1e-13 in float64, noise two units of
+rounding), f is not clipped by g's plane nor g by f's, and both pieces count with weight 1/2: the
+shared region is split half to each body, and S_A + S_B = 0 holds to rounding. One function
+decides, evaluated with the same arguments from both sides, so both reach the same decision.
 
-* same outward normal: f is not clipped by g (nor g by f) and both pieces count with weight 1/2,
-  so the shared region is split half to each body and S_A + S_B = 0 holds to rounding;
-* opposite outward normals: the bodies merely touch through that plane; both pieces are left out
-  of S and M (the overlap there has a thickness below the tolerance, and the linear law would
-  otherwise give a finite force at zero overlap) but still count for V, which stays exact.
+Faces with opposite outward normals in one plane need no rule: the bodies overlap through that
+plane by some thickness, and both faces are clipped like any other, so a flat contact of any
+positive thickness has S_A = area * n (exactly touching faces give V = 0 and no contact).
+
+Enclosed pairs: when |S_A| < ENCLOSED_RATIO V^(2/3) (one body (nearly) wholly inside the other,
+or two identical bodies on top of each other), :func:`pair_geometry` also returns a fallback area
+vector, which :func:`polydem.kernels.response.contact_frame` uses in place of S_A: the direction
+of least penetration u (among the face normals of both bodies, the one along which the shorter
+translation of A, along -u, separates the bodies) times the projected area of the smaller body
+along it, 1/2 sum |u.n_f| A_f. A body wholly inside a wall gets -(its projected area along the
+wall's normal n) n.
+
+Depth (:func:`pair_depth`, :func:`plane_depth`): the deepest vertex of either body inside the
+other, i.e. the largest, over the vertices of one body, of the least distance inside the other's
+face planes; for a wall, offset - min n.v. Computed in float64.
 
 The shape arrays reach every function as one :func:`shapes_struct` value (see
 :class:`polydem.shapeset.ShapeSet` for the meaning of each array).
@@ -42,13 +63,25 @@ from typing import Any
 
 import warp as wp
 
-# Relative tolerance of the coincident-face test, per precision (see the module docstring).
-COINCIDENT_TOL = {wp.float32: 2.0e-5, wp.float64: 1.0e-10}
-# Plus a few units of rounding of the coordinates, which grow with the larger body (a grain on a
-# container wall meets the wall's far corners in its frame).
-COORDINATE_NOISE = {wp.float32: 5.0e-7, wp.float64: 1.0e-15}
+# Tolerance of the coincident-face test relative to the smaller body's radius, per precision (see
+# the module docstring): below the rounding, which the set-up in float64 keeps to a few units.
+COINCIDENT_TOL = {wp.float32: 1.0e-7, wp.float64: 1.0e-13}
+# Plus two units of rounding of the numbers each test meets: a vertex of the smaller body and the
+# plane offset, in the pair-local frame (of the size of the smaller body, not of the larger).
+COORDINATE_NOISE = {wp.float32: 2.4e-7, wp.float64: 4.5e-16}
+# Margin of the (float64) culling of faces that cannot bound the overlap, relative to the smaller
+# body: generous, since a face kept in vain is only clipped away.
+CULL_MARGIN = 1.0e-5
 # Cheap pre-filter before the exact coincidence test: normals within about 2.5 degrees.
 PARALLEL_COS = 0.999
+# A pair whose |S_A| falls below this fraction of V^(2/3) is "enclosed" (one body (nearly) inside
+# the other, or two identical bodies on top of each other: the gradient of V vanishes); the
+# geometry then also returns the fallback area vector that contact_frame pushes along.
+ENCLOSED_RATIO = 1.0e-4
+
+vec3d = wp.types.vector(3, wp.float64)
+quatd = wp.types.quaternion(wp.float64)
+mat33d = wp.types.matrix(shape=(3, 3), dtype=wp.float64)
 
 
 @functools.cache
@@ -65,6 +98,9 @@ def shapes_struct(scalar):
         "face_loop_start": wp.array(dtype=int),
         "face_loop": wp.array(dtype=int),
         "vert": wp.array(dtype=vec3),
+        # The same in float64 (the same arrays in float64), for the pair set-up.
+        "face_plane64": wp.array(dtype=wp.types.vector(4, wp.float64)),
+        "vert64": wp.array(dtype=vec3d),
     }
     name = f"Shapes{wp.types.type_size_in_bytes(scalar) * 8}"
     cls = type(name, (), {"__annotations__": fields, "__module__": __name__, "__qualname__": name})
@@ -79,20 +115,22 @@ class Primitives:
     vec3: Any
     vec4: Any
     shapes: Any  # the wp.struct type of the shape arrays
-    plane_to_frame: Any
-    point_to_frame: Any
     plane_distance: Any
     crosses: Any
     edge_cut: Any
-    support: Any
-    all_outside: Any
-    sphere_misses: Any
     twice_area: Any
     fan_add: Any
     fan_push: Any
     fan_close: Any
     cone: Any
     plane_geometry: Any
+    to_scalar3: Any
+    to_f64: Any
+    pose_to_f64: Any
+    face_area: Any
+    projected_area: Any
+    plane_depth: Any
+    pose_scalar: Any
 
 
 @dataclass(frozen=True)
@@ -110,28 +148,69 @@ class Geometry:
     tol_rel: float
     primitives: Primitives
     pair_geometry: Any
+    pair_depth: Any
+    pose_scalar: Any
 
 
 @functools.cache
-def make_primitives(scalar) -> Primitives:
-    """Frame changes, plane tests, the clipping step, fan triangles, cones and the wall overlap."""
+def make_primitives(scalar, pose_scalar=None) -> Primitives:
+    """Plane tests, the clipping step, fan triangles, cones, precision casts and the wall overlap.
+
+    ``pose_scalar`` (default ``scalar``) is the precision of the poses, wall normals and offsets
+    that :func:`plane_geometry` and :func:`plane_depth` take: ``wp.float64`` with a ``wp.float32``
+    ``scalar`` is the mixed mode (float64 positions, float32 clipping).
+    """
+    if pose_scalar is None:
+        pose_scalar = scalar
     vec3 = wp.types.vector(3, scalar)
     vec4 = wp.types.vector(4, scalar)
-    mat33 = wp.types.matrix(shape=(3, 3), dtype=scalar)
-    transform = wp.types.transformation(scalar)
+    transform = wp.types.transformation(pose_scalar)
+    vec3p = wp.types.vector(3, pose_scalar)
     Shapes = shapes_struct(scalar)
     zero3 = wp.constant(vec3(scalar(0.0), scalar(0.0), scalar(0.0)))
+    zero3d = wp.constant(vec3d(0.0, 0.0, 0.0))
+    enclosed_ratio = ENCLOSED_RATIO
 
     @wp.func
-    def plane_to_frame(plane: vec4, rot: mat33, pos: vec3):
-        # A plane n.x = d of B, expressed in A's frame where B's points are rot x + pos.
-        n = rot * vec3(plane[0], plane[1], plane[2])
-        return n, plane[3] + wp.dot(n, pos)
+    def to_scalar3(v: vec3d):
+        # float64 set-up numbers, small once relative to the pair-local origin, to the clipping precision.
+        return vec3(scalar(v[0]), scalar(v[1]), scalar(v[2]))
 
     @wp.func
-    def point_to_frame(rot: mat33, pos: vec3, x: vec3):
-        # A point of B in A's frame.
-        return rot * x + pos
+    def to_f64(v: vec3):
+        return vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+    @wp.func
+    def pose_to_f64(x: transform):
+        # A pose promoted to float64 (exact), its quaternion renormalised: a float32 quaternion is
+        # unit only to ~1e-7, which would scale a body's vertices about its centre by as much.
+        p = wp.transform_get_translation(x)
+        q = wp.transform_get_rotation(x)
+        q64 = wp.normalize(quatd(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]), wp.float64(q[3])))
+        return vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2])), q64
+
+    @wp.func
+    def face_area(shapes: Shapes, f: int):
+        # Area of face f (its fan's cross products, in float64).
+        begin = shapes.face_loop_start[f]
+        end = shapes.face_loop_start[f + 1]
+        p0 = shapes.vert64[shapes.face_loop[begin]]
+        a = zero3d
+        for k in range(begin + 1, end - 1):
+            e1 = shapes.vert64[shapes.face_loop[k]] - p0
+            a += wp.cross(e1, shapes.vert64[shapes.face_loop[k + 1]] - p0)
+        return wp.float64(0.5) * wp.length(a)
+
+    @wp.func
+    def projected_area(shapes: Shapes, s: int, u: vec3d):
+        # Area of the shadow of shape s (body frame) along the unit vector u: half the sum of
+        # |u . n_f| A_f over its faces.
+        total = wp.float64(0.0)
+        for f in range(shapes.shape_face_start[s], shapes.shape_face_start[s + 1]):
+            pl = shapes.face_plane64[f]
+            c = pl[0] * u[0] + pl[1] * u[1] + pl[2] * u[2]
+            total += wp.abs(c) * face_area(shapes, f)
+        return wp.float64(0.5) * total
 
     @wp.func
     def plane_distance(n: vec3, d: scalar, x: vec3):
@@ -146,31 +225,13 @@ def make_primitives(scalar) -> Primitives:
 
     @wp.func
     def edge_cut(prev: vec3, s_prev: scalar, v: vec3, s: scalar):
-        # Where the edge prev -> v, of signed distances s_prev and s, meets the plane.
+        # Where the edge prev -> v, of signed distances s_prev and s, meets the plane. Stepping from
+        # the end nearer the plane keeps the cut's precision that of the nearer point: from the far
+        # end, a cut 1e-8 m from the near end of a 1 cm edge came out with ~5e-10 m of rounding
+        # (the height of a resting cube's side strips, 2/3 of its shallow overlap V).
+        if wp.abs(s) < wp.abs(s_prev):
+            return v + (s / (s - s_prev)) * (prev - v)
         return prev + (s_prev / (s_prev - s)) * (v - prev)
-
-    @wp.func
-    def support(vert: wp.array(dtype=vec3), v0: int, v1: int, u: vec3, floor: scalar):
-        # The reach of the vertices v0 <= i < v1 along u (the largest u.x), at least `floor`.
-        h = floor
-        for iv in range(v0, v1):
-            h = wp.max(h, wp.dot(u, vert[iv]))
-        return h
-
-    @wp.func
-    def all_outside(vert: wp.array(dtype=vec3), v0: int, v1: int, n: vec3, d: scalar):
-        # Whether every vertex v0 <= i < v1 lies beyond the plane n.x = d: a separating plane.
-        for iv in range(v0, v1):
-            if wp.dot(n, vert[iv]) <= d:
-                return False
-        return True
-
-    @wp.func
-    def sphere_misses(c: vec3, r: scalar, u: vec3, lo: scalar, hi: scalar, centre: vec3, reach: scalar):
-        # Whether the sphere (c, r) around a face misses the slab lo <= u.x <= hi or the other
-        # body's bounding sphere (centre, reach): then the face cannot bound the overlap.
-        uc = wp.dot(u, c)
-        return uc + r < lo or uc - r > hi or wp.length_sq(c - centre) > (r + reach) * (r + reach)
 
     @wp.func
     def twice_area(p0: vec3, p1: vec3, p2: vec3, n: vec3):
@@ -208,18 +269,28 @@ def make_primitives(scalar) -> Primitives:
         return v, (h / scalar(3.0)) * (scalar(0.25) * area * origin + scalar(0.75) * area_c)
 
     @wp.func
-    def plane_geometry(shapes: Shapes, s: int, xa: transform, normal: vec3, offset: scalar):
+    def plane_geometry(shapes: Shapes, s: int, xa: transform, normal: vec3p, offset: pose_scalar):
         """Overlap of shape ``s`` at pose ``xa`` with the half-space n.x <= offset (a wall).
 
-        Returns (V, V * centroid, S_A, M_A about x_A), positions relative to x_A, world axes.
+        Returns (V, V * centroid, S_A, M_A about x_A, fallback area vector), positions relative
+        to x_A, world axes. The fallback is zero unless the body lies (almost) wholly inside the
+        half-space (|S_A| < ENCLOSED_RATIO V^(2/3)); then it is -(projected area along n) n, the
+        effective S_A of :func:`polydem.kernels.response.contact_frame`.
+
+        The set-up runs in float64 and the clipping relative to the foot of the body's centre on
+        the wall, so that a resting body's face, a depth below the wall, has coordinates of the
+        size of the depth rather than of the body (or of the wall's distance from the origin).
         Each face is clipped by the one plane while its vertices stream past, so no polygon buffer.
         """
-        q = wp.transform_get_rotation(xa)
-        dd = offset - wp.dot(normal, wp.transform_get_translation(xa))
-        if dd <= -shapes.shape_radius[s]:
-            return scalar(0.0), zero3, zero3, zero3
-        nb = wp.quat_rotate_inv(q, normal)
-        origin = dd * nb  # on the plane, so the cap facet's cone is flat and adds nothing
+        x64, q64 = pose_to_f64(xa)
+        n64 = vec3d(wp.float64(normal[0]), wp.float64(normal[1]), wp.float64(normal[2]))
+        dd = wp.float64(offset) - wp.dot(n64, x64)
+        if dd <= -wp.float64(shapes.shape_radius[s]):
+            return scalar(0.0), zero3, zero3, zero3, zero3
+        nb64 = wp.quat_rotate_inv(q64, n64)
+        foot = dd * nb64  # on the plane: the local origin, so the cap facet's cone is flat
+        nb = to_scalar3(nb64)
+        zero = scalar(0.0)
         vol = scalar(0.0)
         vol_c = zero3
         s_a = zero3
@@ -227,6 +298,9 @@ def make_primitives(scalar) -> Primitives:
         for f in range(shapes.shape_face_start[s], shapes.shape_face_start[s + 1]):
             pl = shapes.face_plane[f]
             nf = vec3(pl[0], pl[1], pl[2])
+            p64 = shapes.face_plane64[f]
+            d_local = p64[3] - wp.dot(vec3d(p64[0], p64[1], p64[2]), foot)
+            pl_local = vec4(pl[0], pl[1], pl[2], scalar(d_local))
             begin = shapes.face_loop_start[f]
             count = shapes.face_loop_start[f + 1] - begin
             sum_a2 = scalar(0.0)
@@ -234,11 +308,11 @@ def make_primitives(scalar) -> Primitives:
             emitted = int(0)
             first = zero3
             prev = zero3
-            vp = shapes.vert[shapes.face_loop[begin + count - 1]]
-            sp = plane_distance(nb, dd, vp)
+            vp = to_scalar3(shapes.vert64[shapes.face_loop[begin + count - 1]] - foot)
+            sp = plane_distance(nb, zero, vp)
             for k in range(count):
-                v = shapes.vert[shapes.face_loop[begin + k]]
-                sv = plane_distance(nb, dd, v)
+                v = to_scalar3(shapes.vert64[shapes.face_loop[begin + k]] - foot)
+                sv = plane_distance(nb, zero, v)
                 if crosses(sp, sv):
                     cut = edge_cut(vp, sp, v, sv)
                     first, prev, emitted, sum_a2, sum_c = fan_push(cut, first, prev, emitted, nf, sum_a2, sum_c)
@@ -250,227 +324,358 @@ def make_primitives(scalar) -> Primitives:
                 area, area_c = fan_close(sum_a2, sum_c, scalar(1.0))
                 s_a += area * nf
                 m_a += wp.cross(area_c, nf)
-                dv, dv_c = cone(area, area_c, pl, origin)
+                dv, dv_c = cone(area, area_c, pl_local, zero3)
                 vol += dv
                 vol_c += dv_c
-        return vol, wp.quat_rotate(q, vol_c), wp.quat_rotate(q, s_a), wp.quat_rotate(q, m_a)
+        # Back to the body's centre and world axes, in float64.
+        s64 = to_f64(s_a)
+        vol_c64 = to_f64(vol_c) + wp.float64(vol) * foot
+        m64 = to_f64(m_a) + wp.cross(foot, s64)
+        fallback = zero3
+        if vol > scalar(0.0):
+            if wp.length(s_a) < scalar(enclosed_ratio) * wp.pow(vol, scalar(2.0) / scalar(3.0)):
+                # Wholly inside the wall: pushed out along its normal (module docstring).
+                fallback = to_scalar3(-projected_area(shapes, s, nb64) * n64)
+        return (
+            vol,
+            to_scalar3(wp.quat_rotate(q64, vol_c64)),
+            to_scalar3(wp.quat_rotate(q64, s64)),
+            to_scalar3(wp.quat_rotate(q64, m64)),
+            fallback,
+        )
+
+    @wp.func
+    def plane_depth(shapes: Shapes, s: int, xa: transform, normal: vec3p, offset: pose_scalar):
+        """Penetration depth [m] of shape ``s`` at pose ``xa`` into the half-space n.x <= offset:
+        offset - min n.v over its vertices, 0 when it does not reach the wall (float64 inside)."""
+        x64, q64 = pose_to_f64(xa)
+        n64 = vec3d(wp.float64(normal[0]), wp.float64(normal[1]), wp.float64(normal[2]))
+        dd = wp.float64(offset) - wp.dot(n64, x64)
+        nb64 = wp.quat_rotate_inv(q64, n64)
+        depth = wp.float64(0.0)
+        for iv in range(shapes.shape_vert_start[s], shapes.shape_vert_start[s + 1]):
+            depth = wp.max(depth, dd - wp.dot(nb64, shapes.vert64[iv]))
+        return scalar(depth)
 
     return Primitives(
         scalar=scalar,
         vec3=vec3,
         vec4=vec4,
         shapes=Shapes,
-        plane_to_frame=plane_to_frame,
-        point_to_frame=point_to_frame,
         plane_distance=plane_distance,
         crosses=crosses,
         edge_cut=edge_cut,
-        support=support,
-        all_outside=all_outside,
-        sphere_misses=sphere_misses,
         twice_area=twice_area,
         fan_add=fan_add,
         fan_push=fan_push,
         fan_close=fan_close,
         cone=cone,
         plane_geometry=plane_geometry,
+        to_scalar3=to_scalar3,
+        to_f64=to_f64,
+        pose_to_f64=pose_to_f64,
+        face_area=face_area,
+        projected_area=projected_area,
+        plane_depth=plane_depth,
+        pose_scalar=pose_scalar,
     )
 
 
 @functools.cache
-def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None) -> Geometry:
-    """:func:`pair_geometry` for one precision and polygon capacity.
+def make_geometry(
+    scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None, pose_scalar=None
+) -> Geometry:
+    """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
     Args:
-        scalar: ``wp.float32`` or ``wp.float64``.
+        scalar: ``wp.float32`` or ``wp.float64``: the precision of the clipping and of the results.
         max_poly: capacity of the per-thread polygon buffer (vertices of one clipped facet). A
             facet that would exceed it raises the returned ``overflow`` flag; the host then
             rebuilds with a larger capacity and runs again.
         max_faces: the most faces of any shape in use (capacity of the per-thread plane lists).
         coincident_tol: relative tolerance of the coincident-face test (default per precision).
+        pose_scalar: precision of the poses taken (default ``scalar``); ``wp.float64`` with a
+            ``wp.float32`` ``scalar`` is the mixed mode.
     """
-    prim = make_primitives(scalar)
+    if pose_scalar is None:
+        pose_scalar = scalar
+    prim = make_primitives(scalar, pose_scalar)
     vec3 = prim.vec3
     vec4 = prim.vec4
-    mat33 = wp.types.matrix(shape=(3, 3), dtype=scalar)
-    quat = wp.types.quaternion(scalar)
-    transform = wp.types.transformation(scalar)
+    quat = wp.types.quaternion(pose_scalar)
+    transform = wp.types.transformation(pose_scalar)
     Shapes = prim.shapes
     poly_t = wp.types.matrix(shape=(2 * max_poly, 3), dtype=scalar)
     planes_t = wp.types.matrix(shape=(max_faces, 4), dtype=scalar)
     ids_t = wp.types.vector(length=max_faces, dtype=int)
     tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
     noise_rel = float(COORDINATE_NOISE[scalar])
+    cull_margin = CULL_MARGIN
     parallel_cos = PARALLEL_COS
-    plane_to_frame = prim.plane_to_frame
-    point_to_frame = prim.point_to_frame
+    enclosed_ratio = ENCLOSED_RATIO
     plane_distance = prim.plane_distance
     crosses = prim.crosses
     edge_cut = prim.edge_cut
     fan_add = prim.fan_add
     fan_close = prim.fan_close
-    support = prim.support
-    all_outside = prim.all_outside
-    sphere_misses = prim.sphere_misses
     cone = prim.cone
+    to_scalar3 = prim.to_scalar3
+    to_f64 = prim.to_f64
+    pose_to_f64 = prim.pose_to_f64
+    projected_area = prim.projected_area
+    zero3d = wp.constant(vec3d(0.0, 0.0, 0.0))
 
     @wp.func
-    def coplanar_relation(
-        shapes: Shapes,
-        fa: int,
-        gb: int,
-        rot: mat33,
-        pos: vec3,
-        tol: scalar,
-    ):
-        # Decides whether face fa of A and face gb of B share a plane: +1 same outward normal,
-        # -1 opposite normals, 0 otherwise. Evaluated in A's frame with the same expressions
-        # whichever side calls it, so both sides reach the same decision bit for bit.
-        pa = shapes.face_plane[fa]
-        na = vec3(pa[0], pa[1], pa[2])
-        nb, db = plane_to_frame(shapes.face_plane[gb], rot, pos)
-        c = wp.dot(na, nb)
-        if wp.abs(c) < scalar(parallel_cos):
-            return 0
-        for k in range(shapes.face_loop_start[fa], shapes.face_loop_start[fa + 1]):
-            if wp.abs(plane_distance(nb, db, shapes.vert[shapes.face_loop[k]])) > tol:
-                return 0
-        for k in range(shapes.face_loop_start[gb], shapes.face_loop_start[gb + 1]):
-            if wp.abs(plane_distance(na, pa[3], point_to_frame(rot, pos, shapes.vert[shapes.face_loop[k]]))) > tol:
-                return 0
-        if c > scalar(0.0):
-            return 1
-        return -1
+    def plane64(shapes: Shapes, f: int):
+        pl = shapes.face_plane64[f]
+        return vec3d(pl[0], pl[1], pl[2]), pl[3]
 
     @wp.func
-    def pair_geometry_in_a(
-        shapes: Shapes,
-        sa: int,
-        sb: int,
-        xa: transform,
-        xb: transform,
+    def support64(shapes: Shapes, v0: int, v1: int, rot: mat33d, off: vec3d, u: vec3d, floor: wp.float64):
+        # The reach along u of the vertices v0 <= i < v1 placed at rot v + off, at least `floor`.
+        h = floor
+        for iv in range(v0, v1):
+            h = wp.max(h, wp.dot(u, rot * shapes.vert64[iv] + off))
+        return h
+
+    @wp.func
+    def all_outside64(shapes: Shapes, v0: int, v1: int, n: vec3d, d: wp.float64):
+        # Whether every vertex v0 <= i < v1 (in its own frame) lies beyond the plane n.x = d.
+        for iv in range(v0, v1):
+            if wp.dot(n, shapes.vert64[iv]) <= d:
+                return False
+        return True
+
+    @wp.func
+    def sphere_misses64(
+        c: vec3d, r: wp.float64, u: vec3d, lo: wp.float64, hi: wp.float64, centre: vec3d, reach: wp.float64
     ):
-        """:func:`pair_geometry`, clipping in A's frame."""
+        # Whether the sphere (c, r) around a face misses the slab lo <= u.x <= hi or the other
+        # body's bounding sphere (centre, reach): then the face cannot bound the overlap.
+        uc = wp.dot(u, c)
+        return uc + r < lo or uc - r > hi or wp.length_sq(c - centre) > (r + reach) * (r + reach)
+
+    @wp.func
+    def coincident(shapes: Shapes, pl: vec4, gs: int, rot: mat33d, off: vec3d, tol: scalar):
+        # Whether face gs of the smaller body lies in the plane pl (pair-local) of a face of the
+        # larger one with the same outward normal: every vertex of gs within tol of pl. Only the
+        # smaller face is tested, so the tolerance and the rounding met are those of the smaller
+        # body. Called with the same arguments from both sides, so both reach the same decision.
+        nl = vec3(pl[0], pl[1], pl[2])
+        n64, d64 = plane64(shapes, gs)
+        if wp.dot(nl, to_scalar3(rot * n64)) < scalar(parallel_cos):
+            return False
+        for k in range(shapes.face_loop_start[gs], shapes.face_loop_start[gs + 1]):
+            v = to_scalar3(rot * shapes.vert64[shapes.face_loop[k]] + off)
+            t = tol + scalar(noise_rel) * (wp.length(v) + wp.abs(pl[3]))
+            if wp.abs(plane_distance(nl, pl[3], v)) > t:
+                return False
+        return True
+
+    @wp.func
+    def least_penetration(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d):
+        # Among the face normals of both bodies (body 1's frame, body 2 at rot x + pos), the unit
+        # direction u along which the shorter translation of body 1 (along -u) separates them.
+        v10 = shapes.shape_vert_start[s1]
+        v11 = shapes.shape_vert_start[s1 + 1]
+        v20 = shapes.shape_vert_start[s2]
+        v21 = shapes.shape_vert_start[s2 + 1]
+        eye = wp.identity(n=3, dtype=wp.float64)
+        big = wp.float64(1.0e300)
+        best = big
+        best_u = vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+        f10 = shapes.shape_face_start[s1]
+        f11 = shapes.shape_face_start[s1 + 1]
+        f21 = shapes.shape_face_start[s2 + 1]
+        for f in range(f10, f21 - shapes.shape_face_start[s2] + f11):
+            u = vec3d()
+            if f < f11:
+                n, d = plane64(shapes, f)
+                u = n
+            else:
+                n, d = plane64(shapes, f - f11 + shapes.shape_face_start[s2])
+                u = rot * n
+            sup1 = support64(shapes, v10, v11, eye, zero3d, u, -big)
+            inf1 = -support64(shapes, v10, v11, eye, zero3d, -u, -big)
+            sup2 = support64(shapes, v20, v21, rot, pos, u, -big)
+            inf2 = -support64(shapes, v20, v21, rot, pos, -u, -big)
+            if sup1 - inf2 < best:
+                best = sup1 - inf2
+                best_u = u
+            if sup2 - inf1 < best:
+                best = sup2 - inf1
+                best_u = -u
+        return best_u
+
+    @wp.func
+    def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
+        """Overlap geometry of shape ``sa`` at pose ``xa`` and shape ``sb`` at pose ``xb``.
+
+        Returns ``(V, first moment of V, S_A, M_A, S_B, M_B, fallback_A, overflow)``, with vectors
+        in world axes and every position relative to A's centre (the first moment is V times the
+        overlap centroid; M_A and M_B are about A's centre). ``fallback_A`` is zero unless the
+        pair is enclosed (|S_A| < ENCLOSED_RATIO V^(2/3)); then it is the effective area vector of
+        :func:`polydem.kernels.response.contact_frame`: the direction of least penetration times
+        the projected area of the smaller body along it.
+
+        The set-up (relative pose, plane offsets, vertex positions) runs in float64 and the
+        clipping in a pair-local frame: the larger body's axes, whose big faces are then exact
+        (in the small body's axes the far corners of, say, a container wall carry rounding that
+        moves the wall's face off its plane), with the origin at the apex of the cones, which lies
+        within the smaller body: the numbers that meet in the clipping are of the size of the
+        smaller body, and a depth of 1e-8 m under a floor box whose centre is 0.5 m away is not
+        lost to the rounding of 0.5 m.
+        """
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        ra = shapes.shape_radius[sa]
-        rb = shapes.shape_radius[sb]
-        qa = wp.transform_get_rotation(xa)
-        qa_inv = wp.quat_inverse(qa)
-        pos = wp.quat_rotate(qa_inv, wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
+        # Body 1 is the larger (its frame is the pair's), body 2 the smaller.
+        in_a = shapes.shape_radius[sb] <= shapes.shape_radius[sa]
+        s1 = sa
+        s2 = sb
+        if not in_a:
+            s1 = sb
+            s2 = sa
+        xa64, qa64 = pose_to_f64(xa)
+        xb64, qb64 = pose_to_f64(xb)
+        x1 = xa64
+        q1 = qa64
+        x2 = xb64
+        q2 = qb64
+        if not in_a:
+            x1 = xb64
+            q1 = qb64
+            x2 = xa64
+            q2 = qa64
+        r1 = wp.float64(shapes.shape_radius[s1])
+        r2 = wp.float64(shapes.shape_radius[s2])
+        q1_inv = wp.quat_inverse(q1)
+        pos = wp.quat_rotate(q1_inv, x2 - x1)  # body 2's centre in body 1's frame
         dist2 = wp.length_sq(pos)
-        if dist2 >= (ra + rb) * (ra + rb):
-            return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-        rot = wp.quat_to_matrix(qa_inv * wp.transform_get_rotation(xb))
+        if dist2 >= (r1 + r2) * (r1 + r2):
+            return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+        rot = wp.quat_to_matrix(q1_inv * q2)
         rot_t = wp.transpose(rot)
-        pos_b = -(rot_t * pos)  # A's centre in B's frame
-        tol = scalar(tol_rel) * wp.min(ra, rb) + scalar(noise_rel) * (ra + rb)
-        fa0 = shapes.shape_face_start[sa]
-        fa1 = shapes.shape_face_start[sa + 1]
-        fb0 = shapes.shape_face_start[sb]
-        fb1 = shapes.shape_face_start[sb + 1]
-        va0 = shapes.shape_vert_start[sa]
-        va1 = shapes.shape_vert_start[sa + 1]
-        vb0 = shapes.shape_vert_start[sb]
-        vb1 = shapes.shape_vert_start[sb + 1]
+        pos_2 = -(rot_t * pos)  # body 1's centre in body 2's frame
+        tol = wp.float64(cull_margin) * r2
+        f10 = shapes.shape_face_start[s1]
+        f11 = shapes.shape_face_start[s1 + 1]
+        f20 = shapes.shape_face_start[s2]
+        f21 = shapes.shape_face_start[s2 + 1]
+        v10 = shapes.shape_vert_start[s1]
+        v11 = shapes.shape_vert_start[s1 + 1]
+        v20 = shapes.shape_vert_start[s2]
+        v21 = shapes.shape_vert_start[s2 + 1]
+        eye = wp.identity(n=3, dtype=wp.float64)
 
         # The overlap lies in the slab lo <= u.x <= hi across the line of centres u: beyond the
-        # reach of B's support towards A and A's towards B. An empty slab separates the bodies;
-        # otherwise faces (and their planes) that miss the slab cannot bound the overlap.
+        # reach of body 2's support towards body 1 and body 1's towards body 2. An empty slab
+        # separates the bodies; otherwise faces (and their planes) that miss the slab cannot bound
+        # the overlap.
         dist = wp.sqrt(dist2)
-        u = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
-        lo = -(ra + rb)
-        hi = ra + rb
+        u = vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+        lo = -(r1 + r2)
+        hi = r1 + r2
         if dist > tol:
             u = pos / dist
-            h_a = support(shapes.vert, va0, va1, u, -(ra + rb))
-            h_b = support(shapes.vert, vb0, vb1, -(rot_t * u), -(ra + rb))
-            lo = dist - h_b - tol
-            hi = h_a + tol
+            h_1 = support64(shapes, v10, v11, eye, zero3d, u, -(r1 + r2))
+            h_2 = support64(shapes, v20, v21, eye, zero3d, -(rot_t * u), -(r1 + r2))
+            lo = dist - h_2 - tol
+            hi = h_1 + tol
             if lo > hi:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
 
         # Separating face planes, by bounding spheres first and exactly (all of the other body's
         # vertices outside) only for planes the other body's centre lies outside of. Meanwhile find
-        # where the line of centres leaves A (tau_a, as a fraction of the way from A's centre to
-        # B's) and enters B (tau_b): the cones that integrate V start from the middle of that
-        # stretch, inside the overlap whenever the line crosses it, so the cone volumes do not
-        # cancel and V and its centroid keep their precision for shallow overlaps.
-        tau_a = scalar(1.0)
-        tau_b = scalar(0.0)
-        ids_a = ids_t()
-        num_a = int(0)
-        for f in range(fa0, fa1):
-            pl = shapes.face_plane[f]
-            n = vec3(pl[0], pl[1], pl[2])
+        # where the line of centres leaves body 1 (tau_1, as a fraction of the way from its centre
+        # to body 2's) and enters body 2 (tau_2): the cones that integrate V start from the middle
+        # of that stretch, inside the overlap whenever the line crosses it, so the cone volumes do
+        # not cancel and V and its centroid keep their precision for shallow overlaps.
+        tau_1 = wp.float64(1.0)
+        tau_2 = wp.float64(0.0)
+        ids_1 = ids_t()
+        num_1 = int(0)
+        for f in range(f10, f11):
+            n, d = plane64(shapes, f)
             sigma = wp.dot(n, pos)
-            if sigma * tau_a > pl[3]:  # d / sigma < tau_a: the line leaves A earlier here
-                tau_a = pl[3] / sigma
-            s = sigma - pl[3]
-            if s > rb:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            if s > scalar(0.0):
+            if sigma * tau_1 > d:  # d / sigma < tau_1: the line leaves body 1 earlier here
+                tau_1 = d / sigma
+            s = sigma - d
+            if s > r2:
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            if s > wp.float64(0.0):
                 # The other body's centre lies outside: is the plane separating?
-                if all_outside(shapes.vert, vb0, vb1, rot_t * n, pl[3] - wp.dot(n, pos)):
-                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            if s <= -rb:
-                continue  # B lies wholly inside this plane: the face cannot reach B
+                if all_outside64(shapes, v20, v21, rot_t * n, d - sigma):
+                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            if s <= -r2:
+                continue  # body 2 lies wholly inside this plane: the face cannot reach it
             sph = shapes.face_sphere[f]
-            if sphere_misses(vec3(sph[0], sph[1], sph[2]), sph[3], u, lo, hi, pos, rb):
+            c = vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2]))
+            if sphere_misses64(c, wp.float64(sph[3]), u, lo, hi, pos, r2):
                 continue
-            ids_a[num_a] = f
-            num_a += 1
-        planes_b = planes_t()
-        ids_b = ids_t()
-        num_b = int(0)
-        for g in range(fb0, fb1):
-            pl = shapes.face_plane[g]
-            n = vec3(pl[0], pl[1], pl[2])
-            sigma = wp.dot(n, pos_b)
-            if sigma * (scalar(1.0) - tau_b) > pl[3]:  # 1 - d / sigma > tau_b: it enters B later here
-                tau_b = scalar(1.0) - pl[3] / sigma
-            s = sigma - pl[3]
-            if s > ra:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            na, da = plane_to_frame(pl, rot, pos)
-            if s > scalar(0.0):
-                if all_outside(shapes.vert, va0, va1, na, da):
-                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, 0
-            if s <= -ra:
+            ids_1[num_1] = f
+            num_1 += 1
+        ids_2 = ids_t()
+        num_2 = int(0)
+        for g in range(f20, f21):
+            n, d = plane64(shapes, g)
+            sigma = wp.dot(n, pos_2)
+            if sigma * (wp.float64(1.0) - tau_2) > d:  # 1 - d / sigma > tau_2: it enters body 2 later
+                tau_2 = wp.float64(1.0) - d / sigma
+            s = sigma - d
+            if s > r1:
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            n1 = rot * n
+            if s > wp.float64(0.0):
+                if all_outside64(shapes, v10, v11, n1, d + wp.dot(n1, pos)):
+                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            if s <= -r1:
                 continue
             sph = shapes.face_sphere[g]
-            if sphere_misses(point_to_frame(rot, pos, vec3(sph[0], sph[1], sph[2])), sph[3], u, lo, hi, zero3, ra):
+            c = rot * vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2])) + pos
+            if sphere_misses64(c, wp.float64(sph[3]), u, lo, hi, zero3d, r1):
                 continue
-            planes_b[num_b] = vec4(na[0], na[1], na[2], da)
-            ids_b[num_b] = g
-            num_b += 1
+            ids_2[num_2] = g
+            num_2 += 1
 
-        origin = pos * (scalar(0.5) * (tau_a + tau_b))
-        if tau_b > tau_a:
-            # The line of centres misses the overlap (it leaves A before it enters B: a body lying
-            # on a big face of the other, away from its centre). The apex would lie outside the
-            # overlap, up to metres from it, and in float32 the facets close only to ~1e-3 of their
-            # area: that gap times the apex's distance came out as V errors of 10-100x for shallow
-            # face contacts of a cube on a floor box (and flickering forces). Take instead the foot
-            # of B's centre on the active plane of A it lies farthest above: within B's sphere, and
-            # on the contact face, whose cones then vanish exactly.
-            s_top = -(ra + rb)
+        apex = pos * (wp.float64(0.5) * (tau_1 + tau_2))
+        if tau_2 > tau_1:
+            # The line of centres misses the overlap (it leaves body 1 before it enters body 2: a
+            # body lying on a big face of the other, away from its centre). An apex there would lie
+            # outside the overlap, up to metres from it (in float32 the facets close only to ~1e-3
+            # of their area: that gap times the apex's distance came out as V errors of 10-100x
+            # for shallow face contacts of a cube on a floor box). Take instead the foot of body 2's
+            # centre on the active plane of body 1 it lies farthest above: within body 2's sphere,
+            # and on the contact face, whose cones then vanish exactly.
+            s_top = -(r1 + r2)
             foot = pos
-            for j in range(num_a):
-                pl = shapes.face_plane[ids_a[j]]
-                n = vec3(pl[0], pl[1], pl[2])
-                sj = wp.dot(n, pos) - pl[3]
+            for j in range(num_1):
+                n, d = plane64(shapes, ids_1[j])
+                sj = wp.dot(n, pos) - d
                 if sj > s_top:
                     s_top = sj
                     foot = pos - sj * n
-            origin = pos
-            if s_top > scalar(0.0):
-                origin = foot
+            apex = pos
+            if s_top > wp.float64(0.0):
+                apex = foot
+        # The pair-local frame: body 1's axes, origin at the apex. Planes and vertices are moved
+        # there in float64 and only then rounded to the clipping precision.
+        off_2 = pos - apex  # body 2's centre, pair-local
+        planes_1 = planes_t()
+        for j in range(num_1):
+            n, d = plane64(shapes, ids_1[j])
+            planes_1[j] = vec4(scalar(n[0]), scalar(n[1]), scalar(n[2]), scalar(d - wp.dot(n, apex)))
+        planes_2 = planes_t()
+        for j in range(num_2):
+            n, d = plane64(shapes, ids_2[j])
+            n1 = rot * n
+            planes_2[j] = vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d + wp.dot(n1, off_2)))
+        tol_c = scalar(tol_rel) * scalar(r2)  # coincident-face tolerance, before the rounding
+
         vol = scalar(0.0)
         vol_c = zero3
-        s_a = zero3
-        m_a = zero3
-        s_b = zero3
-        m_b = zero3
+        s_1 = zero3
+        m_1 = zero3
+        s_2 = zero3
+        m_2 = zero3
         overflow = int(0)
         # Clip each active face polygon by the other body's active planes and integrate the
         # surviving piece. This loop is written out here rather than in a helper called per face:
@@ -479,74 +684,72 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
         # One polygon buffer serves every face; its halves [0, max_poly) and [max_poly, 2 max_poly)
         # take turns as input and output of the Sutherland-Hodgman passes.
         poly = poly_t()
-        for j in range(num_a + num_b):
-            face_is_a = j < num_a
+        for j in range(num_1 + num_2):
+            face_is_1 = j < num_1
             face = int(0)
             num_planes = int(0)
-            if face_is_a:
-                face = ids_a[j]
-                num_planes = num_b
+            plane = vec4()
+            if face_is_1:
+                face = ids_1[j]
+                num_planes = num_2
+                plane = planes_1[j]
             else:
-                face = ids_b[j - num_a]
-                num_planes = num_a
+                face = ids_2[j - num_1]
+                num_planes = num_1
+                plane = planes_2[j - num_1]
+            nf = vec3(plane[0], plane[1], plane[2])
             begin = shapes.face_loop_start[face]
             count = shapes.face_loop_start[face + 1] - begin
             sph = shapes.face_sphere[face]
-            centre = vec3(sph[0], sph[1], sph[2])
-            pf = shapes.face_plane[face]
-            nf = vec3(pf[0], pf[1], pf[2])
-            if not face_is_a:
-                centre = point_to_frame(rot, pos, centre)
-                nf = rot * nf
-            for k in range(count):
-                v = shapes.vert[shapes.face_loop[begin + k]]
-                if not face_is_a:
-                    v = point_to_frame(rot, pos, v)
-                poly[k] = v
+            c64 = vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2]))
+            centre = zero3
+            if face_is_1:
+                centre = to_scalar3(c64 - apex)
+                for k in range(count):
+                    poly[k] = to_scalar3(shapes.vert64[shapes.face_loop[begin + k]] - apex)
+            else:
+                centre = to_scalar3(rot * c64 + off_2)
+                for k in range(count):
+                    poly[k] = to_scalar3(rot * shapes.vert64[shapes.face_loop[begin + k]] + off_2)
             weight = scalar(1.0)
-            surface = int(1)  # 0: a face merely touching an opposite face of the other body
             alive = bool(True)
             cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
             for i in range(num_planes):
                 pl = vec4()
-                plane_id = int(0)
-                if face_is_a:
-                    pl = planes_b[i]
-                    plane_id = ids_b[i]
+                if face_is_1:
+                    pl = planes_2[i]
                 else:
-                    plane_id = ids_a[i]
-                    pl = shapes.face_plane[plane_id]  # A's own planes are read where they are
-                n = vec3(pl[0], pl[1], pl[2])
-                d = pl[3]
-                dist = plane_distance(n, d, centre)
-                if dist <= -sph[3]:
+                    pl = planes_1[i]
+                nc = vec3(pl[0], pl[1], pl[2])
+                dc = pl[3]
+                dist_c = plane_distance(nc, dc, centre)
+                if dist_c <= -sph[3]:
                     continue  # the whole face lies inside this plane
-                if dist > sph[3]:
+                if dist_c > sph[3]:
                     alive = False
                     break
-                if wp.abs(wp.dot(nf, n)) >= scalar(parallel_cos):
-                    # Coincident or touching faces: decided by one function evaluated the same way
-                    # from both sides (A's face first), so both sides agree bit for bit.
-                    rel = int(0)
-                    if face_is_a:
-                        rel = coplanar_relation(shapes, face, plane_id, rot, pos, tol)
+                if wp.dot(nf, nc) >= scalar(parallel_cos):
+                    # Coincident faces with the same outward normal: shared half and half, decided
+                    # by one function evaluated the same way from both sides (body 1's plane, body
+                    # 2's face), so both sides agree bit for bit. Opposite normals are no special
+                    # case: a flat contact of any thickness is clipped like any other.
+                    same = bool(False)
+                    if face_is_1:
+                        same = coincident(shapes, plane, ids_2[i], rot, off_2, tol_c)
                     else:
-                        rel = coplanar_relation(shapes, plane_id, face, rot, pos, tol)
-                    if rel == 1:
+                        same = coincident(shapes, pl, face, rot, off_2, tol_c)
+                    if same:
                         weight = scalar(0.5)
                         continue
-                    if rel == -1:
-                        surface = int(0)
-                        continue
-                # Sutherland-Hodgman against n.x <= d, from rows [cur, cur+count) into the other half.
+                # Sutherland-Hodgman against nc.x <= dc, from rows [cur, cur+count) into the other half.
                 out = max_poly - cur
                 n_out = int(0)
                 full = int(0)
                 prev = poly[cur + count - 1]
-                s_prev = plane_distance(n, d, prev)
+                s_prev = plane_distance(nc, dc, prev)
                 for k in range(count):
                     v = poly[cur + k]
-                    sk = plane_distance(n, d, v)
+                    sk = plane_distance(nc, dc, v)
                     if crosses(s_prev, sk):
                         if n_out >= max_poly:
                             full = 1
@@ -577,54 +780,86 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
             for k in range(1, count - 1):
                 sum_a2, sum_c = fan_add(p0, poly[cur + k], poly[cur + k + 1], nf, sum_a2, sum_c)
             area, area_c = fan_close(sum_a2, sum_c, weight)
-            plane = vec4()
-            if face_is_a:
-                plane = pf
-            else:
-                plane = planes_b[j - num_a]
-            dv, dv_c = cone(area, area_c, plane, origin)
+            dv, dv_c = cone(area, area_c, plane, zero3)
             vol += dv
             vol_c += dv_c
-            if surface != 0:
-                n = vec3(plane[0], plane[1], plane[2])
-                if face_is_a:
-                    s_a += area * n
-                    m_a += wp.cross(area_c, n)
-                else:
-                    s_b += area * n
-                    m_b += wp.cross(area_c, n)
-        rot_a = wp.quat_to_matrix(qa)
-        return vol, rot_a * vol_c, rot_a * s_a, rot_a * m_a, rot_a * s_b, rot_a * m_b, overflow
+            if face_is_1:
+                s_1 += area * nf
+                m_1 += wp.cross(area_c, nf)
+            else:
+                s_2 += area * nf
+                m_2 += wp.cross(area_c, nf)
+
+        # Enclosed: the fallback area vector of body 1 (module docstring), body 1's frame.
+        fb_1 = zero3d
+        if vol > scalar(0.0):
+            if wp.length(s_1) < scalar(enclosed_ratio) * wp.pow(vol, scalar(2.0) / scalar(3.0)):
+                u_best = least_penetration(shapes, s1, s2, rot, pos)
+                fb_1 = projected_area(shapes, s2, rot_t * u_best) * u_best
+        # Back to body 1's centre (float64), then to world axes and A's centre.
+        vol64 = wp.float64(vol)
+        s1_64 = to_f64(s_1)
+        s2_64 = to_f64(s_2)
+        vol_c64 = wp.quat_rotate(q1, to_f64(vol_c) + vol64 * apex)
+        m1_64 = wp.quat_rotate(q1, to_f64(m_1) + wp.cross(apex, s1_64))
+        m2_64 = wp.quat_rotate(q1, to_f64(m_2) + wp.cross(apex, s2_64))
+        s1_64 = wp.quat_rotate(q1, s1_64)
+        s2_64 = wp.quat_rotate(q1, s2_64)
+        fb_1 = wp.quat_rotate(q1, fb_1)
+        if in_a:
+            return (
+                vol,
+                to_scalar3(vol_c64),
+                to_scalar3(s1_64),
+                to_scalar3(m1_64),
+                to_scalar3(s2_64),
+                to_scalar3(m2_64),
+                to_scalar3(fb_1),
+                overflow,
+            )
+        # Positions came relative to B's centre: move them to A's.
+        r = xb64 - xa64
+        return (
+            vol,
+            to_scalar3(vol_c64 + vol64 * r),
+            to_scalar3(s2_64),
+            to_scalar3(m2_64 + wp.cross(r, s2_64)),
+            to_scalar3(s1_64),
+            to_scalar3(m1_64 + wp.cross(r, s1_64)),
+            to_scalar3(-fb_1),
+            overflow,
+        )
 
     @wp.func
-    def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
-        """Overlap geometry of shape ``sa`` at pose ``xa`` and shape ``sb`` at pose ``xb``.
+    def deepest(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d):
+        # The deepest vertex of body 2 (at rot x + pos in body 1's frame) inside body 1: max over
+        # its vertices of the least distance inside body 1's face planes (negative: none inside).
+        best = wp.float64(-1.0e300)
+        for iv in range(shapes.shape_vert_start[s2], shapes.shape_vert_start[s2 + 1]):
+            v = rot * shapes.vert64[iv] + pos
+            inside = wp.float64(1.0e300)
+            for f in range(shapes.shape_face_start[s1], shapes.shape_face_start[s1 + 1]):
+                n, d = plane64(shapes, f)
+                inside = wp.min(inside, d - wp.dot(n, v))
+            best = wp.max(best, inside)
+        return best
 
-        Returns ``(V, first moment of V, S_A, M_A, S_B, M_B, overflow)``, with vectors in world
-        axes and every position relative to A's centre (the first moment is V times the overlap
-        centroid; M_A and M_B are about A's centre).
-
-        The clipping runs in the frame of the larger body, whose big faces are then exact: in the
-        small body's frame the far corners of, say, a container wall carry rounding that moves
-        the wall's face polygon off its plane (in float32 a 1 cm cube on a 6 m floor had S wrong
-        by 17% that way).
-        """
-        in_a = shapes.shape_radius[sb] <= shapes.shape_radius[sa]
-        s1 = sa
-        s2 = sb
-        x1 = xa
-        x2 = xb
-        if not in_a:
-            s1 = sb
-            s2 = sa
-            x1 = xb
-            x2 = xa
-        vol, vol_c, s_1, m_1, s_2, m_2, overflow = pair_geometry_in_a(shapes, s1, s2, x1, x2)
-        if in_a:
-            return vol, vol_c, s_1, m_1, s_2, m_2, overflow
-        # Positions came relative to B's centre: move them to A's.
-        r = wp.transform_get_translation(xb) - wp.transform_get_translation(xa)
-        return vol, vol_c + vol * r, s_2, m_2 + wp.cross(r, s_2), s_1, m_1 + wp.cross(r, s_1), overflow
+    @wp.func
+    def pair_depth(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
+        """Penetration depth [m] of the pair: the deepest vertex of either body inside the other
+        (the least distance to the other's face planes), 0 when no vertex is inside. Float64
+        inside whatever the precision."""
+        xa64, qa64 = pose_to_f64(xa)
+        xb64, qb64 = pose_to_f64(xb)
+        r = wp.float64(shapes.shape_radius[sa] + shapes.shape_radius[sb])
+        qa_inv = wp.quat_inverse(qa64)
+        pos = wp.quat_rotate(qa_inv, xb64 - xa64)
+        if wp.length_sq(pos) >= r * r:
+            return scalar(0.0)
+        rot = wp.quat_to_matrix(qa_inv * qb64)
+        rot_t = wp.transpose(rot)
+        depth = wp.max(deepest(shapes, sa, sb, rot, pos), deepest(shapes, sb, sa, rot_t, -(rot_t * pos)))
+        return scalar(wp.max(depth, wp.float64(0.0)))
 
     return Geometry(
         scalar=scalar,
@@ -638,4 +873,6 @@ def make_geometry(scalar, max_poly: int, max_faces: int, coincident_tol: float |
         tol_rel=tol_rel,
         primitives=prim,
         pair_geometry=pair_geometry,
+        pair_depth=pair_depth,
+        pose_scalar=pose_scalar,
     )

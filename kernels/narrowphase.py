@@ -18,7 +18,9 @@ __all__ = [
     "COORDINATE_NOISE",
     "NARROWPHASE_BLOCK_DIM",
     "Narrowphase",
+    "launch_depth",
     "launch_overlap",
+    "make_depth_kernel",
     "make_narrowphase",
 ]
 
@@ -45,17 +47,23 @@ class Narrowphase:
 
 @functools.cache
 def make_narrowphase(
-    scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None, max_registers: int | None = 128
+    scalar,
+    max_poly: int,
+    max_faces: int,
+    coincident_tol: float | None = None,
+    max_registers: int | None = 128,
+    pose_scalar=None,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
     Args:
         scalar: ``wp.float32`` or ``wp.float64``.
-        max_poly, max_faces, coincident_tol: as for :func:`polydem.kernels.geometry.make_geometry`.
+        max_poly, max_faces, coincident_tol, pose_scalar: as for
+            :func:`polydem.kernels.geometry.make_geometry`.
         max_registers: CUDA register cap per thread (128 is faster than no cap for 20-vertex rocks
             and slightly slower for cubes; see benchmarks/tune_pair_kernel.py and BENCHMARKS.md).
     """
-    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol)
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
@@ -77,10 +85,11 @@ def make_narrowphase(
         pair_moment_a: wp.array(dtype=vec3),
         pair_area_b: wp.array(dtype=vec3),
         pair_moment_b: wp.array(dtype=vec3),
+        pair_fallback_a: wp.array(dtype=vec3),
         overflow: wp.array(dtype=int),
     ):
         i = wp.tid()
-        vol, vol_c, s_a, m_a, s_b, m_b, of = pair_geometry(
+        vol, vol_c, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(
             shapes, pair_shape_a[i], pair_shape_b[i], pair_pose_a[i], pair_pose_b[i]
         )
         if of != 0:
@@ -91,6 +100,7 @@ def make_narrowphase(
         pair_moment_a[i] = m_a
         pair_area_b[i] = s_b
         pair_moment_b[i] = m_b
+        pair_fallback_a[i] = fb_a
 
     return Narrowphase(
         scalar=scalar,
@@ -106,6 +116,45 @@ def make_narrowphase(
     )
 
 
+@functools.cache
+def make_depth_kernel(scalar, max_faces: int, pose_scalar=None):
+    """Kernel: penetration depth (:func:`polydem.kernels.geometry.make_geometry`'s ``pair_depth``) of N pairs."""
+    geom = make_geometry(scalar, 1, max_faces, None, pose_scalar)
+    transform = geom.transform
+    pair_depth = geom.pair_depth
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def depth_kernel(
+        # Model
+        shapes: geom.shapes,
+        # State in
+        pair_shape_a: wp.array(dtype=int),
+        pair_shape_b: wp.array(dtype=int),
+        pair_pose_a: wp.array(dtype=transform),
+        pair_pose_b: wp.array(dtype=transform),
+        # Out
+        pair_depth_out: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        pair_depth_out[i] = pair_depth(shapes, pair_shape_a[i], pair_shape_b[i], pair_pose_a[i], pair_pose_b[i])
+
+    return depth_kernel
+
+
+def launch_depth(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, pose_scalar=None):
+    """Penetration depth [m] of each pair, a ``wp.array`` of the shape set's precision."""
+    n = len(pair_shape_a)
+    depth = wp.zeros(n, dtype=shapes.scalar, device=shapes.device)
+    wp.launch(
+        make_depth_kernel(shapes.scalar, shapes.max_faces, pose_scalar),
+        dim=n,
+        inputs=[*shapes.kernel_args(), pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b],
+        outputs=[depth],
+        device=shapes.device,
+    )
+    return depth
+
+
 OVERLAP_OUTPUTS = (
     "pair_volume",
     "pair_volume_moment",
@@ -113,19 +162,25 @@ OVERLAP_OUTPUTS = (
     "pair_moment_a",
     "pair_area_b",
     "pair_moment_b",
+    "pair_fallback_a",
 )
 
 
-def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, out, max_poly=None):
+def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, out, max_poly=None, pose_scalar=None):
     """Run the overlap kernel over all pairs; grow the polygon buffer and redo on overflow.
 
     ``shapes`` is a :class:`polydem.shapeset.ShapeSet`; ``out`` a dict of output arrays named as
-    the kernel's ``# Out`` arguments. Returns the :class:`Narrowphase` that ran.
+    the kernel's ``# Out`` arguments (``pair_fallback_a`` may be left out). The poses are
+    transforms of ``pose_scalar`` (default the shape set's precision). Returns the
+    :class:`Narrowphase` that ran.
     """
     n = len(pair_shape_a)
     capacity = shapes.default_poly_capacity if max_poly is None else max_poly
+    if "pair_fallback_a" not in out:
+        out = dict(out)
+        out["pair_fallback_a"] = wp.zeros(n, dtype=wp.types.vector(3, shapes.scalar), device=shapes.device)
     while True:
-        nphase = make_narrowphase(shapes.scalar, capacity, shapes.max_faces)
+        nphase = make_narrowphase(shapes.scalar, capacity, shapes.max_faces, pose_scalar=pose_scalar)
         overflow = wp.zeros(1, dtype=int, device=shapes.device)
         wp.launch(
             nphase.overlap_kernel,

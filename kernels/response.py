@@ -1,19 +1,28 @@
 """Contact response: from the overlap geometry of a contact to its normal, point and wrench.
 
 One function, :func:`respond` (built by :func:`make_response`), turns the overlap of a contact
-(V, V times the centroid, S_A and M_A, see :mod:`polydem.kernels.geometry`) into the wrench of
-the energy model; the pair kernel, the wall contacts and the diagnostics of
-:mod:`polydem.kernels.forces` all call it, and so do the batch kernels at the end of this file,
-which :func:`polydem.overlap` and :func:`polydem.contact_forces` launch.
+(V, V times the centroid, S_A, M_A and the fallback area vector, see
+:mod:`polydem.kernels.geometry`) into the wrench of the energy model; the pair kernel, the wall
+contacts and the diagnostics of :mod:`polydem.kernels.forces` all call it, and so do the batch
+kernels at the end of this file, which :func:`polydem.overlap` and :func:`polydem.contact_forces`
+launch.
 
 Normal and contact point (:func:`contact_frame`): the normal is S_A / |S_A|, from A into B; the
 contact point is where the central axis of the wrench (S_A, M_A) meets the plane through the
-overlap's centroid normal to it. When one body lies (almost) wholly inside the other, or two
-identical bodies sit on top of each other, S_A vanishes with the gradient of V: such a pair is
-"enclosed" (|S_A| < ENCLOSED_RATIO V^(2/3) while V > ENCLOSED_MIN_VOLUME r_min^3) and is pushed
-along the line of centres instead, with the effective area vector V^(2/3) times the unit vector
-from A's centre to B's (+z when the centres coincide), applied at the centroid. A thin sliver
-whose faces were found merely touching (|S_A| small and V below that bound) gets no force.
+overlap's centroid normal to it.
+
+Enclosed pairs. When one body lies (almost) wholly inside the other, or two identical bodies sit
+on top of each other, S_A vanishes with the gradient of V. The geometry then (|S_A| <
+ENCLOSED_RATIO V^(2/3)) returns a fallback area vector, which takes the place of S_A: the
+direction of least penetration (the face normal, of either body, along which the shorter
+translation separates them; for a grain inside a plate, out through the nearest face) times the
+projected area of the smaller body along it, 1/2 sum |n.n_f| A_f. Just before a body sinks
+wholly in through a face, |S_A| is that face's area, which is the projected area along its
+normal: the force W'(V) |S| goes on without a jump. A body wholly inside a wall is pushed along
+the wall's normal with its projected area. The moment is that of the push applied at the
+overlap's centroid. Callers without a fallback (a zero vector) get the older push along the line
+of centres with the effective area V^(2/3), and a thin sliver (V below ENCLOSED_MIN_VOLUME
+r_min^3) with a vanishing S_A gets no force.
 
 The contact law and the damping are described in :mod:`polydem.kernels.forces`.
 """
@@ -24,18 +33,18 @@ from typing import Any
 
 import numpy as np
 import warp as wp
+from polydem.kernels.geometry import ENCLOSED_RATIO
 
-# A pair whose |S_A| falls below this fraction of V^(2/3) is "enclosed": one body (nearly) inside
+# A pair whose |S_A| falls below ENCLOSED_RATIO V^(2/3) is "enclosed": one body (nearly) inside
 # the other, or two identical bodies on top of each other. The gradient of V vanishes there.
-ENCLOSED_RATIO = 1.0e-4
-# ... and only when the overlap is a real share of the smaller body (V > this times r_min^3): a
-# sliver whose faces were found merely touching has no gradient either, and no force.
+# Without a fallback area vector from the geometry, only when the overlap is a real share of the
+# smaller body (V > this times r_min^3): a sliver has no gradient either, and no force.
 ENCLOSED_MIN_VOLUME = 1.0e-3
 
 LAWS = ("linear", "hertz", "power")
 
-# What contact_frame found: a regular contact, an enclosed pair (pushed along the line of
-# centres) or a sliver (no force).
+# What contact_frame found: a regular contact, an enclosed pair (pushed along the fallback area
+# vector) or a sliver (no force).
 REGULAR = 0
 ENCLOSED = 1
 SLIVER = 2
@@ -82,27 +91,37 @@ def make_frame(scalar) -> Frame:
         return line
 
     @wp.func
-    def contact_frame(volume: scalar, first_moment: vec3, area: vec3, moment: vec3, r_ab: vec3, r_min: scalar):
+    def contact_frame(
+        volume: scalar, first_moment: vec3, area: vec3, moment: vec3, fallback: vec3, r_ab: vec3, r_min: scalar
+    ):
         """Kind (REGULAR, ENCLOSED or SLIVER), unit normal, contact point, effective S_A and M_A,
         and |S_A| of an overlap V > 0 (V * centroid, S_A, M_A about x_A; all relative to x_A).
-        ``r_ab`` is x_B - x_A, ``r_min`` the smaller bounding radius."""
+        ``fallback`` is the geometry's fallback area vector (zero unless enclosed), ``r_ab`` is
+        x_B - x_A, ``r_min`` the smaller bounding radius."""
         c = first_moment / volume
         s = area
         mom = moment
         s_norm = wp.length(s)
-        v23 = wp.pow(volume, scalar(2.0) / scalar(3.0))
+        fb_norm = wp.length(fallback)
         kind = int(REGULAR)
-        if s_norm < scalar(ENCLOSED_RATIO) * v23:
-            line = centre_line(r_ab)
-            if volume <= scalar(ENCLOSED_MIN_VOLUME) * r_min * r_min * r_min:
-                # A sliver between faces found merely touching: no gradient, no force.
-                return int(SLIVER), line, c, s, mom, s_norm
-            # One body (nearly) inside the other: the gradient of V vanishes; push along the line
-            # of centres instead.
-            s = v23 * line
+        if fb_norm > scalar(0.0):
+            # Enclosed: push along the direction of least penetration (module docstring).
+            s = fallback
             mom = wp.cross(c, s)
-            s_norm = v23
+            s_norm = fb_norm
             kind = int(ENCLOSED)
+        else:
+            v23 = wp.pow(volume, scalar(2.0) / scalar(3.0))
+            if s_norm < scalar(ENCLOSED_RATIO) * v23:
+                line = centre_line(r_ab)
+                if volume <= scalar(ENCLOSED_MIN_VOLUME) * r_min * r_min * r_min:
+                    # A sliver without a gradient: no force.
+                    return int(SLIVER), line, c, s, mom, s_norm
+                # No fallback given: push along the line of centres.
+                s = v23 * line
+                mom = wp.cross(c, s)
+                s_norm = v23
+                kind = int(ENCLOSED)
         n = s / s_norm
         axis = wp.cross(s, mom) / (s_norm * s_norm)
         point = axis + wp.dot(c - axis, n) * n
@@ -183,6 +202,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         first_moment: vec3,
         area: vec3,
         moment: vec3,
+        fallback: vec3,
         r_ab: vec3,
         # Motion
         v_a: vec3,
@@ -205,7 +225,8 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
     ):
         """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
 
-        ``r_ab`` is x_B - x_A (its direction is the push of an enclosed pair); ``turn`` the pair's
+        ``fallback`` is the geometry's fallback area vector (the push of an enclosed pair, zero
+        otherwise), ``r_ab`` is x_B - x_A; ``turn`` the pair's
         turning volume (0 for a new contact; unused for e = 1). Returns (force on A, torque on A
         about x_A, new spring xi, new turning volume, stored energy, energy dissipated this step,
         unit normal, contact point relative to x_A, normal force magnitude, tangential force).
@@ -213,7 +234,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         e2 = e * e
         if e2 >= scalar(1.0):
             turn = scalar(0.0)
-        kind, n, point, s, mom, s_norm = contact_frame(volume, first_moment, area, moment, r_ab, r_min)
+        kind, n, point, s, mom, s_norm = contact_frame(volume, first_moment, area, moment, fallback, r_ab, r_min)
         if kind == SLIVER:
             lost0 = scalar(0.0)
             if wp.static(friction):
@@ -330,6 +351,7 @@ def make_frame_kernel(scalar):
         pair_volume_moment: wp.array(dtype=vec3),
         pair_area_a: wp.array(dtype=vec3),
         pair_moment_a: wp.array(dtype=vec3),
+        pair_fallback_a: wp.array(dtype=vec3),
         pair_r_ab: wp.array(dtype=vec3),
         # Out
         pair_kind: wp.array(dtype=int),
@@ -347,7 +369,7 @@ def make_frame_kernel(scalar):
             pair_point[i] = share_a * r_ab
             return
         kind, n, point, s, mom, s_norm = contact_frame(
-            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], r_ab, r_min
+            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], pair_fallback_a[i], r_ab, r_min
         )
         pair_kind[i] = kind
         pair_normal[i] = n
@@ -375,6 +397,7 @@ def make_force_kernel(scalar, law: str):
         pair_volume_moment: wp.array(dtype=vec3),
         pair_area_a: wp.array(dtype=vec3),
         pair_moment_a: wp.array(dtype=vec3),
+        pair_fallback_a: wp.array(dtype=vec3),
         pair_r_ab: wp.array(dtype=vec3),
         pair_r_min: wp.array(dtype=scalar),
         # Out
@@ -391,7 +414,7 @@ def make_force_kernel(scalar, law: str):
             return
         zero = scalar(0.0)
         force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
-            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], pair_r_ab[i],
+            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], pair_fallback_a[i], pair_r_ab[i],
             zero3, zero3, zero3, zero3,
             k, m, scalar(1.0), zero, zero,
             zero3, zero,
@@ -415,12 +438,14 @@ def _arrays(device, scalar, **columns):
     }
 
 
-def launch_contact_frame(scalar, device, volume, first_moment, area, moment, r_ab, r_min, share_a):
+def launch_contact_frame(scalar, device, volume, first_moment, area, moment, fallback, r_ab, r_min, share_a):
     """Kind (-1 no overlap, REGULAR, ENCLOSED, SLIVER), normal and contact point (relative to x_A)
     of N overlaps given as numpy arrays relative to x_A; runs in ``scalar`` precision."""
     n = len(volume)
     vec3 = wp.types.vector(3, scalar)
-    ins = _arrays(device, scalar, volume=volume, first_moment=first_moment, area=area, moment=moment, r_ab=r_ab)
+    ins = _arrays(
+        device, scalar, volume=volume, first_moment=first_moment, area=area, moment=moment, fallback=fallback, r_ab=r_ab
+    )
     kind = wp.zeros(n, dtype=int, device=device)
     normal = wp.zeros(n, dtype=vec3, device=device)
     point = wp.zeros(n, dtype=vec3, device=device)
@@ -434,14 +459,22 @@ def launch_contact_frame(scalar, device, volume, first_moment, area, moment, r_a
     return kind.numpy(), normal.numpy().astype(np.float64), point.numpy().astype(np.float64)
 
 
-def launch_contact_force(law, k, m, device, volume, first_moment, area, moment, r_ab, r_min):
+def launch_contact_force(law, k, m, device, volume, first_moment, area, moment, fallback, r_ab, r_min):
     """Force on A, torque on A about x_A and energy of N overlaps (numpy arrays relative to x_A;
     ``r_min`` per pair) under a contact law, in float64."""
     n = len(volume)
     scalar = wp.float64
     vec3 = wp.types.vector(3, scalar)
     ins = _arrays(
-        device, scalar, volume=volume, first_moment=first_moment, area=area, moment=moment, r_ab=r_ab, r_min=r_min
+        device,
+        scalar,
+        volume=volume,
+        first_moment=first_moment,
+        area=area,
+        moment=moment,
+        fallback=fallback,
+        r_ab=r_ab,
+        r_min=r_min,
     )
     force = wp.zeros(n, dtype=vec3, device=device)
     torque = wp.zeros(n, dtype=vec3, device=device)

@@ -39,7 +39,7 @@ def pair_kernel(max_poly, max_faces):
         volume: wp.array(dtype=F64),
     ):
         i = wp.tid()
-        vol, vol_c, s_a, m_a, s_b, m_b, overflow = pair_geometry(shapes, shape_a, shape_b, pose_a[i], pose_b[i])
+        vol, vol_c, s_a, m_a, s_b, m_b, fb_a, overflow = pair_geometry(shapes, shape_a, shape_b, pose_a[i], pose_b[i])
         volume[i] = vol
         out[i, 0] = vol_c
         out[i, 1] = s_a
@@ -65,7 +65,7 @@ def wall_kernel():
         volume: wp.array(dtype=F64),
     ):
         i = wp.tid()
-        vol, vol_c, s_a, m_a = plane_geometry(shapes, 0, poses[i], normal, offset)
+        vol, vol_c, s_a, m_a, fb = plane_geometry(shapes, 0, poses[i], normal, offset)
         volume[i] = vol
         out[i, 0] = vol_c
         out[i, 1] = s_a
@@ -201,7 +201,7 @@ def response_kernel(law):
         vel = VEC3(F64(0.0), F64(0.0), dvdt[i])
         zero = F64(0.0)
         f, t, xi, tn, en, dl, n, point, fn, ft = respond(
-            v, v * VEC3(F64(0.0), F64(0.0), F64(0.5)), s, zero3, VEC3(F64(0.0), F64(0.0), F64(1.0)),
+            v, v * VEC3(F64(0.0), F64(0.0), F64(0.5)), s, zero3, zero3, VEC3(F64(0.0), F64(0.0), F64(1.0)),
             vel, zero3, zero3, zero3,
             k, m, e, zero, zero,
             zero3, turn[i],

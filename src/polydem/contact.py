@@ -7,15 +7,14 @@ contacts use (:mod:`polydem.kernels.geometry` and :mod:`polydem.kernels.response
 
 Degenerate pairs. When one body lies (almost) wholly inside the other, or two identical bodies
 sit on top of each other, the gradient of the overlap volume vanishes and so would the force.
-Such a pair is flagged ``enclosed`` (|S_A| < 1e-4 V^(2/3) while V > 1e-3 r_min^3, r_min the
-smaller bounding radius) and gets a push along the line of centres instead: the effective area
-vector is V^(2/3) times the unit vector from A's centre to B's (the world +z axis when the
-centres coincide), so the force on A is
-``-W'(V) V^(2/3) n``, applied at the overlap centroid. Pairs without overlap have V = 0, S = 0,
-zero force, their normal along the line of centres and their centroid and contact point on it,
-between the bounding spheres. A thin sliver whose faces were found merely touching (|S_A| small
-and V below that bound) gets no force; its normal is the line of centres and its contact point
-the centroid. No output is ever NaN or infinite for finite input.
+Such a pair is flagged ``enclosed`` (|S_A| < 1e-4 V^(2/3)) and pushed apart along the direction
+of least penetration instead (the face normal, of either body, along which the shorter
+translation separates them), with the projected area of the smaller body along it as effective
+area (``enclosed_area_vector``): the force on A is ``-W'(V) enclosed_area_vector``, applied at
+the overlap centroid, and it goes on without a jump from the force just before the body sank in
+wholly. Pairs without overlap have V = 0, S = 0, zero force, their normal along the line of
+centres and their centroid and contact point on it, between the bounding spheres. No output is
+ever NaN or infinite for finite input.
 """
 
 from dataclasses import dataclass
@@ -23,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from polydem.kernels.narrowphase import launch_overlap
+from polydem.kernels.narrowphase import launch_depth, launch_overlap
 from polydem.kernels.response import ENCLOSED, LAWS, launch_contact_force, launch_contact_frame
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
@@ -90,6 +89,10 @@ class OverlapResult:
             centroid normal to ``normal`` [m].
         area_vector_b, moment_b: (N, 3) the same sums over B's facets (S_B = -S_A, M_B = -M_A).
         enclosed: (N,) bool, the gradient of V vanishes (see the module docstring).
+        enclosed_area_vector: (N, 3) the effective area vector that pushes an enclosed pair
+            apart (taking the place of S_A) [m^2]; zero for the other pairs.
+        depth: (N,) penetration depth [m]: the deepest vertex of either body inside the other
+            (its least distance to the other body's face planes), 0 when no vertex is inside.
         position_a, position_b: (N, 3) the body centres [m].
     """
 
@@ -102,6 +105,8 @@ class OverlapResult:
     area_vector_b: np.ndarray
     moment_b: np.ndarray
     enclosed: np.ndarray
+    enclosed_area_vector: np.ndarray
+    depth: np.ndarray
     position_a: np.ndarray
     position_b: np.ndarray
 
@@ -169,7 +174,10 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
         poses_a, poses_b: (N, 7) arrays ``[px, py, pz, qx, qy, qz, qw]`` placing each body frame
             in the world (positions in m, unit quaternions); a single (7,) pose is broadcast.
         device: Warp device ("cpu", "cuda:0", ...), default Warp's default device.
-        precision: "float32" (default) or "float64" arithmetic in the kernel.
+        precision: "float32" (default) or "float64" arithmetic in the clipping. The poses reach
+            the kernel in float64 either way (the mixed mode for "float32"), relative to A's
+            centre, so a depth far below the size of the bodies or their distance from the
+            origin is not lost before the geometry starts.
 
     Returns:
         :class:`OverlapResult`.
@@ -190,9 +198,8 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
     n = len(pa)
 
     shapes = ShapeSet([shape_a, shape_b], device=device, precision=precision)
-    np_scalar = np.float32 if shapes.scalar == wp.float32 else np.float64
     # The kernel sees A's centre at the world origin: the subtraction of positions happens here
-    # in float64, so a pair far from the origin loses nothing in float32.
+    # in float64 (and so does the pair set-up in the kernel).
     origin = pa[:, :3].copy()
     local_a = pa.copy()
     local_a[:, :3] = 0.0
@@ -200,7 +207,8 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
     local_b[:, :3] -= origin
 
     dev = shapes.device
-    transform = wp.types.transformation(shapes.scalar)
+    pose_scalar = wp.float64
+    transform = wp.types.transformation(pose_scalar)
     vec3 = wp.types.vector(3, shapes.scalar)
     out = {
         "pair_volume": wp.zeros(n, dtype=shapes.scalar, device=dev),
@@ -209,16 +217,15 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
         "pair_moment_a": wp.zeros(n, dtype=vec3, device=dev),
         "pair_area_b": wp.zeros(n, dtype=vec3, device=dev),
         "pair_moment_b": wp.zeros(n, dtype=vec3, device=dev),
+        "pair_fallback_a": wp.zeros(n, dtype=vec3, device=dev),
     }
-    launch_overlap(
-        shapes,
-        wp.zeros(n, dtype=int, device=dev),
-        wp.ones(n, dtype=int, device=dev),
-        wp.array(local_a.astype(np_scalar), dtype=transform, device=dev),
-        wp.array(local_b.astype(np_scalar), dtype=transform, device=dev),
-        out,
-    )
+    ids_a = wp.zeros(n, dtype=int, device=dev)
+    ids_b = wp.ones(n, dtype=int, device=dev)
+    poses_a64 = wp.array(local_a, dtype=transform, device=dev)
+    poses_b64 = wp.array(local_b, dtype=transform, device=dev)
+    launch_overlap(shapes, ids_a, ids_b, poses_a64, poses_b64, out, pose_scalar=pose_scalar)
     res = {k: v.numpy().astype(np.float64) for k, v in out.items()}
+    res["pair_depth"] = launch_depth(shapes, ids_a, ids_b, poses_a64, poses_b64, pose_scalar).numpy().astype(np.float64)
     return _finish(res, origin, pb[:, :3], local_b[:, :3], shape_a.radius, shape_b.radius, dev)
 
 
@@ -229,7 +236,7 @@ def _finish(res, origin, position_b, rel_b, radius_a, radius_b, device):
     # Normal, enclosed push and contact point: the Warp function of the simulator's contacts, in
     # float64 whatever the precision of the overlap.
     kind, normal, point_local = launch_contact_frame(
-        wp.float64, device, volume, res["pair_volume_moment"], s_a, m_local, rel_b,
+        wp.float64, device, volume, res["pair_volume_moment"], s_a, m_local, res["pair_fallback_a"], rel_b,
         min(radius_a, radius_b), radius_a / (radius_a + radius_b),
     )  # fmt: skip
     touching = volume > 0.0
@@ -245,6 +252,8 @@ def _finish(res, origin, position_b, rel_b, radius_a, radius_b, device):
         area_vector_b=res["pair_area_b"],
         moment_b=res["pair_moment_b"] + np.cross(origin, res["pair_area_b"]),
         enclosed=kind == ENCLOSED,
+        enclosed_area_vector=np.where((kind == ENCLOSED)[:, None], res["pair_fallback_a"], 0.0),
+        depth=res["pair_depth"],
         position_a=origin,
         position_b=np.asarray(position_b, dtype=np.float64),
     )
@@ -255,7 +264,7 @@ def contact_forces(result, law, *, device=None):
 
     Force on A ``-W'(V) S_A``, torque on A about its centre ``-W'(V) (M_A - x_A x S_A)``; B gets the
     exact opposite force and the torque that balances the pair. Enclosed pairs are pushed apart
-    along the line of centres (module docstring). Computed in float64 by the simulator's contact
+    along their ``enclosed_area_vector`` (module docstring). Computed in float64 by the simulator's contact
     response function on ``device`` (default Warp's default device).
     """
     if not isinstance(result, OverlapResult):
@@ -265,12 +274,13 @@ def contact_forces(result, law, *, device=None):
     xa = result.position_a
     xb = result.position_b
     volume = result.volume
-    # The decision overlap() took: a radius of 0 keeps an enclosed pair enclosed, an infinite one
-    # leaves any other pair with a vanishing S_A without force (a sliver).
+    # The decision overlap() took: enclosed pairs carry their fallback area vector; an infinite
+    # radius leaves any other pair with a vanishing S_A without force (a sliver).
+    fallback = np.where(result.enclosed[:, None], result.enclosed_area_vector, 0.0)
     r_min = np.where(result.enclosed, 0.0, np.inf)
     force_a, torque_a, energy = launch_contact_force(
         law.kind, law.k, law.exponent, wp.get_device(device), volume, volume[:, None] * (result.centroid - xa),
-        result.area_vector, result.moment - np.cross(xa, result.area_vector), xb - xa, r_min,
+        result.area_vector, result.moment - np.cross(xa, result.area_vector), fallback, xb - xa, r_min,
     )  # fmt: skip
     force_b = -force_a
     # Moment of the pair's wrench about B's centre: balance with A's about a common point.

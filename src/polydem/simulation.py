@@ -265,6 +265,7 @@ class Stepper:
                 d["pair_point"],
                 d["pair_fn"],
                 d["pair_ft"],
+                d["pair_depth"],
             ],
             device=dev,
             block_dim=NARROWPHASE_BLOCK_DIM,
@@ -305,6 +306,7 @@ class Stepper:
                 d["plane_fn"],
                 d["plane_point"],
                 d["plane_ft"],
+                d["plane_depth"],
             ],
             device=dev,
         )
@@ -326,6 +328,7 @@ class Stepper:
             out[f"{prefix}_point"] = wp.zeros(shape, dtype=vec3s, device=dev)
             out[f"{prefix}_fn"] = wp.zeros(shape, dtype=c, device=dev)
             out[f"{prefix}_ft"] = wp.zeros(shape, dtype=vec3c, device=dev)
+            out[f"{prefix}_depth"] = wp.zeros(shape, dtype=c, device=dev)
         return out
 
     def _placeholders(self):
@@ -337,8 +340,9 @@ class Stepper:
         """Runs the diagnostics variant of the contact kernels at ``state``; returns its host arrays.
 
         Per pair (the first ``count`` candidates): ``pair_volume`` [m^3], ``pair_energy`` [J],
-        ``pair_normal``, ``pair_point`` [m], ``pair_fn`` [N], ``pair_ft`` [N]; per (body, wall):
-        ``plane_volume``, ``plane_energy``, ``plane_fn``, ``plane_point``, ``plane_ft``.
+        ``pair_normal``, ``pair_point`` [m], ``pair_fn`` [N], ``pair_ft`` [N], ``pair_depth`` [m]; per
+        (body, wall): ``plane_volume``, ``plane_energy``, ``plane_fn``, ``plane_point``, ``plane_ft``,
+        ``plane_depth``.
         """
         cap = contacts.capacity
         n = self.model.num_bodies
@@ -361,7 +365,7 @@ class Stepper:
             self._kernels()
         count = contacts.count()
         out = {k: v.numpy() for k, v in self._diag.items()}
-        for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft"):
+        for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft", "pair_depth"):
             out[k] = out[k][:count]
         return out
 
@@ -666,7 +670,9 @@ class Simulation:
 
         ``body_a``, ``body_b`` (int; ``body_b = -1 - p`` for wall plane p), ``normal`` (N,3) from A
         into B, ``point`` (N,3) [m], ``normal_force`` (N,) [N], ``tangential_force`` (N,3) on A [N],
-        ``volume`` (N,) [m^3]. Computed at the current state (after the last step).
+        ``volume`` (N,) [m^3], ``depth`` (N,) [m]: the penetration depth, the deepest vertex of one body
+        inside the other (the least distance to the other's face planes; for a wall, how far the
+        body's lowest vertex lies beyond it). Computed at the current state (after the last step).
         """
         bp = self.current_contacts.broadphase
         d = self._diagnostics()
@@ -681,6 +687,7 @@ class Simulation:
             "normal_force": d["pair_fn"][on].astype(np.float64),
             "tangential_force": d["pair_ft"][on].astype(np.float64),
             "volume": vol[on].astype(np.float64),
+            "depth": d["pair_depth"][on].astype(np.float64),
         }
         if self.model.num_planes:
             pv = d["plane_volume"]
@@ -695,4 +702,5 @@ class Simulation:
                 [out["tangential_force"], d["plane_ft"][body, plane].astype(np.float64)]
             )
             out["volume"] = np.concatenate([out["volume"], pv[body, plane].astype(np.float64)])
+            out["depth"] = np.concatenate([out["depth"], d["plane_depth"][body, plane].astype(np.float64)])
         return out
