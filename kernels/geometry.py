@@ -49,9 +49,12 @@ translation of A, along -u, separates the bodies) times the projected area of th
 along it, 1/2 sum |u.n_f| A_f. A body wholly inside a wall gets -(its projected area along the
 wall's normal n) n.
 
-Depth (:func:`pair_depth`, :func:`plane_depth`): the deepest vertex of either body inside the
-other, i.e. the largest, over the vertices of one body, of the least distance inside the other's
-face planes; for a wall, offset - min n.v. Computed in float64.
+Depth (:func:`pair_depth`, :func:`plane_depth`): the shortest translation along a face normal of
+either body that separates the pair (the overlap of their extents along that normal, least over
+the face normals; the same search as the enclosed push). For a corner or an edge pressed into a
+face it is that corner's depth below the face; where two edges cross, an upper bound of the true
+penetration depth. The deepest vertex alone would miss a face-to-face overlap of two aligned
+cubes, whose vertices lie on each other's faces. For a wall, offset - min n.v. Computed in float64.
 
 The shape arrays reach every function as one :func:`shapes_struct` value (see
 :class:`polydem.shapeset.ShapeSet` for the meaning of each array).
@@ -475,7 +478,8 @@ def make_geometry(
     @wp.func
     def least_penetration(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d):
         # Among the face normals of both bodies (body 1's frame, body 2 at rot x + pos), the unit
-        # direction u along which the shorter translation of body 1 (along -u) separates them.
+        # direction u along which the shortest translation of body 1 (along -u) separates them,
+        # and the length of that translation.
         v10 = shapes.shape_vert_start[s1]
         v11 = shapes.shape_vert_start[s1 + 1]
         v20 = shapes.shape_vert_start[s2]
@@ -505,7 +509,7 @@ def make_geometry(
             if sup2 - inf1 < best:
                 best = sup2 - inf1
                 best_u = -u
-        return best_u
+        return best_u, best
 
     @wp.func
     def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
@@ -794,7 +798,7 @@ def make_geometry(
         fb_1 = zero3d
         if vol > scalar(0.0):
             if wp.length(s_1) < scalar(enclosed_ratio) * wp.pow(vol, scalar(2.0) / scalar(3.0)):
-                u_best = least_penetration(shapes, s1, s2, rot, pos)
+                u_best, sep = least_penetration(shapes, s1, s2, rot, pos)
                 fb_1 = projected_area(shapes, s2, rot_t * u_best) * u_best
         # Back to body 1's centre (float64), then to world axes and A's centre.
         vol64 = wp.float64(vol)
@@ -831,24 +835,11 @@ def make_geometry(
         )
 
     @wp.func
-    def deepest(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d):
-        # The deepest vertex of body 2 (at rot x + pos in body 1's frame) inside body 1: max over
-        # its vertices of the least distance inside body 1's face planes (negative: none inside).
-        best = wp.float64(-1.0e300)
-        for iv in range(shapes.shape_vert_start[s2], shapes.shape_vert_start[s2 + 1]):
-            v = rot * shapes.vert64[iv] + pos
-            inside = wp.float64(1.0e300)
-            for f in range(shapes.shape_face_start[s1], shapes.shape_face_start[s1 + 1]):
-                n, d = plane64(shapes, f)
-                inside = wp.min(inside, d - wp.dot(n, v))
-            best = wp.max(best, inside)
-        return best
-
-    @wp.func
     def pair_depth(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
-        """Penetration depth [m] of the pair: the deepest vertex of either body inside the other
-        (the least distance to the other's face planes), 0 when no vertex is inside. Float64
-        inside whatever the precision."""
+        """Penetration depth [m] of the pair: the shortest translation along a face normal of
+        either body that separates them (for a corner or an edge in a face, its depth below that
+        face; where two edges cross, an upper bound of the least separating translation), 0 when
+        they do not overlap. Float64 inside whatever the precision."""
         xa64, qa64 = pose_to_f64(xa)
         xb64, qb64 = pose_to_f64(xb)
         r = wp.float64(shapes.shape_radius[sa] + shapes.shape_radius[sb])
@@ -857,8 +848,7 @@ def make_geometry(
         if wp.length_sq(pos) >= r * r:
             return scalar(0.0)
         rot = wp.quat_to_matrix(qa_inv * qb64)
-        rot_t = wp.transpose(rot)
-        depth = wp.max(deepest(shapes, sa, sb, rot, pos), deepest(shapes, sb, sa, rot_t, -(rot_t * pos)))
+        u, depth = least_penetration(shapes, sa, sb, rot, pos)
         return scalar(wp.max(depth, wp.float64(0.0)))
 
     return Geometry(

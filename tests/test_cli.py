@@ -186,6 +186,7 @@ def test_run_writes_every_output(tmp_path, capsys):
         "contacts",
         "energy",
         "largest_overlap",
+        "largest_depth",
         "settled_region",
         "interrupted",
         "reason",
@@ -203,6 +204,10 @@ def test_run_writes_every_output(tmp_path, capsys):
     assert summary["contacts"]["final"] > 0
     assert 0.0 < summary["largest_overlap"]["final"]["relative"] < 0.5
     assert summary["largest_overlap"]["max_over_frames"] > 0.0
+    # A tetrahedron's corner 3.5% of its volume into the floor is 7 mm deep: half its size (cube root of its volume).
+    deepest = summary["largest_depth"]
+    assert 0.0 < deepest["final"]["relative"] < 1.0 and deepest["max_over_frames"] > 0.0
+    assert "largest depth (of the smaller body's size" in out
     assert set(summary["energy"]["final"]) >= {"kinetic", "contact", "gravity", "dissipated", "total"}
     region = summary["settled_region"]
     assert set(region) >= {"packing_fraction", "coordination_number", "bodies"}
@@ -586,6 +591,7 @@ def test_resumed_summary_covers_the_whole_run(tmp_path, capsys, unbroken):
     assert summary["history"]["time"][0] == 0.0
     assert summary["contacts"] == pytest.approx(whole["contacts"])
     assert summary["largest_overlap"]["max_over_frames"] == pytest.approx(whole["largest_overlap"]["max_over_frames"])
+    assert summary["largest_depth"]["max_over_frames"] == pytest.approx(whole["largest_depth"]["max_over_frames"])
     assert summary["energy"]["initial"] == pytest.approx(whole["energy"]["initial"])
     assert summary["energy"]["final"] == pytest.approx(whole["energy"]["final"])
     assert summary["energy"]["at_resume"]["total"] != pytest.approx(whole["energy"]["initial"]["total"], rel=1e-9)

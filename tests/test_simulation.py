@@ -966,3 +966,32 @@ def test_friction_books_no_negative_dissipation_in_one_step(device):
     rel = lost.numpy() / np.maximum(scale.numpy(), 1e-300)
     print(f"\nbooked loss of one step over the energies in play: min {rel.min():.2e}")
     assert rel.min() > -1e-12
+
+
+# ---------------------------------------------------------------------------------------------
+# Penetration depth in contacts()
+
+
+@pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
+def test_contacts_report_penetration_depth(device, precision):
+    """contacts()["depth"]: a cube tilted about x by 0.3 rad whose lowest edge lies 2 mm below a wall
+    plane, and two aligned cubes overlapping face to face by 3 mm (no vertex of one lies strictly inside
+    the other); the depth is the shortest separating translation (before, contacts() gave volumes only)."""
+    edge = 0.1
+    scene = single_material_scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_shape("cube", ConvexShape.box(edge, edge, edge))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    angle = 0.3
+    q = quat_from_axis_angle((1.0, 0.0, 0.0), angle)
+    lowest = 0.5 * edge * (math.cos(angle) + math.sin(angle))  # centre height of the lowest edge
+    scene.add_body("cube", "m", position=(0.0, 0.0, lowest - 0.002), orientation=q)
+    scene.add_body("cube", "m", position=(1.0, 0.0, 0.5))
+    scene.add_body("cube", "m", position=(1.0 + edge - 0.003, 0.0, 0.5))
+    scene.precision = precision
+    sim = Simulation(scene, device=device)
+    c = sim.contacts()
+    depth = {(int(a), int(b)): float(d) for a, b, d in zip(c["body_a"], c["body_b"], c["depth"], strict=True)}
+    assert set(depth) == {(0, -1), (1, 2)}
+    tol = 1e-6 if precision != "float64" else 1e-12
+    assert depth[(0, -1)] == pytest.approx(0.002, abs=tol)
+    assert depth[(1, 2)] == pytest.approx(0.003, abs=tol)

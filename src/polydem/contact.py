@@ -91,8 +91,9 @@ class OverlapResult:
         enclosed: (N,) bool, the gradient of V vanishes (see the module docstring).
         enclosed_area_vector: (N, 3) the effective area vector that pushes an enclosed pair
             apart (taking the place of S_A) [m^2]; zero for the other pairs.
-        depth: (N,) penetration depth [m]: the deepest vertex of either body inside the other
-            (its least distance to the other body's face planes), 0 when no vertex is inside.
+        depth: (N,) penetration depth [m]: the shortest translation along a face normal of either
+            body that separates them (for a corner or edge in a face, its depth below that face;
+            where two edges cross, an upper bound), 0 where V = 0.
         position_a, position_b: (N, 3) the body centres [m].
     """
 
@@ -225,7 +226,9 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
     poses_b64 = wp.array(local_b, dtype=transform, device=dev)
     launch_overlap(shapes, ids_a, ids_b, poses_a64, poses_b64, out, pose_scalar=pose_scalar)
     res = {k: v.numpy().astype(np.float64) for k, v in out.items()}
-    res["pair_depth"] = launch_depth(shapes, ids_a, ids_b, poses_a64, poses_b64, pose_scalar).numpy().astype(np.float64)
+    depth = launch_depth(shapes, ids_a, ids_b, poses_a64, poses_b64, pose_scalar).numpy().astype(np.float64)
+    # Bodies separated only along an edge-edge direction overlap along every face normal: no depth.
+    res["pair_depth"] = np.where(res["pair_volume"] > 0.0, depth, 0.0)
     return _finish(res, origin, pb[:, :3], local_b[:, :3], shape_a.radius, shape_b.radius, dev)
 
 

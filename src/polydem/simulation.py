@@ -670,9 +670,9 @@ class Simulation:
 
         ``body_a``, ``body_b`` (int; ``body_b = -1 - p`` for wall plane p), ``normal`` (N,3) from A
         into B, ``point`` (N,3) [m], ``normal_force`` (N,) [N], ``tangential_force`` (N,3) on A [N],
-        ``volume`` (N,) [m^3], ``depth`` (N,) [m]: the penetration depth, the deepest vertex of one body
-        inside the other (the least distance to the other's face planes; for a wall, how far the
-        body's lowest vertex lies beyond it). Computed at the current state (after the last step).
+        ``volume`` (N,) [m^3], ``depth`` (N,) [m]: the penetration depth, the shortest translation along
+        a face normal of either body that separates the pair (for a wall, how far the body's lowest
+        vertex lies beyond it). Computed at the current state (after the last step).
         """
         bp = self.current_contacts.broadphase
         d = self._diagnostics()

@@ -1,5 +1,6 @@
 """Numbers about a state that the run records and its summary reports: the settled region of a
-pile (packing fraction, coordination number) and the overlaps relative to the bodies' volumes."""
+pile (packing fraction, coordination number), the overlaps relative to the bodies' volumes and the
+penetration depths relative to their sizes."""
 
 from __future__ import annotations
 
@@ -7,7 +8,14 @@ import math
 
 import numpy as np
 
-__all__ = ["SETTLED_MARGIN", "SETTLED_PERCENTILE", "body_volumes", "relative_overlaps", "settled_region"]
+__all__ = [
+    "SETTLED_MARGIN",
+    "SETTLED_PERCENTILE",
+    "body_volumes",
+    "relative_depths",
+    "relative_overlaps",
+    "settled_region",
+]
 
 SETTLED_PERCENTILE = 80.0
 """The settled region reaches up to this percentile of the free bodies' centre heights."""
@@ -28,6 +36,16 @@ def relative_overlaps(contacts, volumes) -> np.ndarray:
     va = volumes[a]
     vb = np.where(b >= 0, volumes[np.maximum(b, 0)], np.inf)
     return contacts["volume"] / np.minimum(va, vb)
+
+
+def relative_depths(contacts, volumes) -> np.ndarray:
+    """Penetration depth of each contact over the smaller body's size, the cube root of its volume
+    (the edge of a cube; the body's own for walls)."""
+    a = contacts["body_a"]
+    b = contacts["body_b"]
+    va = volumes[a]
+    vb = np.where(b >= 0, volumes[np.maximum(b, 0)], np.inf)
+    return contacts["depth"] / np.cbrt(np.minimum(va, vb))
 
 
 def _perpendicular(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

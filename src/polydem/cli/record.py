@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from polydem.cli.diagnostics import body_volumes, relative_overlaps, settled_region
+from polydem.cli.diagnostics import body_volumes, relative_depths, relative_overlaps, settled_region
 
 __all__ = ["ENERGY_KEYS", "HISTORY_KEYS", "RUN_RECORD_VERSION", "RunLog", "finite", "run_record_problem"]
 
@@ -43,6 +43,7 @@ class RunLog:
         self.history: dict[str, list] = {k: [] for k in HISTORY_KEYS}
         self.frame_contacts: list[int] = []
         self.frame_overlap = 0.0
+        self.frame_depth = 0.0
         self.energy_initial = None
         self.earlier = None
 
@@ -56,6 +57,9 @@ class RunLog:
         self.history = {k: list(rec["history"][k]) for k in HISTORY_KEYS}
         self.frame_contacts = list(rec["frame_contacts"])
         self.frame_overlap = float(rec["frame_overlap"])
+        # Records written before depths were reported have none: the largest depth then covers
+        # the frames since the resume.
+        self.frame_depth = float(rec.get("frame_depth", 0.0))
 
     def holds(self, time_s: float, dt: float) -> bool:
         """Whether the history already has a frame at ``time_s`` (a resumed run starts at a frame it may hold)."""
@@ -74,6 +78,7 @@ class RunLog:
         self.history["packing_fraction"].append(region.get("packing_fraction"))
         if len(contacts["volume"]):
             self.frame_overlap = max(self.frame_overlap, float(relative_overlaps(contacts, self.volumes).max()))
+            self.frame_depth = max(self.frame_depth, float(relative_depths(contacts, self.volumes).max()))
         return energy
 
     def record(self, wall: float, part: dict, pictures: list[str], checkpoints: list[str]) -> dict:
@@ -87,6 +92,7 @@ class RunLog:
                 "history": self.history,
                 "frame_contacts": self.frame_contacts,
                 "frame_overlap": self.frame_overlap,
+                "frame_depth": self.frame_depth,
                 "energy_initial": self.energy_initial,
                 "wall_time": e.get("wall_time", 0.0) + wall,
                 "pictures": [*e.get("pictures", []), *pictures],
@@ -131,6 +137,8 @@ def run_record_problem(rec, fps, time_s, dt) -> str | None:
         return f"energy_initial of its run record is not a table of energies{damaged}"
     if not (number(rec.get("frame_overlap"), 0.0) and number(rec.get("wall_time"), 0.0)):
         return f"frame_overlap or wall_time of its run record is not a number >= 0{damaged}"
+    if not number(rec.get("frame_depth", 0.0), 0.0):
+        return f"frame_depth of its run record is not a number >= 0{damaged}"
     if not (strings(rec.get("pictures")) and strings(rec.get("checkpoints"))):
         return f"pictures or checkpoints of its run record is not a list of file names{damaged}"
     parts = rec.get("parts")

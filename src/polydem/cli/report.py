@@ -8,7 +8,7 @@ import shlex
 import numpy as np
 
 from polydem.cli.common import listing, plural, relative, shorten
-from polydem.cli.diagnostics import relative_overlaps, settled_region
+from polydem.cli.diagnostics import relative_depths, relative_overlaps, settled_region
 from polydem.cli.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
 from polydem.cli.outputs import scene_metadata
 
@@ -38,6 +38,20 @@ class Report:
         return {
             "relative": float(rel[i]),
             "volume": float(contacts["volume"][i]),
+            "body_a": int(contacts["body_a"][i]),
+            "body_b": b if b >= 0 else None,
+            "wall": -1 - b if b < 0 else None,
+        }
+
+    def _largest_depth(self, contacts) -> dict | None:
+        rel = relative_depths(contacts, self.log.volumes) if contacts is not None else np.zeros(0)
+        if not len(rel):
+            return None
+        i = int(np.argmax(rel))
+        b = int(contacts["body_b"][i])
+        return {
+            "relative": float(rel[i]),
+            "depth": float(contacts["depth"][i]),
             "body_a": int(contacts["body_a"][i]),
             "body_b": b if b >= 0 else None,
             "wall": -1 - b if b < 0 else None,
@@ -132,6 +146,10 @@ class Report:
                 "final": self._largest_overlap(contacts),
                 "max_over_frames": log.frame_overlap if frames else None,
             },
+            "largest_depth": {
+                "final": self._largest_depth(contacts),
+                "max_over_frames": log.frame_depth if frames else None,
+            },
             "energy": {
                 "initial": log.energy_initial,
                 "at_resume": self.energy_at_start if resumed_from is not None else None,
@@ -163,6 +181,14 @@ class Report:
             parts.append(f"{lo['max_over_frames']:.3%} at most in the frames")
         if parts:
             lines.append(f"  largest overlap (of the smaller body's volume): {', '.join(parts)}")
+        ld = s["largest_depth"]
+        parts = []
+        if ld["final"] is not None:
+            parts.append(f"{ld['final']['relative']:.3%} now ({ld['final']['depth']:.3g} m)")
+        if ld["max_over_frames"] is not None:
+            parts.append(f"{ld['max_over_frames']:.3%} at most in the frames")
+        if parts:
+            lines.append(f"  largest depth (of the smaller body's size, cube root of its volume): {', '.join(parts)}")
         region = s["settled_region"]
         if region is not None and region["packing_fraction"] is not None:
             lines.append(
