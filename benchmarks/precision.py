@@ -86,6 +86,71 @@ def run_one(scene, precision, steps, device):
         "energy_error_relative": (e1["total"] - e0["total"]) / released if released > 0.0 else float("nan"),
         "contacts": int(len(contacts["volume"])),
         "max_overlap_volume_fraction": float(contacts["volume"].max()) / EDGE**3 if len(contacts["volume"]) else 0.0,
+        "max_depth_edges": float(contacts["depth"].max()) / EDGE if len(contacts["depth"]) else 0.0,
+    }
+
+
+IMPACTS = {
+    # name: (orientation as a rotation vector [rad], restitution)
+    "face_e1": ((0.0, 0.0, 0.0), 1.0),
+    "face_e0.5": ((0.0, 0.0, 0.0), 0.5),
+    "edge_e0.5": ((0.0, 0.7853981633974483, 0.0), 0.5),
+    "corner_e0.5": ((0.6154797086703873, 0.7853981633974483, 0.0), 0.5),
+}
+IMPACT_SPEED = 1.0  # [m/s]
+
+
+def impact(name, precision, device, offset):
+    """A 1 cm cube falling at IMPACT_SPEED (no gravity, no friction) on a plane wall, face, edge or
+    corner first: rebound speed against e v0, energy balance over the impact, largest depth."""
+    from scipy.spatial.transform import Rotation
+
+    rotvec, e = IMPACTS[name]
+    k = 1.4e9  # hertz: a face impact at 1 m/s reaches about 1% of the edge in depth
+    scene = Scene(gravity=(0.0, 0.0, 0.0), dt="auto", name=f"impact_{name}")
+    scene.precision = precision
+    scene.add_material("m", density=2500.0, law="hertz", k=k, restitution=e, friction=0.0)
+    from polydem import ConvexShape
+
+    scene.add_shape("cube", ConvexShape.box(EDGE, EDGE, EDGE))
+    q = Rotation.from_rotvec(rotvec).as_quat()
+    lowest = float((Rotation.from_quat(q).apply(np.array(ConvexShape.box(EDGE, EDGE, EDGE).vertices))[:, 2]).min())
+    gap = 1e-4 * EDGE
+    scene.add_body(
+        "cube", "m", position=offset + (0.0, 0.0, -lowest + gap), orientation=q, velocity=(0, 0, -IMPACT_SPEED)
+    )
+    scene.add_plane(offset, (0.0, 0.0, 1.0), "m")
+    sim = Simulation(scene, device=device)
+    e0 = sim.energy()
+    depth = 0.0
+    touched = False
+    per_chunk = []
+    steps = 0
+    limit = int(0.2 * EDGE / (IMPACT_SPEED * sim.dt)) + 10000
+    while steps < limit:
+        t = time.perf_counter()
+        sim.step(8)
+        wp.synchronize_device(sim.device)
+        per_chunk.append((time.perf_counter() - t) / 8)
+        steps += 8
+        c = sim.contacts()
+        if len(c["depth"]):
+            touched = True
+            depth = max(depth, float(c["depth"].max()))
+        elif touched:
+            break
+    e1 = sim.energy()
+    v = sim.state()["body_velocity"][0]
+    return {
+        "impact": name,
+        "precision": precision,
+        "restitution": e,
+        "dt": sim.dt,
+        "steps": steps,
+        "ms_per_step_median": 1e3 * float(np.median(per_chunk)),
+        "rebound_error": float(v[2] / (e * IMPACT_SPEED) - 1.0),
+        "energy_error_relative": float((e1["total"] - e0["total"]) / e0["total"]),
+        "max_depth_edges": depth / EDGE,
     }
 
 
@@ -97,6 +162,7 @@ def main():
     ap.add_argument("--offset", type=float, default=0.0, help="move the scene by (D, D, D) metres")
     ap.add_argument("--precisions", default=",".join(PRECISIONS), help="comma-separated subset")
     ap.add_argument("--out", default=None, help="JSON file (default benchmarks/results/precision_<device>.json)")
+    ap.add_argument("--no-impacts", action="store_true", help="skip the single-cube impacts")
     args = ap.parse_args()
 
     wp.config.quiet = True
@@ -126,16 +192,31 @@ def main():
             row["position_diff_rms_m"] = float(np.sqrt(np.mean(d * d)))
             row["position_diff_max_edges"] = float(d.max()) / EDGE
     record["rows"] = rows
+    impacts = []
+    if not args.no_impacts:
+        for name in IMPACTS:
+            for precision in precisions:
+                impacts.append(impact(name, precision, device, offset))
+    record["impacts"] = impacts
 
     print(f"{args.bodies} cubes, {args.steps} steps on {device}, offset {args.offset:g} m")
-    head = ("precision", "ms/step", "energy err", "dx max [m]", "dx rms [m]", "max V/Vc")
-    print(f"{head[0]:10s} {head[1]:>9s} {head[2]:>11s} {head[3]:>11s} {head[4]:>11s} {head[5]:>9s}")
+    head = ("precision", "ms/step", "energy err", "dx max [m]", "dx rms [m]", "max V/Vc", "depth/edge")
+    print(f"{head[0]:10s} {head[1]:>9s} {head[2]:>11s} {head[3]:>11s} {head[4]:>11s} {head[5]:>9s} {head[6]:>10s}")
     for r in rows:
         print(
             f"{r['precision']:10s} {r['ms_per_step_median']:9.3f} {r['energy_error_relative']:11.3e} "
             f"{r.get('position_diff_max_m', float('nan')):11.3e} {r.get('position_diff_rms_m', float('nan')):11.3e} "
-            f"{r['max_overlap_volume_fraction']:9.4f}"
+            f"{r['max_overlap_volume_fraction']:9.4f} {r['max_depth_edges']:10.4f}"
         )
+    if impacts:
+        print("impacts: 1 cm cube at 1 m/s on a plane (rebound error = v_out / (e v_in) - 1)")
+        head = ("impact", "precision", "ms/step", "rebound err", "energy err", "depth/edge")
+        print(f"{head[0]:12s} {head[1]:10s} {head[2]:>9s} {head[3]:>12s} {head[4]:>11s} {head[5]:>10s}")
+        for r in impacts:
+            print(
+                f"{r['impact']:12s} {r['precision']:10s} {r['ms_per_step_median']:9.3f} {r['rebound_error']:12.3e} "
+                f"{r['energy_error_relative']:11.3e} {r['max_depth_edges']:10.4f}"
+            )
     os.makedirs(os.path.dirname(out), exist_ok=True)
     with open(out, "w") as f:
         json.dump(record, f, indent=1)

@@ -17,8 +17,8 @@ within 5%). The body starts 1e-3 edge from first touch (found by bisection on th
 positions keep their finest resolution there).
 
 For each case the step is swept from 0.5% to 50% of ``model.dt_recommended`` (``--fractions``).
-The simulator is float32 only, so there is no float64 solution to compare with: the reference is
-the run at the smallest step, and its own error is estimated by the second smallest step's
+The reference is the run at the smallest step in float64 (the swept runs in ``--precision``,
+float32 by default), and its own error is estimated by the second smallest step's
 difference from it (``ref_check``; for a first-order method the reference error is at most that
 difference, for a second-order one a third of it). Every run covers the same simulated time: the
 impact (its length measured once at 2% of the step, by polling the contacts) and half its length
@@ -284,9 +284,11 @@ def run_probe(case, k, device):
     return dt_rec, t_first - chunk * dt, t_last + chunk * dt, vmax
 
 
-def measure_run(case, k, dt, t_end, device, extra=0.0):
-    """One timed run to ``t_end``; returns a dict of the end state, energies and timing."""
-    sim = Simulation(build_impact_scene(case, dt, k), device=device)
+def measure_run(case, k, dt, t_end, device, extra=0.0, precision="float32"):
+    """One timed run to ``t_end`` in ``precision``; returns a dict of the end state, energies and timing."""
+    scene = build_impact_scene(case, dt, k)
+    scene.precision = precision
+    sim = Simulation(scene, device=device)
     e0 = sim.energy()
     n = max(2, int(math.ceil(t_end / dt)))
     sim.step(1)  # kernels loaded, CUDA graph captured
@@ -381,8 +383,10 @@ def run_impacts(args, device, record, save):
         for f in fractions:
             dt = f * dt_rec
             extra = duration if ref is None else 0.0
-            row = {"case": name, "fraction": f, "dt": dt}
-            row.update(measure_run(case, k, dt, t_end, device, extra=extra))
+            # The reference (the smallest step) runs in float64, the sweep in --precision.
+            prec = "float64" if ref is None else args.precision
+            row = {"case": name, "fraction": f, "dt": dt, "precision": prec}
+            row.update(measure_run(case, k, dt, t_end, device, extra=extra, precision=prec))
             if ref is None:
                 ref = row
             e_impact = row["energy_start"]["total"]
@@ -459,6 +463,7 @@ def run_settle(args, device, record, save):
         for f in fractions:
             dt = f * dt_rec
             scene.dt = float(dt)
+            scene.precision = args.precision
             sim = Simulation(scene, device=device)
             steps = int(math.ceil(t_sim / dt))
             every = max(1, steps // args.samples)
@@ -695,6 +700,12 @@ def main():
     ap.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
     ap.add_argument("--parts", default="impacts,settle,pair", help="comma-separated: impacts, settle, pair")
     ap.add_argument("--quick", action="store_true", help="fewer impact cases and steps, a shorter settling window")
+    ap.add_argument(
+        "--precision",
+        choices=("float32", "mixed", "float64"),
+        default="float32",
+        help="precision of the swept runs (the reference at the smallest step is float64)",
+    )
     ap.add_argument("--cases", default=None, help="impact cases (default all; --quick: a subset)")
     ap.add_argument("--fractions", default=None, help="impact steps as fractions of dt_recommended")
     ap.add_argument("--sizes", default=None, help="settling cube counts (default 10000 on CUDA, 1000 on the CPU)")
