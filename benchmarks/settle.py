@@ -132,6 +132,7 @@ def make_scene(n, args, seed=0):
     rng = np.random.default_rng(seed)
     k = hertz_k(a, args.density, layers, args.overlap, args.load_factor)
     scene = Scene(gravity=(0.0, 0.0, -9.81), dt="auto", name=f"settle_{n}")
+    scene.precision = getattr(args, "precision", "float32")
     scene.add_material(
         "grain", density=args.density, law="hertz", k=k, restitution=args.restitution, friction=args.friction
     )
@@ -680,6 +681,7 @@ def make_parser():
     ap.add_argument("--gap", default="0.002,0.02", help="min,max gap between stacked cubes [edges]")
     ap.add_argument("--spin", type=float, default=0.0, help="initial angular speed [rad/s], random axes")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--precision", choices=("float32", "mixed", "float64"), default="float32", help="precision")
     return ap
 
 

@@ -49,12 +49,14 @@ translation of A, along -u, separates the bodies) times the projected area of th
 along it, 1/2 sum |u.n_f| A_f. A body wholly inside a wall gets -(its projected area along the
 wall's normal n) n.
 
-Depth (:func:`pair_depth`, :func:`plane_depth`): the shortest translation along a face normal of
-either body that separates the pair (the overlap of their extents along that normal, least over
-the face normals; the same search as the enclosed push). For a corner or an edge pressed into a
-face it is that corner's depth below the face; where two edges cross, an upper bound of the true
-penetration depth. The deepest vertex alone would miss a face-to-face overlap of two aligned
-cubes, whose vertices lie on each other's faces. For a wall, offset - min n.v. Computed in float64.
+Depth (:func:`pair_depth`, :func:`plane_depth`): the penetration depth, the shortest translation
+that separates the pair. For convex polyhedra it lies along a face normal of either body or the
+cross product of an edge of each (the separating-axis theorem): the least overlap of the two
+bodies' extents over those axes. For a corner pressed into a face it is that corner's depth below
+the face; for two crossing edges, their distance. The deepest vertex alone would miss both a
+face-to-face overlap of two aligned cubes (their vertices lie on each other's faces) and crossing
+edges (no vertex inside); the face normals alone overestimate crossing edges. For a wall, offset - min n.v.
+Computed in float64, for the diagnostics only (E_A E_B axes: not in the step).
 
 The shape arrays reach every function as one :func:`shapes_struct` value (see
 :class:`polydem.shapeset.ShapeSet` for the meaning of each array).
@@ -835,11 +837,56 @@ def make_geometry(
         )
 
     @wp.func
+    def overlap_along(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d, u: vec3d):
+        # The overlap of the two bodies' extents along the unit vector u (body 1's frame, body 2 at
+        # rot x + pos): the shorter translation along +-u that separates them, negative if u does.
+        big = wp.float64(1.0e300)
+        eye = wp.identity(n=3, dtype=wp.float64)
+        v10 = shapes.shape_vert_start[s1]
+        v11 = shapes.shape_vert_start[s1 + 1]
+        v20 = shapes.shape_vert_start[s2]
+        v21 = shapes.shape_vert_start[s2 + 1]
+        sup1 = support64(shapes, v10, v11, eye, zero3d, u, -big)
+        inf1 = -support64(shapes, v10, v11, eye, zero3d, -u, -big)
+        sup2 = support64(shapes, v20, v21, rot, pos, u, -big)
+        inf2 = -support64(shapes, v20, v21, rot, pos, -u, -big)
+        return wp.min(sup1 - inf2, sup2 - inf1)
+
+    @wp.func
+    def edge_pair_overlap(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d, best: wp.float64):
+        # The least of `best` and the overlaps along every cross product of an edge of body 1 and
+        # an edge of body 2: with the face normals, the axes that hold the least separating
+        # translation of two convex polyhedra. Each edge is taken once (from the face where it runs
+        # from the lower vertex index to the higher).
+        for f in range(shapes.shape_face_start[s1], shapes.shape_face_start[s1 + 1]):
+            b0 = shapes.face_loop_start[f]
+            n1 = shapes.face_loop_start[f + 1] - b0
+            for k in range(n1):
+                i0 = shapes.face_loop[b0 + k]
+                i1 = shapes.face_loop[b0 + (k + 1) % n1]
+                if i0 < i1:
+                    e1 = shapes.vert64[i1] - shapes.vert64[i0]
+                    for g in range(shapes.shape_face_start[s2], shapes.shape_face_start[s2 + 1]):
+                        c0 = shapes.face_loop_start[g]
+                        n2 = shapes.face_loop_start[g + 1] - c0
+                        for kk in range(n2):
+                            j0 = shapes.face_loop[c0 + kk]
+                            j1 = shapes.face_loop[c0 + (kk + 1) % n2]
+                            if j0 < j1:
+                                e2 = rot * (shapes.vert64[j1] - shapes.vert64[j0])
+                                axis = wp.cross(e1, e2)
+                                norm = wp.length(axis)
+                                # Parallel edges give no new axis (their cross product is noise).
+                                if norm > wp.float64(1.0e-9) * wp.length(e1) * wp.length(e2):
+                                    best = wp.min(best, overlap_along(shapes, s1, s2, rot, pos, axis / norm))
+        return best
+
+    @wp.func
     def pair_depth(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
-        """Penetration depth [m] of the pair: the shortest translation along a face normal of
-        either body that separates them (for a corner or an edge in a face, its depth below that
-        face; where two edges cross, an upper bound of the least separating translation), 0 when
-        they do not overlap. Float64 inside whatever the precision."""
+        """Penetration depth [m] of the pair: the shortest translation that separates them, the
+        least overlap of their extents over the separating-axis candidates (the face normals of
+        both bodies and the cross products of their edges), 0 when they do not overlap. Float64
+        inside whatever the precision."""
         xa64, qa64 = pose_to_f64(xa)
         xb64, qb64 = pose_to_f64(xb)
         r = wp.float64(shapes.shape_radius[sa] + shapes.shape_radius[sb])
@@ -849,6 +896,7 @@ def make_geometry(
             return scalar(0.0)
         rot = wp.quat_to_matrix(qa_inv * qb64)
         u, depth = least_penetration(shapes, sa, sb, rot, pos)
+        depth = edge_pair_overlap(shapes, sa, sb, rot, pos, depth)
         return scalar(wp.max(depth, wp.float64(0.0)))
 
     return Geometry(

@@ -232,19 +232,42 @@ def test_body_wholly_inside_a_wall(device, precision):
 
 
 def depth_reference(a_pts, b_pts):
-    """The shortest translation along a face normal of either hull that separates them (their
-    overlap along that normal), by numpy over every face normal; 0 when one separates them."""
-    normals = np.vstack([halfspaces_from_points(a_pts)[0], halfspaces_from_points(b_pts)[0]])
-    pa = a_pts @ normals.T
-    pb = b_pts @ normals.T
+    """The penetration depth by brute force: the least overlap of the two hulls' extents over the
+    face normals and the cross products of every pair of vertex-to-vertex directions (a superset of
+    the edge directions: no axis gives less than the depth, and the separating-axis theorem puts the
+    depth on a face normal or an edge-edge axis); 0 when an axis separates them."""
+    normals = [halfspaces_from_points(a_pts)[0], halfspaces_from_points(b_pts)[0]]
+    ia, ja = np.triu_indices(len(a_pts), 1)
+    ib, jb = np.triu_indices(len(b_pts), 1)
+    da = a_pts[ja] - a_pts[ia]
+    db = b_pts[jb] - b_pts[ib]
+    cross = np.cross(da[:, None, :], db[None, :, :]).reshape(-1, 3)
+    norm = np.linalg.norm(cross, axis=1)
+    normals.append(cross[norm > 1e-9] / norm[norm > 1e-9, None])
+    axes = np.vstack(normals)
+    pa = a_pts @ axes.T
+    pb = b_pts @ axes.T
     overlap = np.minimum(pa.max(axis=0) - pb.min(axis=0), pb.max(axis=0) - pa.min(axis=0))
     return max(0.0, overlap.min())
 
 
+def test_depth_of_crossing_edges(device):
+    """Two cubes turned 45 degrees about x and about y, so that an edge of one crosses an edge of
+    the other 2 mm deep: no vertex of either lies inside the other (the deepest vertex gave 0) and
+    every face normal shows an overlap of more than 2 mm (the face normals alone overestimated)."""
+    cube = ConvexShape.box(0.1, 0.1, 0.1)
+    half_diag = 0.05 * np.sqrt(2.0)
+    pa = np.array([[0.0, 0.0, 0.0, *Rotation.from_rotvec([np.pi / 4, 0.0, 0.0]).as_quat()]])
+    pb = np.array([[0.0, 0.0, 2 * half_diag - 0.002, *Rotation.from_rotvec([0.0, np.pi / 4, 0.0]).as_quat()]])
+    res = overlap(cube, pa, cube, pb, device=device, precision="float64")
+    assert res.volume[0] > 0.0
+    assert res.depth[0] == pytest.approx(0.002, abs=1e-12)
+    assert depth_reference(world(cube, pa[0]), world(cube, pb[0])) == pytest.approx(0.002, abs=1e-12)
+
+
 @pytest.mark.parametrize("precision", ["float32", "float64"])
 def test_depth_against_numpy(device, precision):
-    """overlap().depth is the shortest separating translation along a face normal, on random poses
-    (and 0 where V = 0)."""
+    """overlap().depth is the shortest separating translation, on random poses (0 where V = 0)."""
     rng = np.random.default_rng(11)
     a = ConvexShape.rock(n_points=16, size=1.0, seed=4)
     b = ConvexShape.box(1.2, 0.7, 0.4)

@@ -805,6 +805,8 @@ def test_tunnelling_is_warned_in_the_run(device, speed, slab):
     """A body that becomes fast during the run: a SimulationWarning naming it, its speed and the limit.
 
     BEFORE: the cube passed through the plane (1000 m/s) or the 1 cm slab (100 m/s) without a word.
+    Since the enclosed push leaves through the nearest face (issue 11), the cube that reaches the
+    middle of the slab comes back out of its top at 100 m/s; through the plane it still goes.
     """
     import warnings
 
@@ -817,8 +819,9 @@ def test_tunnelling_is_warned_in_the_run(device, speed, slab):
     sim.current_state.body_v.assign(v)
     with pytest.warns(polydem.SimulationWarning, match=r"body 0 \(shape 'cube', free\) reached .* may pass through"):
         sim.step(2 * int(0.12 / speed / sim.dt) + 10)
-    # The warning was right: the cube went through.
-    assert sim.state()["body_position"][0, 2] < -0.01
+    if not slab:
+        # The warning was right: the cube went through.
+        assert sim.state()["body_position"][0, 2] < -0.01
 
 
 def test_normal_drop_is_not_warned_about_tunnelling(device):
@@ -939,7 +942,7 @@ def test_friction_books_no_negative_dissipation_in_one_step(device):
         kt = sc(1.0e6)
         dt = sc(1.0e-4)
         out = respond(
-            vol, c * vol, area[i], wp.cross(c, area[i]), c * sc(2.0), v_a[i], w_a[i], z, z,
+            vol, c * vol, area[i], wp.cross(c, area[i]), z, c * sc(2.0), v_a[i], w_a[i], z, z,
             sc(1.0e4), sc(1.0), e[i], mu[i], kt, xi[i], sc(0.0), dt, sc(0.05), sc(1.0),
         )  # fmt: skip
         lost[i] = out[5]
