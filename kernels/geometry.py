@@ -74,9 +74,12 @@ COINCIDENT_TOL = {wp.float32: 1.0e-7, wp.float64: 1.0e-13}
 # Plus two units of rounding of the numbers each test meets: a vertex of the smaller body and the
 # plane offset, in the pair-local frame (of the size of the smaller body, not of the larger).
 COORDINATE_NOISE = {wp.float32: 2.4e-7, wp.float64: 4.5e-16}
-# Margin of the (float64) culling of faces that cannot bound the overlap, relative to the smaller
-# body: generous, since a face kept in vain is only clipped away.
+# Margin of the culling of faces that cannot bound the overlap, relative to the smaller body:
+# generous, since a face kept in vain is only clipped away.
 CULL_MARGIN = 1.0e-5
+# ... plus this many units of rounding of the pair's separation: the culling runs in the clipping
+# precision, and only its decisions (never its numbers) reach the result.
+CULL_ROUNDING = {wp.float32: 8.0 * 2.0**-24, wp.float64: 8.0 * 2.0**-53}
 # Cheap pre-filter before the exact coincidence test: normals within about 2.5 degrees.
 PARALLEL_COS = 0.999
 # A pair whose |S_A| falls below this fraction of V^(2/3) is "enclosed" (one body (nearly) inside
@@ -416,6 +419,8 @@ def make_geometry(
     tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
     noise_rel = float(COORDINATE_NOISE[scalar])
     cull_margin = CULL_MARGIN
+    cull_rounding = CULL_ROUNDING[scalar]
+    mat33 = wp.types.matrix(shape=(3, 3), dtype=scalar)
     parallel_cos = PARALLEL_COS
     enclosed_ratio = ENCLOSED_RATIO
     plane_distance = prim.plane_distance
@@ -455,6 +460,29 @@ def make_geometry(
     def sphere_misses64(
         c: vec3d, r: wp.float64, u: vec3d, lo: wp.float64, hi: wp.float64, centre: vec3d, reach: wp.float64
     ):
+        # Whether the sphere (c, r) around a face misses the slab lo <= u.x <= hi or the other
+        # body's bounding sphere (centre, reach): then the face cannot bound the overlap.
+        uc = wp.dot(u, c)
+        return uc + r < lo or uc - r > hi or wp.length_sq(c - centre) > (r + reach) * (r + reach)
+
+    @wp.func
+    def support_c(shapes: Shapes, v0: int, v1: int, u: vec3):
+        # The reach of the vertices v0 <= i < v1 (own frame) along u, in the clipping precision.
+        h = wp.dot(u, shapes.vert[v0])
+        for iv in range(v0 + 1, v1):
+            h = wp.max(h, wp.dot(u, shapes.vert[iv]))
+        return h
+
+    @wp.func
+    def all_outside_c(shapes: Shapes, v0: int, v1: int, n: vec3, d: scalar):
+        # Whether every vertex v0 <= i < v1 (own frame) lies beyond the plane n.x = d.
+        for iv in range(v0, v1):
+            if wp.dot(n, shapes.vert[iv]) <= d:
+                return False
+        return True
+
+    @wp.func
+    def sphere_misses_c(c: vec3, r: scalar, u: vec3, lo: scalar, hi: scalar, centre: vec3, reach: scalar):
         # Whether the sphere (c, r) around a face misses the slab lo <= u.x <= hi or the other
         # body's bounding sphere (centre, reach): then the face cannot bound the overlap.
         uc = wp.dot(u, c)
@@ -560,8 +588,6 @@ def make_geometry(
             return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
         rot = wp.quat_to_matrix(q1_inv * q2)
         rot_t = wp.transpose(rot)
-        pos_2 = -(rot_t * pos)  # body 1's centre in body 2's frame
-        tol = wp.float64(cull_margin) * r2
         f10 = shapes.shape_face_start[s1]
         f11 = shapes.shape_face_start[s1 + 1]
         f20 = shapes.shape_face_start[s2]
@@ -570,77 +596,95 @@ def make_geometry(
         v11 = shapes.shape_vert_start[s1 + 1]
         v20 = shapes.shape_vert_start[s2]
         v21 = shapes.shape_vert_start[s2 + 1]
-        eye = wp.identity(n=3, dtype=wp.float64)
+
+        # Culling runs in the clipping precision: it only decides which faces and planes can bound
+        # the overlap (and whether there is one), so it need not be exact, only conservative. Its
+        # slack covers the rounding of numbers of the size of the pair's separation, and a face
+        # kept in vain is only clipped away. (In float64 throughout, the loops over every vertex
+        # and face of the separated candidates cost a third of the pair kernel's throughput.)
+        pos_c = to_scalar3(pos)
+        rot_c = mat33(rot)
+        rot_ct = wp.transpose(rot_c)
+        r1_c = scalar(r1)
+        r2_c = scalar(r2)
+        dist = wp.sqrt(dist2)
+        slack = scalar(cull_margin) * r2_c + scalar(cull_rounding) * (scalar(dist) + r1_c + r2_c)
 
         # The overlap lies in the slab lo <= u.x <= hi across the line of centres u: beyond the
         # reach of body 2's support towards body 1 and body 1's towards body 2. An empty slab
         # separates the bodies; otherwise faces (and their planes) that miss the slab cannot bound
         # the overlap.
-        dist = wp.sqrt(dist2)
-        u = vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
-        lo = -(r1 + r2)
-        hi = r1 + r2
-        if dist > tol:
-            u = pos / dist
-            h_1 = support64(shapes, v10, v11, eye, zero3d, u, -(r1 + r2))
-            h_2 = support64(shapes, v20, v21, eye, zero3d, -(rot_t * u), -(r1 + r2))
-            lo = dist - h_2 - tol
-            hi = h_1 + tol
-            if lo > hi:
+        uc = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+        lo_c = -(r1_c + r2_c)
+        hi_c = r1_c + r2_c
+        if scalar(dist) > slack:
+            uc = wp.normalize(pos_c)
+            h_1 = support_c(shapes, v10, v11, uc)
+            h_2 = support_c(shapes, v20, v21, -(rot_ct * uc))
+            lo_c = wp.dot(uc, pos_c) - h_2 - slack
+            hi_c = h_1 + slack
+            if lo_c > hi_c:
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
 
         # Separating face planes, by bounding spheres first and exactly (all of the other body's
-        # vertices outside) only for planes the other body's centre lies outside of. Meanwhile find
-        # where the line of centres leaves body 1 (tau_1, as a fraction of the way from its centre
-        # to body 2's) and enters body 2 (tau_2): the cones that integrate V start from the middle
-        # of that stretch, inside the overlap whenever the line crosses it, so the cone volumes do
-        # not cancel and V and its centroid keep their precision for shallow overlaps.
-        tau_1 = wp.float64(1.0)
-        tau_2 = wp.float64(0.0)
+        # vertices outside, by more than the slack) only for planes the other body's centre lies
+        # outside of. Meanwhile find where the line of centres leaves body 1 (tau_1, as a
+        # fraction of the way from its centre to body 2's) and enters body 2 (tau_2): the cones
+        # that integrate V start from the middle of that stretch, inside the overlap whenever the
+        # line crosses it, so the cone volumes do not cancel and V and its centroid keep their
+        # precision for shallow overlaps. The tau are only an apex: the clipping precision will do.
+        tau_1c = scalar(1.0)
+        tau_2c = scalar(0.0)
         ids_1 = ids_t()
         num_1 = int(0)
         for f in range(f10, f11):
-            n, d = plane64(shapes, f)
-            sigma = wp.dot(n, pos)
-            if sigma * tau_1 > d:  # d / sigma < tau_1: the line leaves body 1 earlier here
-                tau_1 = d / sigma
-            s = sigma - d
-            if s > r2:
+            plc = shapes.face_plane[f]
+            nc = vec3(plc[0], plc[1], plc[2])
+            dc = plc[3]
+            sigma_c = wp.dot(nc, pos_c)
+            if sigma_c * tau_1c > dc:  # d / sigma < tau_1: the line leaves body 1 earlier here
+                tau_1c = dc / sigma_c
+            sc = sigma_c - dc
+            if sc > r2_c + slack:
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            if s > wp.float64(0.0):
+            if sc > scalar(0.0):
                 # The other body's centre lies outside: is the plane separating?
-                if all_outside64(shapes, v20, v21, rot_t * n, d - sigma):
+                if all_outside_c(shapes, v20, v21, rot_ct * nc, dc - sigma_c + slack):
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            if s <= -r2:
+            if sc <= -(r2_c + slack):
                 continue  # body 2 lies wholly inside this plane: the face cannot reach it
-            sph = shapes.face_sphere[f]
-            c = vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2]))
-            if sphere_misses64(c, wp.float64(sph[3]), u, lo, hi, pos, r2):
+            sph_c = shapes.face_sphere[f]
+            if sphere_misses_c(vec3(sph_c[0], sph_c[1], sph_c[2]), sph_c[3] + slack, uc, lo_c, hi_c, pos_c, r2_c):
                 continue
             ids_1[num_1] = f
             num_1 += 1
         ids_2 = ids_t()
         num_2 = int(0)
+        pos_2c = -(rot_ct * pos_c)  # body 1's centre in body 2's frame
         for g in range(f20, f21):
-            n, d = plane64(shapes, g)
-            sigma = wp.dot(n, pos_2)
-            if sigma * (wp.float64(1.0) - tau_2) > d:  # 1 - d / sigma > tau_2: it enters body 2 later
-                tau_2 = wp.float64(1.0) - d / sigma
-            s = sigma - d
-            if s > r1:
+            plc = shapes.face_plane[g]
+            nc = vec3(plc[0], plc[1], plc[2])
+            dc = plc[3]
+            sigma_c = wp.dot(nc, pos_2c)
+            if sigma_c * (scalar(1.0) - tau_2c) > dc:  # 1 - d / sigma > tau_2: it enters body 2 later
+                tau_2c = scalar(1.0) - dc / sigma_c
+            sc = sigma_c - dc
+            if sc > r1_c + slack:
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            n1 = rot * n
-            if s > wp.float64(0.0):
-                if all_outside64(shapes, v10, v11, n1, d + wp.dot(n1, pos)):
+            n1c = rot_c * nc
+            if sc > scalar(0.0):
+                if all_outside_c(shapes, v10, v11, n1c, dc + wp.dot(n1c, pos_c) + slack):
                     return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            if s <= -r1:
+            if sc <= -(r1_c + slack):
                 continue
-            sph = shapes.face_sphere[g]
-            c = rot * vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2])) + pos
-            if sphere_misses64(c, wp.float64(sph[3]), u, lo, hi, zero3d, r1):
+            sph_c = shapes.face_sphere[g]
+            cc = rot_c * vec3(sph_c[0], sph_c[1], sph_c[2]) + pos_c
+            if sphere_misses_c(cc, sph_c[3] + slack, uc, lo_c, hi_c, zero3, r1_c):
                 continue
             ids_2[num_2] = g
             num_2 += 1
+        tau_1 = wp.float64(tau_1c)
+        tau_2 = wp.float64(tau_2c)
 
         apex = pos * (wp.float64(0.5) * (tau_1 + tau_2))
         if tau_2 > tau_1:
