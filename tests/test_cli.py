@@ -276,6 +276,34 @@ def test_run_in_float64_precisions(tmp_path, capsys, precision):
     assert_user_error(code, err, f"simulation.precision differs: checkpoint '{precision}', scene 'float32'")
 
 
+def test_float32_checkpoint_resumes_with_the_precision_named(tmp_path, capsys):
+    """A float32 checkpoint (every run's before "mixed" became the default) resumed with a scene that
+    gives no precision is refused with the fix (exit 2); with --precision float32 it resumes."""
+    scene = write_scene(tmp_path, replace=[('usd = "tiny.usda"', "usd = false"), ("pictures = [1]", "")])
+    assert "precision" not in scene.read_text()
+    code, _, err = run(["run", scene, "--device", "cpu", "--steps", "150", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["precision"] == "mixed"
+    code, _, err = run(
+        ["run", scene, "--device", "cpu", "--steps", "150", "--out", tmp_path / "f", "-q", "--precision", "float32"],
+        capsys,
+    )
+    assert code == 0, err
+    checkpoint = tmp_path / "f" / "checkpoints" / "step_000000150.npz"
+    resume = ["run", scene, "--device", "cpu", "--steps", "200", "--out", tmp_path / "p", "-q", "--resume", checkpoint]
+    code, _, err = run(resume, capsys)
+    assert_user_error(
+        code,
+        err,
+        "simulation.precision differs: checkpoint 'float32', scene 'mixed'",
+        'add precision = "float32" to the scene\'s [simulation] table',
+        "pass --precision float32",
+    )
+    code, _, err = run([*resume, "--precision", "float32"], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "p" / "summary.json").read_text())["precision"] == "float32"
+
+
 # ---------------------------------------------------------------------- user errors
 
 
