@@ -574,10 +574,14 @@ def test_resume_refuses_another_frame_rate(tmp_path, capsys, earlier_run):
     assert files_of(out_dir) == before
 
 
-def test_old_checkpoint_resumes_with_a_warning(tmp_path, capsys, unbroken):
+def test_old_checkpoint_resumes_with_a_warning(tmp_path, capsys):
     """A checkpoint of the previous format (no physics record, no run record) still resumes, with a
-    warning on stderr and a note in the summary that it covers the resumed part only."""
-    scene, out_dir = unbroken
+    warning on stderr and a note in the summary that it covers the resumed part only. That format
+    held float32 arrays only, so the run it comes from is pinned to float32."""
+    scene = write_scene(tmp_path, replace=[("steps = 400", 'steps = 400\nprecision = "float32"')])
+    out_dir = tmp_path / "unbroken"
+    assert main(["run", str(scene), "--device", "cpu", "--out", str(out_dir), "--quiet"]) == 0
+    capsys.readouterr()
     old = tmp_path / "old.npz"
     with np.load(out_dir / "checkpoints" / "step_000000300.npz") as f:
         data = {k: v for k, v in f.items() if not k.startswith("physics_") and k != "run_json"}
