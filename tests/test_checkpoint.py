@@ -15,8 +15,12 @@ from polydem.default_scene import default_scene
 HOST = DEVICES[0]
 
 
-def test_resume_equals_unbroken_run(device, tmp_path):
+@pytest.mark.parametrize("precision", [None, "float32"], ids=["default", "float32"])
+def test_resume_equals_unbroken_run(device, tmp_path, precision):
+    """In the default precision and in float32 (no longer the default, still offered)."""
     scene = default_scene(count=40, seed=2)
+    if precision is not None:
+        scene.precision = precision
     unbroken = polydem.Simulation(scene, device=device)
     unbroken.step(3000)
     first = polydem.Simulation(scene, device=device)
