@@ -15,8 +15,12 @@ from polydem.default_scene import default_scene
 HOST = DEVICES[0]
 
 
-def test_resume_equals_unbroken_run(device, tmp_path):
+@pytest.mark.parametrize("precision", [None, "float32"], ids=["default", "float32"])
+def test_resume_equals_unbroken_run(device, tmp_path, precision):
+    """In the default precision and in float32 (no longer the default, still offered)."""
     scene = default_scene(count=40, seed=2)
+    if precision is not None:
+        scene.precision = precision
     unbroken = polydem.Simulation(scene, device=device)
     unbroken.step(3000)
     first = polydem.Simulation(scene, device=device)
@@ -52,12 +56,25 @@ def test_bad_checkpoints(device, tmp_path):
 # ---------------------------------------------------------------------- physics record and sound files
 
 
-def stack(friction=0.5, restitution=0.4, k=1.0e8, density=2500.0, size=0.02, gravity=-9.81, plane=True, dt=2e-5):
-    """Five cubes falling onto a floor plane (a plane wall, springs and candidate pairs at once)."""
+def stack(
+    friction=0.5,
+    restitution=0.4,
+    k=1.0e8,
+    density=2500.0,
+    size=0.02,
+    gravity=-9.81,
+    plane=True,
+    dt=2e-5,
+    precision=None,
+):
+    """Five cubes falling onto a floor plane (a plane wall, springs and candidate pairs at once), in
+    ``precision`` (None: the default)."""
     from polydem.scene import Scene
     from polydem.shapes import ConvexShape
 
     scene = Scene(gravity=(0.0, 0.0, gravity), dt=dt, name="stack")
+    if precision is not None:
+        scene.precision = precision
     scene.add_material("stone", density=density, law="hertz", k=k, restitution=restitution, friction=friction)
     scene.add_shape("cube", ConvexShape.box(size, name="cube"))
     if plane:
@@ -67,16 +84,27 @@ def stack(friction=0.5, restitution=0.4, k=1.0e8, density=2500.0, size=0.02, gra
     return scene
 
 
-@pytest.fixture(scope="module")
-def saved(tmp_path_factory):
+def _saved(tmp_path_factory, precision=None):
     """A checkpoint of the stack after 300 steps (with pairs, springs and a run record): its path."""
-    sim = polydem.Simulation(stack(), device=HOST)
+    sim = polydem.Simulation(stack(precision=precision), device=HOST)
     sim.step(300)
     path = tmp_path_factory.mktemp("ck") / "stack.npz"
     save_checkpoint(sim, path, run={"note": "the run so far"})
     with np.load(path) as data:
         assert len(data["pair_key"]) >= 3 and np.any(data["pair_xi"] != 0.0)
     return path
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """The stack's checkpoint in the default precision."""
+    return _saved(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def saved_float32(tmp_path_factory):
+    """The stack's checkpoint in float32 (its body state is float32)."""
+    return _saved(tmp_path_factory, "float32")
 
 
 def edited(saved, tmp_path, **changes):
@@ -119,7 +147,12 @@ EDITS = {
     "NaN dissipated": ({"body_dissipated": _set("body_dissipated", 3, np.nan)}, ["body_dissipated[3] is nan"]),
     "NaN wall spring": ({"plane_xi": _set("plane_xi", (0, 0, 1), np.nan)}, ["plane_xi[0, 0, 1] is nan"]),
     "NaN turning volume": ({"pair_turn": _set("pair_turn", 0, np.nan)}, ["pair_turn[0] is nan"]),
+    # float32: a float64 value beyond the float32 body state; mixed: beyond the float32 contact history.
     "float64 overflow": ({"body_w": lambda d: d["body_w"].astype(np.float64) + 1e300}, ["body_w[0, 0] is 1e+300"]),
+    "float64 overflow of the history": (
+        {"pair_turn": lambda d: d["pair_turn"].astype(np.float64) + 1e300},
+        ["pair_turn[0] is 1e+300"],
+    ),
     "negative steps": ({"steps_done": np.array(-5)}, ["steps_done = -5 is negative"]),
     "fractional steps": ({"steps_done": np.array(300.5)}, ["steps_done = 300.5 is not a whole number"]),
     "step count mismatch": ({"step_count": np.array([7], np.int32)}, ["step_count = [7] does not match"]),
@@ -147,12 +180,16 @@ EDITS = {
 }
 
 
+FLOAT32_EDITS = ("float64 overflow",)
+"""Edits of the float32 checkpoint: in the default precision (mixed) the body state is float64."""
+
+
 @pytest.mark.parametrize("case", EDITS, ids=list(EDITS))
-def test_edited_checkpoints_are_refused(saved, tmp_path, case):
+def test_edited_checkpoints_are_refused(saved, saved_float32, tmp_path, case):
     from polydem.checkpoint import CheckpointError, read_checkpoint
 
     changes, words = EDITS[case]
-    path = edited(saved, tmp_path, **changes)
+    path = edited(saved_float32 if case in FLOAT32_EDITS else saved, tmp_path, **changes)
     with pytest.raises(CheckpointError) as info:
         read_checkpoint(path)
     message = str(info.value)
@@ -286,13 +323,14 @@ def test_checkpoint_of_the_format_before_the_state_redesign_resumes(tmp_path):
     path = Path(__file__).resolve().parent / "data" / "stack_base_format.npz"
     old = read_checkpoint(path)
     assert old.run == {"note": "written by polydem before issue 10"}
-    resumed = polydem.Simulation(stack(), device=HOST)
+    # The file holds a float32 run: its scene is pinned to float32 (the default became "mixed").
+    resumed = polydem.Simulation(stack(precision="float32"), device=HOST)
     load_checkpoint(resumed, path)
     assert resumed.steps_done == 300 and len(resumed.current_contacts.history_numpy()["pair_key"]) >= 3
     for name in ("body_q", "body_v", "body_w", "body_dissipated"):
         np.testing.assert_array_equal(getattr(resumed.current_state, name).numpy(), old.arrays[name], err_msg=name)
     save_checkpoint(resumed, tmp_path / "today.npz")
-    again = polydem.Simulation(stack(), device=HOST)
+    again = polydem.Simulation(stack(precision="float32"), device=HOST)
     load_checkpoint(again, tmp_path / "today.npz")
     resumed.step(300)
     again.step(300)
@@ -353,3 +391,31 @@ def test_checkpoint_of_another_precision_is_refused(tmp_path):
             CheckpointError, match=f"simulation.precision differs: checkpoint 'float64', scene '{other}'"
         ):
             load_checkpoint(polydem.Simulation(scene, device=HOST), tmp_path / "f64.npz")
+
+
+def test_float32_checkpoint_resumed_in_the_default_precision_says_how(tmp_path):
+    """A checkpoint written in float32 (as every run was before "mixed" became the default) and
+    resumed with a scene that gives no precision is refused, and the message says how to resume it."""
+    from polydem.checkpoint import CheckpointError
+    from polydem.scene import Scene
+
+    assert Scene().precision == "mixed"
+    scene = stack()
+    assert scene.precision == "mixed"
+    scene.precision = "float32"
+    sim = polydem.Simulation(scene, device=HOST)
+    sim.step(10)
+    save_checkpoint(sim, tmp_path / "f32.npz")
+    with pytest.raises(CheckpointError) as err:
+        load_checkpoint(polydem.Simulation(stack(), device=HOST), tmp_path / "f32.npz")
+    message = str(err.value)
+    for words in (
+        "simulation.precision differs: checkpoint 'float32', scene 'mixed'",
+        'add precision = "float32" to the scene\'s [simulation] table',
+        'Scene(precision="float32")',
+        "--precision float32",
+    ):
+        assert words in message, message
+    resumed = polydem.Simulation(scene, device=HOST)
+    load_checkpoint(resumed, tmp_path / "f32.npz")
+    assert resumed.steps_done == 10

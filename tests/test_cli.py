@@ -276,6 +276,34 @@ def test_run_in_float64_precisions(tmp_path, capsys, precision):
     assert_user_error(code, err, f"simulation.precision differs: checkpoint '{precision}', scene 'float32'")
 
 
+def test_float32_checkpoint_resumes_with_the_precision_named(tmp_path, capsys):
+    """A float32 checkpoint (every run's before "mixed" became the default) resumed with a scene that
+    gives no precision is refused with the fix (exit 2); with --precision float32 it resumes."""
+    scene = write_scene(tmp_path, replace=[('usd = "tiny.usda"', "usd = false"), ("pictures = [1]", "")])
+    assert "precision" not in scene.read_text()
+    code, _, err = run(["run", scene, "--device", "cpu", "--steps", "150", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["precision"] == "mixed"
+    code, _, err = run(
+        ["run", scene, "--device", "cpu", "--steps", "150", "--out", tmp_path / "f", "-q", "--precision", "float32"],
+        capsys,
+    )
+    assert code == 0, err
+    checkpoint = tmp_path / "f" / "checkpoints" / "step_000000150.npz"
+    resume = ["run", scene, "--device", "cpu", "--steps", "200", "--out", tmp_path / "p", "-q", "--resume", checkpoint]
+    code, _, err = run(resume, capsys)
+    assert_user_error(
+        code,
+        err,
+        "simulation.precision differs: checkpoint 'float32', scene 'mixed'",
+        'add precision = "float32" to the scene\'s [simulation] table',
+        "pass --precision float32",
+    )
+    code, _, err = run([*resume, "--precision", "float32"], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "p" / "summary.json").read_text())["precision"] == "float32"
+
+
 # ---------------------------------------------------------------------- user errors
 
 
@@ -546,10 +574,14 @@ def test_resume_refuses_another_frame_rate(tmp_path, capsys, earlier_run):
     assert files_of(out_dir) == before
 
 
-def test_old_checkpoint_resumes_with_a_warning(tmp_path, capsys, unbroken):
+def test_old_checkpoint_resumes_with_a_warning(tmp_path, capsys):
     """A checkpoint of the previous format (no physics record, no run record) still resumes, with a
-    warning on stderr and a note in the summary that it covers the resumed part only."""
-    scene, out_dir = unbroken
+    warning on stderr and a note in the summary that it covers the resumed part only. That format
+    held float32 arrays only, so the run it comes from is pinned to float32."""
+    scene = write_scene(tmp_path, replace=[("steps = 400", 'steps = 400\nprecision = "float32"')])
+    out_dir = tmp_path / "unbroken"
+    assert main(["run", str(scene), "--device", "cpu", "--out", str(out_dir), "--quiet"]) == 0
+    capsys.readouterr()
     old = tmp_path / "old.npz"
     with np.load(out_dir / "checkpoints" / "step_000000300.npz") as f:
         data = {k: v for k, v in f.items() if not k.startswith("physics_") and k != "run_json"}

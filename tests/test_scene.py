@@ -810,7 +810,7 @@ def test_scene_files_with_emitters_and_output():
         assert np.sum(scene.body_kind == KIND_FREE) == count
         assert len(scene.emitters) == 1 and scene.emitters[0]["count"] == count
         assert scene.output.summary == "summary.json" and scene.output.usd.endswith(".usd")
-        assert scene.precision == "float32"
+        assert scene.precision == "mixed"
         # every free body sits inside the box's cavity, above the floor at z = 0
         verts_z = np.array([scene.body_vertices(i)[:, 2].min() for i in np.flatnonzero(scene.body_kind == 0)[:200]])
         assert verts_z.min() > 0.0
@@ -1180,7 +1180,7 @@ def test_pivot_bodies():
 
 def test_device_and_precision():
     assert Scene(device="cuda:1").device == "cuda:1" and Scene().device is None
-    assert Scene().precision == "float32"
+    assert Scene().precision == "mixed"
     for precision in ("float32", "mixed", "float64"):
         assert Scene(precision=precision).precision == precision
     valid = r"unknown precision 'float16'.*Valid precisions: float32, mixed, float64"
@@ -1199,10 +1199,12 @@ def test_device_and_precision():
         scene.validate()
 
 
-@pytest.mark.parametrize("precision", ["mixed", "float64"])
+@pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
 def test_toml_precision(tmp_path, precision):
     """Before: precision = "float64" in a scene file was refused ("float32 only"); now it and "mixed"
-    load, and write back."""
+    load, and write back; a file that gives no precision is "mixed", and "float32" stays a choice."""
+    assert "precision" not in BASE_TOML
+    assert Scene.from_toml(write(tmp_path, BASE_TOML)).precision == "mixed"
     scene = Scene.from_toml(
         write(tmp_path, BASE_TOML.replace("steps = 100", f'steps = 100\nprecision = "{precision}"'))
     )

@@ -230,6 +230,12 @@ def physics_differences(stored, stored_arrays, desc, arrays) -> list[str]:
             out.append(f"{key} differ: checkpoint {a}, scene {b}")
         elif key.endswith(".faces"):
             out.append(f"{key} differ: checkpoint {len(old)} faces, scene {len(value)}")
+        elif key == "simulation.precision" and isinstance(old, str):
+            # Checkpoints of scenes that gave no precision were float32 before "mixed" became the default.
+            out.append(
+                f'{key} differs: checkpoint {old!r}, scene {value!r} (to resume in {old}, add precision = "{old}" '
+                f'to the scene\'s [simulation] table, or Scene(precision="{old}"), or pass --precision {old})'
+            )
         else:
             a, b = _pair(old, value)
             out.append(f"{key} differs: checkpoint {a}, scene {b}")

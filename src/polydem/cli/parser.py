@@ -216,9 +216,10 @@ def _add_run(sub, fmt) -> None:
         "--precision",
         choices=("float32", "mixed", "float64"),  # polydem.scene.PRECISIONS (no numpy here)
         default=None,
-        help="floating-point precision of the simulation (overrides the scene's): float32 everywhere; mixed, "
-        "float64 positions, velocities and force sums with float32 contact geometry local to each contact; "
-        "float64 everywhere. Default: the scene's (float32)",
+        help="floating-point precision of the simulation (overrides the scene's): mixed, float64 positions, "
+        "velocities and force sums with float32 contact geometry local to each contact; float32 everywhere (less "
+        "memory, a little faster, coarse far from the origin); float64 everywhere. Default: the scene's (mixed "
+        "unless the scene gives one)",
     )
     run.add_argument(
         "--resume",

@@ -33,9 +33,10 @@ Scene files (TOML; examples in ``scenes/``). Every table and key is checked; an 
 did-you-mean and the list of valid keys, and every error names the file and the key::
 
     [simulation]     name, description, steps | duration, dt (seconds or "auto"), gravity,
-                     device ("cpu", "cuda", "cuda:N"; optional), precision ("float32",
-                     the default; "mixed": float64 positions, velocities and force sums, float32
-                     contact geometry local to each contact; "float64": float64 throughout)
+                     device ("cpu", "cuda", "cuda:N"; optional), precision ("mixed", the
+                     default: float64 positions, velocities and force sums, float32 contact
+                     geometry local to each contact; "float32": float32 throughout, leaner;
+                     "float64": float64 throughout)
     [materials.NAME] density, law, k, restitution, friction (+ m, tangential_stiffness)
     [shapes.NAME]    type = box | tetrahedron | ... | mesh | points, and its parameters
     [[bodies]]       shape, material, position, orientation | rotation, velocity, angular_velocity,

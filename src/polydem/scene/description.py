@@ -33,8 +33,8 @@ from polydem.shapes import ConvexShape
 
 PRECISIONS = ("float32", "mixed", "float64")
 """Values of ``[simulation] precision`` (:mod:`polydem.kernels.precision`): everything in float32;
-"mixed", float64 positions, velocities and force sums with float32 contact geometry in a frame local
-to each contact; everything in float64."""
+"mixed" (the default), float64 positions, velocities and force sums with float32 contact geometry in
+a frame local to each contact; everything in float64."""
 
 
 class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMethods, OverlapMethods):
@@ -57,9 +57,11 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         file: scene file the scene came from (used in error messages), or None.
         device: Warp device to run on (``"cpu"``, ``"cuda"``, ``"cuda:N"``), or None for the default;
             a command-line ``--device`` overrides it.
-        precision: ``"float32"`` (the default), ``"mixed"`` (float64 positions, velocities and
-            force sums; float32 contact geometry in a frame local to each contact, so a grain far
-            from the origin moves as one at the origin) or ``"float64"`` (everything in float64).
+        precision: ``"mixed"`` (the default: float64 positions, velocities and force sums; float32
+            contact geometry in a frame local to each contact, so a grain far from the origin moves
+            as one at the origin), ``"float32"`` (everything in float32: less memory and a little
+            faster, but positions resolve only the float32 spacing of their coordinates) or
+            ``"float64"`` (everything in float64).
         output: what a run writes (:class:`Output`); default ``Output()`` (a summary only).
 
     Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`),
@@ -78,7 +80,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         description: str = "",
         file=None,
         device: str | None = None,
-        precision: str = "float32",
+        precision: str = "mixed",
         output: Output | None = None,
     ):
         self.file = file

@@ -126,7 +126,7 @@ def _read_simulation(cls, data, file) -> Scene:
         description=sim.get("description", ""),
         file=file,
         device=sim.get("device"),
-        precision=sim.get("precision", "float32"),
+        precision=sim.get("precision", "mixed"),
     )
 
 
