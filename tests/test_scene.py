@@ -782,7 +782,8 @@ def test_scene_files_build_a_model_within_the_time_step_limit(path):
     assert model.num_bodies == scene.num_bodies
     assert model.dt <= model.dt_limit
     if scene.dt == "auto":
-        assert 5e-6 <= model.dt <= 1e-4, f"auto time step {model.dt:.3g} s is unreasonable"
+        # cube_drop's stiff steel cube resting on a face needs the smallest: 3.45e-6 s.
+        assert 2e-6 <= model.dt <= 1e-4, f"auto time step {model.dt:.3g} s is unreasonable"
     free = scene.body_kind == KIND_FREE
     assert_spheres_apart(scene, np.flatnonzero(free))
 

@@ -13,8 +13,9 @@ speed-up over each peer (only between runs on the same kind of device: CPU with 
 and the overlaps of every code's final state measured with one yardstick: the exact float64
 overlap volume (``polydem.overlap``) of every cube pair whose bounding spheres meet and of every
 cube with the walls, as a fraction of a cube's volume (the largest, and the number of pairs with an
-overlap). Codes whose contact law is not polydem's (Yade: force proportional to V; Newton: point
-contacts) are compared on what they are, not on equal stiffness.
+overlap), and the largest penetration depth as a fraction of the edge. Codes whose contact law is
+not polydem's (Yade: force proportional to V; Newton: point contacts) are compared on what they
+are, not on equal stiffness.
 """
 
 import argparse
@@ -130,7 +131,8 @@ def quat_from_cube_vertices(world, edge):
 
 
 def measure_overlaps(positions, quats, scene):
-    """Largest overlap volume (x cube volume) and number of overlapping pairs, cube-cube and cube-wall."""
+    """Largest overlap volume (x cube volume), largest penetration depth (x edge) and number of
+    overlapping pairs, cube-cube and cube-wall."""
     import warp as wp
     from scipy.spatial import cKDTree
 
@@ -147,9 +149,11 @@ def measure_overlaps(positions, quats, scene):
     poses = np.hstack([pos, q])
     pairs = np.array(sorted(cKDTree(pos).query_pairs(2.0 * r)), dtype=np.int64).reshape(-1, 2)
     vols = []
+    depths = []
     if len(pairs):
         res = polydem.overlap(cube, poses[pairs[:, 0]], cube, poses[pairs[:, 1]], device="cpu", precision="float64")
         vols.append(res.volume)
+        depths.append(res.depth)
     for w in scene["walls"]:
         half = np.asarray(w["half_extents_body"])
         box = polydem.ConvexShape.box(*(2.0 * half))
@@ -161,9 +165,14 @@ def measure_overlaps(positions, quats, scene):
             wall_pose = np.concatenate([centre, w["orientation_xyzw"]])
             res = polydem.overlap(cube, poses[near], box, wall_pose, device="cpu", precision="float64")
             vols.append(res.volume)
+            depths.append(res.depth)
     v = np.concatenate(vols) if vols else np.zeros(0)
+    d = np.concatenate(depths) if depths else np.zeros(0)
     return {
         "max_overlap_volume_fraction": float(v.max() / a**3) if len(v) else 0.0,
+        # The penetration depth (shortest separating translation), what a user sees and what
+        # Newton reports natively, beside the volume, which is polydem's measure.
+        "max_depth_fraction_of_edge": float(d.max() / a) if len(d) else 0.0,
         "overlapping_pairs": int((v > 0).sum()),
         "mean_overlap_volume_fraction": float(v[v > 0].mean() / a**3) if (v > 0).any() else 0.0,
     }
@@ -271,7 +280,7 @@ def main():
         print("\npours (same scene and protocol; see pour_scene.py):")
         print(
             f"{'code':<9}{'device':<14}{'thr':>4}{'N':>7}{'dt':>9}{'ms/step':>10}{'ns/body-step':>13}{'speed-up':>9}"
-            f"{'sim s/s':>9}{'sim-time x':>11}{'max overlap':>12}{'overlapping':>12}"
+            f"{'sim s/s':>9}{'sim-time x':>11}{'max overlap':>12}{'max depth':>10}{'overlapping':>12}"
         )
         for r in out["pours"]:
             fo = r.get("final_overlaps", {})
@@ -283,6 +292,7 @@ def main():
                 f"{format(r['simulated_s_per_wall_s'] or 0.0, '.3g'):>9}"
                 f"{(format(sim_x, '.2g') + 'x') if sim_x else '-':>11}"
                 f"{(format(100 * fo['max_overlap_volume_fraction'], '.2f') + '%') if fo else '-':>12}"
+                f"{(format(100 * fo['max_depth_fraction_of_edge'], '.1f') + '%') if fo else '-':>10}"
                 f"{fo.get('overlapping_pairs', '-'):>12}"
             )
     path = args.out or os.path.join(args.dir, "compare.json")

@@ -69,6 +69,31 @@ def reference_stiffness(law, k, exponent, volume):
         return dw * area / depth
 
 
+def resting_stiffness(law, k, exponent, volume, weight):
+    """Tangent normal stiffness [N/m] of a face contact of area V^(2/3) carrying ``weight`` [N]: a
+    body resting on a face under its own weight. NaN for the linear law (its force k A does not
+    depend on the depth: no resting depth).
+
+    With W'(V) the law and V = A d, the force W'(A d) A equals the weight at the resting depth d;
+    hertz (W' = k sqrt(V)): d = (F / (k A^1.5))^2 and dF/dd = F / (2 d); power (W' = k V^(m-1)):
+    A d = (F / (k A))^(1/(m-1)) and dF/dd = (m - 1) F / d. Far stiffer than the reference overlap's
+    secant stiffness when the weight is small against k: the hertz flat face is infinitely stiff at
+    zero depth.
+    """
+    volume = np.float64(volume)
+    weight = np.float64(weight)
+    k = np.asarray(k, dtype=np.float64)
+    with np.errstate(all="ignore"):
+        area = volume ** (2.0 / 3.0)
+        if law == "hertz":
+            depth = (weight / (k * area**1.5)) ** 2
+            return weight / (2.0 * depth)
+        if law == "power" and exponent > 1.0:
+            depth = (weight / (k * area)) ** (1.0 / (np.float64(exponent) - 1.0)) / area
+            return (np.float64(exponent) - 1.0) * weight / depth
+        return np.full(np.shape(k), np.nan)
+
+
 @dataclass(frozen=True)
 class TimeStep:
     """The time step of a run (see :meth:`Scene.time_step`).
@@ -76,7 +101,11 @@ class TimeStep:
     Attributes:
         dt: the step a run uses [s]: the scene's dt, or ``recommended`` for dt = "auto".
         recommended: 1/50 of the period of the stiffest contact of the lightest free body at the
-            reference overlap (0.1% of its size) [s].
+            reference overlap (0.1% of its size), or less where that body resting on a face under
+            its own weight needs less (``resting``) [s].
+        resting: the step that resolves the lightest free body resting on a face under its own
+            weight, min(1, 2 e) / omega with omega the frequency of that contact's tangent
+            stiffness and e the smallest restitution [s]; inf without gravity or with the linear law.
         limit: 1/8 of that period, the largest accurate step [s].
         period: that period [s].
         lightest: index of the body whose mass sets the period.
@@ -90,6 +119,7 @@ class TimeStep:
     period: float
     lightest: int
     tangential_stiffness: np.ndarray
+    resting: float = math.inf
 
 
 def _ln(x) -> float:
@@ -270,8 +300,9 @@ class CheckMethods:
         The period is ``2 pi sqrt(m / k_n)`` of the lightest free body (mass m) against the stiffest
         pair: ``k_n`` is the secant stiffness of a face contact of area ``V^(2/3)`` pressed to 0.1%
         of the size ``V^(1/3)`` (:func:`reference_stiffness`), or a larger tangential stiffness.
-        ``dt = "auto"`` takes 1/50 of it; a given dt must not exceed 1/8 of it (SceneError, key
-        ``simulation.dt``).
+        ``dt = "auto"`` takes 1/50 of it, or less where that body resting on a face under its own
+        weight needs less (:func:`resting_stiffness`, ``TimeStep.resting``); a given dt must not
+        exceed 1/8 of the period (SceneError, key ``simulation.dt``).
         """
         if self.num_bodies == 0:
             raise self.error("the scene has no bodies; add at least one with [[bodies]] or Scene.add_body()", "bodies")
@@ -300,6 +331,19 @@ class CheckMethods:
             period = float(2.0 * np.pi * np.sqrt(mass[light] / stiffest))
         recommended = period / STEPS_PER_CONTACT_PERIOD
         limit = period * MAX_DT_FRACTION
+        # A body resting flat under its own weight sits far shallower than the reference overlap,
+        # where the hertz and power laws are far stiffer: with a step above about 2 / omega there
+        # (symplectic Euler's limit, and the unloading branch is 1/e stiffer in frequency) the body
+        # never comes to rest but hops by nanometres, in contact a fraction of the time.
+        resting = math.inf
+        weight = float(mass[light]) * float(np.linalg.norm(np.asarray(self.gravity, dtype=np.float64)))
+        if weight > 0.0:
+            with np.errstate(all="ignore"):
+                k_rest = float(np.nanmax(resting_stiffness(law, k, m, v_ref, weight), initial=np.nan))
+                e_min = max(float(np.min(np.asarray(table["restitution"], dtype=np.float64))), 0.1)
+                if math.isfinite(k_rest) and k_rest > 0.0:
+                    resting = min(1.0, 2.0 * e_min) / math.sqrt(k_rest / float(mass[light]))
+        recommended = min(recommended, resting)
         if not (math.isfinite(period) and period > 0.0):
             raise self.error(
                 f"the contact period 2 pi sqrt(m / k) of body {light} (mass {mass[light]:.3g} kg, stiffest contact "
@@ -318,7 +362,13 @@ class CheckMethods:
                     "simulation.dt",
                 )
         return TimeStep(
-            dt=dt, recommended=recommended, limit=limit, period=period, lightest=light, tangential_stiffness=kt
+            dt=dt,
+            recommended=recommended,
+            limit=limit,
+            period=period,
+            lightest=light,
+            tangential_stiffness=kt,
+            resting=resting,
         )
 
     def check_float32(self, a):
