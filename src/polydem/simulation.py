@@ -99,7 +99,7 @@ def make_check_state_kernel(scalar):
 
 @functools.cache
 def make_settle_measures_kernel(scalar):
-    """Per free body, in float64: kinetic and gravitational energy, and the speed of its fastest point."""
+    """Per free body, in float64: kinetic and gravitational energy; the largest speed of a fastest point."""
     vec3 = wp.types.vector(3, scalar)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -117,14 +117,14 @@ def make_settle_measures_kernel(scalar):
         # Out
         body_kinetic: wp.array(dtype=wp.float64),
         body_gravity: wp.array(dtype=wp.float64),
-        body_speed: wp.array(dtype=wp.float64),
+        largest_speed: wp.array(dtype=wp.float64),
     ):
-        """Zero for fixed, kinematic and infinite-mass bodies (driven from outside the pile)."""
+        """Zero for fixed, kinematic and infinite-mass bodies (driven from outside the pile); the
+        speeds go into one running maximum (atomic: a maximum does not depend on the order)."""
         i = wp.tid()
         inv_mass = body_inv_mass[i]
         body_kinetic[i] = wp.float64(0.0)
         body_gravity[i] = wp.float64(0.0)
-        body_speed[i] = wp.float64(0.0)
         if body_flags[i] == 0 and inv_mass > scalar(0.0):
             v = body_v[i]
             w = body_w[i]
@@ -136,7 +136,8 @@ def make_settle_measures_kernel(scalar):
             mass = wp.float64(1.0) / wp.float64(inv_mass)
             h = wp.float64(x[0]) * gravity[0] + wp.float64(x[1]) * gravity[1] + wp.float64(x[2]) * gravity[2]
             body_gravity[i] = -mass * h
-            body_speed[i] = wp.float64(wp.length(v)) + wp.float64(wp.length(w)) * wp.float64(body_radius[i])
+            speed = wp.float64(wp.length(v)) + wp.float64(wp.length(w)) * wp.float64(body_radius[i])
+            wp.atomic_max(largest_speed, 0, speed)
 
     return settle_measures_kernel
 
@@ -673,13 +674,20 @@ class Simulation:
 
         The speed is that of a body's fastest point, ``|v| + |w| r`` (r its bounding radius), at this
         step (not the peak since the last check: a resumed run then measures as the unbroken one).
-        No contact pass: one kernel over the bodies.
+        No contact pass: one kernel over the bodies and two sums on the device (deterministic, so a
+        resumed run decides as the unbroken one); three numbers come back to the host.
         """
         m = self.model
         n = self.num_bodies
+        dev = self.device
         if getattr(self, "_settle_arrays", None) is None:
-            self._settle_arrays = tuple(wp.empty(n, dtype=wp.float64, device=self.device) for _ in range(3))
-        kin, grav, speed = self._settle_arrays
+            self._settle_arrays = (
+                wp.empty(n, dtype=wp.float64, device=dev),
+                wp.empty(n, dtype=wp.float64, device=dev),
+                wp.zeros(3, dtype=wp.float64, device=dev),
+            )
+        kin, grav, out = self._settle_arrays
+        out.zero_()
         st = self.current_state
         wp.launch(
             make_settle_measures_kernel(m.scalar),
@@ -694,14 +702,13 @@ class Simulation:
                 st.body_v,
                 st.body_w,
             ],
-            outputs=[kin, grav, speed],
-            device=self.device,
+            outputs=[kin, grav, out[2:3]],
+            device=dev,
         )
-        return (
-            float(np.sum(kin.numpy(), dtype=np.float64)),
-            float(np.sum(grav.numpy(), dtype=np.float64)),
-            float(np.max(speed.numpy())) if n else 0.0,
-        )
+        wp.utils.array_sum(kin, out=out[0:1])
+        wp.utils.array_sum(grav, out=out[1:2])
+        kinetic, gravity, speed = out.numpy().tolist()
+        return kinetic, gravity, speed
 
     def settle_check(self, criterion=None, check=None):
         """A :class:`~polydem.settle.SettleCheck` of ``criterion`` (default :class:`SettleCriterion()`)
