@@ -325,6 +325,7 @@ def cmd_run(args) -> int:
         dev = device(scene.device, file=scene.file, key="simulation.device")
     out_dir = _output_folder(args, scene)
     check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
+    criterion = _settle_criterion(args, scene)
     signals.check()
 
     from polydem.simulation import Simulation
@@ -332,7 +333,6 @@ def cmd_run(args) -> int:
     sim = Simulation(scene, device=dev)
     signals.check()
     target, source = _target_steps(args, scene, sim.dt)
-    criterion = _settle_criterion(args, scene, sim)
     if resume is not None:
         _resume(sim, scene, resume, checkpoint, args)
         if sim.steps_done >= target:
@@ -367,7 +367,7 @@ _SETTLE_OPTIONS = (
 )
 
 
-def _settle_criterion(args, scene, sim):
+def _settle_criterion(args, scene):
     """The SettleCriterion of a run until settled (``--until-settled`` or the scene's), None for a run
     of fixed length; a setting that cannot work is a CliError naming the option."""
     from dataclasses import replace
@@ -396,10 +396,10 @@ def _settle_criterion(args, scene, sim):
             "--settle-kinetic off leaves nothing to check: give --settle-speed V too (the largest speed in m/s)",
             key="--settle-kinetic",
         ) from None
-    if not np.any(sim.model.body_flags_np == 0):
+    if not np.any(np.asarray(scene.body_kind) == 0):
         raise CliError("the scene has no free bodies: there is nothing to settle; leave --until-settled out", key=None)
     try:
-        criterion.check_gravity(sim.model.gravity)
+        criterion.check_gravity(scene.gravity)
     except ValueError:
         raise CliError(
             "the scene has no gravity, so no gravitational energy is released to compare the kinetic energy with: "
