@@ -133,3 +133,15 @@ def test_scene_without_free_bodies():
     s.add_body("cube", "m", position=(0.0, 0.0, 0.0), kind="fixed")
     with pytest.raises(ValueError, match="no free bodies"):
         Simulation(s, device="cpu").run_until_settled(0.1)
+
+
+def test_every_precision_settles_at_the_same_check(device):
+    """The measuring kernel in each precision's scalar: the three runs stop at the same check."""
+    steps = set()
+    for precision in ("float32", "mixed", "float64"):
+        scene = drop_scene()
+        scene.precision = precision
+        result = Simulation(scene, device=device).run_until_settled(1.0)
+        assert result.settled and result.kinetic_fraction < FRACTION
+        steps.add(result.steps)
+    assert len(steps) == 1, steps
