@@ -1524,3 +1524,186 @@ def test_signal_during_the_run_keeps_every_output(tmp_path, sig, code, word):
     assert len(frames) == summary["outputs"]["usd_frames"] == expected_frames(summary["steps"], summary["dt"], 500.0)
     with np.load(out_dir / "checkpoints" / "interrupted.npz") as data:
         assert int(data["steps_done"]) == summary["steps"]
+
+
+# ---------------------------------------------------------------------- run until settled
+
+# Four soft 0.1 m cubes dropped from gaps of 3 to 12 cm onto a plane: settled by about 0.25 s
+# (2000 steps of the automatic 1.3e-4 s).
+DROP = """\
+[simulation]
+name = "drop"
+dt = "auto"
+duration = 1.0
+
+[materials.m]
+density = 1000.0
+law = "hertz"
+k = 1.0e7
+restitution = 0.2
+friction = 0.5
+
+[shapes.cube]
+type = "box"
+size = 0.1
+
+[[bodies]]
+shape = "cube"
+material = "m"
+position = [0.0, 0.0, 0.08]
+
+[[bodies]]
+shape = "cube"
+material = "m"
+position = [0.15, 0.0, 0.11]
+
+[[bodies]]
+shape = "cube"
+material = "m"
+position = [0.3, 0.0, 0.14]
+
+[[bodies]]
+shape = "cube"
+material = "m"
+position = [0.45, 0.0, 0.17]
+
+[[walls]]
+type = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "m"
+
+[output]
+fps = 50
+"""
+
+
+def summary_of(folder):
+    return json.loads((Path(folder) / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def settled_run(tmp_path_factory):
+    """``polydem run --until-settled`` of the drop scene: (scene file, output folder, stdout)."""
+    folder = tmp_path_factory.mktemp("settle")
+    scene = write_scene(folder, DROP, "drop.toml")
+    code = main(["run", str(scene), "--device", "cpu", "--until-settled", "--out", str(folder / "out"), "--quiet"])
+    assert code == 0
+    return scene, folder / "out"
+
+
+def test_run_until_settled_stops_and_reports(tmp_path, capsys):
+    """Before: polydem run had no --until-settled (exit 2, unrecognised argument) and always ran the
+    whole duration; now it stops at the check where the pile has settled, well before the maximum."""
+    scene = write_scene(tmp_path, DROP, "drop.toml")
+    code, out, err = run(["run", scene, "--device", "cpu", "--until-settled", "--out", tmp_path / "out"], capsys)
+    assert code == 0, err
+    s = summary_of(tmp_path / "out")
+    st = s["settle"]
+    assert st["settled"] is True
+    assert st["criterion"] == {"kinetic_fraction": 1e-4, "max_speed": None, "hold": 0.02}
+    assert st["steps"] == s["steps"] and st["steps"] % 64 == 0 and st["steps"] < s["target_steps"]
+    assert st["time_s"] == pytest.approx(s["simulated_time"]) and 0.15 < st["time_s"] < 0.5
+    assert 0.0 < st["wall_s"] <= s["wall_time"] and st["max_time_s"] == pytest.approx(1.0, abs=s["dt"])
+    assert st["time_s"] - st["held_from_s"] >= 0.02 - 1e-9
+    # The kinetic fraction agrees with the final energies of the summary (another kernel).
+    e = s["energy"]
+    released = e["initial"]["gravity"] - e["final"]["gravity"]
+    assert st["kinetic_fraction"] == pytest.approx(e["final"]["kinetic"] / released, rel=1e-5)
+    assert st["kinetic_fraction"] < 1e-4
+    assert f"settled at t = {st['time_s']:.6g} s ({st['steps']} steps, " in out
+    assert "until settled (kinetic energy < 0.0001 of the gravitational energy released, held for 0.02 s)" in out
+    assert "kinetic/released" in err  # the progress lines
+    assert (tmp_path / "out" / "checkpoints" / "final.npz").is_file()
+
+
+def test_run_until_settled_within_too_short_a_maximum(tmp_path, capsys):
+    scene = write_scene(tmp_path, DROP, "drop.toml")
+    args = ["run", scene, "--device", "cpu", "--until-settled", "--duration", "0.05", "--out", tmp_path / "out", "-q"]
+    code, out, _ = run(args, capsys)
+    assert code == 0
+    st = summary_of(tmp_path / "out")["settle"]
+    assert st["settled"] is False and st["time_s"] is None and st["steps"] is None
+    assert st["kinetic_fraction"] > 1e-4
+    assert "not settled within the maximum duration (t = 0.05" in out
+
+
+def test_resumed_run_until_settled_settles_as_the_unbroken_one(tmp_path, capsys, settled_run):
+    scene, unbroken_out = settled_run
+    first = tmp_path / "first"
+    args = ["run", scene, "--device", "cpu", "--until-settled", "--settle-hold", "0.02", "-q"]
+    code, _, _ = run([*args, "--duration", "0.2", "--out", first], capsys)
+    assert code == 0 and summary_of(first)["settle"]["settled"] is False
+    second = tmp_path / "second"
+    code, out, _ = run([*args, "--resume", first / "checkpoints" / "final.npz", "--out", second], capsys)
+    assert code == 0
+    resumed, unbroken = summary_of(second)["settle"], summary_of(unbroken_out)["settle"]
+    assert resumed["settled"] and resumed["steps"] == unbroken["steps"]
+    assert resumed["held_from_s"] == unbroken["held_from_s"]
+    with np.load(second / "checkpoints" / "final.npz") as a, np.load(unbroken_out / "checkpoints" / "final.npz") as b:
+        for key in STATE_KEYS:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    # A checkpoint of a settled run has nothing to continue until settled.
+    code, _, err = run([*args, "--resume", second / "checkpoints" / "final.npz", "--out", tmp_path / "x"], capsys)
+    assert_user_error(code, err, "--resume", "settled at step", "leave out --until-settled")
+
+
+def test_scene_until_settled_and_options_override_it(tmp_path, capsys):
+    scene = write_scene(
+        tmp_path, DROP, "drop.toml", replace=[("duration = 1.0", "duration = 1.0\nsettle = {max_speed = 1e-2}")]
+    )
+    code, out, _ = run(["run", scene, "--device", "cpu", "--out", tmp_path / "a", "-q"], capsys)
+    assert code == 0
+    st = summary_of(tmp_path / "a")["settle"]
+    assert st["settled"] and st["criterion"] == {"kinetic_fraction": 1e-4, "max_speed": 1e-2, "hold": 0.02}
+    assert st["largest_speed"] < 1e-2
+    code, out, _ = run(
+        [
+            "run",
+            scene,
+            "--device",
+            "cpu",
+            "--out",
+            tmp_path / "b",
+            "-q",
+            "--settle-kinetic",
+            "off",
+            "--settle-hold",
+            "0",
+        ],
+        capsys,
+    )
+    assert code == 0
+    st = summary_of(tmp_path / "b")["settle"]
+    assert st["criterion"] == {"kinetic_fraction": None, "max_speed": 1e-2, "hold": 0.0}
+
+
+@pytest.mark.parametrize(
+    ("args", "replace", "needles"),
+    [
+        (["--until-settled", "--settle-kinetic", "0"], [], ["--settle-kinetic", "between 0 and 1", "e.g."]),
+        (["--until-settled", "--settle-kinetic=-1e-3"], [], ["--settle-kinetic", "between 0 and 1"]),
+        (["--until-settled", "--settle-hold", "-1"], [], ["--settle-hold", ">= 0"]),
+        (["--until-settled", "--settle-speed", "0"], [], ["--settle-speed", "> 0"]),
+        (["--settle-speed", "0.1"], [], ["--settle-speed", "add --until-settled"]),
+        (["--until-settled", "--settle-kinetic", "off"], [], ["--settle-kinetic", "give --settle-speed"]),
+        (
+            ["--until-settled"],
+            [('name = "drop"', 'name = "drop"\ngravity = [0.0, 0.0, 0.0]')],
+            ["--until-settled", "no gravity", "--settle-kinetic off --settle-speed V"],
+        ),
+    ],
+)
+def test_until_settled_option_errors(tmp_path, capsys, args, replace, needles):
+    scene = write_scene(tmp_path, DROP, "drop.toml", replace=replace)
+    code, _, err = run(["run", scene, "--device", "cpu", "--out", tmp_path / "out", *args], capsys)
+    assert_user_error(code, err, *needles)
+
+
+def test_resume_command_keeps_the_settle_options():
+    args = cli.build_parser().parse_args(
+        ["run", "s.toml", "--until-settled", "--settle-kinetic", "off", "--settle-speed", "0.01", "--settle-hold", "0"]
+    )
+    cmd = Report(args, None, None, log=None, outputs=None, schedule=None, pictures=None, energy_at_start=None)
+    text = cmd.resume_command("cp.npz")
+    assert "--until-settled --settle-kinetic off --settle-speed 0.01 --settle-hold 0.0" in text

@@ -1758,3 +1758,52 @@ def test_mesh_file_errors_in_a_scene_file(tmp_path):
         err = load_error(tmp_path, BASE_TOML + f'\n[shapes.mesh]\ntype = "mesh"\nfile = "{name}"\n')
         assert err.key == "shapes.mesh" and re.search(match, err.message), err.message
         assert "charset_normalizer" not in err.message
+
+
+def test_toml_until_settled(tmp_path):
+    """Before: [simulation] until_settled and [simulation.settle] were unknown keys; now they give the
+    scene a SettleCriterion (duration or steps then is the maximum), written back by to_dict."""
+    from polydem import SettleCriterion
+
+    assert Scene.from_toml(write(tmp_path, BASE_TOML)).settle is None
+    on = BASE_TOML.replace("steps = 100", "steps = 100\nuntil_settled = true")
+    assert Scene.from_toml(write(tmp_path, on)).settle == SettleCriterion()
+    table = BASE_TOML.replace(
+        "steps = 100", "steps = 100\n[simulation.settle]\nkinetic_fraction = 1e-3\nmax_speed = 0.01\nhold = 0.1"
+    )
+    scene = Scene.from_toml(write(tmp_path, table))
+    assert scene.settle == SettleCriterion(kinetic_fraction=1e-3, max_speed=0.01, hold=0.1)
+    assert Scene.from_dict(scene.to_dict()).settle == scene.settle
+    assert "until settled (kinetic energy < 0.001" in scene.describe()
+    speed = BASE_TOML.replace(
+        "steps = 100", "steps = 100\nuntil_settled = true\nsettle = {kinetic_fraction = false, max_speed = 0.01}"
+    )
+    scene = Scene.from_toml(write(tmp_path, speed))
+    assert scene.settle == SettleCriterion(kinetic_fraction=None, max_speed=0.01)
+    assert Scene.from_dict(scene.to_dict()).settle == scene.settle
+
+
+@pytest.mark.parametrize(
+    ("lines", "key", "match"),
+    [
+        ("until_settled = 1", "simulation.until_settled", "expected true or false"),
+        ("until_settled = false\nsettle = {hold = 0.1}", "simulation.until_settled", "set until_settled = true"),
+        ("settle = 0.1", "simulation.settle", "expected a table"),
+        ("settle = {kinetic_fraction = 0.0}", "simulation.settle.kinetic_fraction", "must be positive"),
+        ("settle = {kinetic_fraction = -1e-4}", "simulation.settle.kinetic_fraction", "must be positive"),
+        ("settle = {kinetic_fraction = 2.0}", "simulation.settle.kinetic_fraction", "must be < 1"),
+        ("settle = {hold = -0.1}", "simulation.settle.hold", "must not be negative"),
+        ("settle = {max_speed = 0}", "simulation.settle.max_speed", "must be positive"),
+        ("settle = {kinetic_fraction = false}", "simulation.settle.max_speed", "give max_speed"),
+        ("settle = {hodl = 0.1}", "simulation.settle.hodl", "did you mean 'hold'"),
+        ("until_settled = true", "simulation.settle", "no gravity: give max_speed alone"),
+    ],
+)
+def test_toml_until_settled_errors(tmp_path, lines, key, match):
+    text = BASE_TOML.replace("steps = 100", f"steps = 100\n{lines}")
+    if "no gravity" in match:
+        text = text.replace("gravity = [0.0, 0.0, -9.81]", "gravity = [0.0, 0.0, 0.0]")
+    err = load_error(tmp_path, text)
+    assert err.key == key
+    assert re.search(match, str(err)), str(err)
+    assert "\n" not in str(err)

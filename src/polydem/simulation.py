@@ -26,6 +26,8 @@ body (:meth:`polydem.Scene.tunnelling_limits`) is warned about once (:class:`Sim
 """
 
 import functools
+import math
+import time as _time
 import warnings
 
 import numpy as np
@@ -36,6 +38,7 @@ from polydem.kernels.forces import make_contact_kernels
 from polydem.kernels.integrate import integrate_bodies, kinetic_energy
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.model import Model
+from polydem.settle import SettleCheck, SettleCriterion, SettleResult
 from polydem.state import State
 
 __all__ = ["Simulation", "SimulationError", "SimulationWarning", "Snapshot", "Stepper"]
@@ -92,6 +95,51 @@ def make_check_state_kernel(scalar):
             wp.atomic_min(bad_step, 0, step[0])
 
     return check_state_kernel
+
+
+@functools.cache
+def make_settle_measures_kernel(scalar):
+    """Per free body, in float64: kinetic and gravitational energy; the largest speed of a fastest point."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def settle_measures_kernel(
+        # Model
+        body_flags: wp.array(dtype=int),
+        body_inv_mass: wp.array(dtype=scalar),
+        body_inertia: wp.array(dtype=vec3),
+        body_radius: wp.array(dtype=float),
+        gravity: wp.vec3d,
+        # State in
+        body_q: wp.array(dtype=wp.types.transformation(scalar)),
+        body_v: wp.array(dtype=vec3),
+        body_w: wp.array(dtype=vec3),
+        # Out
+        body_kinetic: wp.array(dtype=wp.float64),
+        body_gravity: wp.array(dtype=wp.float64),
+        largest_speed: wp.array(dtype=wp.float64),
+    ):
+        """Zero for fixed, kinematic and infinite-mass bodies (driven from outside the pile); the
+        speeds go into one running maximum (atomic: a maximum does not depend on the order)."""
+        i = wp.tid()
+        inv_mass = body_inv_mass[i]
+        body_kinetic[i] = wp.float64(0.0)
+        body_gravity[i] = wp.float64(0.0)
+        if body_flags[i] == 0 and inv_mass > scalar(0.0):
+            v = body_v[i]
+            w = body_w[i]
+            q = body_q[i]
+            wb = wp.quat_rotate_inv(wp.transform_get_rotation(q), w)
+            e = scalar(0.5) * wp.dot(v, v) / inv_mass + scalar(0.5) * wp.dot(wb, wp.cw_mul(body_inertia[i], wb))
+            body_kinetic[i] = wp.float64(e)
+            x = wp.transform_get_translation(q)
+            mass = wp.float64(1.0) / wp.float64(inv_mass)
+            h = wp.float64(x[0]) * gravity[0] + wp.float64(x[1]) * gravity[1] + wp.float64(x[2]) * gravity[2]
+            body_gravity[i] = -mass * h
+            speed = wp.float64(wp.length(v)) + wp.float64(wp.length(w)) * wp.float64(body_radius[i])
+            wp.atomic_max(largest_speed, 0, speed)
+
+    return settle_measures_kernel
 
 
 @wp.kernel(enable_backward=False)
@@ -616,6 +664,105 @@ class Simulation:
             f"the state became non-finite at step {bad} (t = {bad * self.dt:.6g} s); bodies {bodies[:20].tolist()}"
             f"{' ...' if len(bodies) > 20 else ''}. Check the time step (dt = {self.dt:.3g} s, recommended "
             f"{self.model.dt_recommended:.3g} s), the stiffness and the initial overlaps."
+        )
+
+    # -- running until settled -----------------------------------------------------------------
+
+    def settle_measures(self):
+        """Host float64 (kinetic energy [J], gravitational energy [J], largest speed [m/s]) of the free
+        bodies at the current step: the measurements of a :class:`~polydem.settle.SettleCriterion`.
+
+        The speed is that of a body's fastest point, ``|v| + |w| r`` (r its bounding radius), at this
+        step (not the peak since the last check: a resumed run then measures as the unbroken one).
+        No contact pass: one kernel over the bodies and two sums on the device (deterministic, so a
+        resumed run decides as the unbroken one); three numbers come back to the host.
+        """
+        m = self.model
+        n = self.num_bodies
+        dev = self.device
+        if getattr(self, "_settle_arrays", None) is None:
+            self._settle_arrays = (
+                wp.empty(n, dtype=wp.float64, device=dev),
+                wp.empty(n, dtype=wp.float64, device=dev),
+                wp.zeros(3, dtype=wp.float64, device=dev),
+            )
+        kin, grav, out = self._settle_arrays
+        out.zero_()
+        st = self.current_state
+        wp.launch(
+            make_settle_measures_kernel(m.scalar),
+            dim=n,
+            inputs=[
+                m.body_flags,
+                m.body_inv_mass,
+                m.body_inertia,
+                m.body_radius,
+                wp.vec3d(*m.gravity.tolist()),
+                st.body_q,
+                st.body_v,
+                st.body_w,
+            ],
+            outputs=[kin, grav, out[2:3]],
+            device=dev,
+        )
+        wp.utils.array_sum(kin, out=out[0:1])
+        wp.utils.array_sum(grav, out=out[1:2])
+        kinetic, gravity, speed = out.numpy().tolist()
+        return kinetic, gravity, speed
+
+    def settle_check(self, criterion=None, check=None):
+        """A :class:`~polydem.settle.SettleCheck` of ``criterion`` (default :class:`SettleCriterion()`)
+        from the current step; ``check``: one to continue instead. Raises ValueError when the criterion
+        cannot be met in this scene (no free body; the kinetic part without gravity)."""
+        if check is not None:
+            return check
+        criterion = SettleCriterion() if criterion is None else criterion
+        if not isinstance(criterion, SettleCriterion):
+            raise TypeError(f"criterion must be a polydem.SettleCriterion, got {type(criterion).__name__}")
+        if not np.any(self.model.body_flags_np == 0):
+            raise ValueError("the scene has no free bodies: there is nothing to settle")
+        criterion.check_gravity(self.model.gravity)
+        return SettleCheck(criterion, self.settle_measures()[1])
+
+    def run_until_settled(self, max_time, criterion=None, *, check=None):
+        """Step until the free bodies have settled (``criterion``, default :class:`SettleCriterion()`),
+        for at most ``max_time`` more simulated seconds.
+
+        The criterion is checked every ``CHUNK_STEPS`` steps (at step counts that are multiples of it;
+        the last step is measured for the result); the energy released counts from the current step
+        (or from the start of ``check``, a :class:`~polydem.settle.SettleCheck` to continue). Returns
+        a :class:`~polydem.settle.SettleResult`.
+
+        Raises:
+            ValueError: ``max_time`` not > 0; no free body; the kinetic part in a scene without gravity.
+        """
+        max_time = float(max_time)
+        if not (math.isfinite(max_time) and max_time > 0.0):
+            raise ValueError(f"max_time must be a simulated time > 0 [s], got {max_time!r}")
+        check = self.settle_check(criterion, check)
+        t0 = _time.perf_counter()
+        start = self.steps_done
+        end = start + max(1, math.ceil(max_time / self.dt - 1e-9))
+        settled = False
+        while self.steps_done < end and not settled:
+            stop = min(end, (self.steps_done // CHUNK_STEPS + 1) * CHUNK_STEPS)
+            self.step(stop - self.steps_done)
+            if self.steps_done % CHUNK_STEPS:
+                # The last step, off the cadence: measured for the result; the hold goes on from the last
+                # check, so that a later call continuing ``check`` holds as one unbroken call would.
+                check.holds(*self.settle_measures())
+            else:
+                settled = check.update(self.steps_done, self.dt, *self.settle_measures())
+        return SettleResult(
+            settled=settled,
+            time=self.time,
+            held_from=None if check.held_since is None else check.held_since * self.dt,
+            steps=self.steps_done - start,
+            steps_done=self.steps_done,
+            wall=_time.perf_counter() - t0,
+            kinetic=check.kinetic,
+            released=check.released,
+            largest_speed=check.largest_speed,
         )
 
     # -- reading the current step --------------------------------------------------------------

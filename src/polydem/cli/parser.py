@@ -51,6 +51,34 @@ def _positive(what: str, example: str):
     return parse
 
 
+def _fraction(text: str) -> float | None:
+    if text.strip().lower() in ("off", "none", "false"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0.0 < value < 1.0):
+        raise argparse.ArgumentTypeError(
+            f"expected a fraction between 0 and 1 (exclusive) of the gravitational energy released, or off, got "
+            f"{text!r}; e.g. --settle-kinetic 1e-4"
+        )
+    return value
+
+
+def _nonnegative(what: str, example: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0.0):
+            raise argparse.ArgumentTypeError(f"expected {what} >= 0, got {text!r}; e.g. {example}")
+        return value
+
+    return parse
+
+
 def _angle(lowest: float, highest: float, example: str):
     def parse(text: str) -> float:
         try:
@@ -108,6 +136,14 @@ paths inside that folder; the closing lines name every file written):
   An output that cannot be written (a name too long, a file in the way of a folder, no
   permission) stops the command before the run (exit code 2); after the start, the others are
   still written (exit code 1).
+
+until settled: with --until-settled (or [simulation] until_settled = true in the scene) the run
+stops once the pile has settled: the kinetic energy of the free bodies below --settle-kinetic
+(default 1e-4) of the gravitational energy released since t = 0, and with --settle-speed V also no
+free body's fastest point (|v| + |w| r) at V m/s or more, at every check for --settle-hold seconds
+(default 0.02 s); checks every 64 steps. --steps or --duration is then the maximum. The summary's
+"settle" entry and the closing lines give the time, the steps and the wall time it took (or say
+it did not settle); a resumed run continues the check.
 
 progress: one line per 5% of the steps on stderr (one line kept up to date on a terminal), with
 the wall time left once it can be estimated.
@@ -197,6 +233,34 @@ def _add_run(sub, fmt) -> None:
         metavar="T",
         help="run until simulated time T [s] (counted from t = 0, also when resuming); replaces the scene's "
         "duration or steps",
+    )
+    run.add_argument(
+        "--until-settled",
+        action="store_true",
+        help="stop once the pile has settled (see 'until settled' below); --steps or --duration is then the maximum",
+    )
+    run.add_argument(
+        "--settle-kinetic",
+        type=_fraction,
+        default=False,
+        metavar="F",
+        help="with --until-settled: settled when the kinetic energy is below F of the gravitational energy released "
+        "(default: the scene's, else 1e-4); off to check --settle-speed alone",
+    )
+    run.add_argument(
+        "--settle-speed",
+        type=_positive("a speed in m/s", "--settle-speed 0.01"),
+        default=None,
+        metavar="V",
+        help="with --until-settled: also require every free body's fastest point to move slower than V [m/s]",
+    )
+    run.add_argument(
+        "--settle-hold",
+        type=_nonnegative("a simulated time in seconds", "--settle-hold 0.05"),
+        default=None,
+        metavar="S",
+        help="with --until-settled: how long the criterion must hold without a break [s] (default: the scene's, "
+        "else 0.02)",
     )
     run.add_argument(
         "--out",

@@ -74,6 +74,7 @@ class Progress:
         self.lines = 0
         self.last_steps = None
         self.width = 0
+        self.settle_note = ""  # e.g. "  kinetic/released 3.1e-05" in a run until settled
         self.noted: tuple[int, int, float] | None = None  # (steps, contacts, kinetic energy) of the last frame
         self.samples: deque = deque()  # (wall time, steps) after each chunk, over the recent past
         self.marks = [start + math.ceil(j * (target - start) / PROGRESS_LINES) for j in range(1, PROGRESS_LINES + 1)]
@@ -150,12 +151,12 @@ class Progress:
         if not self.tty:
             return (
                 f"  {100 * frac:5.1f}%  t = {t:.4g} of {t_end:.4g} s  step {steps}/{self.target}  "
-                f"{rate:.1f} steps/s{left_text}  {contacts} contacts  kinetic {kinetic:.3e} J\n"
+                f"{rate:.1f} steps/s{left_text}  {contacts} contacts  kinetic {kinetic:.3e} J{self.settle_note}\n"
             )
         bar = "#" * int(round(20 * frac))
         line = (
             f"  [{bar:<20}] {100 * frac:5.1f}%  t {t:.4g}/{t_end:.4g} s  {rate:8.1f} steps/s{left_text}  "
-            f"{contacts} contacts  kinetic {kinetic:.3e} J"
+            f"{contacts} contacts  kinetic {kinetic:.3e} J{self.settle_note}"
         )
         pad = max(0, self.width - len(line))
         self.width = len(line)

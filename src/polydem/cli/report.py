@@ -220,13 +220,34 @@ class Report:
             f"{head}: {s['steps_this_run']} steps to step {s['steps']} (t = {s['simulated_time']:.6g} s) in "
             f"{s['wall_time_this_run']:.2f} s{rate}, {plural(s['bodies']['total'], 'body', 'bodies')}"
         )
-        out.write("\n".join([first, *self.closing_lines(s)]) + "\n")
+        settle = self.settle_line(s, reason)
+        out.write("\n".join([first, *settle, *self.closing_lines(s)]) + "\n")
         out.flush()
         if reason is not None and cp_path is not None and status in (EXIT_INTERRUPTED, EXIT_TERMINATED):
             err.write(
                 f"polydem: run interrupted at step {s['steps']}; continue with:\n  {self.resume_command(cp_path)}\n"
             )
             err.flush()
+
+    @staticmethod
+    def settle_line(s, reason) -> list[str]:
+        """The line of a run until settled: when it settled, or that it did not."""
+        st = s.get("settle")
+        if st is None:
+            return []
+        frac = st["kinetic_fraction"]
+        now = f"kinetic energy {frac:.3g} of the gravitational energy released" if frac is not None else ""
+        if st["largest_speed"] is not None and st["criterion"]["max_speed"] is not None:
+            now += (", " if now else "") + f"largest speed {st['largest_speed']:.3g} m/s"
+        if st["settled"]:
+            wall = f", {st['wall_s']:.2f} s wall" if st["wall_s"] is not None else ""
+            return [f"  settled at t = {st['time_s']:.6g} s ({st['steps']} steps{wall}): {now}"]
+        if reason is not None:
+            return [f"  not settled when the run stopped (t = {s['simulated_time']:.6g} s): {now}"]
+        return [
+            f"  not settled within the maximum duration (t = {st['max_time_s']:.6g} s, {st['max_steps']} steps): "
+            f"{now}; give a longer --duration"
+        ]
 
     def written(self, s) -> list[tuple[str, str]]:
         """The files written (relative to the output folder) as (names, what) pairs, by kind."""
@@ -266,6 +287,16 @@ class Report:
             cmd += ["--duration", repr(a.duration)]
         if a.fps is not None:
             cmd += ["--fps", repr(a.fps)]
+        if getattr(a, "until_settled", False):
+            cmd.append("--until-settled")
+        if getattr(a, "settle_kinetic", False) is not False:
+            cmd += ["--settle-kinetic", "off" if a.settle_kinetic is None else repr(a.settle_kinetic)]
+        for option, value in (
+            ("--settle-speed", getattr(a, "settle_speed", None)),
+            ("--settle-hold", getattr(a, "settle_hold", None)),
+        ):
+            if value is not None:
+                cmd += [option, repr(value)]
         if a.vtk:
             cmd.append("--vtk")
         if a.out is not None:

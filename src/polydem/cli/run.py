@@ -23,7 +23,7 @@ from polydem.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError,
 from polydem.cli.outputs import Outputs, scene_metadata
 from polydem.cli.poses import check_poses, read_checkpoint
 from polydem.cli.progress import Progress
-from polydem.cli.record import RunLog, run_record_problem
+from polydem.cli.record import RunLog, finite, run_record_problem
 from polydem.cli.report import Report
 from polydem.cli.schedule import Schedule
 from polydem.cli.settings import DEFAULT_STEPS, check_outputs, load_scene, pictures_setting
@@ -47,14 +47,21 @@ def roll_back(sim) -> bool:
 class Run:
     """One ``polydem run`` of ``sim`` to step ``target``, writing into ``out_dir``."""
 
-    def __init__(self, args, scene, sim, out_dir: Path, target: int, resumed_from):
+    def __init__(self, args, scene, sim, out_dir: Path, target: int, resumed_from, settle=None):
+        from polydem.simulation import CHUNK_STEPS
+
         self.args = args
         self.scene = scene
         self.sim = sim
         self.start = sim.steps_done
+        self.settle = settle  # a polydem.settle.SettleCheck in a run until settled
+        self.settle_wall: float | None = None
         o = scene.output
         fps = args.fps if args.fps is not None else o.fps
-        self.schedule = Schedule(sim.dt, fps, target, self.start, o.checkpoint_steps, o.checkpoint_seconds)
+        every = CHUNK_STEPS if settle is not None else None
+        self.schedule = Schedule(
+            sim.dt, fps, target, self.start, o.checkpoint_steps, o.checkpoint_seconds, check_every=every
+        )
         self.outputs = Outputs(
             scene, out_dir, self.start, resumed_from, vtk=bool(args.vtk or o.vtk), picture_size=args.picture_size
         )
@@ -80,7 +87,54 @@ class Run:
         checkpoints = o.absolute(o.checkpoints)
         if writing is not None:
             checkpoints.append(str(Path(writing).resolve()))
-        return self.log.record(wall, o.part(self.sim.steps_done, wall), o.absolute(o.picture_files), checkpoints)
+        rec = self.log.record(wall, o.part(self.sim.steps_done, wall), o.absolute(o.picture_files), checkpoints)
+        if self.settle is not None:
+            rec["settle"] = finite(self.settle.record())
+        return rec
+
+    def check_settled(self) -> bool:
+        """In a run until settled, check the criterion when a check is due; returns whether the pile settled."""
+        sim = self.sim
+        if self.settle is None or not self.schedule.settle_check_due(sim.steps_done):
+            return False
+        if sim.steps_done % self.schedule.check_every:
+            # The end of a run off the check cadence: measure for the report, but leave the hold as it
+            # is, so that a run resumed from this step holds from where the unbroken run would.
+            self.settle.holds(*sim.settle_measures())
+            settled = False
+        else:
+            settled = self.settle.update(sim.steps_done, sim.dt, *sim.settle_measures())
+        frac = self.settle.kinetic_fraction
+        if self.progress is not None:
+            self.progress.settle_note = f"  kinetic/released {frac:.2e}" if frac is not None else ""
+        if settled:
+            self.settle_wall = time.perf_counter() - self.t0
+        return settled
+
+    def settle_summary(self) -> dict | None:
+        """The summary's ``settle`` entry (None in a run of fixed length)."""
+        c = self.settle
+        if c is None:
+            return None
+        sim = self.sim
+        earlier = (self.log.earlier or {}).get("wall_time", 0.0)
+        settled = c.settled_at is not None
+        return finite(
+            {
+                "criterion": c.criterion.to_dict(),
+                "settled": settled,
+                "time_s": c.settled_at * sim.dt if settled else None,
+                "steps": c.settled_at if settled else None,
+                "wall_s": earlier + self.settle_wall if settled and self.settle_wall is not None else None,
+                "held_from_s": c.held_since * sim.dt if c.held_since is not None else None,
+                "max_steps": self.schedule.target,
+                "max_time_s": self.schedule.target * sim.dt,
+                "kinetic": c.kinetic,
+                "released": c.released,
+                "kinetic_fraction": c.kinetic_fraction,
+                "largest_speed": c.largest_speed,
+            }
+        )
 
     # -- at each stop
 
@@ -134,9 +188,13 @@ class Run:
         self.record_frames()
         while sim.steps_done < self.schedule.target:
             sim.step(self.schedule.next_stop(sim.steps_done, progress.next_mark(sim.steps_done)) - sim.steps_done)
+            # Before the checkpoint: it keeps the check at its step, as a resumed run expects.
+            settled = self.check_settled()
             self.record_frames()
             self.periodic_checkpoint()
-            progress.update(sim)
+            progress.update(sim, force=settled)
+            if settled:
+                break
             if signals.received():
                 raise KeyboardInterrupt
 
@@ -204,6 +262,8 @@ class Run:
         if note is not None:
             notes.append(note)
         summary = self.report.summary(wall, reason, notes, consistent)
+        if self.settle is not None:
+            summary["settle"] = self.settle_summary()
         summary["outputs"]["plots"] = o.plot_files
         if o.errors:
             summary["not_written"] = list(o.errors)
@@ -265,6 +325,7 @@ def cmd_run(args) -> int:
         dev = device(scene.device, file=scene.file, key="simulation.device")
     out_dir = _output_folder(args, scene)
     check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
+    criterion = _settle_criterion(args, scene)
     signals.check()
 
     from polydem.simulation import Simulation
@@ -281,11 +342,14 @@ def cmd_run(args) -> int:
                 resume,
                 "--resume",
             )
-    run = Run(args, scene, sim, out_dir, target, resume)
+    settle = _settle_check(sim, criterion, checkpoint, resume) if criterion is not None else None
+    run = Run(args, scene, sim, out_dir, target, resume, settle)
     if checkpoint is not None:
         run.continue_record(checkpoint)
     kind = np.asarray(scene.body_kind)
     what = f"from step {sim.steps_done} (t = {sim.time:.6g} s) " if resume is not None else ""
+    if criterion is not None:
+        what += f"until settled ({criterion.describe()}), at most "
     out.write(
         f"{scene.name}: {plural(sim.num_bodies, 'body', 'bodies')} ({int(np.sum(kind == 0))} free) on {sim.device}, "
         f"dt {sim.dt:.4g} s; "
@@ -294,6 +358,87 @@ def cmd_run(args) -> int:
     )
     out.flush()
     return run.execute(out, err)
+
+
+_SETTLE_OPTIONS = (
+    ("--settle-kinetic", "settle_kinetic"),
+    ("--settle-speed", "settle_speed"),
+    ("--settle-hold", "settle_hold"),
+)
+
+
+def _settle_criterion(args, scene):
+    """The SettleCriterion of a run until settled (``--until-settled`` or the scene's), None for a run
+    of fixed length; a setting that cannot work is a CliError naming the option."""
+    from dataclasses import replace
+
+    from polydem.settle import SettleCriterion
+
+    given = [
+        (option, getattr(args, dest))
+        for option, dest in _SETTLE_OPTIONS
+        if getattr(args, dest, None) is not (False if dest == "settle_kinetic" else None)
+    ]
+    base = scene.settle if scene.settle is not None else SettleCriterion() if args.until_settled else None
+    if base is None:
+        if given:
+            raise CliError(
+                f"{given[0][0]} sets the criterion of a run until settled: add --until-settled (or set [simulation] "
+                "until_settled = true in the scene)",
+                key=given[0][0],
+            )
+        return None
+    fields = {"--settle-kinetic": "kinetic_fraction", "--settle-speed": "max_speed", "--settle-hold": "hold"}
+    try:
+        criterion = replace(base, **{fields[option]: value for option, value in given})
+    except ValueError:
+        raise CliError(
+            "--settle-kinetic off leaves nothing to check: give --settle-speed V too (the largest speed in m/s)",
+            key="--settle-kinetic",
+        ) from None
+    if not np.any(np.asarray(scene.body_kind) == 0):
+        raise CliError("the scene has no free bodies: there is nothing to settle; leave --until-settled out", key=None)
+    try:
+        criterion.check_gravity(scene.gravity)
+    except ValueError:
+        raise CliError(
+            "the scene has no gravity, so no gravitational energy is released to compare the kinetic energy with: "
+            "give --settle-kinetic off --settle-speed V (the largest speed in m/s)",
+            key="--settle-kinetic" if args.settle_kinetic is not False else "--until-settled",
+        ) from None
+    return criterion
+
+
+def _settle_check(sim, criterion, ck, path):
+    """The SettleCheck of a run until settled: from t = 0, or continued from the checkpoint ``ck``."""
+    from polydem.settle import SettleCheck
+
+    rec = (ck.run or {}).get("settle") if ck is not None else None
+    if rec is None:
+        # A run from t = 0, or one resumed from a run of fixed length: the energy released counts from t = 0
+        # where the checkpoint's record knows it.
+        energy = (ck.run or {}).get("energy_initial") if ck is not None else None
+        start = energy["gravity"] if energy is not None and energy.get("gravity") is not None else None
+        return SettleCheck(criterion, sim.settle_measures()[1] if start is None else start)
+    if rec.get("settled_at") is not None:
+        raise CliError(
+            f"the run of this checkpoint settled at step {rec['settled_at']} (t = {rec['settled_at'] * sim.dt:.6g} s): "
+            "leave out --until-settled (and the scene's until_settled) to run on from it",
+            path,
+            "--resume",
+        )
+    start, held = rec.get("gravity_at_start"), rec.get("held_since")
+    if not isinstance(start, int | float) or not (
+        held is None or isinstance(held, int) and 0 <= held <= sim.steps_done
+    ):
+        raise CliError(
+            "the settle record of its run is damaged (gravity_at_start, held_since): use another checkpoint of the "
+            "run or rerun",
+            path,
+            "--resume",
+        )
+    same = rec.get("criterion") == criterion.to_dict()
+    return SettleCheck(criterion, float(start), held if same else None)
 
 
 def _resume(sim, scene, path: Path, ck, args) -> None:

@@ -20,8 +20,11 @@ class Schedule:
     """The frames (``frame``: the next one to record) and checkpoints (``cp_index``: the next
     periodic one) of a run from step ``start`` to step ``target``."""
 
-    def __init__(self, dt: float, fps: float, target: int, start: int, cp_steps=None, cp_seconds=None):
+    def __init__(
+        self, dt: float, fps: float, target: int, start: int, cp_steps=None, cp_seconds=None, check_every=None
+    ):
         self.dt = dt
+        self.check_every = check_every
         self.fps = fps
         self.frame_dt = 1.0 / fps
         self.target = target
@@ -69,10 +72,16 @@ class Schedule:
             self.cp_index += 1
         return True
 
+    def settle_check_due(self, steps: int) -> bool:
+        """Whether a run until settled checks at ``steps``: every ``check_every`` steps from t = 0, and at the end."""
+        return self.check_every is not None and (steps % self.check_every == 0 or steps >= self.target)
+
     def next_stop(self, steps: int, mark: int | None = None) -> int:
         """The next step at which the run stops: the target, a frame, a checkpoint, a progress
-        ``mark``, or at most MAX_CHUNK_STEPS on."""
+        ``mark``, a settle check, or at most MAX_CHUNK_STEPS on."""
         stops = [self.target, steps + MAX_CHUNK_STEPS, self.frame_step(self.frame)]
+        if self.check_every is not None:
+            stops.append((steps // self.check_every + 1) * self.check_every)
         cp = self.cp_step(self.cp_index)
         if cp is not None:
             stops.append(cp)

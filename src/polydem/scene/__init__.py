@@ -36,7 +36,12 @@ did-you-mean and the list of valid keys, and every error names the file and the 
                      device ("cpu", "cuda", "cuda:N"; optional), precision ("mixed", the
                      default: float64 positions, velocities and force sums, float32 contact
                      geometry local to each contact; "float32": float32 throughout, leaner;
-                     "float64": float64 throughout)
+                     "float64": float64 throughout), until_settled (true: run until the pile has
+                     settled, steps | duration being the maximum; polydem.SettleCriterion)
+    [simulation.settle]  the settle criterion (implies until_settled): kinetic_fraction (of the
+                     gravitational energy released, default 1e-4; false to check max_speed
+                     alone), max_speed [m/s] (of any free body's fastest point), hold [s]
+                     (default 0.02)
     [materials.NAME] density, law, k, restitution, friction (+ m, tangential_stiffness)
     [shapes.NAME]    type = box | tetrahedron | ... | mesh | points, and its parameters
     [[bodies]]       shape, material, position, orientation | rotation, velocity, angular_velocity,

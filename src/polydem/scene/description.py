@@ -29,6 +29,7 @@ from polydem.scene.output import Output
 from polydem.scene.overlaps import OverlapMethods
 from polydem.scene.values import read_choice, read_integer, read_number, read_string, read_vector, typename
 from polydem.scene.walls import WallMethods
+from polydem.settle import SettleCriterion
 from polydem.shapes import ConvexShape
 
 PRECISIONS = ("float32", "mixed", "float64")
@@ -63,6 +64,9 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             faster, but positions resolve only the float32 spacing of their coordinates) or
             ``"float64"`` (everything in float64).
         output: what a run writes (:class:`Output`); default ``Output()`` (a summary only).
+        settle: run until the pile has settled (:class:`polydem.SettleCriterion`; ``steps`` or
+            ``duration`` is then the maximum): a criterion, True for the default one, a dict of its
+            fields, or None (the default) to run the whole duration.
 
     Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`),
     :attr:`emitters` (one dict per :meth:`emit` call: key, count, first and last body index) and
@@ -82,6 +86,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         device: str | None = None,
         precision: str = "mixed",
         output: Output | None = None,
+        settle=None,
     ):
         self.file = file
         self.name = read_string(name, "simulation.name", file)
@@ -103,6 +108,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self.device = self._check_device(device)
         self.precision = self._check_precision(precision)
         self.output = self._check_output(output)
+        self.settle = self._check_settle(settle)
         self._shapes: dict[str, ConvexShape] = {}
         self._shape_index: dict[str, int] = {}
         self._shape_specs: dict[str, dict] = {}
@@ -148,6 +154,61 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 self.file,
             )
         return output
+
+    def _check_settle(self, settle):
+        key = "simulation.settle"
+        if settle is None or settle is False or isinstance(settle, SettleCriterion):
+            return settle or None
+        if settle is True:
+            return SettleCriterion()
+        if not isinstance(settle, dict):
+            raise SceneError(
+                f"expected a table {{kinetic_fraction = 1e-4, max_speed = ..., hold = 0.02}}, got {typename(settle)}",
+                key,
+                self.file,
+            )
+        fields = ("kinetic_fraction", "max_speed", "hold")
+        unknown = [k for k in settle if k not in fields]
+        if unknown:
+            k = unknown[0]
+            raise SceneError(
+                f"unknown key {k!r}{did_you_mean(k, fields) or '.'} Valid keys: {', '.join(fields)}",
+                f"{key}.{k}",
+                self.file,
+            )
+        values = {}
+        kf = settle.get("kinetic_fraction", 1e-4)
+        if kf is False or kf is None:
+            values["kinetic_fraction"] = None
+        else:
+            hint = " (a fraction of the gravitational energy released, e.g. 1e-4; false to check max_speed alone)"
+            values["kinetic_fraction"] = read_number(kf, f"{key}.kinetic_fraction", self.file, positive=True, hint=hint)
+            if values["kinetic_fraction"] >= 1.0:
+                raise SceneError(f"must be < 1, got {kf:g}{hint}", f"{key}.kinetic_fraction", self.file)
+        if settle.get("max_speed") is not None:
+            values["max_speed"] = read_number(
+                settle["max_speed"], f"{key}.max_speed", self.file, positive=True, hint=" (largest speed in m/s)"
+            )
+        if "hold" in settle:
+            values["hold"] = read_number(
+                settle["hold"], f"{key}.hold", self.file, nonneg=True, hint=" (how long it must hold, in s)"
+            )
+        if values["kinetic_fraction"] is None and "max_speed" not in values:
+            raise SceneError(
+                "with kinetic_fraction = false give max_speed (in m/s): with neither nothing is checked",
+                f"{key}.max_speed",
+                self.file,
+            )
+        return SettleCriterion(**values)
+
+    def _check_settle_gravity(self):
+        if self.settle is not None:
+            try:
+                self.settle.check_gravity(self.gravity)
+            except ValueError as exc:
+                raise SceneError(
+                    f"{exc}; in a scene file: kinetic_fraction = false, max_speed = V", "simulation.settle", self.file
+                ) from None
 
     def error(self, message: str, key: str) -> SceneError:
         """A :class:`SceneError` about ``key`` of this scene's file, for its method groups to raise."""
@@ -284,6 +345,8 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self.device = self._check_device(self.device)
         self.precision = self._check_precision(self.precision)
         self.output = self._check_output(self.output)
+        self.settle = self._check_settle(self.settle)
+        self._check_settle_gravity()
         if self.steps is not None and self.duration is not None:
             raise self.error("give either steps or duration, not both", "simulation.duration")
         if self.steps is not None:
@@ -318,6 +381,8 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         run = f", {self.steps} steps" if self.steps is not None else ""
         run += f", duration {self.duration:g} s" if self.duration is not None else ""
         run += f", {self.precision}" + (f", device {self.device}" if self.device else "")
+        if self.settle is not None:
+            run += f"; until settled ({self.settle.describe()})"
         lines = [
             f"Scene {self.name!r}" + (f" from {self.file}" if self.file else ""),
             f"  gravity [{g}] m/s^2, dt {dt}{run}",

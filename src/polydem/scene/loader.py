@@ -14,12 +14,31 @@ from polydem.scene.bodies import KINDS, quat_from_axis_angle
 from polydem.scene.errors import SceneError
 from polydem.scene.output import Output
 from polydem.scene.shape_specs import build_shape
-from polydem.scene.values import check_keys, read_choice, read_number, read_table, read_vector, typename
+from polydem.scene.values import (
+    check_keys,
+    read_boolean,
+    read_choice,
+    read_number,
+    read_table,
+    read_vector,
+    typename,
+)
 
 if TYPE_CHECKING:
     from polydem.scene.description import Scene
 
-_SIM_KEYS = ("name", "description", "dt", "gravity", "steps", "duration", "device", "precision")
+_SIM_KEYS = (
+    "name",
+    "description",
+    "dt",
+    "gravity",
+    "steps",
+    "duration",
+    "device",
+    "precision",
+    "until_settled",
+    "settle",
+)
 _TOP_KEYS = ("simulation", "materials", "shapes", "bodies", "walls", "emitters", "output")
 _BODY_KEYS = (
     "shape",
@@ -117,6 +136,17 @@ def _build(cls, data, file, base_dir: Path, validate) -> Scene:
 def _read_simulation(cls, data, file) -> Scene:
     sim = read_table(data.get("simulation", {}), "simulation", file, what="a [simulation] table")
     check_keys(sim, _SIM_KEYS, "simulation", file)
+    settle = sim.get("settle")
+    if "until_settled" in sim:
+        until = read_boolean(sim["until_settled"], "simulation.until_settled", file)
+        if not until and settle is not None:
+            raise SceneError(
+                "until_settled = false with a [simulation.settle] table: set until_settled = true, or leave the "
+                "table out to run the whole duration",
+                "simulation.until_settled",
+                file,
+            )
+        settle = (settle if settle is not None else True) if until else None
     return cls(
         gravity=sim.get("gravity", (0.0, 0.0, -9.81)),
         dt=sim.get("dt", "auto"),
@@ -127,6 +157,7 @@ def _read_simulation(cls, data, file) -> Scene:
         file=file,
         device=sim.get("device"),
         precision=sim.get("precision", "mixed"),
+        settle=settle,
     )
 
 
@@ -255,6 +286,12 @@ def scene_dict(scene: Scene) -> dict:
         sim["duration"] = scene.duration
     if scene.device is not None:
         sim["device"] = scene.device
+    if scene.settle is not None:
+        c = scene.settle
+        table = {"kinetic_fraction": c.kinetic_fraction if c.kinetic_fraction is not None else False, "hold": c.hold}
+        if c.max_speed is not None:
+            table["max_speed"] = c.max_speed
+        sim["settle"] = table
     shapes = {}
     for name, shape in scene.shapes.items():
         spec = scene.shape_spec(name)
