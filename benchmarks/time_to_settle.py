@@ -1,0 +1,121 @@
+"""Time to a settled packing: wall time until a poured pile of cubes comes to rest.
+
+The scene is the settling benchmark's (benchmarks/settle.py: 1 cm cubes in loose columns in an open
+box of fixed slabs, hertz, e = 0.5, mu = 0.5, k for a 1% overlap under 20 column weights, dt
+"auto"). Each run goes until the pile is settled by the simulator's own stopping rule
+(``Simulation.run_until_settled``: the free bodies' kinetic energy below ``--kinetic-fraction`` of
+the gravitational energy released, held for ``--hold`` seconds) or ``--max-time`` simulated
+seconds. Reported per size: settled or not, simulated time and steps to it, wall time (the first
+chunk, which compiles the kernels and captures the CUDA graph, is timed apart), wall time per
+simulated second; at the end the largest penetration depth (shortest separating translation, as a
+fraction of the edge) and the largest overlap volume (of a cube's volume), the packing fraction and
+coordination number of the settled interior (``polydem.cli.diagnostics.settled_region``, the
+summary's definition).
+
+    python benchmarks/time_to_settle.py --device cpu                       # 200 cubes
+    python benchmarks/time_to_settle.py --device cuda:0 --sizes 1e4,1e5,1e6
+
+Results: a table on stdout and JSON (``--out``, default
+``benchmarks/results/time_to_settle_<device>.json``), rewritten after every size.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import warp as wp
+
+from polydem import Simulation
+from polydem.cli.diagnostics import settled_region
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _meta import run_meta  # noqa: E402
+from settle import make_scene, scene_options  # noqa: E402
+
+EDGE = 0.01  # cube edge [m]
+
+
+def run_size(n, args, device):
+    """Pour ``n`` cubes and run to settled; returns the record of the run."""
+    import polydem
+
+    options = scene_options(edge=EDGE, precision=args.precision)
+    scene, info = make_scene(n, options, seed=args.seed)
+    t0 = time.perf_counter()
+    sim = Simulation(scene, device=device)
+    sim.step(1)  # kernels compiled, graph captured
+    wp.synchronize_device(sim.device)
+    setup = time.perf_counter() - t0
+    criterion = polydem.SettleCriterion(kinetic_fraction=args.kinetic_fraction, hold=args.hold)
+    t1 = time.perf_counter()
+    result = sim.run_until_settled(args.max_time, criterion)
+    wp.synchronize_device(sim.device)
+    wall = time.perf_counter() - t1
+    contacts = sim.contacts()
+    state = sim.state()
+    region = settled_region(scene, state, contacts)
+    free = np.flatnonzero(scene.body_kind == 0)
+    return {
+        "bodies": n,
+        "precision": args.precision,
+        "dt": sim.dt,
+        "settled": bool(result.settled),
+        "settle_time_s": float(result.time) if result.settled else None,
+        "simulated_s": sim.time,
+        "steps": sim.steps_done,
+        "setup_wall_s": setup,
+        "wall_s": wall,
+        "wall_s_per_simulated_s": wall / max(sim.time, 1e-30),
+        "max_depth_fraction_of_edge": float(contacts["depth"].max()) / EDGE if len(contacts["depth"]) else 0.0,
+        "max_overlap_volume_fraction": float(contacts["volume"].max()) / EDGE**3 if len(contacts["volume"]) else 0.0,
+        "packing_fraction": region.get("packing_fraction"),
+        "coordination_number": region.get("coordination_number"),
+        "largest_speed_m_s": float(np.linalg.norm(state["body_velocity"][free], axis=1).max()),
+        "scene": info,
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    ap.add_argument("--sizes", default=None, help="comma-separated cube counts (default 200 on the CPU, 1e4 on a GPU)")
+    ap.add_argument("--max-time", type=float, default=1.0, help="simulated seconds at most")
+    ap.add_argument("--kinetic-fraction", type=float, default=1e-4, help="settled: kinetic < this x released")
+    ap.add_argument("--hold", type=float, default=0.02, help="settled for this long [s]")
+    ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
+    args = ap.parse_args()
+
+    wp.config.quiet = True
+    wp.init()
+    device = wp.get_device(args.device)
+    default = "200" if device.is_cpu else "1e4"
+    sizes = [int(float(s)) for s in (args.sizes or default).split(",")]
+    out = args.out or os.path.join(
+        os.path.dirname(os.path.abspath(__file__)), "results", f"time_to_settle_{str(device).replace(':', '')}.json"
+    )
+    record = {"meta": run_meta(device), "args": vars(args), "runs": []}
+    head = ("cubes", "settled", "t_settle", "steps", "wall s", "wall/sim", "depth", "max V", "phi", "Z")
+    print(" ".join(f"{h:>9s}" for h in head))
+    for n in sizes:
+        r = run_size(n, args, device)
+        record["runs"].append(r)
+        os.makedirs(os.path.dirname(out), exist_ok=True)
+        with open(out, "w") as f:
+            json.dump(record, f, indent=1)
+        t = r["settle_time_s"]
+        print(
+            f"{n:>9d} {str(r['settled']):>9s} {(format(t, '.3f') if t is not None else '-'):>9s} {r['steps']:>9d} "
+            f"{r['wall_s']:>9.2f} {r['wall_s_per_simulated_s']:>9.2f} {100 * r['max_depth_fraction_of_edge']:>8.1f}% "
+            f"{100 * r['max_overlap_volume_fraction']:>8.2f}% {r['packing_fraction'] or float('nan'):>9.3f} "
+            f"{r['coordination_number'] or float('nan'):>9.2f}"
+        )
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
