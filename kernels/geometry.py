@@ -449,23 +449,6 @@ def make_geometry(
         return h
 
     @wp.func
-    def all_outside64(shapes: Shapes, v0: int, v1: int, n: vec3d, d: wp.float64):
-        # Whether every vertex v0 <= i < v1 (in its own frame) lies beyond the plane n.x = d.
-        for iv in range(v0, v1):
-            if wp.dot(n, shapes.vert64[iv]) <= d:
-                return False
-        return True
-
-    @wp.func
-    def sphere_misses64(
-        c: vec3d, r: wp.float64, u: vec3d, lo: wp.float64, hi: wp.float64, centre: vec3d, reach: wp.float64
-    ):
-        # Whether the sphere (c, r) around a face misses the slab lo <= u.x <= hi or the other
-        # body's bounding sphere (centre, reach): then the face cannot bound the overlap.
-        uc = wp.dot(u, c)
-        return uc + r < lo or uc - r > hi or wp.length_sq(c - centre) > (r + reach) * (r + reach)
-
-    @wp.func
     def support_c(shapes: Shapes, v0: int, v1: int, u: vec3):
         # The reach of the vertices v0 <= i < v1 (own frame) along u, in the clipping precision.
         h = wp.dot(u, shapes.vert[v0])
@@ -506,17 +489,28 @@ def make_geometry(
         return True
 
     @wp.func
-    def least_penetration(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d):
-        # Among the face normals of both bodies (body 1's frame, body 2 at rot x + pos), the unit
-        # direction u along which the shortest translation of body 1 (along -u) separates them,
-        # and the length of that translation.
+    def extent_overlaps(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d, u: vec3d):
+        # How far body 1 (own frame) reaches past body 2 (at rot x + pos) along the unit vector u,
+        # and body 2 past body 1: the translations of body 1 along -u and along +u that separate
+        # them (negative: u separates them already).
+        big = wp.float64(1.0e300)
+        eye = wp.identity(n=3, dtype=wp.float64)
         v10 = shapes.shape_vert_start[s1]
         v11 = shapes.shape_vert_start[s1 + 1]
         v20 = shapes.shape_vert_start[s2]
         v21 = shapes.shape_vert_start[s2 + 1]
-        eye = wp.identity(n=3, dtype=wp.float64)
-        big = wp.float64(1.0e300)
-        best = big
+        sup1 = support64(shapes, v10, v11, eye, zero3d, u, -big)
+        inf1 = -support64(shapes, v10, v11, eye, zero3d, -u, -big)
+        sup2 = support64(shapes, v20, v21, rot, pos, u, -big)
+        inf2 = -support64(shapes, v20, v21, rot, pos, -u, -big)
+        return sup1 - inf2, sup2 - inf1
+
+    @wp.func
+    def least_penetration(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d):
+        # Among the face normals of both bodies (body 1's frame, body 2 at rot x + pos), the unit
+        # direction u along which the shortest translation of body 1 (along -u) separates them,
+        # and the length of that translation.
+        best = wp.float64(1.0e300)
         best_u = vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
         f10 = shapes.shape_face_start[s1]
         f11 = shapes.shape_face_start[s1 + 1]
@@ -529,15 +523,12 @@ def make_geometry(
             else:
                 n, d = plane64(shapes, f - f11 + shapes.shape_face_start[s2])
                 u = rot * n
-            sup1 = support64(shapes, v10, v11, eye, zero3d, u, -big)
-            inf1 = -support64(shapes, v10, v11, eye, zero3d, -u, -big)
-            sup2 = support64(shapes, v20, v21, rot, pos, u, -big)
-            inf2 = -support64(shapes, v20, v21, rot, pos, -u, -big)
-            if sup1 - inf2 < best:
-                best = sup1 - inf2
+            o1, o2 = extent_overlaps(shapes, s1, s2, rot, pos, u)
+            if o1 < best:
+                best = o1
                 best_u = u
-            if sup2 - inf1 < best:
-                best = sup2 - inf1
+            if o2 < best:
+                best = o2
                 best_u = -u
         return best_u, best
 
@@ -881,22 +872,6 @@ def make_geometry(
         )
 
     @wp.func
-    def overlap_along(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d, u: vec3d):
-        # The overlap of the two bodies' extents along the unit vector u (body 1's frame, body 2 at
-        # rot x + pos): the shorter translation along +-u that separates them, negative if u does.
-        big = wp.float64(1.0e300)
-        eye = wp.identity(n=3, dtype=wp.float64)
-        v10 = shapes.shape_vert_start[s1]
-        v11 = shapes.shape_vert_start[s1 + 1]
-        v20 = shapes.shape_vert_start[s2]
-        v21 = shapes.shape_vert_start[s2 + 1]
-        sup1 = support64(shapes, v10, v11, eye, zero3d, u, -big)
-        inf1 = -support64(shapes, v10, v11, eye, zero3d, -u, -big)
-        sup2 = support64(shapes, v20, v21, rot, pos, u, -big)
-        inf2 = -support64(shapes, v20, v21, rot, pos, -u, -big)
-        return wp.min(sup1 - inf2, sup2 - inf1)
-
-    @wp.func
     def edge_pair_overlap(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d, best: wp.float64):
         # The least of `best` and the overlaps along every cross product of an edge of body 1 and
         # an edge of body 2: with the face normals, the axes that hold the least separating
@@ -922,7 +897,8 @@ def make_geometry(
                                 norm = wp.length(axis)
                                 # Parallel edges give no new axis (their cross product is noise).
                                 if norm > wp.float64(1.0e-9) * wp.length(e1) * wp.length(e2):
-                                    best = wp.min(best, overlap_along(shapes, s1, s2, rot, pos, axis / norm))
+                                    o1, o2 = extent_overlaps(shapes, s1, s2, rot, pos, axis / norm)
+                                    best = wp.min(best, wp.min(o1, o2))
         return best
 
     @wp.func

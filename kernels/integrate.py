@@ -91,6 +91,7 @@ class Integrator:
     transform: Any
     body_momentum: Any
     angular_velocity: Any
+    body_kinetic_energy: Any
     integrate_bodies_kernel: Any
     kinetic_energy_kernel: Any
 
@@ -245,6 +246,13 @@ def make_integrator(scalar) -> Integrator:
         body_v_out[i] = v_new
         body_w_out[i] = w_new
 
+    @wp.func
+    def body_kinetic_energy(inv_mass: scalar, inertia: vec3, q: transform, v: vec3, w: vec3):
+        # Translational and rotational kinetic energy [J] of a body of inverse mass > 0 (w in world
+        # axes, the inertia about the principal axes of its frame).
+        wb = wp.quat_rotate_inv(wp.transform_get_rotation(q), w)
+        return scalar(0.5) * wp.dot(v, v) / inv_mass, scalar(0.5) * wp.dot(wb, wp.cw_mul(inertia, wb))
+
     @wp.kernel(enable_backward=False, module="unique")
     def kinetic_energy_kernel(
         # Model
@@ -264,10 +272,7 @@ def make_integrator(scalar) -> Integrator:
         e_ang = scalar(0.0)
         inv_mass = body_inv_mass[i]
         if body_flags[i] == BODY_FREE and inv_mass > scalar(0.0):
-            v = body_v[i]
-            e_lin = scalar(0.5) * wp.dot(v, v) / inv_mass
-            wb = wp.quat_rotate_inv(wp.transform_get_rotation(body_q[i]), body_w[i])
-            e_ang = scalar(0.5) * wp.dot(wb, wp.cw_mul(body_inertia[i], wb))
+            e_lin, e_ang = body_kinetic_energy(inv_mass, body_inertia[i], body_q[i], body_v[i], body_w[i])
         energy_lin[i] = e_lin
         energy_ang[i] = e_ang
 
@@ -278,6 +283,7 @@ def make_integrator(scalar) -> Integrator:
         transform=transform,
         body_momentum=body_momentum,
         angular_velocity=angular_velocity,
+        body_kinetic_energy=body_kinetic_energy,
         integrate_bodies_kernel=integrate_bodies_kernel,
         kinetic_energy_kernel=kinetic_energy_kernel,
     )

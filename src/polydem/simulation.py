@@ -35,7 +35,7 @@ import warp as wp
 
 from polydem.contacts import Contacts, PairHistory
 from polydem.kernels.forces import make_contact_kernels
-from polydem.kernels.integrate import integrate_bodies, kinetic_energy
+from polydem.kernels.integrate import integrate_bodies, kinetic_energy, make_integrator
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.model import Model
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
@@ -101,6 +101,7 @@ def make_check_state_kernel(scalar):
 def make_settle_measures_kernel(scalar):
     """Per free body, in float64: kinetic and gravitational energy; the largest speed of a fastest point."""
     vec3 = wp.types.vector(3, scalar)
+    body_kinetic_energy = make_integrator(scalar).body_kinetic_energy
 
     @wp.kernel(enable_backward=False, module="unique")
     def settle_measures_kernel(
@@ -129,9 +130,8 @@ def make_settle_measures_kernel(scalar):
             v = body_v[i]
             w = body_w[i]
             q = body_q[i]
-            wb = wp.quat_rotate_inv(wp.transform_get_rotation(q), w)
-            e = scalar(0.5) * wp.dot(v, v) / inv_mass + scalar(0.5) * wp.dot(wb, wp.cw_mul(body_inertia[i], wb))
-            body_kinetic[i] = wp.float64(e)
+            e_lin, e_ang = body_kinetic_energy(inv_mass, body_inertia[i], q, v, w)
+            body_kinetic[i] = wp.float64(e_lin + e_ang)
             x = wp.transform_get_translation(q)
             mass = wp.float64(1.0) / wp.float64(inv_mass)
             h = wp.float64(x[0]) * gravity[0] + wp.float64(x[1]) * gravity[1] + wp.float64(x[2]) * gravity[2]

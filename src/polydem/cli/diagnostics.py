@@ -29,23 +29,21 @@ def body_volumes(scene) -> np.ndarray:
     return vol[np.asarray(scene.body_shape)]
 
 
+def _smaller_volume(contacts, volumes) -> np.ndarray:
+    """The volume of the smaller body of each contact (the body's own for walls)."""
+    b = contacts["body_b"]
+    return np.minimum(volumes[contacts["body_a"]], np.where(b >= 0, volumes[np.maximum(b, 0)], np.inf))
+
+
 def relative_overlaps(contacts, volumes) -> np.ndarray:
     """Overlap volume of each contact over the smaller body's volume (the body's own for walls)."""
-    a = contacts["body_a"]
-    b = contacts["body_b"]
-    va = volumes[a]
-    vb = np.where(b >= 0, volumes[np.maximum(b, 0)], np.inf)
-    return contacts["volume"] / np.minimum(va, vb)
+    return contacts["volume"] / _smaller_volume(contacts, volumes)
 
 
 def relative_depths(contacts, volumes) -> np.ndarray:
     """Penetration depth of each contact over the smaller body's size, the cube root of its volume
     (the edge of a cube; the body's own for walls)."""
-    a = contacts["body_a"]
-    b = contacts["body_b"]
-    va = volumes[a]
-    vb = np.where(b >= 0, volumes[np.maximum(b, 0)], np.inf)
-    return contacts["depth"] / np.cbrt(np.minimum(va, vb))
+    return contacts["depth"] / np.cbrt(_smaller_volume(contacts, volumes))
 
 
 def _perpendicular(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

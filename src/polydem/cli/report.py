@@ -29,29 +29,16 @@ class Report:
         self.pictures = pictures
         self.energy_at_start = energy_at_start
 
-    def _largest_overlap(self, contacts) -> dict | None:
-        rel = relative_overlaps(contacts, self.log.volumes) if contacts is not None else np.zeros(0)
+    def _largest(self, contacts, relative, key) -> dict | None:
+        # The contact with the largest ``relative`` measure (overlap or depth), with its ``key`` value.
+        rel = relative(contacts, self.log.volumes) if contacts is not None else np.zeros(0)
         if not len(rel):
             return None
         i = int(np.argmax(rel))
         b = int(contacts["body_b"][i])
         return {
             "relative": float(rel[i]),
-            "volume": float(contacts["volume"][i]),
-            "body_a": int(contacts["body_a"][i]),
-            "body_b": b if b >= 0 else None,
-            "wall": -1 - b if b < 0 else None,
-        }
-
-    def _largest_depth(self, contacts) -> dict | None:
-        rel = relative_depths(contacts, self.log.volumes) if contacts is not None else np.zeros(0)
-        if not len(rel):
-            return None
-        i = int(np.argmax(rel))
-        b = int(contacts["body_b"][i])
-        return {
-            "relative": float(rel[i]),
-            "depth": float(contacts["depth"][i]),
+            key: float(contacts[key][i]),
             "body_a": int(contacts["body_a"][i]),
             "body_b": b if b >= 0 else None,
             "wall": -1 - b if b < 0 else None,
@@ -143,11 +130,11 @@ class Report:
                 "max": int(np.max(frames)) if frames else None,
             },
             "largest_overlap": {
-                "final": self._largest_overlap(contacts),
+                "final": self._largest(contacts, relative_overlaps, "volume"),
                 "max_over_frames": log.frame_overlap if frames else None,
             },
             "largest_depth": {
-                "final": self._largest_depth(contacts),
+                "final": self._largest(contacts, relative_depths, "depth"),
                 "max_over_frames": log.frame_depth if frames else None,
             },
             "energy": {
