@@ -20,6 +20,7 @@ Results: a table on stdout and JSON (``--out``, default
 """
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -38,14 +39,29 @@ from settle import make_scene, scene_options  # noqa: E402
 EDGE = 0.01  # cube edge [m]
 
 
-def run_size(n, args, device):
-    """Pour ``n`` cubes and run to settled; returns the record of the run."""
+def with_tangential_ratio(scene, ratio):
+    """The scene with every material's tangential spring set to ``ratio`` x the derived one (the
+    reference normal stiffness of :meth:`Scene.time_step`)."""
+    if ratio is None:
+        return scene
+    kn = float(np.nanmax(scene.time_step().tangential_stiffness))
+    for name, mat in scene.materials.items():
+        scene._materials[name] = dataclasses.replace(mat, tangential_stiffness=ratio * kn)  # validated again
+    return scene
+
+
+def run_size(n, args, device, dt_scale=1.0):
+    """Pour ``n`` cubes and run to settled at ``dt_scale`` x the recommended step; returns the record."""
     import polydem
 
     options = scene_options(edge=EDGE, precision=args.precision)
     scene, info = make_scene(n, options, seed=args.seed)
+    scene = with_tangential_ratio(scene, args.tangential_ratio)
+    ts = scene.time_step()
+    scene.dt = dt_scale * ts.recommended
     t0 = time.perf_counter()
     sim = Simulation(scene, device=device)
+    e0 = sim.energy()
     sim.step(1)  # kernels compiled, graph captured
     wp.synchronize_device(sim.device)
     setup = time.perf_counter() - t0
@@ -54,6 +70,8 @@ def run_size(n, args, device):
     result = sim.run_until_settled(args.max_time, criterion)
     wp.synchronize_device(sim.device)
     wall = time.perf_counter() - t1
+    e1 = sim.energy()
+    released = e0["gravity"] - e1["gravity"]
     contacts = sim.contacts()
     state = sim.state()
     region = settled_region(scene, state, contacts)
@@ -62,6 +80,12 @@ def run_size(n, args, device):
         "bodies": n,
         "precision": args.precision,
         "dt": sim.dt,
+        "dt_scale": dt_scale,
+        "dt_recommended": ts.recommended,
+        "dt_limit": ts.limit,
+        "tangential_ratio": args.tangential_ratio,
+        "energy_error_of_released": (e1["total"] - e0["total"]) / released if released > 0 else None,
+        "released_j": released,
         "settled": bool(result.settled),
         "settle_time_s": float(result.time) if result.settled else None,
         "simulated_s": sim.time,
@@ -87,6 +111,15 @@ def main():
     ap.add_argument("--hold", type=float, default=0.02, help="settled for this long [s]")
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--dt-scales", default="1", help="comma-separated steps, as multiples of the recommended dt (dt = 'auto')"
+    )
+    ap.add_argument(
+        "--tangential-ratio",
+        type=float,
+        default=None,
+        help="tangential spring stiffness / the derived one (the reference normal stiffness; default: derived)",
+    )
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
     args = ap.parse_args()
 
@@ -99,20 +132,35 @@ def main():
         os.path.dirname(os.path.abspath(__file__)), "results", f"time_to_settle_{str(device).replace(':', '')}.json"
     )
     record = {"meta": run_meta(device), "args": vars(args), "runs": []}
-    head = ("cubes", "settled", "t_settle", "steps", "wall s", "wall/sim", "depth", "max V", "phi", "Z")
+    head = (
+        "cubes",
+        "dt x rec",
+        "settled",
+        "t_settle",
+        "steps",
+        "wall s",
+        "wall/sim",
+        "depth",
+        "max V",
+        "phi",
+        "Z",
+        "E error",
+    )
     print(" ".join(f"{h:>9s}" for h in head))
-    for n in sizes:
-        r = run_size(n, args, device)
+    scales = [float(x) for x in args.dt_scales.split(",")]
+    for n, scale in ((n, scale) for n in sizes for scale in scales):
+        r = run_size(n, args, device, scale)
         record["runs"].append(r)
         os.makedirs(os.path.dirname(out), exist_ok=True)
         with open(out, "w") as f:
             json.dump(record, f, indent=1)
         t = r["settle_time_s"]
         print(
-            f"{n:>9d} {str(r['settled']):>9s} {(format(t, '.3f') if t is not None else '-'):>9s} {r['steps']:>9d} "
+            f"{n:>9d} {scale:>9.3g} {str(r['settled']):>9s} {(format(t, '.3f') if t is not None else '-'):>9s} "
+            f"{r['steps']:>9d} "
             f"{r['wall_s']:>9.2f} {r['wall_s_per_simulated_s']:>9.2f} {100 * r['max_depth_fraction_of_edge']:>8.1f}% "
             f"{100 * r['max_overlap_volume_fraction']:>8.2f}% {r['packing_fraction'] or float('nan'):>9.3f} "
-            f"{r['coordination_number'] or float('nan'):>9.2f}"
+            f"{r['coordination_number'] or float('nan'):>9.2f} {r['energy_error_of_released'] or float('nan'):>+9.2e}"
         )
     print(f"wrote {out}")
 
