@@ -109,9 +109,17 @@ def main():
     ap.add_argument("--warmup-time", type=float, default=0.1, help="simulated pour before the profiled step [s]")
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
+    )
     ap.add_argument("--out", default=None)
     ap.add_argument("--child-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+
+    if args.max_registers is not None:
+        import polydem.kernels.forces as forces
+
+        forces.PAIR_MAX_REGISTERS = args.max_registers
     if args.child_out:
         child(args)
         return
@@ -134,6 +142,8 @@ def main():
         cmd += [sys.executable, os.path.abspath(__file__), "--device", args.device, "--bodies", str(args.bodies)]
         cmd += ["--warmup-time", str(args.warmup_time), "--precision", args.precision, "--seed", str(args.seed)]
         cmd += ["--child-out", child_out]
+        if args.max_registers is not None:
+            cmd += ["--max-registers", str(args.max_registers)]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=540)
         values = pc.parse_ncu_csv(proc.stdout)
         info = {"available": True, "command": " ".join(cmd), "metrics": values}

@@ -681,6 +681,9 @@ def make_parser():
     ap.add_argument("--gap", default="0.002,0.02", help="min,max gap between stacked cubes [edges]")
     ap.add_argument("--spin", type=float, default=0.0, help="initial angular speed [rad/s], random axes")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
+    )
     ap.add_argument("--precision", choices=("float32", "mixed", "float64"), default="float32", help="precision")
     return ap
 
@@ -703,6 +706,11 @@ def scene_options(**overrides):
 
 def main():
     args = parse_args(make_parser())
+
+    if args.max_registers is not None:
+        import polydem.kernels.forces as forces
+
+        forces.PAIR_MAX_REGISTERS = args.max_registers
 
     wp.config.quiet = True
     wp.init()

@@ -112,6 +112,9 @@ def main():
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
+    )
+    ap.add_argument(
         "--dt-scales", default="1", help="comma-separated steps, as multiples of the recommended dt (dt = 'auto')"
     )
     ap.add_argument(
@@ -122,6 +125,11 @@ def main():
     )
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
     args = ap.parse_args()
+
+    if args.max_registers is not None:
+        import polydem.kernels.forces as forces
+
+        forces.PAIR_MAX_REGISTERS = args.max_registers
 
     wp.config.quiet = True
     wp.init()

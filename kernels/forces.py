@@ -76,9 +76,27 @@ class ContactKernels:
     gather_kernel: Any
 
 
+# CUDA register cap of the step's pair kernel (None: the compiler's choice). A module setting so that
+# benchmarks can compare caps (benchmarks/settle.py --max-registers); the measured choice is in BENCHMARKS.md.
+PAIR_MAX_REGISTERS: int | None = None
+
+
+def make_contact_kernels(*args, max_registers: int | None = None, **kwargs):
+    """:func:`_make_contact_kernels` with the register cap resolved (see there)."""
+    return _make_contact_kernels(
+        *args, max_registers=PAIR_MAX_REGISTERS if max_registers is None else max_registers, **kwargs
+    )
+
+
 @functools.cache
-def make_contact_kernels(
-    law: str, friction: bool, max_poly: int, max_faces: int, diagnostics: bool = False, precision: str = "float32"
+def _make_contact_kernels(
+    law: str,
+    friction: bool,
+    max_poly: int,
+    max_faces: int,
+    diagnostics: bool = False,
+    precision: str = "float32",
+    max_registers: int | None = None,
 ):
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -89,6 +107,8 @@ def make_contact_kernels(
     and per-wall arrays. In "mixed" (S float64, C float32) each pair is clipped in a frame centred
     on A, and each wall contact in one centred on the body, so that the float32 geometry sees
     coordinates of the bodies' size however far they are from the origin.
+    ``max_registers`` caps the pair kernel's CUDA registers per thread (default
+    :data:`PAIR_MAX_REGISTERS`; ``None``: no cap).
     """
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
@@ -105,7 +125,7 @@ def make_contact_kernels(
     plane_depth_of = geom.primitives.plane_depth
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def pair_contact_kernel(
         # Model
         shapes: Shapes,
