@@ -58,7 +58,8 @@ summed node box areas to a fresh tree's, ``always`` after every chunk with a dev
 broad phase at the same poses on the tree as the run left it and on a freshly built one (the tree
 walk alone, ``query_*``, and the device rebuild the graph runs, ``device_rebuild_*``), the cost of
 the degradation check and of the tree rebuild, then ``--steps`` steps under POLICY. With
-``--tree-rebuild never --warmup-time 0.3`` the tree has been refitted through 0.3 s of settling.
+``--tree-rebuild never --warmup-time 0.3`` the tree has been refitted since the last host build
+(the first, or the last redone chunk after the pair buffer grew: ``host_builds``) up to 0.3 s.
 
 Order: ``--order`` lists the same cubes (same positions, orientations and spins) in memory in the
 order they are generated (``grid``: layer by layer), shuffled at random, or along a Morton
@@ -68,7 +69,7 @@ them in every order. The physics is that of the same pile; only memory locality 
     python benchmarks/settle.py --device cuda:0                      # 1e3, 1e4, 1e5, 1e6
     python benchmarks/settle.py --device cuda:0 --skin 0             # Verlet list off: rebuilt every step
     python benchmarks/settle.py --device cpu                         # 1e3, 1e4
-    python benchmarks/settle.py --device cuda:0 --sizes 1e5 --warmup-time 0.3 --tree-rebuild never --tree-compare 1.5
+    python benchmarks/settle.py --device cuda:0 --sizes 1e5 --warmup-time 0.3 --tree-rebuild never --tree-compare always
     python benchmarks/settle.py --device cuda:0 --sizes 1e5 --order morton   # body order in memory
 
 Results: a table on stdout and JSON (``--out``, default ``benchmarks/results/settle_<device>.json``)

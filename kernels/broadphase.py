@@ -89,7 +89,7 @@ BOX_PAD = wp.constant(1.0e-5)
 # with this many children per node over the bodies in a Morton order.
 TREE_BRANCHING = wp.constant(4)
 # Default ratio of the cost of the refitted tree to a fresh one above which the tree is rebuilt.
-TREE_REBUILD_RATIO = 1.5
+TREE_REBUILD_RATIO = 1.2
 
 # Default capacity in pairs per body (dense packings of equal spheres with a small skin have
 # 6 to 8 candidate pairs per body).
@@ -133,6 +133,15 @@ def rotation_angle(q: wp.quat, q0: wp.quat):
     r = q * wp.quat_inverse(q0)
     s = wp.length(wp.vec3(r[0], r[1], r[2]))
     return 2.0 * wp.atan2(s, wp.abs(r[3]))
+
+
+@wp.func
+def box_area(lower: wp.vec3, upper: wp.vec3):
+    # Surface area [m^2] of a box, 0 for an empty one (lower above upper).
+    e = upper - lower
+    if e[0] < 0.0:
+        return 0.0
+    return 2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -523,25 +532,16 @@ def needs_rebuild_kernel(
         wp.atomic_max(rebuild_flag, 0, 1)
 
 
-@wp.func
-def box_area(lower: wp.vec3, upper: wp.vec3):
-    # Surface area [m^2] of a box, 0 for an empty one (lower above upper).
-    e = upper - lower
-    if e[0] < 0.0:
-        return 0.0
-    return 2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
-
-
 @wp.kernel(enable_backward=False)
 def leaf_blocks_kernel(
     # Model
     num_bodies: int,
+    slot: int,
     # State in
     order: wp.array(dtype=int),
     body_flags: wp.array(dtype=int),
     box_lower: wp.array(dtype=wp.vec3),
     box_upper: wp.array(dtype=wp.vec3),
-    slot: int,
     # Out
     block_lower: wp.array(dtype=wp.vec3),
     block_upper: wp.array(dtype=wp.vec3),
@@ -568,10 +568,10 @@ def leaf_blocks_kernel(
 def merge_blocks_kernel(
     # Model
     num_children: int,
+    slot: int,
     # State in
     child_lower: wp.array(dtype=wp.vec3),
     child_upper: wp.array(dtype=wp.vec3),
-    slot: int,
     # Out
     block_lower: wp.array(dtype=wp.vec3),
     block_upper: wp.array(dtype=wp.vec3),
@@ -952,7 +952,7 @@ class BroadPhase:
         wp.launch(
             leaf_blocks_kernel,
             dim=m,
-            inputs=[n, order, self.flags_build, self.box_lower, self.box_upper, slot],
+            inputs=[n, slot, order, self.flags_build, self.box_lower, self.box_upper],
             outputs=[src[0], src[1], self._tree_cost],
             device=dev,
         )
@@ -961,7 +961,7 @@ class BroadPhase:
             wp.launch(
                 merge_blocks_kernel,
                 dim=parents,
-                inputs=[m, src[0], src[1], slot],
+                inputs=[m, slot, src[0], src[1]],
                 outputs=[dst[0], dst[1], self._tree_cost],
                 device=dev,
             )

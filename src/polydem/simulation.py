@@ -636,7 +636,7 @@ class Simulation:
             if self.stepper.polygons_overflowed():
                 self.stepper.grow_polygons()
                 redo = True
-            if self.use_graph and self.current_contacts.host_build_needed():
+            if self.stepper.device_rebuild and self.current_contacts.host_build_needed():
                 redo = True
             if redo:
                 self.restore(self._last_good)
