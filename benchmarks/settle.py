@@ -51,9 +51,26 @@ of ``Stepper.forces`` and ``Stepper.integrate`` are timed one by one by wrapping
 pass. These are not a breakdown of the timed steps; the broad phase per step is reported as the
 check plus the rebuild cost times the rebuilds per timed step.
 
+Tree (CUDA): the device broad phase refits the tree of its last host build, and the Simulation
+rebuilds it between chunks when refitting has degraded it (``--tree-rebuild``: a ratio of the
+summed node box areas to a fresh tree's, ``always`` after every chunk with a device rebuild, or
+``never``; ``Simulation(tree_rebuild=)``). ``--tree-compare POLICY`` adds, after the stages, the
+broad phase at the same poses on the tree as the run left it and on a freshly built one (the tree
+walk alone, ``query_*``, and the device rebuild the graph runs, ``device_rebuild_*``), the cost of
+the degradation check and of the tree rebuild, then ``--steps`` steps under POLICY. With
+``--tree-rebuild never --warmup-time 0.3`` the tree has been refitted since the last host build
+(the first, or the last redone chunk after the pair buffer grew: ``host_builds``) up to 0.3 s.
+
+Order: ``--order`` lists the same cubes (same positions, orientations and spins) in memory in the
+order they are generated (``grid``: layer by layer), shuffled at random, or along a Morton
+(Z-order) curve of the cells of one edge holding their centres; the container walls come after
+them in every order. The physics is that of the same pile; only memory locality differs.
+
     python benchmarks/settle.py --device cuda:0                      # 1e3, 1e4, 1e5, 1e6
     python benchmarks/settle.py --device cuda:0 --skin 0             # Verlet list off: rebuilt every step
     python benchmarks/settle.py --device cpu                         # 1e3, 1e4
+    python benchmarks/settle.py --device cuda:0 --sizes 1e5 --warmup-time 0.3 --tree-rebuild never --tree-compare always
+    python benchmarks/settle.py --device cuda:0 --sizes 1e5 --order morton   # body order in memory
 
 Results: a table on stdout and JSON (``--out``, default ``benchmarks/results/settle_<device>.json``)
 with the machine, Warp version and command line, rewritten after every phase of every size, so a
@@ -71,6 +88,7 @@ import traceback
 
 import numpy as np
 import warp as wp
+from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import ConvexShape, Scene, Simulation
 from polydem.simulation import CHUNK_STEPS as CHUNK
@@ -166,6 +184,11 @@ def make_scene(n, args, seed=0):
     if args.spin > 0.0:
         spin = rng.normal(size=(n, 3))
         spin *= args.spin / np.linalg.norm(spin, axis=1, keepdims=True)
+    # The same cubes listed in another order (the container walls stay after them).
+    perm = listing_order(positions, getattr(args, "order", "grid"), a, seed)
+    positions, q = positions[perm], q[perm]
+    if spin is not None:
+        spin = spin[perm]
     scene.add_bodies("cube", "grain", positions, orientations=q, angular_velocities=spin)
     del q, col, cx, cy, x, y, z, positions
 
@@ -187,8 +210,37 @@ def make_scene(n, args, seed=0):
         "container_inner_m": [lx, ly, lz],
         "walls": args.walls,
         "k_hertz": k,
+        "order": getattr(args, "order", "grid"),
     }
     return scene, info
+
+
+ORDERS = ("grid", "shuffled", "morton")
+
+
+def _spread_bits_21(v):
+    # The 21 low bits of v moved to every third bit of a uint64.
+    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F)):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    return (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+
+
+def listing_order(positions, order, cell, seed):
+    """Permutation of the cubes for ``--order``: "grid" (as generated: layer by layer, column by
+    column), "shuffled" (random), "morton" (Z-order of the cells of edge ``cell`` holding the centres)."""
+    n = len(positions)
+    if order == "grid":
+        return np.arange(n)
+    if order == "shuffled":
+        return np.random.default_rng([seed, 1]).permutation(n)
+    if order == "morton":
+        c = np.floor((positions - positions.min(axis=0)) / cell).astype(np.int64)
+        code = _spread_bits_21(c[:, 0]) | (_spread_bits_21(c[:, 1]) << np.uint64(1))
+        code |= _spread_bits_21(c[:, 2]) << np.uint64(2)
+        return np.argsort(code, kind="stable")
+    raise ValueError(f"unknown order {order!r}, expected one of {ORDERS}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -466,7 +518,7 @@ def run_size(n, args, device, record, save):
     if args.skin is not None:
         # In units of the cube's bounding radius; 0 turns the Verlet list off (rebuild every step).
         skin = args.skin * scene.shapes["cube"].radius
-    sim = Simulation(scene, device=device, skin=skin)
+    sim = Simulation(scene, device=device, skin=skin, tree_rebuild=args.tree_rebuild)
     wp.synchronize_device(device)
     t2 = time.perf_counter()
     warmup = args.warmup if args.warmup is not None else max(CHUNK, math.ceil(args.warmup_time / sim.dt))
@@ -479,6 +531,7 @@ def run_size(n, args, device, record, save):
             "dt": sim.dt,
             "skin": sim.skin,
             "use_graph": sim.use_graph,
+            "tree_rebuild": sim.tree_rebuild,
             "scene_s": t1 - t0,
             "simulation_init_s": t2 - t1,
             "first_pairs": int(sim.current_contacts.broadphase.num_pairs),
@@ -498,8 +551,10 @@ def run_size(n, args, device, record, save):
 
     warm_up(sim, warmup, record)
     record["status"] = "warm"
+    record["warmup_tree_rebuilds"] = sim.broadphase.num_tree_rebuilds
     save()
 
+    trees0 = sim.broadphase.num_tree_rebuilds
     seconds, host_builds, dev_rebuilds = timed_steps(sim, args.steps)
     record.update(
         {
@@ -510,6 +565,7 @@ def run_size(n, args, device, record, save):
             "body_steps_per_s": n * args.steps / seconds,
             "host_builds": host_builds,
             "device_rebuilds": dev_rebuilds,
+            "tree_rebuilds": sim.broadphase.num_tree_rebuilds - trees0,
             "simulated_time_s": sim.time,
         }
     )
@@ -536,7 +592,7 @@ def run_size(n, args, device, record, save):
         f"({record['candidate_pairs_grain_grain']} grain-grain), contacts {record['contacts_grain_grain']} "
         f"grain-grain + {record['contacts_grain_wall'] + record['plane_contacts']} wall, max overlap "
         f"{100 * record['max_overlap_volume_fraction']:.2f}% of a cube; rebuilds host {host_builds} device "
-        f"{dev_rebuilds}; {mem['total'] / n:.0f} B/body"
+        f"{dev_rebuilds} tree {record['tree_rebuilds']}; {mem['total'] / n:.0f} B/body"
     )
     save()
 
@@ -564,10 +620,72 @@ def run_size(n, args, device, record, save):
                 else ""
             )
         )
+    if args.tree_compare is not None and sim.use_graph:
+        record["tree_compare"] = compare_trees(sim, args)
+        save()
     record["status"] = "complete"
     save()
     del sim
     gc.collect()
+
+
+def compare_trees(sim, args):
+    """The device broad phase on its tree as it is and on a fresh one, at the same poses; then
+    ``--steps`` steps under the ``--tree-compare`` policy (see the module docstring). Returns a dict."""
+    clock = StageClock(sim.device)
+    state, contacts = sim.current_state, sim.current_contacts
+    bp = contacts.broadphase
+    reps = max(args.rebuild_reps, 1)
+    q, radius = contacts._inputs(state.body_q)
+    contacts.rebuild_on_device(state.body_q)  # the pairs of these poses (history carried over)
+    refits = int(bp.device_rebuilds.numpy()[0])
+
+    def query():
+        bp._query(q, radius)  # the tree walk alone; the list is restored below
+
+    def device_rebuild():
+        contacts.rebuild_on_device(state.body_q)  # what the graph runs: refit, query, sort, history
+
+    for tree in ("as_is", "fresh"):
+        if tree == "fresh":
+            ratio = clock.run("tree_check", bp.tree_degradation)
+            clock.run("tree_rebuild", bp.rebuild_tree)
+        for _ in range(reps):
+            clock.run(f"query_{tree}", query)
+            clock.run(f"device_rebuild_{tree}", device_rebuild)
+    out = {
+        "tree_ratio": ratio,
+        "device_rebuilds_since_host_build": refits,
+        "wall_s": {k: v / clock.calls[k] for k, v in clock.wall.items()},
+        "gpu_s": {k: v / clock.calls[k] for k, v in clock.gpu.items()} if clock.gpu_ok else None,
+    }
+    policy = sim.tree_rebuild
+    sim.tree_rebuild = args.tree_compare
+    trees0 = bp.num_tree_rebuilds
+    try:
+        seconds, host_builds, dev_rebuilds = timed_steps(sim, args.steps)
+    finally:
+        sim.tree_rebuild = policy
+    out.update(
+        {
+            "policy": args.tree_compare,
+            "steps": args.steps,
+            "step_s": seconds / args.steps,
+            "body_steps_per_s": sim.num_bodies * args.steps / seconds,
+            "host_builds": host_builds,
+            "device_rebuilds": dev_rebuilds,
+            "tree_rebuilds": bp.num_tree_rebuilds - trees0,
+        }
+    )
+    w = out["wall_s"]
+    log(
+        f"  tree: degradation {ratio:.2f} after {refits} refits; query {1e3 * w['query_as_is']:.3f} ms as is, "
+        f"{1e3 * w['query_fresh']:.3f} ms fresh; device rebuild {1e3 * w['device_rebuild_as_is']:.3f} / "
+        f"{1e3 * w['device_rebuild_fresh']:.3f} ms; check {1e3 * w['tree_check']:.3f} ms, tree rebuild "
+        f"{1e3 * w['tree_rebuild']:.3f} ms; then tree_rebuild={args.tree_compare}: "
+        f"{1e3 * out['step_s']:.3f} ms/step ({out['tree_rebuilds']} tree rebuilds)"
+    )
+    return out
 
 
 def graph_off(sim, scene, args, record, warmup):
@@ -684,8 +802,36 @@ def make_parser():
     ap.add_argument(
         "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
     )
+    ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes in memory")
+    ap.add_argument(
+        "--tree-rebuild",
+        type=tree_policy,
+        default=TREE_REBUILD_RATIO,
+        help=f"Simulation(tree_rebuild=): a ratio, 'always' (0) or 'never' (default {TREE_REBUILD_RATIO})",
+    )
+    ap.add_argument(
+        "--tree-compare",
+        type=tree_policy,
+        default=None,
+        help="after the run: the broad phase on its tree and on a fresh one, then --steps steps with this policy",
+    )
     ap.add_argument("--precision", choices=("float32", "mixed", "float64"), default="float32", help="precision")
     return ap
+
+
+def tree_policy(text):
+    """``--tree-rebuild`` value: "never" (None), "always" (0) or a ratio."""
+    if text == "never":
+        return None
+    if text == "always":
+        return 0.0
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'never', 'always' or a ratio, got {text!r}") from None
+    if not value >= 0.0:
+        raise argparse.ArgumentTypeError(f"the ratio must be >= 0, got {text!r}")
+    return value
 
 
 def parse_args(ap, argv=None):

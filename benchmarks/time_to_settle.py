@@ -10,7 +10,8 @@ chunk, which compiles the kernels and captures the CUDA graph, is timed apart), 
 simulated second; at the end the largest penetration depth (shortest separating translation, as a
 fraction of the edge) and the largest overlap volume (of a cube's volume), the packing fraction and
 coordination number of the settled interior (``polydem.cli.diagnostics.settled_region``, the
-summary's definition).
+summary's definition). ``--order`` lists the cubes in memory in another order (settle.py's option:
+grid, shuffled, morton) and ``--tree-rebuild`` sets the Simulation's tree renewal policy.
 
     python benchmarks/time_to_settle.py --device cpu                       # 200 cubes
     python benchmarks/time_to_settle.py --device cuda:0 --sizes 1e4,1e5,1e6
@@ -28,13 +29,14 @@ import time
 
 import numpy as np
 import warp as wp
+from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import Simulation
 from polydem.cli.diagnostics import settled_region
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _meta import run_meta  # noqa: E402
-from settle import make_scene, scene_options  # noqa: E402
+from settle import ORDERS, make_scene, scene_options, tree_policy  # noqa: E402
 
 EDGE = 0.01  # cube edge [m]
 
@@ -54,13 +56,13 @@ def run_size(n, args, device, dt_scale=1.0):
     """Pour ``n`` cubes and run to settled at ``dt_scale`` x the recommended step; returns the record."""
     import polydem
 
-    options = scene_options(edge=EDGE, precision=args.precision)
+    options = scene_options(edge=EDGE, precision=args.precision, order=args.order)
     scene, info = make_scene(n, options, seed=args.seed)
     scene = with_tangential_ratio(scene, args.tangential_ratio)
     ts = scene.time_step()
     scene.dt = dt_scale * ts.recommended
     t0 = time.perf_counter()
-    sim = Simulation(scene, device=device)
+    sim = Simulation(scene, device=device, tree_rebuild=args.tree_rebuild)
     e0 = sim.energy()
     sim.step(1)  # kernels compiled, graph captured
     wp.synchronize_device(sim.device)
@@ -79,6 +81,9 @@ def run_size(n, args, device, dt_scale=1.0):
     return {
         "bodies": n,
         "precision": args.precision,
+        "order": args.order,
+        "tree_rebuild": sim.tree_rebuild,
+        "tree_rebuilds": sim.broadphase.num_tree_rebuilds,
         "dt": sim.dt,
         "dt_scale": dt_scale,
         "dt_recommended": ts.recommended,
@@ -122,6 +127,13 @@ def main():
         type=float,
         default=None,
         help="tangential spring stiffness / the derived one (the reference normal stiffness; default: derived)",
+    )
+    ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes (settle.py)")
+    ap.add_argument(
+        "--tree-rebuild",
+        type=tree_policy,
+        default=TREE_REBUILD_RATIO,
+        help=f"Simulation(tree_rebuild=): a ratio, 'always' or 'never' (default {TREE_REBUILD_RATIO})",
     )
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
     args = ap.parse_args()

@@ -27,8 +27,8 @@ walks over the bodies of the classes below its own. Each pair is emitted exactly
 So a large body (a free boulder, a container wall) never walks over the thousands of small grains
 around it, which would stall its warp: the grains find it. A uniform grid would need cells of the
 largest diameter (or a hierarchy of grids) for the same. Query threads run in the Morton order of
-the body centres (sorted at each host build), so that the threads of a warp walk the same part of
-the tree.
+the free bodies' centres (sorted at each host build and tree renewal check; the non-free bodies,
+which do not query, after them), so that the threads of a warp walk the same part of the tree.
 
 The class ratio 8, the Morton order and one atomic per pair were chosen by measurement:
 BENCHMARKS.md, "Design measurements".
@@ -54,8 +54,15 @@ Two ways to drive it:
   an overflow, or a change of body flags (which would need new groups), raises the sticky device
   flag ``host_build_needed``; the host checks it between graph launches
   (:meth:`BroadPhase.check_host_build_needed`), then calls :meth:`BroadPhase.build` and captures
-  again. ``device_rebuilds`` counts the device rebuilds since the last host build, so the host can
-  also renew the tree every so many of them.
+  again. ``device_rebuilds`` counts the device rebuilds since the last host build.
+
+Refitting keeps the tree of the last host build: as bodies move past one another (a pour) its boxes
+grow and overlap and the queries slow down. Between graph launches the host may call
+:meth:`BroadPhase.renew_tree`: after device rebuilds it measures the tree's degradation (the summed
+node box areas of the refitted tree against a fresh one, :meth:`BroadPhase.tree_degradation`) and
+past a ratio rebuilds the tree in place from the boxes of the last rebuild (Warp's LBVH rebuild
+reuses its buffers, so a captured graph stays valid; it allocates scratch, so it stays out of the
+graph). The tree only filters: the pairs, sorted by key, are the same with any tree.
 
 Layout of this file: constants, ``@wp.func`` helpers, the kernels, then the plain numpy
 reference :func:`all_pairs` and the host class :class:`BroadPhase`.
@@ -77,6 +84,12 @@ NUM_GROUPS = 17
 # ulp too small could hide a pair that the exact test accepts. Extra candidates of the BVH are
 # harmless, the exact sphere test below decides.
 BOX_PAD = wp.constant(1.0e-5)
+
+# Tree renewal (:meth:`BroadPhase.renew_tree`): the cost of a tree is measured on an implicit tree
+# with this many children per node over the bodies in a Morton order.
+TREE_BRANCHING = wp.constant(4)
+# Default ratio of the cost of the refitted tree to a fresh one above which the tree is rebuilt.
+TREE_REBUILD_RATIO = 1.2
 
 # Default capacity in pairs per body (dense packings of equal spheres with a small skin have
 # 6 to 8 candidate pairs per body).
@@ -120,6 +133,15 @@ def rotation_angle(q: wp.quat, q0: wp.quat):
     r = q * wp.quat_inverse(q0)
     s = wp.length(wp.vec3(r[0], r[1], r[2]))
     return 2.0 * wp.atan2(s, wp.abs(r[3]))
+
+
+@wp.func
+def box_area(lower: wp.vec3, upper: wp.vec3):
+    # Surface area [m^2] of a box, 0 for an empty one (lower above upper).
+    e = upper - lower
+    if e[0] < 0.0:
+        return 0.0
+    return 2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -296,24 +318,26 @@ def extent_kernel(
 def morton_kernel(
     # State in
     body_q: wp.array(dtype=wp.transform),
+    body_flags: wp.array(dtype=int),
     scene_lower: wp.array(dtype=float),
     scene_upper: wp.array(dtype=float),
     # Out
     morton: wp.array(dtype=int),
     order: wp.array(dtype=int),
 ):
-    """30-bit Morton code of each body centre in the scene box, and the identity order.
-
-    Launch dim: bodies.
+    """30-bit Morton code of each free body's centre in the scene box (2^30 for the others, which so
+    sort after the free bodies: they do not query), and the identity order. Launch dim: bodies.
     """
     i = wp.tid()
     x = wp.transform_get_translation(body_q[i])
-    code = int(0)
-    for k in range(3):
-        lo = scene_lower[k]
-        w = wp.max(scene_upper[k] - lo, 1.0e-30)
-        c = wp.clamp(int((x[k] - lo) / w * 1024.0), 0, 1023)
-        code = code | (spread_bits(c) << k)
+    code = int(1 << 30)
+    if body_flags[i] == FLAG_FREE:
+        code = int(0)
+        for k in range(3):
+            lo = scene_lower[k]
+            w = wp.max(scene_upper[k] - lo, 1.0e-30)
+            c = wp.clamp(int((x[k] - lo) / w * 1024.0), 0, 1023)
+            code = code | (spread_bits(c) << k)
     morton[i] = code
     order[i] = i
 
@@ -508,6 +532,68 @@ def needs_rebuild_kernel(
         wp.atomic_max(rebuild_flag, 0, 1)
 
 
+@wp.kernel(enable_backward=False)
+def leaf_blocks_kernel(
+    # Model
+    num_bodies: int,
+    slot: int,
+    # State in
+    order: wp.array(dtype=int),
+    body_flags: wp.array(dtype=int),
+    box_lower: wp.array(dtype=wp.vec3),
+    box_upper: wp.array(dtype=wp.vec3),
+    # Out
+    block_lower: wp.array(dtype=wp.vec3),
+    block_upper: wp.array(dtype=wp.vec3),
+    tree_cost: wp.array(dtype=wp.float64),
+):
+    """Box around the free bodies ``order[4 b .. 4 b + 3]`` (empty: lower above upper), its surface
+    area added to ``tree_cost[slot]`` [m^2]. Launch dim: ceil(N / 4)."""
+    b = wp.tid()
+    lo = wp.vec3(3.0e38, 3.0e38, 3.0e38)
+    hi = wp.vec3(-3.0e38, -3.0e38, -3.0e38)
+    for k in range(TREE_BRANCHING):
+        t = TREE_BRANCHING * b + k
+        if t < num_bodies:
+            i = order[t]
+            if body_flags[i] == FLAG_FREE:
+                lo = wp.min(lo, box_lower[i])
+                hi = wp.max(hi, box_upper[i])
+    block_lower[b] = lo
+    block_upper[b] = hi
+    wp.atomic_add(tree_cost, slot, wp.float64(box_area(lo, hi)))
+
+
+@wp.kernel(enable_backward=False)
+def merge_blocks_kernel(
+    # Model
+    num_children: int,
+    slot: int,
+    # State in
+    child_lower: wp.array(dtype=wp.vec3),
+    child_upper: wp.array(dtype=wp.vec3),
+    # Out
+    block_lower: wp.array(dtype=wp.vec3),
+    block_upper: wp.array(dtype=wp.vec3),
+    tree_cost: wp.array(dtype=wp.float64),
+):
+    """One level up: box of the blocks ``4 b .. 4 b + 3``, its area added to ``tree_cost[slot]``.
+
+    Launch dim: ceil(num_children / 4).
+    """
+    b = wp.tid()
+    lo = wp.vec3(3.0e38, 3.0e38, 3.0e38)
+    hi = wp.vec3(-3.0e38, -3.0e38, -3.0e38)
+    for k in range(TREE_BRANCHING):
+        c = TREE_BRANCHING * b + k
+        if c < num_children:
+            lo = wp.min(lo, child_lower[c])
+            hi = wp.max(hi, child_upper[c])
+    block_lower[b] = lo
+    block_upper[b] = hi
+    wp.atomic_add(tree_cost, slot, wp.float64(box_area(lo, hi)))
+
+
 # ---------------------------------------------------------------------------------------------
 # Reference and host code
 
@@ -638,6 +724,11 @@ class BroadPhase:
         self.built = False
         self.num_pairs = 0
         self.num_builds = 0
+        # Tree renewal (renew_tree): buffers allocated at the first check.
+        self._tree_order = None
+        self._refits_checked = 0
+        self.num_tree_rebuilds = 0
+        self.tree_ratio = None
         if capacity is None:
             capacity = max(MIN_CAPACITY, DEFAULT_PAIRS_PER_BODY * self.num_bodies)
         self._allocate(int(capacity))
@@ -680,19 +771,21 @@ class BroadPhase:
             device=dev,
         )
 
-    def _spatial_order(self, body_q):
+    def _spatial_order(self):
+        # Query order (body_order): the Morton order of the free bodies at the last (re)build
+        # (q_build, flags_build), the others after them.
         n = self.num_bodies
         dev = self.device
         wp.launch(reset_extent_kernel, dim=1, outputs=[self.scene_lower, self.scene_upper], device=dev)
-        wp.launch(extent_kernel, dim=n, inputs=[body_q], outputs=[self.scene_lower, self.scene_upper], device=dev)
+        wp.launch(extent_kernel, dim=n, inputs=[self.q_build], outputs=[self.scene_lower, self.scene_upper], device=dev)
         wp.launch(
             morton_kernel,
             dim=n,
-            inputs=[body_q, self.scene_lower, self.scene_upper],
+            inputs=[self.q_build, self.flags_build, self.scene_lower, self.scene_upper],
             outputs=[self._morton, self._order_buffer],
             device=dev,
         )
-        wp.utils.radix_sort_pairs(self._morton, self._order_buffer, n, 0, 30)
+        wp.utils.radix_sort_pairs(self._morton, self._order_buffer, n, 0, 31)
 
     def _bounds(self, body_q, body_radius, body_flags):
         wp.launch(
@@ -781,8 +874,11 @@ class BroadPhase:
             self.built = True
             return 0
         self._classes(body_radius, body_flags)
-        self._spatial_order(body_q)
         self._bounds(body_q, body_radius, body_flags)
+        self._spatial_order()
+        self._refits_checked = 0
+        if self._tree_order is not None:
+            wp.copy(self._tree_order, self.body_order)
         if self.bvh is None:
             self.bvh = wp.Bvh(self.box_lower, self.box_upper, groups=self.body_group)
         else:
@@ -832,6 +928,111 @@ class BroadPhase:
         )
         wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, self.capacity, 0, self.key_bits)
         self._unpack()
+
+    # -- tree renewal (host, between steps) -----------------------------------------------------
+
+    def _tree_buffers(self):
+        if self._tree_order is not None:
+            return
+        dev = self.device
+        leaves = -(-max(self.num_bodies, 1) // TREE_BRANCHING)
+        parents = -(-leaves // TREE_BRANCHING)
+        self._tree_order = wp.clone(self.body_order)
+        self._tree_blocks = tuple(
+            (wp.empty(m, dtype=wp.vec3, device=dev), wp.empty(m, dtype=wp.vec3, device=dev)) for m in (leaves, parents)
+        )
+        self._tree_cost = wp.zeros(2, dtype=wp.float64, device=dev)
+
+    def _order_cost(self, order, slot):
+        # Sum of the box areas of every node of the implicit tree over ``order`` into tree_cost[slot].
+        n = self.num_bodies
+        dev = self.device
+        m = -(-n // TREE_BRANCHING)
+        src, dst = self._tree_blocks
+        wp.launch(
+            leaf_blocks_kernel,
+            dim=m,
+            inputs=[n, slot, order, self.flags_build, self.box_lower, self.box_upper],
+            outputs=[src[0], src[1], self._tree_cost],
+            device=dev,
+        )
+        while m > 1:
+            parents = -(-m // TREE_BRANCHING)
+            wp.launch(
+                merge_blocks_kernel,
+                dim=parents,
+                inputs=[m, slot, src[0], src[1]],
+                outputs=[dst[0], dst[1], self._tree_cost],
+                device=dev,
+            )
+            src, dst = dst, src
+            m = parents
+
+    def tree_degradation(self):
+        """How much refitting has degraded the tree: its cost over that of a fresh tree (synchronises).
+
+        A BVH's query cost grows with the surface areas of its nodes' boxes. The tree stands for an
+        implicit one over the free bodies in the Morton order of the last tree build (``TREE_BRANCHING``
+        children per node, leaves the bodies' current boxes); the cost is the sum of the node box
+        areas, and the ratio is against the same sum over the Morton order of the current boxes. About
+        1 right after a build; it grows as bodies move past one another. Also sets the query order
+        (``body_order``) to the current Morton order. Returns a host float (1.0 before a build).
+        """
+        if not self.built or self.bvh is None or self.num_bodies == 0:
+            return 1.0
+        self._tree_buffers()
+        self._tree_cost.zero_()
+        self._order_cost(self._tree_order, 0)
+        self._spatial_order()
+        self._order_cost(self.body_order, 1)
+        old, fresh = (float(v) for v in self._tree_cost.numpy())
+        return old / fresh if fresh > 0.0 else 1.0
+
+    def _rebuild_tree(self):
+        # From the boxes of the last (re)build, in place: a captured graph that refits and queries
+        # this tree stays valid (Warp's LBVH rebuild reuses its buffers); the group roots move.
+        self.bvh.rebuild()
+        wp.launch(
+            group_root_kernel, dim=NUM_GROUPS, inputs=[self.bvh.id], outputs=[self.group_root], device=self.device
+        )
+        wp.copy(self._tree_order, self.body_order)
+        self.num_tree_rebuilds += 1
+
+    def rebuild_tree(self):
+        """Host: build the tree afresh over the boxes of the last (re)build, keeping the pair list.
+
+        Not for a graph capture (Warp's tree build allocates scratch memory). The pair list, its
+        order and the Verlet test are unchanged; the next device rebuild refits the new tree.
+        """
+        if not self.built or self.bvh is None or self.num_bodies == 0:
+            return
+        self._tree_buffers()
+        self._spatial_order()
+        self._rebuild_tree()
+
+    def renew_tree(self, ratio=TREE_REBUILD_RATIO):
+        """Host, between steps: rebuild the tree when device rebuilds since the last check degraded it.
+
+        Args:
+            ratio: rebuild when :meth:`tree_degradation` exceeds this; 0 rebuilds at every check after a
+                device rebuild; None never (the tree of the last host build is refitted for ever).
+
+        Returns:
+            True when the tree was rebuilt. The last ratio measured is in ``tree_ratio``. Synchronises
+            (reads the device rebuild counter); measures only when a device rebuild happened since the
+            last check.
+        """
+        if ratio is None or not self.built or self.bvh is None or self.num_bodies == 0:
+            return False
+        refits = int(self.device_rebuilds.numpy()[0])
+        if refits == self._refits_checked:
+            return False
+        self._refits_checked = refits
+        self.tree_ratio = self.tree_degradation()
+        if not self.tree_ratio > ratio:
+            return False
+        self._rebuild_tree()
+        return True
 
     # -- Verlet test -------------------------------------------------------------------------
 

@@ -462,3 +462,85 @@ def test_cuda_graph_capture(device):
     wp.capture_launch(capture.graph)
     assert int(bp.device_rebuilds.numpy()[0]) == 2
     check_against_reference(bp, scene, skin)
+
+
+# ---------------------------------------------------------------------------------------------
+# Tree renewal: the device rebuilds refit the tree of the last host build; renew_tree rebuilds it
+
+
+def mixing_moves(rng, positions, fraction):
+    """New positions: a ``fraction`` of the bodies trade places at random (the rest stay), plus a jitter."""
+    out = positions.copy()
+    k = int(fraction * len(out))
+    chosen = rng.choice(len(out), k, replace=False)
+    out[chosen] = out[rng.permutation(chosen)]
+    return out + rng.normal(0.0, 0.005, out.shape)
+
+
+def test_tree_degradation_measures_mixing(device):
+    rng = np.random.default_rng(21)
+    scene = random_scene(device, 500, rng, 0.01, 0.03, p_fixed=0.05)
+    bp = BroadPhase(scene.n, device, skin=0.01)
+    bp.build(*scene.args())
+    assert abs(bp.tree_degradation() - 1.0) < 1e-6  # the tree order is the fresh Morton order
+    # Small moves leave the tree good: no rebuild at the default ratio.
+    scene.set_poses(scene.positions + rng.normal(0.0, 0.003, (scene.n, 3)))
+    bp.rebuild_on_device(*scene.args())
+    assert bp.tree_degradation() < 1.1
+    assert not bp.renew_tree()
+    assert not bp.renew_tree(0.0)  # no device rebuild since the last check
+    # Bodies that trade places across the box make the refitted nodes span it.
+    scene.set_poses(mixing_moves(rng, scene.positions, 0.5))
+    bp.rebuild_on_device(*scene.args())
+    assert not bp.renew_tree(None)
+    assert bp.num_tree_rebuilds == 0
+    assert bp.renew_tree()
+    assert bp.tree_ratio > 3.0
+    assert bp.num_tree_rebuilds == 1
+    assert abs(bp.tree_degradation() - 1.0) < 1e-6
+    check_against_reference(bp, scene, 0.01)
+
+
+@pytest.mark.parametrize("class_ratio", [2.0, float("inf")])
+def test_tree_rebuild_keeps_pairs(device, class_ratio):
+    # A broad phase whose tree is rebuilt after every device rebuild against one that only refits:
+    # the same pairs bit for bit (keys and unpacked arrays), equal to brute force. Several size
+    # classes and fixed bodies: the group roots move with a rebuilt tree.
+    rng = np.random.default_rng(22)
+    skin = 0.01
+    scene = random_scene(device, 400, rng, 0.005, 0.05, p_fixed=0.05)
+    refit = BroadPhase(scene.n, device, skin=skin, class_ratio=class_ratio)
+    fresh = BroadPhase(scene.n, device, skin=skin, class_ratio=class_ratio)
+    refit.build(*scene.args())
+    fresh.build(*scene.args())
+    for _ in range(4):
+        scene.set_poses(mixing_moves(rng, scene.positions, 0.3))
+        refit.update_on_device(*scene.args())
+        fresh.update_on_device(*scene.args())
+        assert not refit.check_host_build_needed() and not fresh.check_host_build_needed()
+        key = check_against_reference(refit, scene, skin)
+        np.testing.assert_array_equal(fresh.pairs_numpy()[2], key)
+        np.testing.assert_array_equal(fresh.pair_a.numpy(), refit.pair_a.numpy())
+        np.testing.assert_array_equal(fresh.pair_b.numpy(), refit.pair_b.numpy())
+        assert fresh.renew_tree(0.0)
+    assert fresh.num_tree_rebuilds == 4 and refit.num_tree_rebuilds == 0
+    assert refit.tree_degradation() > 2.0
+
+
+def test_tree_rebuild_between_graph_launches(device):
+    if not wp.get_device(device).is_cuda:
+        pytest.skip("CUDA graph capture needs a GPU")
+    rng = np.random.default_rng(23)
+    skin = 0.01
+    scene = random_scene(device, 3000, rng, 0.005, 0.05, p_fixed=0.1)
+    bp = BroadPhase(scene.n, device, skin=skin)
+    bp.build(*scene.args())
+    with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+        bp.update_on_device(*scene.args())
+    for _ in range(3):
+        scene.set_poses(mixing_moves(rng, scene.positions, 0.3))
+        wp.capture_launch(capture.graph)
+        assert not bp.check_host_build_needed()
+        check_against_reference(bp, scene, skin)
+        assert bp.renew_tree(0.0)  # in place: the graph stays valid
+    assert int(bp.device_rebuilds.numpy()[0]) == 3

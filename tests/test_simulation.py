@@ -549,7 +549,8 @@ def pour(device, nx, nz):
 # 7. Determinism
 
 
-def test_same_scene_twice_is_bit_identical(device):
+def busy_box_scene():
+    """27 mixed bodies thrown about in a box container with a floor plane: many contacts and rebuilds."""
     scene = single_material_scene(restitution=0.5, friction=0.5, k=1.0e6)  # soft: dt = 0.5 ms, 0.35 s in all
     shapes = mixed_shapes(scene)
     scene.add_box_container((0.0, 0.0, 0.35), (0.7, 0.7, 0.7), "m")
@@ -563,6 +564,11 @@ def test_same_scene_twice_is_bit_identical(device):
             shapes[i % 3].name, "m", position=p, orientation=quats[i], velocity=rng.normal(size=3),
             angular_velocity=rng.normal(size=3) * 5.0,
         )  # fmt: skip
+    return scene
+
+
+def test_same_scene_twice_is_bit_identical(device):
+    scene = busy_box_scene()
 
     def run():
         sim = Simulation(scene, device)
@@ -576,6 +582,34 @@ def test_same_scene_twice_is_bit_identical(device):
     assert e1 == e2
     for k in c1:
         assert np.array_equal(c1[k], c2[k]), k
+
+
+def test_tree_rebuild_leaves_results_bit_identical(device):
+    # The device broad phase refits its tree; a tree rebuilt after every chunk with a device rebuild
+    # (tree_rebuild=0) must give the same run bit for bit as the tree of the first build refitted
+    # throughout (None): the tree only filters the candidates, whose list is sorted by key.
+    scene = busy_box_scene()
+
+    def run(tree_rebuild):
+        sim = Simulation(scene, device, tree_rebuild=tree_rebuild)
+        # The device rebuild path (refit, conditional branch) also where there is no graph (the CPU).
+        sim.stepper.device_rebuild = True
+        sim.step(700)
+        return sim.state(), sim.contacts(), sim.broadphase
+
+    (s1, c1, bp1), (s2, c2, bp2) = run(None), run(0.0)
+    assert bp1.num_tree_rebuilds == 0 and bp2.num_tree_rebuilds >= 5
+    assert bp1.num_builds == bp2.num_builds == 1  # no redone chunk: every later rebuild was a device one
+    assert len(c1["volume"]) > 10
+    for k in s1:
+        assert np.array_equal(s1[k], s2[k]), k
+    for k in c1:
+        assert np.array_equal(c1[k], c2[k]), k
+
+
+def test_tree_rebuild_option_is_checked():
+    with pytest.raises(ValueError, match="tree_rebuild"):
+        Simulation(busy_box_scene(), "cpu", tree_rebuild=-1.0)
 
 
 def test_stepper_writes_the_next_state(device):

@@ -34,6 +34,7 @@ import numpy as np
 import warp as wp
 
 from polydem.contacts import Contacts, PairHistory
+from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 from polydem.kernels.forces import make_contact_kernels
 from polydem.kernels.integrate import integrate_bodies, kinetic_energy, make_integrator
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
@@ -451,6 +452,11 @@ class Simulation:
         device: Warp device, default Warp's default device ("cuda:0" when there is one).
         skin: Verlet skin [m]; default a fifth of the smallest free body's bounding radius.
         use_graph: capture the step as a CUDA graph (default: on CUDA devices).
+        tree_rebuild: when the broad phase rebuilds on the device (the CUDA graph), it refits the tree of
+            the last host build; after each chunk of steps the tree is rebuilt when refitting has made it
+            this many times as costly as a fresh one (:meth:`~polydem.kernels.broadphase.BroadPhase.renew_tree`);
+            0: after every chunk with a device rebuild; None: never. The pairs, and so the results, do
+            not depend on it. Without the graph every rebuild builds a fresh tree.
 
     Attributes:
         model: the :class:`~polydem.model.Model` (static).
@@ -460,7 +466,10 @@ class Simulation:
         steps_done: steps taken; time: ``steps_done * dt`` [s]; dt: time step [s].
     """
 
-    def __init__(self, scene, device=None, skin=None, use_graph=None):
+    def __init__(self, scene, device=None, skin=None, use_graph=None, tree_rebuild=TREE_REBUILD_RATIO):
+        if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
+            raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
+        self.tree_rebuild = None if tree_rebuild is None else float(tree_rebuild)
         self.model = model = Model(scene, device)
         self.device = dev = model.device
         self.dt = model.dt
@@ -627,7 +636,7 @@ class Simulation:
             if self.stepper.polygons_overflowed():
                 self.stepper.grow_polygons()
                 redo = True
-            if self.use_graph and self.current_contacts.host_build_needed():
+            if self.stepper.device_rebuild and self.current_contacts.host_build_needed():
                 redo = True
             if redo:
                 self.restore(self._last_good)
@@ -637,6 +646,8 @@ class Simulation:
                 self._report_nonfinite(bad)
             if not self._tunnel_warned and self.stepper.went_too_fast():
                 self._warn_too_fast(chunk)
+            if self.stepper.device_rebuild:
+                self.current_contacts.broadphase.renew_tree(self.tree_rebuild)
             done += chunk
             self.steps_done += chunk
             self.time += chunk * self.dt
