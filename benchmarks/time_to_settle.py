@@ -1,4 +1,4 @@
-"""Time to a settled packing: wall time until a poured pile of cubes comes to rest.
+"""Time to a settled packing: wall time until a poured pile of cubes (or of mixed shapes) comes to rest.
 
 The scene is the settling benchmark's (benchmarks/settle.py: 1 cm cubes in loose columns in an open
 box of fixed slabs, hertz, e = 0.5, mu = 0.5, k for a 1% overlap under 20 column weights, dt
@@ -12,11 +12,19 @@ fraction of the edge) and the largest overlap volume (of a cube's volume), the p
 coordination number of the settled interior (``polydem.cli.diagnostics.settled_region``, the
 summary's definition).
 
+``--shapes mixed``: settle.py's mixed set instead of cubes (cubes, regular tetrahedra, 20-vertex
+rocks and 2:1:1 boxes of the cube's volume, in equal numbers, in the same columns spaced for the
+largest bounding sphere); the depth and overlap of each contact are then fractions of its smaller
+body's size (the cube root of its volume) and volume (``polydem.cli.diagnostics.relative_depths``,
+``relative_overlaps``): ``max_depth_fraction_of_size`` instead of ``max_depth_fraction_of_edge``.
+
     python benchmarks/time_to_settle.py --device cpu                       # 200 cubes
     python benchmarks/time_to_settle.py --device cuda:0 --sizes 1e4,1e5,1e6
+    python benchmarks/time_to_settle.py --device cuda:0 --sizes 1e4,1e5 --shapes mixed
 
 Results: a table on stdout and JSON (``--out``, default
-``benchmarks/results/time_to_settle_<device>.json``), rewritten after every size.
+``benchmarks/results/time_to_settle_<device>.json``, ``..._<device>_mixed.json`` for the mixed
+set), rewritten after every size.
 """
 
 import argparse
@@ -29,20 +37,24 @@ import numpy as np
 import warp as wp
 
 from polydem import Simulation
-from polydem.cli.diagnostics import settled_region
+from polydem.cli.diagnostics import body_volumes, relative_depths, relative_overlaps, settled_region
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _meta import run_meta  # noqa: E402
-from settle import make_scene, scene_options  # noqa: E402
+from settle import SHAPE_SETS, make_scene, scene_options  # noqa: E402
 
 EDGE = 0.01  # cube edge [m]
 
 
+def _largest(values):
+    return float(np.max(values)) if len(values) else 0.0
+
+
 def run_size(n, args, device):
-    """Pour ``n`` cubes and run to settled; returns the record of the run."""
+    """Pour ``n`` bodies and run to settled; returns the record of the run."""
     import polydem
 
-    options = scene_options(edge=EDGE, precision=args.precision)
+    options = scene_options(edge=EDGE, precision=args.precision, shapes=args.shapes)
     scene, info = make_scene(n, options, seed=args.seed)
     t0 = time.perf_counter()
     sim = Simulation(scene, device=device)
@@ -58,8 +70,21 @@ def run_size(n, args, device):
     state = sim.state()
     region = settled_region(scene, state, contacts)
     free = np.flatnonzero(scene.body_kind == 0)
+    if args.shapes == "cube":
+        sizes = {
+            "max_depth_fraction_of_edge": _largest(contacts["depth"]) / EDGE,
+            "max_overlap_volume_fraction": _largest(contacts["volume"]) / EDGE**3,
+        }
+    else:
+        # Bodies of different shapes: each contact against its smaller body (the summary's measure).
+        volumes = body_volumes(scene)
+        sizes = {
+            "max_depth_fraction_of_size": _largest(relative_depths(contacts, volumes)),
+            "max_overlap_volume_fraction": _largest(relative_overlaps(contacts, volumes)),
+        }
     return {
         "bodies": n,
+        "shapes": args.shapes,
         "precision": args.precision,
         "dt": sim.dt,
         "settled": bool(result.settled),
@@ -69,8 +94,7 @@ def run_size(n, args, device):
         "setup_wall_s": setup,
         "wall_s": wall,
         "wall_s_per_simulated_s": wall / max(sim.time, 1e-30),
-        "max_depth_fraction_of_edge": float(contacts["depth"].max()) / EDGE if len(contacts["depth"]) else 0.0,
-        "max_overlap_volume_fraction": float(contacts["volume"].max()) / EDGE**3 if len(contacts["volume"]) else 0.0,
+        **sizes,
         "packing_fraction": region.get("packing_fraction"),
         "coordination_number": region.get("coordination_number"),
         "largest_speed_m_s": float(np.linalg.norm(state["body_velocity"][free], axis=1).max()),
@@ -86,6 +110,7 @@ def main():
     ap.add_argument("--kinetic-fraction", type=float, default=1e-4, help="settled: kinetic < this x released")
     ap.add_argument("--hold", type=float, default=0.02, help="settled for this long [s]")
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
+    ap.add_argument("--shapes", default="cube", choices=SHAPE_SETS, help="cubes, or settle.py's mixed set")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
     args = ap.parse_args()
@@ -95,11 +120,11 @@ def main():
     device = wp.get_device(args.device)
     default = "200" if device.is_cpu else "1e4"
     sizes = [int(float(s)) for s in (args.sizes or default).split(",")]
-    out = args.out or os.path.join(
-        os.path.dirname(os.path.abspath(__file__)), "results", f"time_to_settle_{str(device).replace(':', '')}.json"
-    )
+    tag = str(device).replace(":", "") + ("" if args.shapes == "cube" else f"_{args.shapes}")
+    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", f"time_to_settle_{tag}.json")
     record = {"meta": run_meta(device), "args": vars(args), "runs": []}
-    head = ("cubes", "settled", "t_settle", "steps", "wall s", "wall/sim", "depth", "max V", "phi", "Z")
+    head = ("cubes" if args.shapes == "cube" else "bodies", "settled", "t_settle", "steps", "wall s", "wall/sim")
+    head += ("depth", "max V", "phi", "Z")
     print(" ".join(f"{h:>9s}" for h in head))
     for n in sizes:
         r = run_size(n, args, device)
@@ -108,9 +133,10 @@ def main():
         with open(out, "w") as f:
             json.dump(record, f, indent=1)
         t = r["settle_time_s"]
+        depth = r.get("max_depth_fraction_of_edge", r.get("max_depth_fraction_of_size"))
         print(
             f"{n:>9d} {str(r['settled']):>9s} {(format(t, '.3f') if t is not None else '-'):>9s} {r['steps']:>9d} "
-            f"{r['wall_s']:>9.2f} {r['wall_s_per_simulated_s']:>9.2f} {100 * r['max_depth_fraction_of_edge']:>8.1f}% "
+            f"{r['wall_s']:>9.2f} {r['wall_s_per_simulated_s']:>9.2f} {100 * depth:>8.1f}% "
             f"{100 * r['max_overlap_volume_fraction']:>8.2f}% {r['packing_fraction'] or float('nan'):>9.3f} "
             f"{r['coordination_number'] or float('nan'):>9.2f}"
         )
