@@ -10,6 +10,10 @@ The columns are ``sqrt(3) edge (1 + margin)`` apart and jittered sideways by les
 the floor. Nothing overlaps at the start (checked: ``initial_contacts``) and grid neighbours are
 candidate pairs from the first step. The pile then settles: it compacts from a packing fraction of
 about 0.2 and the columns topple; 1000 cubes come to rest after about 0.2 s simulated.
+``--shapes mixed`` pours equal numbers of cubes, regular tetrahedra, 20-vertex rocks and 2:1:1
+boxes, each of the cube's volume, in random order, the columns spaced for the largest bounding
+sphere and each body stacked by its own vertical extent (``--shapes cube``, the default, draws the
+same numbers as before the option existed).
 
 Stiffness: k is such that a face contact carrying ``--load-factor`` times the weight of a whole
 column overlaps by ``--overlap`` (1%) of the cube volume. Edge and corner contacts overlap more
