@@ -9,7 +9,8 @@ the largest penetration at rest, or the time to a settled pile.
     python benchmarks/peers/newton_pour.py --grains 10000 --device cuda:0 --dt-sweep 1e-3,5e-4,2.5e-4,1.25e-4
 
 Newton is an optional benchmark dependency, never a runtime one. Its version must not move
-warp-lang (newton 1.8.0 takes warp-lang>=1.17 and leaves polydem's 1.19 in place).
+warp-lang (newton 1.8.0 takes warp-lang>=1.17 and leaves polydem's 1.19 in place). On the lent GPU
+machine it comes as a staged wheel: ``bash ../shared/gpu/stage.sh --extra newton`` (``.gpu3/``).
 
 Scene: the exported pour (cubes and five fixed wall boxes of polydem's box container), each cube a
 free body with one convex-hull shape (``add_shape_convex_hull`` of the cube's 8 vertices and 12
@@ -434,8 +435,6 @@ def settle_run(sc, scene, builder, device, args, dt, save_poses):
     n = sc["grains"]
     criterion = criterion_of(args)
     every = args.check_every
-    if every % args.substeps:
-        sys.exit(f"--check-every ({every}) must be a multiple of --substeps ({args.substeps})")
     t0 = time.perf_counter()
     model = builder.finalize(device=device)
     runner = Runner(model, args, dt)
@@ -491,7 +490,13 @@ def settle_main(sc, device, args):
 
     n = sc["grains"]
     sweep = args.dt_sweep is not None
-    dts = [float(v) for v in args.dt_sweep.split(",")] if sweep else [args.dt or sc["dt"]]
+    try:
+        criterion_of(args)
+        dts = [float(v) for v in args.dt_sweep.split(",")] if sweep else [args.dt or sc["dt"]]
+    except ValueError as err:
+        sys.exit(f"newton_pour.py: {err}")
+    if args.check_every < 1 or args.check_every % args.substeps:
+        sys.exit(f"newton_pour.py: --check-every ({args.check_every}) must be a multiple of --substeps {args.substeps}")
     scene = pour_scene_of(sc)
     t0 = time.perf_counter()
     # The Python loop over the bodies (about 0.5 ms a body) once; a fresh Model per dt.
