@@ -10,6 +10,10 @@ The columns are ``sqrt(3) edge (1 + margin)`` apart and jittered sideways by les
 the floor. Nothing overlaps at the start (checked: ``initial_contacts``) and grid neighbours are
 candidate pairs from the first step. The pile then settles: it compacts from a packing fraction of
 about 0.2 and the columns topple; 1000 cubes come to rest after about 0.2 s simulated.
+``--shapes mixed`` pours equal numbers of cubes, regular tetrahedra, 20-vertex rocks and 2:1:1
+boxes, each of the cube's volume, in random order, the columns spaced for the largest bounding
+sphere and each body stacked by its own vertical extent (``--shapes cube``, the default, draws the
+same numbers as before the option existed).
 
 Stiffness: k is such that a face contact carrying ``--load-factor`` times the weight of a whole
 column overlaps by ``--overlap`` (1%) of the cube volume. Edge and corner contacts overlap more
@@ -143,8 +147,46 @@ def hertz_k(edge, density, layers, overlap, load_factor, g=9.81):
     return force / (math.sqrt(volume) * edge**2)
 
 
+SHAPE_SETS = ("cube", "mixed")
+"""``--shapes``: cubes only, or a mixed set of cubes, regular tetrahedra, 20-vertex rocks and 2:1:1 boxes,
+each of the cube's volume, in equal numbers (see :func:`shape_set`)."""
+
+
+def shape_set(edge, shapes="cube"):
+    """The pile's shapes as a list of ConvexShape: the cube of edge ``edge``, or for "mixed" the cube,
+    a regular tetrahedron, a 20-vertex rock (seed 1) and a 2:1:1 box, all of volume edge^3."""
+    cube = ConvexShape.box(edge, name="cube")
+    if shapes == "cube":
+        return [cube]
+    if shapes != "mixed":
+        raise ValueError(f"shapes must be one of {SHAPE_SETS}, got {shapes!r}")
+    volume = edge**3
+    # A regular tetrahedron of edge t has volume t^3 / (6 sqrt 2).
+    tetra = ConvexShape.tetrahedron((6.0 * math.sqrt(2.0) * volume) ** (1.0 / 3.0), name="tetrahedron")
+    unit_rock = ConvexShape.rock(20, size=1.0, seed=1)
+    rock = ConvexShape.rock(20, size=(volume / unit_rock.volume) ** (1.0 / 3.0), seed=1, name="rock20")
+    b = (0.5 * volume) ** (1.0 / 3.0)
+    long_box = ConvexShape.box(2.0 * b, b, b, name="box211")
+    return [cube, tetra, rock, long_box]
+
+
+def input_vertices(shape):
+    """A shape's vertices in its input frame, whose origin and axes ``Scene.add_bodies`` places [m]."""
+    return np.asarray(shape.vertices) @ np.asarray(shape.input_rotation).T + np.asarray(shape.input_translation)
+
+
+def vertical_extents(q, vertices):
+    """(below, above) (n,): how far the vertices of bodies turned by unit quaternions q (n, 4) xyzw
+    reach below and above their origin, for input-frame ``vertices`` (m, 3)."""
+    x, y, z, w = q.T
+    row = np.column_stack([2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)])
+    heights = row @ np.asarray(vertices).T
+    return -heights.min(axis=1), heights.max(axis=1)
+
+
 def make_scene(n, args, seed=0):
-    """The pile of ``n`` cubes and its container; returns (scene, info dict)."""
+    """The pile of ``n`` bodies (``args.shapes``: cubes, or the mixed set of :func:`shape_set`) and its
+    container; returns (scene, info dict)."""
     a = args.edge
     layers = args.layers
     rng = np.random.default_rng(seed)
@@ -154,15 +196,20 @@ def make_scene(n, args, seed=0):
     scene.add_material(
         "grain", density=args.density, law="hertz", k=k, restitution=args.restitution, friction=args.friction
     )
-    scene.add_shape("cube", ConvexShape.box(a, name="cube"))
+    shapes = shape_set(a, getattr(args, "shapes", "cube"))
+    for shape in shapes:
+        scene.add_shape(shape.name, shape)
+    mixed = len(shapes) > 1
 
     # Columns on a square-ish grid; body i is in layer i // columns, column i % columns.
     columns = max(1, math.ceil(n / layers))
     nx = max(1, math.ceil(math.sqrt(columns)))
     ny = max(1, math.ceil(columns / nx))
     nz = math.ceil(n / columns)
-    spacing = SQRT3 * a * (1.0 + args.margin)
-    jitter = 0.45 * (spacing - SQRT3 * a)  # |dx|, |dy| < jitter: columns' spheres stay apart
+    # Bounding diameter: the cube's sqrt(3) a, or the largest of the set's.
+    diameter = 2.0 * max(s.radius for s in shapes) if mixed else SQRT3 * a
+    spacing = diameter * (1.0 + args.margin)
+    jitter = 0.45 * (spacing - diameter)  # |dx|, |dy| < jitter: columns' spheres stay apart
 
     q = random_quaternions(rng, n)
     col = np.arange(n) % columns
@@ -170,26 +217,45 @@ def make_scene(n, args, seed=0):
     cy = (col // nx - 0.5 * (ny - 1)) * spacing
     x = cx + rng.uniform(-jitter, jitter, n)
     y = cy + rng.uniform(-jitter, jitter, n)
-    # Stack each column: bottom of cube k = top of cube k-1 + gap (the floor is z = 0).
-    hz = np.zeros((nz, columns))
-    hz.reshape(-1)[:n] = half_heights(q, a)
+    if mixed:
+        # From a generator of its own, so that the cubes' draws above and below stay those of "cube".
+        which = np.random.default_rng([seed, 1]).permutation(n) % len(shapes)
+        below = np.zeros(n)
+        above = np.zeros(n)
+        for s, shape in enumerate(shapes):
+            rows = which == s
+            below[rows], above[rows] = vertical_extents(q[rows], input_vertices(shape))
+    else:
+        below = above = half_heights(q, a)
+    # Stack each column: bottom of body k = top of body k-1 + gap (the floor is z = 0).
+    lo = np.zeros((nz, columns))
+    hi = np.zeros((nz, columns))
+    lo.reshape(-1)[:n] = below
+    hi.reshape(-1)[:n] = above
     gaps = rng.uniform(args.gap[0], args.gap[1], (nz, columns)) * a
-    heights = 2.0 * hz + gaps
+    heights = lo + hi + gaps
     bottom = np.cumsum(heights, axis=0) - heights + gaps
-    z = (bottom + hz).reshape(-1)[:n]
-    top = float(np.max((bottom + 2.0 * hz).reshape(-1)[:n]))
-    del hz, gaps, heights, bottom
+    z = (bottom + lo).reshape(-1)[:n]
+    top = float(np.max((bottom + (lo + hi)).reshape(-1)[:n]))
+    del lo, hi, gaps, heights, bottom
     positions = np.column_stack([x, y, z])
     spin = None
     if args.spin > 0.0:
         spin = rng.normal(size=(n, 3))
         spin *= args.spin / np.linalg.norm(spin, axis=1, keepdims=True)
-    # The same cubes listed in another order (the container walls stay after them).
+    # The same bodies listed in another order (the container walls stay after them).
     perm = listing_order(positions, getattr(args, "order", "grid"), a, seed)
     positions, q = positions[perm], q[perm]
     if spin is not None:
         spin = spin[perm]
-    scene.add_bodies("cube", "grain", positions, orientations=q, angular_velocities=spin)
+    if mixed:
+        which = which[perm]
+        for s, shape in enumerate(shapes):
+            rows = which == s
+            w = None if spin is None else spin[rows]
+            scene.add_bodies(shape.name, "grain", positions[rows], orientations=q[rows], angular_velocities=w)
+    else:
+        scene.add_bodies("cube", "grain", positions, orientations=q, angular_velocities=spin)
     del q, col, cx, cy, x, y, z, positions
 
     lx = nx * spacing + 0.1 * a
@@ -212,6 +278,8 @@ def make_scene(n, args, seed=0):
         "k_hertz": k,
         "order": getattr(args, "order", "grid"),
     }
+    if mixed:
+        info["shapes"] = {shape.name: int(np.sum(which == s)) for s, shape in enumerate(shapes)}
     return scene, info
 
 
@@ -795,7 +863,10 @@ def make_parser():
     ap.add_argument("--friction", type=float, default=0.5)
     ap.add_argument("--overlap", type=float, default=0.01, help="target overlap volume / cube volume")
     ap.add_argument("--load-factor", type=float, default=20.0, help="design load / weight of a full column")
-    ap.add_argument("--margin", type=float, default=0.03, help="column spacing = sqrt(3) edge (1 + margin)")
+    ap.add_argument(
+        "--shapes", choices=SHAPE_SETS, default="cube", help="cubes, or cubes, tetrahedra, rocks and 2:1:1 boxes"
+    )
+    ap.add_argument("--margin", type=float, default=0.03, help="column spacing = bounding diameter (1 + margin)")
     ap.add_argument("--gap", default="0.002,0.02", help="min,max gap between stacked cubes [edges]")
     ap.add_argument("--spin", type=float, default=0.0, help="initial angular speed [rad/s], random axes")
     ap.add_argument("--seed", type=int, default=0)

@@ -1,4 +1,4 @@
-"""Time to a settled packing: wall time until a poured pile of cubes comes to rest.
+"""Time to a settled packing: wall time until a poured pile of cubes (or of mixed shapes) comes to rest.
 
 The scene is the settling benchmark's (benchmarks/settle.py: 1 cm cubes in loose columns in an open
 box of fixed slabs, hertz, e = 0.5, mu = 0.5, k for a 1% overlap under 20 column weights, dt
@@ -13,11 +13,19 @@ coordination number of the settled interior (``polydem.cli.diagnostics.settled_r
 summary's definition). ``--order`` lists the cubes in memory in another order (settle.py's option:
 grid, shuffled, morton) and ``--tree-rebuild`` sets the Simulation's tree renewal policy.
 
+``--shapes mixed``: settle.py's mixed set instead of cubes (cubes, regular tetrahedra, 20-vertex
+rocks and 2:1:1 boxes of the cube's volume, in equal numbers, in the same columns spaced for the
+largest bounding sphere); the depth and overlap of each contact are then fractions of its smaller
+body's size (the cube root of its volume) and volume (``polydem.cli.diagnostics.relative_depths``,
+``relative_overlaps``): ``max_depth_fraction_of_size`` instead of ``max_depth_fraction_of_edge``.
+
     python benchmarks/time_to_settle.py --device cpu                       # 200 cubes
     python benchmarks/time_to_settle.py --device cuda:0 --sizes 1e4,1e5,1e6
+    python benchmarks/time_to_settle.py --device cuda:0 --sizes 1e4,1e5 --shapes mixed
 
 Results: a table on stdout and JSON (``--out``, default
-``benchmarks/results/time_to_settle_<device>.json``), rewritten after every size.
+``benchmarks/results/time_to_settle_<device>.json``, ``..._<device>_mixed.json`` for the mixed
+set), rewritten after every size.
 """
 
 import argparse
@@ -32,13 +40,17 @@ import warp as wp
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import Simulation
-from polydem.cli.diagnostics import settled_region
+from polydem.cli.diagnostics import body_volumes, relative_depths, relative_overlaps, settled_region
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _meta import run_meta  # noqa: E402
-from settle import ORDERS, make_scene, scene_options, tree_policy  # noqa: E402
+from settle import ORDERS, SHAPE_SETS, make_scene, scene_options, tree_policy  # noqa: E402
 
 EDGE = 0.01  # cube edge [m]
+
+
+def _largest(values):
+    return float(np.max(values)) if len(values) else 0.0
 
 
 def with_tangential_ratio(scene, ratio):
@@ -53,10 +65,10 @@ def with_tangential_ratio(scene, ratio):
 
 
 def run_size(n, args, device, dt_scale=1.0):
-    """Pour ``n`` cubes and run to settled at ``dt_scale`` x the recommended step; returns the record."""
+    """Pour ``n`` bodies and run to settled at ``dt_scale`` x the recommended step; returns the record."""
     import polydem
 
-    options = scene_options(edge=EDGE, precision=args.precision, order=args.order)
+    options = scene_options(edge=EDGE, precision=args.precision, order=args.order, shapes=args.shapes)
     scene, info = make_scene(n, options, seed=args.seed)
     scene = with_tangential_ratio(scene, args.tangential_ratio)
     ts = scene.time_step()
@@ -78,8 +90,21 @@ def run_size(n, args, device, dt_scale=1.0):
     state = sim.state()
     region = settled_region(scene, state, contacts)
     free = np.flatnonzero(scene.body_kind == 0)
+    if args.shapes == "cube":
+        sizes = {
+            "max_depth_fraction_of_edge": _largest(contacts["depth"]) / EDGE,
+            "max_overlap_volume_fraction": _largest(contacts["volume"]) / EDGE**3,
+        }
+    else:
+        # Bodies of different shapes: each contact against its smaller body (the summary's measure).
+        volumes = body_volumes(scene)
+        sizes = {
+            "max_depth_fraction_of_size": _largest(relative_depths(contacts, volumes)),
+            "max_overlap_volume_fraction": _largest(relative_overlaps(contacts, volumes)),
+        }
     return {
         "bodies": n,
+        "shapes": args.shapes,
         "precision": args.precision,
         "order": args.order,
         "tree_rebuild": sim.tree_rebuild,
@@ -98,8 +123,7 @@ def run_size(n, args, device, dt_scale=1.0):
         "setup_wall_s": setup,
         "wall_s": wall,
         "wall_s_per_simulated_s": wall / max(sim.time, 1e-30),
-        "max_depth_fraction_of_edge": float(contacts["depth"].max()) / EDGE if len(contacts["depth"]) else 0.0,
-        "max_overlap_volume_fraction": float(contacts["volume"].max()) / EDGE**3 if len(contacts["volume"]) else 0.0,
+        **sizes,
         "packing_fraction": region.get("packing_fraction"),
         "coordination_number": region.get("coordination_number"),
         "largest_speed_m_s": float(np.linalg.norm(state["body_velocity"][free], axis=1).max()),
@@ -115,6 +139,7 @@ def main():
     ap.add_argument("--kinetic-fraction", type=float, default=1e-4, help="settled: kinetic < this x released")
     ap.add_argument("--hold", type=float, default=0.02, help="settled for this long [s]")
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
+    ap.add_argument("--shapes", default="cube", choices=SHAPE_SETS, help="cubes, or settle.py's mixed set")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
@@ -148,24 +173,11 @@ def main():
     device = wp.get_device(args.device)
     default = "200" if device.is_cpu else "1e4"
     sizes = [int(float(s)) for s in (args.sizes or default).split(",")]
-    out = args.out or os.path.join(
-        os.path.dirname(os.path.abspath(__file__)), "results", f"time_to_settle_{str(device).replace(':', '')}.json"
-    )
+    tag = str(device).replace(":", "") + ("" if args.shapes == "cube" else f"_{args.shapes}")
+    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", f"time_to_settle_{tag}.json")
     record = {"meta": run_meta(device), "args": vars(args), "runs": []}
-    head = (
-        "cubes",
-        "dt x rec",
-        "settled",
-        "t_settle",
-        "steps",
-        "wall s",
-        "wall/sim",
-        "depth",
-        "max V",
-        "phi",
-        "Z",
-        "E error",
-    )
+    head = ("cubes" if args.shapes == "cube" else "bodies", "dt x rec", "settled", "t_settle", "steps", "wall s")
+    head += ("wall/sim", "depth", "max V", "phi", "Z", "E error")
     print(" ".join(f"{h:>9s}" for h in head))
     scales = [float(x) for x in args.dt_scales.split(",")]
     for n, scale in ((n, scale) for n in sizes for scale in scales):
@@ -175,10 +187,10 @@ def main():
         with open(out, "w") as f:
             json.dump(record, f, indent=1)
         t = r["settle_time_s"]
+        depth = r.get("max_depth_fraction_of_edge", r.get("max_depth_fraction_of_size"))
         print(
             f"{n:>9d} {scale:>9.3g} {str(r['settled']):>9s} {(format(t, '.3f') if t is not None else '-'):>9s} "
-            f"{r['steps']:>9d} "
-            f"{r['wall_s']:>9.2f} {r['wall_s_per_simulated_s']:>9.2f} {100 * r['max_depth_fraction_of_edge']:>8.1f}% "
+            f"{r['steps']:>9d} {r['wall_s']:>9.2f} {r['wall_s_per_simulated_s']:>9.2f} {100 * depth:>8.1f}% "
             f"{100 * r['max_overlap_volume_fraction']:>8.2f}% {r['packing_fraction'] or float('nan'):>9.3f} "
             f"{r['coordination_number'] or float('nan'):>9.2f} {r['energy_error_of_released'] or float('nan'):>+9.2e}"
         )

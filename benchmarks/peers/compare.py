@@ -158,8 +158,11 @@ def measure_overlaps(positions, quats, scene):
         half = np.asarray(w["half_extents_body"])
         box = polydem.ConvexShape.box(*(2.0 * half))
         centre = np.asarray(w["center"])
-        # Walls are axis-aligned: the distance from a cube centre to the box decides the candidates.
-        gap = np.maximum(np.abs(pos - centre) - half, 0.0)
+        # Walls are axis-aligned in the world, but the side walls' body axes are turned against it
+        # (half_extents_body is not the world box): the distance from a cube centre to the world box
+        # of the wall's vertices decides the candidates.
+        corners = np.asarray(w["world_vertices"], dtype=np.float64)
+        gap = np.maximum(np.maximum(corners.min(axis=0) - pos, pos - corners.max(axis=0)), 0.0)
         near = np.flatnonzero(np.linalg.norm(gap, axis=1) < r)
         if len(near):
             wall_pose = np.concatenate([centre, w["orientation_xyzw"]])
