@@ -1807,3 +1807,37 @@ def test_toml_until_settled_errors(tmp_path, lines, key, match):
     assert err.key == key
     assert re.search(match, str(err)), str(err)
     assert "\n" not in str(err)
+
+
+def test_derived_tangential_spring_has_the_normal_frequency():
+    """The derived friction spring is k_n / rotation_factor: a sticking contact's tangential-rotational
+    oscillation then has the normal contact's frequency (BEFORE: kt = k_n, so a cube's sticking corner
+    contact oscillated 2.35x faster than dt = "auto" assumed, and a packed pile gained 2e-2 of its
+    released energy at 4x the step). A given spring enters the time step with the factor."""
+    from polydem.scene.checks import reference_stiffness, rotation_factor
+
+    cube = ConvexShape.box(0.02)
+    assert rotation_factor(cube, 2500.0 * cube.volume, 2500.0 * np.asarray(cube.inertia)) == pytest.approx(5.5)
+    # A sphere (fine icosphere): 1 + m r^2 / (2/5 m r^2) = 3.5, the usual kt = 2/7 k_n.
+    ball = ConvexShape.from_points(trimesh.creation.icosphere(subdivisions=3, radius=0.01).vertices)
+    assert rotation_factor(ball, 1000.0 * ball.volume, 1000.0 * np.asarray(ball.inertia)) == pytest.approx(
+        3.5, rel=0.02
+    )
+    assert rotation_factor(cube, 0.0, np.zeros(3)) == 1.0
+
+    scene = Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("stone", density=2500.0, law="hertz", k=1e8, restitution=0.4, friction=0.5)
+    scene.add_shape("cube", ConvexShape.box(0.02))
+    scene.add_body("cube", "stone", position=(0.0, 0.0, 0.1))
+    ts = scene.time_step()
+    k_n = float(reference_stiffness("hertz", 1e8, 1.5, cube.volume))
+    assert float(ts.tangential_stiffness[0, 0]) == pytest.approx(k_n / 5.5)
+    # The same spring given in the material: the same step; k_n given: the step shrinks by sqrt(5.5).
+    for kt, ratio in ((k_n / 5.5, 1.0), (k_n, math.sqrt(5.5))):
+        other = Scene(gravity=(0.0, 0.0, -9.81))
+        other.add_material(
+            "stone", density=2500.0, law="hertz", k=1e8, restitution=0.4, friction=0.5, tangential_stiffness=kt
+        )
+        other.add_shape("cube", ConvexShape.box(0.02))
+        other.add_body("cube", "stone", position=(0.0, 0.0, 0.1))
+        assert other.time_step().period == pytest.approx(ts.period / ratio, rel=1e-9)
