@@ -395,8 +395,8 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
 # traffic differs (BENCHMARKS.md has the timings):
 # - "planes": the clipping planes are computed again from the float64 shape table wherever they
 #   are read, instead of once per pair into per-thread tables (max_faces x 4 per body);
-# - "masks": the active faces of each body are one bit each in a 64-bit register instead of a
-#   per-thread list of max_faces indices (only where every shape has at most 64 faces);
+# - "masks": the active faces of each body are one bit each in one or two 64-bit registers instead
+#   of a per-thread list of max_faces indices (only where every shape has at most 128 faces);
 # - "stream-in": a face's vertices are read from the shape (and moved to the pair-local frame) by
 #   the first clipping pass instead of copied into the polygon buffer first;
 # - "stream-out": each clipping pass is held back until the next clipping plane is known, so that
@@ -447,7 +447,8 @@ def make_geometry(
         pose_scalar = scalar
     features = pair_variant(variant).split("+")
     local_planes = "planes" in features
-    face_masks = "masks" in features and max_faces <= 64
+    face_masks = "masks" in features and max_faces <= 128
+    two_words = max_faces > 64  # the masks' second word (faces 64-127)
     stream_in = "stream-in" in features
     stream_out = "stream-out" in features
     prim = make_primitives(scalar, pose_scalar)
@@ -506,9 +507,29 @@ def make_geometry(
         return to_scalar3(rot * v + off_2)
 
     @wp.func
-    def active(mask: wp.uint64, k: int):
-        # Whether bit k of a face mask is set.
-        return ((mask >> wp.uint64(k)) & wp.uint64(1)) != wp.uint64(0)
+    def active(lo: wp.uint64, hi: wp.uint64, k: int):
+        # Whether bit k of a face mask (words lo, hi) is set.
+        if wp.static(two_words):
+            if k >= 64:
+                return ((hi >> wp.uint64(k - 64)) & wp.uint64(1)) != wp.uint64(0)
+        return ((lo >> wp.uint64(k)) & wp.uint64(1)) != wp.uint64(0)
+
+    @wp.func
+    def with_bit(lo: wp.uint64, hi: wp.uint64, k: int):
+        # The face mask (lo, hi) with bit k set.
+        if wp.static(two_words):
+            if k >= 64:
+                return lo, hi | (wp.uint64(1) << wp.uint64(k - 64))
+        return lo | (wp.uint64(1) << wp.uint64(k)), hi
+
+    @wp.func
+    def none_from(lo: wp.uint64, hi: wp.uint64, k: int):
+        # Whether no bit k or above of the face mask (lo, hi) is set.
+        if wp.static(two_words):
+            if k >= 64:
+                return (hi >> wp.uint64(k - 64)) == wp.uint64(0)
+            return (lo >> wp.uint64(k)) == wp.uint64(0) and hi == wp.uint64(0)
+        return (lo >> wp.uint64(k)) == wp.uint64(0)
 
     @wp.func
     def support64(shapes: Shapes, v0: int, v1: int, rot: mat33d, off: vec3d, u: vec3d, floor: wp.float64):
@@ -699,7 +720,9 @@ def make_geometry(
         # The active faces of each body: a bit per face in a register (face_masks), or a list of
         # their indices in per-thread memory. Either way they are visited in increasing index order.
         mask_1 = wp.uint64(0)
+        mask_1h = wp.uint64(0)
         mask_2 = wp.uint64(0)
+        mask_2h = wp.uint64(0)
         if wp.static(not face_masks):
             ids_1 = ids_t()
             ids_2 = ids_t()
@@ -724,7 +747,7 @@ def make_geometry(
             if sphere_misses_c(vec3(sph_c[0], sph_c[1], sph_c[2]), sph_c[3] + slack, uc, lo_c, hi_c, pos_c, r2_c):
                 continue
             if wp.static(face_masks):
-                mask_1 = mask_1 | (wp.uint64(1) << wp.uint64(f - f10))
+                mask_1, mask_1h = with_bit(mask_1, mask_1h, f - f10)
             else:
                 ids_1[num_1] = f
             num_1 += 1
@@ -751,7 +774,7 @@ def make_geometry(
             if sphere_misses_c(cc, sph_c[3] + slack, uc, lo_c, hi_c, zero3, r1_c):
                 continue
             if wp.static(face_masks):
-                mask_2 = mask_2 | (wp.uint64(1) << wp.uint64(g - f20))
+                mask_2, mask_2h = with_bit(mask_2, mask_2h, g - f20)
             else:
                 ids_2[num_2] = g
             num_2 += 1
@@ -779,7 +802,7 @@ def make_geometry(
             for j in range(slots_1):
                 f = int(0)
                 if wp.static(face_masks):
-                    if not active(mask_1, j):
+                    if not active(mask_1, mask_1h, j):
                         continue
                     f = f10 + j
                 else:
@@ -801,14 +824,14 @@ def make_geometry(
             planes_1 = planes_t()
             for j in range(slots_1):
                 if wp.static(face_masks):
-                    if active(mask_1, j):
+                    if active(mask_1, mask_1h, j):
                         planes_1[j] = plane_row_1(shapes, f10 + j, apex)
                 else:
                     planes_1[j] = plane_row_1(shapes, ids_1[j], apex)
             planes_2 = planes_t()
             for j in range(slots_2):
                 if wp.static(face_masks):
-                    if active(mask_2, j):
+                    if active(mask_2, mask_2h, j):
                         planes_2[j] = plane_row_2(shapes, f20 + j, rot, off_2)
                 else:
                     planes_2[j] = plane_row_2(shapes, ids_2[j], rot, off_2)
@@ -836,7 +859,7 @@ def make_geometry(
             plane = vec4()
             if face_is_1:
                 if wp.static(face_masks):
-                    if not active(mask_1, j):
+                    if not active(mask_1, mask_1h, j):
                         continue
                     face = f10 + j
                 else:
@@ -848,7 +871,7 @@ def make_geometry(
                     plane = planes_1[j]
             else:
                 if wp.static(face_masks):
-                    if not active(mask_2, j - slots_1):
+                    if not active(mask_2, mask_2h, j - slots_1):
                         continue
                     face = f20 + j - slots_1
                 else:
@@ -882,18 +905,18 @@ def make_geometry(
                 other = int(0)
                 if face_is_1:
                     if wp.static(face_masks):
-                        if (mask_2 >> wp.uint64(i)) == wp.uint64(0):
+                        if none_from(mask_2, mask_2h, i):
                             break
-                        if not active(mask_2, i):
+                        if not active(mask_2, mask_2h, i):
                             continue
                         other = f20 + i
                     else:
                         other = ids_2[i]
                 else:
                     if wp.static(face_masks):
-                        if (mask_1 >> wp.uint64(i)) == wp.uint64(0):
+                        if none_from(mask_1, mask_1h, i):
                             break
-                        if not active(mask_1, i):
+                        if not active(mask_1, mask_1h, i):
                             continue
                         other = f10 + i
                     else:

@@ -21,7 +21,7 @@ ALL_FEATURES = "+".join(PAIR_FEATURES)
 SETS = {
     # At most 64 faces per shape: the "masks" feature is in use.
     "cube_rock": lambda: [ConvexShape.box(1.0), ConvexShape.rock(n_points=20, size=0.7, seed=1)],
-    # More than 64 faces: the masks fall back to index lists.
+    # 64 to 128 faces: the masks take two words.
     "hull64": lambda: [ConvexShape.rock(n_points=64, size=1.0, seed=2), ConvexShape.box(0.5)],
 }
 
@@ -84,7 +84,7 @@ def run(shapes, sa, sb, pa, pb, variant, pose_scalar, device):
 def test_variants_agree_bit_for_bit(device, shape_set, precision):
     shapes_list = SETS[shape_set]()
     shapes = ShapeSet(shapes_list, device=device, precision="float32")
-    assert (shapes.max_faces <= 64) == (shape_set == "cube_rock")
+    assert (shapes.max_faces <= 64) == (shape_set == "cube_rock") and shapes.max_faces <= 128
     pose_scalar = wp.float64 if precision == "mixed" else wp.float32
     sa, sb, pa, pb = random_pairs(shapes_list, np.random.default_rng(7), 1024)
     ref = run(shapes, sa, sb, pa, pb, "buffered", pose_scalar, device)
