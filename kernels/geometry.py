@@ -392,7 +392,8 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
 
 # Ways of holding a pair's working set in pair_geometry (a variant names those it uses, joined by
 # "+"; "buffered" names none). Each gives the same results bit for bit, only the per-thread memory
-# traffic differs (BENCHMARKS.md has the timings):
+# traffic differs (benchmarks/pair_kernel.py --variants times them side by side,
+# benchmarks/pair_kernel_ptxas.py gives their registers and stack frames):
 # - "planes": the clipping planes are computed again from the float64 shape table wherever they
 #   are read, instead of once per pair into per-thread tables (max_faces x 4 per body);
 # - "masks": the active faces of each body are one bit each in one or two 64-bit registers instead
@@ -817,8 +818,8 @@ def make_geometry(
                 apex = foot
         # The pair-local frame: body 1's axes, origin at the apex. Planes and vertices are moved
         # there in float64 and only then rounded to the clipping precision (plane_row_1,
-        # plane_row_2, face_vertex), either once per pair into per-thread tables or, with
-        # local_planes, again wherever a plane is read (the same arithmetic, so the same bits).
+        # plane_row_2, face_vertex), either once per pair into per-thread tables or ("planes")
+        # again wherever a plane is read: the same arithmetic, so the same bits.
         off_2 = pos - apex  # body 2's centre, pair-local
         if wp.static(not local_planes):
             planes_1 = planes_t()
