@@ -79,13 +79,13 @@ def run(shapes, sa, sb, pa, pb, variant, pose_scalar, device):
     return {name: out[name].numpy() for name in OVERLAP_OUTPUTS}
 
 
-@pytest.mark.parametrize("precision", ["float32", "mixed"])
+@pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
 @pytest.mark.parametrize("shape_set", sorted(SETS))
 def test_variants_agree_bit_for_bit(device, shape_set, precision):
     shapes_list = SETS[shape_set]()
-    shapes = ShapeSet(shapes_list, device=device, precision="float32")
+    shapes = ShapeSet(shapes_list, device=device, precision="float64" if precision == "float64" else "float32")
     assert (shapes.max_faces <= 64) == (shape_set == "cube_rock") and shapes.max_faces <= 128
-    pose_scalar = wp.float64 if precision == "mixed" else wp.float32
+    pose_scalar = wp.float32 if precision == "float32" else wp.float64
     sa, sb, pa, pb = random_pairs(shapes_list, np.random.default_rng(7), 1024)
     ref = run(shapes, sa, sb, pa, pb, "buffered", pose_scalar, device)
     touching = ref["pair_volume"] > 0.0
@@ -94,8 +94,9 @@ def test_variants_agree_bit_for_bit(device, shape_set, precision):
     for variant in sorted({*PAIR_FEATURES, ALL_FEATURES, DEFAULT_PAIR_VARIANT}):
         got = run(shapes, sa, sb, pa, pb, variant, pose_scalar, device)
         for name in OVERLAP_OUTPUTS:
+            # Compared as raw bytes: equal bits, not merely equal values (-0.0 == 0.0).
             same = np.all(
-                got[name].reshape(len(sa), -1).view(np.uint32) == ref[name].reshape(len(sa), -1).view(np.uint32), axis=1
+                got[name].reshape(len(sa), -1).view(np.uint8) == ref[name].reshape(len(sa), -1).view(np.uint8), axis=1
             )
             assert same.all(), f"{variant}: {name} differs from 'buffered' in {np.flatnonzero(~same)[:10]}"
 
