@@ -398,12 +398,14 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
 #   are read, instead of once per pair into per-thread tables (max_faces x 4 per body);
 # - "masks": the active faces of each body are one bit each in one or two 64-bit registers instead
 #   of a per-thread list of max_faces indices (only where every shape has at most 128 faces);
+# - "popc" (with "masks"): the clipping loop visits the set bits of the other body's mask, found by
+#   population count, instead of testing the bit of each of its faces (fewer steps, more registers);
 # - "stream-in": a face's vertices are read from the shape (and moved to the pair-local frame) by
 #   the first clipping pass instead of copied into the polygon buffer first;
 # - "stream-out": each clipping pass is held back until the next clipping plane is known, so that
 #   the last one feeds the fan triangulation directly instead of the buffer.
 # With both, a face clipped by one plane never touches the buffer; but they hold more registers.
-PAIR_FEATURES = ("planes", "masks", "stream-in", "stream-out")
+PAIR_FEATURES = ("planes", "masks", "popc", "stream-in", "stream-out")
 DEFAULT_PAIR_VARIANT = "planes+masks+stream-in"
 
 
@@ -450,6 +452,7 @@ def make_geometry(
     local_planes = "planes" in features
     face_masks = "masks" in features and max_faces <= 128
     two_words = max_faces > 64  # the masks' second word (faces 64-127)
+    bit_visits = face_masks and "popc" in features
     stream_in = "stream-in" in features
     stream_out = "stream-out" in features
     prim = make_primitives(scalar, pose_scalar)
@@ -522,6 +525,17 @@ def make_geometry(
             if k >= 64:
                 return lo, hi | (wp.uint64(1) << wp.uint64(k - 64))
         return lo | (wp.uint64(1) << wp.uint64(k)), hi
+
+    @wp.func
+    def next_bit(lo: wp.uint64, hi: wp.uint64):
+        # The lowest set bit of the face mask (lo, hi): its index (the count of the bits below
+        # it), and the mask without it.
+        if wp.static(two_words):
+            if lo == wp.uint64(0):
+                k = wp.bit_count((hi & (wp.uint64(0) - hi)) - wp.uint64(1))
+                return k + 64, lo, hi & (hi - wp.uint64(1))
+        k = wp.bit_count((lo & (wp.uint64(0) - lo)) - wp.uint64(1))
+        return k, lo & (lo - wp.uint64(1)), hi
 
     @wp.func
     def none_from(lo: wp.uint64, hi: wp.uint64, k: int):
@@ -866,6 +880,8 @@ def make_geometry(
                 else:
                     face = ids_1[j]
                 num_planes = slots_2
+                if wp.static(bit_visits):
+                    num_planes = num_2
                 if wp.static(local_planes):
                     plane = plane_row_1(shapes, face, apex)
                 else:
@@ -878,6 +894,8 @@ def make_geometry(
                 else:
                     face = ids_2[j - slots_1]
                 num_planes = slots_1
+                if wp.static(bit_visits):
+                    num_planes = num_1
                 if wp.static(local_planes):
                     plane = plane_row_2(shapes, face, rot, off_2)
                 else:
@@ -902,10 +920,24 @@ def make_geometry(
             cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
             pending = bool(False)  # stream-out: a clip by `held` is still to run
             held = vec4()
-            for i in range(num_planes):
+            # popc: the other body's planes still to visit (copies: Warp would alias a plain name).
+            rest = wp.uint64(0)
+            rest_h = wp.uint64(0)
+            if wp.static(bit_visits):
+                if face_is_1:
+                    rest = wp.uint64(mask_2)
+                    rest_h = wp.uint64(mask_2h)
+                else:
+                    rest = wp.uint64(mask_1)
+                    rest_h = wp.uint64(mask_1h)
+            for t in range(num_planes):
+                i = t  # the plane's row in planes_1 / planes_2 (face_masks: its face's slot)
                 other = int(0)
                 if face_is_1:
-                    if wp.static(face_masks):
+                    if wp.static(bit_visits):
+                        i, rest, rest_h = next_bit(rest, rest_h)
+                        other = f20 + i
+                    elif wp.static(face_masks):
                         if none_from(mask_2, mask_2h, i):
                             break
                         if not active(mask_2, mask_2h, i):
@@ -914,7 +946,10 @@ def make_geometry(
                     else:
                         other = ids_2[i]
                 else:
-                    if wp.static(face_masks):
+                    if wp.static(bit_visits):
+                        i, rest, rest_h = next_bit(rest, rest_h)
+                        other = f10 + i
+                    elif wp.static(face_masks):
                         if none_from(mask_1, mask_1h, i):
                             break
                         if not active(mask_1, mask_1h, i):

@@ -91,7 +91,7 @@ def test_variants_agree_bit_for_bit(device, shape_set, precision):
     touching = ref["pair_volume"] > 0.0
     assert 0.3 * len(sa) < touching.sum() < 0.9 * len(sa)  # overlapping and separated pairs both
     assert (np.linalg.norm(ref["pair_fallback_a"], axis=1) > 0.0).sum() > 10  # enclosed pairs
-    for variant in sorted({*PAIR_FEATURES, ALL_FEATURES, DEFAULT_PAIR_VARIANT}):
+    for variant in sorted({*PAIR_FEATURES, "masks+popc", ALL_FEATURES, DEFAULT_PAIR_VARIANT}):
         got = run(shapes, sa, sb, pa, pb, variant, pose_scalar, device)
         for name in OVERLAP_OUTPUTS:
             # Compared as raw bytes: equal bits, not merely equal values (-0.0 == 0.0).
