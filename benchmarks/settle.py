@@ -92,6 +92,7 @@ import traceback
 
 import numpy as np
 import warp as wp
+from polydem.kernels import geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import ConvexShape, Scene, Simulation
@@ -596,6 +597,7 @@ def run_size(n, args, device, record, save):
     record.update(
         {
             "status": "built",
+            "pair_variant": sim.stepper.kernels.geometry.variant,
             "dt": sim.dt,
             "skin": sim.skin,
             "use_graph": sim.use_graph,
@@ -813,6 +815,7 @@ def print_table(records):
         ("rebuilds", 8, lambda r: f"{r['host_builds'] + r['device_rebuilds']}"),
         ("B/body", 7, lambda r: f"{r['memory']['bytes_per_body']:.0f}"),
         ("nograph", 9, lambda r: f"{1e3 * r['no_graph']['step_s']:.3f}" if "no_graph" in r else "-"),
+        ("variant", 24, lambda r: r.get("pair_variant", "-")),
     ]
     log("")
     log(
@@ -887,6 +890,11 @@ def make_parser():
         help="after the run: the broad phase on its tree and on a fresh one, then --steps steps with this policy",
     )
     ap.add_argument("--precision", choices=("float32", "mixed", "float64"), default="float32", help="precision")
+    ap.add_argument(
+        "--variants",
+        default=geometry.DEFAULT_PAIR_VARIANT,
+        help="comma-separated pair-kernel variants (kernels/geometry.py PAIR_FEATURES), each timed per size",
+    )
     return ap
 
 
@@ -960,9 +968,11 @@ def main():
     log(f"settle benchmark on {device.name} ({device.alias}), Warp {wp.config.version}; sizes {sizes}, ")
     warm = f"{args.warmup} warm-up steps" if args.warmup else f"{args.warmup_time} s simulated warm-up"
     log(f"  {args.steps} timed steps after {warm}; walls {args.walls}; JSON -> {out}")
-    for n in sizes:
-        record = {"grains": n, "status": "started"}
+    variants = [geometry.pair_variant(v) for v in args.variants.split(",")]
+    for n, variant in ((n, v) for n in sizes for v in variants):
+        record = {"grains": n, "pair_variant": variant, "status": "started"}
         records.append(record)
+        geometry.DEFAULT_PAIR_VARIANT = variant  # read by each new Simulation
         try:
             run_size(n, args, device, record, save)
         except Exception as err:  # keep what was measured, go on with the next size

@@ -57,7 +57,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import warp as wp
-from polydem.kernels.geometry import make_geometry
+from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
 
@@ -97,6 +97,7 @@ def _make_contact_kernels(
     diagnostics: bool = False,
     precision: str = "float32",
     max_registers: int | None = None,
+    variant: str = DEFAULT_PAIR_VARIANT,
 ):
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -106,7 +107,8 @@ def _make_contact_kernels(
     points) and the scalar C of the geometry, the response, the material table and the per-pair
     and per-wall arrays. In "mixed" (S float64, C float32) each pair is clipped in a frame centred
     on A, and each wall contact in one centred on the body, so that the float32 geometry sees
-    coordinates of the bodies' size however far they are from the origin.
+    coordinates of the bodies' size however far they are from the origin. ``variant`` picks how
+    the pair geometry holds its working set (:func:`polydem.kernels.geometry.make_geometry`).
     ``max_registers`` caps the pair kernel's CUDA registers per thread (default
     :data:`PAIR_MAX_REGISTERS`; ``None``: no cap).
     """
@@ -117,7 +119,7 @@ def _make_contact_kernels(
     resp = make_response(C, law, friction, diagnostics)
     law_energy = resp.law_energy
     respond = resp.respond
-    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S)
+    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
     Shapes = geom.shapes
     pair_geometry = geom.pair_geometry
     plane_geometry = geom.primitives.plane_geometry

@@ -154,6 +154,7 @@ class Geometry:
     max_poly: int
     max_faces: int
     tol_rel: float
+    variant: str  # the pair-kernel variant (see PAIR_FEATURES), canonical spelling
     primitives: Primitives
     pair_geometry: Any
     pair_depth: Any
@@ -389,9 +390,47 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
     )
 
 
+# Ways of holding a pair's working set in pair_geometry (a variant names those it uses, joined by
+# "+"; "buffered" names none). Each gives the same results bit for bit, only the per-thread memory
+# traffic differs (benchmarks/pair_kernel.py --variants times them side by side,
+# benchmarks/pair_kernel_ptxas.py gives their registers and stack frames):
+# - "planes": the clipping planes are computed again from the float64 shape table wherever they
+#   are read, instead of once per pair into per-thread tables (max_faces x 4 per body);
+# - "masks": the active faces of each body are one bit each in one or two 64-bit registers instead
+#   of a per-thread list of max_faces indices (only where every shape has at most 128 faces);
+# - "popc" (with "masks"): the clipping loop visits the set bits of the other body's mask, found by
+#   population count, instead of testing the bit of each of its faces (fewer steps, more registers);
+# - "stream-in": a face's vertices are read from the shape (and moved to the pair-local frame) by
+#   the first clipping pass instead of copied into the polygon buffer first;
+# - "stream-out": each clipping pass is held back until the next clipping plane is known, so that
+#   the last one feeds the fan triangulation directly instead of the buffer.
+# With both, a face clipped by one plane never touches the buffer; but they hold more registers.
+PAIR_FEATURES = ("planes", "masks", "popc", "stream-in", "stream-out")
+DEFAULT_PAIR_VARIANT = "planes+masks+stream-in"
+
+
+def pair_variant(name: str) -> str:
+    """The canonical spelling of a pair-kernel variant ("buffered" or features of PAIR_FEATURES
+    joined by "+", in any order); ValueError for an unknown feature."""
+    parts = [p.strip() for p in name.split("+") if p.strip()]
+    if parts == ["buffered"]:
+        parts = []
+    unknown = [p for p in parts if p not in PAIR_FEATURES]
+    if unknown or not name.strip():
+        raise ValueError(
+            f"unknown pair-kernel variant {name!r}: 'buffered' or features of {', '.join(PAIR_FEATURES)} joined by '+'"
+        )
+    return "+".join(f for f in PAIR_FEATURES if f in parts) or "buffered"
+
+
 @functools.cache
 def make_geometry(
-    scalar, max_poly: int, max_faces: int, coincident_tol: float | None = None, pose_scalar=None
+    scalar,
+    max_poly: int,
+    max_faces: int,
+    coincident_tol: float | None = None,
+    pose_scalar=None,
+    variant: str = DEFAULT_PAIR_VARIANT,
 ) -> Geometry:
     """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
@@ -404,9 +443,18 @@ def make_geometry(
         coincident_tol: relative tolerance of the coincident-face test (default per precision).
         pose_scalar: precision of the poses taken (default ``scalar``); ``wp.float64`` with a
             ``wp.float32`` ``scalar`` is the mixed mode.
+        variant: how :func:`pair_geometry` holds its working set (see ``PAIR_FEATURES``); the
+            results are the same bit for bit.
     """
     if pose_scalar is None:
         pose_scalar = scalar
+    features = pair_variant(variant).split("+")
+    local_planes = "planes" in features
+    face_masks = "masks" in features and max_faces <= 128
+    two_words = max_faces > 64  # the masks' second word (faces 64-127)
+    bit_visits = face_masks and "popc" in features
+    stream_in = "stream-in" in features
+    stream_out = "stream-out" in features
     prim = make_primitives(scalar, pose_scalar)
     vec3 = prim.vec3
     vec4 = prim.vec4
@@ -427,6 +475,7 @@ def make_geometry(
     crosses = prim.crosses
     edge_cut = prim.edge_cut
     fan_add = prim.fan_add
+    fan_push = prim.fan_push
     fan_close = prim.fan_close
     cone = prim.cone
     to_scalar3 = prim.to_scalar3
@@ -439,6 +488,63 @@ def make_geometry(
     def plane64(shapes: Shapes, f: int):
         pl = shapes.face_plane64[f]
         return vec3d(pl[0], pl[1], pl[2]), pl[3]
+
+    @wp.func
+    def plane_row_1(shapes: Shapes, f: int, apex: vec3d):
+        # Plane of face f of body 1 in the pair-local frame, rounded to the clipping precision.
+        n, d = plane64(shapes, f)
+        return vec4(scalar(n[0]), scalar(n[1]), scalar(n[2]), scalar(d - wp.dot(n, apex)))
+
+    @wp.func
+    def plane_row_2(shapes: Shapes, g: int, rot: mat33d, off_2: vec3d):
+        # Plane of face g of body 2 (at rot x + off_2) in the pair-local frame, rounded.
+        n, d = plane64(shapes, g)
+        n1 = rot * n
+        return vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d + wp.dot(n1, off_2)))
+
+    @wp.func
+    def face_vertex(shapes: Shapes, of_1: bool, k: int, rot: mat33d, off_2: vec3d, apex: vec3d):
+        # Vertex face_loop[k] of body 1 (of_1) or body 2 in the pair-local frame, rounded.
+        v = shapes.vert64[shapes.face_loop[k]]
+        if of_1:
+            return to_scalar3(v - apex)
+        return to_scalar3(rot * v + off_2)
+
+    @wp.func
+    def active(lo: wp.uint64, hi: wp.uint64, k: int):
+        # Whether bit k of a face mask (words lo, hi) is set.
+        if wp.static(two_words):
+            if k >= 64:
+                return ((hi >> wp.uint64(k - 64)) & wp.uint64(1)) != wp.uint64(0)
+        return ((lo >> wp.uint64(k)) & wp.uint64(1)) != wp.uint64(0)
+
+    @wp.func
+    def with_bit(lo: wp.uint64, hi: wp.uint64, k: int):
+        # The face mask (lo, hi) with bit k set.
+        if wp.static(two_words):
+            if k >= 64:
+                return lo, hi | (wp.uint64(1) << wp.uint64(k - 64))
+        return lo | (wp.uint64(1) << wp.uint64(k)), hi
+
+    @wp.func
+    def next_bit(lo: wp.uint64, hi: wp.uint64):
+        # The lowest set bit of the face mask (lo, hi): its index (the count of the bits below
+        # it), and the mask without it.
+        if wp.static(two_words):
+            if lo == wp.uint64(0):
+                k = wp.bit_count((hi & (wp.uint64(0) - hi)) - wp.uint64(1))
+                return k + 64, lo, hi & (hi - wp.uint64(1))
+        k = wp.bit_count((lo & (wp.uint64(0) - lo)) - wp.uint64(1))
+        return k, lo & (lo - wp.uint64(1)), hi
+
+    @wp.func
+    def none_from(lo: wp.uint64, hi: wp.uint64, k: int):
+        # Whether no bit k or above of the face mask (lo, hi) is set.
+        if wp.static(two_words):
+            if k >= 64:
+                return (hi >> wp.uint64(k - 64)) == wp.uint64(0)
+            return (lo >> wp.uint64(k)) == wp.uint64(0) and hi == wp.uint64(0)
+        return (lo >> wp.uint64(k)) == wp.uint64(0)
 
     @wp.func
     def support64(shapes: Shapes, v0: int, v1: int, rot: mat33d, off: vec3d, u: vec3d, floor: wp.float64):
@@ -626,7 +732,15 @@ def make_geometry(
         # precision for shallow overlaps. The tau are only an apex: the clipping precision will do.
         tau_1c = scalar(1.0)
         tau_2c = scalar(0.0)
-        ids_1 = ids_t()
+        # The active faces of each body: a bit per face in a register (face_masks), or a list of
+        # their indices in per-thread memory. Either way they are visited in increasing index order.
+        mask_1 = wp.uint64(0)
+        mask_1h = wp.uint64(0)
+        mask_2 = wp.uint64(0)
+        mask_2h = wp.uint64(0)
+        if wp.static(not face_masks):
+            ids_1 = ids_t()
+            ids_2 = ids_t()
         num_1 = int(0)
         for f in range(f10, f11):
             plc = shapes.face_plane[f]
@@ -647,9 +761,11 @@ def make_geometry(
             sph_c = shapes.face_sphere[f]
             if sphere_misses_c(vec3(sph_c[0], sph_c[1], sph_c[2]), sph_c[3] + slack, uc, lo_c, hi_c, pos_c, r2_c):
                 continue
-            ids_1[num_1] = f
+            if wp.static(face_masks):
+                mask_1, mask_1h = with_bit(mask_1, mask_1h, f - f10)
+            else:
+                ids_1[num_1] = f
             num_1 += 1
-        ids_2 = ids_t()
         num_2 = int(0)
         pos_2c = -(rot_ct * pos_c)  # body 1's centre in body 2's frame
         for g in range(f20, f21):
@@ -672,10 +788,20 @@ def make_geometry(
             cc = rot_c * vec3(sph_c[0], sph_c[1], sph_c[2]) + pos_c
             if sphere_misses_c(cc, sph_c[3] + slack, uc, lo_c, hi_c, zero3, r1_c):
                 continue
-            ids_2[num_2] = g
+            if wp.static(face_masks):
+                mask_2, mask_2h = with_bit(mask_2, mask_2h, g - f20)
+            else:
+                ids_2[num_2] = g
             num_2 += 1
         tau_1 = wp.float64(tau_1c)
         tau_2 = wp.float64(tau_2c)
+        # Slots to visit per body: every face of the body (face_masks: inactive ones skipped by
+        # their bit), or the listed active faces.
+        slots_1 = num_1
+        slots_2 = num_2
+        if wp.static(face_masks):
+            slots_1 = f11 - f10
+            slots_2 = f21 - f20
 
         apex = pos * (wp.float64(0.5) * (tau_1 + tau_2))
         if tau_2 > tau_1:
@@ -688,8 +814,15 @@ def make_geometry(
             # and on the contact face, whose cones then vanish exactly.
             s_top = -(r1 + r2)
             foot = pos
-            for j in range(num_1):
-                n, d = plane64(shapes, ids_1[j])
+            for j in range(slots_1):
+                f = int(0)
+                if wp.static(face_masks):
+                    if not active(mask_1, mask_1h, j):
+                        continue
+                    f = f10 + j
+                else:
+                    f = ids_1[j]
+                n, d = plane64(shapes, f)
                 sj = wp.dot(n, pos) - d
                 if sj > s_top:
                     s_top = sj
@@ -698,17 +831,25 @@ def make_geometry(
             if s_top > wp.float64(0.0):
                 apex = foot
         # The pair-local frame: body 1's axes, origin at the apex. Planes and vertices are moved
-        # there in float64 and only then rounded to the clipping precision.
+        # there in float64 and only then rounded to the clipping precision (plane_row_1,
+        # plane_row_2, face_vertex), either once per pair into per-thread tables or ("planes")
+        # again wherever a plane is read: the same arithmetic, so the same bits.
         off_2 = pos - apex  # body 2's centre, pair-local
-        planes_1 = planes_t()
-        for j in range(num_1):
-            n, d = plane64(shapes, ids_1[j])
-            planes_1[j] = vec4(scalar(n[0]), scalar(n[1]), scalar(n[2]), scalar(d - wp.dot(n, apex)))
-        planes_2 = planes_t()
-        for j in range(num_2):
-            n, d = plane64(shapes, ids_2[j])
-            n1 = rot * n
-            planes_2[j] = vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d + wp.dot(n1, off_2)))
+        if wp.static(not local_planes):
+            planes_1 = planes_t()
+            for j in range(slots_1):
+                if wp.static(face_masks):
+                    if active(mask_1, mask_1h, j):
+                        planes_1[j] = plane_row_1(shapes, f10 + j, apex)
+                else:
+                    planes_1[j] = plane_row_1(shapes, ids_1[j], apex)
+            planes_2 = planes_t()
+            for j in range(slots_2):
+                if wp.static(face_masks):
+                    if active(mask_2, mask_2h, j):
+                        planes_2[j] = plane_row_2(shapes, f20 + j, rot, off_2)
+                else:
+                    planes_2[j] = plane_row_2(shapes, ids_2[j], rot, off_2)
         tol_c = scalar(tol_rel) * scalar(r2)  # coincident-face tolerance, before the rounding
 
         vol = scalar(0.0)
@@ -723,21 +864,42 @@ def make_geometry(
         # a @wp.func takes its arguments by value, and the per-thread buffers (polygon, planes, ids)
         # live in local memory, so a call per face copied and zero-filled them again each time.
         # One polygon buffer serves every face; its halves [0, max_poly) and [max_poly, 2 max_poly)
-        # take turns as input and output of the Sutherland-Hodgman passes.
+        # take turns as input and output of the Sutherland-Hodgman passes (with stream-in the
+        # first pass reads the face from the shape; with stream-out the last feeds the fan).
         poly = poly_t()
-        for j in range(num_1 + num_2):
-            face_is_1 = j < num_1
+        for j in range(slots_1 + slots_2):
+            face_is_1 = j < slots_1
             face = int(0)
             num_planes = int(0)
             plane = vec4()
             if face_is_1:
-                face = ids_1[j]
-                num_planes = num_2
-                plane = planes_1[j]
+                if wp.static(face_masks):
+                    if not active(mask_1, mask_1h, j):
+                        continue
+                    face = f10 + j
+                else:
+                    face = ids_1[j]
+                num_planes = slots_2
+                if wp.static(bit_visits):
+                    num_planes = num_2
+                if wp.static(local_planes):
+                    plane = plane_row_1(shapes, face, apex)
+                else:
+                    plane = planes_1[j]
             else:
-                face = ids_2[j - num_1]
-                num_planes = num_1
-                plane = planes_2[j - num_1]
+                if wp.static(face_masks):
+                    if not active(mask_2, mask_2h, j - slots_1):
+                        continue
+                    face = f20 + j - slots_1
+                else:
+                    face = ids_2[j - slots_1]
+                num_planes = slots_1
+                if wp.static(bit_visits):
+                    num_planes = num_1
+                if wp.static(local_planes):
+                    plane = plane_row_2(shapes, face, rot, off_2)
+                else:
+                    plane = planes_2[j - slots_1]
             nf = vec3(plane[0], plane[1], plane[2])
             begin = shapes.face_loop_start[face]
             count = shapes.face_loop_start[face + 1] - begin
@@ -746,21 +908,66 @@ def make_geometry(
             centre = zero3
             if face_is_1:
                 centre = to_scalar3(c64 - apex)
-                for k in range(count):
-                    poly[k] = to_scalar3(shapes.vert64[shapes.face_loop[begin + k]] - apex)
             else:
                 centre = to_scalar3(rot * c64 + off_2)
+            # from_face: the live polygon is still the face itself (not in `poly`).
+            from_face = bool(wp.static(stream_in))
+            if wp.static(not stream_in):
                 for k in range(count):
-                    poly[k] = to_scalar3(rot * shapes.vert64[shapes.face_loop[begin + k]] + off_2)
+                    poly[k] = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
             weight = scalar(1.0)
             alive = bool(True)
             cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
-            for i in range(num_planes):
-                pl = vec4()
+            pending = bool(False)  # stream-out: a clip by `held` is still to run
+            held = vec4()
+            # popc: the other body's planes still to visit (copies: Warp would alias a plain name).
+            rest = wp.uint64(0)
+            rest_h = wp.uint64(0)
+            if wp.static(bit_visits):
                 if face_is_1:
-                    pl = planes_2[i]
+                    rest = wp.uint64(mask_2)
+                    rest_h = wp.uint64(mask_2h)
                 else:
-                    pl = planes_1[i]
+                    rest = wp.uint64(mask_1)
+                    rest_h = wp.uint64(mask_1h)
+            for t in range(num_planes):
+                i = t  # the plane's row in planes_1 / planes_2 (face_masks: its face's slot)
+                other = int(0)
+                if face_is_1:
+                    if wp.static(bit_visits):
+                        i, rest, rest_h = next_bit(rest, rest_h)
+                        other = f20 + i
+                    elif wp.static(face_masks):
+                        if none_from(mask_2, mask_2h, i):
+                            break
+                        if not active(mask_2, mask_2h, i):
+                            continue
+                        other = f20 + i
+                    else:
+                        other = ids_2[i]
+                else:
+                    if wp.static(bit_visits):
+                        i, rest, rest_h = next_bit(rest, rest_h)
+                        other = f10 + i
+                    elif wp.static(face_masks):
+                        if none_from(mask_1, mask_1h, i):
+                            break
+                        if not active(mask_1, mask_1h, i):
+                            continue
+                        other = f10 + i
+                    else:
+                        other = ids_1[i]
+                pl = vec4()
+                if wp.static(local_planes):
+                    if face_is_1:
+                        pl = plane_row_2(shapes, other, rot, off_2)
+                    else:
+                        pl = plane_row_1(shapes, other, apex)
+                else:
+                    if face_is_1:
+                        pl = planes_2[i]
+                    else:
+                        pl = planes_1[i]
                 nc = vec3(pl[0], pl[1], pl[2])
                 dc = pl[3]
                 dist_c = plane_distance(nc, dc, centre)
@@ -776,21 +983,40 @@ def make_geometry(
                     # case: a flat contact of any thickness is clipped like any other.
                     same = bool(False)
                     if face_is_1:
-                        same = coincident(shapes, plane, ids_2[i], rot, off_2, tol_c)
+                        same = coincident(shapes, plane, other, rot, off_2, tol_c)
                     else:
                         same = coincident(shapes, pl, face, rot, off_2, tol_c)
                     if same:
                         weight = scalar(0.5)
                         continue
-                # Sutherland-Hodgman against nc.x <= dc, from rows [cur, cur+count) into the other half.
+                cut_by = pl
+                if wp.static(stream_out):
+                    # Run the clip held back so far (if any) and hold back this one.
+                    cut_by = held
+                    held = pl
+                    if not pending:
+                        pending = True
+                        continue
+                ncut = vec3(cut_by[0], cut_by[1], cut_by[2])
+                dcut = cut_by[3]
+                # Sutherland-Hodgman against ncut.x <= dcut, from rows [cur, cur+count) (or the
+                # face) into the other half.
                 out = max_poly - cur
                 n_out = int(0)
                 full = int(0)
-                prev = poly[cur + count - 1]
-                s_prev = plane_distance(nc, dc, prev)
+                prev = vec3()
+                if from_face:
+                    prev = face_vertex(shapes, face_is_1, begin + count - 1, rot, off_2, apex)
+                else:
+                    prev = poly[cur + count - 1]
+                s_prev = plane_distance(ncut, dcut, prev)
                 for k in range(count):
-                    v = poly[cur + k]
-                    sk = plane_distance(nc, dc, v)
+                    v = vec3()
+                    if from_face:
+                        v = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
+                    else:
+                        v = poly[cur + k]
+                    sk = plane_distance(ncut, dcut, v)
                     if crosses(s_prev, sk):
                         if n_out >= max_poly:
                             full = 1
@@ -812,14 +1038,57 @@ def make_geometry(
                     break
                 cur = out
                 count = n_out
+                from_face = False
             if not alive:
                 continue
             # Fan triangulation: facet area and area-weighted centroid.
-            p0 = poly[cur]
             sum_a2 = scalar(0.0)
             sum_c = zero3
-            for k in range(1, count - 1):
-                sum_a2, sum_c = fan_add(p0, poly[cur + k], poly[cur + k + 1], nf, sum_a2, sum_c)
+            if wp.static(stream_out):
+                # The last clip (if any) streams its output into the fan: the same vertices in the
+                # same order as the buffered pass would have written, so the same sums.
+                first = zero3
+                last = zero3
+                emitted = int(0)
+                ncut = vec3(held[0], held[1], held[2])
+                dcut = held[3]
+                prev = vec3()
+                if from_face:
+                    prev = face_vertex(shapes, face_is_1, begin + count - 1, rot, off_2, apex)
+                else:
+                    prev = poly[cur + count - 1]
+                s_prev = plane_distance(ncut, dcut, prev)
+                for k in range(count):
+                    v = vec3()
+                    if from_face:
+                        v = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
+                    else:
+                        v = poly[cur + k]
+                    if pending:
+                        sk = plane_distance(ncut, dcut, v)
+                        if crosses(s_prev, sk):
+                            cut = edge_cut(prev, s_prev, v, sk)
+                            first, last, emitted, sum_a2, sum_c = fan_push(cut, first, last, emitted, nf, sum_a2, sum_c)
+                        if sk <= scalar(0.0):
+                            first, last, emitted, sum_a2, sum_c = fan_push(v, first, last, emitted, nf, sum_a2, sum_c)
+                        prev = v
+                        s_prev = sk
+                    else:
+                        first, last, emitted, sum_a2, sum_c = fan_push(v, first, last, emitted, nf, sum_a2, sum_c)
+                if emitted < 3:
+                    continue
+            elif from_face:
+                # stream-in, and no plane clipped the face: its own vertices make the fan.
+                p0 = face_vertex(shapes, face_is_1, begin, rot, off_2, apex)
+                pk = face_vertex(shapes, face_is_1, begin + 1, rot, off_2, apex)
+                for k in range(2, count):
+                    pn = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
+                    sum_a2, sum_c = fan_add(p0, pk, pn, nf, sum_a2, sum_c)
+                    pk = pn
+            else:
+                p0 = poly[cur]
+                for k in range(1, count - 1):
+                    sum_a2, sum_c = fan_add(p0, poly[cur + k], poly[cur + k + 1], nf, sum_a2, sum_c)
             area, area_c = fan_close(sum_a2, sum_c, weight)
             dv, dv_c = cone(area, area_c, plane, zero3)
             vol += dv
@@ -929,6 +1198,7 @@ def make_geometry(
         max_poly=max_poly,
         max_faces=max_faces,
         tol_rel=tol_rel,
+        variant=pair_variant(variant),
         primitives=prim,
         pair_geometry=pair_geometry,
         pair_depth=pair_depth,

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import warp as wp
-from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, make_geometry
+from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, DEFAULT_PAIR_VARIANT, make_geometry
 
 __all__ = [
     "COINCIDENT_TOL",
@@ -53,17 +53,18 @@ def make_narrowphase(
     coincident_tol: float | None = None,
     max_registers: int | None = 128,
     pose_scalar=None,
+    variant: str = DEFAULT_PAIR_VARIANT,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
     Args:
         scalar: ``wp.float32`` or ``wp.float64``.
-        max_poly, max_faces, coincident_tol, pose_scalar: as for
+        max_poly, max_faces, coincident_tol, pose_scalar, variant: as for
             :func:`polydem.kernels.geometry.make_geometry`.
         max_registers: CUDA register cap per thread (128 is faster than no cap for 20-vertex rocks
             and slightly slower for cubes; see benchmarks/tune_pair_kernel.py and BENCHMARKS.md).
     """
-    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar)
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, variant)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
@@ -166,13 +167,24 @@ OVERLAP_OUTPUTS = (
 )
 
 
-def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, out, max_poly=None, pose_scalar=None):
+def launch_overlap(
+    shapes,
+    pair_shape_a,
+    pair_shape_b,
+    pair_pose_a,
+    pair_pose_b,
+    out,
+    max_poly=None,
+    pose_scalar=None,
+    variant=DEFAULT_PAIR_VARIANT,
+):
     """Run the overlap kernel over all pairs; grow the polygon buffer and redo on overflow.
 
     ``shapes`` is a :class:`polydem.shapeset.ShapeSet`; ``out`` a dict of output arrays named as
     the kernel's ``# Out`` arguments (``pair_fallback_a`` may be left out). The poses are
-    transforms of ``pose_scalar`` (default the shape set's precision). Returns the
-    :class:`Narrowphase` that ran.
+    transforms of ``pose_scalar`` (default the shape set's precision). ``variant``: the pair
+    kernel's (:func:`polydem.kernels.geometry.make_geometry`). Returns the :class:`Narrowphase`
+    that ran.
     """
     n = len(pair_shape_a)
     capacity = shapes.default_poly_capacity if max_poly is None else max_poly
@@ -180,7 +192,7 @@ def launch_overlap(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b,
         out = dict(out)
         out["pair_fallback_a"] = wp.zeros(n, dtype=wp.types.vector(3, shapes.scalar), device=shapes.device)
     while True:
-        nphase = make_narrowphase(shapes.scalar, capacity, shapes.max_faces, pose_scalar=pose_scalar)
+        nphase = make_narrowphase(shapes.scalar, capacity, shapes.max_faces, pose_scalar=pose_scalar, variant=variant)
         overflow = wp.zeros(1, dtype=int, device=shapes.device)
         wp.launch(
             nphase.overlap_kernel,

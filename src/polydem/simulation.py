@@ -34,6 +34,7 @@ import numpy as np
 import warp as wp
 
 from polydem.contacts import Contacts, PairHistory
+from polydem.kernels import geometry as _geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 from polydem.kernels.forces import make_contact_kernels
 from polydem.kernels.integrate import integrate_bodies, kinetic_energy, make_integrator
@@ -184,6 +185,8 @@ class Stepper:
         self.body_speed_limit = wp.full(n, float("inf"), dtype=float, device=self.device)
         self.body_peak_speed = wp.zeros(n, dtype=float, device=self.device)
         self.too_fast = wp.zeros(1, dtype=int, device=self.device)
+        # How the pair kernel holds its working set (same results; benchmarks/settle.py --variants).
+        self.pair_variant = _geometry.DEFAULT_PAIR_VARIANT
         self._kernels()
         self._diag = None
         self._diag_generation = None
@@ -192,7 +195,7 @@ class Stepper:
     def _kernels(self):
         m = self.model
         self.kernels = make_contact_kernels(
-            m.law, m.friction, self.poly_capacity, m.shapes.max_faces, precision=m.precision
+            m.law, m.friction, self.poly_capacity, m.shapes.max_faces, precision=m.precision, variant=self.pair_variant
         )
 
     def grow_polygons(self):
@@ -403,7 +406,13 @@ class Stepper:
         while True:
             self._diag_overflow.zero_()
             kernels = make_contact_kernels(
-                m.law, m.friction, self.poly_capacity, m.shapes.max_faces, diagnostics=True, precision=m.precision
+                m.law,
+                m.friction,
+                self.poly_capacity,
+                m.shapes.max_faces,
+                diagnostics=True,
+                precision=m.precision,
+                variant=self.pair_variant,
             )
             self._launch_contacts(kernels, self._diag, state, contacts, dt, self._diag_overflow)
             if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= m.shapes.max_poly_bound:

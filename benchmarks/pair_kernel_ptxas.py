@@ -1,0 +1,90 @@
+"""Registers, stack frame and spills of the pair kernels per variant, from ptxas: no GPU needed.
+
+Warp generates the CUDA source and compiles it to PTX with its NVRTC (sm_90 by default); ptxas -v
+then reports, per kernel, the registers per thread and the per-thread stack frame (the local
+memory that holds the polygon, plane and face buffers) and spill bytes. Static figures: they say
+what each thread holds, not how often it is touched (ncu on a GPU measures the traffic).
+
+    python benchmarks/pair_kernel_ptxas.py --variants buffered,planes+masks+stream-in
+
+Needs ptxas on the PATH (the CUDA toolkit). When ptxas is older than Warp's NVRTC, the PTX's
+.version line is lowered to --ptx-version (the kernels use no newer PTX feature).
+"""
+
+import argparse
+import glob
+import os
+import re
+import subprocess
+import tempfile
+
+import warp as wp
+from polydem.kernels.forces import make_contact_kernels
+from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, pair_variant
+from polydem.kernels.narrowphase import make_narrowphase
+
+from polydem import ConvexShape
+from polydem.shapeset import ShapeSet
+
+SHAPES = {
+    "cube": lambda: ConvexShape.box(1.0),
+    "rock20": lambda: ConvexShape.rock(n_points=20, size=1.0, seed=1),
+    "hull64": lambda: ConvexShape.rock(n_points=64, size=1.0, seed=2),
+}
+
+
+def ptxas_stats(kernel, arch, ptx_version):
+    """ptxas -v figures of one kernel's module: registers, stack frame, spill stores and loads [bytes]."""
+    module = kernel.module
+    with tempfile.TemporaryDirectory() as tmp:
+        module._compile(device=None, output_dir=tmp, output_arch=arch, use_ptx=True)
+        (path,) = glob.glob(os.path.join(tmp, "*.ptx"))
+        with open(path, "rb") as f:
+            ptx = f.read().replace(b"\0", b"").decode()
+        if ptx_version:
+            ptx = re.sub(r"^\.version \S+", f".version {ptx_version}", ptx, count=1, flags=re.M)
+        fixed = os.path.join(tmp, "kernel.ptx")
+        with open(fixed, "w") as f:
+            f.write(ptx)
+        run = subprocess.run(
+            ["ptxas", "-v", f"-arch=sm_{arch}", "-o", os.devnull, fixed], capture_output=True, text=True, check=False
+        )
+    text = run.stderr
+    if run.returncode != 0:
+        raise RuntimeError(text.strip())
+    forward = text[text.index("_cuda_kernel_forward") :]
+    frame = re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads", forward)
+    regs = re.search(r"Used (\d+) registers", forward)
+    return int(regs.group(1)), int(frame.group(1)), int(frame.group(2)), int(frame.group(3))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--variants", default=f"buffered,{DEFAULT_PAIR_VARIANT}")
+    ap.add_argument("--shapes", default="cube,rock20,hull64")
+    ap.add_argument("--precisions", default="float32,mixed")
+    ap.add_argument("--arch", type=int, default=90)
+    ap.add_argument("--ptx-version", default="9.0", help="PTX .version to write for ptxas ('' keeps NVRTC's)")
+    args = ap.parse_args()
+
+    wp.config.quiet = True
+    wp.init()
+    print(f"{'shape':<8}{'prec':>9}  {'kernel':<13}{'regs':>5}{'stack B':>9}{'spill st':>9}{'spill ld':>9}  variant")
+    for name in args.shapes.split(","):
+        shapes = ShapeSet([SHAPES[name]()], device="cpu", precision="float32")
+        cap, faces = shapes.default_poly_capacity, shapes.max_faces
+        for prec in args.precisions.split(","):
+            for variant in (pair_variant(v) for v in args.variants.split(",")):
+                kernels = []
+                if prec != "mixed":
+                    scalar = wp.float32 if prec == "float32" else wp.float64
+                    kernels.append(("overlap", make_narrowphase(scalar, cap, faces, variant=variant).overlap_kernel))
+                contact = make_contact_kernels("hertz", True, cap, faces, precision=prec, variant=variant)
+                kernels.append(("pair_contact", contact.pair_contact_kernel))
+                for label, kernel in kernels:
+                    regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version)
+                    print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}  {variant}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
