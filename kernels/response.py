@@ -286,14 +286,13 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             damped = ct * wp.dot(vt, vt) * dt
             if ft_norm > cap:
                 ft = ft * (cap / ft_norm)
-                # Sliding: the spring takes the capped force, but never more length than the
-                # displacement xt gave it: when the dashpot pushed the force over the cap,
-                # xi = -ft / kt would lengthen the spring and store energy that no work put there.
-                xi_new = ft * (-scalar(1.0) / kt)
-                l_new = wp.length(xi_new)
+                # Sliding: the spring keeps its direction xt and slips to the length whose force is
+                # the cap (never longer than xt). Re-pointing it along the capped total force, which
+                # the dashpot turns towards vt, booked the turn of an unchanged length as slip.
                 l_max = wp.length(xt)
-                if l_new > l_max:
-                    xi_new = xi_new * (l_max / l_new)
+                xi_new = xt
+                if kt * l_max > cap:
+                    xi_new = xt * (cap / (kt * l_max))
                 # (>= 0: the cap only hits the dashpot's share where kt xt . vt > -ct |vt|^2 / 2.)
                 damped = -wp.dot(ft + kt * xi_new, vt) * dt
             else:
