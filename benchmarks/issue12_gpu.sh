@@ -22,7 +22,7 @@ if [ "$part" = levers ]; then
     for v in buffered planes+masks+stream-in; do
         for cap in none 128 96 64; do
             extra=""
-            [ "$cap" != none ] && extra="--max-registers $cap"
+            if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
             $py $B/settle.py $common --variants $v $extra --out "$out/settle_1e5_${v}_${cap}.json" 2>&1 | grep -E "^ +100000" | sed "s/^/$v cap $cap: /"
         done
     done
@@ -33,7 +33,7 @@ if [ "$part" = levers ]; then
         --tree-rebuild never --tree-compare always --out "$out/settle_1e5_tree.json" 2>&1 | grep -v "^Module" | tail -6
     for cap in none 128; do
         extra=""
-        [ "$cap" != none ] && extra="--max-registers $cap"
+        if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
         $py $B/profile_step.py --device cuda:0 --bodies 100000 --warmup-time 0.1 $extra --out "$out/profile_step_1e5_${cap}.json" 2>&1 | tail -3
     done
 fi
@@ -41,7 +41,7 @@ fi
 if [ "$part" = settle ]; then
     cap=${3:-none}
     extra=""
-    [ "$cap" != none ] && extra="--max-registers $cap"
+    if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
     T="$py $B/time_to_settle.py --device cuda:0 --max-time 2 $extra"
     $T --sizes 1e4 --dt-scales 1,2,4,6 --out "$out/tts_1e4.json" 2>&1 | grep -v "^Module" | tail -5
     $T --sizes 1e4 --dt-scales 2,4 --tangential-ratio 5.5 --out "$out/tts_1e4_kt_old.json" 2>&1 | grep -v "^Module" | tail -3
@@ -55,7 +55,7 @@ fi
 if [ "$part" = large ]; then
     cap=${3:-none}
     extra=""
-    [ "$cap" != none ] && extra="--max-registers $cap"
+    if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
     $py $B/peers/pour_scene.py export --grains 100000 > /dev/null 2>&1
     $py $B/peers/newton_pour.py --grains 100000 --device cuda:0 --dt-sweep 1e-3,5e-4 --max-time 3 2>&1 | grep -v "^Module" | tail -6
     cp $B/results/peers/newton_settle_cuda0_100000.json "$out/" 2>/dev/null

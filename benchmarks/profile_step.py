@@ -110,7 +110,10 @@ def main():
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
+        "--max-registers",
+        type=int,
+        default=None,
+        help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
     )
     ap.add_argument("--out", default=None)
     ap.add_argument("--child-out", default=None, help=argparse.SUPPRESS)
@@ -119,7 +122,7 @@ def main():
     if args.max_registers is not None:
         import polydem.kernels.forces as forces
 
-        forces.PAIR_MAX_REGISTERS = args.max_registers
+        forces.PAIR_MAX_REGISTERS = args.max_registers or None
     if args.child_out:
         child(args)
         return

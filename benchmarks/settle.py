@@ -874,7 +874,10 @@ def make_parser():
     ap.add_argument("--spin", type=float, default=0.0, help="initial angular speed [rad/s], random axes")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
+        "--max-registers",
+        type=int,
+        default=None,
+        help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
     )
     ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes in memory")
     ap.add_argument(
@@ -935,7 +938,7 @@ def main():
     if args.max_registers is not None:
         import polydem.kernels.forces as forces
 
-        forces.PAIR_MAX_REGISTERS = args.max_registers
+        forces.PAIR_MAX_REGISTERS = args.max_registers or None
 
     wp.config.quiet = True
     wp.init()

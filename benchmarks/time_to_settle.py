@@ -142,7 +142,10 @@ def main():
     ap.add_argument("--shapes", default="cube", choices=SHAPE_SETS, help="cubes, or settle.py's mixed set")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--max-registers", type=int, default=None, help="CUDA register cap of the step's pair kernel (default: none)"
+        "--max-registers",
+        type=int,
+        default=None,
+        help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
     )
     ap.add_argument(
         "--dt-scales", default="1", help="comma-separated steps, as multiples of the recommended dt (dt = 'auto')"
@@ -166,7 +169,7 @@ def main():
     if args.max_registers is not None:
         import polydem.kernels.forces as forces
 
-        forces.PAIR_MAX_REGISTERS = args.max_registers
+        forces.PAIR_MAX_REGISTERS = args.max_registers or None
 
     wp.config.quiet = True
     wp.init()

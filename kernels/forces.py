@@ -76,9 +76,11 @@ class ContactKernels:
     gather_kernel: Any
 
 
-# CUDA register cap of the step's pair kernel (None: the compiler's choice). A module setting so that
-# benchmarks can compare caps (benchmarks/settle.py --max-registers); the measured choice is in BENCHMARKS.md.
-PAIR_MAX_REGISTERS: int | None = None
+# CUDA register cap of the step's pair kernel (None: the compiler's choice). Uncapped it takes about
+# 200 registers, which leaves 12% of the warp slots active; at 128 twice as many warps hide the
+# local-memory latency despite the spills (BENCHMARKS.md section 7). A module setting so that
+# benchmarks can compare caps (benchmarks/settle.py --max-registers).
+PAIR_MAX_REGISTERS: int | None = 128
 
 
 def make_contact_kernels(*args, max_registers: int | None = None, **kwargs):
@@ -110,7 +112,7 @@ def _make_contact_kernels(
     coordinates of the bodies' size however far they are from the origin. ``variant`` picks how
     the pair geometry holds its working set (:func:`polydem.kernels.geometry.make_geometry`).
     ``max_registers`` caps the pair kernel's CUDA registers per thread (default
-    :data:`PAIR_MAX_REGISTERS`; ``None``: no cap).
+    :data:`PAIR_MAX_REGISTERS`).
     """
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)

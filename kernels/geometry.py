@@ -406,7 +406,9 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
 #   the last one feeds the fan triangulation directly instead of the buffer.
 # With both, a face clipped by one plane never touches the buffer; but they hold more registers.
 PAIR_FEATURES = ("planes", "masks", "popc", "stream-in", "stream-out")
-DEFAULT_PAIR_VARIANT = "planes+masks+stream-in"
+# "planes" alone is the fastest measured (BENCHMARKS.md section 7): the masks' bit loops cost more
+# instructions than the lists' local loads saved, and streaming needs more registers.
+DEFAULT_PAIR_VARIANT = "planes"
 
 
 def pair_variant(name: str) -> str:

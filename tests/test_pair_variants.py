@@ -93,11 +93,23 @@ def test_variants_agree_bit_for_bit(device, shape_set, precision):
     assert (np.linalg.norm(ref["pair_fallback_a"], axis=1) > 0.0).sum() > 10  # enclosed pairs
     for variant in sorted({*PAIR_FEATURES, "masks+popc", ALL_FEATURES, DEFAULT_PAIR_VARIANT}):
         got = run(shapes, sa, sb, pa, pb, variant, pose_scalar, device)
+        # On CUDA the compiler may contract a streamed vertex's arithmetic (read from the shape or
+        # held back) otherwise than a buffered one's: those variants agree to rounding there (seen
+        # on an H100: the all-features variant's V differed in the last bits). Everything else,
+        # and everything on the CPU, agrees bit for bit.
+        streamed = "stream" in variant and wp.get_device(device).is_cuda
         for name in OVERLAP_OUTPUTS:
+            a = got[name].reshape(len(sa), -1)
+            b = ref[name].reshape(len(sa), -1)
+            if streamed:
+                scale = float(np.max(np.abs(b))) if b.size else 0.0
+                bad = ~np.all(np.abs(a - b) <= 1e-4 * np.abs(b) + 1e-6 * scale, axis=1)
+                assert not bad.any(), (
+                    f"{variant}: {name} differs from 'buffered' beyond rounding in {np.flatnonzero(bad)[:10]}"
+                )
+                continue
             # Compared as raw bytes: equal bits, not merely equal values (-0.0 == 0.0).
-            same = np.all(
-                got[name].reshape(len(sa), -1).view(np.uint8) == ref[name].reshape(len(sa), -1).view(np.uint8), axis=1
-            )
+            same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
             assert same.all(), f"{variant}: {name} differs from 'buffered' in {np.flatnonzero(~same)[:10]}"
 
 
