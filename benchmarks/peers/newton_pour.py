@@ -193,8 +193,15 @@ class Runner:
         self.dt = dt
         self.substeps = args.substeps
         self.steps_done = 0  # substeps taken, kept by the settle loop
+        # The broad phase's candidate-pair buffer is sized by default for every shape pair
+        # (N (N - 1) / 2: 5e9 entries at 1e5 cubes, past a Warp array's int32 limit); a pour needs a
+        # few per shape. The count written is checked against it after the run (pair_overflow).
+        self.shape_pairs_max = args.pairs_per_shape * model.shape_count
         self.pipeline = newton.CollisionPipeline(
-            model, broad_phase=args.broad_phase, rigid_contact_max=args.contacts_per_body * model.body_count
+            model,
+            broad_phase=args.broad_phase,
+            rigid_contact_max=args.contacts_per_body * model.body_count,
+            shape_pairs_max=self.shape_pairs_max,
         )
         self.contacts = self.pipeline.contacts()
         if args.solver == "xpbd":
@@ -273,6 +280,7 @@ class SettleMeter:
         self.out = wp.zeros(3, dtype=wp.float64, device=dev)
         self.runner = runner
         self.most_contacts = 0
+        self.most_pairs = 0
 
     def measure(self):
         r = self.runner
@@ -297,6 +305,9 @@ class SettleMeter:
         wp.utils.array_sum(self.potential, out=self.out[1:2])
         kinetic, gravity, speed = self.out.numpy().tolist()
         self.most_contacts = max(self.most_contacts, int(r.contacts.rigid_contact_count.numpy()[0]))
+        pairs = getattr(r.pipeline, "broad_phase_pair_count", None)
+        if pairs is not None:
+            self.most_pairs = max(self.most_pairs, int(pairs.numpy()[0]))
         return kinetic, gravity, speed
 
 
@@ -474,6 +485,9 @@ def settle_run(sc, scene, builder, device, args, dt, save_poses):
         "newton_max_penetration_edges": pen / sc["edge"],
         "rigid_contact_max": int(runner.contacts.rigid_contact_max),
         "contact_overflow": int(max(runner.overflow, 0)),
+        "shape_pairs_max": int(runner.shape_pairs_max),
+        "most_broad_phase_pairs": int(meter.most_pairs),
+        "pair_overflow": int(max(meter.most_pairs - runner.shape_pairs_max, 0)),
         **figures,
         "yardstick_wall_s": time.perf_counter() - t2,
         "graph": runner.graph is not None,
@@ -551,6 +565,9 @@ def main():
     ap.add_argument("--iterations", type=int, default=4, help="XPBD iterations per substep")
     ap.add_argument("--shape", choices=("hull", "box"), default="hull")
     ap.add_argument("--broad-phase", default="sap", choices=("sap", "nxn"))
+    ap.add_argument(
+        "--pairs-per-shape", type=int, default=32, help="broad-phase candidate pairs room per shape (default 32)"
+    )
     ap.add_argument("--ke", type=float, default=None, help="contact stiffness (semi_implicit) [N/m]")
     ap.add_argument("--kd", type=float, default=None, help="contact damping (semi_implicit)")
     ap.add_argument("--dt", type=float, default=None, help="substep [s] (default polydem's recommended step)")
