@@ -885,7 +885,7 @@ def make_parser():
         "--tree-rebuild",
         type=tree_policy,
         default=TREE_REBUILD_RATIO,
-        help=f"Simulation(tree_rebuild=): a ratio, 'always' (0) or 'never' (default {TREE_REBUILD_RATIO})",
+        help="Simulation(tree_rebuild=): a ratio, 'always' (0) or 'never' (default: TREE_REBUILD_RATIO)",
     )
     ap.add_argument(
         "--tree-compare",

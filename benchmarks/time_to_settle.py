@@ -161,7 +161,7 @@ def main():
         "--tree-rebuild",
         type=tree_policy,
         default=TREE_REBUILD_RATIO,
-        help=f"Simulation(tree_rebuild=): a ratio, 'always' or 'never' (default {TREE_REBUILD_RATIO})",
+        help="Simulation(tree_rebuild=): a ratio, 'always' or 'never' (default: TREE_REBUILD_RATIO)",
     )
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
     args = ap.parse_args()

@@ -88,8 +88,12 @@ BOX_PAD = wp.constant(1.0e-5)
 # Tree renewal (:meth:`BroadPhase.renew_tree`): the cost of a tree is measured on an implicit tree
 # with this many children per node over the bodies in a Morton order.
 TREE_BRANCHING = wp.constant(4)
-# Default ratio of the cost of the refitted tree to a fresh one above which the tree is rebuilt.
-TREE_REBUILD_RATIO = 1.2
+# Default ratio of the cost of the refitted tree to a fresh one above which the tree is rebuilt;
+# None: never. Off by default: in the settling pile the tree stayed as good as a fresh one (the host
+# builds that grow the pair capacity renew it; a query on it cost 5% more than on a fresh tree) while
+# each check costs a synchronisation and a sort (BENCHMARKS.md section 7e). Scenes that mix for a
+# long time (drums, shaking) can turn it on with Simulation(tree_rebuild=1.2).
+TREE_REBUILD_RATIO = None
 
 # Default capacity in pairs per body (dense packings of equal spheres with a small skin have
 # 6 to 8 candidate pairs per body).

@@ -483,18 +483,20 @@ def test_tree_degradation_measures_mixing(device):
     bp = BroadPhase(scene.n, device, skin=0.01)
     bp.build(*scene.args())
     assert abs(bp.tree_degradation() - 1.0) < 1e-6  # the tree order is the fresh Morton order
-    # Small moves leave the tree good: no rebuild at the default ratio.
+    # Small moves leave the tree good: no rebuild at a ratio of 1.2; off by default.
     scene.set_poses(scene.positions + rng.normal(0.0, 0.003, (scene.n, 3)))
     bp.rebuild_on_device(*scene.args())
     assert bp.tree_degradation() < 1.1
     assert not bp.renew_tree()
+    assert not bp.renew_tree(1.2)
     assert not bp.renew_tree(0.0)  # no device rebuild since the last check
     # Bodies that trade places across the box make the refitted nodes span it.
     scene.set_poses(mixing_moves(rng, scene.positions, 0.5))
     bp.rebuild_on_device(*scene.args())
     assert not bp.renew_tree(None)
+    assert not bp.renew_tree()
     assert bp.num_tree_rebuilds == 0
-    assert bp.renew_tree()
+    assert bp.renew_tree(1.2)
     assert bp.tree_ratio > 3.0
     assert bp.num_tree_rebuilds == 1
     assert abs(bp.tree_degradation() - 1.0) < 1e-6

@@ -464,8 +464,8 @@ class Simulation:
         tree_rebuild: when the broad phase rebuilds on the device (the CUDA graph), it refits the tree of
             the last host build; after each chunk of steps the tree is rebuilt when refitting has made it
             this many times as costly as a fresh one (:meth:`~polydem.kernels.broadphase.BroadPhase.renew_tree`);
-            0: after every chunk with a device rebuild; None: never. The pairs, and so the results, do
-            not depend on it. Without the graph every rebuild builds a fresh tree.
+            0: after every chunk with a device rebuild; None (default): never. The pairs, and so the
+            results, do not depend on it. Without the graph every rebuild builds a fresh tree.
 
     Attributes:
         model: the :class:`~polydem.model.Model` (static).
