@@ -1,66 +1,58 @@
 #!/usr/bin/env bash
-# The GPU measurements of issue 12 (packings fast), in the order they were taken on one lent GPU
-# (see ../shared/gpu/README.md for getting Warp there). Each part fits one 10-minute device call:
+# The GPU measurements of BENCHMARKS.md section 7 (issue 12, packings fast), one part per device call
+# (see ../shared/gpu/README.md for getting Warp, and Newton for the peer parts, there):
 #
-#   bash benchmarks/issue12_gpu.sh levers OUTDIR            # pair-kernel variants, register caps, order, tree
-#   bash benchmarks/issue12_gpu.sh settle OUTDIR CAP        # time to settled, polydem and Newton (needs newton)
+#   bash benchmarks/issue12_gpu.sh levers OUTDIR    # pair-kernel variants, register caps, ncu, order, tree
+#   bash benchmarks/issue12_gpu.sh settle OUTDIR    # time to settled at 1e4 and 1e5, Newton at 1e4
+#   bash benchmarks/issue12_gpu.sh large OUTDIR     # Newton at 1e5, polydem at 1e6 (settled and the step)
 #
-# CAP is the pair kernel's register cap chosen from the first part ("none" for no cap).
+# The "before" time-to-settle figures of section 7 (tts_base_*.json) were taken on the tree of
+# 3f2ab56 with `time_to_settle.py --dt-scales 1,2,3,4` (its k_t = k_n friction spring).
 set -u
 part=$1
 out=$2
 mkdir -p "$out"
-py=python
 B=benchmarks
+row() { grep -E "^ +[0-9]+ " | sed "s/^/$1: /"; }
 
 if [ "$part" = levers ]; then
-    POLYDEM_TEST_DEVICES=cuda:0 $py -m pytest tests/test_pair_variants.py tests/test_broadphase.py -q -x 2>&1 | tail -2
-    $py $B/pair_kernel.py --device cuda:0 --shapes cube,rock20,hull64 --precisions float32 --depths 0.01 --sample 8 \
-        --variants buffered,planes,planes+masks,planes+masks+stream-in,planes+masks+popc+stream-in,planes+masks+stream-in+stream-out \
-        --out "$out/pair_variants.json" 2>&1 | grep -v "^Module" | tail -20
-    common="--device cuda:0 --sizes 100000 --steps 100 --warmup-time 0.05 --no-graph-compare --precision mixed"
-    for v in buffered planes+masks+stream-in; do
-        for cap in none 128 96 64; do
-            extra=""
-            if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
-            $py $B/settle.py $common --variants $v $extra --out "$out/settle_1e5_${v}_${cap}.json" 2>&1 | grep -E "^ +100000" | sed "s/^/$v cap $cap: /"
+    POLYDEM_TEST_DEVICES=cuda:0 python -m pytest tests/test_pair_variants.py tests/test_broadphase.py -q 2>&1 | tail -2
+    python $B/pair_kernel.py --device cuda:0 --shapes cube,rock20,hull64 --precisions float32 --depths 0.01 --sample 8 \
+        --variants buffered,planes,planes+masks,planes+masks+stream-in,planes+masks+popc+stream-in,planes+masks+popc+stream-in+stream-out \
+        --out "$out/pair_variants.json" 2>&1 | grep -v "^Module" | tail -19
+    common="--device cuda:0 --sizes 100000 --steps 100 --warmup-time 0.1 --no-graph-compare --precision mixed"
+    for v in buffered planes; do
+        for cap in 0 128 96; do
+            python $B/settle.py $common --variants $v --max-registers $cap --out "$out/s1e5_${v}_${cap}.json" 2>&1 | row "$v cap $cap"
         done
     done
-    for order in shuffled morton; do
-        $py $B/settle.py $common --order $order --out "$out/settle_1e5_order_${order}.json" 2>&1 | grep -E "^ +100000" | sed "s/^/order $order: /"
+    for order in grid shuffled morton; do
+        python $B/settle.py $common --order $order --out "$out/s1e5_order_${order}.json" 2>&1 | row "order $order"
     done
-    $py $B/settle.py --device cuda:0 --sizes 100000 --steps 100 --warmup-time 0.3 --no-graph-compare --precision mixed \
-        --tree-rebuild never --tree-compare always --out "$out/settle_1e5_tree.json" 2>&1 | grep -v "^Module" | tail -6
-    for cap in none 128; do
-        extra=""
-        if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
-        $py $B/profile_step.py --device cuda:0 --bodies 100000 --warmup-time 0.1 $extra --out "$out/profile_step_1e5_${cap}.json" 2>&1 | tail -3
+    python $B/settle.py --device cuda:0 --sizes 100000 --steps 100 --stage-steps 5 --warmup-time 0.3 --no-graph-compare \
+        --precision mixed --tree-rebuild never --tree-compare always --out "$out/settle_1e5_tree.json" 2>&1 | grep "tree:"
+    for cap in 0 128; do
+        python $B/profile_step.py --device cuda:0 --bodies 100000 --warmup-time 0.1 --max-registers $cap \
+            --out "$out/profile_planes_${cap}.json" 2>&1 | tail -3
     done
 fi
 
 if [ "$part" = settle ]; then
-    cap=${3:-none}
-    extra=""
-    if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
-    T="$py $B/time_to_settle.py --device cuda:0 --max-time 2 $extra"
+    T="python $B/time_to_settle.py --device cuda:0 --max-time 2"
     $T --sizes 1e4 --dt-scales 1,2,4,6 --out "$out/tts_1e4.json" 2>&1 | grep -v "^Module" | tail -5
-    $T --sizes 1e4 --dt-scales 2,4 --tangential-ratio 5.5 --out "$out/tts_1e4_kt_old.json" 2>&1 | grep -v "^Module" | tail -3
     $T --sizes 1e4 --dt-scales 1,4 --shapes mixed --out "$out/tts_1e4_mixed.json" 2>&1 | grep -v "^Module" | tail -3
-    $py $B/peers/pour_scene.py export --grains 10000 > /dev/null 2>&1
-    $py $B/peers/newton_pour.py --grains 10000 --device cuda:0 --dt-sweep 1e-3,5e-4,2.5e-4 --max-time 3 2>&1 | grep -v "^Module" | tail -8
-    cp $B/results/peers/newton_settle_cuda0_10000.json "$out/" 2>/dev/null
     $T --sizes 1e5 --dt-scales 1,4 --out "$out/tts_1e5.json" 2>&1 | grep -v "^Module" | tail -3
+    python $B/peers/pour_scene.py export --grains 10000 > /dev/null 2>&1
+    python $B/peers/newton_pour.py --grains 10000 --device cuda:0 --dt-sweep 1e-3,5e-4,2.5e-4 --max-time 3 2>&1 | tail -5
+    cp $B/results/peers/newton_settle_cuda0_10000.json "$out/"
 fi
 
 if [ "$part" = large ]; then
-    cap=${3:-none}
-    extra=""
-    if [ "$cap" = none ]; then extra="--max-registers 0"; else extra="--max-registers $cap"; fi
-    $py $B/peers/pour_scene.py export --grains 100000 > /dev/null 2>&1
-    $py $B/peers/newton_pour.py --grains 100000 --device cuda:0 --dt-sweep 1e-3,5e-4 --max-time 3 2>&1 | grep -v "^Module" | tail -6
-    cp $B/results/peers/newton_settle_cuda0_100000.json "$out/" 2>/dev/null
-    $py $B/time_to_settle.py --device cuda:0 --max-time 2 $extra --sizes 1e6 --dt-scales 4 --out "$out/tts_1e6.json" 2>&1 | grep -v "^Module" | tail -3
-    common="--device cuda:0 --sizes 1000000 --steps 100 --warmup-time 0.05 --no-graph-compare --precision mixed"
-    $py $B/settle.py $common --variants buffered --out "$out/settle_1e6_before.json" 2>&1 | grep -E "^ +1000000"
-    $py $B/settle.py $common $extra --out "$out/settle_1e6_after.json" 2>&1 | grep -E "^ +1000000"
+    python $B/peers/pour_scene.py export --grains 100000 > /dev/null 2>&1
+    python $B/peers/newton_pour.py --grains 100000 --device cuda:0 --dt-sweep 1e-3,5e-4 --max-time 3 2>&1 | tail -4
+    cp $B/results/peers/newton_settle_cuda0_100000.json "$out/"
+    python $B/time_to_settle.py --device cuda:0 --max-time 1.5 --sizes 1e6 --dt-scales 4 --out "$out/tts_1e6.json" 2>&1 | tail -2
+    common="--device cuda:0 --sizes 1000000 --steps 50 --stage-steps 5 --warmup-time 0.05 --no-graph-compare --precision mixed"
+    python $B/settle.py $common --variants buffered --max-registers 0 --out "$out/s1e6_before.json" 2>&1 | row before
+    python $B/settle.py $common --out "$out/s1e6_after.json" 2>&1 | row after
 fi
