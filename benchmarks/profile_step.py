@@ -33,7 +33,7 @@ sys.path.insert(0, HERE)
 
 import pair_ceiling as pc  # noqa: E402
 from _meta import run_meta  # noqa: E402
-from settle import make_scene, scene_options  # noqa: E402
+from settle import add_kernel_options, apply_kernel_options, make_scene, scene_options  # noqa: E402
 
 METRICS = [
     "gpu__time_duration.sum",
@@ -109,20 +109,11 @@ def main():
     ap.add_argument("--warmup-time", type=float, default=0.1, help="simulated pour before the profiled step [s]")
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument(
-        "--max-registers",
-        type=int,
-        default=None,
-        help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
-    )
+    add_kernel_options(ap)
     ap.add_argument("--out", default=None)
     ap.add_argument("--child-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
-
-    if args.max_registers is not None:
-        import polydem.kernels.forces as forces
-
-        forces.PAIR_MAX_REGISTERS = args.max_registers or None
+    apply_kernel_options(args)
     if args.child_out:
         child(args)
         return

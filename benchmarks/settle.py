@@ -874,19 +874,7 @@ def make_parser():
     ap.add_argument("--gap", default="0.002,0.02", help="min,max gap between stacked cubes [edges]")
     ap.add_argument("--spin", type=float, default=0.0, help="initial angular speed [rad/s], random axes")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument(
-        "--max-registers",
-        type=int,
-        default=None,
-        help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
-    )
-    ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes in memory")
-    ap.add_argument(
-        "--tree-rebuild",
-        type=tree_policy,
-        default=TREE_REBUILD_RATIO,
-        help="Simulation(tree_rebuild=): a ratio, 'always' (0) or 'never' (default: TREE_REBUILD_RATIO)",
-    )
+    add_pile_options(ap)
     ap.add_argument(
         "--tree-compare",
         type=tree_policy,
@@ -900,6 +888,36 @@ def make_parser():
         help="comma-separated pair-kernel variants (kernels/geometry.py PAIR_FEATURES), each timed per size",
     )
     return ap
+
+
+def add_kernel_options(ap):
+    """``--max-registers``: the register cap of the step's pair kernel (see :func:`apply_kernel_options`)."""
+    ap.add_argument(
+        "--max-registers",
+        type=int,
+        default=None,
+        help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
+    )
+
+
+def apply_kernel_options(args):
+    """Set the pair kernel's register cap from ``--max-registers`` before any Simulation is built."""
+    if args.max_registers is not None:
+        import polydem.kernels.forces as forces
+
+        forces.PAIR_MAX_REGISTERS = args.max_registers or None
+
+
+def add_pile_options(ap):
+    """The options this benchmark shares with time_to_settle.py: register cap, listing order, tree policy."""
+    add_kernel_options(ap)
+    ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes in memory")
+    ap.add_argument(
+        "--tree-rebuild",
+        type=tree_policy,
+        default=TREE_REBUILD_RATIO,
+        help="Simulation(tree_rebuild=): a ratio, 'always' (0) or 'never' (default: TREE_REBUILD_RATIO)",
+    )
 
 
 def tree_policy(text):
@@ -935,11 +953,7 @@ def scene_options(**overrides):
 
 def main():
     args = parse_args(make_parser())
-
-    if args.max_registers is not None:
-        import polydem.kernels.forces as forces
-
-        forces.PAIR_MAX_REGISTERS = args.max_registers or None
+    apply_kernel_options(args)
 
     wp.config.quiet = True
     wp.init()

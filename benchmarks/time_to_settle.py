@@ -37,14 +37,13 @@ import time
 
 import numpy as np
 import warp as wp
-from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import Simulation
 from polydem.cli.diagnostics import body_volumes, relative_depths, relative_overlaps, settled_region
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _meta import run_meta  # noqa: E402
-from settle import ORDERS, SHAPE_SETS, make_scene, scene_options, tree_policy  # noqa: E402
+from settle import SHAPE_SETS, add_pile_options, apply_kernel_options, make_scene, scene_options  # noqa: E402
 
 EDGE = 0.01  # cube edge [m]
 
@@ -142,12 +141,6 @@ def main():
     ap.add_argument("--shapes", default="cube", choices=SHAPE_SETS, help="cubes, or settle.py's mixed set")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--max-registers",
-        type=int,
-        default=None,
-        help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
-    )
-    ap.add_argument(
         "--dt-scales", default="1", help="comma-separated steps, as multiples of the recommended dt (dt = 'auto')"
     )
     ap.add_argument(
@@ -156,20 +149,10 @@ def main():
         default=None,
         help="tangential spring stiffness / the derived one (the reference normal stiffness; default: derived)",
     )
-    ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes (settle.py)")
-    ap.add_argument(
-        "--tree-rebuild",
-        type=tree_policy,
-        default=TREE_REBUILD_RATIO,
-        help="Simulation(tree_rebuild=): a ratio, 'always' or 'never' (default: TREE_REBUILD_RATIO)",
-    )
+    add_pile_options(ap)
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
     args = ap.parse_args()
-
-    if args.max_registers is not None:
-        import polydem.kernels.forces as forces
-
-        forces.PAIR_MAX_REGISTERS = args.max_registers or None
+    apply_kernel_options(args)
 
     wp.config.quiet = True
     wp.init()
