@@ -293,6 +293,7 @@ def save_checkpoint(sim, path, run=None):
         "time": np.array(sim.time),
         "dt": np.array(sim.dt),
         **sim.current_state.numpy(_STATE),
+        **({"mesh_q": sim.current_state.mesh_q.numpy()} if sim.model.num_mesh_walls else {}),
         **sim.current_contacts.history_numpy(),
         "physics_fingerprint": np.array(fingerprint),
         "physics_json": np.array(text),
@@ -475,6 +476,9 @@ def read_checkpoint(path) -> Checkpoint:
     arrays["plane_xi"] = _real(path, data, "plane_xi", (1, 1, 3) if xi.shape[:2] == (1, 1) else (n, None, 3), history)
     if arrays["plane_xi"].shape[:2] not in ((1, 1), plane_turn.shape):
         raise _damaged(path, f"plane_xi has shape {xi.shape}, plane_turn {plane_turn.shape}: they do not fit")
+    if "mesh_q" in data:
+        # The poses of the mesh walls (only in checkpoints of scenes that have them).
+        arrays["mesh_q"] = _real(path, data, "mesh_q", (None, 7), body)
     step_count = data["step_count"]
     if step_count.shape != (1,) or step_count.dtype.kind not in "iu" or int(step_count[0]) != steps:
         raise _damaged(path, f"step_count = {step_count.tolist()} does not match steps_done = {steps}")
@@ -578,6 +582,10 @@ def check_scene(ck, sim, fix="use the scene the checkpoint was written from") ->
         raise CheckpointError(
             f"wall contacts of shape {arrays['plane_turn'].shape} do not fit this scene's walls; {fix}", ck.path
         )
+    meshes = sim.model.num_mesh_walls
+    if meshes and arrays.get("mesh_q", np.zeros((0, 7))).shape != (meshes, 7):
+        have = len(arrays["mesh_q"]) if "mesh_q" in arrays else 0
+        raise CheckpointError(f"the checkpoint has poses of {have} mesh walls, this scene has {meshes}; {fix}", ck.path)
     springs = len(arrays["pair_xi"])
     if sim.model.friction and springs != len(arrays["pair_key"]):
         raise CheckpointError(

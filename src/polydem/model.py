@@ -45,6 +45,17 @@ class Model:
         law: "linear", "hertz" or "power"; law_m: its exponent m (W = k V^m / m).
         plane_normal: (P,) S vec3 outward unit normals of the walls; plane_offset: (P,) S [m]
             (the wall is n.x <= offset); plane_material: (P,) int32.
+        num_mesh_walls: M, the triangle-mesh walls (:mod:`polydem.meshwall`); num_walls: P + M, the
+            columns of the wall-contact arrays of the state (planes first).
+        mesh_cells: M :class:`~polydem.meshwall.MeshCells`, each wall's surface and cells in its frame.
+        mesh_bvh: (M,) uint64 ids of a ``wp.Bvh`` per wall over its cells' bounds (in ``mesh_bvhs``).
+        mesh_cell_start: (M+1,) int32 first cell of each wall; cell_shape: (C,) int32 the cell's
+            shape in ``shapes`` (after the scene's shapes); cell_center: (C,) S vec3 the cell's
+            frame origin in its wall's frame [m].
+        mesh_material: (M,) int32; mesh_v: (M,) S vec3 velocity of the wall's origin [m/s];
+            mesh_w: (M,) S vec3 angular velocity [rad/s]; mesh_q0: (M, 7) initial poses (pivot and
+            identity rotation).
+        grain_shapes: the ShapeSet of the scene's shapes alone (``shapes`` without the cells).
         gravity: (3,) [m/s^2]; dt: time step [s]; dt_limit: largest accurate step [s].
     """
 
@@ -59,8 +70,12 @@ class Model:
         self.scalar, self.contact_scalar = scalars(self.precision)
         s_np, c_np = numpy_dtype(self.scalar), numpy_dtype(self.contact_scalar)
         vec3s = wp.types.vector(3, self.scalar)
-        self.shapes = ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name)
         self.num_bodies = n = scene.num_bodies
+        self._mesh_walls(scene, shape_list, dev, s_np)
+        self.shapes = ShapeSet(shape_list + self._cells, device=dev, precision=np.dtype(c_np).name)
+        self.grain_shapes = (
+            ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name) if self._cells else self.shapes
+        )
         self.num_materials = len(scene.material_names)
 
         body_shape = np.asarray(scene.body_shape, dtype=np.int32)
@@ -127,12 +142,67 @@ class Model:
         if n == 0:
             raise SceneError("the scene has no bodies", key="bodies")
 
+    def _mesh_walls(self, scene, shape_list, dev, s_np):
+        from polydem.meshwall import MeshWallError, build_cells
+
+        walls = scene.mesh_walls
+        self.num_mesh_walls = len(walls)
+        self.num_walls = len(scene.planes) + len(walls)
+        self._cells = []
+        self.mesh_cells = []
+        vec3s = wp.types.vector(3, self.scalar)
+        self.mesh_moves = False
+        if not walls:
+            self.mesh_bvhs = []
+            return
+        kind = np.asarray(scene.body_kind)
+        used = np.unique(np.asarray(scene.body_shape)[kind == 0]) if (kind == 0).any() else np.arange(len(shape_list))
+        diameter = 2.0 * max(shape_list[k].radius for k in used.tolist())
+        mat_index = {name: i for i, name in enumerate(scene.material_names)}
+        starts, centers, lowers, uppers = [0], [], [], []
+        for wall, key in zip(walls, scene.mesh_wall_keys, strict=True):
+            pivot = np.asarray(wall.pivot, dtype=np.float64)
+            h = diameter if wall.thickness is None else wall.thickness
+            try:
+                mc = build_cells(wall.vertices - pivot, wall.triangles, h, label=f"mesh wall {key} ({wall.source})")
+            except MeshWallError as exc:
+                raise SceneError(str(exc), key=key, file=scene.file) from None
+            self.mesh_cells.append(mc)
+            self._cells.extend(mc.cells)
+            starts.append(starts[-1] + len(mc.cells))
+            centers.append(np.array([c.center for c in mc.cells]))
+            # float32 bounds, grown by their rounding, so that the query never misses a cell.
+            size = np.abs(mc.lower).max() + np.abs(mc.upper).max()
+            lowers.append(mc.lower - 1e-6 * size)
+            uppers.append(mc.upper + 1e-6 * size)
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=dev)
+
+        self.mesh_bvhs = [
+            wp.Bvh(arr(lo.astype(np.float32), wp.vec3), arr(hi.astype(np.float32), wp.vec3))
+            for lo, hi in zip(lowers, uppers, strict=True)
+        ]
+        self.mesh_bvh = arr(np.array([b.id for b in self.mesh_bvhs], dtype=np.uint64), wp.uint64)
+        self.mesh_cell_start = arr(np.array(starts, dtype=np.int32), int)
+        self.cell_shape = arr(len(shape_list) + np.arange(starts[-1], dtype=np.int32), int)
+        self.cell_center = arr(np.concatenate(centers).astype(s_np), vec3s)
+        self.mesh_material = arr(np.array([mat_index[w.material] for w in walls], dtype=np.int32), int)
+        self.mesh_v = arr(np.array([w.velocity for w in walls], dtype=s_np), vec3s)
+        self.mesh_w = arr(np.array([w.angular_velocity for w in walls], dtype=s_np), vec3s)
+        self.mesh_moves = any(w.moving for w in walls)
+        self.mesh_q0 = np.array([[*w.pivot, 0.0, 0.0, 0.0, 1.0] for w in walls], dtype=np.float64)
+
     def state(self):
         """The scene's initial :class:`~polydem.state.State`: its bodies' poses and velocities, no contact history."""
         scene = self.scene
-        state = State(self.num_bodies, self.num_planes, self.friction, self.device, self.precision)
+        state = State(
+            self.num_bodies, self.num_walls, self.friction, self.device, self.precision, num_meshes=self.num_mesh_walls
+        )
         s_np = numpy_dtype(self.scalar)
         state.body_q.assign(np.hstack([scene.body_position, scene.body_orientation]).astype(s_np))
         state.body_v.assign(np.asarray(scene.body_velocity, dtype=s_np))
         state.body_w.assign(np.asarray(scene.body_angular_velocity, dtype=s_np))
+        if self.num_mesh_walls:
+            state.mesh_q.assign(self.mesh_q0.astype(s_np))
         return state

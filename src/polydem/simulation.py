@@ -38,6 +38,7 @@ from polydem.kernels import geometry as _geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 from polydem.kernels.forces import make_contact_kernels
 from polydem.kernels.integrate import integrate_bodies, kinetic_energy, make_integrator
+from polydem.kernels.meshwall import make_mesh_kernels
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.model import Model
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
@@ -197,6 +198,21 @@ class Stepper:
         self.kernels = make_contact_kernels(
             m.law, m.friction, self.poly_capacity, m.shapes.max_faces, precision=m.precision, variant=self.pair_variant
         )
+        self.mesh_kernels = self._mesh_kernels(False)
+
+    def _mesh_kernels(self, diagnostics):
+        m = self.model
+        if not m.num_mesh_walls:
+            return None
+        return make_mesh_kernels(
+            m.law,
+            m.friction,
+            self.poly_capacity,
+            m.shapes.max_faces,
+            diagnostics=diagnostics,
+            precision=m.precision,
+            variant=self.pair_variant,
+        )
 
     def grow_polygons(self):
         """Double the room for clipped polygons (after an overflow); new kernels, so recapture a graph."""
@@ -243,6 +259,8 @@ class Stepper:
     def forces(self, state, contacts, dt):
         """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``."""
         self._launch_contacts(self.kernels, None, state, contacts, dt, self.poly_overflow)
+        if self.mesh_kernels is not None:
+            self._launch_meshes(self.mesh_kernels[0], None, state, dt, self.poly_overflow)
 
     def integrate(self, state, dt):
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
@@ -262,6 +280,13 @@ class Stepper:
             device=dev,
             body_pivot=m.body_pivot,
         )
+        if self.mesh_kernels is not None and m.mesh_moves:
+            wp.launch(
+                self.mesh_kernels[1],
+                dim=m.num_mesh_walls,
+                inputs=[m.mesh_v, m.mesh_w, m.scalar(dt), state.mesh_q],
+                device=dev,
+            )
         wp.launch(advance_step_kernel, dim=1, inputs=[state.step_count], device=dev)
         wp.launch(
             make_check_state_kernel(m.scalar),
@@ -363,6 +388,59 @@ class Stepper:
             device=dev,
         )
 
+    def _launch_meshes(self, kernel, diag, state, dt, overflow):
+        """The mesh-wall contacts of every body, added to ``state.body_f`` and ``body_t`` after the
+        gather (step), or reported into ``diag``'s wall columns (diagnostics)."""
+        m = self.model
+        d = diag if diag is not None else self._placeholders()
+        wp.launch(
+            kernel,
+            dim=m.num_bodies,
+            inputs=[
+                *m.shapes.kernel_args(),
+                m.body_shape,
+                m.body_material,
+                m.body_flags,
+                m.body_inv_mass,
+                m.body_radius,
+                m.num_materials,
+                m.material_k,
+                m.material_e,
+                m.material_mu,
+                m.material_kt,
+                m.law_m,
+                dt,
+                m.mesh_bvh,
+                m.mesh_cell_start,
+                m.mesh_material,
+                m.mesh_v,
+                m.mesh_w,
+                m.cell_shape,
+                m.cell_center,
+                m.num_planes,
+                state.body_q,
+                state.body_v,
+                state.body_w,
+                state.mesh_q,
+                state.plane_xi,
+                state.plane_turn,
+                state.body_dissipated,
+                state.body_f,
+                state.body_t,
+                overflow,
+            ],
+            outputs=[
+                d["plane_volume"],
+                d["plane_energy"],
+                d["plane_fn"],
+                d["plane_point"],
+                d["plane_ft"],
+                d["plane_depth"],
+                d["plane_normal"],
+            ],
+            device=self.device,
+        )
+
     def _diag_arrays(self, pairs, bodies, planes):
         # The outputs of the diagnostics variant: contact points in the state's scalar (they are
         # world positions), the rest in the contact scalar.
@@ -381,6 +459,8 @@ class Stepper:
             out[f"{prefix}_fn"] = wp.zeros(shape, dtype=c, device=dev)
             out[f"{prefix}_ft"] = wp.zeros(shape, dtype=vec3c, device=dev)
             out[f"{prefix}_depth"] = wp.zeros(shape, dtype=c, device=dev)
+        # The normals of the mesh-wall contacts (a plane's is the plane's).
+        out["plane_normal"] = wp.zeros((bodies, planes), dtype=vec3c, device=dev)
         return out
 
     def _placeholders(self):
@@ -398,7 +478,7 @@ class Stepper:
         """
         cap = contacts.capacity
         n = self.model.num_bodies
-        p = max(self.model.num_planes, 1)
+        p = max(self.model.num_walls, 1)
         if self._diag is None or self._diag_generation != contacts.generation:
             self._diag_generation = contacts.generation
             self._diag = self._diag_arrays(cap, n, p)
@@ -415,6 +495,8 @@ class Stepper:
                 variant=self.pair_variant,
             )
             self._launch_contacts(kernels, self._diag, state, contacts, dt, self._diag_overflow)
+            if m.num_mesh_walls:
+                self._launch_meshes(self._mesh_kernels(True)[0], self._diag, state, dt, self._diag_overflow)
             if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= m.shapes.max_poly_bound:
                 break
             # A clipped polygon did not fit: its contact is wrong. Grow the room (the steps use it
@@ -582,7 +664,10 @@ class Simulation:
         """:meth:`restore` from host arrays named as a checkpoint's: ``State.SAVED``, ``pair_key``, ``pair_xi``,
         ``pair_turn``."""
         m = self.model
-        state = State.from_numpy({k: arrays[k] for k in State.SAVED}, self.device, m.precision)
+        saved = {k: arrays[k] for k in State.SAVED if k in arrays}
+        if "mesh_q" not in saved:
+            saved["mesh_q"] = self.current_state.mesh_q.numpy()
+        state = State.from_numpy(saved, self.device, m.precision)
         pairs = PairHistory.from_numpy(
             arrays["pair_key"], arrays["pair_xi"], arrays["pair_turn"], m.friction, self.device, m.contact_scalar
         )
@@ -817,7 +902,7 @@ class Simulation:
         lin, ang = self.stepper.kinetic_energy(st)
         d = self._diagnostics()
         contact = float(np.sum(d["pair_energy"], dtype=np.float64))
-        if m.num_planes:
+        if m.num_walls:
             contact += float(np.sum(d["plane_energy"], dtype=np.float64))
         free = m.body_flags_np == 0
         x = st.body_q.numpy()[:, :3].astype(np.float64)
@@ -835,7 +920,8 @@ class Simulation:
     def contacts(self):
         """Current contacts (overlap volume > 0) as numpy arrays, one row per contact.
 
-        ``body_a``, ``body_b`` (int; ``body_b = -1 - p`` for wall plane p), ``normal`` (N,3) from A
+        ``body_a``, ``body_b`` (int; ``body_b = -1 - p`` for wall p: the planes, then the mesh
+        walls), ``normal`` (N,3) from A
         into B, ``point`` (N,3) [m], ``normal_force`` (N,) [N], ``tangential_force`` (N,3) on A [N],
         ``volume`` (N,) [m^3], ``depth`` (N,) [m]: the penetration depth, the shortest translation along
         a face normal of either body that separates the pair (for a wall, how far the body's lowest
@@ -856,13 +942,17 @@ class Simulation:
             "volume": vol[on].astype(np.float64),
             "depth": d["pair_depth"][on].astype(np.float64),
         }
-        if self.model.num_planes:
+        if self.model.num_walls:
             pv = d["plane_volume"]
             body, plane = np.nonzero(pv > 0.0)
-            normals = self.model.plane_normal.numpy()
+            normals = -self.model.plane_normal.numpy().astype(np.float64).reshape(-1, 3)
+            mesh_normals = d["plane_normal"][body, plane].astype(np.float64)
+            is_plane = plane < self.model.num_planes
+            normal = mesh_normals.copy()
+            normal[is_plane] = normals[plane[is_plane]]
             out["body_a"] = np.concatenate([out["body_a"], body])
             out["body_b"] = np.concatenate([out["body_b"], -1 - plane])
-            out["normal"] = np.concatenate([out["normal"], -normals[plane].astype(np.float64)])
+            out["normal"] = np.concatenate([out["normal"], normal])
             out["point"] = np.concatenate([out["point"], d["plane_point"][body, plane].astype(np.float64)])
             out["normal_force"] = np.concatenate([out["normal_force"], d["plane_fn"][body, plane].astype(np.float64)])
             out["tangential_force"] = np.concatenate(

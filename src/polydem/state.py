@@ -17,7 +17,8 @@ __all__ = ["State"]
 class State:
     """Device arrays of the bodies and of their contacts with the walls.
 
-    N bodies, P wall planes (P >= 1: a scene without walls keeps a placeholder column).
+    N bodies, W walls (the P planes, then the M mesh walls; W >= 1: a scene without walls keeps a
+    placeholder column).
 
     Dtypes by ``precision`` (:mod:`polydem.kernels.precision`): the body arrays (``body_*``) are
     float32 in "float32" and float64 in "mixed" and "float64" (``wp.transformd``, ``wp.vec3d``);
@@ -38,15 +39,16 @@ class State:
             scene has no friction.
         plane_turn: (N, P) turning volumes of the wall contacts (the normal hysteresis,
             kernels/forces.py) [m^3].
+        mesh_q: (max(M, 1),) ``wp.transform`` pose of each mesh wall's frame (origin at its pivot) [m].
         step_count: (1,) int32 steps done; counted on the device so that a captured step counts.
         precision: "float32", "mixed" or "float64".
     """
 
     FIELDS = ("body_q", "body_v", "body_w", "body_f", "body_t", "body_dissipated", "plane_xi", "plane_turn")
-    FIELDS += ("step_count",)
+    FIELDS += ("mesh_q", "step_count")
     """Every array of a state, in the order :meth:`assign` copies them."""
 
-    SAVED = ("body_q", "body_v", "body_w", "body_dissipated", "plane_xi", "plane_turn", "step_count")
+    SAVED = ("body_q", "body_v", "body_w", "body_dissipated", "plane_xi", "plane_turn", "mesh_q", "step_count")
     """What a checkpoint keeps: ``body_f`` and ``body_t`` are written by every step before they are read."""
 
     @staticmethod
@@ -63,10 +65,11 @@ class State:
             "body_dissipated": s,
             "plane_xi": vec3c,
             "plane_turn": c,
+            "mesh_q": wp.types.transformation(s),
             "step_count": int,
         }
 
-    def __init__(self, num_bodies, num_planes, friction, device=None, precision="float32"):
+    def __init__(self, num_bodies, num_planes, friction, device=None, precision="float32", num_meshes=0):
         """A state of ``num_bodies`` bodies at rest at the origin, with no contact history."""
         dev = wp.get_device(device)
         n = int(num_bodies)
@@ -75,6 +78,7 @@ class State:
         self.precision = precision
         shapes = {name: n for name in self.FIELDS}
         shapes.update(plane_xi=(n, planes) if friction else (1, 1), plane_turn=(n, planes), step_count=1)
+        shapes.update(mesh_q=max(int(num_meshes), 1))
         for name, dtype in self.dtypes(precision).items():
             setattr(self, name, wp.zeros(shapes[name], dtype=dtype, device=dev))
 
@@ -95,11 +99,13 @@ class State:
         for name, dtype in cls.dtypes(precision).items():
             if name in arrays:
                 a = np.asarray(arrays[name])
-                if name != "step_count":
+                if name == "mesh_q":
+                    a = a.astype(body)
+                elif name != "step_count":
                     a = a.astype(body if name.startswith("body_") else history)
                 a = wp.array(a, dtype=dtype, device=dev)
             else:
-                a = wp.zeros(n, dtype=dtype, device=dev)
+                a = wp.zeros(1 if name == "mesh_q" else n, dtype=dtype, device=dev)
             setattr(state, name, a)
         return state
 

@@ -513,7 +513,7 @@ class CheckMethods:
         law, m = table["law"], float(table["exponent"])
         k_pair = np.asarray(table["k"], dtype=np.float64)
         present = set(np.unique(a["material"]).tolist())
-        planes = self.planes
+        planes = [*self.planes, *self.mesh_walls]
         present.update(self.material_index(p.material) for p in planes)
         present = np.array(sorted(present))
         support = bool(planes) or bool((a["kind"] != KIND_FREE).any())
@@ -622,7 +622,7 @@ class CheckMethods:
         m = float(table["exponent"])
         k_pair = np.asarray(table["k"], dtype=np.float64)
         present = set(np.unique(a["material"]).tolist())
-        present.update(self.material_index(p.material) for p in self.planes)
+        present.update(self.material_index(p.material) for p in [*self.planes, *self.mesh_walls])
         present = np.array(sorted(present))
         k = k_pair[:, present].min(axis=1)[a["material"]]
         mass = np.asarray(self.body_mass(), dtype=np.float64)
@@ -633,7 +633,7 @@ class CheckMethods:
         v_energy = np.where(mass > 0.0, v_energy, np.inf)
         v_step = TUNNEL_STEP_FRACTION * h / dt
         limit = np.minimum(v_step, v_energy)
-        if self.num_bodies < 2 and not self.planes:
+        if self.num_bodies < 2 and not self.planes and not self.mesh_walls:
             limit = np.full(self.num_bodies, np.inf)  # nothing to pass through
         return TunnelLimits(
             body_speed_limit=limit,

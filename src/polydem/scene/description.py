@@ -415,6 +415,20 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 f"    point [{', '.join(f'{x:g}' for x in p.point)}], normal "
                 f"[{', '.join(f'{x:.4g}' for x in p.normal)}], material {p.material}"
             )
+        for w, key in zip(self.mesh_walls, self.mesh_wall_keys, strict=True):
+            lo, hi = w.vertices.min(axis=0), w.vertices.max(axis=0)
+            moving = ""
+            if w.moving:
+                moving = (
+                    f", velocity [{', '.join(f'{x:g}' for x in w.velocity)}] m/s, angular velocity "
+                    f"[{', '.join(f'{x:g}' for x in w.angular_velocity)}] rad/s about "
+                    f"[{', '.join(f'{x:g}' for x in w.pivot)}]"
+                )
+            lines.append(
+                f"  mesh wall {key} ({w.source}): {len(w.triangles)} triangles, bounds "
+                f"[{', '.join(f'{x:.4g}' for x in lo)}] to [{', '.join(f'{x:.4g}' for x in hi)}] m, "
+                f"material {w.material}{moving}"
+            )
         for d in self.drums:
             centre = ", ".join(f"{x:g}" for x in d.center)
             axis = ", ".join(f"{x:.4g}" for x in d.axis)

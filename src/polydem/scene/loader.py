@@ -19,6 +19,8 @@ from polydem.scene.values import (
     read_boolean,
     read_choice,
     read_number,
+    read_rows,
+    read_string,
     read_table,
     read_vector,
     typename,
@@ -55,11 +57,28 @@ _WALL_KEYS = {
     "plane": ("type", "point", "normal", "material"),
     "box": ("type", "center", "inner_size", "material", "wall_thickness", "open_top"),
     "drum": ("type", "center", "axis", "radius", "length", "material", "omega", "rpm", "sides", "thickness", "caps"),
+    "mesh": (
+        "type",
+        "file",
+        "vertices",
+        "triangles",
+        "material",
+        "scale",
+        "rotation",
+        "orientation",
+        "position",
+        "flip_normals",
+        "thickness",
+        "velocity",
+        "angular_velocity",
+        "pivot",
+    ),
 }
 _WALL_REQUIRED = {
     "plane": ("point", "normal", "material"),
     "box": ("center", "inner_size", "material"),
     "drum": ("center", "axis", "radius", "length", "material"),
+    "mesh": ("material",),
 }
 _EMITTER_KEYS = (
     "shape",
@@ -124,7 +143,7 @@ def _build(cls, data, file, base_dir: Path, validate) -> Scene:
     _read_materials(scene, data, file)
     _read_shapes(scene, data, file, base_dir)
     _read_bodies(scene, data, file)
-    _read_walls(scene, data, file)
+    _read_walls(scene, data, file, base_dir)
     _read_emitters(scene, data, file)
     if "output" in data:
         scene.output = Output.from_dict(data["output"], file)
@@ -219,7 +238,7 @@ def _read_bodies(scene, data, file):
         )
 
 
-def _read_walls(scene, data, file):
+def _read_walls(scene, data, file, base_dir=None):
     walls = data.get("walls", [])
     if not isinstance(walls, list):
         raise SceneError(f"expected an array of tables [[walls]], got {typename(walls)}", "walls", file)
@@ -227,11 +246,13 @@ def _read_walls(scene, data, file):
         key = f"walls[{j}]"
         wall = read_table(wall, key, file, what="a [[walls]] table")
         if "type" not in wall:
-            raise SceneError("missing required key 'type' ('plane', 'box' or 'drum')", f"{key}.type", file)
+            raise SceneError("missing required key 'type' ('plane', 'box', 'drum' or 'mesh')", f"{key}.type", file)
         kind = read_choice(wall["type"], _WALL_KEYS, f"{key}.type", file, what="wall type")
         check_keys(wall, _WALL_KEYS[kind], key, file, required=_WALL_REQUIRED[kind], context=f" for type = {kind!r}")
         if kind == "plane":
             scene.add_plane(wall["point"], wall["normal"], wall["material"], key=key)
+        elif kind == "mesh":
+            _read_mesh_wall(scene, wall, key, file, base_dir)
         elif kind == "box":
             scene.add_box_container(
                 wall["center"],
@@ -255,6 +276,47 @@ def _read_walls(scene, data, file):
                 caps=wall.get("caps", True),
                 key=key,
             )
+
+
+def _read_mesh_wall(scene, wall, key, file, base_dir):
+    if ("file" in wall) == ("vertices" in wall or "triangles" in wall):
+        raise SceneError(
+            "give the mesh either as file = 'wall.stl' or as vertices = [[x, y, z], ...] with "
+            "triangles = [[i, j, k], ...]",
+            f"{key}.file",
+            file,
+        )
+    if "file" in wall:
+        mesh = read_string(wall["file"], f"{key}.file", file, what="a file path string")
+    else:
+        for name in ("vertices", "triangles"):
+            if name not in wall:
+                raise SceneError(f"missing required key {name!r} (the mesh's {name})", f"{key}.{name}", file)
+        mesh = (
+            read_rows(wall["vertices"], 3, f"{key}.vertices", file),
+            read_rows(wall["triangles"], 3, f"{key}.triangles", file),
+        )
+    if "orientation" in wall and "rotation" in wall:
+        raise SceneError(
+            "give either orientation (quaternion) or rotation (axis and angle), not both", f"{key}.rotation", file
+        )
+    orientation = wall.get("orientation")
+    if "rotation" in wall:
+        orientation = read_rotation(wall["rotation"], f"{key}.rotation", file)
+    scene.add_mesh_wall(
+        mesh,
+        wall["material"],
+        scale=wall.get("scale", 1.0),
+        orientation=orientation,
+        position=wall.get("position", (0.0, 0.0, 0.0)),
+        velocity=wall.get("velocity", (0.0, 0.0, 0.0)),
+        angular_velocity=wall.get("angular_velocity", (0.0, 0.0, 0.0)),
+        pivot=wall.get("pivot"),
+        thickness=wall.get("thickness"),
+        flip_normals=wall.get("flip_normals", False),
+        key=key,
+        base_dir=base_dir,
+    )
 
 
 def _read_emitters(scene, data, file):
@@ -303,7 +365,7 @@ def scene_dict(scene: Scene) -> dict:
         "materials": {name: m.to_dict() for name, m in scene.materials.items()},
         "shapes": shapes,
         "bodies": _body_tables(scene),
-        "walls": [p.to_dict() for p in scene.planes],
+        "walls": [p.to_dict() for p in scene.planes] + [w.to_dict() for w in scene.mesh_walls],
         "output": scene.output.to_dict(),
     }
 

@@ -1,4 +1,4 @@
-"""Walls: plane walls, box containers of fixed slabs and rotating drums of kinematic slabs."""
+"""Walls: plane walls, triangle-mesh walls, box containers of fixed slabs and rotating drums of kinematic slabs."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from polydem.meshwall import MeshWallError, check_winding, clean_triangles
 from polydem.quaternions import quat_from_matrix
 from polydem.scene.bodies import KIND_KINEMATIC
 from polydem.scene.materials import Material
@@ -44,6 +45,94 @@ class PlaneWall:
 
     def to_dict(self) -> dict:
         return {"type": "plane", "point": list(self.point), "normal": list(self.normal), "material": self.material}
+
+
+@dataclass(frozen=True, eq=False)
+class MeshWall:
+    """A wall made of a triangle mesh, solid behind its triangles (see :mod:`polydem.meshwall`).
+
+    Attributes:
+        vertices: (nv, 3) float64 vertices in world coordinates at t = 0 [m] (read-only), after the
+            scale, rotation and translation of :meth:`Scene.add_mesh_wall`, merged.
+        triangles: (nf, 3) int64 vertex indices, counter-clockwise seen from the front (the side
+            the bodies are on); the wall is solid behind them, against their normals.
+        material: material name.
+        pivot: (3,) origin of the wall's frame [m]; the wall turns about it.
+        velocity: (3,) velocity of the whole wall [m/s] (the pivot moves with it).
+        angular_velocity: (3,) [rad/s] about the pivot, world axes.
+        thickness: depth of the solid behind each triangle [m], or None: the largest bounding
+            diameter of the scene's free bodies.
+        source: where the mesh came from (a file path, or "vertices" for arrays), for messages.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    material: str
+    pivot: tuple
+    velocity: tuple = (0.0, 0.0, 0.0)
+    angular_velocity: tuple = (0.0, 0.0, 0.0)
+    thickness: float | None = None
+    source: str = "vertices"
+
+    @property
+    def moving(self) -> bool:
+        return any(self.velocity) or any(self.angular_velocity)
+
+    def to_dict(self) -> dict:
+        d = {
+            "type": "mesh",
+            "vertices": self.vertices.tolist(),
+            "triangles": self.triangles.tolist(),
+            "material": self.material,
+            "pivot": list(self.pivot),
+        }
+        if self.moving:
+            d["velocity"] = list(self.velocity)
+            d["angular_velocity"] = list(self.angular_velocity)
+        if self.thickness is not None:
+            d["thickness"] = self.thickness
+        return d
+
+
+def mesh_input(mesh, key, file, base_dir):
+    """(vertices, triangles, source) of a mesh given as a file path, a trimesh.Trimesh or a
+    ``(vertices, triangles)`` pair."""
+    from pathlib import Path
+
+    from polydem.scene.errors import SceneError
+
+    if isinstance(mesh, str | Path):
+        from polydem.shapes import _load_mesh
+
+        path = Path(mesh).expanduser()
+        if not path.is_absolute() and base_dir is not None:
+            path = Path(base_dir) / path
+        if not path.is_file():
+            what = "is not a file" if path.exists() else "not found"
+            where = f"; relative paths are taken from the folder of the scene file, '{base_dir}'" if base_dir else ""
+            raise SceneError(f"mesh file {str(mesh)!r} {what} (looked for '{path}'{where})", f"{key}.file", file)
+        try:
+            tm = _load_mesh(path)
+        except ValueError as exc:
+            raise SceneError(str(exc), f"{key}.file", file) from None
+        return np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64), str(path)
+    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), "trimesh"
+    if isinstance(mesh, tuple | list) and len(mesh) == 2:
+        try:
+            v = np.asarray(mesh[0], dtype=np.float64)
+            f = np.asarray(mesh[1])
+        except (TypeError, ValueError) as exc:
+            raise SceneError(f"cannot read the mesh arrays: {exc}", f"{key}.vertices", file) from None
+        if f.size and not np.issubdtype(f.dtype, np.integer):
+            if not np.all(np.mod(f, 1) == 0):
+                raise SceneError("triangle indices must be integers", f"{key}.triangles", file)
+        return v, f.astype(np.int64), "vertices"
+    raise SceneError(
+        f"expected a mesh file path, a trimesh.Trimesh or (vertices, triangles), got {type(mesh).__name__}",
+        f"{key}.file",
+        file,
+    )
 
 
 @dataclass(frozen=True)
@@ -123,6 +212,8 @@ class WallMethods:
         # The state of this group; Scene.__init__ reaches every group's __init__ through super().
         self._planes: list[PlaneWall] = []
         self._plane_keys: list[str] = []
+        self._mesh_walls: list[MeshWall] = []
+        self._mesh_wall_keys: list[str] = []
         self.drums: list[Drum] = []
         super().__init__()
 
@@ -150,6 +241,108 @@ class WallMethods:
         self._planes.append(plane)
         self._plane_keys.append(key)
         return plane
+
+    @property
+    def mesh_walls(self) -> list[MeshWall]:
+        """Triangle-mesh walls (a copy of the list)."""
+        return list(self._mesh_walls)
+
+    @property
+    def mesh_wall_keys(self) -> list[str]:
+        """Where each mesh wall came from, e.g. ``walls[2]`` (for messages)."""
+        return list(self._mesh_wall_keys)
+
+    def add_mesh_wall(
+        self,
+        mesh,
+        material,
+        *,
+        scale=1.0,
+        orientation=None,
+        position=(0.0, 0.0, 0.0),
+        velocity=(0.0, 0.0, 0.0),
+        angular_velocity=(0.0, 0.0, 0.0),
+        pivot=None,
+        thickness=None,
+        flip_normals: bool = False,
+        key: str | None = None,
+        base_dir=None,
+    ) -> MeshWall:
+        """Add a wall made of a triangle mesh: open or closed, convex or not (see :mod:`polydem.meshwall`).
+
+        The wall is solid behind its triangles (against their normals, i.e. the bodies are on the
+        side a counter-clockwise triangle faces), ``thickness`` [m] deep (default: the largest
+        bounding diameter of the free bodies); ``flip_normals`` reverses every triangle. Keep the
+        thickness below half the thinnest part of a closed wall, or the cells behind one side
+        reach out of the other.
+
+        Args:
+            mesh: a mesh file (STL, OBJ, PLY; relative paths from ``base_dir``), a trimesh.Trimesh,
+                or ``(vertices, triangles)`` arrays.
+            material: a material name registered in the scene.
+            scale: a factor or (sx, sy, sz) applied to the file's coordinates first.
+            orientation: unit quaternion xyzw applied after the scale (default: none).
+            position: translation applied last [m].
+            velocity: (3,) [m/s]; angular_velocity: (3,) [rad/s] about ``pivot`` (default
+                ``position``): a kinematic wall, e.g. a turning mixer.
+            key: where the values came from, for messages (default ``mesh_walls[N]``).
+        """
+        from polydem.quaternions import quat_to_matrix
+
+        key = key or f"mesh_walls[{len(self._mesh_walls)}]"
+        f = self.file
+        self.material_index(material, key=f"{key}.material")
+        name = material.name if isinstance(material, Material) else material
+        v, tri, source = mesh_input(mesh, key, f, base_dir)
+        if np.ndim(scale) == 0:
+            sc = np.full(3, read_number(scale, f"{key}.scale", f, hint=" (a factor, e.g. 0.001 for mm)"))
+        else:
+            sc = read_vector(scale, 3, f"{key}.scale", f)
+        if np.any(sc == 0.0) or not np.all(np.isfinite(sc)):
+            raise self.error(
+                f"scale {sc.tolist()} has a zero or non-finite factor; give factors such as 0.001", f"{key}.scale"
+            )
+        rot = np.eye(3)
+        if orientation is not None:
+            q = read_vector(orientation, 4, f"{key}.orientation", f)
+            norm = float(np.linalg.norm(q))
+            if not abs(norm - 1.0) <= 1e-6:
+                raise self.error(
+                    f"orientation {q.tolist()} is not a unit quaternion xyzw (|q| = {norm:.6g})", f"{key}.orientation"
+                )
+            rot = quat_to_matrix(q / norm)
+        pos = read_vector(position, 3, f"{key}.position", f)
+        vel = read_vector(velocity, 3, f"{key}.velocity", f)
+        omega = read_vector(angular_velocity, 3, f"{key}.angular_velocity", f)
+        piv = pos if pivot is None else read_vector(pivot, 3, f"{key}.pivot", f)
+        if thickness is not None:
+            thickness = read_number(thickness, f"{key}.thickness", f, positive=True, hint=" (depth of the solid in m)")
+        flip = read_boolean(flip_normals, f"{key}.flip_normals", f)
+        if v.ndim == 2 and v.shape[1] == 3:
+            v = (v * sc) @ rot.T + pos
+        # A mirror (an odd number of negative factors) turns the triangles inside out: re-orient them.
+        if (np.prod(np.sign(sc)) < 0) != flip and tri.ndim == 2:
+            tri = tri[:, ::-1]
+        try:
+            v, tri = clean_triangles(v, tri, label=f"mesh {source}")
+            check_winding(v, tri, label=f"mesh {source}")
+        except MeshWallError as exc:
+            raise self.error(str(exc), f"{key}.file" if source not in ("vertices", "trimesh") else key) from None
+        v.setflags(write=False)
+        tri.setflags(write=False)
+        wall = MeshWall(
+            vertices=v,
+            triangles=tri,
+            material=name,
+            pivot=as_tuple(piv),
+            velocity=as_tuple(vel),
+            angular_velocity=as_tuple(omega),
+            thickness=thickness,
+            source=source,
+        )
+        self._mesh_walls.append(wall)
+        self._mesh_wall_keys.append(key)
+        return wall
 
     def add_box_container(
         self, center, inner_size, material, wall_thickness=None, open_top: bool = True, *, key: str | None = None

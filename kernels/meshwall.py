@@ -1,0 +1,210 @@
+"""Contacts of bodies with triangle-mesh walls, and the motion of those walls.
+
+A mesh wall is a solid cut into convex cells, one behind each triangle (:mod:`polydem.meshwall`). Per
+free body one thread walks every mesh wall: it finds the cells whose bounds meet the body's bounding
+box in the wall's frame (a ``wp.Bvh`` over the cells, built once: the cells do not move in their
+wall's frame), clips the body against each with the exact pair geometry, and SUMS the overlap
+volume, its first moment, S_A, M_A and the fallback over the cells before applying the contact law
+once (:func:`polydem.kernels.response.respond`). The sum of the exact overlaps with cells that tile
+the solid is the exact overlap with the solid: the energy W(V) is that of the body against the
+wall as a whole, so a flat region of many triangles acts as one plane and the edges between
+triangles add nothing. One friction spring and one turning volume per (body, wall), kept in the
+wall columns of ``State.plane_xi`` / ``plane_turn`` after the plane walls.
+
+A wall moves rigidly: its frame's origin (the pivot) with ``mesh_v``, its orientation turning at
+``mesh_w``; :func:`advance_meshes` steps its pose. The thread runs after the gather kernel and adds
+to the body's force and torque (one thread per body: a fixed order, no atomics).
+"""
+
+import functools
+
+import warp as wp
+from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
+from polydem.kernels.precision import scalars
+from polydem.kernels.response import make_response
+
+# Rounding allowance of the float32 BVH query box, relative to the body's distance from the wall's
+# origin plus its radius (the box is cast from the state's scalar).
+QUERY_ROUNDING = 4.0e-7
+
+
+@functools.cache
+def make_mesh_kernels(
+    law: str,
+    friction: bool,
+    max_poly: int,
+    max_faces: int,
+    diagnostics: bool = False,
+    precision: str = "float32",
+    variant: str = DEFAULT_PAIR_VARIANT,
+):
+    """The mesh-wall contact kernel of one law, friction setting, polygon capacity and precision
+    (the step variant, or with ``diagnostics`` the one that reports and changes nothing)."""
+    S, C = scalars(precision)
+    vec3s = wp.types.vector(3, S)
+    vec3c = wp.types.vector(3, C)
+    quat_s = wp.types.quaternion(S)
+    transform_s = wp.types.transformation(S)
+    resp = make_response(C, law, friction, diagnostics)
+    law_energy = resp.law_energy
+    respond = resp.respond
+    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
+    Shapes = geom.shapes
+    pair_geometry = geom.pair_geometry
+    pair_depth_of = geom.pair_depth
+    zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def mesh_contact_kernel(
+        # Model
+        shapes: Shapes,
+        body_shape: wp.array(dtype=int),
+        body_material: wp.array(dtype=int),
+        body_flags: wp.array(dtype=int),
+        body_inv_mass: wp.array(dtype=S),
+        body_radius: wp.array(dtype=float),
+        num_materials: int,
+        material_k: wp.array(dtype=C),
+        material_e: wp.array(dtype=C),
+        material_mu: wp.array(dtype=C),
+        material_kt: wp.array(dtype=C),
+        law_m: C,
+        dt: C,
+        mesh_bvh: wp.array(dtype=wp.uint64),
+        mesh_cell_start: wp.array(dtype=int),
+        mesh_material: wp.array(dtype=int),
+        mesh_v: wp.array(dtype=vec3s),
+        mesh_w: wp.array(dtype=vec3s),
+        cell_shape: wp.array(dtype=int),
+        cell_center: wp.array(dtype=vec3s),
+        first_column: int,
+        # State in
+        body_q: wp.array(dtype=transform_s),
+        body_v: wp.array(dtype=vec3s),
+        body_w: wp.array(dtype=vec3s),
+        mesh_q: wp.array(dtype=transform_s),
+        # State in/out
+        plane_xi: wp.array2d(dtype=vec3c),
+        plane_turn: wp.array2d(dtype=C),
+        body_dissipated: wp.array(dtype=S),
+        body_f: wp.array(dtype=vec3s),
+        body_t: wp.array(dtype=vec3s),
+        overflow: wp.array(dtype=int),
+        # Out (diagnostics)
+        plane_volume: wp.array2d(dtype=C),
+        plane_energy: wp.array2d(dtype=C),
+        plane_fn: wp.array2d(dtype=C),
+        plane_point: wp.array2d(dtype=vec3s),
+        plane_ft: wp.array2d(dtype=vec3c),
+        plane_depth: wp.array2d(dtype=C),
+        plane_normal: wp.array2d(dtype=vec3c),
+    ):
+        i = wp.tid()
+        if body_flags[i] != 0:
+            return
+        xa = body_q[i]
+        pa = wp.transform_get_translation(xa)
+        s = body_shape[i]
+        r = body_radius[i]
+        f = vec3s(S(0.0), S(0.0), S(0.0))
+        t = vec3s(S(0.0), S(0.0), S(0.0))
+        lost = S(0.0)
+        for m in range(mesh_bvh.shape[0]):
+            xm = mesh_q[m]
+            j = first_column + m
+            # The body's bounding box in the wall's frame (where the cells' BVH lives).
+            local = wp.transform_point(wp.transform_inverse(xm), pa)
+            lf = wp.vec3(float(local[0]), float(local[1]), float(local[2]))
+            pad = r * (1.0 + QUERY_ROUNDING) + QUERY_ROUNDING * wp.length(lf)
+            ext = wp.vec3(pad, pad, pad)
+            query = wp.bvh_query_aabb(mesh_bvh[m], lf - ext, lf + ext)
+            k = int(0)
+            vol = C(0.0)
+            first_moment = zero3
+            s_a = zero3
+            m_a = zero3
+            fb_a = zero3
+            depth = C(0.0)
+            base = mesh_cell_start[m]
+            rot = wp.transform_get_rotation(xm)
+            while wp.bvh_query_next(query, k):
+                cell = base + k
+                xb = transform_s(wp.transform_point(xm, cell_center[cell]), rot)
+                v_c, fm_c, sa_c, ma_c, sb_c, mb_c, fb_c, of = pair_geometry(shapes, s, cell_shape[cell], xa, xb)
+                if of != 0:
+                    wp.atomic_max(overflow, 0, 1)
+                if v_c > C(0.0):
+                    vol += v_c
+                    first_moment += fm_c
+                    s_a += sa_c
+                    m_a += ma_c
+                    fb_a += fb_c
+                    if wp.static(diagnostics):
+                        depth = wp.max(depth, C(pair_depth_of(shapes, s, cell_shape[cell], xa, xb)))
+            mat = body_material[i] * num_materials + mesh_material[m]
+            if vol <= C(0.0):
+                e_mat = material_e[mat]
+                kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m)
+                if wp.static(diagnostics):
+                    plane_volume[i, j] = C(0.0)
+                    plane_energy[i, j] = kept
+                    plane_fn[i, j] = C(0.0)
+                    plane_ft[i, j] = zero3
+                    plane_depth[i, j] = C(0.0)
+                else:
+                    lost += S(kept)
+                    plane_turn[i, j] = C(0.0)
+                    if wp.static(friction):
+                        xi = plane_xi[i, j]
+                        lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
+                        plane_xi[i, j] = zero3
+                continue
+            xi_in = zero3
+            if wp.static(friction):
+                xi_in = plane_xi[i, j]
+            # B's motion about the wall's origin: r_ab from the body to it, its velocity there.
+            r_ab = vec3c(wp.transform_get_translation(xm) - pa)
+            force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
+                vol, first_moment, s_a, m_a, fb_a, r_ab,
+                vec3c(body_v[i]), vec3c(body_w[i]), vec3c(mesh_v[m]), vec3c(mesh_w[m]),
+                material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
+                plane_turn[i, j], dt,
+                shapes.shape_radius[s], C(body_inv_mass[i]),
+            )  # fmt: skip
+            if wp.static(diagnostics):
+                plane_volume[i, j] = vol
+                plane_energy[i, j] = energy
+                plane_fn[i, j] = fn
+                plane_point[i, j] = vec3s(point) + pa
+                plane_ft[i, j] = ft
+                plane_depth[i, j] = depth
+                plane_normal[i, j] = n
+            else:
+                if wp.static(friction):
+                    plane_xi[i, j] = xi
+                plane_turn[i, j] = turn
+                f += vec3s(force)
+                t += vec3s(torque)
+                lost += S(dl)
+        if wp.static(not diagnostics):
+            body_f[i] = body_f[i] + f
+            body_t[i] = body_t[i] + t
+            body_dissipated[i] = body_dissipated[i] + lost
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def advance_meshes_kernel(
+        mesh_v: wp.array(dtype=vec3s),
+        mesh_w: wp.array(dtype=vec3s),
+        dt: S,
+        mesh_q: wp.array(dtype=transform_s),
+    ):
+        m = wp.tid()
+        x = mesh_q[m]
+        w = mesh_w[m]
+        angle = wp.length(w) * dt
+        rot = wp.transform_get_rotation(x)
+        if angle > S(0.0):
+            rot = wp.normalize(wp.quat_from_axis_angle(wp.normalize(w), angle) * rot)
+        mesh_q[m] = transform_s(wp.transform_get_translation(x) + mesh_v[m] * dt, quat_s(rot))
+
+    return mesh_contact_kernel, advance_meshes_kernel
