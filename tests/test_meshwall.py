@@ -292,7 +292,7 @@ def _solid_depth(mesh, pts):
         return np.where(inside, -np.min(np.minimum(pts - lo, hi - pts), axis=1), out)
     if name == "crease":  # behind the floor z = 0 (x > 0) or the wall x = 0 (z > 0)
         x, z = pts[:, 0], pts[:, 2]
-        return np.where((x > 0) & (z > 0), -np.minimum(x, z), np.minimum(np.maximum(-x, 0), np.maximum(-z, 0)))
+        return np.where((x > 0) & (z > 0), -np.minimum(x, z), np.maximum(-x, -z))
     raise ValueError(name)
 
 
