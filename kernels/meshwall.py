@@ -129,8 +129,20 @@ def make_mesh_kernels(
             rot = wp.transform_get_rotation(xm)
             while wp.bvh_query_next(query, k):
                 cell = base + k
+                sb = cell_shape[cell]
                 xb = transform_s(wp.transform_point(xm, cell_center[cell]), rot)
-                v_c, fm_c, sa_c, ma_c, sb_c, mb_c, fb_c, of = pair_geometry(shapes, s, cell_shape[cell], xa, xb)
+                # A cheap test before the clipping: the body's bounding sphere wholly in front of one
+                # of the cell's planes cannot overlap it (the box query is coarser: a cell's bounds
+                # span its whole thickness).
+                c_cell = wp.vec3d(wp.quat_rotate_inv(rot, pa - wp.transform_get_translation(xb)))
+                apart = int(0)
+                for fp in range(shapes.shape_face_start[sb], shapes.shape_face_start[sb + 1]):
+                    pl = shapes.face_plane64[fp]
+                    if pl[0] * c_cell[0] + pl[1] * c_cell[1] + pl[2] * c_cell[2] - pl[3] > wp.float64(pad):
+                        apart = 1
+                if apart != 0:
+                    continue
+                v_c, fm_c, sa_c, ma_c, sb_c, mb_c, fb_c, of = pair_geometry(shapes, s, sb, xa, xb)
                 if of != 0:
                     wp.atomic_max(overflow, 0, 1)
                 if v_c > C(0.0):
@@ -140,7 +152,7 @@ def make_mesh_kernels(
                     m_a += ma_c
                     fb_a += fb_c
                     if wp.static(diagnostics):
-                        depth = wp.max(depth, C(pair_depth_of(shapes, s, cell_shape[cell], xa, xb)))
+                        depth = wp.max(depth, C(pair_depth_of(shapes, s, sb, xa, xb)))
             mat = body_material[i] * num_materials + mesh_material[m]
             if vol <= C(0.0):
                 e_mat = material_e[mat]

@@ -1,0 +1,145 @@
+"""Cost of a grain's contact with a triangle-mesh wall, against a plane wall and a convex pair contact.
+
+Scenes (``--bodies`` N cubes of 1 cm, hertz law, restitution 0.5, friction 0.5, gravity), each cube
+resting face down at its equilibrium depth with a random yaw, on a square grid 3 cm apart (no
+cube touches another):
+
+* ``plane``: on a plane wall (tested per body in the gather kernel);
+* ``mesh2``: on a mesh floor of 2 triangles; ``meshT``: on a mesh floor of about ``--triangles``
+  triangles (a jittered grid, triangles about the cube's size);
+* ``pair``: each on its own fixed cube (a convex pair contact through the broad phase and the pair
+  kernel), no wall;
+* ``compound`` (when ``--compound`` and compound grains exist): an L of two cube parts on a fixed
+  cube.
+
+Each scene is timed twice in the same run: as above, and with every free cube lifted 5 mm (out of
+contact, nothing else changed). The cost of a contact is the difference of the median step times
+over N: what the contacts add to a step, the geometry, the law, friction and the gather of their
+wrench. On CUDA the step is a captured graph; on the CPU the host loop.
+
+    python benchmarks/wall_contact_cost.py --device cpu --bodies 400
+    python benchmarks/wall_contact_cost.py --device cuda:0 --bodies 100000
+
+Prints a table and writes JSON to ``--out`` (benchmarks/results/issue13/wall_contact_cost_<device>_<N>.json).
+"""
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from polydem import ConvexShape, Scene, Simulation
+
+EDGE = 0.01
+SPACING = 0.03
+
+
+def floor_mesh(size, n, seed=0):
+    xs = np.linspace(-size / 2, size / 2, n + 1)
+    x, y = np.meshgrid(xs, xs, indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    inner = (np.abs(v[:, 0]) < size / 2 - 1e-12) & (np.abs(v[:, 1]) < size / 2 - 1e-12)
+    v[inner, :2] += np.random.default_rng(seed).uniform(-0.3, 0.3, (inner.sum(), 2)) * size / n
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return v, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+
+
+def build(kind, n, triangles, lift, precision, seed=1):
+    sc = Scene(gravity=(0.0, 0.0, -9.81), dt="auto", precision=precision)
+    sc.add_material("m", density=2500.0, law="hertz", k=1.0e8, restitution=0.5, friction=0.5)
+    sc.add_shape("cube", ConvexShape.box(EDGE))
+    side = int(np.ceil(np.sqrt(n)))
+    size = side * SPACING
+    rng = np.random.default_rng(seed)
+    weight = 2500.0 * EDGE**3 * 9.81
+    # Equilibrium depth of a face contact under the hertz law: W'(V) A = weight, W' = k V^0.5.
+    depth = (weight / (1.0e8 * EDGE**2)) ** 2 / EDGE**2
+    if kind == "plane":
+        sc.add_plane((0, 0, 0), (0, 0, 1), "m")
+    elif kind == "mesh2":
+        sc.add_mesh_wall(floor_mesh(size + SPACING, 1), "m")
+    elif kind == "meshT":
+        cells = max(1, int(round(np.sqrt(triangles / 2))))
+        sc.add_mesh_wall(floor_mesh(size + SPACING, cells), "m")
+    elif kind == "pair":
+        sc.add_shape("base", ConvexShape.box(EDGE))
+    for k in range(n):
+        i, j = divmod(k, side)
+        x, y = (i - (side - 1) / 2) * SPACING, (j - (side - 1) / 2) * SPACING
+        yaw = rng.uniform(0, 2 * np.pi)
+        q = (0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2))
+        z = 0.5 * EDGE - depth + lift
+        if kind == "pair":
+            sc.add_body("base", "m", position=(x, y, -0.5 * EDGE), orientation=q, kind="fixed")
+        sc.add_body("cube", "m", position=(x, y, z), orientation=q)
+    return sc
+
+
+def time_steps(sim, steps, repeats):
+    sim.step(steps)  # warm-up: compile, capture
+    wp.synchronize_device(sim.device)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sim.step(steps)
+        wp.synchronize_device(sim.device)
+        times.append((time.perf_counter() - t0) / steps)
+    return statistics.median(times)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--bodies", type=int, default=400)
+    ap.add_argument("--triangles", type=int, default=2048)
+    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--precision", default="mixed")
+    ap.add_argument("--kinds", default="plane,mesh2,meshT,pair")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    wp.config.quiet = True
+    rows = []
+    for kind in args.kinds.split(","):
+        res = {}
+        for lifted in (False, True):
+            sim = Simulation(build(kind, args.bodies, args.triangles, 0.005 if lifted else 0.0, args.precision),
+                             device=args.device)  # fmt: skip
+            t = time_steps(sim, args.steps, args.repeats)
+            c = sim.contacts()
+            res[lifted] = (t, len(c["volume"]))
+        (t_on, contacts), (t_off, _) = res[False], res[True]
+        row = {
+            "kind": kind,
+            "step_s": t_on,
+            "step_lifted_s": t_off,
+            "contacts": contacts,
+            "per_contact_s": (t_on - t_off) / max(contacts, 1),
+        }
+        rows.append(row)
+        print(
+            f"{kind:>8}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "
+            f"{row['per_contact_s'] * 1e9:9.1f} ns per contact"
+        )
+    ref = next((r for r in rows if r["kind"] == "pair"), None)
+    if ref:
+        for r in rows:
+            r["per_contact_vs_pair"] = r["per_contact_s"] / ref["per_contact_s"]
+            print(f"{r['kind']:>8}: {r['per_contact_vs_pair']:.2f} x a convex pair contact")
+    out = Path(
+        args.out or f"benchmarks/results/issue13/wall_contact_cost_{args.device.replace(':', '')}_{args.bodies}.json"
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"device": args.device, "warp": wp.__version__, "bodies": args.bodies, "triangles": args.triangles,
+            "steps": args.steps, "repeats": args.repeats, "precision": args.precision}  # fmt: skip
+    out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
