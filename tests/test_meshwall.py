@@ -455,3 +455,19 @@ def test_build_cells_rejects_a_bad_thickness():
 
 def test_public_api():
     assert hasattr(polydem.Scene, "add_mesh_wall")
+
+
+def test_emitter_keeps_clear_of_mesh_walls(device):
+    """Bodies emitted into a region that crosses a container mesh's walls start clear of them."""
+    sc = base_scene("float64")
+    box = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
+    box.apply_translation([0.0, 0.0, 0.1])
+    sc.add_mesh_wall(box, "m", flip_normals=True, thickness=0.02)
+    sc.emit(
+        shape="cube", material="m", count=20, region={"min": [-0.15, -0.15, -0.05], "max": [0.15, 0.15, 0.25]}, seed=2
+    )
+    pos = sc.body_position
+    assert len(pos) == 20
+    assert np.all(np.abs(pos[:, :2]) < 0.1) and np.all((pos[:, 2] > 0.0) & (pos[:, 2] < 0.2))
+    sim = Simulation(sc, device=device)
+    assert len(contacts_by_body(sim)["volume"]) == 0

@@ -128,7 +128,7 @@ def _cell_index(layer, m, k, ax_a, ax_b, nb, nk, ascending) -> np.ndarray:
 
 
 class _Obstacles:
-    """What an emitter's grid cells must keep clear of: plane walls, the scene's bodies, drums.
+    """What an emitter's grid cells must keep clear of: plane walls, the scene's bodies, drums, mesh walls.
 
     A cell (a cube of side ``cell``) is blocked when it reaches behind a plane, when it is not
     separated from a body by one of the body's face planes (conservative near edges and corners),
@@ -156,6 +156,16 @@ class _Obstacles:
             self.rad = radius[self.body]
             self.shape = np.asarray(scene.body_shape)[self.body]
             self.rot = quat_to_matrix(scene.body_orientation[self.body])
+        self.mesh_planes = []
+        for wall in scene.mesh_walls:
+            from polydem.meshwall import build_cells
+
+            depth = wall.thickness if wall.thickness is not None else cell
+            cells = build_cells(wall.vertices, wall.triangles, depth).cells
+            for c in cells:
+                self.mesh_planes.append(
+                    (c.center, c.radius, c.face_normals, c.face_offsets + c.face_normals @ c.center)
+                )
         self.drums = []
         reach = self.h * math.sqrt(3.0)
         for drum in scene.drums:
@@ -178,7 +188,22 @@ class _Obstacles:
                 out[near[~inside]] = True
         if self.body.size:
             self._block_bodies(out, krange, k, local_of)
+        if self.mesh_planes and len(centres):
+            self._block_meshes(out, centres)
         return out
+
+    def _block_meshes(self, out, centres):
+        """Cells whose bounding sphere is not separated from a mesh wall's cell by one of its planes."""
+        from scipy.spatial import cKDTree
+
+        reach = self.h * math.sqrt(3.0)
+        tree = cKDTree(centres)
+        for c, r, nrm, off in self.mesh_planes:
+            near = tree.query_ball_point(c, r + reach)
+            if near:
+                near = np.asarray(near)
+                apart = np.any(centres[near] @ nrm.T - off > reach + self.tol, axis=1)
+                out[near[~apart]] = True
 
     def _block_bodies(self, out, krange, k, local_of):
         cell, n = self.cell, self.n
