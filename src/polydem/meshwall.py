@@ -28,6 +28,9 @@ import numpy as np
 # Edges shorter than this fraction of the mesh's bounding diagonal, and triangles of smaller area
 # (relative to the diagonal squared), are degenerate: their normals are noise.
 DEGENERATE = 1e-10
+# Two triangles whose dihedral angle differs from flat by less than this [rad] are coplanar: a file
+# in float32 (STL) leaves planar quads bent by about 1e-7.
+FLAT = 1e-6
 
 
 class MeshWallError(ValueError):
@@ -149,13 +152,13 @@ def _edge_planes(vertices, faces, normals, label):
     rise = np.einsum("ek,ek->e", normals[f1], far2 - start[f1, j1])
     length = np.linalg.norm(end[f1, j1] - start[f1, j1], axis=1)
     bend = rise / length
-    convex = (bend < -1e-9) & (norm > 1e-9)
+    convex = (bend < -FLAT) & (norm > 1e-9)
     m[convex] /= norm[convex, None]
     side[f1[convex], j1[convex]] = m[convex]
     side[f2[convex], j2[convex]] = -m[convex]
     offset = np.einsum("fjk,fjk->fj", side, start)
     nonmanifold = int(np.sum(counts > 2))
-    concave = bend > 1e-9
+    concave = bend > FLAT
     edges = np.column_stack([f1[concave], j1[concave], f2[concave], j2[concave]])
     return side, offset, nonmanifold, edges
 
@@ -363,7 +366,7 @@ def _wedge_cells(v, f, normals, front_d, concave, thickness, label, tol):
             np.append(t, t @ b),
         ]
         cell = _cell(np.array(planes), f"{label} edge cell", tol)
-        if cell is not None:
+        if cell is not None and cell.radius <= 2.0 * (thickness + np.linalg.norm(b - a)):
             out.append(cell)
         for vi, direction in ((f[f1, j1], t), (f[f1, (j1 + 1) % 3], -t)):
             ends.setdefault(int(vi), []).append((direction, f1, f2))
@@ -381,7 +384,9 @@ def _wedge_cells(v, f, normals, front_d, concave, thickness, label, tol):
         planes += [np.append(normals_f[i], front_d[i]) for i in faces_here]
         planes += [np.append(-normals_f[i], -(front_d[i] - thickness)) for i in faces_here]
         cell = _cell(np.array(planes), f"{label} corner cell", tol)
-        if cell is not None:
+        # A corner whose concave edges do not close the solid around it (they do at the corner of
+        # a box's inside) leaves this region unbounded along the surface: no cell there.
+        if cell is not None and cell.radius <= 4.0 * thickness:
             out.append(cell)
     return out
 
