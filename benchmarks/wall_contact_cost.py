@@ -6,7 +6,8 @@ cube touches another):
 
 * ``plane``: on a plane wall (tested per body in the gather kernel);
 * ``mesh2``: on a mesh floor of 2 triangles; ``meshT``: on a mesh floor of about ``--triangles``
-  triangles (a jittered grid, triangles about the cube's size);
+  triangles, or with ``--triangle-edge E`` of squares E cube edges wide cut into two triangles (a
+  jittered grid: the floor grows with N, so a fixed count gives larger triangles for larger N);
 * ``pair``: each on its own fixed cube (a convex pair contact through the broad phase and the pair
   kernel), no wall;
 * ``compound`` (when ``--compound`` and compound grains exist): an L of two cube parts on a fixed
@@ -49,7 +50,7 @@ def floor_mesh(size, n, seed=0):
     return v, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
 
 
-def build(kind, n, triangles, lift, precision, seed=1):
+def build(kind, n, triangles, lift, precision, seed=1, triangle_edge=None):
     sc = Scene(gravity=(0.0, 0.0, -9.81), dt="auto", precision=precision)
     sc.add_material("m", density=2500.0, law="hertz", k=1.0e8, restitution=0.5, friction=0.5)
     sc.add_shape("cube", ConvexShape.box(EDGE))
@@ -65,6 +66,8 @@ def build(kind, n, triangles, lift, precision, seed=1):
         sc.add_mesh_wall(floor_mesh(size + SPACING, 1), "m")
     elif kind == "meshT":
         cells = max(1, int(round(np.sqrt(triangles / 2))))
+        if triangle_edge:
+            cells = max(1, int(round((size + SPACING) / (triangle_edge * EDGE))))
         sc.add_mesh_wall(floor_mesh(size + SPACING, cells), "m")
     elif kind == "pair":
         sc.add_shape("base", ConvexShape.box(EDGE))
@@ -97,6 +100,9 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--bodies", type=int, default=400)
     ap.add_argument("--triangles", type=int, default=2048)
+    ap.add_argument(
+        "--triangle-edge", type=float, default=None, help="squares of this many cube edges (overrides --triangles)"
+    )
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--precision", default="mixed")
@@ -108,8 +114,11 @@ def main():
     for kind in args.kinds.split(","):
         res = {}
         for lifted in (False, True):
-            sim = Simulation(build(kind, args.bodies, args.triangles, 0.005 if lifted else 0.0, args.precision),
-                             device=args.device)  # fmt: skip
+            scene = build(kind, args.bodies, args.triangles, 0.005 if lifted else 0.0, args.precision,
+                          triangle_edge=args.triangle_edge)  # fmt: skip
+            sim = Simulation(scene, device=args.device)
+            if kind == "meshT":
+                row_triangles = len(scene.mesh_walls[0].triangles)
             t = time_steps(sim, args.steps, args.repeats)
             c = sim.contacts()
             res[lifted] = (t, len(c["volume"]))
@@ -121,6 +130,10 @@ def main():
             "contacts": contacts,
             "per_contact_s": (t_on - t_off) / max(contacts, 1),
         }
+        if kind == "meshT":
+            row["triangles"] = row_triangles
+            side = int(np.ceil(np.sqrt(args.bodies)))
+            row["triangle_edge_in_cube_edges"] = (side * SPACING + SPACING) / np.sqrt(row_triangles / 2) / EDGE
         rows.append(row)
         print(
             f"{kind:>8}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "
@@ -136,6 +149,7 @@ def main():
     )
     out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"device": args.device, "warp": wp.__version__, "bodies": args.bodies, "triangles": args.triangles,
+            "triangle_edge": args.triangle_edge,
             "steps": args.steps, "repeats": args.repeats, "precision": args.precision}  # fmt: skip
     out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     print(f"wrote {out}")
