@@ -172,14 +172,11 @@ def _polytope(planes: np.ndarray, tol: float):
     """Vertices and counter-clockwise face loops of {x : N x <= d} for a bounded set of planes
     ``(k, 4)``; faces that touch the polytope in fewer than 3 vertices are dropped."""
     # One face per plane: drop repeated planes (a corner's plane can repeat an edge bisector).
-    keep = []
-    for i in range(len(planes)):
-        if not any(
-            np.allclose(planes[i, :3], planes[j, :3], atol=1e-12) and abs(planes[i, 3] - planes[j, 3]) <= tol
-            for j in keep
-        ):
-            keep.append(i)
-    planes = planes[keep]
+    diff = np.abs(planes[:, None, :3] - planes[None, :, :3]).max(axis=2) + np.abs(
+        planes[:, None, 3] - planes[None, :, 3]
+    )
+    same = np.triu(diff <= tol, k=1)
+    planes = planes[~same.any(axis=0)]
     idx = _triples(len(planes))
     a = planes[idx, :3]
     det = np.linalg.det(a)
