@@ -511,3 +511,19 @@ def test_grains_in_a_cone_keep_their_energy(device):
         touched += int(np.sum(contacts_by_body(sim)["body_b"] < 0))
     assert touched > 0
     assert abs(sim.energy()["total"] - e0) < 2e-3 * abs(e0)
+
+
+def test_checkpoint_of_another_mesh_is_refused(tmp_path, device):
+    from polydem.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+
+    sc = base_scene("float64")
+    sc.add_body("cube", "m", position=(0.0, 0.0, 0.5 * CUBE + 0.001))
+    sc.add_mesh_wall(floor_grid(2, size=0.4), "m")
+    sim = Simulation(sc, device=device)
+    sim.step(5)
+    save_checkpoint(sim, tmp_path / "c.npz")
+    other = base_scene("float64")
+    other.add_body("cube", "m", position=(0.0, 0.0, 0.5 * CUBE + 0.001))
+    other.add_mesh_wall(floor_grid(3, size=0.4), "m")
+    with pytest.raises(CheckpointError, match=r"mesh_walls\[0\].triangles"):
+        load_checkpoint(Simulation(other, device=device), tmp_path / "c.npz")

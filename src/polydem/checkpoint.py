@@ -123,6 +123,15 @@ def physics_description(scene, dt):
     for i, drum in enumerate(drums):
         for field in ("center", "axis", "radius", "length", "sides", "thickness", "omega", "material", "caps"):
             desc[f"drums[{i}].{field}"] = _plain(getattr(drum, field))
+    walls = getattr(scene, "mesh_walls", [])
+    if walls:
+        desc["mesh_walls"] = len(walls)
+    for i, wall in enumerate(walls):
+        digest = hashlib.sha256(np.ascontiguousarray(wall.vertices).tobytes())
+        digest.update(np.ascontiguousarray(wall.triangles).tobytes())
+        desc[f"mesh_walls[{i}].triangles"] = f"{len(wall.triangles)} triangles, sha256 {digest.hexdigest()[:16]}"
+        for field in ("material", "pivot", "velocity", "angular_velocity", "thickness"):
+            desc[f"mesh_walls[{i}].{field}"] = _plain(getattr(wall, field))
     desc["bodies"] = int(scene.num_bodies)
     desc["simulation.gravity"] = _plain(scene.gravity)
     desc["simulation.precision"] = scene.precision
@@ -212,13 +221,13 @@ def physics_differences(stored, stored_arrays, desc, arrays) -> list[str]:
     ("materials.steel.friction differs: checkpoint 0.3, scene 0.5"), most specific first."""
     out = []
     skip = set()
-    for key in ("materials", "shapes", "planes", "drums", "bodies"):
-        if stored.get(key) != desc.get(key):
-            unit = f" {key}" if key in ("planes", "drums", "bodies") else ""
+    for key in ("materials", "shapes", "planes", "drums", "mesh_walls", "bodies"):
+        if stored.get(key, 0 if key == "mesh_walls" else None) != desc.get(key, 0 if key == "mesh_walls" else None):
+            unit = f" {key}" if key in ("planes", "drums", "mesh_walls", "bodies") else ""
             out.append(f"{key} differ: checkpoint {_fmt(stored.get(key))}{unit}, scene {_fmt(desc.get(key))}")
             skip.add(key)
     for key, value in desc.items():
-        if key in ("materials", "shapes", "planes", "drums", "bodies") or key not in stored:
+        if key in ("materials", "shapes", "planes", "drums", "mesh_walls", "bodies") or key not in stored:
             continue
         old = stored[key]
         if _close(old, value):
