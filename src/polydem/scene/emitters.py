@@ -163,9 +163,8 @@ class _Obstacles:
             depth = wall.thickness if wall.thickness is not None else cell
             cells = build_cells(wall.vertices, wall.triangles, depth).cells
             for c in cells:
-                self.mesh_planes.append(
-                    (c.center, c.radius, c.face_normals, c.face_offsets + c.face_normals @ c.center)
-                )
+                off = c.face_offsets + c.face_normals @ c.center
+                self.mesh_planes.append((c.center, c.radius, c.face_normals, off, c.vertices + c.center))
         self.drums = []
         reach = self.h * math.sqrt(3.0)
         for drum in scene.drums:
@@ -198,11 +197,18 @@ class _Obstacles:
 
         reach = self.h * math.sqrt(3.0)
         tree = cKDTree(centres)
-        for c, r, nrm, off in self.mesh_planes:
+        for c, r, nrm, off, verts in self.mesh_planes:
             near = tree.query_ball_point(c, r + reach)
             if near:
                 near = np.asarray(near)
-                apart = np.any(centres[near] @ nrm.T - off > reach + self.tol, axis=1)
+                p = centres[near]
+                apart = np.any(p @ nrm.T - off > reach + self.tol, axis=1)
+                # Thin cells (the wedges behind a shallow crease) are poorly separated by their
+                # face planes: also try the axis from the grid cell to the wall cell's centre.
+                axis = c - p
+                axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-300)
+                gap = np.min(np.einsum("vk,nk->nv", verts, axis), axis=1) - np.einsum("nk,nk->n", p, axis)
+                apart |= gap > reach + self.tol
                 out[near[~apart]] = True
 
     def _block_bodies(self, out, krange, k, local_of):
