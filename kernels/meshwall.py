@@ -51,7 +51,7 @@ def make_mesh_kernels(
     geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
     Shapes = geom.shapes
     pair_geometry = geom.pair_geometry
-    pair_depth_of = geom.pair_depth
+    plane_depth_of = geom.primitives.plane_depth
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -77,6 +77,7 @@ def make_mesh_kernels(
         mesh_w: wp.array(dtype=vec3s),
         cell_shape: wp.array(dtype=int),
         cell_center: wp.array(dtype=vec3s),
+        cell_front: wp.array(dtype=wp.types.vector(4, S)),
         first_column: int,
         # State in
         body_q: wp.array(dtype=transform_s),
@@ -152,7 +153,13 @@ def make_mesh_kernels(
                     m_a += ma_c
                     fb_a += fb_c
                     if wp.static(diagnostics):
-                        depth = wp.max(depth, C(pair_depth_of(shapes, s, sb, xa, xb)))
+                        # How far the body reaches behind the plane of the triangle the cell lies
+                        # behind (the cells of concave edges and corners have none).
+                        fr = cell_front[cell]
+                        if fr[0] != S(0.0) or fr[1] != S(0.0) or fr[2] != S(0.0):
+                            n_w = wp.quat_rotate(rot, vec3s(fr[0], fr[1], fr[2]))
+                            off = fr[3] + wp.dot(n_w, wp.transform_get_translation(xm))
+                            depth = wp.max(depth, C(plane_depth_of(shapes, s, xa, n_w, off)))
             mat = body_material[i] * num_materials + mesh_material[m]
             if vol <= C(0.0):
                 e_mat = material_e[mat]

@@ -103,6 +103,7 @@ def test_flat_mesh_of_many_triangles_acts_as_one_plane(device, precision):
         np.testing.assert_allclose(c["volume"], c0["volume"], rtol=tol)
         np.testing.assert_allclose(c["normal_force"], c0["normal_force"], rtol=tol)
         np.testing.assert_allclose(c["normal"], c0["normal"], atol=tol)
+        np.testing.assert_allclose(c["depth"], c0["depth"], rtol=tol, atol=1e-9 if precision == "mixed" else 0.0)
         assert e == pytest.approx(e0, rel=tol)
         np.testing.assert_allclose(f, f0, atol=tol * np.abs(f0).max())
         np.testing.assert_allclose(t, t0, atol=tol * np.abs(t0).max())

@@ -151,30 +151,40 @@ def angle_of_repose(positions, grain_size: float, floor: float = 0.0, axis=None,
                     bins: int = 24) -> ReposeAngle:  # fmt: skip
     """The angle of repose of a conical heap from its grains' centres (N, 3) [m].
 
-    Method: the heap's axis is the centre of mass of the grains in plan (or ``axis``); the radial
-    distance r of every grain from it is binned in rings out to the foot radius (the 98th
-    percentile of r: a few grains that rolled away do not count), ``bins`` rings but none narrower
-    than ``grain_size``; the surface height of a ring is the highest grain centre in it. A straight
-    line through (r, height) over the flank, the rings between ``flank[0]`` and ``flank[1]`` of the
-    foot radius (leaving out the rounded top and the toe), gives tan(angle) = -slope. The angle is
-    that of the line through the surface grains' centres, parallel to the surface.
+    Method: the heap's axis is the median of the grains' positions in plan (or ``axis``); the
+    grains are binned in rings one ``grain_size`` wide around it; the surface height of a ring is
+    the highest grain centre in it. The foot radius is where the surface first comes down to the
+    floor, the first ring (past the highest) whose top lies below 1.5 grain sizes or that holds no
+    grain: grains that bounced or rolled away beyond it do not count. A straight line through
+    (r, height) over the flank, the rings between ``flank[0]`` and ``flank[1]`` of the foot radius
+    (leaving out the rounded top and the toe), gives tan(angle) = -slope. The angle is that of the
+    line through the surface grains' centres, parallel to the surface. ``bins`` caps the number of
+    rings over the foot radius (wider rings for large heaps).
     """
     p = np.asarray(positions, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 20:
         raise ValueError(f"need (N, 3) grain positions with N >= 20, got shape {p.shape}")
-    xy = p[:, :2].mean(axis=0) if axis is None else np.asarray(axis, dtype=np.float64)
+    xy = np.median(p[:, :2], axis=0) if axis is None else np.asarray(axis, dtype=np.float64)
     r = np.linalg.norm(p[:, :2] - xy, axis=1)
     z = p[:, 2] - floor
-    foot = float(np.quantile(r, 0.98))
-    bins = max(4, min(bins, int(foot / grain_size)))
-    edges = np.linspace(0.0, foot, bins + 1)
-    mids, tops = [], []
-    for i in range(bins):
+    width = grain_size
+    n_rings = int(np.ceil(r.max() / width)) + 1
+    ring = np.minimum((r / width).astype(np.int64), n_rings - 1)
+    tops = np.full(n_rings, -np.inf)
+    np.maximum.at(tops, ring, z)
+    peak = int(np.argmax(tops))
+    low = np.flatnonzero(tops[peak:] < 1.5 * grain_size)
+    foot = (peak + (int(low[0]) if len(low) else n_rings - peak)) * width
+    # Rings no narrower than a grain, at most ``bins`` over the foot radius.
+    width = max(grain_size, foot / bins)
+    edges = np.arange(0.0, foot + 0.5 * width, width)
+    mids, heights = [], []
+    for i in range(len(edges) - 1):
         sel = (r >= edges[i]) & (r < edges[i + 1])
-        if sel.sum() >= 1:
+        if sel.any():
             mids.append(0.5 * (edges[i] + edges[i + 1]))
-            tops.append(float(z[sel].max()))
-    mids, tops = np.array(mids), np.array(tops)
+            heights.append(float(z[sel].max()))
+    mids, tops = np.array(mids), np.array(heights)
     use = (mids >= flank[0] * foot) & (mids <= flank[1] * foot)
     if use.sum() < 3:
         raise ValueError("fewer than 3 rings on the flank: the heap is too small for this many bins")

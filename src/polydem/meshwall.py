@@ -51,6 +51,9 @@ class CellShape:
     face_radii: np.ndarray
     radius: float
     center: np.ndarray  # (3,) the cell frame's origin in the mesh frame [m]
+    # (4,) the plane (normal, offset) of the triangle the cell lies behind, in the mesh frame;
+    # zeros for the cells of concave edges and corners.
+    front: np.ndarray = None
 
     @property
     def num_faces(self) -> int:
@@ -327,10 +330,13 @@ def build_cells(vertices, faces, thickness: float, label: str = "mesh") -> MeshC
                 f"{label}: the cell behind triangle {k} is empty (its side planes meet before the front); "
                 "the mesh folds back on itself there"
             )
+        cell.front = planes[0].copy()
         cells.append(cell)
     tol = 1e-9 * max(thickness, diag * 1e-3)
     cells += _wedge_cells(v, f, normals, front_d, concave, thickness, label, tol)
     for cell in cells:
+        if cell.front is None:
+            cell.front = np.zeros(4)
         world = cell.vertices + cell.center
         lower.append(world.min(axis=0))
         upper.append(world.max(axis=0))

@@ -51,7 +51,9 @@ class Model:
         mesh_bvh: (M,) uint64 ids of a ``wp.Bvh`` per wall over its cells' bounds (in ``mesh_bvhs``).
         mesh_cell_start: (M+1,) int32 first cell of each wall; cell_shape: (C,) int32 the cell's
             shape in ``shapes`` (after the scene's shapes); cell_center: (C,) S vec3 the cell's
-            frame origin in its wall's frame [m].
+            frame origin in its wall's frame [m]; cell_front: (C,) S vec4 the plane (normal,
+            offset [m]) of the triangle a cell lies behind, zero for the cells of concave edges
+            and corners (for the reported depth).
         mesh_material: (M,) int32; mesh_v: (M,) S vec3 velocity of the wall's origin [m/s];
             mesh_w: (M,) S vec3 angular velocity [rad/s]; mesh_q0: (M, 7) initial poses (pivot and
             identity rotation).
@@ -159,7 +161,7 @@ class Model:
         used = np.unique(np.asarray(scene.body_shape)[kind == 0]) if (kind == 0).any() else np.arange(len(shape_list))
         diameter = 2.0 * max(shape_list[k].radius for k in used.tolist())
         mat_index = {name: i for i, name in enumerate(scene.material_names)}
-        starts, centers, lowers, uppers = [0], [], [], []
+        starts, centers, fronts, lowers, uppers = [0], [], [], [], []
         for wall, key in zip(walls, scene.mesh_wall_keys, strict=True):
             pivot = np.asarray(wall.pivot, dtype=np.float64)
             h = diameter if wall.thickness is None else wall.thickness
@@ -171,6 +173,7 @@ class Model:
             self._cells.extend(mc.cells)
             starts.append(starts[-1] + len(mc.cells))
             centers.append(np.array([c.center for c in mc.cells]))
+            fronts.append(np.array([c.front for c in mc.cells]))
             # float32 bounds, grown by their rounding, so that the query never misses a cell.
             size = np.abs(mc.lower).max() + np.abs(mc.upper).max()
             lowers.append(mc.lower - 1e-6 * size)
@@ -187,6 +190,7 @@ class Model:
         self.mesh_cell_start = arr(np.array(starts, dtype=np.int32), int)
         self.cell_shape = arr(len(shape_list) + np.arange(starts[-1], dtype=np.int32), int)
         self.cell_center = arr(np.concatenate(centers).astype(s_np), vec3s)
+        self.cell_front = arr(np.concatenate(fronts).astype(s_np), wp.types.vector(4, self.scalar))
         self.mesh_material = arr(np.array([mat_index[w.material] for w in walls], dtype=np.int32), int)
         self.mesh_v = arr(np.array([w.velocity for w in walls], dtype=s_np), vec3s)
         self.mesh_w = arr(np.array([w.angular_velocity for w in walls], dtype=s_np), vec3s)

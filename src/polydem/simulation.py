@@ -417,6 +417,7 @@ class Stepper:
                 m.mesh_w,
                 m.cell_shape,
                 m.cell_center,
+                m.cell_front,
                 m.num_planes,
                 state.body_q,
                 state.body_v,

@@ -1,0 +1,112 @@
+"""Angle of repose of heaps poured from a funnel (scenes/heap.toml), over seeds and grain shapes.
+
+The fixed-funnel test: ``--grains`` grains of ``--shape`` (cube: 1 cm edge; tetrahedron: 2.04 cm
+edge, the cube's volume; or any shape of the scene file) fall into the funnel of scenes/heap.toml
+(the 7 cm orifice of the hopper mesh, 0.15 m above the floor), run out and pile up until the heap
+is at rest (the run's settle check, at most ``--max-time``). The angle of repose is measured from
+the final surface with ``polydem.analysis.angle_of_repose``: the highest grain centre in rings
+around the heap's axis, a straight line through them over the flank (25% to 75% of the foot
+radius). Each seed changes the grains' initial orientations and places; the table gives every
+seed's angle and their mean and standard deviation per shape.
+
+    python benchmarks/repose.py --device cpu --grains 300 --seeds 2
+    python benchmarks/repose.py --device cuda:0 --grains 3000 --seeds 4 --shapes cube,tetrahedron
+
+Writes JSON to ``--out`` (final positions included, so the angle can be measured again).
+"""
+
+import argparse
+import json
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from polydem import Scene, Simulation
+from polydem.analysis import angle_of_repose
+from polydem.settle import SettleCriterion
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENE = ROOT / "scenes" / "heap.toml"
+
+
+def heap_scene(shape, grains, seed, precision):
+    data = tomllib.loads(SCENE.read_text())
+    em = data["emitters"][0]
+    em["shape"] = shape
+    em["count"] = grains
+    em["seed"] = seed
+    # A column over the bin tall enough for the grains (8 x 8 cells per layer of the largest grain).
+    r = max(0.0087, 0.0125 if shape == "tetrahedron" else 0.0087)
+    layers = int(np.ceil(grains / 64)) + 2
+    em["region"] = {"min": [-0.08, -0.08, 0.31], "max": [0.08, 0.08, 0.31 + 2.2 * r * 1.1 * layers]}
+    data["simulation"]["precision"] = precision
+    data["simulation"].pop("until_settled", None)
+    data.pop("output", None)
+    return Scene.from_dict(data, file=SCENE, base_dir=SCENE.parent)
+
+
+def run_one(shape, grains, seed, args):
+    scene = heap_scene(shape, grains, seed, args.precision)
+    sim = Simulation(scene, device=args.device)
+    t0 = time.perf_counter()
+    result = sim.run_until_settled(args.max_time, SettleCriterion())
+    wall = time.perf_counter() - t0
+    pos = sim.state()["body_position"]
+    size = 0.01 if shape == "cube" else float(scene.shapes[shape].volume) ** (1.0 / 3.0)
+    # Grains still in the funnel (above its orifice) are not part of the heap.
+    heap = pos[pos[:, 2] < 0.14]
+    angle = angle_of_repose(heap, grain_size=size)
+    return {
+        "shape": shape,
+        "grains": grains,
+        "seed": seed,
+        "settled": bool(result.settled),
+        "time_s": sim.time,
+        "steps": sim.steps_done,
+        "wall_s": wall,
+        "in_funnel": int(len(pos) - len(heap)),
+        "angle": angle.to_dict(),
+        "positions": heap.round(6).tolist(),
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--grains", type=int, default=300)
+    ap.add_argument("--shapes", default="cube")
+    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--max-time", type=float, default=4.0)
+    ap.add_argument("--precision", default="mixed")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    wp.config.quiet = True
+    runs, summary = [], []
+    for shape in args.shapes.split(","):
+        angles = []
+        for seed in range(1, args.seeds + 1):
+            r = run_one(shape, args.grains, seed, args)
+            runs.append(r)
+            a = r["angle"]
+            angles.append(a["angle_deg"])
+            print(
+                f"{shape:>12} seed {seed}: {a['angle_deg']:.1f} +- {a['stderr_deg']:.1f} deg (heap height "
+                f"{a['height']:.3f} m, foot radius {a['foot_radius']:.3f} m, {r['in_funnel']} left in the funnel, "
+                f"{'settled' if r['settled'] else 'NOT settled'} at {r['time_s']:.2f} s, {r['wall_s']:.0f} s wall)"
+            )
+        mean, sd = float(np.mean(angles)), float(np.std(angles, ddof=1)) if len(angles) > 1 else 0.0
+        summary.append({"shape": shape, "mean_deg": mean, "sd_deg": sd, "seeds": len(angles)})
+        print(f"{shape:>12}: {mean:.1f} deg, standard deviation {sd:.1f} deg over {len(angles)} seeds")
+    tag = args.device.replace(":", "")
+    out = Path(args.out or ROOT / f"benchmarks/results/issue13/repose_{tag}_{args.grains}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    meta = dict(vars(args), warp=wp.__version__)
+    out.write_text(json.dumps({"meta": meta, "summary": summary, "runs": runs}))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
