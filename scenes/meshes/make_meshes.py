@@ -1,5 +1,7 @@
 """Writes the triangle meshes of the mesh-wall scenes (hopper.toml, heap.toml, mixer.toml) into this folder.
 
+heap.toml uses the hopper with the 7 cm orifice as its funnel.
+
     python scenes/meshes/make_meshes.py
 
 Every mesh faces the grains (its triangles counter-clockwise seen from them), so that the solid of
@@ -8,7 +10,6 @@ a mesh wall lies behind it. Lengths in metres. Deterministic: running it again w
 * ``hopper_D{mm}.stl``: a conical hopper of half-angle 30 degrees from the vertical with a
   cylindrical bin above it, radius 0.12 m, open at the top and at the orifice of diameter D at
   z = 0, for the orifice sizes of ``ORIFICES`` (in mm);
-* ``tube.stl``: an open cylinder of radius 0.05 m and height 0.5 m (the lifted tube of heap.toml);
 * ``drum.stl``: a closed cylinder of radius 0.15 m and length 0.15 m around the y axis, its normals
   pointing inwards (a container); ``baffles.stl``: four bars 3 cm high and 1.5 cm thick along its
   wall, closed boxes facing out (mixer.toml turns both).
@@ -52,10 +53,6 @@ def hopper(orifice, radius=0.12, half_angle_deg=30.0, bin_height=0.25, rings=6):
     return surface_of_revolution(cone + bin_)
 
 
-def tube(radius=0.05, height=0.5, rings=10):
-    return surface_of_revolution([(radius, height * t) for t in np.linspace(0.0, 1.0, rings + 1)])
-
-
 def drum(radius=0.15, length=0.15):
     """A closed drum about the y axis, facing inwards (a container)."""
     shell = trimesh.creation.cylinder(radius=radius, height=length, sections=SEGMENTS)
@@ -81,9 +78,6 @@ def main():
         m = hopper(d_mm / 1000.0)
         m.export(HERE / f"hopper_D{d_mm}.stl")
         print(f"hopper_D{d_mm}.stl: {len(m.faces)} triangles")
-    m = tube()
-    m.export(HERE / "tube.stl")
-    print(f"tube.stl: {len(m.faces)} triangles")
     m = drum()
     m.export(HERE / "drum.stl")
     print(f"drum.stl: {len(m.faces)} triangles")
