@@ -557,6 +557,12 @@ def _validate_points(points) -> np.ndarray:
 _MESH_HINT = "re-export it as OBJ, STL or PLY (e.g. from the modelling program or with trimesh)"
 
 
+def load_mesh(path):
+    """A :class:`trimesh.Trimesh` (vertices merged) from a mesh file, or ValueError saying what is
+    wrong with the file (the reader of mesh shapes and of mesh walls)."""
+    return _load_mesh(Path(path))
+
+
 def _load_mesh(path: Path):
     """A :class:`trimesh.Trimesh` from a mesh file, or ValueError saying what is wrong with the file."""
     import trimesh

@@ -102,7 +102,7 @@ def mesh_input(mesh, key, file, base_dir):
     from polydem.scene.errors import SceneError
 
     if isinstance(mesh, str | Path):
-        from polydem.shapes import _load_mesh
+        from polydem.shapes import load_mesh
 
         path = Path(mesh).expanduser()
         if not path.is_absolute() and base_dir is not None:
@@ -112,7 +112,7 @@ def mesh_input(mesh, key, file, base_dir):
             where = f"; relative paths are taken from the folder of the scene file, '{base_dir}'" if base_dir else ""
             raise SceneError(f"mesh file {str(mesh)!r} {what} (looked for '{path}'{where})", f"{key}.file", file)
         try:
-            tm = _load_mesh(path)
+            tm = load_mesh(path)
         except ValueError as exc:
             raise SceneError(str(exc), f"{key}.file", file) from None
         return np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64), str(path)
