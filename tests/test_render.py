@@ -515,3 +515,25 @@ def test_closed_mesh_drum_shows_its_grains(device):
     assert grains > 0.02 * 80 * 60
     grey = (np.abs(image[..., 0].astype(int) - image[..., 2]) < 8) & (image[..., 0] > 60)
     assert grey.sum() > 0.1 * 80 * 60  # the drum's far side behind them
+
+
+def test_turning_mesh_wall_drawn_at_its_current_pose(device):
+    """render_simulation poses a moving mesh wall from mesh_q; the CLI's Poses (a checkpoint's
+    mesh_q) gives the same picture, and the wall's initial pose a different one."""
+    from polydem.cli.poses import Poses
+
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt=1e-3)  # no contact in the stepped time
+    scene.add_material("steel", density=7800, law="hertz", k=1e6, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.1))
+    scene.add_body("cube", "steel", position=(0, 0, 0.3))
+    scene.add_mesh_wall(square_floor(0.4), "steel", angular_velocity=(0, 0, 20.0))
+    sim = polydem.Simulation(scene, device=device)
+    sim.step(30)
+    options = dict(width=W, height=H, shadows=False)
+    image = render_simulation(sim, **options)
+    st = sim.state()
+    mesh_q = sim.current_state.mesh_q.numpy()
+    again = render_simulation(Poses(scene, st["body_position"], st["body_orientation"], device, mesh_q), **options)
+    np.testing.assert_array_equal(again, image)
+    start = render_simulation(Poses(scene, st["body_position"], st["body_orientation"], device), **options)
+    assert (np.abs(start.astype(int) - image).max(axis=2) > 10).sum() > 0.01 * W * H
