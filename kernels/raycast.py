@@ -23,12 +23,18 @@ Walls. Infinite planes ``n . x = offset`` seen from the side n points to (the si
 a light checker whose contrast fades with the distance; planes seen from behind are not drawn, so
 the walls of a box made of planes never hide its content from a camera outside.
 
+Mesh walls. Triangles in world coordinates (posed on the host), counter-clockwise seen from the
+front (the simulated side), found through a second Warp BVH over their boxes and hit by the
+Moller-Trumbore test; like the planes, a triangle seen from behind is not drawn, so the near side of
+a closed drum lets the camera see the grains inside, and its far side shows behind them.
+
 Shading. Lambert with one directional light (``light`` points towards the light) plus an ambient
 term and a weak fill from the camera, colour per body; an optional shadow ray from each lit
 point towards the light (bodies cast shadows, planes do not). Misses get a sky gradient.
 
 Outputs per pixel: colour (float RGB in [0, 1]), depth t [m] (``MISS_DEPTH`` for the sky) and the
-hit item: the body index, ``-2 - p`` for plane p, -1 for the sky.
+hit item: the body index, ``-2 - p`` for plane p, ``-2 - P - w`` for mesh wall w (P planes), -1
+for the sky.
 
 Layout of this file: ``@wp.func`` helpers, the kernels, then the plain launch functions.
 """
@@ -83,6 +89,28 @@ def ray_convex(
         if t_enter > t_exit:
             break
     return t_enter, t_exit, face
+
+
+@wp.func
+def ray_front_triangle(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, t_max: float):
+    """Parameter t of the ray o + t d on triangle abc seen from its front (counter-clockwise side),
+    ``t_max`` when it misses, is seen from behind or lies outside 0 < t < t_max."""
+    e1 = b - a
+    e2 = c - a
+    p = wp.cross(d, e2)
+    det = wp.dot(e1, p)  # = -d . (e1 x e2): positive when the ray meets the front
+    t_hit = float(t_max)
+    if det > 0.0:
+        s = o - a
+        u = wp.dot(s, p)
+        if u >= 0.0 and u <= det:
+            q = wp.cross(s, e1)
+            v = wp.dot(d, q)
+            if v >= 0.0 and u + v <= det:
+                t = wp.dot(e2, q) / det
+                if t > 0.0 and t < t_max:
+                    t_hit = t
+    return t_hit
 
 
 @wp.func
@@ -174,6 +202,27 @@ def body_bounds_kernel(
 
 
 @wp.kernel(enable_backward=False)
+def triangle_bounds_kernel(
+    # Model
+    tri_vertex: wp.array(dtype=wp.vec3),
+    # Out
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+):
+    """Box of triangle k (vertices ``tri_vertex[3k .. 3k+2]``), padded against float32 rounding."""
+    k = wp.tid()
+    a = tri_vertex[3 * k]
+    b = tri_vertex[3 * k + 1]
+    c = tri_vertex[3 * k + 2]
+    lo = wp.min(wp.min(a, b), c)
+    hi = wp.max(wp.max(a, b), c)
+    pad = 1.0e-6 * wp.length(hi - lo) + 1.0e-7 * (wp.length(lo) + wp.length(hi))
+    e = wp.vec3(pad, pad, pad)
+    lowers[k] = lo - e
+    uppers[k] = hi + e
+
+
+@wp.kernel(enable_backward=False)
 def raycast_kernel(
     # Model
     shape_face_start: wp.array(dtype=int),
@@ -185,6 +234,9 @@ def raycast_kernel(
     plane_offset: wp.array(dtype=float),
     plane_u: wp.array(dtype=wp.vec3),
     plane_v: wp.array(dtype=wp.vec3),
+    tri_vertex: wp.array(dtype=wp.vec3),
+    tri_wall: wp.array(dtype=int),
+    tri_bvh_id: wp.uint64,
     # State in
     body_q: wp.array(dtype=wp.transform),
     bvh_id: wp.uint64,
@@ -224,6 +276,19 @@ def raycast_kernel(
                 best = t
                 item = -2 - p
                 normal = n
+    num_planes = plane_offset.shape[0]
+    if tri_wall.shape[0] > 0:
+        query_t = wp.bvh_query_ray(tri_bvh_id, eye, d)
+        k_t = int(0)
+        while wp.bvh_query_next(query_t, k_t, best):
+            ta = tri_vertex[3 * k_t]
+            tb = tri_vertex[3 * k_t + 1]
+            tc = tri_vertex[3 * k_t + 2]
+            t_tri = ray_front_triangle(eye, d, ta, tb, tc, best)
+            if t_tri < best:
+                best = t_tri
+                item = -2 - num_planes - tri_wall[k_t]
+                normal = wp.normalize(wp.cross(tb - ta, tc - ta))
 
     if bvh_body.shape[0] > 0:
         query = wp.bvh_query_ray(bvh_id, eye, d)
@@ -253,7 +318,9 @@ def raycast_kernel(
             skip = item
         else:
             p = -2 - item
-            chk = checker(x, plane_u[p], plane_v[p])
+            chk = float(0.5)
+            if p < num_planes:
+                chk = checker(x, plane_u[p], plane_v[p])
             contrast = 1.0 / (1.0 + (best / fade_distance) * (best / fade_distance))
             albedo = wp.vec3(0.80, 0.80, 0.79) + wp.vec3(0.08, 0.08, 0.08) * ((chk - 0.5) * contrast)
             origin = x + normal * shadow_offset
@@ -289,11 +356,13 @@ def launch_raycast(
     shadow_offset=1.0e-6,
     fade_distance=1.0e30,
     device=None,
+    triangles=None,
 ):
     """Builds the BVH and casts one ray per pixel; returns (color, depth, hit, bvh).
 
     ``color`` (H, W) vec3, ``depth`` (H, W) float and ``hit`` (H, W) int are device arrays (see the
-    module docstring); ``bvh`` is the tree (None without bodies), to be kept alive until they are read.
+    module docstring); ``bvh`` holds the trees (of the bodies and of the triangles, None where empty), to be kept
+    alive until they are read.
 
     Args:
         shapes: a float32 :class:`~polydem.shapeset.ShapeSet` (``shape_face_start``,
@@ -310,6 +379,9 @@ def launch_raycast(
         width, height: image size [pixels].
         shadows: cast shadow rays; shadow_offset [m] lifts their origin off the walls.
         fade_distance: distance [m] at which the checker contrast has halved.
+        triangles: (tri_vertex, tri_wall) device arrays of the mesh walls: (3T,) vec3 world
+            vertices of T triangles (counter-clockwise from the front) and (T,) int wall index; or
+            None: no mesh walls.
     """
     device = wp.get_device(device)
     m = bvh_body.shape[0]
@@ -327,6 +399,18 @@ def launch_raycast(
         )
         bvh = wp.Bvh(lowers, uppers)
         bvh_id = bvh.id
+    if triangles is None:
+        triangles = (wp.zeros(0, dtype=wp.vec3, device=device), wp.zeros(0, dtype=int, device=device))
+    tri_vertex, tri_wall = triangles
+    num_tri = tri_wall.shape[0]
+    tri_bvh = None
+    tri_bvh_id = wp.uint64(0)
+    if num_tri > 0:
+        lowers = wp.empty(num_tri, dtype=wp.vec3, device=device)
+        uppers = wp.empty(num_tri, dtype=wp.vec3, device=device)
+        wp.launch(triangle_bounds_kernel, dim=num_tri, inputs=[tri_vertex], outputs=[lowers, uppers], device=device)
+        tri_bvh = wp.Bvh(lowers, uppers)
+        tri_bvh_id = tri_bvh.id
     color = wp.empty((height, width), dtype=wp.vec3, device=device)
     depth = wp.empty((height, width), dtype=float, device=device)
     hit = wp.empty((height, width), dtype=int, device=device)
@@ -345,6 +429,9 @@ def launch_raycast(
             plane_offset,
             plane_u,
             plane_v,
+            tri_vertex,
+            tri_wall,
+            tri_bvh_id,
             body_q,
             bvh_id,
             eye,
@@ -360,5 +447,5 @@ def launch_raycast(
         outputs=[color, depth, hit],
         device=device,
     )
-    # The tree must outlive the launch: the caller keeps it until it has read the outputs.
-    return color, depth, hit, bvh
+    # The trees must outlive the launch: the caller keeps them until it has read the outputs.
+    return color, depth, hit, (bvh, tri_bvh)

@@ -465,3 +465,75 @@ def test_container_bodies_are_grey(device):
         render_module.render = original
     np.testing.assert_allclose(seen["body_colors"][:2], [FIXED_COLOR, FIXED_COLOR])
     np.testing.assert_allclose(seen["body_colors"][2], PALETTE[0])
+
+
+# ------------------------------------------------------------------------------------ mesh walls
+
+
+def square_floor(half=1.0, z=0.0):
+    v = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]], dtype=float)
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_mesh_floor_drawn_like_a_plane_from_its_front_only(device):
+    shapes = [polydem.ConvexShape.box(0.1)]
+    args = ([(0, 0, 0.05)], [IDENTITY], [0], shapes)
+    cam = Camera.frame_box((-0.3, -0.3, 0.0), (0.3, 0.3, 0.1), W, H)
+    common = dict(width=W, height=H, camera=cam, device=device, shadows=False)
+    bare = render_layers(*args, **common)
+    mesh = render_layers(*args, mesh_walls=[square_floor()], **common)
+    plane = render_layers(*args, planes=[((0, 0, 0), (0, 0, 1))], **common)
+    floor = mesh["hit"] == -2  # no planes: mesh wall 0 is item -2
+    assert floor.sum() > 0.2 * W * H
+    assert np.all(bare["hit"][floor] == -1)  # the sky without the mesh
+    assert np.abs(mesh["image"].astype(int) - bare["image"]).max(axis=2)[floor].min() > 10
+    # Where the square floor is, the picture is the plane's: same items, depths, and the wall colour
+    # (the plane's checker differs by its small contrast only).
+    assert np.all(plane["hit"][floor] == -2)
+    np.testing.assert_allclose(mesh["depth"][floor], plane["depth"][floor], rtol=1e-4)
+    np.testing.assert_allclose(mesh["color"][floor], plane["color"][floor], atol=0.05)
+    np.testing.assert_array_equal(mesh["hit"] == 0, bare["hit"] == 0)
+    # Seen from below, its back, it is not drawn.
+    below = render_layers(*args, mesh_walls=[square_floor()], elevation=-40.0, **{**common, "camera": None})
+    assert not np.any(below["hit"] == -2)
+
+
+def test_closed_mesh_drum_shows_its_grains(device):
+    trimesh = pytest.importorskip("trimesh")
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt="auto")
+    scene.add_material("steel", density=7800, law="hertz", k=1e10, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.1))
+    for k in range(4):
+        scene.add_body("cube", "steel", position=(0.12 * (k - 1.5), 0.0, -0.3))
+    drum = trimesh.creation.cylinder(radius=0.5, height=0.6, sections=24)
+    drum.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))
+    scene.add_mesh_wall(drum, "steel", flip_normals=True, angular_velocity=(0, 1.0, 0), thickness=0.1)
+    sim = polydem.Simulation(scene, device=device)
+    colors = np.tile([1.0, 0.0, 0.0], (4, 1))
+    image = render_simulation(sim, width=80, height=60, body_colors=colors, shadows=False)
+    grains = np.sum((image[..., 0] > 40) & (image[..., 1] < 20))
+    assert grains > 0.02 * 80 * 60
+    grey = (np.abs(image[..., 0].astype(int) - image[..., 2]) < 8) & (image[..., 0] > 60)
+    assert grey.sum() > 0.1 * 80 * 60  # the drum's far side behind them
+
+
+def test_turning_mesh_wall_drawn_at_its_current_pose(device):
+    """render_simulation poses a moving mesh wall from mesh_q; the CLI's Poses (a checkpoint's
+    mesh_q) gives the same picture, and the wall's initial pose a different one."""
+    from polydem.cli.poses import Poses
+
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt=1e-3)  # no contact in the stepped time
+    scene.add_material("steel", density=7800, law="hertz", k=1e6, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.1))
+    scene.add_body("cube", "steel", position=(0, 0, 0.3))
+    scene.add_mesh_wall(square_floor(0.4), "steel", angular_velocity=(0, 0, 20.0))
+    sim = polydem.Simulation(scene, device=device)
+    sim.step(30)
+    options = dict(width=W, height=H, shadows=False)
+    image = render_simulation(sim, **options)
+    st = sim.state()
+    mesh_q = sim.current_state.mesh_q.numpy()
+    again = render_simulation(Poses(scene, st["body_position"], st["body_orientation"], device, mesh_q), **options)
+    np.testing.assert_array_equal(again, image)
+    start = render_simulation(Poses(scene, st["body_position"], st["body_orientation"], device), **options)
+    assert (np.abs(start.astype(int) - image).max(axis=2) > 10).sum() > 0.01 * W * H

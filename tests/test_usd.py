@@ -487,3 +487,62 @@ def test_polydem_render_reads_old_and_new_files(tmp_path, capsys):
         out, err = capsys.readouterr()
         assert code == 0, err
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "frame 1" in out
+
+
+def mesh_wall_scene():
+    """A cube above a fixed 2-triangle floor and a turning square plate (both mesh walls)."""
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt=1e-3, name="usd-mesh")  # no contact in the recorded time
+    scene.add_material("steel", density=7800, law="hertz", k=1e6, restitution=0.5, friction=0.3)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.1))
+    scene.add_body("cube", "steel", position=(0, 0, 0.2))
+    square = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], dtype=float)
+    tri = np.array([[0, 1, 2], [0, 2, 3]])
+    scene.add_mesh_wall((square, tri), "steel")
+    scene.add_mesh_wall(
+        (0.2 * square, tri), "steel", position=(1.0, 0, 0.5), pivot=(1.0, 0.1, 0.5), angular_velocity=(0, 3.0, 1.0)
+    )
+    return scene
+
+
+@pytest.mark.parametrize("mpu", [1.0, 0.01])
+def test_mesh_walls_written_and_moving_one_time_sampled(tmp_path, device, mpu):
+    scene = mesh_wall_scene()
+    sim = polydem.Simulation(scene, device=device)
+    path = tmp_path / "mesh.usda"
+    poses = []
+    with UsdRecorder(path, sim, fps=24.0, frame_dt=sim.dt * 10, meters_per_unit=mpu) as rec:
+        for _ in range(3):
+            poses.append(sim.current_state.mesh_q.numpy()[:2].astype(np.float64))
+            rec.record_simulation(sim)
+            sim.step(10)
+    assert np.abs(poses[2][1] - poses[0][1]).max() > 1e-3  # the plate turned
+    stage = Usd.Stage.Open(str(path))
+    for k, wall in enumerate(scene.mesh_walls):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/Walls/mesh_{k}"))
+        assert mesh and len(mesh.GetPointsAttr().Get()) == len(wall.vertices)
+        assert len(mesh.GetFaceVertexCountsAttr().Get()) == len(wall.triangles)
+        assert mesh.GetPrim().GetCustomDataByKey("polydem:material") == "steel"
+        for code in range(3):
+            m = np.array(mesh.ComputeLocalToWorldTransform(code), dtype=np.float64)  # row vectors: x' = x M
+            pts = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)
+            world = (np.c_[pts, np.ones(len(pts))] @ m)[:, :3] * mpu
+            p, q = poses[code][k, :3], poses[code][k, 3:]
+            expect = (wall.vertices - wall.pivot) @ quat_to_matrix(q).T + p
+            if not wall.moving:
+                expect = wall.vertices
+            np.testing.assert_allclose(world, expect, atol=1e-5)
+    orient = [stage.GetPrimAtPath(f"/World/Walls/mesh_{k}").GetAttribute("xformOp:orient") for k in range(2)]
+    assert orient[0].GetTimeSamples() == [] and list(orient[1].GetTimeSamples()) == [0.0, 1.0, 2.0]
+
+
+def test_mesh_walls_keep_initial_pose_from_positions_only(tmp_path):
+    scene = mesh_wall_scene()
+    path = tmp_path / "mesh.usda"
+    with UsdRecorder(path, scene) as rec:
+        rec.record(0.0, scene.body_position, scene.body_orientation)
+        rec.record(0.1, scene.body_position, scene.body_orientation)
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Walls/mesh_1"))
+    m = np.array(mesh.ComputeLocalToWorldTransform(1), dtype=np.float64)
+    pts = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)
+    np.testing.assert_allclose((np.c_[pts, np.ones(len(pts))] @ m)[:, :3], scene.mesh_walls[1].vertices, atol=1e-6)

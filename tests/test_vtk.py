@@ -469,3 +469,37 @@ def expected_frames(steps, dt, fps):
     while math.ceil(k / fps / dt - 1e-9) <= steps:
         k += 1
     return k
+
+
+def test_mesh_walls_fixed_in_walls_file_moving_in_a_series(tmp_path):
+    scene = polydem.Scene(gravity=(0, 0, -9.81), dt=1e-3)  # no contact in the recorded time
+    scene.add_material("steel", density=7800, law="hertz", k=1e6, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(0.1))
+    scene.add_body("cube", "steel", position=(0, 0, 0.3))
+    scene.add_plane(point=(0, 0, -1), normal=(0, 0, 1), material="steel")
+    square = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], dtype=float)
+    tri = np.array([[0, 1, 2], [0, 2, 3]])
+    scene.add_mesh_wall((square, tri), "steel")
+    turning = scene.add_mesh_wall((0.2 * square, tri), "steel", position=(1, 0, 0.5), angular_velocity=(0, 20.0, 0))
+    sim = polydem.Simulation(scene, device="cpu")
+    folder = tmp_path / "vtk"
+    poses = []
+    with VtkWriter(folder, sim) as writer:
+        for _ in range(2):
+            poses.append(sim.current_state.mesh_q.numpy()[1].astype(np.float64))
+            writer.record_simulation(sim)
+            sim.step(20)
+    assert folder / "moving_walls.pvd" in writer.files
+    walls = meshio.read(folder / "walls.vtu")
+    assert [b.type for b in walls.cells] == ["quad", "triangle"]
+    fixed = scene.mesh_walls[0]
+    np.testing.assert_allclose(walls.points[walls.cells[1].data], fixed.vertices[fixed.triangles], atol=1e-6)
+    np.testing.assert_array_equal(walls.cell_data["wall"][1], [1, 1])  # after the plane
+    np.testing.assert_allclose(walls.cell_data["normal"][1], [[0, 0, 1], [0, 0, 1]])
+    entries = read_pvd(folder / "moving_walls.pvd")
+    assert len(entries) == 2
+    for (_, path), pose in zip(entries, poses, strict=True):
+        mesh = meshio.read(path)
+        expect = (turning.vertices - turning.pivot) @ quat_to_matrix(pose[3:]).T + pose[:3]
+        np.testing.assert_allclose(mesh.points[mesh.cells[0].data], expect[turning.triangles], atol=1e-6)
+    assert np.abs(poses[1] - poses[0]).max() > 0.1  # the wall turned between the frames

@@ -226,6 +226,43 @@ def _plane_list(planes) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def _mesh_list(mesh_walls) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(world vertices (nv, 3), triangles (nf, 3)) of each mesh wall: MeshWall-like objects (their
+    vertices at t = 0), dicts with ``vertices`` and ``triangles``, or (vertices, triangles) pairs."""
+    out = []
+    for k, w in enumerate(mesh_walls or ()):
+        if isinstance(w, dict):
+            v, t = w["vertices"], w["triangles"]
+        elif hasattr(w, "vertices"):
+            v, t = w.vertices, w.triangles
+        else:
+            v, t = w
+        v = np.asarray(v, dtype=np.float64)
+        t = np.asarray(t)
+        if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3:
+            raise ValueError(f"mesh_walls[{k}] needs (nv, 3) vertices and (nf, 3) triangles, got {v.shape}, {t.shape}")
+        if len(t) and (t.min() < 0 or t.max() >= len(v)):
+            raise ValueError(f"mesh_walls[{k}] triangles must index its {len(v)} vertices")
+        out.append((v, t.astype(np.int64)))
+    return out
+
+
+def posed_mesh_walls(mesh_walls, mesh_q=None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(world vertices, triangles) of a scene's mesh walls at the poses ``mesh_q`` ((M, 7): the
+    position of each wall's pivot [m] and quaternion xyzw, as ``State.mesh_q``); None: at t = 0."""
+    from polydem.quaternions import quat_to_matrix
+
+    out = []
+    for k, w in enumerate(mesh_walls):
+        v = np.asarray(w.vertices, dtype=np.float64)
+        if mesh_q is not None and w.moving:
+            pose = np.asarray(mesh_q[k], dtype=np.float64)
+            q = pose[3:] / np.linalg.norm(pose[3:])
+            v = (v - np.asarray(w.pivot, dtype=np.float64)) @ quat_to_matrix(q).T + pose[:3]
+        out.append((v, np.asarray(w.triangles)))
+    return out
+
+
 def _shape_set(shapes, device) -> ShapeSet:
     if isinstance(shapes, ShapeSet):
         if shapes.precision == "float32" and shapes.device == device:
@@ -286,6 +323,7 @@ def render_layers(
     shape_colors=None,
     body_colors=None,
     visible=None,
+    mesh_walls=None,
     checker: float | None = None,
     azimuth: float = -60.0,
     elevation: float = 50.0,
@@ -295,8 +333,8 @@ def render_layers(
 
     Returns a dict: ``image`` (H, W, 3) uint8, ``color`` (H, W, 3) float32 RGB in [0, 1],
     ``depth`` (H, W) float64 distance from the eye [m] (inf where nothing is hit), ``hit``
-    (H, W) int32 (body index; ``-2 - p`` for plane p; -1 for nothing) and ``camera`` (the
-    :class:`Camera` used).
+    (H, W) int32 (body index; ``-2 - p`` for plane p; ``-2 - P - w`` for mesh wall w, P planes; -1
+    for nothing) and ``camera`` (the :class:`Camera` used).
     """
     width, height = int(width), int(height)
     if width < 1 or height < 1:
@@ -361,6 +399,13 @@ def render_layers(
             np.ascontiguousarray(a, dtype=np.float32 if dtype is not int else np.int32), dtype=dtype, device=device
         )
 
+    meshes = _mesh_list(mesh_walls)
+    tri_vertex = np.zeros((0, 3))
+    tri_wall = np.zeros(0, dtype=np.int32)
+    if meshes:
+        tri_vertex = np.concatenate([v[t].reshape(-1, 3) for v, t in meshes])
+        tri_wall = np.concatenate([np.full(len(t), k, dtype=np.int32) for k, (_, t) in enumerate(meshes)])
+
     body_q = arr(np.hstack([pos, quat]).reshape(-1, 7), wp.transform)
     bvh_body = arr(np.flatnonzero(shown), int)
     scale = max(view_distance, float(np.abs(eye).max()), 1e-30)
@@ -380,6 +425,7 @@ def render_layers(
         shadow_offset=1e-5 * scale,
         fade_distance=3.0 * view_distance,
         device=device,
+        triangles=(arr(tri_vertex, wp.vec3), arr(tri_wall, int)),
     )
     rgb = color.numpy().reshape(height, width, 3)
     depth_np = depth.numpy().astype(np.float64)
@@ -418,6 +464,10 @@ def render(
         planes: walls drawn as infinite planes, seen from the side their normal points to: a list
             of :class:`~polydem.PlaneWall`, of dicts with ``point`` and ``normal``, or of
             (point, normal) pairs. None: no walls.
+            Mesh walls go in the keyword ``mesh_walls``: a list of
+            :class:`~polydem.scene.walls.MeshWall` (drawn at their t = 0 pose), of dicts with
+            world ``vertices`` and ``triangles``, or of (vertices, triangles) pairs; like the planes,
+            a triangle is drawn from its front side only (see :func:`posed_mesh_walls`).
         width, height: image size [pixels].
         camera: a :class:`Camera` (or a dict of its fields); None frames every visible body from
             a raised oblique direction (:meth:`Camera.frame_box`).
@@ -428,9 +478,9 @@ def render(
     from above, over the camera's right shoulder), ``shadows`` (default True), ``up`` (world up,
     for the automatic camera, the light and the sky; default +z), ``shape_colors`` ((S, 3) RGB in
     [0, 1]; default :data:`PALETTE`), ``body_colors`` ((N, 3), overrides the shape colours),
-    ``visible`` ((N,) bool, bodies to draw), ``checker`` (square size of the walls' checker [m];
-    default four times the median body radius); ``azimuth``, ``elevation``, ``fov`` (degrees,
-    for the automatic camera: -60, 50, 35).
+    ``visible`` ((N,) bool, bodies to draw), ``mesh_walls`` (see ``planes``), ``checker`` (square
+    size of the walls' checker [m]; default four times the median body radius); ``azimuth``,
+    ``elevation``, ``fov`` (degrees, for the automatic camera: -60, 50, 35).
     """
     s = int(supersample)
     if s < 1:
@@ -450,9 +500,10 @@ def render(
 def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool = True, **kw) -> np.ndarray:
     """Renders the current state of a :class:`~polydem.Simulation`; writes a PNG when ``path`` is given.
 
-    The scene's planes are drawn, fixed and kinematic bodies (containers, drums) get
-    :data:`FIXED_COLOR` unless ``body_colors`` or ``shape_colors`` is given, ``up`` defaults to
-    minus gravity, and the simulation's device renders. The camera frames every body.
+    The scene's planes and mesh walls (at their current poses) are drawn, fixed and kinematic
+    bodies (containers, drums) get :data:`FIXED_COLOR` unless ``body_colors`` or ``shape_colors``
+    is given, ``up`` defaults to minus gravity, and the simulation's device renders. The camera
+    frames every body.
 
     ``cutaway`` (default True, unless ``visible`` is given): the fixed and kinematic bodies that
     stand between the camera and free bodies are left out, so that a closed container (a drum, a
@@ -465,6 +516,11 @@ def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool 
     state = sim.state()
     kw.setdefault("device", sim.device)
     kw.setdefault("planes", scene.planes)
+    if "mesh_walls" not in kw and getattr(scene, "mesh_walls", None):
+        current = getattr(sim, "current_state", None)
+        mesh_q = current.mesh_q.numpy() if current is not None else getattr(sim, "mesh_q", None)
+        kw["mesh_walls"] = posed_mesh_walls(scene.mesh_walls, mesh_q)
+    shapes = getattr(sim.model, "grain_shapes", sim.model.shapes)  # without the mesh walls' cells
     g = np.asarray(scene.gravity, dtype=np.float64)
     if "up" not in kw and np.linalg.norm(g) > 0.0:
         kw["up"] = -g / np.linalg.norm(g)
@@ -477,8 +533,8 @@ def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool 
         kw["body_colors"] = colors
     pos, quat = state["body_position"], state["body_orientation"]
     if cutaway and kw.get("visible") is None and container.any() and not container.all():
-        kw["camera"], kw["visible"] = _cut_away(pos, quat, body_shape, sim.model.shapes, container, kw)
-    image = render(pos, quat, body_shape, sim.model.shapes, **kw)
+        kw["camera"], kw["visible"] = _cut_away(pos, quat, body_shape, shapes, container, kw)
+    image = render(pos, quat, body_shape, shapes, **kw)
     if path is not None:
         save_png(image, path)
     return image
@@ -500,7 +556,7 @@ def _cut_away(pos, quat, body_shape, shapes, container, kw) -> tuple[Camera, np.
     camera = _as_camera(camera)
     f = min(1.0, CUTAWAY_PIXELS / max(width, height))
     w, h = max(1, round(width * f)), max(1, round(height * f))
-    common = {k: kw[k] for k in ("device", "up") if k in kw}
+    common = {k: kw[k] for k in ("device", "up", "mesh_walls") if k in kw}
     common.update(camera=camera, shadows=False, width=w, height=h)
     everything = render_layers(pos, quat, body_shape, shapes, **common)["hit"]
     grains = render_layers(pos, quat, body_shape, shapes, visible=~container, **common)["hit"]

@@ -22,6 +22,9 @@ Layout of the file (Z up and metres unless told otherwise)::
                                  flat (face-varying) normals, subdivisionScheme "none", and a
                                  constant displayColor from :data:`PALETTE` (the shape's index)
     /World/Walls/plane_K         Mesh: plane wall K as one large quad facing the simulated side
+    /World/Walls/mesh_K          Mesh: mesh wall K, its triangles in the wall's frame (origin at
+                                 its pivot) with flat normals, posed by xformOp:translate and
+                                 xformOp:orient (time samples from ``mesh_q`` when it moves)
 
 Every body, whatever its kind, is an instance: fixed bodies stay put and kinematic ones move.
 
@@ -341,6 +344,36 @@ class UsdRecorder:
                 prim.SetCustomDataByKey("polydem:normal", Gf.Vec3d(*plane.normal))
                 prim.SetCustomDataByKey("polydem:material", plane.material)
 
+        # -- mesh walls: the vertices in the wall's frame (origin at its pivot), posed by an Xform op
+        # pair; a moving wall gets a time sample per frame from the simulation's mesh_q.
+        self._mesh_ops = []
+        self._mesh_moving = []
+        if scene.mesh_walls:
+            UsdGeom.Scope.Define(stage, WALLS_PATH)
+        for k, wall in enumerate(scene.mesh_walls):
+            v = np.asarray(wall.vertices, dtype=np.float64)
+            tri = np.asarray(wall.triangles, dtype=np.int64)
+            pivot = np.asarray(wall.pivot, dtype=np.float64)
+            normals = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
+            normals /= np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
+            mesh = UsdGeom.Mesh.Define(stage, f"{WALLS_PATH}/mesh_{k}")
+            self._author_mesh(mesh, v - pivot, list(tri), normals)
+            mesh.CreateDoubleSidedAttr(False)  # the far side of a closed drum shows, the near side lets the view in
+            mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([WALL_COLOR])
+            translate = mesh.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+            orient = mesh.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
+            translate.Set(Gf.Vec3d(*(pivot * self._scale)))
+            orient.Set(Gf.Quatd(1.0, 0.0, 0.0, 0.0))
+            self._mesh_ops.append((translate, orient))
+            self._mesh_moving.append(bool(wall.moving))
+            prim = mesh.GetPrim()
+            prim.SetCustomDataByKey("polydem:material", wall.material)
+            prim.SetCustomDataByKey("polydem:pivot", Gf.Vec3d(*(pivot * self._scale)))
+            prim.SetCustomDataByKey("polydem:velocity", Gf.Vec3d(*(np.asarray(wall.velocity) * self._scale)))
+            prim.SetCustomDataByKey("polydem:angular_velocity", Gf.Vec3d(*wall.angular_velocity))
+            prim.SetCustomDataByKey("polydem:moving", bool(wall.moving))
+            prim.SetCustomDataByKey("polydem:source", str(wall.source))
+
         self.frames = 0
         self.last_time_code = None
         self._unsaved = 0
@@ -417,7 +450,9 @@ class UsdRecorder:
         """The time code of a frame at simulated time ``time_s`` [s]: ``round(time_s / frame_dt)``."""
         return int(round(float(time_s) / self.frame_dt))
 
-    def record(self, time_s: float, positions, orientations, velocities=None, angular_velocities=None) -> int:
+    def record(
+        self, time_s: float, positions, orientations, velocities=None, angular_velocities=None, mesh_poses=None
+    ) -> int:
         """Write one frame; returns its time code.
 
         Args:
@@ -429,6 +464,9 @@ class UsdRecorder:
             velocities, angular_velocities: (N, 3) [m/s] and world-axes [rad/s]
                 (``Simulation.state()["body_velocity"]``, ``["body_angular_velocity"]``), both or
                 neither; the first frame decides for the whole file.
+            mesh_poses: (M, 7) poses of the mesh walls' frames, position [m] and quaternion xyzw
+                (``Simulation.current_state.mesh_q``); moving walls get a time sample. Without it a
+                wall keeps its initial pose.
         """
         if self._closed:
             raise RuntimeError(f"the recorder of {self.path} is closed")
@@ -451,6 +489,15 @@ class UsdRecorder:
                 + ("with" if self._with_velocities else "without")
                 + " velocities: give velocities and angular_velocities to every frame or to none"
             )
+        moving = [k for k, m in enumerate(self._mesh_moving) if m]
+        mesh = None
+        if mesh_poses is not None and moving:
+            mesh = np.asarray(mesh_poses, dtype=np.float64)
+            if mesh.ndim != 2 or mesh.shape[1] != 7 or len(mesh) < len(self._mesh_moving):
+                raise ValueError(
+                    f"mesh_poses must have shape ({len(self._mesh_moving)}, 7) (position and quaternion xyzw "
+                    f"per mesh wall), got {mesh.shape}"
+                )
         prev_q = self._prev_q
         try:
             pos, ori, orif, ext = self._convert(positions, orientations)
@@ -471,6 +518,13 @@ class UsdRecorder:
             self._angvel_attr.Set(vel[1], code)
         self._extent_attr.Set(ext, code)
         self._time_attr.Set(t, code)
+        if mesh is not None:
+            from pxr import Gf
+
+            for k in moving:
+                p, q = mesh[k, :3] * self._scale, mesh[k, 3:] / np.linalg.norm(mesh[k, 3:])
+                self._mesh_ops[k][0].Set(Gf.Vec3d(*p), code)
+                self._mesh_ops[k][1].Set(Gf.Quatd(float(q[3]), float(q[0]), float(q[1]), float(q[2])), code)
         self._stage.SetEndTimeCode(float(code))
         self.last_time_code = code
         self.frames += 1
@@ -487,8 +541,14 @@ class UsdRecorder:
         """Record a :class:`~polydem.Simulation`'s current state (poses and velocities) at ``sim.time``;
         returns the time code."""
         st = sim.state()
+        mesh = sim.current_state.mesh_q.numpy()[: sim.model.num_mesh_walls] if sim.model.num_mesh_walls else None
         return self.record(
-            sim.time, st["body_position"], st["body_orientation"], st["body_velocity"], st["body_angular_velocity"]
+            sim.time,
+            st["body_position"],
+            st["body_orientation"],
+            st["body_velocity"],
+            st["body_angular_velocity"],
+            mesh_poses=mesh,
         )
 
     def save(self) -> None:

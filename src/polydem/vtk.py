@@ -17,7 +17,10 @@ the folder (frame ``k`` is the ``k``-th recorded frame, or the index given to :m
     particles/particles_<k>.vtu      the bodies as their polyhedra, in world coordinates
     centres.pvd, centres/...         one point per body
     contacts.pvd, contacts/...       one line per contact: the force network
-    walls.vtu                        the wall planes as quads (written once; planes do not move)
+    walls.vtu                        the wall planes as quads and the fixed mesh walls' triangles
+                                     (written once: they do not move)
+    moving_walls.pvd, moving_walls/  the moving mesh walls' triangles at each frame's pose (only
+                                     when the scene has moving mesh walls)
 
 ``particles``: an unstructured grid of polygon cells (triangles, quads, polygons), one per face of
 each body, vertices in world coordinates [m]. Cell data (the face's body): ``body_id``,
@@ -127,6 +130,10 @@ class VtkWriter:
         import meshio  # noqa: F401  (fail here, before any frame, if it is missing)
 
         scene = getattr(getattr(scene, "model", None), "scene", scene)  # a Simulation -> its Scene
+        self._mesh_walls = list(getattr(scene, "mesh_walls", ()))
+        self._num_planes = len(scene.planes)
+        self._moving = [k for k, w in enumerate(self._mesh_walls) if w.moving]
+        self._series = SERIES + (("moving_walls",) if self._moving else ())
         self.folder = Path(os.fspath(folder))
         if self.folder.exists() and not self.folder.is_dir():
             raise ValueError(f"cannot write VTK files to {self.folder}: it is a file, not a folder")
@@ -152,20 +159,20 @@ class VtkWriter:
                 by_size.setdefault(len(f), []).append(np.asarray(f, dtype=np.int64))
             faces = {size: np.array(fs) for size, fs in sorted(by_size.items())}
             self._groups.append((bodies, np.asarray(shape.vertices, dtype=np.float64), faces))
-        self.paths = {name: self.folder / f"{name}.pvd" for name in SERIES}
-        self._entries: dict[str, list] = {name: [] for name in SERIES}
+        self.paths = {name: self.folder / f"{name}.pvd" for name in self._series}
+        self._entries: dict[str, list] = {name: [] for name in self._series}
         self._resume = bool(resume)
         self.frames = 0
         self.last_index = None
         self.last_time = None
         self._closed = False
         self.folder.mkdir(parents=True, exist_ok=True)
-        for name in SERIES:
+        for name in self._series:
             (self.folder / name).mkdir(exist_ok=True)
             if not self._resume:  # no series of an earlier run in this folder stays listed
                 _write_pvd(self.paths[name], [])
         self.walls_path = None
-        if scene.planes:
+        if scene.planes or len(self._moving) < len(self._mesh_walls):
             self.walls_path = self.folder / WALLS_FILE
             self._write_walls(scene, radius, wall_size)
 
@@ -186,16 +193,51 @@ class VtkWriter:
         size = wall_size or 2.0 * float(np.linalg.norm(hi - lo)) or 1.0
         quads = [plane_quad(p.point, p.normal, 0.5 * (lo + hi), 0.5 * size) for p in scene.planes]
         k = len(quads)
+        points = [np.concatenate(quads)] if k else []
+        cells, walls, normals = [], [], []
+        if k:
+            cells.append(("quad", np.arange(4 * k, dtype=np.int64).reshape(k, 4)))
+            walls.append(np.arange(k, dtype=np.int32))
+            normals.append(np.array([p.normal for p in scene.planes], dtype=np.float32))
+        fixed = [w for w in range(len(self._mesh_walls)) if w not in self._moving]
+        if fixed:
+            pts, tri, wall, normal = self._mesh_triangles(fixed, None)
+            points.append(pts)
+            cells.append(("triangle", tri + 4 * k))
+            walls.append(wall)
+            normals.append(normal)
         _write_vtu(
             meshio,
             self.walls_path,
-            np.concatenate(quads).astype(np.float32),
-            [("quad", np.arange(4 * k, dtype=np.int64).reshape(k, 4))],
-            cell_data={
-                "wall": [np.arange(k, dtype=np.int32)],
-                "normal": [np.array([p.normal for p in scene.planes], dtype=np.float32)],
-            },
+            np.concatenate(points).astype(np.float32),
+            cells,
+            cell_data={"wall": walls, "normal": normals},
         )
+
+    def _mesh_triangles(self, walls, mesh_poses):
+        """(points, triangles, wall index, unit normal) of the mesh walls ``walls`` at ``mesh_poses``
+        ((M, 7) pivot positions and quaternions xyzw; None: their t = 0 pose). The wall index counts
+        after the planes (mesh wall w is ``P + w``)."""
+        from polydem.quaternions import quat_to_matrix
+
+        points, tris, index, normals = [], [], [], []
+        base = 0
+        for w in walls:
+            wall = self._mesh_walls[w]
+            v = np.asarray(wall.vertices, dtype=np.float64)
+            if mesh_poses is not None and wall.moving:
+                pose = np.asarray(mesh_poses[w], dtype=np.float64)
+                rot = quat_to_matrix(pose[3:] / np.linalg.norm(pose[3:]))
+                v = (v - np.asarray(wall.pivot, dtype=np.float64)) @ rot.T + pose[:3]
+            t = np.asarray(wall.triangles, dtype=np.int64)
+            n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+            n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+            points.append(v)
+            tris.append(t + base)
+            index.append(np.full(len(t), self._num_planes + w, dtype=np.int32))
+            normals.append(n.astype(np.float32))
+            base += len(v)
+        return (np.concatenate(points), np.concatenate(tris), np.concatenate(index), np.concatenate(normals))
 
     def _previous_entries(self, name: str, time_s: float) -> list:
         """Entries of an existing ``.pvd`` before ``time_s`` whose files exist (for ``resume``)."""
@@ -214,7 +256,7 @@ class VtkWriter:
 
     # ------------------------------------------------------------------ recording
 
-    def record(self, time_s: float, state: dict, contacts: dict, index: int | None = None) -> int:
+    def record(self, time_s: float, state: dict, contacts: dict, index: int | None = None, mesh_poses=None) -> int:
         """Write one frame of every series; returns its index.
 
         Args:
@@ -224,6 +266,9 @@ class VtkWriter:
             contacts: ``Simulation.contacts()`` at the same state.
             index: the frame's number in the file names (``particles_<index>.vtu``); default the
                 previous frame's plus one (0 for the first). Must increase from frame to frame.
+            mesh_poses: (M, 7) poses of the mesh walls' frames (pivot position [m], quaternion xyzw;
+                ``Simulation.current_state.mesh_q``) for the moving walls' series; None: their
+                initial pose.
         """
         import meshio
 
@@ -243,13 +288,29 @@ class VtkWriter:
         norm = np.linalg.norm(q, axis=1, keepdims=True)
         q = q / np.where(norm > 0.0, norm, 1.0)
         if self.frames == 0 and self._resume:
-            for name in SERIES:
+            for name in self._series:
                 self._entries[name] = self._previous_entries(name, t)
-        files = {name: f"{name}/{name}_{k:06d}.vtu" for name in SERIES}
+        files = {name: f"{name}/{name}_{k:06d}.vtu" for name in self._series}
         self._write_particles(meshio, self.folder / files["particles"], x, q, v, w)
         self._write_centres(meshio, self.folder / files["centres"], x, q, v, w)
         self._write_contacts(meshio, self.folder / files["contacts"], x, contacts)
-        for name in SERIES:
+        if self._moving:
+            if mesh_poses is not None:
+                mesh_poses = np.asarray(mesh_poses, dtype=np.float64)
+                if mesh_poses.ndim != 2 or mesh_poses.shape[1] != 7 or len(mesh_poses) < len(self._mesh_walls):
+                    raise ValueError(
+                        f"mesh_poses must have shape ({len(self._mesh_walls)}, 7) (position and quaternion xyzw "
+                        f"per mesh wall), got {mesh_poses.shape}"
+                    )
+            pts, tri, wall, normal = self._mesh_triangles(self._moving, mesh_poses)
+            _write_vtu(
+                meshio,
+                self.folder / files["moving_walls"],
+                pts.astype(np.float32),
+                [("triangle", tri)],
+                cell_data={"wall": [wall], "normal": [normal]},
+            )
+        for name in self._series:
             self._entries[name].append((t, files[name]))
             _write_pvd(self.paths[name], self._entries[name])
         self.frames += 1
@@ -259,7 +320,9 @@ class VtkWriter:
 
     def record_simulation(self, sim, index: int | None = None) -> int:
         """Record a :class:`~polydem.Simulation`'s current state and contacts at ``sim.time``."""
-        return self.record(sim.time, sim.state(), sim.contacts(), index)
+        m = sim.model.num_mesh_walls
+        mesh = sim.current_state.mesh_q.numpy()[:m] if m else None
+        return self.record(sim.time, sim.state(), sim.contacts(), index, mesh_poses=mesh)
 
     def _write_particles(self, meshio, path, x, q, v, w) -> None:
         from polydem.quaternions import quat_to_matrix
@@ -356,7 +419,7 @@ class VtkWriter:
     @property
     def files(self) -> list[Path]:
         """The files to open: the ``.pvd`` series, and ``walls.vtu`` when the scene has walls."""
-        out = [self.paths[name] for name in SERIES]
+        out = [self.paths[name] for name in self._series]
         if self.walls_path is not None:
             out.append(self.walls_path)
         return out

@@ -85,7 +85,8 @@ class Outputs:
             self.usd_codes = [*self.usd_codes[:1], rec.last_time_code]
         if self.vtk is not None and (self.vtk.last_index is None or frame > self.vtk.last_index):
             try:
-                self.vtk.record(sim.time, sim.state(), contacts, index=frame)
+                mesh = sim.current_state.mesh_q.numpy() if sim.model.num_mesh_walls else None
+                self.vtk.record(sim.time, sim.state(), contacts, index=frame, mesh_poses=mesh)
             except OSError as exc:
                 raise OutputError(f"cannot write the VTK files in {self.rel(self.vtk_dir)}: {why(exc)}") from exc
 

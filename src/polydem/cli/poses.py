@@ -63,7 +63,7 @@ def read_checkpoint_poses(path: Path) -> np.ndarray:
 class Poses:
     """What :func:`polydem.render.render_simulation` reads of a Simulation, for poses from a file."""
 
-    def __init__(self, scene, positions, orientations, device):
+    def __init__(self, scene, positions, orientations, device, mesh_q=None):
         from types import SimpleNamespace
 
         self.device = device
@@ -72,6 +72,7 @@ class Poses:
             shapes=[scene.shapes[name] for name in scene.shape_names],
             body_flags_np=np.asarray(scene.body_kind),
         )
+        self.mesh_q = mesh_q  # (M, 7) mesh wall poses, or None: their initial poses
         self._state = {
             "body_position": np.asarray(positions, dtype=np.float64),
             "body_orientation": np.asarray(orientations, dtype=np.float64),

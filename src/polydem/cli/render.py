@@ -11,7 +11,7 @@ from polydem import signals
 from polydem.cli.common import plural, shorten
 from polydem.cli.device import device
 from polydem.cli.errors import EXIT_OK, CliError, why
-from polydem.cli.poses import Poses, check_poses, read_checkpoint_poses
+from polydem.cli.poses import Poses, check_poses, read_checkpoint
 from polydem.cli.settings import load_scene
 
 __all__ = ["cmd_render"]
@@ -34,7 +34,7 @@ def _scene_file(args, source: Path):
             "--frame",
         )
     scene = load_scene(source)
-    return scene, scene.body_position, scene.body_orientation, f"frame 0 of {source}"
+    return scene, scene.body_position, scene.body_orientation, f"frame 0 of {source}", None
 
 
 def _checkpoint(args, source: Path):
@@ -46,9 +46,11 @@ def _checkpoint(args, source: Path):
             "--frame",
         )
     scene = load_scene(args.scene)
-    body_q = read_checkpoint_poses(source)
+    arrays = read_checkpoint(source).arrays
+    body_q = arrays["body_q"].astype(np.float64)
     check_poses(source, body_q[:, :3], scene, args.scene, "checkpoint", _FIX)
-    return scene, body_q[:, :3], body_q[:, 3:7], f"the checkpoint {source}"
+    mesh_q = arrays.get("mesh_q")  # the mesh walls' poses, where it has mesh walls
+    return scene, body_q[:, :3], body_q[:, 3:7], f"the checkpoint {source}", mesh_q
 
 
 def _usd_frame(args, source: Path):
@@ -81,7 +83,7 @@ def _usd_frame(args, source: Path):
         )
     positions, orientations = read_frame(source, frame)
     check_poses(source, positions, scene, scene_arg, "USD file", _FIX)
-    return scene, positions, orientations, f"frame {frame} of {source}"
+    return scene, positions, orientations, f"frame {frame} of {source}", None
 
 
 def _source(args) -> Path:
@@ -111,8 +113,8 @@ def cmd_render(args) -> int:
     source = _source(args)
     dev = device(args.device)
     read = {".toml": _scene_file, ".npz": _checkpoint}.get(source.suffix.lower(), _usd_frame)
-    scene, positions, orientations, what = read(args, source)
-    poses = Poses(scene, positions, orientations, dev)
+    scene, positions, orientations, what, mesh_q = read(args, source)
+    poses = Poses(scene, positions, orientations, dev, mesh_q=mesh_q)
     signals.check()
     try:
         out_png.parent.mkdir(parents=True, exist_ok=True)

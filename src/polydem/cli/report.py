@@ -245,7 +245,8 @@ class Report:
         if o.get("vtk"):
             vtk = o["vtk"]
             names = ", ".join(shorten(f) for f in vtk["files"] if f.endswith(".pvd"))
-            files.append((names, f"VTK series for ParaView, {plural(vtk['frames'], 'frame')} (and vtk/walls.vtu)"))
+            walls = " (and vtk/walls.vtu)" if any(f.endswith("walls.vtu") for f in vtk["files"]) else ""
+            files.append((names, f"VTK series for ParaView, {plural(vtk['frames'], 'frame')}{walls}"))
         if o["summary"] and self.outputs.summary_written:
             files.append((shorten(o["summary"]), "summary"))
         pictures = o["pictures"]
