@@ -22,7 +22,10 @@ repose)
 scenes)
   # usd-core is not in the GPU bundle: carry its wheel in .gpu4 (pip download usd-core --no-deps
   # --python-version 3.12 --only-binary=:all: --platform manylinux2014_x86_64 -d .gpu4).
-  if ls .gpu4/usd_core-*.whl > /dev/null 2>&1; then pip install -q --no-deps --no-index .gpu4/usd_core-*.whl; fi
+  if ls .gpu4/usd_core-*.whl > /dev/null 2>&1; then
+    python -m pip install -q --no-deps --no-index --target /tmp/usd .gpu4/usd_core-*.whl
+    export PYTHONPATH=/tmp/usd:${PYTHONPATH:-}
+  fi
   # The three scenes from the command line, large: 4000 cubes in the hopper, 3000 in the heap, the
   # mixer three times the size with 3000 grains.
   python - <<'PY'
@@ -39,7 +42,7 @@ m = m.replace("thickness = 0.007", "thickness = 0.02").replace("thickness = 0.02
 (s / "mixer_large.toml").write_text(m)
 PY
   for sc in hopper_large heap_large mixer_large; do
-    python -m polydem.cli run scenes/$sc.toml --device cuda:0 --out "$out/$sc" 2>&1 | grep -v "^ \+[0-9.]*%\|^Module" | tail -12 || true
+    python -m polydem run scenes/$sc.toml --device cuda:0 --out "$out/$sc" 2>&1 | grep -v "^ \+[0-9.]*%\|^Module" | tail -12 || true
   done
   ;;
 esac
