@@ -57,6 +57,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import warp as wp
+from polydem.kernels.compound import make_body_geometry
 from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
@@ -100,6 +101,7 @@ def _make_contact_kernels(
     precision: str = "float32",
     max_registers: int | None = None,
     variant: str = DEFAULT_PAIR_VARIANT,
+    compound: bool = False,
 ):
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -112,7 +114,8 @@ def _make_contact_kernels(
     coordinates of the bodies' size however far they are from the origin. ``variant`` picks how
     the pair geometry holds its working set (:func:`polydem.kernels.geometry.make_geometry`).
     ``max_registers`` caps the pair kernel's CUDA registers per thread (default
-    :data:`PAIR_MAX_REGISTERS`).
+    :data:`PAIR_MAX_REGISTERS`). ``compound`` builds the variant whose bodies may be compound
+    grains (:mod:`polydem.kernels.compound`: the geometry loops over their parts).
     """
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
@@ -122,11 +125,12 @@ def _make_contact_kernels(
     law_energy = resp.law_energy
     respond = resp.respond
     geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
+    body_geom = make_body_geometry(geom, compound)
     Shapes = geom.shapes
-    pair_geometry = geom.pair_geometry
-    plane_geometry = geom.primitives.plane_geometry
-    pair_depth_of = geom.pair_depth
-    plane_depth_of = geom.primitives.plane_depth
+    pair_geometry = body_geom.pair_geometry
+    plane_geometry = body_geom.plane_geometry
+    pair_depth_of = body_geom.pair_depth
+    plane_depth_of = body_geom.plane_depth
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)

@@ -109,6 +109,12 @@ def shapes_struct(scalar):
         # The same in float64 (the same arrays in float64), for the pair set-up.
         "face_plane64": wp.array(dtype=wp.types.vector(4, wp.float64)),
         "vert64": wp.array(dtype=vec3d),
+        # Compound grains: shape s is made of the parts shape_part_start[s] .. [s + 1], part k the
+        # convex shape part_shape[k] at pose part_q[k] in s's body frame (a convex shape is its
+        # own single part at the identity).
+        "shape_part_start": wp.array(dtype=int),
+        "part_shape": wp.array(dtype=int),
+        "part_q": wp.array(dtype=wp.types.transformation(wp.float64)),
     }
     name = f"Shapes{wp.types.type_size_in_bytes(scalar) * 8}"
     cls = type(name, (), {"__annotations__": fields, "__module__": __name__, "__qualname__": name})

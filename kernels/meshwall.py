@@ -19,6 +19,7 @@ to the body's force and torque (one thread per body: a fixed order, no atomics).
 import functools
 
 import warp as wp
+from polydem.kernels.compound import make_body_geometry
 from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
@@ -37,9 +38,11 @@ def make_mesh_kernels(
     diagnostics: bool = False,
     precision: str = "float32",
     variant: str = DEFAULT_PAIR_VARIANT,
+    compound: bool = False,
 ):
     """The mesh-wall contact kernel of one law, friction setting, polygon capacity and precision
-    (the step variant, or with ``diagnostics`` the one that reports and changes nothing)."""
+    (the step variant, or with ``diagnostics`` the one that reports and changes nothing);
+    ``compound``: bodies may be compound grains (each part is clipped against each cell)."""
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
     vec3c = wp.types.vector(3, C)
@@ -49,9 +52,10 @@ def make_mesh_kernels(
     law_energy = resp.law_energy
     respond = resp.respond
     geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
+    body_geom = make_body_geometry(geom, compound)
     Shapes = geom.shapes
-    pair_geometry = geom.pair_geometry
-    plane_depth_of = geom.primitives.plane_depth
+    pair_geometry = body_geom.pair_geometry
+    plane_depth_of = body_geom.plane_depth
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.kernel(enable_backward=False, module="unique")

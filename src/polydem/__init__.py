@@ -22,6 +22,7 @@ _EXPORTS = {
     "SceneError": "polydem.scene",
     "pair_material": "polydem.scene",
     "ConvexShape": "polydem.shapes",
+    "CompoundShape": "polydem.compound",
     "SettleCriterion": "polydem.settle",
     "SettleResult": "polydem.settle",
     "Simulation": "polydem.simulation",
@@ -47,6 +48,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "ConvexShape",
+    "CompoundShape",
     "Scene",
     "SceneError",
     "Material",

@@ -27,6 +27,7 @@ import warp as wp
 
 from polydem.kernels.raycast import launch_raycast
 from polydem.quaternions import quat_to_matrix
+from polydem.compound import expand_bodies
 from polydem.shapeset import ShapeSet
 
 __all__ = ["Camera", "FIXED_COLOR", "PALETTE", "render", "render_layers", "render_simulation", "save_png"]
@@ -351,6 +352,7 @@ def render_layers(
         )
     shape_set = _shape_set(shapes, device)
     num_shapes = len(shape_set.shapes)
+    owner = None
     if n and (body_shape.min() < 0 or body_shape.max() >= num_shapes):
         raise ValueError(
             f"body_shape must index the {num_shapes} shapes, got values in [{body_shape.min()}, {body_shape.max()}]"
@@ -365,6 +367,14 @@ def render_layers(
         raise ValueError(f"visible must have one entry per body ({n}), got shape {shown.shape}")
     colors = _colors(body_shape, num_shapes, shape_colors, body_colors)
     up_v = _unit(up, "up")
+    if shape_set.compound:
+        # The ray caster intersects convex shapes: a compound grain is drawn as its parts (their
+        # union is the grain); hits are reported by body.
+        convex, body_shape, pos, quat, owner = expand_bodies(shape_set.shapes, body_shape, pos, quat)
+        body_shape = body_shape.astype(np.int32)
+        shown, colors = shown[owner], colors[owner]
+        shape_set = ShapeSet(convex, device=device, precision="float32")
+        n = len(pos)
 
     radius = np.array([s.radius for s in shape_set.shapes])[body_shape]
     if camera is None:
@@ -432,6 +442,8 @@ def render_layers(
     hit_np = hit.numpy()
     del bvh
     depth_np[hit_np == -1] = np.inf
+    if owner is not None:
+        hit_np = np.where(hit_np >= 0, owner[np.maximum(hit_np, 0)], hit_np)
     return {"image": _to_uint8(rgb), "color": rgb, "depth": depth_np, "hit": hit_np, "camera": camera}
 
 

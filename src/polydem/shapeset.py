@@ -27,6 +27,13 @@ class ShapeSet:
         face_loop_start: (F+1,) int32, first entry of each face in ``face_loop``.
         face_loop: (L,) int32, global vertex indices of each face, counter-clockwise from outside.
         vert: (V,) vec3 vertex positions [m].
+        shape_part_start: (S+1) int32, first part of each shape in ``part_shape``.
+        part_shape: (P,) int32, the convex shape (an index in this set) of each part.
+        part_q: (P,) float64 transform, each part's pose in its grain's body frame ([m] and a
+            quaternion). A convex shape is one part, itself at the identity; a
+            :class:`~polydem.compound.CompoundShape` has an entry without faces (its bounding
+            radius only) and its parts follow the shapes given, as convex entries of their own.
+        compound: whether any shape is compound (the kernels then take the variant that loops over parts).
         face_plane64, vert64: ``face_plane`` and ``vert`` in float64 whatever the precision: the
             geometry sets a pair up in float64 from them, so float32 contacts see the same bodies
             as float64 ones (a size of 0.018 m is 4e-10 m off in float32, 4% of a 1e-8 m depth).
@@ -44,13 +51,33 @@ class ShapeSet:
         "vert",
         "face_plane64",
         "vert64",
+        "shape_part_start",
+        "part_shape",
+        "part_q",
     )
 
     def __init__(self, shapes, device=None, precision="float32"):
+        from polydem.compound import is_compound
+
         shapes = list(shapes)
         if not shapes:
             raise ValueError("a ShapeSet needs at least one shape")
         self.shapes = shapes
+        self.compound = any(is_compound(s) for s in shapes)
+        # Every convex entry: the shapes given (a compound one as an empty entry), then the parts.
+        entries = list(shapes)
+        part_start, part_shape, part_q = [0], [], []
+        for k, shape in enumerate(shapes):
+            if is_compound(shape):
+                for part, t, q in zip(shape.parts, shape.part_translation, shape.part_orientation, strict=True):
+                    part_shape.append(len(entries))
+                    part_q.append(np.concatenate([t, q]))
+                    entries.append(part)
+            else:
+                part_shape.append(k)
+                part_q.append(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
+            part_start.append(len(part_shape))
+        convex = [s for s in entries if not is_compound(s)]
         self.precision = precision
         self.scalar = scalar_type(precision)
         self.device = wp.get_device(device)
@@ -62,7 +89,11 @@ class ShapeSet:
         face_start = [0]
         loop_start = [0]
         loops, verts, planes, spheres = [], [], [], []
-        for shape in shapes:
+        for shape in entries:
+            if is_compound(shape):
+                vert_start.append(vert_start[-1])
+                face_start.append(face_start[-1])
+                continue
             base = vert_start[-1]
             verts.append(np.asarray(shape.vertices, dtype=np.float64))
             for loop in shape.faces:
@@ -76,7 +107,7 @@ class ShapeSet:
         # The culling spheres are padded so that rounding in the float32 tests cannot cull a face
         # that touches.
         spheres = np.concatenate(spheres)
-        radii = np.array([s.radius for s in shapes])
+        radii = np.array([s.radius for s in entries])
         spheres[:, 3] *= 1.0 + 1e-5
         spheres[:, 3] += 1e-6 * radii.max()
 
@@ -91,6 +122,10 @@ class ShapeSet:
         self.face_loop_start = arr(np.array(loop_start, dtype=np.int32), int)
         self.face_loop = arr(np.concatenate(loops).astype(np.int32), int)
         self.vert = arr(np.concatenate(verts).astype(np_scalar), vec3)
+        self.shape_part_start = arr(np.array(part_start, dtype=np.int32), int)
+        self.part_shape = arr(np.array(part_shape, dtype=np.int32), int)
+        self.part_q = arr(np.array(part_q, dtype=np.float64), wp.types.transformation(wp.float64))
+        self.num_entries = len(entries)
         if self.scalar == wp.float64:
             self.face_plane64 = self.face_plane
             self.vert64 = self.vert
@@ -102,8 +137,8 @@ class ShapeSet:
         for name in self.ARRAYS:
             setattr(self.arrays, name, getattr(self, name))
 
-        max_face_verts = max(s.max_face_vertices for s in shapes)
-        max_faces = max(s.num_faces for s in shapes)
+        max_face_verts = max(s.max_face_vertices for s in convex)
+        max_faces = max(s.num_faces for s in convex)
         # Clipping a convex polygon by k planes adds at most one vertex per plane.
         self.max_poly_bound = max_face_verts + max_faces
         # Pieces met in practice are far below the bound for shapes with many faces; start small

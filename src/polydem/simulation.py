@@ -196,7 +196,13 @@ class Stepper:
     def _kernels(self):
         m = self.model
         self.kernels = make_contact_kernels(
-            m.law, m.friction, self.poly_capacity, m.shapes.max_faces, precision=m.precision, variant=self.pair_variant
+            m.law,
+            m.friction,
+            self.poly_capacity,
+            m.shapes.max_faces,
+            precision=m.precision,
+            variant=self.pair_variant,
+            compound=m.shapes.compound,
         )
         self.mesh_kernels = self._mesh_kernels(False)
 
@@ -212,6 +218,7 @@ class Stepper:
             diagnostics=diagnostics,
             precision=m.precision,
             variant=self.pair_variant,
+            compound=m.shapes.compound,
         )
 
     def grow_polygons(self):
@@ -494,6 +501,7 @@ class Stepper:
                 diagnostics=True,
                 precision=m.precision,
                 variant=self.pair_variant,
+                compound=m.shapes.compound,
             )
             self._launch_contacts(kernels, self._diag, state, contacts, dt, self._diag_overflow)
             if m.num_mesh_walls:

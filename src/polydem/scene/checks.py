@@ -374,7 +374,9 @@ class CheckMethods:
         weight = float(mass[light]) * float(np.linalg.norm(np.asarray(self.gravity, dtype=np.float64)))
         if weight > 0.0:
             with np.errstate(all="ignore"):
-                k_rest = float(np.nanmax(resting_stiffness(law, k, m, v_ref, weight), initial=np.nan))
+                stiff = np.asarray(resting_stiffness(law, k, m, v_ref, weight))
+                # (the linear law has none: all NaN, and nanmax would warn)
+                k_rest = float(np.nanmax(stiff)) if np.isfinite(stiff).any() else math.nan
                 e_min = max(float(np.min(np.asarray(table["restitution"], dtype=np.float64))), 0.1)
                 if math.isfinite(k_rest) and k_rest > 0.0:
                     resting = min(1.0, 2.0 * e_min) / math.sqrt(k_rest / float(mass[light]))

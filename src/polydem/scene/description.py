@@ -30,6 +30,7 @@ from polydem.scene.overlaps import OverlapMethods
 from polydem.scene.values import read_choice, read_integer, read_number, read_string, read_vector, typename
 from polydem.scene.walls import WallMethods
 from polydem.settle import SettleCriterion
+from polydem.compound import CompoundShape
 from polydem.shapes import ConvexShape
 
 PRECISIONS = ("float32", "mixed", "float64")
@@ -248,9 +249,11 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         key = f"shapes.{name}"
         if not isinstance(name, str) or not name:
             raise self.error(f"shape name must be a non-empty string, got {typename(name)}", "shapes")
-        if not isinstance(shape, ConvexShape):
+        if not isinstance(shape, ConvexShape | CompoundShape):
             raise self.error(
-                f"expected a polydem.ConvexShape, got {typename(shape)}; build one with e.g. ConvexShape.box(0.1)", key
+                f"expected a polydem.ConvexShape or CompoundShape, got {typename(shape)}; build one with e.g. "
+                "ConvexShape.box(0.1)",
+                key,
             )
         if name in self._shapes:
             if self._shapes[name] is shape:
@@ -265,7 +268,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
 
     def resolve_shape(self, shape, key: str) -> int:
         """Index of ``shape``, a registered name or a :class:`ConvexShape` (registered if new); errors name ``key``."""
-        if isinstance(shape, ConvexShape):
+        if isinstance(shape, ConvexShape | CompoundShape):
             for name, s in self._shapes.items():
                 if s is shape:
                     return self._shape_index[name]

@@ -357,7 +357,13 @@ def scene_dict(scene: Scene) -> dict:
     shapes = {}
     for name, shape in scene.shapes.items():
         spec = scene.shape_spec(name)
-        if spec is None:
+        if spec is None and getattr(shape, "is_compound", False):
+            # Each part as its points in the grain's input frame (where the parts were given).
+            spec = {
+                "type": "compound",
+                "parts": [{"type": "points", "points": p.to_input_frame(p.vertices).tolist()} for p in shape.parts],
+            }
+        elif spec is None:
             spec = {"type": "points", "points": shape.to_input_frame(shape.vertices).tolist()}
         shapes[name] = spec
     return {

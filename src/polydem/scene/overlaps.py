@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from polydem.compound import expand_bodies, is_compound
 from polydem.quaternions import quat_conjugate, quat_rotate, quat_to_matrix
 from polydem.scene.bodies import KIND_FREE
 
@@ -156,8 +157,22 @@ def _sat_depth(shape_a, shape_b, ca, cb, ra, rb, edges_a, edges_b):
     return best, thin
 
 
+def _expand_parts(shapes, a):
+    """The bodies with each compound grain replaced by its convex parts: (convex shapes, the
+    arrays of the parts, the body each part belongs to), or owner None where all are convex."""
+    if not any(is_compound(s) for s in shapes):
+        return shapes, a, None
+    convex, part, pos, quat, owner = expand_bodies(shapes, a["shape"], a["position"], a["orientation"])
+    n = len(a["shape"])
+    out = {key: np.asarray(v)[owner] for key, v in a.items() if isinstance(v, np.ndarray) and len(v) == n}
+    out.update(shape=part, position=pos, orientation=quat)
+    return convex, out, owner
+
+
 def _pair_overlaps(shapes, body_label, a) -> list[tuple]:
-    """(relative depth, depth, body, where, of what, fix) of body pairs (one free at least) that overlap."""
+    """(relative depth, depth, body, where, of what, fix) of body pairs (one free at least) that overlap.
+    A compound grain is tested part by part (its own parts are not tested against each other)."""
+    shapes, a, owner = _expand_parts(shapes, a)
     n = len(a["kind"])
     if n < 2:
         return []
@@ -165,12 +180,17 @@ def _pair_overlaps(shapes, body_label, a) -> list[tuple]:
     pairs = _candidate_pairs(a["position"], rad)
     free = a["kind"] == KIND_FREE
     pairs = pairs[free[pairs[:, 0]] | free[pairs[:, 1]]]
+    if owner is not None:
+        pairs = pairs[owner[pairs[:, 0]] != owner[pairs[:, 1]]]
+    else:
+        owner = np.arange(n)
     if not len(pairs):
         return []
     sid = a["shape"].astype(np.int64)
     group = sid[pairs[:, 0]] * len(shapes) + sid[pairs[:, 1]]
     edges = {}
     out = []
+    seen = {}  # body pair -> the deepest record kept (a compound pair meets part by part)
     for g in np.unique(group).tolist():
         sa, sb = shapes[g // len(shapes)], shapes[g % len(shapes)]
         for s in (g // len(shapes), g % len(shapes)):
@@ -205,6 +225,10 @@ def _pair_overlaps(shapes, body_label, a) -> list[tuple]:
                 rel = depth / thin
                 for h in np.flatnonzero(rel > INITIAL_OVERLAP_WARNING).tolist():
                     b1, b2 = (int(ii[h]), int(jj[h])) if free[ii[h]] else (int(jj[h]), int(ii[h]))
+                    b1, b2 = int(owner[b1]), int(owner[b2])
+                    if (b1, b2) in seen and seen[(b1, b2)] >= rel[h]:
+                        continue
+                    seen[(b1, b2)] = float(rel[h])
                     out.append(
                         (
                             float(rel[h]),
@@ -215,6 +239,13 @@ def _pair_overlaps(shapes, body_label, a) -> list[tuple]:
                             f"move the two apart by at least {depth[h]:.3g} m",
                         )
                     )
+    if len(seen) < len(out):  # keep the deepest record of each body pair
+        best = {}
+        for r in out:
+            key = (r[2], r[3])
+            if key not in best or r[0] > best[key][0]:
+                best[key] = r
+        out = list(best.values())
     return out
 
 

@@ -32,6 +32,7 @@ SHAPE_TYPES = (
     "sphere",
     "mesh",
     "points",
+    "compound",
 )
 """Shape ``type`` values of a scene file's ``[shapes.NAME]`` tables."""
 
@@ -47,7 +48,9 @@ _SHAPE_KEYS = {
     "sphere": ("subdivisions", "radius"),
     "mesh": ("file", "scale", "tol"),
     "points": ("points", "tol"),
+    "compound": ("parts", "file", "decompose", "threshold", "max_parts", "seed", "scale"),
 }
+_PART_PLACEMENT = ("position", "orientation", "rotation")
 _SHAPE_REQUIRED = {
     "box": ("size",),
     "prism": ("n", "radius", "height"),
@@ -66,22 +69,34 @@ _SHAPE_HINTS = {
     "subdivisions": "icosphere subdivision level, 0 to 5",
     "file": "mesh file (OBJ, STL, PLY) relative to the scene file, e.g. file = 'meshes/rock.obj'",
     "points": "array of [x, y, z] points in m",
+    "parts": "array of convex shape tables, each with a 'type', its keys, and position = [x, y, z] and "
+    "rotation = {axis = [ax, ay, az], degrees = angle} (or orientation = [x, y, z, w]) placing it in the grain",
+    "decompose": "how to cut the mesh file into convex parts: 'coacd' (CoACD) or 'components' (the hull of each "
+    "connected piece)",
+    "threshold": "CoACD's concavity threshold, in (0, 1], e.g. 0.05 (smaller: more, finer parts)",
+    "max_parts": "the most convex parts CoACD may make, e.g. 16",
+    "seed": "random seed, an integer >= 0",
+    "scale": "factor applied to the file's coordinates, e.g. 0.001 for mm",
 }
 
 
 _PLATONIC = ("tetrahedron", "octahedron", "dodecahedron", "icosahedron")
 
 
-def build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple[ConvexShape, dict]:
-    """Build a shape from a ``[shapes.NAME]`` table; returns it and the normalised spec."""
+def build_shape(name: str, spec: dict, key: str, file, base_dir: Path, *, part: bool = False) -> tuple[ConvexShape, dict]:
+    """Build a shape from a ``[shapes.NAME]`` table; returns it and the normalised spec. ``part``: the
+    table is a part of a compound shape (convex, with its placement in the grain)."""
     spec = read_table(spec, key, file, what=f"a table [shapes.{name}] with a 'type' key")
     if "type" not in spec:
         raise SceneError(f"missing required key 'type' (one of {', '.join(SHAPE_TYPES)})", f"{key}.type", file)
     kind = read_choice(spec["type"], SHAPE_TYPES, f"{key}.type", file, what="shape type")
     edge_required = ("edge",) if kind in _PLATONIC else ()
+    extra = _PART_PLACEMENT if part else ()
+    if part and kind == "compound":
+        raise SceneError("a part of a compound shape must be convex: give a convex type, not 'compound'", f"{key}.type", file)
     check_keys(
         spec,
-        ("type", *_SHAPE_KEYS[kind]),
+        ("type", *_SHAPE_KEYS[kind], *extra),
         key,
         file,
         required=_SHAPE_REQUIRED.get(kind, edge_required),
@@ -95,7 +110,110 @@ def build_shape(name: str, spec: dict, key: str, file, base_dir: Path) -> tuple[
         raise
     except (ValueError, OSError) as exc:  # geometry rejected by ConvexShape (degenerate, unreadable file)
         raise SceneError(f"cannot build the {kind} shape: {exc}", key, file) from exc
+    if part:
+        shape = _place_part(r, shape)
     return shape, r.out
+
+
+def _place_part(r: _Spec, shape: ConvexShape) -> ConvexShape:
+    from polydem.compound import place
+    from polydem.scene.loader import read_rotation
+
+    spec, key, file = r.spec, r.key, r.file
+    if "orientation" in spec and "rotation" in spec:
+        raise SceneError("give either orientation (quaternion) or rotation (axis and angle), not both", f"{key}.rotation", file)
+    q = np.array([0.0, 0.0, 0.0, 1.0])
+    if "rotation" in spec:
+        q = read_rotation(spec["rotation"], f"{key}.rotation", file)
+        r.out["orientation"] = q.tolist()
+    elif "orientation" in spec:
+        q = read_vector(spec["orientation"], 4, f"{key}.orientation", file, label="[x, y, z, w]")
+        if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+            raise SceneError(
+                f"orientation {q.tolist()} is not a unit quaternion (norm {np.linalg.norm(q):.9g}); give "
+                "rotation = {axis = [ax, ay, az], degrees = angle} instead",
+                f"{key}.orientation",
+                file,
+            )
+        r.out["orientation"] = q.tolist()
+    p = np.zeros(3)
+    if "position" in spec:
+        p = read_vector(spec["position"], 3, f"{key}.position", file, label="[x, y, z]")
+        r.out["position"] = p.tolist()
+    return place(shape, p, q)
+
+
+def _compound(r: _Spec):
+    from polydem.compound import MAX_PARTS, CompoundShape, CompoundShapeError
+
+    spec, key, file = r.spec, r.key, r.file
+    if ("parts" in spec) == ("file" in spec):
+        raise SceneError(
+            "a compound shape needs either parts = [...] (convex shape tables) or file = '...' with decompose = "
+            "'coacd' or 'components', not both or neither",
+            key,
+            file,
+        )
+    try:
+        if "parts" in spec:
+            for k in ("decompose", "threshold", "max_parts", "seed", "scale"):
+                if k in spec:
+                    raise SceneError(f"{k!r} applies to a mesh file; parts are given as they are", f"{key}.{k}", file)
+            parts_in = spec["parts"]
+            if not isinstance(parts_in, list) or not parts_in:
+                raise SceneError(
+                    f"expected a non-empty array of part tables, got {typename(parts_in)}", f"{key}.parts", file
+                )
+            if len(parts_in) > MAX_PARTS:
+                raise SceneError(f"at most {MAX_PARTS} parts, got {len(parts_in)}", f"{key}.parts", file)
+            parts, specs = [], []
+            for k, p in enumerate(parts_in):
+                part, out = build_shape(f"{r.name}[{k}]", p, f"{key}.parts[{k}]", file, r.base_dir, part=True)
+                parts.append(part)
+                specs.append(out)
+            r.out["parts"] = specs
+            return CompoundShape(parts, name=r.name)
+        path = _mesh_path(r)
+        r.out["file"] = str(path.resolve())
+        method = read_choice(spec.get("decompose", "coacd"), ("coacd", "components"), f"{key}.decompose", file,
+                             what="decomposition")
+        r.out["decompose"] = method
+        opts = {}
+        if "threshold" in spec:
+            t = read_number(spec["threshold"], f"{key}.threshold", file, positive=True)
+            if t > 1.0:
+                raise SceneError(f"threshold must be in (0, 1], got {t:g}", f"{key}.threshold", file)
+            opts["threshold"] = r.out["threshold"] = t
+        if "max_parts" in spec:
+            opts["max_parts"] = r.out["max_parts"] = r.count("max_parts", 1, MAX_PARTS)
+        if "seed" in spec:
+            opts["seed"] = r.out["seed"] = r.count("seed", 0)
+        from polydem.shapes import load_mesh
+
+        mesh = load_mesh(path)
+        if "scale" in spec:
+            r.out["scale"] = read_number(spec["scale"], f"{key}.scale", file, positive=True, hint=" (" + _SHAPE_HINTS["scale"] + ")")
+            mesh.apply_scale(r.out["scale"])
+        return CompoundShape.from_mesh(mesh, name=r.name, decompose=method, **opts)
+    except CompoundShapeError as exc:
+        raise SceneError(f"cannot build the compound shape: {exc}", key, file) from None
+
+
+def _mesh_path(r: _Spec) -> Path:
+    spec, key, file, base_dir = r.spec, r.key, r.file, r.base_dir
+    rel = read_string(spec["file"], f"{key}.file", file, what="a file path string")
+    path = Path(rel).expanduser()
+    if not path.is_absolute():
+        path = base_dir / path
+    if not path.is_file():
+        what = "is not a file" if path.exists() else "not found"
+        raise SceneError(
+            f"mesh file {rel!r} {what} (looked for '{path}'; relative paths are taken from the folder of the "
+            f"scene file, '{base_dir}')",
+            f"{key}.file",
+            file,
+        )
+    return path
 
 
 @dataclass
@@ -179,19 +297,8 @@ def _sphere(r: _Spec) -> ConvexShape:
 
 
 def _mesh(r: _Spec) -> ConvexShape:
-    spec, key, file, base_dir = r.spec, r.key, r.file, r.base_dir
-    rel = read_string(spec["file"], f"{key}.file", file, what="a file path string")
-    path = Path(rel).expanduser()
-    if not path.is_absolute():
-        path = base_dir / path
-    if not path.is_file():
-        what = "is not a file" if path.exists() else "not found"
-        raise SceneError(
-            f"mesh file {rel!r} {what} (looked for '{path}'; relative paths are taken from the folder of the "
-            f"scene file, '{base_dir}')",
-            f"{key}.file",
-            file,
-        )
+    spec, key, file = r.spec, r.key, r.file
+    path = _mesh_path(r)
     r.out["file"] = str(path.resolve())
     t = r.tol()
     r.out.update(t)
@@ -229,6 +336,7 @@ _BUILDERS = {
     "sphere": _sphere,
     "mesh": _mesh,
     "points": _points,
+    "compound": _compound,
 }
 
 
@@ -253,6 +361,17 @@ def scaled_spec(spec: dict | None, factor: float) -> dict | None:
     kind = spec["type"]
     if kind == "points":
         out["points"] = [[factor * x for x in p] for p in spec["points"]]
+        return out
+    if kind == "compound":
+        if "parts" in spec:
+            out["parts"] = []
+            for p in spec["parts"]:
+                q = scaled_spec(p, factor)
+                if "position" in p:
+                    q["position"] = [factor * x for x in p["position"]]
+                out["parts"].append(q)
+        else:
+            out["scale"] = factor * spec.get("scale", 1.0)
         return out
     for k in _SCALED_KEYS.get(kind, ()):
         value = spec.get(k, 1.0)
