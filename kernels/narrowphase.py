@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import warp as wp
+from polydem.kernels.compound import make_body_geometry
 from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, DEFAULT_PAIR_VARIANT, make_geometry
 
 __all__ = [
@@ -54,6 +55,7 @@ def make_narrowphase(
     max_registers: int | None = 128,
     pose_scalar=None,
     variant: str = DEFAULT_PAIR_VARIANT,
+    compound: bool = False,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
@@ -68,7 +70,8 @@ def make_narrowphase(
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
-    pair_geometry = geom.pair_geometry
+    # With ``compound`` the shapes may be compound grains (summed over their part pairs).
+    pair_geometry = make_body_geometry(geom, compound).pair_geometry
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def overlap_kernel(
@@ -118,11 +121,11 @@ def make_narrowphase(
 
 
 @functools.cache
-def make_depth_kernel(scalar, max_faces: int, pose_scalar=None):
+def make_depth_kernel(scalar, max_faces: int, pose_scalar=None, compound: bool = False):
     """Kernel: penetration depth (:func:`polydem.kernels.geometry.make_geometry`'s ``pair_depth``) of N pairs."""
     geom = make_geometry(scalar, 1, max_faces, None, pose_scalar)
     transform = geom.transform
-    pair_depth = geom.pair_depth
+    pair_depth = make_body_geometry(geom, compound).pair_depth
 
     @wp.kernel(enable_backward=False, module="unique")
     def depth_kernel(
@@ -147,7 +150,7 @@ def launch_depth(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, p
     n = len(pair_shape_a)
     depth = wp.zeros(n, dtype=shapes.scalar, device=shapes.device)
     wp.launch(
-        make_depth_kernel(shapes.scalar, shapes.max_faces, pose_scalar),
+        make_depth_kernel(shapes.scalar, shapes.max_faces, pose_scalar, shapes.compound),
         dim=n,
         inputs=[*shapes.kernel_args(), pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b],
         outputs=[depth],
@@ -192,7 +195,9 @@ def launch_overlap(
         out = dict(out)
         out["pair_fallback_a"] = wp.zeros(n, dtype=wp.types.vector(3, shapes.scalar), device=shapes.device)
     while True:
-        nphase = make_narrowphase(shapes.scalar, capacity, shapes.max_faces, pose_scalar=pose_scalar, variant=variant)
+        nphase = make_narrowphase(
+            shapes.scalar, capacity, shapes.max_faces, pose_scalar=pose_scalar, variant=variant, compound=shapes.compound
+        )
         overflow = wp.zeros(1, dtype=int, device=shapes.device)
         wp.launch(
             nphase.overlap_kernel,

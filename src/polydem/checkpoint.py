@@ -114,6 +114,9 @@ def physics_description(scene, dt):
         shape = scene.shapes[name]
         desc[f"shapes.{name}.vertices"] = np.asarray(shape.vertices, dtype=np.float64).tolist()
         desc[f"shapes.{name}.faces"] = [np.asarray(f).tolist() for f in shape.faces]
+        if getattr(shape, "is_compound", False):  # the contact sees the parts, not the union's surface
+            for k, verts in enumerate(shape.part_vertices()):
+                desc[f"shapes.{name}.parts[{k}].vertices"] = np.asarray(verts, dtype=np.float64).tolist()
     desc["planes"] = len(scene.planes)
     for i, plane in enumerate(scene.planes):
         for field in ("point", "normal", "material"):

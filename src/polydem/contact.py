@@ -24,6 +24,7 @@ import warp as wp
 
 from polydem.kernels.narrowphase import launch_depth, launch_overlap
 from polydem.kernels.response import ENCLOSED, LAWS, launch_contact_force, launch_contact_frame
+from polydem.compound import CompoundShape
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
 
@@ -171,7 +172,8 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
     """Contact geometry of ``shape_a`` at each of ``poses_a`` against ``shape_b`` at ``poses_b``.
 
     Args:
-        shape_a, shape_b: :class:`~polydem.ConvexShape`.
+        shape_a, shape_b: :class:`~polydem.ConvexShape` or :class:`~polydem.CompoundShape` (a
+            compound one's results are the sums over its part pairs, about its centre).
         poses_a, poses_b: (N, 7) arrays ``[px, py, pz, qx, qy, qz, qw]`` placing each body frame
             in the world (positions in m, unit quaternions); a single (7,) pose is broadcast.
         device: Warp device ("cpu", "cuda:0", ...), default Warp's default device.
@@ -184,8 +186,8 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
         :class:`OverlapResult`.
     """
     for s, name in ((shape_a, "shape_a"), (shape_b, "shape_b")):
-        if not isinstance(s, ConvexShape):
-            raise TypeError(f"{name} must be a polydem.ConvexShape, got {type(s).__name__}")
+        if not isinstance(s, ConvexShape | CompoundShape):
+            raise TypeError(f"{name} must be a polydem.ConvexShape or CompoundShape, got {type(s).__name__}")
     scalar_type(precision)
     pa = _check_poses(poses_a, "poses_a")
     pb = _check_poses(poses_b, "poses_b")

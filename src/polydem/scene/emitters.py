@@ -10,6 +10,7 @@ from polydem.quaternions import quat_rotate, quat_to_matrix
 from polydem.scene import bodies as scene_bodies  # MAX_BODIES read at call time: one setting for both checks
 from polydem.scene.bodies import KIND_FIXED, KINDS
 from polydem.scene.errors import SceneError
+from polydem.compound import expand_bodies
 from polydem.scene.shape_specs import scaled_spec
 from polydem.scene.values import check_keys, read_choice, read_integer, read_number, read_table, read_vector, typename
 
@@ -145,17 +146,19 @@ class _Obstacles:
         planes = scene.planes
         self.plane_n = np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3)
         self.plane_e = np.array([np.dot(p.normal, p.point) for p in planes], dtype=np.float64)
-        self.shapes = list(scene.shapes.values())
         self.body = np.zeros(0, dtype=np.int64)
         if scene.num_bodies:
-            radius = np.array([s.radius for s in self.shapes])[scene.body_shape]
-            pos = scene.body_position
+            # Compound grains are obstacles part by part (the tests below take convex shapes).
+            self.shapes, shape, pos, quat, _ = expand_bodies(
+                list(scene.shapes.values()), scene.body_shape, scene.body_position, scene.body_orientation
+            )
+            radius = np.array([s.radius for s in self.shapes])[shape]
             d = pos - np.clip(pos, grid_lo, grid_hi)
             self.body = np.flatnonzero(np.einsum("ij,ij->i", d, d) < radius * radius)
             self.pos = pos[self.body]
             self.rad = radius[self.body]
-            self.shape = np.asarray(scene.body_shape)[self.body]
-            self.rot = quat_to_matrix(scene.body_orientation[self.body])
+            self.shape = shape[self.body]
+            self.rot = quat_to_matrix(quat[self.body])
         self.mesh_planes = []
         for wall in scene.mesh_walls:
             from polydem.meshwall import build_cells
