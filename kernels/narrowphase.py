@@ -196,7 +196,12 @@ def launch_overlap(
         out["pair_fallback_a"] = wp.zeros(n, dtype=wp.types.vector(3, shapes.scalar), device=shapes.device)
     while True:
         nphase = make_narrowphase(
-            shapes.scalar, capacity, shapes.max_faces, pose_scalar=pose_scalar, variant=variant, compound=shapes.compound
+            shapes.scalar,
+            capacity,
+            shapes.max_faces,
+            pose_scalar=pose_scalar,
+            variant=variant,
+            compound=shapes.compound,
         )
         overflow = wp.zeros(1, dtype=int, device=shapes.device)
         wp.launch(

@@ -2,9 +2,11 @@
 
 A :class:`CompoundShape` is a grain made of convex parts (:class:`~polydem.ConvexShape`) that move as
 one rigid body. Its mass, centroid and inertia are those of the union of the parts, so parts that
-overlap each other count their common volume once (the union is computed with manifold3d where
-parts overlap; parts that only touch need no boolean operation). Its body frame is the union's:
-origin at the union's centroid, axes along its principal axes, like a convex shape's.
+overlap each other count their common volume once: exactly, in float64, by inclusion-exclusion over
+the parts' common pieces (each the convex intersection of their half-spaces). Its body frame is the
+union's: origin at the union's centroid, axes along its principal axes, like a convex shape's. The
+surface drawn (USD, VTK) is the boolean union from manifold3d where parts overlap and that optional
+package is installed, else the parts' surfaces together.
 
 Contact: the overlap of two compound grains is taken part by part. Each part pair is clipped
 exactly (:mod:`polydem.kernels.geometry`), and the volumes, first moments, S_A and M_A of all part
@@ -28,7 +30,7 @@ import numpy as np
 from polydem.quaternions import quat_from_matrix
 from polydem.shapes import ConvexShape, _principal_frame, load_mesh
 
-# Parts whose interiors overlap by more than this fraction of the smaller part's size need the union.
+# Parts whose interiors overlap by more than this fraction of the smaller part's size overlap.
 _OVERLAP_RTOL = 1e-9
 # The most parts a grain may have: each contact clips every pair of parts that can touch.
 MAX_PARTS = 64
@@ -53,14 +55,14 @@ class CompoundShape:
         part_rotation: (P, 3, 3) rotation of each part's frame in the grain's body frame [-].
         part_translation: (P, 3) each part's centroid in the grain's body frame [m].
         part_orientation: (P, 4) quaternions (x, y, z, w) of ``part_rotation``.
-        vertices: (nv, 3) vertices of the union's surface [m] (for drawing and output).
+        vertices: (nv, 3) vertices of the surface drawn [m] (see the module docstring).
         faces: list of nf int64 triangles of the union's surface, counter-clockwise from outside.
         face_normals: (nf, 3) their unit outward normals [-].
         volume: float, volume of the union [m^3].
         inertia: (3,) principal moments of inertia of the union per unit density [m^5].
         radius: float, largest distance of a part vertex from the centroid [m] (bounding sphere).
         input_transform: (4, 4) body frame -> the frame the parts were given in: ``x_in = R x + t``.
-        overlapping: bool, whether some parts overlap each other (then the union was computed).
+        overlapping: bool, whether some parts overlap each other.
         tolerance: float, the largest of the parts' tolerances [m].
     """
 
@@ -83,16 +85,10 @@ class CompoundShape:
                 raise CompoundShapeError(f"part {k} is a {type(p).__name__}, not a ConvexShape")
         self.name = "compound" if name is None else str(name)
         self.parts = parts
-        meshes = [_input_mesh(p) for p in parts]
-        self.overlapping = _any_overlap(parts)
-        union = _union(meshes) if self.overlapping else _concatenate(meshes)
-        props = union.mass_properties
-        if not props.volume > 0.0:
-            raise CompoundShapeError(f"the union of the parts has no volume ({props.volume:g} m^3)")
-        centre = np.asarray(props.center_mass, dtype=np.float64)
-        tensor = np.asarray(props.inertia, dtype=np.float64)
+        volume, centre, tensor, self.overlapping = _union_properties(parts)
         rot = _principal_frame(tensor)
-        self.volume = float(props.volume)
+        union = _surface([_input_mesh(p) for p in parts], self.overlapping)
+        self.volume = float(volume)
         self.inertia = _frozen(np.diag(rot.T @ tensor @ rot))
         transform = np.eye(4)
         transform[:3, :3] = rot
@@ -291,61 +287,110 @@ def _input_mesh(part: ConvexShape):
     return m
 
 
-def _concatenate(meshes):
+def _surface(meshes, overlapping):
+    """The union's surface for drawing: the boolean union (manifold3d, float32 inside) where parts
+    overlap and the package is there, else the parts' surfaces together (faces where parts meet
+    stay inside, unseen)."""
     import trimesh
 
+    if overlapping:
+        try:
+            import manifold3d  # noqa: F401
+        except ImportError:
+            return trimesh.util.concatenate(meshes)
+        union = trimesh.boolean.union(meshes, engine="manifold")
+        if union.is_volume:
+            return union
     return trimesh.util.concatenate(meshes)
 
 
-def _union(meshes):
-    import trimesh
-
-    try:
-        import manifold3d  # noqa: F401
-    except ImportError:
-        raise CompoundShapeError(
-            "parts of this compound shape overlap each other, and counting their common volume once needs the "
-            f"manifold3d package; {_EXTRA_HINT}, or give parts that only touch"
-        ) from None
-    union = trimesh.boolean.union(meshes, engine="manifold")
-    if not union.is_volume:
-        raise CompoundShapeError("the union of the parts is not a closed volume (manifold3d failed)")
-    return union
-
-
-def _planes_in_input(part: ConvexShape):
+def _halfspaces(part: ConvexShape) -> np.ndarray:
+    """(nf, 4) rows (n, -d) of the part's face planes in the input frame: n.x - d <= 0 inside."""
     rot, t = part.input_rotation, part.input_translation
     normals = part.face_normals @ rot.T
     offsets = part.face_offsets + normals @ t
-    return normals, offsets
+    return np.column_stack([normals, -offsets])
 
 
-def _any_overlap(parts) -> bool:
-    """Whether two parts' interiors overlap (a linear programme per pair whose spheres meet: the
-    deepest point inside both)."""
+def _deepest_point(halfspaces: np.ndarray, bound: float):
+    """The point inside all half-spaces furthest from their planes, and that distance (a linear
+    programme); distance <= 0 where they have no common interior."""
     from scipy.optimize import linprog
 
+    a_ub = np.hstack([halfspaces[:, :3], np.ones((len(halfspaces), 1))])
+    res = linprog(
+        c=[0.0, 0.0, 0.0, -1.0],
+        A_ub=a_ub,
+        b_ub=-halfspaces[:, 3],
+        bounds=[(None, None)] * 3 + [(None, bound)],
+        method="highs",
+    )
+    if res.status != 0:
+        return None, 0.0
+    return res.x[:3], -res.fun
+
+
+def _moments(shape: ConvexShape):
+    """(volume, first moment, second-moment tensor about the input origin) per unit density: the
+    inertia tensor J = sum over the volume of (|x|^2 E - x x^T)."""
+    rot, c = shape.input_rotation, shape.input_translation
+    v = shape.volume
+    about_centre = rot @ np.diag(shape.inertia) @ rot.T
+    return v, v * c, about_centre + v * (np.dot(c, c) * np.eye(3) - np.outer(c, c))
+
+
+def _union_properties(parts):
+    """Volume, centroid, inertia tensor about the centroid (input frame, per unit density) of the
+    union of convex parts, exact in float64, and whether any two parts overlap.
+
+    Inclusion-exclusion: the union's moments are the parts' minus those of each pair's common
+    piece plus each triple's, and so on; each common piece of convex parts is convex (the
+    intersection of their half-spaces), and a set whose pieces do not meet ends the recursion.
+    """
+    from scipy.spatial import HalfspaceIntersection
+
+    spaces = [_halfspaces(p) for p in parts]
     centres = [p.input_translation for p in parts]
-    planes = [_planes_in_input(p) for p in parts]
-    for i in range(len(parts)):
-        for j in range(i + 1, len(parts)):
-            if np.linalg.norm(centres[i] - centres[j]) >= parts[i].radius + parts[j].radius:
+    radii = [p.radius for p in parts]
+    vol, first, second = 0.0, np.zeros(3), np.zeros((3, 3))
+    overlapping = False
+
+    def add(shape, sign):
+        nonlocal vol, first, second
+        v, f, s = _moments(shape)
+        vol += sign * v
+        first += sign * f
+        second += sign * s
+
+    def meet(members, space, size):
+        # `space`: the half-spaces of the common piece of `members`; extend it by each later part.
+        nonlocal overlapping
+        for j in range(members[-1] + 1, len(parts)):
+            if any(np.linalg.norm(centres[j] - centres[i]) >= radii[i] + radii[j] for i in members):
                 continue
-            normals = np.vstack([planes[i][0], planes[j][0]])
-            offsets = np.concatenate([planes[i][1], planes[j][1]])
-            # maximise s subject to n.x + s <= d for every plane of both parts
-            a_ub = np.hstack([normals, np.ones((len(normals), 1))])
-            res = linprog(
-                c=[0.0, 0.0, 0.0, -1.0],
-                A_ub=a_ub,
-                b_ub=offsets,
-                bounds=[(None, None)] * 3 + [(None, max(parts[i].radius, parts[j].radius))],
-                method="highs",
-            )
-            size = min(parts[i].radius, parts[j].radius)
-            if res.status == 0 and -res.fun > _OVERLAP_RTOL * size:
-                return True
-    return False
+            both = np.vstack([space, spaces[j]])
+            inner, depth = _deepest_point(both, min(size, radii[j]))
+            if inner is None or depth <= _OVERLAP_RTOL * min(size, radii[j]):
+                continue
+            overlapping = True
+            try:
+                corners = HalfspaceIntersection(both, inner).intersections
+                piece = ConvexShape.from_points(corners)
+            except (ValueError, RuntimeError) as exc:  # a sliver below the hull's tolerance
+                if depth > 1e-6 * min(size, radii[j]):
+                    raise CompoundShapeError(f"cannot intersect parts {[*members, j]}: {exc}") from None
+                continue
+            add(piece, (-1.0) ** len(members))
+            meet([*members, j], both, piece.radius)
+
+    for i, p in enumerate(parts):
+        add(p, 1.0)
+        meet([i], spaces[i], radii[i])
+    if not vol > 0.0:
+        raise CompoundShapeError(f"the union of the parts has no volume ({vol:g} m^3)")
+    centre = first / vol
+    tensor = second - vol * (np.dot(centre, centre) * np.eye(3) - np.outer(centre, centre))
+    return vol, centre, 0.5 * (tensor + tensor.T), overlapping
 
 
 def _placed(shape: ConvexShape, rotation, translation) -> ConvexShape:

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from polydem.compound import CompoundShape
 from polydem.kernels.narrowphase import launch_depth, launch_overlap
 from polydem.kernels.response import ENCLOSED, LAWS, launch_contact_force, launch_contact_frame
-from polydem.compound import CompoundShape
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
 

@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from polydem.compound import expand_bodies
 from polydem.kernels.raycast import launch_raycast
 from polydem.quaternions import quat_to_matrix
-from polydem.compound import expand_bodies
 from polydem.shapeset import ShapeSet
 
 __all__ = ["Camera", "FIXED_COLOR", "PALETTE", "render", "render_layers", "render_simulation", "save_png"]

@@ -18,6 +18,7 @@ from os import PathLike
 
 import numpy as np
 
+from polydem.compound import CompoundShape
 from polydem.quaternions import quat_from_matrix
 from polydem.scene import loader
 from polydem.scene.bodies import BodyMethods
@@ -30,7 +31,6 @@ from polydem.scene.overlaps import OverlapMethods
 from polydem.scene.values import read_choice, read_integer, read_number, read_string, read_vector, typename
 from polydem.scene.walls import WallMethods
 from polydem.settle import SettleCriterion
-from polydem.compound import CompoundShape
 from polydem.shapes import ConvexShape
 
 PRECISIONS = ("float32", "mixed", "float64")

@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 
+from polydem.compound import expand_bodies
 from polydem.quaternions import quat_rotate, quat_to_matrix
 from polydem.scene import bodies as scene_bodies  # MAX_BODIES read at call time: one setting for both checks
 from polydem.scene.bodies import KIND_FIXED, KINDS
 from polydem.scene.errors import SceneError
-from polydem.compound import expand_bodies
 from polydem.scene.shape_specs import scaled_spec
 from polydem.scene.values import check_keys, read_choice, read_integer, read_number, read_table, read_vector, typename
 

@@ -83,7 +83,9 @@ _SHAPE_HINTS = {
 _PLATONIC = ("tetrahedron", "octahedron", "dodecahedron", "icosahedron")
 
 
-def build_shape(name: str, spec: dict, key: str, file, base_dir: Path, *, part: bool = False) -> tuple[ConvexShape, dict]:
+def build_shape(
+    name: str, spec: dict, key: str, file, base_dir: Path, *, part: bool = False
+) -> tuple[ConvexShape, dict]:
     """Build a shape from a ``[shapes.NAME]`` table; returns it and the normalised spec. ``part``: the
     table is a part of a compound shape (convex, with its placement in the grain)."""
     spec = read_table(spec, key, file, what=f"a table [shapes.{name}] with a 'type' key")
@@ -93,7 +95,9 @@ def build_shape(name: str, spec: dict, key: str, file, base_dir: Path, *, part: 
     edge_required = ("edge",) if kind in _PLATONIC else ()
     extra = _PART_PLACEMENT if part else ()
     if part and kind == "compound":
-        raise SceneError("a part of a compound shape must be convex: give a convex type, not 'compound'", f"{key}.type", file)
+        raise SceneError(
+            "a part of a compound shape must be convex: give a convex type, not 'compound'", f"{key}.type", file
+        )
     check_keys(
         spec,
         ("type", *_SHAPE_KEYS[kind], *extra),
@@ -121,7 +125,9 @@ def _place_part(r: _Spec, shape: ConvexShape) -> ConvexShape:
 
     spec, key, file = r.spec, r.key, r.file
     if "orientation" in spec and "rotation" in spec:
-        raise SceneError("give either orientation (quaternion) or rotation (axis and angle), not both", f"{key}.rotation", file)
+        raise SceneError(
+            "give either orientation (quaternion) or rotation (axis and angle), not both", f"{key}.rotation", file
+        )
     q = np.array([0.0, 0.0, 0.0, 1.0])
     if "rotation" in spec:
         q = read_rotation(spec["rotation"], f"{key}.rotation", file)
@@ -175,8 +181,9 @@ def _compound(r: _Spec):
             return CompoundShape(parts, name=r.name)
         path = _mesh_path(r)
         r.out["file"] = str(path.resolve())
-        method = read_choice(spec.get("decompose", "coacd"), ("coacd", "components"), f"{key}.decompose", file,
-                             what="decomposition")
+        method = read_choice(
+            spec.get("decompose", "coacd"), ("coacd", "components"), f"{key}.decompose", file, what="decomposition"
+        )
         r.out["decompose"] = method
         opts = {}
         if "threshold" in spec:
@@ -192,7 +199,9 @@ def _compound(r: _Spec):
 
         mesh = load_mesh(path)
         if "scale" in spec:
-            r.out["scale"] = read_number(spec["scale"], f"{key}.scale", file, positive=True, hint=" (" + _SHAPE_HINTS["scale"] + ")")
+            r.out["scale"] = read_number(
+                spec["scale"], f"{key}.scale", file, positive=True, hint=" (" + _SHAPE_HINTS["scale"] + ")"
+            )
             mesh.apply_scale(r.out["scale"])
         return CompoundShape.from_mesh(mesh, name=r.name, decompose=method, **opts)
     except CompoundShapeError as exc:
