@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU measurements of issue 13 (BENCHMARKS.md section 8), one part per device call:
-#   bash benchmarks/issue13_gpu.sh tests|hopper|repose|scenes  OUT_DIR
+#   bash benchmarks/issue13_gpu.sh tests|hopper|repose|scenes|compound|elbow  OUT_DIR
 set -euo pipefail
 part=$1
 out=${2:-benchmarks/results/issue13}
@@ -18,6 +18,20 @@ hopper)
 repose)
   python benchmarks/repose.py --device cuda:0 --grains 3000 --seeds 3 --shapes cube,tetrahedron --max-time 6 \
     --out "$out/repose_cuda0_3000.json" | grep -v "^Module"
+  ;;
+compound)
+  # Compound grains: the tests on cuda:0, the cost of a compound contact, the tetrahedra's heaps.
+  POLYDEM_TEST_DEVICES=cuda:0 python -m pytest tests/test_compound.py tests/test_meshwall.py tests/test_geometry.py \
+    -q -p no:cacheprovider 2>&1 | tail -2
+  python benchmarks/compound_contact_cost.py --device cuda:0 --bodies 100000 --steps 100 \
+    --out "$out/compound_contact_cost_cuda0_100000.json" | grep -v "^Module"
+  python benchmarks/repose.py --device cuda:0 --grains 1500 --seeds 2 --shapes tetrahedron --max-time 4 \
+    --out "$out/repose_cuda0_1500_tetrahedron.json" | grep -v "^Module"
+  ;;
+elbow)
+  # Heaps of the non-convex grain (scenes/heap.toml's elbow), as the cubes' and tetrahedra's.
+  python benchmarks/repose.py --device cuda:0 --grains 1500 --seeds 2 --shapes elbow --max-time 4 \
+    --out "$out/repose_cuda0_1500_elbow.json" | grep -v "^Module"
   ;;
 scenes)
   # usd-core is not in the GPU bundle: carry its wheel in .gpu4 (pip download usd-core --no-deps

@@ -1,7 +1,8 @@
 """Angle of repose of heaps poured from a funnel (scenes/heap.toml), over seeds and grain shapes.
 
 The fixed-funnel test: ``--grains`` grains of ``--shape`` (cube: 1 cm edge; tetrahedron: 2.04 cm
-edge, the cube's volume; or any shape of the scene file) fall into the funnel of scenes/heap.toml
+edge, the cube's volume; elbow: a non-convex L of three 6.93 mm cells, the cube's volume; or any
+shape of the scene file) fall into the funnel of scenes/heap.toml
 (the 7 cm orifice of the hopper mesh, 0.15 m above the floor), run out and pile up until the heap
 is at rest (the run's settle check, at most ``--max-time``). The angle of repose is measured from
 the final surface with ``polydem.analysis.angle_of_repose``: the highest grain centre in rings
@@ -10,7 +11,7 @@ radius). Each seed changes the grains' initial orientations and places; the tabl
 seed's angle and their mean and standard deviation per shape.
 
     python benchmarks/repose.py --device cpu --grains 300 --seeds 2
-    python benchmarks/repose.py --device cuda:0 --grains 3000 --seeds 4 --shapes cube,tetrahedron
+    python benchmarks/repose.py --device cuda:0 --grains 3000 --seeds 4 --shapes cube,tetrahedron,elbow
 
 Writes JSON to ``--out`` (final positions included, so the angle can be measured again).
 """
@@ -26,6 +27,7 @@ import warp as wp
 
 from polydem import Scene, Simulation
 from polydem.analysis import angle_of_repose
+from polydem.scene.shape_specs import build_shape
 from polydem.settle import SettleCriterion
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,10 +40,12 @@ def heap_scene(shape, grains, seed, precision):
     em["shape"] = shape
     em["count"] = grains
     em["seed"] = seed
-    # A column over the bin tall enough for the grains (8 x 8 cells per layer of the largest grain).
-    r = max(0.0087, 0.0125 if shape == "tetrahedron" else 0.0087)
-    layers = int(np.ceil(grains / 64)) + 2
-    em["region"] = {"min": [-0.08, -0.08, 0.31], "max": [0.08, 0.08, 0.31 + 2.2 * r * 1.1 * layers]}
+    # A column over the bin tall enough for the grains.
+    r = build_shape(shape, data["shapes"][shape], f"shapes.{shape}", SCENE, SCENE.parent)[0].radius
+    cell = 2.0 * r * 1.1  # the emitter's grid: 1.1 bounding diameters
+    per_layer = int(0.16 / cell) ** 2
+    layers = int(np.ceil(grains / per_layer)) + 2
+    em["region"] = {"min": [-0.08, -0.08, 0.31], "max": [0.08, 0.08, 0.31 + cell * layers]}
     data["simulation"]["precision"] = precision
     data["simulation"].pop("until_settled", None)
     data.pop("output", None)
@@ -79,6 +83,7 @@ def main():
     ap.add_argument("--grains", type=int, default=300)
     ap.add_argument("--shapes", default="cube")
     ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--max-time", type=float, default=4.0)
     ap.add_argument("--precision", default="mixed")
     ap.add_argument("--out", default=None)
@@ -87,9 +92,10 @@ def main():
     runs, summary = [], []
     for shape in args.shapes.split(","):
         angles = []
-        for seed in range(1, args.seeds + 1):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             r = run_one(shape, args.grains, seed, args)
             runs.append(r)
+            write(args, runs, summary)  # each run as it ends: a long series cut short keeps its runs
             a = r["angle"]
             angles.append(a["angle_deg"])
             print(
@@ -100,12 +106,16 @@ def main():
         mean, sd = float(np.mean(angles)), float(np.std(angles, ddof=1)) if len(angles) > 1 else 0.0
         summary.append({"shape": shape, "mean_deg": mean, "sd_deg": sd, "seeds": len(angles)})
         print(f"{shape:>12}: {mean:.1f} deg, standard deviation {sd:.1f} deg over {len(angles)} seeds")
+    print(f"wrote {write(args, runs, summary)}")
+
+
+def write(args, runs, summary):
     tag = args.device.replace(":", "")
     out = Path(args.out or ROOT / f"benchmarks/results/issue13/repose_{tag}_{args.grains}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     meta = dict(vars(args), warp=wp.__version__)
     out.write_text(json.dumps({"meta": meta, "summary": summary, "runs": runs}))
-    print(f"wrote {out}")
+    return out
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from os import PathLike
 import numpy as np
 
 from polydem.quaternions import quat_from_matrix
-from polydem.shapes import ConvexShape, _principal_frame, load_mesh
+from polydem.shapes import ConvexShape, load_mesh, principal_frame
 
 # Parts whose interiors overlap by more than this fraction of the smaller part's size overlap.
 _OVERLAP_RTOL = 1e-9
@@ -86,7 +86,7 @@ class CompoundShape:
         self.name = "compound" if name is None else str(name)
         self.parts = parts
         volume, centre, tensor, self.overlapping = _union_properties(parts)
-        rot = _principal_frame(tensor)
+        rot = principal_frame(tensor)
         union = _surface([_input_mesh(p) for p in parts], self.overlapping)
         self.volume = float(volume)
         self.inertia = _frozen(np.diag(rot.T @ tensor @ rot))

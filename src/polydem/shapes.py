@@ -930,7 +930,7 @@ def _fan(loops) -> np.ndarray:
     return np.concatenate(tris).astype(np.int64)
 
 
-def _principal_frame(tensor: np.ndarray) -> np.ndarray:
+def principal_frame(tensor: np.ndarray) -> np.ndarray:
     """Rotation (det +1) whose columns are principal axes, sorted by ascending moment.
 
     Within a cluster of equal moments (cube, regular polyhedra, prisms) any orthonormal basis is
@@ -987,7 +987,7 @@ def _body_frame(verts: np.ndarray, loops: list[np.ndarray], origin: np.ndarray, 
     props = trimesh.triangles.mass_properties(verts[_fan(loops)], density=1.0)
     if not props.volume > 0.0:
         raise _HullBuildError(f"non-positive volume {props.volume}")
-    rot = _principal_frame(np.asarray(props.inertia))
+    rot = principal_frame(np.asarray(props.inertia))
     centre = np.asarray(props.center_mass)
     body = (verts - centre) @ rot
     inertia = np.diag(rot.T @ props.inertia @ rot)
