@@ -115,7 +115,8 @@ def main():
             r["per_contact_vs_pair"] = r["per_contact_s"] / ref["per_contact_s"]
             r["step_vs_pair"] = r["step_s"] / ref["step_s"]
             print(
-                f"{r['kind']:>24}: {r['per_contact_vs_pair']:.2f} x a convex pair contact, step {r['step_vs_pair']:.2f} x"
+                f"{r['kind']:>24}: {r['per_contact_vs_pair']:.2f} x a convex pair contact, "
+                f"step {r['step_vs_pair']:.2f} x"
             )
     out = Path(
         args.out

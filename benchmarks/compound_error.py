@@ -139,7 +139,7 @@ def sample_contacts(grain, n, rng):
         target = 10 ** rng.uniform(-4, -2) * H**3
         lo, hi = 0.0, 2.0 * H  # distance of the cube's centre from the point along the normal
 
-        def vol(s):
+        def vol(s, p=p, nrm=nrm, q=q):
             return union_overlap(spaces, cube_spaces(np.concatenate([p + s * nrm, q])))
 
         if vol(lo) <= target or vol(hi) > 0.0:
@@ -193,7 +193,8 @@ def main():
             row["union_vs_mesh_volume"] = grain.volume / grain.mesh_volume - 1.0
         report[name] = row
         print(
-            f"{name:>11}: {grain.num_parts} parts, {len(poses)} contacts, {row['share_with_error_above_1e-6']:.0%} with error; "
+            f"{name:>11}: {grain.num_parts} parts, {len(poses)} contacts, "
+            f"{row['share_with_error_above_1e-6']:.0%} with error; "
             f"V rel err median {row['volume_rel_error']['median']:.2e} p90 {row['volume_rel_error']['p90']:.2e} "
             f"max {row['volume_rel_error']['max']:.2e}; S_A median {row['area_vector_rel_error']['median']:.2e} "
             f"p90 {row['area_vector_rel_error']['p90']:.2e} max {row['area_vector_rel_error']['max']:.2e}"

@@ -393,34 +393,6 @@ def _union_properties(parts):
     return vol, centre, 0.5 * (tensor + tensor.T), overlapping
 
 
-def _placed(shape: ConvexShape, rotation, translation) -> ConvexShape:
-    """``shape`` with its input frame moved: the returned shape's input coordinates are
-    ``rotation @ x_in + translation`` of the original's."""
-    rot = np.asarray(rotation, dtype=np.float64)
-    move = np.eye(4)
-    move[:3, :3] = rot
-    move[:3, 3] = np.asarray(translation, dtype=np.float64)
-    new = object.__new__(ConvexShape)
-    fields = {
-        k: getattr(shape, k)
-        for k in (
-            "name",
-            "vertices",
-            "faces",
-            "face_normals",
-            "face_offsets",
-            "face_centers",
-            "face_radii",
-            "volume",
-            "inertia",
-            "radius",
-            "tolerance",
-        )
-    }
-    new._set(input_transform=move @ shape.input_transform, **fields)
-    return new
-
-
 def place(shape: ConvexShape, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0)) -> ConvexShape:
     """A copy of a convex shape placed as a part: its input frame rotated by ``orientation`` (a
     quaternion x, y, z, w) and moved by ``position`` [m] in the compound's frame."""
@@ -433,4 +405,4 @@ def place(shape: ConvexShape, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0
     p = np.asarray(position, dtype=np.float64)
     if p.shape != (3,) or not np.isfinite(p).all():
         raise CompoundShapeError(f"position must be [x, y, z] in m, got {position!r}")
-    return _placed(shape, quat_to_matrix(q / norm), p)
+    return shape.placed(quat_to_matrix(q / norm), p)

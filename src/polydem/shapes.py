@@ -433,6 +433,37 @@ class ConvexShape:
         )
         return new
 
+    def placed(self, rotation, translation) -> ConvexShape:
+        """The same shape with its input frame moved: the new input coordinates are
+        ``rotation @ x_in + translation`` of this shape's (``rotation`` (3, 3) orthonormal, det +1;
+        ``translation`` (3,) [m]). The body frame, mass properties and faces are unchanged; used to
+        place a part in a :class:`~polydem.CompoundShape`."""
+        rot = np.asarray(rotation, dtype=np.float64)
+        t = np.asarray(translation, dtype=np.float64)
+        if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9) or np.linalg.det(rot) <= 0:
+            raise ValueError("rotation must be a (3, 3) rotation matrix (orthonormal, determinant +1)")
+        if t.shape != (3,) or not np.isfinite(t).all():
+            raise ValueError(f"translation must be [x, y, z] in m, got {translation!r}")
+        move = np.eye(4)
+        move[:3, :3] = rot
+        move[:3, 3] = t
+        new = object.__new__(type(self))
+        new._set(
+            name=self.name,
+            vertices=self.vertices,
+            faces=self.faces,
+            face_normals=self.face_normals,
+            face_offsets=self.face_offsets,
+            face_centers=self.face_centers,
+            face_radii=self.face_radii,
+            volume=self.volume,
+            inertia=self.inertia,
+            radius=self.radius,
+            input_transform=move @ self.input_transform,
+            tolerance=self.tolerance,
+        )
+        return new
+
     def __repr__(self) -> str:
         return (
             f"ConvexShape(name={self.name!r}, vertices={self.num_vertices}, faces={self.num_faces}, "
