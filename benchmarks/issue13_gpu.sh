@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU measurements of issue 13 (BENCHMARKS.md section 8), one part per device call:
-#   bash benchmarks/issue13_gpu.sh tests|hopper|repose|scenes|compound|elbow  OUT_DIR
+#   bash benchmarks/issue13_gpu.sh tests|hopper|repose|scenes|compound  OUT_DIR
 set -euo pipefail
 part=$1
 out=${2:-benchmarks/results/issue13}
@@ -12,26 +12,31 @@ tests)
     --triangle-edge 2 --out "$out/wall_contact_cost_cuda0_10000_fine.json" | grep -v "^Module"
   ;;
 hopper)
-  python benchmarks/hopper_discharge.py --device cuda:0 --grains 2000,4000 --discharge-time 1.5 \
-    --out "$out/hopper_discharge_cuda0.json" | grep -v "^Module"
+  # Beverloo's fit against the number of grains (one size per call: each takes minutes).
+  for n in 1000 2000 4000; do
+    python benchmarks/hopper_discharge.py --device cuda:0 --grains $n --discharge-time 1.5 \
+      --out "$out/hopper_discharge_cuda0_$n.json" | grep -v "^Module"
+  done
   ;;
 repose)
-  python benchmarks/repose.py --device cuda:0 --grains 3000 --seeds 3 --shapes cube,tetrahedron --max-time 6 \
-    --out "$out/repose_cuda0_3000.json" | grep -v "^Module"
+  # Heaps of cubes, tetrahedra and the non-convex elbow (gated fill, then discharge), two seeds each:
+  # the six runs at once on one GPU (a heap of 1000 grains leaves most of it idle).
+  n=${GRAINS:-1000}
+  for shape in cube tetrahedron elbow; do
+    for seed in 1 2; do
+      timeout 560 python benchmarks/repose.py --device cuda:0 --grains $n --seeds 1 --first-seed $seed --shapes $shape \
+        --fill-time 1.5 --max-time 4 --out "$out/repose_cuda0_${n}_${shape}_seed$seed.json" > "$out/repose_${shape}_$seed.log" 2>&1 &
+    done
+  done
+  wait
+  grep -h "seed [0-9]:" "$out"/repose_*.log || true
   ;;
 compound)
-  # Compound grains: the tests on cuda:0, the cost of a compound contact, the tetrahedra's heaps.
+  # Compound grains: the tests on cuda:0 and the cost of a compound contact.
   POLYDEM_TEST_DEVICES=cuda:0 python -m pytest tests/test_compound.py tests/test_meshwall.py tests/test_geometry.py \
     -q -p no:cacheprovider 2>&1 | tail -2
   python benchmarks/compound_contact_cost.py --device cuda:0 --bodies 100000 --steps 100 \
     --out "$out/compound_contact_cost_cuda0_100000.json" | grep -v "^Module"
-  python benchmarks/repose.py --device cuda:0 --grains 1500 --seeds 2 --shapes tetrahedron --max-time 4 \
-    --out "$out/repose_cuda0_1500_tetrahedron.json" | grep -v "^Module"
-  ;;
-elbow)
-  # Heaps of the non-convex grain (scenes/heap.toml's elbow), as the cubes' and tetrahedra's.
-  python benchmarks/repose.py --device cuda:0 --grains 1500 --seeds 2 --shapes elbow --max-time 4 \
-    --out "$out/repose_cuda0_1500_elbow.json" | grep -v "^Module"
   ;;
 scenes)
   # usd-core is not in the GPU bundle: carry its wheel in .gpu4 (pip download usd-core --no-deps
