@@ -75,7 +75,8 @@ def run_one(shape, grains, seed, args):
     saved.update({k: getattr(sim.current_state, k).numpy() for k in ("plane_xi", "plane_turn")})
     count = int(snap.pairs.count.numpy()[0])
     saved.update(
-        pair_key=snap.pairs.key.numpy()[:count], pair_xi=snap.pairs.xi.numpy()[:count],
+        pair_key=snap.pairs.key.numpy()[:count],
+        pair_xi=snap.pairs.xi.numpy()[:count],
         pair_turn=snap.pairs.turn.numpy()[:count],
     )
     sim.restore_from_arrays(saved, filled.steps_done, filled.time)
