@@ -206,6 +206,7 @@ def test_grain_of_touching_parts_moves_like_the_whole(device, mesh_floor):
     np.testing.assert_allclose(e1["total"], e2["total"], rtol=1e-9)
 
 
+@pytest.mark.filterwarnings("ignore:.*parts of this compound grain overlap")
 def test_elastic_compound_grains_keep_their_energy(device):
     """Overlapping-part L grains dropped on a floor and on each other, elastic and frictionless:
     the energy (kinetic, gravity, contact) stays put (the summed volume is a potential)."""
@@ -256,6 +257,27 @@ def test_scene_file_compound_from_parts():
     np.testing.assert_allclose(g.inertia, l_partition().inertia, rtol=1e-9)
     again = Scene.from_dict(sc.to_dict())  # the normalised spec round-trips
     np.testing.assert_allclose(again.shapes["g"].inertia, g.inertia, rtol=1e-12)
+
+
+def test_overlapping_parts_are_warned_about_touching_parts_are_not():
+    import warnings
+
+    from polydem.scene import SceneWarning
+
+    def parts(shift):
+        return {
+            "type": "compound",
+            "parts": [
+                {"type": "box", "size": [2 * H, H, H], "position": [H / 2, 0, 0]},
+                {"type": "box", "size": H, "position": [0, shift, 0]},
+            ],
+        }
+
+    with pytest.warns(SceneWarning, match=r"shapes\.g: parts of this compound grain overlap each other"):
+        Scene.from_dict(scene_dict(parts(0.5 * H))).validate()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SceneWarning)
+        Scene.from_dict(scene_dict(parts(H))).validate()
 
 
 def test_python_compound_is_written_as_parts_of_points():

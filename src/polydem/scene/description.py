@@ -332,6 +332,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         found = self.check_loads(a, ts)
         found += self.check_initial_overlaps(a)
         found += self.check_tunnelling(a, ts.dt)
+        found += self._check_compound_parts(a)
         # A run validates twice (loading the file, building the Model): say each thing once.
         if found != self._warned:
             for message in found:
@@ -339,6 +340,20 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self._warned = found
         self.warnings = found
         return self
+
+    def _check_compound_parts(self, a) -> list[str]:
+        """A warning per compound shape in use whose parts overlap each other: their contacts count the shared
+        region twice."""
+        found = []
+        used = set(np.unique(a["shape"]).tolist())
+        for index, (name, shape) in enumerate(self.shapes.items()):
+            if index in used and getattr(shape, "overlapping", False):
+                found.append(
+                    f"shapes.{name}: parts of this compound grain overlap each other, so a contact that reaches "
+                    "their shared region counts it twice (V and the force up to 2x there); parts that only "
+                    "touch are exact (README.md, 'Non-convex grains')"
+                )
+        return found
 
     def _check_settings(self):
         """The simulation settings again: they are attributes a user may have changed since __init__."""
