@@ -709,6 +709,10 @@ class BroadPhase:
         self.flags_build = wp.zeros(n, dtype=int, device=dev)
         self.group_root = wp.full(NUM_GROUPS, -1, dtype=int, device=dev)
         self.radius_min = wp.zeros(1, dtype=float, device=dev)
+        # A fixed reference radius for the size classes, instead of the smallest free radius of these
+        # bodies: a rank of a decomposed run gives the whole scene's, so that its classes, and with
+        # them which body of a pair is A, are those of the undivided run (polydem.distributed).
+        self.radius_ref: float | None = None
         self.class_max = wp.zeros(1, dtype=int, device=dev)
         self.pair_counter = wp.zeros(1, dtype=int, device=dev)
         self.pair_count = wp.zeros(1, dtype=int, device=dev)
@@ -767,6 +771,8 @@ class BroadPhase:
         inv_log = 0.0 if np.isinf(self.class_ratio) else 1.0 / float(np.log(self.class_ratio))
         wp.launch(reset_classes_kernel, dim=1, outputs=[self.radius_min, self.class_max], device=dev)
         wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags], outputs=[self.radius_min], device=dev)
+        if self.radius_ref is not None:
+            self.radius_min.fill_(float(self.radius_ref))
         wp.launch(
             classes_kernel,
             dim=n,

@@ -61,8 +61,9 @@ class Model:
         gravity: (3,) [m/s^2]; dt: time step [s]; dt_limit: largest accurate step [s].
     """
 
-    def __init__(self, scene, device=None):
-        scene.validate()
+    def __init__(self, scene, device=None, validate=True):
+        if validate:
+            scene.validate()
         self.device = wp.get_device(device)
         dev = self.device
         self.scene = scene

@@ -552,6 +552,8 @@ class Simulation:
         device: Warp device, default Warp's default device ("cuda:0" when there is one).
         skin: Verlet skin [m]; default a fifth of the smallest free body's bounding radius.
         use_graph: capture the step as a CUDA graph (default: on CUDA devices).
+        validate: validate the scene first (off only for scenes built from a validated one, such as the
+            parts of a decomposed run, :mod:`polydem.distributed`).
         tree_rebuild: when the broad phase rebuilds on the device (the CUDA graph), it refits the tree of
             the last host build; after each chunk of steps the tree is rebuilt when refitting has made it
             this many times as costly as a fresh one (:meth:`~polydem.kernels.broadphase.BroadPhase.renew_tree`);
@@ -566,11 +568,13 @@ class Simulation:
         steps_done: steps taken; time: ``steps_done * dt`` [s]; dt: time step [s].
     """
 
-    def __init__(self, scene, device=None, skin=None, use_graph=None, tree_rebuild=TREE_REBUILD_RATIO):
+    def __init__(
+        self, scene, device=None, skin=None, use_graph=None, tree_rebuild=TREE_REBUILD_RATIO, *, validate=True
+    ):
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
         self.tree_rebuild = None if tree_rebuild is None else float(tree_rebuild)
-        self.model = model = Model(scene, device)
+        self.model = model = Model(scene, device, validate=validate)
         self.device = dev = model.device
         self.dt = model.dt
         n = model.num_bodies

@@ -1,0 +1,83 @@
+"""The communicator: MPI through mpi4py when the run was launched by ``mpiexec``, else one rank alone.
+
+mpi4py is an optional dependency (``pip install 'polydem[mpi]'`` installs it with the MPICH wheel);
+it is imported only here, and only when the environment says an MPI launcher started the process.
+"""
+
+from __future__ import annotations
+
+import os
+
+# What MPICH (PMI), Open MPI, Intel MPI, Slurm's srun and Cray set for each rank they start.
+_SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMIX_SIZE", "SLURM_NTASKS", "ALPS_APP_PE")
+
+
+def launched_size() -> int:
+    """The number of ranks an MPI launcher started, from its environment variables (1 when none)."""
+    for name in _SIZE_VARIABLES:
+        value = os.environ.get(name)
+        if value and value.isdigit() and name != "ALPS_APP_PE":
+            return int(value)
+    return 1
+
+
+class SerialComm:
+    """A communicator of one rank with mpi4py's lower-case methods: a run that was not launched by MPI."""
+
+    rank = 0
+    size = 1
+
+    def Get_rank(self):
+        return 0
+
+    def Get_size(self):
+        return 1
+
+    def bcast(self, obj, root=0):
+        return obj
+
+    def gather(self, obj, root=0):
+        return [obj]
+
+    def allgather(self, obj):
+        return [obj]
+
+    def alltoall(self, objs):
+        return list(objs)
+
+    def allreduce(self, obj, op=None):
+        return obj
+
+    def Barrier(self):
+        pass
+
+    def Abort(self, code=1):
+        raise SystemExit(code)
+
+
+def world():
+    """``MPI.COMM_WORLD`` when launched by an MPI launcher with more than one rank, else a :class:`SerialComm`.
+
+    Raises:
+        RuntimeError: launched by ``mpiexec`` with several ranks but mpi4py is not installed (each rank
+            would otherwise run the whole scene on its own).
+    """
+    if launched_size() <= 1:
+        return SerialComm()
+    try:
+        from mpi4py import MPI
+    except ImportError as exc:
+        raise RuntimeError(
+            f"this process was started by an MPI launcher with {launched_size()} ranks, but mpi4py is not "
+            "installed: pip install 'polydem[mpi]' (mpi4py and the MPICH library), or run without mpiexec"
+        ) from exc
+    return MPI.COMM_WORLD
+
+
+def op(name: str):
+    """mpi4py's reduction ``name`` ("max", "min", "sum"), or None for a :class:`SerialComm`."""
+    try:
+        from mpi4py import MPI
+    except ImportError:
+        return None
+    return {"max": MPI.MAX, "min": MPI.MIN, "sum": MPI.SUM}[name]

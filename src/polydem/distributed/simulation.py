@@ -1,0 +1,532 @@
+"""DistributedSimulation: one scene stepped by several ranks, each owning the bodies of a slab.
+
+Every rank loads the whole scene (its description: shapes, materials, walls, the bodies' initial
+state). Each rank then steps a :class:`~polydem.Simulation` of its *local* bodies: those it owns
+(the slab's, :mod:`polydem.distributed.partition`) and ghost copies of the bodies within the halo.
+The local bodies keep the order of their global indices, so a rank's pair keys sort as the
+undivided run's do and each body gathers its pair forces in the same order. A pair is computed by
+every rank that holds both bodies, from the same inputs and so to the same bits; it belongs to
+(is reported and booked by) the rank that owns its body A. After each step every rank sends the
+new poses and velocities of its bodies that are ghosts elsewhere to the ranks that hold them, and
+overwrites its own ghosts with what it receives: the ghosts stepped locally (with only part of their
+contacts) are never used. When some body has moved more than half the halo's margin since the last
+partition, the slabs are cut again (balanced by body count), bodies and their wall histories move to
+their new owners and holders, and each pair's history (friction spring, turning volume) goes to
+every rank that holds both its bodies.
+
+What makes the result the undivided run's, bit for bit on one device type and precision: the
+same time step, tangential stiffness and mesh-wall thickness as the whole scene (they depend on its
+bodies and are taken from it, not from the rank's); the same size classes in the broad phase (a
+reference radius), so the same body of a pair is A; pair histories carried by key; a pair that is
+a candidate but not in contact contributes exact zeros, so the rank's own candidate lists and
+their rebuild times do not matter. Sums over bodies (energies, the settle measures) are added per
+rank and then across ranks, so they agree with the undivided run to rounding, not to the bit.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from polydem.distributed import partition
+from polydem.distributed.comm import SerialComm, world
+from polydem.kernels.integrate import kinetic_energy
+from polydem.simulation import Simulation
+
+
+@wp.kernel(enable_backward=False)
+def gather_rows_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=int), dst: wp.array(dtype=Any)):
+    k = wp.tid()
+    dst[k] = src[index[k]]
+
+
+@wp.kernel(enable_backward=False)
+def scatter_rows_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=int), dst: wp.array(dtype=Any)):
+    k = wp.tid()
+    dst[index[k]] = src[k]
+
+
+_EXCHANGED = ("body_q", "body_v", "body_w")
+"""What a ghost receives after every step; the rest of its state is only read by its owner."""
+
+
+class DistributedError(RuntimeError):
+    """A rank of a decomposed run failed; every rank raises it (with the failing rank's message)."""
+
+
+class DistributedSimulation:
+    """Steps ``scene`` over the ranks of ``comm`` (every rank constructs it with the same scene).
+
+    Args:
+        scene: the whole scene, validated (:class:`~polydem.Scene`), the same on every rank.
+        device: Warp device of this rank (one GPU per rank: ``cuda:<local rank>``).
+        comm: an mpi4py communicator (default: ``MPI.COMM_WORLD`` under an MPI launcher, else one rank).
+        margin: how far [m] a body may move between two partitions (default: the largest bounding
+            radius); the halo is twice the largest bounding radius plus this.
+        skin: Verlet skin of the ranks' broad phases [m] (default: the undivided run's).
+        use_graph: CUDA graphs in the ranks' simulations (default: on CUDA devices).
+
+    The methods that read the state (:meth:`state`, :meth:`contacts`, :meth:`energy`,
+    :meth:`settle_measures`) and :meth:`step` are collective: every rank calls them in the same
+    order. ``state`` and ``contacts`` return the whole scene's arrays on ``root`` and None elsewhere;
+    ``energy`` and ``settle_measures`` return the totals on every rank.
+
+    Attributes:
+        rank, size: this rank and the number of ranks.
+        num_bodies: bodies of the whole scene; dt: time step [s]; steps_done; time [s].
+        local_index: (n,) global indices of this rank's local bodies, ascending.
+        owned: (n,) bool, which local bodies this rank owns.
+        cuts: (size + 1,) slab boundaries along ``axis``; partitions: partitions made so far.
+        timers: seconds spent per part of the step on this rank: ``compute`` (the local
+            simulation's steps), ``exchange`` (packing, sending and unpacking ghosts), ``wait``
+            (waiting for the other ranks at the step's agreement), ``partition``.
+    """
+
+    def __init__(self, scene, device=None, comm=None, *, margin=None, skin=None, use_graph=None, root=0):
+        self.comm = comm if comm is not None else world()
+        self.rank = int(self.comm.Get_rank())
+        self.size = int(self.comm.Get_size())
+        self.root = int(root)
+        self.scene = scene
+        self.device = wp.get_device(device)
+        self.use_graph = use_graph
+        self.num_bodies = n = scene.num_bodies
+        ts = scene.time_step()
+        self.dt = float(ts.dt)
+        self._kt = np.asarray(ts.tangential_stiffness, dtype=np.float64)
+        names = scene.shape_names
+        shape_list = [scene.shapes[k] for k in names]
+        radius = np.array([s.radius for s in shape_list], dtype=np.float64)[np.asarray(scene.body_shape)]
+        kind = np.asarray(scene.body_kind)
+        free = kind == 0
+        # Fixed and kinematic bodies (container slabs, drums) move as prescribed, the same on every rank,
+        # and may be large: every rank holds them all and none is exchanged.
+        self._free = free
+        self.r_max = float(radius[free].max() if free.any() else radius.max())
+        r32 = radius.astype(np.float32)
+        positive = free & (r32 > 0)
+        self._radius_ref = float(r32[positive].min()) if positive.any() else None
+        r_min = float(radius[free].min()) if free.any() else float(radius.min())
+        self.skin = 0.2 * r_min if skin is None else float(skin)
+        self.margin = self.r_max if margin is None else float(margin)
+        if not self.margin > 0.0:
+            raise ValueError(f"margin must be > 0 [m], got {margin!r}")
+        self.halo = 2.0 * self.r_max + self.margin
+        self._scene_for_ranks = self._fixed_scene(scene, shape_list, kind)
+        pos = np.asarray(scene.body_position, dtype=np.float64)
+        self.axis = partition.longest_axis(pos.min(axis=0), pos.max(axis=0)) if n else 0
+        self.steps_done = 0
+        self.time = 0.0
+        self.partitions = 0
+        self.timers = {"compute": 0.0, "exchange": 0.0, "wait": 0.0, "partition": 0.0}
+        self.sim = None
+        self._initial_partition(pos[:, self.axis])
+
+    # -- the rank's scene -------------------------------------------------------------------------
+
+    def _fixed_scene(self, scene, shape_list, kind):
+        """A shallow copy of ``scene`` whose body-dependent settings are fixed to the whole scene's
+        values: the time step, and the thickness of mesh walls that take the default."""
+        base = copy.copy(scene)
+        base.dt = self.dt
+        walls = list(getattr(scene, "_mesh_walls", []))
+        if walls:
+            used = np.unique(np.asarray(scene.body_shape)[kind == 0]) if (kind == 0).any() else range(len(shape_list))
+            diameter = 2.0 * max(shape_list[k].radius for k in list(used))
+            base._mesh_walls = [
+                w if w.thickness is not None else dataclasses.replace(w, thickness=diameter) for w in walls
+            ]
+        return base
+
+    def _local_scene(self, index):
+        sub = copy.copy(self._scene_for_ranks)
+        full = self.scene.body_arrays()
+        sub._arrays = {name: np.ascontiguousarray(a[index]) for name, a in full.items()}
+        sub._n = sub._cap = len(index)
+        return sub
+
+    def _local_simulation(self, index):
+        """A Simulation of the bodies ``index`` (global, ascending) with the whole scene's settings."""
+        sim = Simulation(
+            self._local_scene(index), self.device, skin=self.skin, use_graph=self.use_graph, validate=False
+        )
+        m = sim.model
+        c_np = m.material_kt.numpy().dtype
+        m.material_kt.assign(self._kt.astype(c_np).ravel())
+        sim.current_contacts.broadphase.radius_ref = self._radius_ref
+        return sim
+
+    # -- partitions -----------------------------------------------------------------------------
+
+    def _histogram(self, x):
+        """Cuts balanced by body count from the coordinates ``x`` of this rank's bodies (collective)."""
+        lo = self._allreduce(float(x.min()) if len(x) else np.inf, "min")
+        hi = self._allreduce(float(x.max()) if len(x) else -np.inf, "max")
+        if not hi > lo:
+            hi = lo + 1.0
+        counts = np.histogram(x, bins=partition.HISTOGRAM_BINS, range=(lo, hi))[0].astype(np.int64)
+        counts = self._allreduce(counts, "sum")
+        return partition.cuts_from_histogram(counts, lo, hi, self.size)
+
+    def _initial_partition(self, x_all):
+        """At the start every rank has every body's position: the partition needs no messages
+        beyond the histogram's sums (each rank histograms the bodies it would own by index)."""
+        n = self.num_bodies
+        share = np.array_split(np.arange(n), self.size)[self.rank]
+        self.cuts = self._histogram(x_all[share])
+        owner = partition.owner(x_all, self.cuts)
+        held = self._holders(x_all, np.arange(n))[:, self.rank]
+        index = np.flatnonzero(held)
+        self._set_local(index, owner[index] == self.rank, owner[index], x_all[index])
+        if self.sim is not None:
+            # The reference radius applies from the first build on: rebuild the pairs with it.
+            st = self.sim.current_state
+            self.sim.restore_from_arrays({**st.numpy(), **_empty_history(self.sim)}, self.steps_done, self.time)
+        self.partitions += 1
+
+    def _set_local(self, index, owned, owner, x, rows=None, history=None, mesh_q=None):
+        """Make ``index`` (global, ascending) this rank's local bodies and plan the ghost exchange."""
+        self.local_index = np.asarray(index, dtype=np.int64)
+        self.owned = np.asarray(owned, dtype=bool)
+        self._x_partition = np.asarray(x, dtype=np.float64)
+        self.sim = None
+        # A rank steps its ghosts too, even with no body of its own: its neighbours send to every rank
+        # whose slab and halo hold their bodies, and a rank that holds none has no Simulation.
+        if len(self.local_index):
+            self.sim = self._local_simulation(self.local_index)
+            if rows is not None:
+                saved = dict(rows)
+                st = self.sim.current_state
+                if not self.sim.model.friction:
+                    saved["plane_xi"] = st.plane_xi.numpy()
+                if mesh_q is not None:
+                    saved["mesh_q"] = mesh_q
+                saved["step_count"] = np.array([self.steps_done], dtype=st.step_count.numpy().dtype)
+                saved.update(self._local_history(history))
+                self.sim.restore_from_arrays(saved, self.steps_done, self.time)
+        # Ghost exchange: my owned bodies held by rank s go to s; my ghosts owned by s come from s.
+        holders = self._holders(x, self.local_index)
+        free = self._free[self.local_index]
+        self._send, self._recv = {}, {}
+        dev = self.device
+        for s in range(self.size):
+            if s == self.rank:
+                continue
+            send = np.flatnonzero(self.owned & holders[:, s] & free)
+            recv = np.flatnonzero((~self.owned) & (owner == s) & free)
+            if len(send):
+                self._send[s] = wp.array(send.astype(np.int32), dtype=int, device=dev)
+            if len(recv):
+                self._recv[s] = wp.array(recv.astype(np.int32), dtype=int, device=dev)
+
+    def _local_history(self, history):
+        """Pair history with global keys (``key`` = a * N + b) as this rank's keys, for its pairs."""
+        n_all = self.num_bodies
+        n = len(self.local_index)
+        key = history["pair_key"] if history else np.zeros(0, np.int64)
+        a, b = np.divmod(key, n_all)
+        ia = np.searchsorted(self.local_index, a)
+        ib = np.searchsorted(self.local_index, b)
+        ok = (ia < n) & (ib < n)
+        ok[ok] &= (self.local_index[ia[ok]] == a[ok]) & (self.local_index[ib[ok]] == b[ok])
+        order = np.argsort(ia[ok].astype(np.int64) * n + ib[ok], kind="stable")
+        st = self.sim.current_state
+        xi_dtype = st.plane_xi.numpy().dtype
+        return {
+            "pair_key": (ia[ok].astype(np.int64) * n + ib[ok])[order],
+            "pair_xi": history["pair_xi"][ok][order]
+            if history and len(history["pair_xi"])
+            else np.zeros((0, 3), xi_dtype),
+            "pair_turn": history["pair_turn"][ok][order] if history else np.zeros(0, xi_dtype),
+        }
+
+    def _repartition(self):
+        """Cut the slabs again and move bodies, ghosts and pair histories to their new ranks (collective)."""
+        sim = self.sim
+        x_local = self._coordinates()
+        owned = self.owned
+        self.cuts = self._histogram(x_local[owned])
+        outgoing = [dict() for _ in range(self.size)]
+        if sim is not None:
+            st = sim.current_state.numpy()
+            holders = self._holders(x_local, self.local_index)
+            rows = {k: st[k] for k in ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn")}
+            if sim.model.friction:
+                rows["plane_xi"] = st["plane_xi"]
+            hist = sim.current_contacts.history_numpy()
+            n = len(self.local_index)
+            la, lb = np.divmod(hist["pair_key"], n)
+            mine = owned[la] | owned[lb]
+            for s in range(self.size):
+                go = np.flatnonzero(owned & holders[:, s])
+                pairs = np.flatnonzero(mine & holders[la, s] & holders[lb, s])
+                msg = {"index": self.local_index[go], **{k: v[go] for k, v in rows.items()}}
+                msg["pair_key"] = self.local_index[la[pairs]] * self.num_bodies + self.local_index[lb[pairs]]
+                msg["pair_xi"] = hist["pair_xi"][pairs] if len(hist["pair_xi"]) else hist["pair_xi"]
+                msg["pair_turn"] = hist["pair_turn"][pairs]
+                outgoing[s] = msg
+        mesh_q = sim.current_state.mesh_q.numpy() if sim is not None else None
+        mesh_q = next((m for m in self.comm.allgather(mesh_q) if m is not None), None)
+        incoming = [m for m in self.comm.alltoall(outgoing) if m and len(m["index"]) + len(m["pair_key"])]
+        index = np.concatenate([m["index"] for m in incoming]) if incoming else np.zeros(0, np.int64)
+        order = np.argsort(index, kind="stable")
+        index = index[order]
+        if len(np.unique(index)) != len(index):
+            raise DistributedError(f"rank {self.rank}: a body arrived twice at a repartition (a bug)")
+        rows = {}
+        if incoming:
+            for k in incoming[0]:
+                if k in ("index", "pair_key", "pair_xi", "pair_turn"):
+                    continue
+                rows[k] = np.concatenate([m[k] for m in incoming])[order]
+        history = None
+        if incoming:
+            key = np.concatenate([m["pair_key"] for m in incoming])
+            key, first = np.unique(key, return_index=True)  # a pair between two ranks came from both
+            xi = [m["pair_xi"] for m in incoming if len(m["pair_xi"])]
+            history = {
+                "pair_key": key,
+                "pair_xi": np.concatenate(xi)[first] if xi else np.zeros((0, 3)),
+                "pair_turn": np.concatenate([m["pair_turn"] for m in incoming])[first],
+            }
+        x = rows["body_q"][:, self.axis].astype(np.float64) if rows else np.zeros(0)
+        owner = partition.owner(x, self.cuts)
+        self._set_local(index, owner == self.rank, owner, x, rows=rows, history=history, mesh_q=mesh_q)
+        self.partitions += 1
+
+    def _holders(self, x, index):
+        """(n, size) bool: the ranks that hold the bodies ``index`` (global) at coordinates ``x``: every
+        rank for a body that is not free, else the owner and the ranks within the halo."""
+        held = partition.holders(x, self.cuts, self.halo)
+        held[~self._free[index]] = True
+        return held
+
+    def _coordinates(self):
+        if self.sim is None:
+            return np.zeros(0)
+        return self.sim.current_state.body_q.numpy()[:, self.axis].astype(np.float64)
+
+    # -- stepping -------------------------------------------------------------------------------
+
+    def step(self, n=1):
+        """Advance every rank ``n`` steps (collective)."""
+        for _ in range(int(n)):
+            t0 = time.perf_counter()
+            error = ""
+            if self.sim is not None:
+                try:
+                    self.sim.step(1)
+                except Exception as exc:  # every rank must hear of it, or the others wait forever
+                    error = f"rank {self.rank}: {type(exc).__name__}: {exc}"
+            t1 = time.perf_counter()
+            if not error:
+                self._exchange()
+            t2 = time.perf_counter()
+            moved = 0.0
+            if self.sim is not None and not error:
+                mine = self.owned & self._free[self.local_index]
+                moved = float(np.max(np.abs(self._coordinates()[mine] - self._x_partition[mine]), initial=0.0))
+            worst = self._allreduce((1 if error else 0, moved), "max_pair")
+            t3 = time.perf_counter()
+            self.timers["compute"] += t1 - t0
+            self.timers["exchange"] += t2 - t1
+            self.timers["wait"] += t3 - t2
+            if worst[0]:
+                messages = [m for m in self.comm.allgather(error) if m]
+                raise DistributedError("; ".join(messages))
+            self.steps_done += 1
+            self.time = self.steps_done * self.dt
+            if worst[1] > 0.5 * self.margin:
+                self._repartition()
+                self.timers["partition"] += time.perf_counter() - t3
+
+    def _exchange(self):
+        """Send the new poses and velocities of my bodies that are ghosts elsewhere; take my ghosts' from
+        their owners."""
+        comm = self.comm
+        if isinstance(comm, SerialComm):
+            return
+        st = self.sim.current_state if self.sim is not None else None
+        requests, inbox = [], {}
+        for s, idx in self._send.items():
+            packed = [_gather(getattr(st, f), idx) for f in _EXCHANGED]
+            requests.append(comm.Isend(np.ascontiguousarray(np.hstack(packed)), dest=s, tag=11))
+        for s, idx in self._recv.items():
+            width = sum(_row_width(getattr(st, f)) for f in _EXCHANGED)
+            buf = np.empty((idx.shape[0], width), dtype=_row_dtype(st.body_q))
+            inbox[s] = buf
+            requests.append(comm.Irecv(buf, source=s, tag=11))
+        from mpi4py import MPI
+
+        MPI.Request.Waitall(requests)
+        for s, buf in inbox.items():
+            col = 0
+            for f in _EXCHANGED:
+                arr = getattr(st, f)
+                w = _row_width(arr)
+                _scatter(buf[:, col : col + w], self._recv[s], arr)
+                col += w
+        if self.sim is not None:
+            self.sim._diag_cache = None
+
+    def _allreduce(self, value, how):
+        comm = self.comm
+        if isinstance(comm, SerialComm):
+            return value
+        from mpi4py import MPI
+
+        if how == "max_pair" or isinstance(value, np.ndarray):
+            buf = np.ascontiguousarray(value, dtype=np.float64 if how == "max_pair" else value.dtype)
+            out = np.empty_like(buf)
+            comm.Allreduce(buf, out, op=MPI.MAX if how == "max_pair" else {"sum": MPI.SUM, "max": MPI.MAX}[how])
+            return tuple(out.tolist()) if how == "max_pair" else out
+        return comm.allreduce(value, op={"min": MPI.MIN, "max": MPI.MAX, "sum": MPI.SUM}[how])
+
+    # -- reading the state (collective) -----------------------------------------------------------
+
+    def _pair_is_mine(self, a, b):
+        """Whether this rank books the contacts of local bodies ``a`` and ``b`` (``b < 0``: a wall): the owner
+        of A does, or of B where A is a fixed or kinematic body (held by every rank, so the grain's owner
+        has the pair, and the body's own owner may not)."""
+        a = np.asarray(a)
+        b = np.asarray(b)
+        free = self._free[self.local_index]
+        by_b = (b >= 0) & ~free[a]
+        return np.where(by_b, self.owned[np.maximum(b, 0)], self.owned[a])
+
+    def _owned_rows(self):
+        if self.sim is None:
+            return None
+        st = self.sim.state()
+        return {"index": self.local_index[self.owned], **{k: v[self.owned] for k, v in st.items()}}
+
+    def state(self):
+        """The whole scene's state on ``root`` (as :meth:`Simulation.state`, in global body order), None elsewhere."""
+        parts = self.comm.gather(self._owned_rows(), root=self.root)
+        if self.rank != self.root:
+            return None
+        parts = [p for p in parts if p is not None]
+        n = self.num_bodies
+        out = {}
+        for k in ("body_position", "body_orientation", "body_velocity", "body_angular_velocity"):
+            width = parts[0][k].shape[1]
+            a = np.full((n, width), np.nan)
+            for p in parts:
+                a[p["index"]] = p[k]
+            out[k] = a
+        return out
+
+    def contacts(self):
+        """The whole scene's contacts on ``root`` (as :meth:`Simulation.contacts`, body indices global:
+        pairs in key order, then wall contacts by body and wall), None elsewhere. Each contact comes
+        from the rank owning its body A (B where A is not free): none is missed or counted twice."""
+        mine = None
+        if self.sim is not None:
+            c = self.sim.contacts()
+            keep = self._pair_is_mine(c["body_a"], c["body_b"])
+            g = {k: v[keep] for k, v in c.items()}
+            b = g["body_b"]
+            g["body_a"] = self.local_index[g["body_a"]]
+            g["body_b"] = np.where(b >= 0, self.local_index[np.maximum(b, 0)], b)
+            mine = g
+        parts = [p for p in (self.comm.gather(mine, root=self.root) or []) if p is not None]
+        if self.rank != self.root:
+            return None
+        out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        a, b = out["body_a"], out["body_b"]
+        wall = b < 0
+        # Pairs first, by key; then wall contacts by body and wall (Simulation.contacts' order).
+        order = np.lexsort((np.where(wall, -1 - b, b), a, wall))
+        return {k: v[order] for k, v in out.items()}
+
+    def energy(self):
+        """The energies of :meth:`Simulation.energy`, summed over the ranks (on every rank)."""
+        parts = np.zeros(4)
+        if self.sim is not None:
+            sim, m = self.sim, self.sim.model
+            st = sim.current_state
+            lin, ang = kinetic_energy(
+                m.body_inv_mass, m.body_inertia, m.body_flags, st.body_q, st.body_v, st.body_w, device=sim.device
+            )
+            own = self.owned
+            free = own & (m.body_flags_np == 0)
+            d = sim._diagnostics()
+            count = len(d["pair_energy"])
+            pa = sim.current_contacts.broadphase.pair_a.numpy()[:count]
+            pb = sim.current_contacts.broadphase.pair_b.numpy()[:count]
+            contact = np.sum(d["pair_energy"][self._pair_is_mine(pa, pb)], dtype=np.float64)
+            if m.num_walls:
+                contact += np.sum(d["plane_energy"][own], dtype=np.float64)
+            x = st.body_q.numpy()[:, :3].astype(np.float64)
+            grav = -np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity))
+            kin = np.sum(lin.numpy()[own], dtype=np.float64) + np.sum(ang.numpy()[own], dtype=np.float64)
+            diss = np.sum(st.body_dissipated.numpy()[own], dtype=np.float64)
+            parts = np.array([kin, contact, grav, diss])
+        kin, contact, grav, diss = self._allreduce(parts, "sum").tolist()
+        return {
+            "kinetic": kin,
+            "contact": contact,
+            "gravity": grav,
+            "dissipated": diss,
+            "total": kin + contact + grav + diss,
+        }
+
+    def settle_measures(self):
+        """(kinetic energy [J], gravitational energy [J], largest speed [m/s]) of the free bodies, as
+        :meth:`Simulation.settle_measures`, over all ranks (on every rank)."""
+        kin = grav = speed = 0.0
+        if self.sim is not None:
+            sim, m = self.sim, self.sim.model
+            st = sim.current_state
+            lin, ang = kinetic_energy(
+                m.body_inv_mass, m.body_inertia, m.body_flags, st.body_q, st.body_v, st.body_w, device=sim.device
+            )
+            free = self.owned & (m.body_flags_np == 0)
+            kin = float(np.sum(lin.numpy()[free], dtype=np.float64) + np.sum(ang.numpy()[free], dtype=np.float64))
+            x = st.body_q.numpy()[:, :3].astype(np.float64)
+            grav = -float(np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity)))
+            v = np.linalg.norm(st.body_v.numpy()[free].astype(np.float64), axis=1)
+            w = np.linalg.norm(st.body_w.numpy()[free].astype(np.float64), axis=1)
+            r = m.body_radius.numpy()[free].astype(np.float64)
+            speed = float(np.max(v + w * r, initial=0.0))
+        kin, grav = self._allreduce(np.array([kin, grav]), "sum").tolist()
+        speed = self._allreduce(speed, "max")
+        return kin, grav, speed
+
+    def balance(self):
+        """Owned and local (owned + ghost) body counts of every rank, on every rank: two (size,) arrays."""
+        counts = self.comm.allgather((int(self.owned.sum()), len(self.local_index)))
+        return np.array([c[0] for c in counts]), np.array([c[1] for c in counts])
+
+
+def _empty_history(sim):
+    xi = sim.current_state.plane_xi.numpy()
+    return {
+        "pair_key": np.zeros(0, np.int64),
+        "pair_xi": np.zeros((0, 3), xi.dtype),
+        "pair_turn": np.zeros(0, xi.dtype),
+    }
+
+
+def _row_width(arr) -> int:
+    return int(getattr(arr.dtype, "_length_", 1))
+
+
+def _row_dtype(arr):
+    return np.dtype(wp.dtype_to_numpy(getattr(arr.dtype, "_wp_scalar_type_", arr.dtype)))
+
+
+def _gather(arr, index):
+    out = wp.empty(index.shape[0], dtype=arr.dtype, device=arr.device)
+    wp.launch(gather_rows_kernel, dim=index.shape[0], inputs=[arr, index, out], device=arr.device)
+    return out.numpy().reshape(index.shape[0], -1)
+
+
+def _scatter(rows, index, arr):
+    src = wp.array(np.ascontiguousarray(rows), dtype=arr.dtype, device=arr.device)
+    wp.launch(scatter_rows_kernel, dim=index.shape[0], inputs=[src, index, arr], device=arr.device)
