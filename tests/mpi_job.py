@@ -1,0 +1,35 @@
+"""A decomposed run for tests/test_distributed.py, launched by mpiexec: steps a test scene on every rank
+and writes the whole state and contacts (gathered on rank 0) to an npz file.
+
+    mpiexec -n 2 python tests/mpi_job.py SCENE STEPS MARGIN DEVICE OUT
+"""
+
+import sys
+
+import numpy as np
+import warp as wp
+
+wp.config.quiet = True
+
+from distributed_scenes import build  # noqa: E402
+
+from polydem.distributed import DistributedSimulation, world  # noqa: E402
+
+
+def main():
+    name, steps, margin, device, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], sys.argv[5]
+    comm = world()
+    ds = DistributedSimulation(build(name), device=device, comm=comm, margin=margin)
+    ds.step(steps)
+    state, contacts, energy = ds.state(), ds.contacts(), ds.energy()
+    owned, local = ds.balance()
+    if comm.Get_rank() == 0:
+        arrays = {f"state_{k}": v for k, v in state.items()}
+        arrays.update({f"contacts_{k}": v for k, v in contacts.items()})
+        arrays.update({f"energy_{k}": np.float64(v) for k, v in energy.items()})
+        arrays.update(partitions=ds.partitions, owned=owned, local=local, steps_done=ds.steps_done)
+        np.savez(out, **arrays)
+
+
+if __name__ == "__main__":
+    main()
