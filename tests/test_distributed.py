@@ -107,3 +107,33 @@ def test_decomposed_run_is_the_undivided_run(tmp_path, device, scene, steps, mar
         np.testing.assert_array_equal(got[f"contacts_{k}"], v, err_msg=k)
     for k, v in want_energy.items():  # sums over ranks: equal to rounding
         assert abs(float(got[f"energy_{k}"]) - v) <= 1e-12 * max(1.0, abs(v)), k
+
+
+@needs_mpi
+def test_command_on_two_ranks_writes_the_undivided_run(tmp_path):
+    """``mpiexec -n 2 polydem run``: one set of outputs, a checkpoint equal to the one-process run's,
+    and checkpoints that resume across the two (1 -> 2 ranks and 2 -> 1)."""
+    scene = str(HERE.parent / "scenes" / "default.toml")
+
+    def run(ranks, out, duration, resume=None):
+        cmd = [sys.executable, "-m", "polydem", "run", scene, "--duration", str(duration), "--out", str(out), "-q"]
+        cmd += ["--device", "cpu"] + (["--resume", str(resume)] if resume else [])
+        if ranks > 1:
+            cmd = [_mpiexec(), "-n", str(ranks), *cmd]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+        assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+        return done.stdout, np.load(out / "checkpoints" / "final.npz")
+
+    fields = ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn", "plane_xi", "steps_done")
+    _, one = run(1, tmp_path / "one", 0.02)
+    text, two = run(2, tmp_path / "two", 0.02)
+    assert "decomposed over 2 ranks" in text
+    assert (tmp_path / "two" / "summary.json").is_file() and (tmp_path / "two" / "default.usd").is_file()
+    for k in fields:
+        np.testing.assert_array_equal(one[k], two[k], err_msg=k)
+    _, straight = run(1, tmp_path / "straight", 0.04)
+    _, from_two = run(1, tmp_path / "from_two", 0.04, resume=tmp_path / "two" / "checkpoints" / "final.npz")
+    _, from_one = run(2, tmp_path / "from_one", 0.04, resume=tmp_path / "one" / "checkpoints" / "final.npz")
+    for k in fields:
+        np.testing.assert_array_equal(straight[k], from_two[k], err_msg=k)
+        np.testing.assert_array_equal(straight[k], from_one[k], err_msg=k)

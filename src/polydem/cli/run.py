@@ -313,7 +313,6 @@ def _output_folder(args, scene) -> Path:
 
 
 def cmd_run(args) -> int:
-    out, err = sys.stdout, sys.stderr
     warp()
     signals.check()
     resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
@@ -328,9 +327,47 @@ def cmd_run(args) -> int:
     criterion = _settle_criterion(args, scene)
     signals.check()
 
+    from polydem.distributed import launched_size
+
+    if launched_size() > 1:
+        return _run_decomposed(args, scene, dev, out_dir, resume, checkpoint, criterion)
     from polydem.simulation import Simulation
 
     sim = Simulation(scene, device=dev)
+    return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
+
+
+def _run_decomposed(args, scene, dev, out_dir, resume, checkpoint, criterion) -> int:
+    """``mpiexec -n R polydem run``: rank 0 runs the command on a RootSimulation, the others follow it
+    (:mod:`polydem.distributed.root`)."""
+    import warnings
+
+    from polydem.distributed import DistributedSimulation, world
+    from polydem.distributed.root import RootSimulation, device_for_rank, serve
+
+    try:
+        comm = world()
+    except RuntimeError as exc:
+        raise CliError(str(exc), key=None) from None
+    ds = DistributedSimulation(scene, device=device_for_rank(dev, comm), comm=comm)
+    if ds.rank != ds.root:
+        warnings.simplefilter("ignore")  # rank 0 says it once
+        serve(ds)
+        return EXIT_OK
+    sim = RootSimulation(ds)
+    try:
+        owned, _ = sim.balance()
+        sys.stdout.write(
+            f"{scene.name}: decomposed over {ds.size} ranks (slabs along {'xyz'[ds.axis]}, "
+            f"{int(owned.min())} to {int(owned.max())} bodies each)\n"
+        )
+        return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
+    finally:
+        sim.stop()
+
+
+def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
+    out, err = sys.stdout, sys.stderr
     signals.check()
     target, source = _target_steps(args, scene, sim.dt)
     if resume is not None:

@@ -36,7 +36,7 @@ import warp as wp
 from polydem.distributed import partition
 from polydem.distributed.comm import SerialComm, world
 from polydem.kernels.integrate import kinetic_energy
-from polydem.simulation import Simulation
+from polydem.simulation import Simulation, SimulationError
 
 
 @wp.kernel(enable_backward=False)
@@ -55,7 +55,7 @@ _EXCHANGED = ("body_q", "body_v", "body_w")
 """What a ghost receives after every step; the rest of its state is only read by its owner."""
 
 
-class DistributedError(RuntimeError):
+class DistributedError(SimulationError):
     """A rank of a decomposed run failed; every rank raises it (with the failing rank's message)."""
 
 
@@ -305,6 +305,69 @@ class DistributedSimulation:
         held = partition.holders(x, self.cuts, self.halo)
         held[~self._free[index]] = True
         return held
+
+    def restore_global(self, arrays, steps_done, time):
+        """Put the whole scene's state ``arrays`` (named as a checkpoint's, given on ``root``) into the ranks
+        and partition afresh (collective): resuming a checkpoint, whoever wrote it."""
+        arrays = self.comm.bcast(arrays if self.rank == self.root else None, root=self.root)
+        self.steps_done, self.time = int(steps_done), float(time)
+        n = self.num_bodies
+        x_all = np.asarray(arrays["body_q"])[:, self.axis].astype(np.float64)
+        share = np.array_split(np.arange(n), self.size)[self.rank]
+        self.cuts = self._histogram(x_all[share])
+        owner = partition.owner(x_all, self.cuts)
+        index = np.flatnonzero(self._holders(x_all, np.arange(n))[:, self.rank])
+        fields = ["body_q", "body_v", "body_w", "body_dissipated", "plane_turn"]
+        if np.asarray(arrays["plane_xi"]).shape[0] == n and np.asarray(arrays["plane_turn"]).shape[0] == n:
+            fields.append("plane_xi")
+        rows = {k: np.asarray(arrays[k])[index] for k in fields}
+        history = {k: np.asarray(arrays[k]) for k in ("pair_key", "pair_xi", "pair_turn")}
+        mesh_q = arrays.get("mesh_q")
+        self._set_local(index, owner[index] == self.rank, owner[index], x_all[index], rows, history, mesh_q)
+        self.partitions += 1
+
+    def saved_arrays(self):
+        """The whole scene's state as a checkpoint keeps it (``State.SAVED`` and the pair history, global
+        keys ``a * N + b``) on ``root``, None elsewhere (collective)."""
+        mine = None
+        if self.sim is not None:
+            st = self.sim.current_state.numpy()
+            own = self.owned
+            mine = {k: st[k][own] for k in ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn")}
+            if self.sim.model.friction:
+                mine["plane_xi"] = st["plane_xi"][own]
+            mine["index"] = self.local_index[own]
+            mine["mesh_q"] = st["mesh_q"]
+            hist = self.sim.current_contacts.history_numpy()
+            la, lb = np.divmod(hist["pair_key"], len(self.local_index))
+            keep = self._pair_is_mine(la, lb)
+            mine["pair_key"] = self.local_index[la[keep]] * self.num_bodies + self.local_index[lb[keep]]
+            mine["pair_xi"] = hist["pair_xi"][keep] if len(hist["pair_xi"]) else hist["pair_xi"]
+            mine["pair_turn"] = hist["pair_turn"][keep]
+        parts = self.comm.gather(mine, root=self.root)
+        if self.rank != self.root:
+            return None
+        parts = [p for p in parts if p is not None]
+        n = self.num_bodies
+        out = {}
+        for k in ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn", "plane_xi"):
+            if k not in parts[0]:
+                continue
+            a = np.zeros((n, *parts[0][k].shape[1:]), dtype=parts[0][k].dtype)
+            for p in parts:
+                a[p["index"]] = p[k]
+            out[k] = a
+        if "plane_xi" not in out:
+            out["plane_xi"] = self.sim.current_state.plane_xi.numpy() if self.sim is not None else np.zeros((1, 1, 3))
+        out["mesh_q"] = parts[0]["mesh_q"]
+        out["step_count"] = np.array([self.steps_done], dtype=np.int32)
+        key = np.concatenate([p["pair_key"] for p in parts])
+        order = np.argsort(key, kind="stable")
+        out["pair_key"] = key[order]
+        xi = [p["pair_xi"] for p in parts if len(p["pair_xi"])]
+        out["pair_xi"] = np.concatenate(xi)[order] if xi else parts[0]["pair_xi"]
+        out["pair_turn"] = np.concatenate([p["pair_turn"] for p in parts])[order]
+        return out
 
     def _coordinates(self):
         if self.sim is None:
