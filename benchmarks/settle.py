@@ -204,7 +204,8 @@ def make_scene(n, args, seed=0):
 
     # Columns on a square-ish grid; body i is in layer i // columns, column i % columns.
     columns = max(1, math.ceil(n / layers))
-    nx = max(1, math.ceil(math.sqrt(columns)))
+    # aspect: the footprint's x:y ratio (benchmarks/scaling.py: one square per rank, side by side along x)
+    nx = max(1, math.ceil(math.sqrt(columns * getattr(args, "aspect", 1.0))))
     ny = max(1, math.ceil(columns / nx))
     nz = math.ceil(n / columns)
     # Bounding diameter: the cube's sqrt(3) a, or the largest of the set's.

@@ -40,19 +40,59 @@ from polydem.simulation import Simulation, SimulationError
 
 
 @wp.kernel(enable_backward=False)
-def gather_rows_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=int), dst: wp.array(dtype=Any)):
+def pack_kernel(
+    # State in (scalar views: (n, 7), (n, 3), (n, 3))
+    q: wp.array2d(dtype=Any),
+    v: wp.array2d(dtype=Any),
+    w: wp.array2d(dtype=Any),
+    index: wp.array(dtype=int),
+    # Out: (len(index), 13) rows to send
+    rows: wp.array2d(dtype=Any),
+):
     k = wp.tid()
-    dst[k] = src[index[k]]
+    i = index[k]
+    for c in range(7):
+        rows[k, c] = q[i, c]
+    for c in range(3):
+        rows[k, 7 + c] = v[i, c]
+        rows[k, 10 + c] = w[i, c]
 
 
 @wp.kernel(enable_backward=False)
-def scatter_rows_kernel(src: wp.array(dtype=Any), index: wp.array(dtype=int), dst: wp.array(dtype=Any)):
+def unpack_kernel(
+    rows: wp.array2d(dtype=Any),
+    index: wp.array(dtype=int),
+    # Out: the ghosts' rows of the state (scalar views)
+    q: wp.array2d(dtype=Any),
+    v: wp.array2d(dtype=Any),
+    w: wp.array2d(dtype=Any),
+):
     k = wp.tid()
-    dst[index[k]] = src[k]
+    i = index[k]
+    for c in range(7):
+        q[i, c] = rows[k, c]
+    for c in range(3):
+        v[i, c] = rows[k, 7 + c]
+        w[i, c] = rows[k, 10 + c]
 
 
-_EXCHANGED = ("body_q", "body_v", "body_w")
-"""What a ghost receives after every step; the rest of its state is only read by its owner."""
+@wp.kernel(enable_backward=False)
+def moved_kernel(
+    q: wp.array2d(dtype=Any),
+    axis: int,
+    x0: wp.array(dtype=wp.float64),
+    mine: wp.array(dtype=int),
+    # Out: (1,) the largest move along the axis since the partition [m]
+    moved: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()
+    if mine[i] != 0:
+        wp.atomic_max(moved, 0, wp.abs(wp.float64(q[i, axis]) - x0[i]))
+
+
+ROW = 13
+"""What a ghost receives after every step, per body: pose (7), velocity (3), angular velocity (3); the
+rest of its state is only read by its owner."""
 
 
 class DistributedError(SimulationError):
@@ -220,9 +260,26 @@ class DistributedSimulation:
             send = np.flatnonzero(self.owned & holders[:, s] & free)
             recv = np.flatnonzero((~self.owned) & (owner == s) & free)
             if len(send):
-                self._send[s] = wp.array(send.astype(np.int32), dtype=int, device=dev)
+                self._send[s] = self._buffers(send)
             if len(recv):
-                self._recv[s] = wp.array(recv.astype(np.int32), dtype=int, device=dev)
+                self._recv[s] = self._buffers(recv)
+        if self.sim is not None:
+            st = self.sim.current_state
+            scalar = getattr(st.body_q.dtype, "_wp_scalar_type_", wp.float32)
+            self._views = tuple(getattr(st, f).view(scalar) for f in ("body_q", "body_v", "body_w"))
+            mine = (self.owned & self._free[self.local_index]).astype(np.int32)
+            self._mine = wp.array(mine, dtype=int, device=dev)
+            self._x0 = wp.array(self._x_partition, dtype=wp.float64, device=dev)
+            self._moved = wp.zeros(1, dtype=wp.float64, device=dev)
+
+    def _buffers(self, index):
+        """(device index, device rows, host rows) for the ghost rows of ``index`` (local) that go to or
+        come from one rank; the host rows are pinned memory on a GPU, the device rows themselves on the CPU."""
+        dev = self.device
+        scalar = getattr(self.sim.current_state.body_q.dtype, "_wp_scalar_type_", wp.float32)
+        rows = wp.empty((len(index), ROW), dtype=scalar, device=dev)
+        host = rows if dev.is_cpu else wp.empty((len(index), ROW), dtype=scalar, device="cpu", pinned=True)
+        return wp.array(np.asarray(index, dtype=np.int32), dtype=int, device=dev), rows, host
 
     def _local_history(self, history):
         """Pair history with global keys (``key`` = a * N + b) as this rank's keys, for its pairs."""
@@ -390,10 +447,7 @@ class DistributedSimulation:
             if not error:
                 self._exchange()
             t2 = time.perf_counter()
-            moved = 0.0
-            if self.sim is not None and not error:
-                mine = self.owned & self._free[self.local_index]
-                moved = float(np.max(np.abs(self._coordinates()[mine] - self._x_partition[mine]), initial=0.0))
+            moved = self._largest_move() if not error else 0.0
             worst = self._allreduce((1 if error else 0, moved), "max_pair")
             t3 = time.perf_counter()
             self.timers["compute"] += t1 - t0
@@ -412,30 +466,43 @@ class DistributedSimulation:
         """Send the new poses and velocities of my bodies that are ghosts elsewhere; take my ghosts' from
         their owners."""
         comm = self.comm
-        if isinstance(comm, SerialComm):
+        if isinstance(comm, SerialComm) or self.sim is None:
             return
-        st = self.sim.current_state if self.sim is not None else None
-        requests, inbox = [], {}
-        for s, idx in self._send.items():
-            packed = [_gather(getattr(st, f), idx) for f in _EXCHANGED]
-            requests.append(comm.Isend(np.ascontiguousarray(np.hstack(packed)), dest=s, tag=11))
-        for s, idx in self._recv.items():
-            width = sum(_row_width(getattr(st, f)) for f in _EXCHANGED)
-            buf = np.empty((idx.shape[0], width), dtype=_row_dtype(st.body_q))
-            inbox[s] = buf
-            requests.append(comm.Irecv(buf, source=s, tag=11))
         from mpi4py import MPI
 
+        dev = self.device
+        requests = []
+        for index, rows, host in self._send.values():
+            wp.launch(pack_kernel, dim=index.shape[0], inputs=[*self._views, index], outputs=[rows], device=dev)
+            if host is not rows:
+                wp.copy(host, rows)
+        if not dev.is_cpu:
+            wp.synchronize_device(dev)
+        for s, (_, _, host) in self._send.items():
+            requests.append(comm.Isend(host.numpy(), dest=s, tag=11))
+        for s, (_, _, host) in self._recv.items():
+            requests.append(comm.Irecv(host.numpy(), source=s, tag=11))
         MPI.Request.Waitall(requests)
-        for s, buf in inbox.items():
-            col = 0
-            for f in _EXCHANGED:
-                arr = getattr(st, f)
-                w = _row_width(arr)
-                _scatter(buf[:, col : col + w], self._recv[s], arr)
-                col += w
-        if self.sim is not None:
-            self.sim._diag_cache = None
+        for index, rows, host in self._recv.values():
+            if host is not rows:
+                wp.copy(rows, host)
+            wp.launch(unpack_kernel, dim=index.shape[0], inputs=[rows, index], outputs=[*self._views], device=dev)
+        self.sim._diag_cache = None
+
+    def _largest_move(self):
+        """The largest move along the axis of a free body of mine since the partition [m] (one number to the host)."""
+        if self.sim is None:
+            return 0.0
+        self._moved.zero_()
+        n = len(self.local_index)
+        wp.launch(
+            moved_kernel,
+            dim=n,
+            inputs=[self._views[0], self.axis, self._x0, self._mine],
+            outputs=[self._moved],
+            device=self.device,
+        )
+        return float(self._moved.numpy()[0])
 
     def _allreduce(self, value, how):
         comm = self.comm
@@ -574,22 +641,3 @@ def _empty_history(sim):
         "pair_xi": np.zeros((0, 3), xi.dtype),
         "pair_turn": np.zeros(0, xi.dtype),
     }
-
-
-def _row_width(arr) -> int:
-    return int(getattr(arr.dtype, "_length_", 1))
-
-
-def _row_dtype(arr):
-    return np.dtype(wp.dtype_to_numpy(getattr(arr.dtype, "_wp_scalar_type_", arr.dtype)))
-
-
-def _gather(arr, index):
-    out = wp.empty(index.shape[0], dtype=arr.dtype, device=arr.device)
-    wp.launch(gather_rows_kernel, dim=index.shape[0], inputs=[arr, index, out], device=arr.device)
-    return out.numpy().reshape(index.shape[0], -1)
-
-
-def _scatter(rows, index, arr):
-    src = wp.array(np.ascontiguousarray(rows), dtype=arr.dtype, device=arr.device)
-    wp.launch(scatter_rows_kernel, dim=index.shape[0], inputs=[src, index, arr], device=arr.device)
