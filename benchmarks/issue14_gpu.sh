@@ -20,8 +20,11 @@ fi
 if [ "$what" = weak ] || [ "$what" = all ]; then
   run 150 1 --bodies-per-rank 1000000 --baseline --out "$out/scaling_cuda_weak1000000_r1.json"
   run 150 2 --bodies-per-rank 1000000 --out "$out/scaling_cuda_weak1000000_r2.json"
+  run 200 1 --bodies-per-rank 10000000 --warmup 50 --steps 100 --baseline --out "$out/scaling_cuda_weak10000000_r1.json"
+  run 200 2 --bodies-per-rank 10000000 --warmup 50 --steps 100 --out "$out/scaling_cuda_weak10000000_r2.json"
 fi
 if [ "$what" = strong ] || [ "$what" = all ]; then
-  run 240 1 --bodies 10000000 --aspect 2 --warmup 50 --steps 50 --out "$out/scaling_cuda_strong10000000_r1.json"
-  run 240 2 --bodies 10000000 --aspect 2 --warmup 50 --steps 50 --out "$out/scaling_cuda_strong10000000_r2.json"
+  # 1 rank with --aspect 2 is the same pile as the 2 ranks'.
+  run 200 1 --bodies 10000000 --aspect 2 --warmup 50 --steps 100 --out "$out/scaling_cuda_strong10000000_r1.json"
+  run 200 2 --bodies 10000000 --aspect 2 --warmup 50 --steps 100 --out "$out/scaling_cuda_strong10000000_r2.json"
 fi

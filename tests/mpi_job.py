@@ -1,7 +1,7 @@
 """A decomposed run for tests/test_distributed.py, launched by mpiexec: steps a test scene on every rank
 and writes the whole state and contacts (gathered on rank 0) to an npz file.
 
-    mpiexec -n 2 python tests/mpi_job.py SCENE STEPS MARGIN DEVICE OUT
+    mpiexec -n 2 python tests/mpi_job.py SCENE STEPS MARGIN DEVICE OUT [CHUNK]
 """
 
 import sys
@@ -18,8 +18,9 @@ from polydem.distributed import DistributedSimulation, world  # noqa: E402
 
 def main():
     name, steps, margin, device, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], sys.argv[5]
+    chunk = int(sys.argv[6]) if len(sys.argv) > 6 else 50
     comm = world()
-    ds = DistributedSimulation(build(name), device=device, comm=comm, margin=margin)
+    ds = DistributedSimulation(build(name), device=device, comm=comm, margin=margin, chunk=chunk)
     ds.step(steps)
     state, contacts, energy = ds.state(), ds.contacts(), ds.energy()
     owned, local = ds.balance()
@@ -27,7 +28,7 @@ def main():
         arrays = {f"state_{k}": v for k, v in state.items()}
         arrays.update({f"contacts_{k}": v for k, v in contacts.items()})
         arrays.update({f"energy_{k}": np.float64(v) for k, v in energy.items()})
-        arrays.update(partitions=ds.partitions, owned=owned, local=local, steps_done=ds.steps_done)
+        arrays.update(partitions=ds.partitions, owned=owned, local=local, steps_done=ds.steps_done, redone=ds.redone)
         np.savez(out, **arrays)
 
 

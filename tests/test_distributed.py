@@ -76,26 +76,29 @@ needs_mpi = pytest.mark.skipif(not _have_mpi(), reason="needs mpi4py and mpiexec
 
 @needs_mpi
 @pytest.mark.parametrize(
-    "scene, steps, margin, ranks",
+    "scene, steps, margin, ranks, chunk",
     [
-        ("box_pour", 3000, 0.004, 2),  # a small margin: bodies move to other ranks many times
-        ("box_pour", 3000, 0.004, 4),
-        ("mixer", 1500, 0.01, 2),  # turning mesh walls, non-convex grains
-        ("chain", 1500, 0.05, 2),  # a pulse through contacts across the boundary
-        ("chain", 1500, 0.05, 4),
+        ("box_pour", 3000, 0.004, 2, 50),  # a small margin: bodies move to other ranks many times
+        ("box_pour", 3000, 0.004, 4, 50),
+        ("box_pour", 3000, 0.002, 2, 1000),  # chunks past the margin: stepped again after a new partition
+        ("mixer", 1500, 0.01, 2, 50),  # turning mesh walls, non-convex grains
+        ("chain", 1500, 0.05, 2, 50),  # a pulse through contacts across the boundary
+        ("chain", 1500, 0.05, 4, 50),
     ],
 )
-def test_decomposed_run_is_the_undivided_run(tmp_path, device, scene, steps, margin, ranks):
+def test_decomposed_run_is_the_undivided_run(tmp_path, device, scene, steps, margin, ranks, chunk):
     out = tmp_path / "run.npz"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
     cmd = [_mpiexec(), "-n", str(ranks), sys.executable, str(HERE / "mpi_job.py"), scene, str(steps)]
-    cmd += [str(margin), device, str(out)]
+    cmd += [str(margin), device, str(out), str(chunk)]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     got = np.load(out)
     if scene != "chain":  # the chain's bodies hardly move: one partition all along
         assert int(got["partitions"]) > 1, "the run should have moved bodies between ranks"
     assert np.all(got["owned"] > 0)
+    if chunk > 100:
+        assert int(got["redone"]) > 0, "chunks past the margin should have been stepped again"
 
     sim = Simulation(build(scene), device=device)
     sim.step(steps)

@@ -90,6 +90,10 @@ def moved_kernel(
         wp.atomic_max(moved, 0, wp.abs(wp.float64(q[i, axis]) - x0[i]))
 
 
+CHUNK = 50
+"""Steps between two agreements of the ranks (errors, overflows, moves): each costs a synchronisation and an
+allreduce; a chunk that must be redone costs up to this many steps."""
+
 ROW = 13
 """What a ghost receives after every step, per body: pose (7), velocity (3), angular velocity (3); the
 rest of its state is only read by its owner."""
@@ -110,6 +114,7 @@ class DistributedSimulation:
             radius); the halo is twice the largest bounding radius plus this.
         skin: Verlet skin of the ranks' broad phases [m] (default: the undivided run's).
         use_graph: CUDA graphs in the ranks' simulations (default: on CUDA devices).
+        chunk: steps between two agreements of the ranks (see :meth:`step`).
 
     The methods that read the state (:meth:`state`, :meth:`contacts`, :meth:`energy`,
     :meth:`settle_measures`) and :meth:`step` are collective: every rank calls them in the same
@@ -121,13 +126,14 @@ class DistributedSimulation:
         num_bodies: bodies of the whole scene; dt: time step [s]; steps_done; time [s].
         local_index: (n,) global indices of this rank's local bodies, ascending.
         owned: (n,) bool, which local bodies this rank owns.
-        cuts: (size + 1,) slab boundaries along ``axis``; partitions: partitions made so far.
+        cuts: (size + 1,) slab boundaries along ``axis``; partitions: partitions made so far; redone:
+            chunks stepped again (an overflow somewhere, or a body past the margin).
         timers: seconds spent per part of the step on this rank: ``compute`` (the local
             simulation's steps), ``exchange`` (packing, sending and unpacking ghosts), ``wait``
             (waiting for the other ranks at the step's agreement), ``partition``.
     """
 
-    def __init__(self, scene, device=None, comm=None, *, margin=None, skin=None, use_graph=None, root=0):
+    def __init__(self, scene, device=None, comm=None, *, margin=None, skin=None, use_graph=None, root=0, chunk=CHUNK):
         self.comm = comm if comm is not None else world()
         self.rank = int(self.comm.Get_rank())
         self.size = int(self.comm.Get_size())
@@ -163,7 +169,12 @@ class DistributedSimulation:
         self.steps_done = 0
         self.time = 0.0
         self.partitions = 0
-        self.timers = {"compute": 0.0, "exchange": 0.0, "wait": 0.0, "partition": 0.0}
+        self.timers = {"compute": 0.0, "exchange": 0.0, "wait": 0.0, "partition": 0.0, "total": 0.0}
+        self.chunk = int(chunk)
+        if self.chunk < 1:
+            raise ValueError(f"chunk must be >= 1 step, got {chunk!r}")
+        self._good = None
+        self.redone = 0
         self.sim = None
         self._initial_partition(pos[:, self.axis])
 
@@ -235,6 +246,7 @@ class DistributedSimulation:
         self.owned = np.asarray(owned, dtype=bool)
         self._x_partition = np.asarray(x, dtype=np.float64)
         self.sim = None
+        self._good = None
         # A rank steps its ghosts too, even with no body of its own: its neighbours send to every rank
         # whose slab and halo hold their bodies, and a rank that holds none has no Simulation.
         if len(self.local_index):
@@ -434,33 +446,97 @@ class DistributedSimulation:
     # -- stepping -------------------------------------------------------------------------------
 
     def step(self, n=1):
-        """Advance every rank ``n`` steps (collective)."""
-        for _ in range(int(n)):
+        """Advance every rank ``n`` steps (collective).
+
+        The ranks step in chunks of at most ``chunk`` steps, exchanging ghosts after every step and
+        agreeing once per chunk (one allreduce): on a clipped polygon or a pair list that did not fit
+        on some rank, or a body that moved further than the halo allows, every rank goes back to the
+        start of the chunk (the overflowing rank with more room, or all with a new partition) and
+        steps it again; a non-finite state on some rank raises :class:`DistributedError` on all.
+        """
+        n = int(n)
+        if n < 0:
+            raise ValueError(f"step count must be >= 0, got {n}")
+        done = 0
+        chunk = self.chunk
+        while done < n:
+            k = min(chunk, n - done)
             t0 = time.perf_counter()
+            sim = self.sim
+            if sim is not None:
+                self._good = sim.snapshot(into=self._good)
+            compute = exchange = 0.0
             error = ""
-            if self.sim is not None:
-                try:
-                    self.sim.step(1)
-                except Exception as exc:  # every rank must hear of it, or the others wait forever
-                    error = f"rank {self.rank}: {type(exc).__name__}: {exc}"
-            t1 = time.perf_counter()
-            if not error:
+            for _ in range(k):
+                t1 = time.perf_counter()
+                if sim is not None and not error:
+                    try:
+                        sim._run_chunk(1)
+                    except Exception as exc:  # the others must hear of it at the agreement, not wait forever
+                        error = f"rank {self.rank}: {type(exc).__name__}: {exc}"
+                t2 = time.perf_counter()
                 self._exchange()
-            t2 = time.perf_counter()
-            moved = self._largest_move() if not error else 0.0
-            worst = self._allreduce((1 if error else 0, moved), "max_pair")
+                self._track_move()
+                compute += t2 - t1
+                exchange += time.perf_counter() - t2
             t3 = time.perf_counter()
-            self.timers["compute"] += t1 - t0
-            self.timers["exchange"] += t2 - t1
-            self.timers["wait"] += t3 - t2
-            if worst[0]:
-                messages = [m for m in self.comm.allgather(error) if m]
+            flags = self._chunk_flags() if not error else (0.0, 0.0, 1.0, 0.0)
+            worst = self._allreduce(flags, "max_pair")
+            self.timers["compute"] += compute
+            self.timers["exchange"] += exchange
+            self.timers["wait"] += time.perf_counter() - t3
+            if worst[2]:
+                messages = [m for m in self.comm.allgather(error or self._bad_message()) if m]
                 raise DistributedError("; ".join(messages))
-            self.steps_done += 1
+            redo_room, moved = worst[0] > 0 or worst[1] > 0, worst[3]
+            if redo_room or moved > 0.5 * self.margin:
+                self.redone += 1
+                if sim is not None:
+                    if flags[0]:
+                        sim.stepper.grow_polygons()
+                    sim.restore(self._good)
+                if moved > 0.5 * self.margin:
+                    # The chunk went past the halo's margin: partition at its start and step it again,
+                    # in shorter chunks (a body that fast reaches the margin sooner).
+                    t4 = time.perf_counter()
+                    self._repartition()
+                    self.timers["partition"] += time.perf_counter() - t4
+                    chunk = max(1, chunk // 2)
+                continue
+            if sim is not None and sim.stepper.device_rebuild:
+                sim.current_contacts.broadphase.renew_tree(sim.tree_rebuild)
+            done += k
+            self.steps_done += k
             self.time = self.steps_done * self.dt
-            if worst[1] > 0.5 * self.margin:
+            if sim is not None:
+                sim.steps_done, sim.time = self.steps_done, self.time
+            if moved > 0.25 * self.margin:
+                # Half the allowance used: partition now, so that the next chunk has room.
+                t4 = time.perf_counter()
                 self._repartition()
-                self.timers["partition"] += time.perf_counter() - t3
+                self.timers["partition"] += time.perf_counter() - t4
+            self.timers["total"] += time.perf_counter() - t0
+
+    def _chunk_flags(self):
+        """(polygon overflow, pair list overflow, non-finite state, largest move [m]) of this rank's chunk."""
+        sim = self.sim
+        if sim is None:
+            return (0.0, 0.0, 0.0, 0.0)
+        overflow = sim.stepper.polygons_overflowed()
+        host_build = sim.stepper.device_rebuild and sim.current_contacts.host_build_needed()
+        bad = sim.stepper.first_bad_step() is not None
+        return (float(overflow), float(host_build), float(bad), float(self._moved.numpy()[0]))
+
+    def _bad_message(self):
+        sim = self.sim
+        if sim is None or sim.stepper.first_bad_step() is None:
+            return ""
+        try:
+            sim._report_nonfinite(sim.stepper.first_bad_step())
+        except SimulationError as exc:
+            # Local body indices in the message: name them by their global index.
+            return f"rank {self.rank} (global bodies = local_index[local]): {exc}"
+        return ""
 
     def _exchange(self):
         """Send the new poses and velocities of my bodies that are ghosts elsewhere; take my ghosts' from
@@ -489,20 +565,18 @@ class DistributedSimulation:
             wp.launch(unpack_kernel, dim=index.shape[0], inputs=[rows, index], outputs=[*self._views], device=dev)
         self.sim._diag_cache = None
 
-    def _largest_move(self):
-        """The largest move along the axis of a free body of mine since the partition [m] (one number to the host)."""
+    def _track_move(self):
+        """Raise ``_moved`` (device) to the largest move along the axis of a free body of mine since the
+        partition [m]; no host synchronisation."""
         if self.sim is None:
-            return 0.0
-        self._moved.zero_()
-        n = len(self.local_index)
+            return
         wp.launch(
             moved_kernel,
-            dim=n,
+            dim=len(self.local_index),
             inputs=[self._views[0], self.axis, self._x0, self._mine],
             outputs=[self._moved],
             device=self.device,
         )
-        return float(self._moved.numpy()[0])
 
     def _allreduce(self, value, how):
         comm = self.comm
