@@ -47,6 +47,7 @@ def main():
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--precision", default="float32")
     ap.add_argument("--baseline", action="store_true", help="also time a plain Simulation (one rank only)")
+    ap.add_argument("--split", action="store_true", help="synchronise after each step's kernels to split the time")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     wp.config.quiet = True
@@ -60,6 +61,7 @@ def main():
     device = device_for_rank(args.device if args.device != "cuda" else "cuda:0", comm)
     t0 = time.perf_counter()
     ds = DistributedSimulation(scene, device=device, comm=comm)
+    ds.sync_timers = args.split
     build = time.perf_counter() - t0
     ds.step(args.warmup)
     wp.synchronize()

@@ -130,7 +130,9 @@ class DistributedSimulation:
             chunks stepped again (an overflow somewhere, or a body past the margin).
         timers: seconds spent per part of the step on this rank: ``compute`` (the local
             simulation's steps), ``exchange`` (packing, sending and unpacking ghosts), ``wait``
-            (waiting for the other ranks at the step's agreement), ``partition``.
+            (waiting for the other ranks at the step's agreement), ``partition``. On a GPU the launches
+            are asynchronous: ``compute`` is the host's launch time and ``exchange`` includes waiting for
+            the step's kernels, unless ``sync_timers`` is set (a synchronisation after each step's kernels).
     """
 
     def __init__(self, scene, device=None, comm=None, *, margin=None, skin=None, use_graph=None, root=0, chunk=CHUNK):
@@ -175,6 +177,7 @@ class DistributedSimulation:
             raise ValueError(f"chunk must be >= 1 step, got {chunk!r}")
         self._good = None
         self.redone = 0
+        self.sync_timers = False
         self.sim = None
         self._initial_partition(pos[:, self.axis])
 
@@ -474,6 +477,8 @@ class DistributedSimulation:
                         sim._run_chunk(1)
                     except Exception as exc:  # the others must hear of it at the agreement, not wait forever
                         error = f"rank {self.rank}: {type(exc).__name__}: {exc}"
+                if self.sync_timers and sim is not None:
+                    wp.synchronize_device(self.device)  # so that compute holds the step's kernels, not their launch
                 t2 = time.perf_counter()
                 self._exchange()
                 self._track_move()
