@@ -772,6 +772,34 @@ class Simulation:
             stacklevel=3,
         )
 
+    def advance(self, steps):
+        """Run ``steps`` steps with no host check, copy or redo (one CUDA graph launch each on a GPU).
+
+        For callers that check for themselves what :meth:`step` checks after each chunk (the overflow
+        flags of ``stepper`` and ``current_contacts``, the first non-finite step) and keep their own
+        copy to go back to: a decomposed run (:mod:`polydem.distributed`) does, once per chunk of all
+        its ranks. Does not count the steps (``steps_done``, ``time``): the caller sets them.
+        """
+        self._run_chunk(int(steps))
+
+    def forget_diagnostics(self):
+        """Drop the contact diagnostics computed at this step (after the state was changed from outside)."""
+        self._diag_cache = None
+
+    def diagnostics(self):
+        """The per-pair and per-wall diagnostics of the current step (what :meth:`energy` and
+        :meth:`contacts` read): host arrays by name, ``pair_*`` (candidate pairs, in pair-list order)
+        and ``plane_*`` (bodies x walls)."""
+        return self._diagnostics()
+
+    def nonfinite_error(self, bad):
+        """The :class:`SimulationError` that reports a state that became non-finite at step ``bad``."""
+        try:
+            self._report_nonfinite(bad)
+        except SimulationError as exc:
+            return exc
+        return None
+
     def _report_nonfinite(self, bad):
         st = self.state()
         rows = ~np.isfinite(

@@ -474,7 +474,7 @@ class DistributedSimulation:
                 t1 = time.perf_counter()
                 if sim is not None and not error:
                     try:
-                        sim._run_chunk(1)
+                        sim.advance(1)
                     except Exception as exc:  # the others must hear of it at the agreement, not wait forever
                         error = f"rank {self.rank}: {type(exc).__name__}: {exc}"
                 if self.sync_timers and sim is not None:
@@ -536,12 +536,15 @@ class DistributedSimulation:
         sim = self.sim
         if sim is None or sim.stepper.first_bad_step() is None:
             return ""
-        try:
-            sim._report_nonfinite(sim.stepper.first_bad_step())
-        except SimulationError as exc:
-            # Local body indices in the message: name them by their global index.
-            return f"rank {self.rank} (global bodies = local_index[local]): {exc}"
-        return ""
+        bad = sim.stepper.first_bad_step()
+        st = sim.state()
+        rows = ~np.isfinite(np.hstack([st[k] for k in ("body_position", "body_velocity", "body_angular_velocity")]))
+        bodies = self.local_index[rows.any(axis=1)]
+        return (
+            f"rank {self.rank}: the state became non-finite at step {bad} (t = {bad * self.dt:.6g} s); bodies "
+            f"{bodies[:20].tolist()}{' ...' if len(bodies) > 20 else ''}. Check the time step (dt = {self.dt:.3g} s), "
+            "the stiffness and the initial overlaps."
+        )
 
     def _exchange(self):
         """Send the new poses and velocities of my bodies that are ghosts elsewhere; take my ghosts' from
@@ -568,7 +571,7 @@ class DistributedSimulation:
             if host is not rows:
                 wp.copy(rows, host)
             wp.launch(unpack_kernel, dim=index.shape[0], inputs=[rows, index], outputs=[*self._views], device=dev)
-        self.sim._diag_cache = None
+        self.sim.forget_diagnostics()
 
     def _track_move(self):
         """Raise ``_moved`` (device) to the largest move along the axis of a free body of mine since the
@@ -664,7 +667,7 @@ class DistributedSimulation:
             )
             own = self.owned
             free = own & (m.body_flags_np == 0)
-            d = sim._diagnostics()
+            d = sim.diagnostics()
             count = len(d["pair_energy"])
             pa = sim.current_contacts.broadphase.pair_a.numpy()[:count]
             pb = sim.current_contacts.broadphase.pair_b.numpy()[:count]
