@@ -792,14 +792,6 @@ class Simulation:
         and ``plane_*`` (bodies x walls)."""
         return self._diagnostics()
 
-    def nonfinite_error(self, bad):
-        """The :class:`SimulationError` that reports a state that became non-finite at step ``bad``."""
-        try:
-            self._report_nonfinite(bad)
-        except SimulationError as exc:
-            return exc
-        return None
-
     def _report_nonfinite(self, bad):
         st = self.state()
         rows = ~np.isfinite(
