@@ -140,3 +140,16 @@ def test_command_on_two_ranks_writes_the_undivided_run(tmp_path):
     for k in fields:
         np.testing.assert_array_equal(straight[k], from_two[k], err_msg=k)
         np.testing.assert_array_equal(straight[k], from_one[k], err_msg=k)
+
+
+@needs_mpi
+def test_an_error_on_one_rank_stops_every_rank(tmp_path):
+    """Only rank 0 checks the output folder: its error must end the run on every rank, not leave the
+    others waiting (exit code 2 from MPI_Abort, one line naming the rank)."""
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("x")
+    scene = str(HERE.parent / "scenes" / "default.toml")
+    cmd = [_mpiexec(), "-n", "2", sys.executable, "-m", "polydem", "run", scene, "--out", str(not_a_folder)]
+    done = subprocess.run(cmd + ["--device", "cpu", "-q"], capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0
+    assert "polydem: error: rank 0 of 2:" in done.stderr and "output folder is a file" in done.stderr

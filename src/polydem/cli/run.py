@@ -313,6 +313,10 @@ def _output_folder(args, scene) -> Path:
 
 
 def cmd_run(args) -> int:
+    from polydem.distributed.comm import launched_size
+
+    if launched_size() > 1:
+        return _cmd_run_decomposed(args)
     warp()
     signals.check()
     resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
@@ -327,34 +331,57 @@ def cmd_run(args) -> int:
     criterion = _settle_criterion(args, scene)
     signals.check()
 
-    from polydem.distributed import launched_size
-
-    if launched_size() > 1:
-        return _run_decomposed(args, scene, dev, out_dir, resume, checkpoint, criterion)
     from polydem.simulation import Simulation
 
     sim = Simulation(scene, device=dev)
     return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
 
 
-def _run_decomposed(args, scene, dev, out_dir, resume, checkpoint, criterion) -> int:
+def _cmd_run_decomposed(args) -> int:
     """``mpiexec -n R polydem run``: rank 0 runs the command on a RootSimulation, the others follow it
-    (:mod:`polydem.distributed.root`)."""
+    (:mod:`polydem.distributed.root`).
+
+    MPI starts first, before anything can fail on one rank alone: an error on some rank before the run
+    (or a rank failing while the others wait for it) prints its message and aborts every rank, where
+    it would otherwise leave the others waiting for ever. Only rank 0 checks and writes the outputs.
+    """
     import warnings
 
     from polydem.distributed import DistributedSimulation, world
     from polydem.distributed.root import RootSimulation, device_for_rank, serve
 
+    warp()
+    signals.check()
     try:
         comm = world()
-    except RuntimeError as exc:
+    except RuntimeError as exc:  # no mpi4py: every rank fails alike, before MPI
         raise CliError(str(exc), key=None) from None
-    ds = DistributedSimulation(scene, device=device_for_rank(dev, comm), comm=comm)
-    if ds.rank != ds.root:
+    root = comm.Get_rank() == 0
+    if not root:
         warnings.simplefilter("ignore")  # rank 0 says it once
-        serve(ds)
+    try:
+        resume, checkpoint = _checkpoint_to_resume(args)
+        scene = load_scene(args.scene)
+        if args.precision is not None:
+            scene.precision = args.precision
+        dev = device(args.device) if args.device is not None else None
+        if dev is None and scene.device is not None:
+            dev = device(scene.device, file=scene.file, key="simulation.device")
+        out_dir = None
+        if root:
+            out_dir = _output_folder(args, scene)
+            check_outputs(args, scene, out_dir)
+        criterion = _settle_criterion(args, scene)
+        ds = DistributedSimulation(scene, device=device_for_rank(dev, comm), comm=comm)
+    except Exception as exc:
+        _abort(comm, exc)
+    if not root:
+        try:
+            serve(ds)
+        except Exception as exc:
+            _abort(comm, exc)
         return EXIT_OK
-    sim = RootSimulation(ds)
+    sim = RootSimulation(ds, on_error=lambda exc: _abort(comm, exc))
     try:
         owned, _ = sim.balance()
         sys.stdout.write(
@@ -364,6 +391,18 @@ def _run_decomposed(args, scene, dev, out_dir, resume, checkpoint, criterion) ->
         return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
     finally:
         sim.stop()
+
+
+def _abort(comm, exc):
+    """Print ``exc`` as this rank's error and abort every rank (MPI_Abort, exit code 2)."""
+    message = (
+        str(exc)
+        if isinstance(exc, CliError) or type(exc).__name__ == "SceneError"
+        else (f"{type(exc).__name__}: {exc}")
+    )
+    sys.stderr.write(f"polydem: error: rank {comm.Get_rank()} of {comm.Get_size()}: {message}\n")
+    sys.stderr.flush()
+    comm.Abort(2)
 
 
 def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:

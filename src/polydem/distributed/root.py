@@ -57,7 +57,7 @@ class RootSimulation:
     """Rank 0's view of a decomposed run, with the interface of :class:`~polydem.Simulation` that
     ``polydem run`` uses. Every method that touches the state runs on all ranks (see the module)."""
 
-    def __init__(self, ds: DistributedSimulation):
+    def __init__(self, ds: DistributedSimulation, on_error=None):
         if ds.rank != ds.root:
             raise ValueError("RootSimulation runs on the root rank; the others call serve()")
         self.ds = ds
@@ -68,6 +68,8 @@ class RootSimulation:
         self.model = Model(ds.scene, ds.device, validate=False)
         self._consistent = True
         self._cache = None
+        # What to do when a collective method fails on the root alone (the others would wait inside it).
+        self._on_error = on_error
 
     @property
     def steps_done(self):
@@ -79,7 +81,14 @@ class RootSimulation:
 
     def _call(self, name, *args):
         self.ds.comm.bcast((name, args), root=self.ds.root)
-        return getattr(self.ds, name)(*args)
+        try:
+            return getattr(self.ds, name)(*args)
+        except DistributedError:
+            raise  # raised on every rank: the ranks are still in step
+        except Exception as exc:
+            if self._on_error is None:
+                raise
+            self._on_error(exc)
 
     def _saved(self):
         if self._cache is None or self._cache[0] != self.ds.steps_done:
