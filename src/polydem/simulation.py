@@ -926,22 +926,35 @@ class Simulation:
             "body_angular_velocity": st.body_w.numpy().astype(np.float64),
         }
 
-    def energy(self):
+    def energy(self, bodies=None, pairs=None):
         """Energies [J]: ``kinetic``, ``contact`` (W(V) summed over contacts, plus the friction
         springs), ``gravity`` (-sum m g.x over free bodies), ``dissipated`` (by damping and friction
-        so far), and ``total`` (their sum, constant up to the integrator's error)."""
+        so far), and ``total`` (their sum, constant up to the integrator's error).
+
+        ``bodies`` ((N,) bool) counts only those bodies (their kinetic, gravitational and dissipated
+        energy and their wall contacts) and ``pairs`` ((C,) bool over the candidate pairs, in pair-list
+        order) only those pairs' contacts: a rank of a decomposed run books its own share so.
+        """
         m = self.model
         st = self.current_state
-        lin, ang = self.stepper.kinetic_energy(st)
         d = self._diagnostics()
-        contact = float(np.sum(d["pair_energy"], dtype=np.float64))
+        keep = np.ones(self.num_bodies, dtype=bool) if bodies is None else np.asarray(bodies, dtype=bool)
+        pair_energy = d["pair_energy"] if pairs is None else d["pair_energy"][np.asarray(pairs, dtype=bool)]
+        contact = float(np.sum(pair_energy, dtype=np.float64))
         if m.num_walls:
-            contact += float(np.sum(d["plane_energy"], dtype=np.float64))
-        free = m.body_flags_np == 0
+            contact += float(np.sum(d["plane_energy"][keep], dtype=np.float64))
+        free = (m.body_flags_np == 0) & keep
         x = st.body_q.numpy()[:, :3].astype(np.float64)
         grav = -float(np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity)))
-        kin = float(lin + ang)
-        diss = float(np.sum(st.body_dissipated.numpy(), dtype=np.float64))
+        if bodies is None:
+            lin, ang = self.stepper.kinetic_energy(st)
+            kin = float(lin + ang)
+        else:
+            lin, ang = kinetic_energy(
+                m.body_inv_mass, m.body_inertia, m.body_flags, st.body_q, st.body_v, st.body_w, device=self.device
+            )
+            kin = float(np.sum(lin.numpy()[keep], dtype=np.float64) + np.sum(ang.numpy()[keep], dtype=np.float64))
+        diss = float(np.sum(st.body_dissipated.numpy()[keep], dtype=np.float64))
         return {
             "kinetic": kin,
             "contact": contact,

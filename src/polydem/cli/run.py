@@ -319,13 +319,7 @@ def cmd_run(args) -> int:
         return _cmd_run_decomposed(args)
     warp()
     signals.check()
-    resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
-    scene = load_scene(args.scene)
-    if args.precision is not None:
-        scene.precision = args.precision
-    dev = device(args.device) if args.device is not None else None
-    if dev is None and scene.device is not None:
-        dev = device(scene.device, file=scene.file, key="simulation.device")
+    resume, checkpoint, scene, dev = _load(args)
     out_dir = _output_folder(args, scene)
     check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
     criterion = _settle_criterion(args, scene)
@@ -335,6 +329,18 @@ def cmd_run(args) -> int:
 
     sim = Simulation(scene, device=dev)
     return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
+
+
+def _load(args):
+    """The checkpoint to resume (path and contents, or None), the scene with the options applied, and the device."""
+    resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
+    scene = load_scene(args.scene)
+    if args.precision is not None:
+        scene.precision = args.precision
+    dev = device(args.device) if args.device is not None else None
+    if dev is None and scene.device is not None:
+        dev = device(scene.device, file=scene.file, key="simulation.device")
+    return resume, checkpoint, scene, dev
 
 
 def _cmd_run_decomposed(args) -> int:
@@ -360,13 +366,7 @@ def _cmd_run_decomposed(args) -> int:
     if not root:
         warnings.simplefilter("ignore")  # rank 0 says it once
     try:
-        resume, checkpoint = _checkpoint_to_resume(args)
-        scene = load_scene(args.scene)
-        if args.precision is not None:
-            scene.precision = args.precision
-        dev = device(args.device) if args.device is not None else None
-        if dev is None and scene.device is not None:
-            dev = device(scene.device, file=scene.file, key="simulation.device")
+        resume, checkpoint, scene, dev = _load(args)
         out_dir = None
         if root:
             out_dir = _output_folder(args, scene)

@@ -657,36 +657,20 @@ class DistributedSimulation:
         return {k: v[order] for k, v in out.items()}
 
     def energy(self):
-        """The energies of :meth:`Simulation.energy`, summed over the ranks (on every rank)."""
+        """The energies of :meth:`Simulation.energy`, summed over the ranks (on every rank): each rank
+        books its own bodies and the pairs it owns."""
+        keys = ("kinetic", "contact", "gravity", "dissipated")
         parts = np.zeros(4)
         if self.sim is not None:
-            sim, m = self.sim, self.sim.model
-            st = sim.current_state
-            lin, ang = kinetic_energy(
-                m.body_inv_mass, m.body_inertia, m.body_flags, st.body_q, st.body_v, st.body_w, device=sim.device
-            )
-            own = self.owned
-            free = own & (m.body_flags_np == 0)
-            d = sim.diagnostics()
-            count = len(d["pair_energy"])
-            pa = sim.current_contacts.broadphase.pair_a.numpy()[:count]
-            pb = sim.current_contacts.broadphase.pair_b.numpy()[:count]
-            contact = np.sum(d["pair_energy"][self._pair_is_mine(pa, pb)], dtype=np.float64)
-            if m.num_walls:
-                contact += np.sum(d["plane_energy"][own], dtype=np.float64)
-            x = st.body_q.numpy()[:, :3].astype(np.float64)
-            grav = -np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity))
-            kin = np.sum(lin.numpy()[own], dtype=np.float64) + np.sum(ang.numpy()[own], dtype=np.float64)
-            diss = np.sum(st.body_dissipated.numpy()[own], dtype=np.float64)
-            parts = np.array([kin, contact, grav, diss])
-        kin, contact, grav, diss = self._allreduce(parts, "sum").tolist()
-        return {
-            "kinetic": kin,
-            "contact": contact,
-            "gravity": grav,
-            "dissipated": diss,
-            "total": kin + contact + grav + diss,
-        }
+            bp = self.sim.current_contacts.broadphase
+            count = len(self.sim.diagnostics()["pair_energy"])
+            mine = self._pair_is_mine(bp.pair_a.numpy()[:count], bp.pair_b.numpy()[:count])
+            e = self.sim.energy(bodies=self.owned, pairs=mine)
+            parts = np.array([e[k] for k in keys])
+        total = self._allreduce(parts, "sum").tolist()
+        out = dict(zip(keys, total, strict=True))
+        out["total"] = sum(total)
+        return out
 
     def settle_measures(self):
         """(kinetic energy [J], gravitational energy [J], largest speed [m/s]) of the free bodies, as
