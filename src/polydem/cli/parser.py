@@ -160,6 +160,12 @@ interruption and resuming:
   summary of a resumed run covers the whole run from t = 0 ("parts": which steps and frames each
   part wrote, and where).
 
+several processes: mpiexec -n R polydem run SCENE (pip install "polydem[mpi]") steps the scene over R
+ranks, one GPU each (the CPU with --device cpu), each owning a slab of the pile; rank 0 prints and
+writes the outputs, of the whole scene, as one process would: the same results bit for bit, and
+checkpoints that resume on any number of ranks. An error on one rank ends them all; Ctrl-C stops
+them after the steps under way (README.md, "Several processes and GPUs").
+
 exit codes: 0 done; 1 the simulation failed or an output could not be written (the other outputs
 written), or an internal error; 2 a user error (bad option, scene or checkpoint: one message
 naming the file, the key and the fix); 130 Ctrl-C (SIGINT); 143 SIGTERM.

@@ -376,6 +376,12 @@ def _cmd_run_decomposed(args) -> int:
     except Exception as exc:
         _abort(comm, exc)
     if not root:
+        # Ctrl-C and SIGTERM reach every rank: rank 0 decides (it stops after the steps under way and
+        # writes the outputs with the others' help); a follower that died of them would leave it waiting.
+        import signal
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         try:
             serve(ds)
         except Exception as exc:
