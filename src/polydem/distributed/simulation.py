@@ -230,18 +230,24 @@ class DistributedSimulation:
     def _initial_partition(self, x_all):
         """At the start every rank has every body's position: the partition needs no messages
         beyond the histogram's sums (each rank histograms the bodies it would own by index)."""
-        n = self.num_bodies
-        share = np.array_split(np.arange(n), self.size)[self.rank]
-        self.cuts = self._histogram(x_all[share])
-        owner = partition.owner(x_all, self.cuts)
-        held = self._holders(x_all, np.arange(n))[:, self.rank]
-        index = np.flatnonzero(held)
+        index, owner = self._partition_all(x_all)
         self._set_local(index, owner[index] == self.rank, owner[index], x_all[index])
         if self.sim is not None:
             # The reference radius applies from the first build on: rebuild the pairs with it.
             st = self.sim.current_state
             self.sim.restore_from_arrays({**st.numpy(), **_empty_history(self.sim)}, self.steps_done, self.time)
         self.partitions += 1
+
+    def _partition_all(self, x_all):
+        """Cut the slabs from every body's coordinate ``x_all`` (known to every rank; each histograms an
+        equal share of the bodies, collective); returns this rank's local bodies (global, ascending) and
+        every body's owner."""
+        n = self.num_bodies
+        share = np.array_split(np.arange(n), self.size)[self.rank]
+        self.cuts = self._histogram(x_all[share])
+        owner = partition.owner(x_all, self.cuts)
+        index = np.flatnonzero(self._holders(x_all, np.arange(n))[:, self.rank])
+        return index, owner
 
     def _set_local(self, index, owned, owner, x, rows=None, history=None, mesh_q=None):
         """Make ``index`` (global, ascending) this rank's local bodies and plan the ghost exchange."""
@@ -385,10 +391,7 @@ class DistributedSimulation:
         self.steps_done, self.time = int(steps_done), float(time)
         n = self.num_bodies
         x_all = np.asarray(arrays["body_q"])[:, self.axis].astype(np.float64)
-        share = np.array_split(np.arange(n), self.size)[self.rank]
-        self.cuts = self._histogram(x_all[share])
-        owner = partition.owner(x_all, self.cuts)
-        index = np.flatnonzero(self._holders(x_all, np.arange(n))[:, self.rank])
+        index, owner = self._partition_all(x_all)
         fields = ["body_q", "body_v", "body_w", "body_dissipated", "plane_turn"]
         if np.asarray(arrays["plane_xi"]).shape[0] == n and np.asarray(arrays["plane_turn"]).shape[0] == n:
             fields.append("plane_xi")
