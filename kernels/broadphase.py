@@ -770,8 +770,9 @@ class BroadPhase:
         dev = self.device
         inv_log = 0.0 if np.isinf(self.class_ratio) else 1.0 / float(np.log(self.class_ratio))
         wp.launch(reset_classes_kernel, dim=1, outputs=[self.radius_min, self.class_max], device=dev)
-        wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags], outputs=[self.radius_min], device=dev)
-        if self.radius_ref is not None:
+        if self.radius_ref is None:
+            wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags], outputs=[self.radius_min], device=dev)
+        else:
             self.radius_min.fill_(float(self.radius_ref))
         wp.launch(
             classes_kernel,
