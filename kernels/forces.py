@@ -123,6 +123,7 @@ def _make_contact_kernels(
     transform_s = wp.types.transformation(S)
     resp = make_response(C, law, friction, diagnostics)
     law_energy = resp.law_energy
+    toe_volume = resp.toe_volume
     respond = resp.respond
     geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
     body_geom = make_body_geometry(geom, compound)
@@ -190,7 +191,9 @@ def _make_contact_kernels(
             # contact opens (its force may have ended before, at u = 0); until the step books it,
             # it is still part of the contact's energy.
             e_mat = material_e[mat]
-            kept = (C(1.0) - e_mat * e_mat) * law_energy(pair_turn[p], material_k[mat], law_m)
+            r_min = wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]])
+            vc = toe_volume(material_k[mat], law_m, e_mat, dt, r_min, C(body_inv_mass[a] + body_inv_mass[b]))
+            kept = (C(1.0) - e_mat * e_mat) * law_energy(pair_turn[p], material_k[mat], law_m, vc)
             if wp.static(diagnostics):
                 pair_volume[p] = C(0.0)
                 pair_energy[p] = kept
@@ -320,7 +323,8 @@ def _make_contact_kernels(
                 mat = body_material[i] * num_materials + plane_material[j]
                 if vol <= C(0.0):
                     e_mat = material_e[mat]
-                    kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m)
+                    vc = toe_volume(material_k[mat], law_m, e_mat, dt, shapes.shape_radius[s], C(body_inv_mass[i]))
+                    kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
                     if wp.static(diagnostics):
                         plane_volume[i, j] = C(0.0)
                         plane_energy[i, j] = kept

@@ -50,6 +50,7 @@ def make_mesh_kernels(
     transform_s = wp.types.transformation(S)
     resp = make_response(C, law, friction, diagnostics)
     law_energy = resp.law_energy
+    toe_volume = resp.toe_volume
     respond = resp.respond
     geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
     body_geom = make_body_geometry(geom, compound)
@@ -167,7 +168,8 @@ def make_mesh_kernels(
             mat = body_material[i] * num_materials + mesh_material[m]
             if vol <= C(0.0):
                 e_mat = material_e[mat]
-                kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m)
+                vc = toe_volume(material_k[mat], law_m, e_mat, dt, shapes.shape_radius[s], C(body_inv_mass[i]))
+                kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
                 if wp.static(diagnostics):
                     plane_volume[i, j] = C(0.0)
                     plane_energy[i, j] = kept

@@ -43,6 +43,13 @@ ENCLOSED_MIN_VOLUME = 1.0e-3
 
 LAWS = ("linear", "hertz", "power")
 
+# The resolved toe of the hertz and power laws with m < 2 (see toe_volume): a face of area
+# TOE_AREA r_min^2 (a cube's face is 4/3 r^2, a square plate's 2 r^2) is at most as stiff as a
+# frequency of TOE_OMEGA_DT / dt against the pair's translational mass, on the unloading branch
+# (1 / e^2 stiffer than the loading one).
+TOE_AREA = 2.0
+TOE_OMEGA_DT = 0.5
+
 # What contact_frame found: a regular contact, an enclosed pair (pushed along the fallback area
 # vector) or a sliver (no force).
 REGULAR = 0
@@ -71,6 +78,7 @@ class Response:
     frame: Frame
     law_derivative: Any
     law_energy: Any
+    toe_volume: Any
     branch_pressure: Any
     branch_energy: Any
     respond: Any
@@ -144,25 +152,67 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
     contact_frame = frame.contact_frame
     zero3 = wp.constant(vec3(scalar(0.0), scalar(0.0), scalar(0.0)))
 
+    # The resolved toe (module docstring of polydem.kernels.forces): below V_c a law stiffer than
+    # linear at V = 0 (1 < m < 2, the hertz law among them) continues as W'(V) = a V + b V^2, with W'
+    # and W'' continuous at V_c, so that a face contact is never stiffer than the step resolves.
+    toe_law = wp.static(law == "hertz" or law == "power")
+
     @wp.func
-    def law_derivative(volume: scalar, k: scalar, m: scalar):
+    def toe_volume(k: scalar, m: scalar, e: scalar, dt: scalar, r_min: scalar, inv_mass: scalar):
+        """V_c [m^3] of the resolved toe: the normal stiffness W''(0) A^2 of a face of area A = TOE_AREA
+        r_min^2 (r_min the smaller bounding radius), taken 1/e^2 stiffer on the unloading branch, meets the
+        pair's mass at TOE_OMEGA_DT / dt. A constant of the pair, so that W stays a function of V alone
+        and the step's energy books stay exact. 0 (no toe) for a law without a singular stiffness,
+        without a step (the batch API) or without mass."""
+        vc = scalar(0.0)
+        if wp.static(toe_law):
+            if m < scalar(2.0) and dt > scalar(0.0) and inv_mass > scalar(0.0) and k > scalar(0.0):
+                area = scalar(TOE_AREA) * r_min * r_min
+                # (3 - m) k V_c^(m - 2) area^2 dt^2 inv_mass / e^2 = TOE_OMEGA_DT^2, in logs (float32 range)
+                ln_x = (
+                    wp.log((scalar(3.0) - m) * k)
+                    + scalar(2.0) * wp.log(area * dt)
+                    + wp.log(inv_mass)
+                    - scalar(2.0) * wp.log(wp.max(e, scalar(1.0e-3)) * scalar(TOE_OMEGA_DT))
+                )
+                # Never beyond the smaller body's bounding cube: past it the toe would be the law.
+                vc = wp.exp(wp.min(ln_x / (scalar(2.0) - m), scalar(3.0) * wp.log(r_min)))
+        return vc
+
+    @wp.func
+    def law_derivative(volume: scalar, k: scalar, m: scalar, vc: scalar):
         # W'(V) [Pa]
         if wp.static(law == "linear"):
             return k
-        elif wp.static(law == "hertz"):
-            return k * wp.sqrt(volume)
         else:
-            return k * wp.pow(volume, m - scalar(1.0))
+            if volume < vc:
+                # a V + b V^2 with a = (3 - m) k V_c^(m - 2), b = (m - 2) k V_c^(m - 3)
+                x = volume / vc
+                return k * wp.pow(vc, m - scalar(1.0)) * x * ((scalar(3.0) - m) + (m - scalar(2.0)) * x)
+            if wp.static(law == "hertz"):
+                return k * wp.sqrt(volume)
+            else:
+                return k * wp.pow(volume, m - scalar(1.0))
 
     @wp.func
-    def law_energy(volume: scalar, k: scalar, m: scalar):
+    def law_energy(volume: scalar, k: scalar, m: scalar, vc: scalar):
         # W(V) [J]
         if wp.static(law == "linear"):
             return k * volume
-        elif wp.static(law == "hertz"):
-            return (scalar(2.0) / scalar(3.0)) * k * volume * wp.sqrt(volume)
         else:
-            return k * wp.pow(volume, m) / m
+            if volume < vc:
+                x = volume / vc
+                return (
+                    k * wp.pow(vc, m) * x * x * ((scalar(3.0) - m) / scalar(2.0) + (m - scalar(2.0)) / scalar(3.0) * x)
+                )
+            # The law's W, less what the toe stores below V_c than the law does: continuous at V_c.
+            offset = scalar(0.0)
+            if vc > scalar(0.0):
+                offset = k * wp.pow(vc, m) * ((scalar(5.0) - m) / scalar(6.0) - scalar(1.0) / m)
+            if wp.static(law == "hertz"):
+                return (scalar(2.0) / scalar(3.0)) * k * volume * wp.sqrt(volume) + offset
+            else:
+                return k * wp.pow(volume, m) / m + offset
 
     @wp.func
     def elastic_volume(volume: scalar, turn: scalar, e2: scalar):
@@ -170,29 +220,29 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         return turn - (turn - volume) / e2
 
     @wp.func
-    def branch_pressure(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar):
+    def branch_pressure(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar, vc: scalar):
         # dE/dV on the branch of (V, turn) [Pa]: W'(V) loading, W'(u) unloading, 0 once u <= 0.
         p = scalar(0.0)
         if volume >= turn:
-            p = law_derivative(volume, k, m)
+            p = law_derivative(volume, k, m, vc)
         else:
             u = elastic_volume(volume, turn, e2)
             if u > scalar(0.0):
-                p = law_derivative(u, k, m)
+                p = law_derivative(u, k, m, vc)
         return p
 
     @wp.func
-    def branch_energy(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar):
+    def branch_energy(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar, vc: scalar):
         # E(V; turn) [J]: W(V) loading; unloading, (1 - e^2) W(turn) + e^2 W(u) (what is left to
         # return plus what will never come back), so that -dE/dV is the branch's pressure.
         en = scalar(0.0)
         if volume >= turn:
-            en = law_energy(volume, k, m)
+            en = law_energy(volume, k, m, vc)
         else:
-            en = (scalar(1.0) - e2) * law_energy(turn, k, m)
+            en = (scalar(1.0) - e2) * law_energy(turn, k, m, vc)
             u = elastic_volume(volume, turn, e2)
             if u > scalar(0.0):
-                en += e2 * law_energy(u, k, m)
+                en += e2 * law_energy(u, k, m, vc)
         return en
 
     @wp.func
@@ -232,6 +282,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         unit normal, contact point relative to x_A, normal force magnitude, tangential force).
         """
         e2 = e * e
+        vc = toe_volume(k, m, e, dt, r_min, inv_mass)
         if e2 >= scalar(1.0):
             turn = scalar(0.0)
         kind, n, point, s, mom, s_norm = contact_frame(volume, first_moment, area, moment, fallback, r_ab, r_min)
@@ -239,7 +290,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             lost0 = scalar(0.0)
             if wp.static(friction):
                 lost0 = scalar(0.5) * kt * wp.dot(xi, xi)
-            en0 = branch_energy(volume, turn, k, m, e2)
+            en0 = branch_energy(volume, turn, k, m, e2, vc)
             return zero3, zero3, zero3, turn, en0, lost0, n, point, scalar(0.0), zero3
 
         dvdt = wp.dot(s, v_a - v_b) + wp.dot(mom, w_a) + wp.dot(wp.cross(r_ab, s) - mom, w_b)
@@ -252,12 +303,12 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             if e2 < scalar(1.0) and (dvdt >= scalar(0.0) or volume >= turn):
                 turn_new = volume
                 if volume < turn:
-                    lost = branch_energy(volume, turn, k, m, e2) - law_energy(volume, k, m)
-        wd = branch_pressure(volume, turn_new, k, m, e2)
+                    lost = branch_energy(volume, turn, k, m, e2, vc) - law_energy(volume, k, m, vc)
+        wd = branch_pressure(volume, turn_new, k, m, e2, vc)
         fn = wd * s_norm
         force = -wd * s
         torque = -wd * mom
-        energy = branch_energy(volume, turn_new, k, m, e2)
+        energy = branch_energy(volume, turn_new, k, m, e2, vc)
         ft = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         xi_new = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         if wp.static(friction):
@@ -321,6 +372,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         frame=frame,
         law_derivative=law_derivative,
         law_energy=law_energy,
+        toe_volume=toe_volume,
         branch_pressure=branch_pressure,
         branch_energy=branch_energy,
         respond=respond,
