@@ -192,7 +192,8 @@ def _make_contact_kernels(
             # it is still part of the contact's energy.
             e_mat = material_e[mat]
             r_min = wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]])
-            vc = toe_volume(material_k[mat], law_m, e_mat, dt, r_min, C(body_inv_mass[a] + body_inv_mass[b]))
+            area = wp.min(shapes.shape_face_area[body_shape[a]], shapes.shape_face_area[body_shape[b]])
+            vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, r_min, C(body_inv_mass[a] + body_inv_mass[b]))
             kept = (C(1.0) - e_mat * e_mat) * law_energy(pair_turn[p], material_k[mat], law_m, vc)
             if wp.static(diagnostics):
                 pair_volume[p] = C(0.0)
@@ -220,6 +221,7 @@ def _make_contact_kernels(
             vec3c(body_v[a]), vec3c(body_w[a]), vec3c(body_v[b]), vec3c(body_w[b]),
             material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], dt,
             wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]]),
+            wp.min(shapes.shape_face_area[body_shape[a]], shapes.shape_face_area[body_shape[b]]),
             C(body_inv_mass[a] + body_inv_mass[b]),
         )  # fmt: skip
         if wp.static(diagnostics):
@@ -323,7 +325,8 @@ def _make_contact_kernels(
                 mat = body_material[i] * num_materials + plane_material[j]
                 if vol <= C(0.0):
                     e_mat = material_e[mat]
-                    vc = toe_volume(material_k[mat], law_m, e_mat, dt, shapes.shape_radius[s], C(body_inv_mass[i]))
+                    area = shapes.shape_face_area[s]
+                    vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, shapes.shape_radius[s], C(body_inv_mass[i]))
                     kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
                     if wp.static(diagnostics):
                         plane_volume[i, j] = C(0.0)
@@ -346,7 +349,7 @@ def _make_contact_kernels(
                     vol, first_moment, s_a, m_a, fb_a, -vec3c(pn), vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3,
                     material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
                     plane_turn[i, j], dt,
-                    shapes.shape_radius[s], C(body_inv_mass[i]),
+                    shapes.shape_radius[s], shapes.shape_face_area[s], C(body_inv_mass[i]),
                 )  # fmt: skip
                 if wp.static(diagnostics):
                     plane_volume[i, j] = vol

@@ -101,6 +101,9 @@ def shapes_struct(scalar):
         "shape_vert_start": wp.array(dtype=int),
         "shape_face_start": wp.array(dtype=int),
         "shape_radius": wp.array(dtype=scalar),
+        # The largest face area of each shape (of its parts for a compound grain) [m^2]: the face
+        # contact whose stiffness the resolved toe bounds (kernels/response.py, toe_volume).
+        "shape_face_area": wp.array(dtype=scalar),
         "face_plane": wp.array(dtype=vec4),
         "face_sphere": wp.array(dtype=vec4),
         "face_loop_start": wp.array(dtype=int),

@@ -168,7 +168,8 @@ def make_mesh_kernels(
             mat = body_material[i] * num_materials + mesh_material[m]
             if vol <= C(0.0):
                 e_mat = material_e[mat]
-                vc = toe_volume(material_k[mat], law_m, e_mat, dt, shapes.shape_radius[s], C(body_inv_mass[i]))
+                area = shapes.shape_face_area[s]
+                vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, shapes.shape_radius[s], C(body_inv_mass[i]))
                 kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
                 if wp.static(diagnostics):
                     plane_volume[i, j] = C(0.0)
@@ -194,7 +195,7 @@ def make_mesh_kernels(
                 vec3c(body_v[i]), vec3c(body_w[i]), vec3c(mesh_v[m]), vec3c(mesh_w[m]),
                 material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
                 plane_turn[i, j], dt,
-                shapes.shape_radius[s], C(body_inv_mass[i]),
+                shapes.shape_radius[s], shapes.shape_face_area[s], C(body_inv_mass[i]),
             )  # fmt: skip
             if wp.static(diagnostics):
                 plane_volume[i, j] = vol

@@ -43,12 +43,16 @@ ENCLOSED_MIN_VOLUME = 1.0e-3
 
 LAWS = ("linear", "hertz", "power")
 
-# The resolved toe of the hertz and power laws with m < 2 (see toe_volume): a face of area
-# TOE_AREA r_min^2 (a cube's face is 4/3 r^2, a square plate's 2 r^2) is at most as stiff as a
-# frequency of TOE_OMEGA_DT / dt against the pair's translational mass, on the unloading branch
-# (1 / e^2 stiffer than the loading one).
-TOE_AREA = 2.0
-TOE_OMEGA_DT = 0.5
+# The resolved toe of the hertz and power laws with m < 2 (see toe_volume): a face contact is at
+# most as stiff as a frequency of TOE_OMEGA_DT / dt against the pair's translational mass, on the
+# unloading branch (1 / e^2 stiffer than the loading one). Symplectic Euler is stable below 2; a
+# face contact of one degree of freedom rests for every restitution up to 1.5.
+TOE_OMEGA_DT = 1.0
+
+# The friction spring's twist channel (respond): the lever of the twist, as a fraction of the radius
+# sqrt(|S_A| / pi) of a disc of the contact's area: 2/3, Coulomb's friction torque over a disc under
+# a uniform pressure, mu F_n (2/3) R.
+TWIST_LEVER = 2.0 / 3.0
 
 # What contact_frame found: a regular contact, an enclosed pair (pushed along the fallback area
 # vector) or a sliver (no force).
@@ -158,16 +162,22 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
     toe_law = wp.static(law == "hertz" or law == "power")
 
     @wp.func
-    def toe_volume(k: scalar, m: scalar, e: scalar, dt: scalar, r_min: scalar, inv_mass: scalar):
-        """V_c [m^3] of the resolved toe: the normal stiffness W''(0) A^2 of a face of area A = TOE_AREA
-        r_min^2 (r_min the smaller bounding radius), taken 1/e^2 stiffer on the unloading branch, meets the
-        pair's mass at TOE_OMEGA_DT / dt. A constant of the pair, so that W stays a function of V alone
-        and the step's energy books stay exact. 0 (no toe) for a law without a singular stiffness,
-        without a step (the batch API) or without mass."""
+    def toe_volume(k: scalar, m: scalar, e: scalar, dt: scalar, area: scalar, r_min: scalar, inv_mass: scalar):
+        """V_c [m^3] of the resolved toe: the normal stiffness W''(0) A^2 of a face of area ``area`` (the
+        smaller of the two bodies' largest faces), taken 1/e^2 stiffer on the unloading branch, meets the
+        pair's translational mass (1 / ``inv_mass``) at a frequency of TOE_OMEGA_DT / dt. A constant of the
+        pair, so that W stays a function of V alone and the step's energy books stay exact; at most the
+        smaller bounding cube r_min^3. 0 (no toe) for a law without a singular stiffness, without a step
+        (the batch API) or without mass."""
         vc = scalar(0.0)
         if wp.static(toe_law):
-            if m < scalar(2.0) and dt > scalar(0.0) and inv_mass > scalar(0.0) and k > scalar(0.0):
-                area = scalar(TOE_AREA) * r_min * r_min
+            if (
+                m < scalar(2.0)
+                and dt > scalar(0.0)
+                and inv_mass > scalar(0.0)
+                and k > scalar(0.0)
+                and area > scalar(0.0)
+            ):
                 # (3 - m) k V_c^(m - 2) area^2 dt^2 inv_mass / e^2 = TOE_OMEGA_DT^2, in logs (float32 range)
                 ln_x = (
                     wp.log((scalar(3.0) - m) * k)
@@ -271,6 +281,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         # Step
         dt: scalar,
         r_min: scalar,
+        face_area: scalar,
         inv_mass: scalar,
     ):
         """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
@@ -282,7 +293,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         unit normal, contact point relative to x_A, normal force magnitude, tangential force).
         """
         e2 = e * e
-        vc = toe_volume(k, m, e, dt, r_min, inv_mass)
+        vc = toe_volume(k, m, e, dt, face_area, r_min, inv_mass)
         if e2 >= scalar(1.0):
             turn = scalar(0.0)
         kind, n, point, s, mom, s_norm = contact_frame(volume, first_moment, area, moment, fallback, r_ab, r_min)
@@ -313,13 +324,22 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         xi_new = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         if wp.static(friction):
             v_rel = v_a + wp.cross(w_a, point) - v_b - wp.cross(w_b, point - r_ab)
-            vt = v_rel - wp.dot(v_rel, n) * n
-            # Turn the spring into the current tangent plane, keeping its length (and its energy).
+            # The spring has three channels: two tangential, and along n the twist, the rim of a disc
+            # of the contact's area (radius r_t, 2/3 of which is the lever of Coulomb's friction over
+            # a disc) turned by the relative spin about n. Without it a face contact has no grip on a
+            # grain that spins about the contact's normal, and a settled pile keeps turning.
+            r_t = scalar(TWIST_LEVER) * wp.sqrt(s_norm / scalar(3.14159265358979))
+            w_n = wp.dot(w_a - w_b, n)
+            vt = v_rel - wp.dot(v_rel, n) * n + (w_n * r_t) * n
+            # Turn the spring's tangential part into the current tangent plane, keeping its whole length
+            # (and its energy); the twist stays along n.
             l0 = wp.length(xi)
-            xt = xi - wp.dot(xi, n) * n
+            tw = wp.dot(xi, n)
+            xt = xi - tw * n
             l1 = wp.length(xt)
             if l1 > scalar(0.0):
-                xt = xt * (l0 / l1)
+                xt = xt * (wp.sqrt(wp.max(l0 * l0 - tw * tw, scalar(0.0))) / l1)
+            xt = xt + tw * n
             # The spring at the current poses: the last step moved the bodies by vt dt (symplectic
             # Euler: x_n = x_(n-1) + v_n dt). Like the normal force it is a function of the poses.
             xt = xt + vt * dt
@@ -360,8 +380,11 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             lost += plastic + damped
             # The contact's energy: the spring, and the slip's loss until the step books it.
             energy += scalar(0.5) * kt * wp.dot(xi_new, xi_new) + plastic
+            # The twist channel's force acts at the rim: a couple about n of that force times r_t.
+            f_tw = wp.dot(ft, n)
+            ft = ft - f_tw * n
             force += ft
-            torque += wp.cross(point, ft)
+            torque += wp.cross(point, ft) + (f_tw * r_t) * n
         return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
 
     return Response(
@@ -469,7 +492,7 @@ def make_force_kernel(scalar, law: str):
             zero3, zero3, zero3, zero3,
             k, m, scalar(1.0), zero, zero,
             zero3, zero,
-            zero, pair_r_min[i], zero,
+            zero, pair_r_min[i], zero, zero,
         )  # fmt: skip
         pair_force[i] = force
         pair_torque_a[i] = torque

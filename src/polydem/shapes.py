@@ -96,6 +96,17 @@ class _HullBuildError(Exception):
     """The polygon hull failed a consistency check at one tolerance (retried with a smaller one)."""
 
 
+def polygon_areas(vertices, faces, normals) -> np.ndarray:
+    """(F,) areas [m^2] of the polygon faces (vertex index loops) of a hull with unit ``normals``."""
+    v = np.asarray(vertices, dtype=np.float64)
+    return np.array(
+        [
+            0.5 * abs(float(np.sum(np.cross(v[f], v[np.roll(f, -1)]), axis=0) @ n))
+            for f, n in zip(faces, np.asarray(normals, dtype=np.float64), strict=True)
+        ]
+    )
+
+
 class ConvexShape:
     """Rigid convex polyhedron in its body frame, with polygon faces.
 
@@ -385,6 +396,11 @@ class ConvexShape:
     def max_face_vertices(self) -> int:
         """Length of the longest face loop."""
         return max(len(f) for f in self.faces)
+
+    @property
+    def face_areas(self) -> np.ndarray:
+        """(F,) area of each face [m^2]."""
+        return polygon_areas(self.vertices, self.faces, self.face_normals)
 
     @property
     def input_rotation(self) -> np.ndarray:

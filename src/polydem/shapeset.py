@@ -4,6 +4,7 @@ import numpy as np
 import warp as wp
 
 from polydem.kernels.geometry import shapes_struct
+from polydem.shapes import polygon_areas
 
 PRECISIONS = {"float32": wp.float32, "float64": wp.float64}
 
@@ -22,6 +23,7 @@ class ShapeSet:
         shape_vert_start: (S+1,) int32, first vertex of each shape in ``vert``.
         shape_face_start: (S+1,) int32, first face of each shape in ``face_plane``.
         shape_radius: (S,) bounding radius about the centroid [m].
+        shape_face_area: (S,) largest face area [m^2] (of a compound grain: the largest of its parts').
         face_plane: (F,) vec4 ``(nx, ny, nz, d)``, outward unit normal and offset, n.x = d [m].
         face_sphere: (F,) vec4 ``(cx, cy, cz, r)``, a sphere around the face's vertices [m].
         face_loop_start: (F+1,) int32, first entry of each face in ``face_loop``.
@@ -44,6 +46,7 @@ class ShapeSet:
         "shape_vert_start",
         "shape_face_start",
         "shape_radius",
+        "shape_face_area",
         "face_plane",
         "face_sphere",
         "face_loop_start",
@@ -117,6 +120,14 @@ class ShapeSet:
         self.shape_vert_start = arr(np.array(vert_start, dtype=np.int32), int)
         self.shape_face_start = arr(np.array(face_start, dtype=np.int32), int)
         self.shape_radius = arr(radii.astype(np_scalar), self.scalar)
+        areas = np.zeros(len(entries))
+        for k, shape in enumerate(entries):
+            if not is_compound(shape):
+                areas[k] = float(np.max(polygon_areas(shape.vertices, shape.faces, shape.face_normals)))
+        for k in range(len(shapes)):
+            parts = part_shape[part_start[k] : part_start[k + 1]]
+            areas[k] = max(areas[k], max((areas[p] for p in parts), default=0.0))
+        self.shape_face_area = arr(areas.astype(np_scalar), self.scalar)
         self.face_plane = arr(np.concatenate(planes).astype(np_scalar), vec4)
         self.face_sphere = arr(spheres.astype(np_scalar), vec4)
         self.face_loop_start = arr(np.array(loop_start, dtype=np.int32), int)
