@@ -53,6 +53,8 @@ TOE_OMEGA_DT = 1.0
 # sqrt(|S_A| / pi) of a disc of the contact's area: 2/3, Coulomb's friction torque over a disc under
 # a uniform pressure, mu F_n (2/3) R.
 TWIST_LEVER = 2.0 / 3.0
+# The rocking damping of a contact (respond) is at most this fraction of mu F_n R, R = sqrt(|S_A| / pi).
+ROLL_FRACTION = 0.1
 
 # What contact_frame found: a regular contact, an enclosed pair (pushed along the fallback area
 # vector) or a sliver (no force).
@@ -385,6 +387,20 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             ft = ft - f_tw * n
             force += ft
             torque += wp.cross(point, ft) + (f_tw * r_t) * n
+            # Rocking damping: the tangential dashpot spread over the contact's disc resists the relative
+            # rotation about tangential axes with ct R^2 / 4, capped at ROLL_FRACTION mu F_n R. The volume
+            # law gives a face no stiffness against a small tilt (V does not change), so a grain rocking or
+            # wobbling on a face (rolling round its rim, V constant) lost nothing and a pile kept moving.
+            r_c = wp.sqrt(s_norm / scalar(3.14159265358979))
+            w_rel = w_a - w_b
+            w_t = w_rel - wp.dot(w_rel, n) * n
+            tr = -(scalar(0.25) * ct * r_c * r_c) * w_t
+            tr_norm = wp.length(tr)
+            cap_r = scalar(ROLL_FRACTION) * cap * r_c
+            if tr_norm > cap_r:
+                tr = tr * (cap_r / tr_norm)
+            torque += tr
+            lost -= wp.dot(tr, w_t) * dt
         return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
 
     return Response(
