@@ -15,11 +15,20 @@ boxes, each of the cube's volume, in random order, the columns spaced for the la
 sphere and each body stacked by its own vertical extent (``--shapes cube``, the default, draws the
 same numbers as before the option existed).
 
-Stiffness: k is such that a face contact carrying ``--load-factor`` times the weight of a whole
-column overlaps by ``--overlap`` (1%) of the cube volume. Edge and corner contacts overlap more
-under the same force, so the load factor (20) was set by measurement: the largest overlap in the
-pile stays near 1% (1000 cubes at rest: 1.1%; up to 1.5-2.5% while settling; reported as
-``max_overlap_volume_fraction``). The time step is the simulator's "auto" one (2.8e-5 s).
+Stiffness (``--k-rule``): ``corner`` (the default) takes the hertz k that keeps every corner of the pile's
+shapes at most ``--corner-depth`` (5%) of the edge deep under the weight of a full column of ``--layers``
+cubes (``polydem.scene.depth.stiffness_for_depth``, the law alone: for the cube
+``k = F / (3 (sqrt(3)/2)^1.5 d^3.5)``, 3.6e10 J/m^4.5). Corners are the soft contacts of the volume model
+(their force grows as depth^3.5), so the corner depth, not the volume overlap, says how far the pile is from
+the rigid limit: 8000 cubes (H100) packed to 0.650, 0.586 and 0.570 at 1, 16 and 64 times the former rule's
+k, whose corners sink 17% of the edge under a column. ``volume``, the former rule, takes the k for which a
+face contact carrying ``--load-factor`` (20) times the weight of a whole column overlaps by ``--overlap``
+(1%) of the cube volume (4.9e8 J/m^4.5; the largest overlap in a pile of 1000 cubes at rest was 1.1% of a
+cube's volume at a corner 23% of the edge deep). ``--k-factor`` multiplies either (a convergence study:
+benchmarks/k_convergence.py). The time step is the simulator's "auto" one, which shrinks as k grows (as
+1/sqrt(k) from the reference contact, as 1/k where the resting rule of ``Scene.time_step`` sets it: 1.6e-5 s
+at the volume rule's k, 3.1e-7 s at the corner rule's). ``--shapes mixed`` takes the k of its sharpest
+corners, the tetrahedra's (2.9e11 J/m^4.5 at 5%).
 
 Walls: ``--walls box`` (default) uses ``Scene.add_box_container``: five fixed box bodies. They go
 through the broad phase like any body, so every cube whose bounding sphere meets a wall's bounding
@@ -28,11 +37,12 @@ the side walls (about 2.6 wall pairs per cube, most of them far from touching).
 ``--walls planes`` uses five infinite planes instead (tested per body in the gather kernel).
 
 Per N: build (scene generation; ``Simulation()``: Model and first broad phase), warm-up (first
-step: kernel compile and CUDA graph capture; then ``--warmup-time``, 0.1 s simulated or about
-3500 steps, of settling so that the timed window sees a pile in contact: about 1.2 grain-grain
-contacts per cube, against 2.7 at rest and almost none in the first steps, which cost a tenth of
-a step in contact), then ``--steps`` timed steps through ``Simulation.step`` (the production path:
-one CUDA graph launch per step on CUDA, the host loop on the CPU). Reported: body-steps per
+step: kernel compile and CUDA graph capture; then ``--warmup-time``, 0.1 s simulated (6300 steps at
+the volume rule's k, 330 000 at the corner rule's: see Stiffness), of settling so that the timed window
+sees a pile in contact: about 1.2 grain-grain contacts per cube (at the volume rule's k), against 2.7 at
+rest and almost none in the first steps, which cost a tenth of a step in contact), then ``--steps``
+timed steps through ``Simulation.step`` (the production path: one CUDA graph launch per step on CUDA,
+the host loop on the CPU). Reported: body-steps per
 second, time per step, candidate pairs (broad phase ``pair_count``) and contacts (pairs with
 overlap volume > 0, from ``Simulation.contacts()``), broad-phase rebuilds in the window, device
 bytes per body (every Warp array of the Simulation, Model, ShapeSet, State, Contacts and BroadPhase, views counted
@@ -96,6 +106,7 @@ from polydem.kernels import geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import ConvexShape, Scene, Simulation
+from polydem.scene.depth import stiffness_for_depth
 from polydem.simulation import CHUNK_STEPS as CHUNK
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -138,14 +149,39 @@ def half_heights(q, edge):
 
 
 def hertz_k(edge, density, layers, overlap, load_factor, g=9.81):
-    """Hertz k [J/m^4.5] such that a face contact (area edge^2) carrying load_factor times the
-    weight of a column of ``layers`` cubes overlaps by ``overlap`` of the cube volume.
+    """Hertz k [J/m^4.5] of the former rule (``--k-rule volume``): a face contact (area edge^2) carrying
+    load_factor times the weight of a column of ``layers`` cubes overlaps by ``overlap`` of the cube volume.
 
     W = 2/3 k V^1.5, so the force of a face contact of overlap volume V is k sqrt(V) edge^2.
     """
     force = load_factor * layers * density * edge**3 * g
     volume = overlap * edge**3
     return force / (math.sqrt(volume) * edge**2)
+
+
+K_RULES = ("corner", "volume")
+"""``--k-rule``: an allowed corner depth under a column (the default), or the former volume overlap of a face."""
+
+
+def corner_k(shapes, edge, density, layers, depth, g=9.81):
+    """Hertz k [J/m^4.5] that keeps every corner of ``shapes`` (each of volume edge^3) at most ``depth`` times
+    ``edge`` deep under the weight of a column of ``layers`` of them (the law alone, without the resolved toe)."""
+    load = layers * density * edge**3 * g
+    return max(stiffness_for_depth(shape, "hertz", depth * edge, load, "corner") for shape in shapes)
+
+
+def pile_k(args, shapes):
+    """The pile's hertz k [J/m^4.5] by ``args.k_rule`` times ``args.k_factor`` (see the module docstring). A
+    namespace without ``k_rule`` (built by hand with the former rule's ``overlap`` and ``load_factor``) gets the
+    volume rule."""
+    rule = getattr(args, "k_rule", "volume")
+    if rule == "corner":
+        k = corner_k(shapes, args.edge, args.density, args.layers, args.corner_depth)
+    elif rule == "volume":
+        k = hertz_k(args.edge, args.density, args.layers, args.overlap, args.load_factor)
+    else:
+        raise ValueError(f"k_rule must be one of {K_RULES}, got {rule!r}")
+    return k * getattr(args, "k_factor", 1.0)
 
 
 SHAPE_SETS = ("cube", "mixed")
@@ -191,13 +227,13 @@ def make_scene(n, args, seed=0):
     a = args.edge
     layers = args.layers
     rng = np.random.default_rng(seed)
-    k = hertz_k(a, args.density, layers, args.overlap, args.load_factor)
+    shapes = shape_set(a, getattr(args, "shapes", "cube"))
+    k = pile_k(args, shapes)
     scene = Scene(gravity=(0.0, 0.0, -9.81), dt="auto", name=f"settle_{n}")
     scene.precision = getattr(args, "precision", "float32")
     scene.add_material(
         "grain", density=args.density, law="hertz", k=k, restitution=args.restitution, friction=args.friction
     )
-    shapes = shape_set(a, getattr(args, "shapes", "cube"))
     for shape in shapes:
         scene.add_shape(shape.name, shape)
     mixed = len(shapes) > 1
@@ -278,6 +314,7 @@ def make_scene(n, args, seed=0):
         "container_inner_m": [lx, ly, lz],
         "walls": args.walls,
         "k_hertz": k,
+        "k_rule": getattr(args, "k_rule", "volume"),
         "order": getattr(args, "order", "grid"),
     }
     if mixed:
@@ -866,8 +903,8 @@ def make_parser():
     ap.add_argument("--density", type=float, default=2500.0, help="[kg/m^3]")
     ap.add_argument("--restitution", type=float, default=0.5)
     ap.add_argument("--friction", type=float, default=0.5)
-    ap.add_argument("--overlap", type=float, default=0.01, help="target overlap volume / cube volume")
-    ap.add_argument("--load-factor", type=float, default=20.0, help="design load / weight of a full column")
+    ap.add_argument("--overlap", type=float, default=0.01, help="k rule volume: face overlap volume / cube volume")
+    ap.add_argument("--load-factor", type=float, default=20.0, help="k rule volume: design load / a column's weight")
     ap.add_argument(
         "--shapes", choices=SHAPE_SETS, default="cube", help="cubes, or cubes, tetrahedra, rocks and 2:1:1 boxes"
     )
@@ -910,8 +947,15 @@ def apply_kernel_options(args):
 
 
 def add_pile_options(ap):
-    """The options this benchmark shares with time_to_settle.py: register cap, listing order, tree policy."""
+    """The options this benchmark shares with time_to_settle.py: register cap, k rule, listing order, tree policy."""
     add_kernel_options(ap)
+    ap.add_argument(
+        "--k-rule", choices=K_RULES, default="corner", help="k from a corner depth, or the former volume overlap"
+    )
+    ap.add_argument(
+        "--corner-depth", type=float, default=0.05, help="k rule corner: largest corner depth / edge under a column"
+    )
+    ap.add_argument("--k-factor", type=float, default=1.0, help="k = this x the rule's")
     ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes in memory")
     ap.add_argument(
         "--tree-rebuild",

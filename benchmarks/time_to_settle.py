@@ -1,8 +1,9 @@
 """Time to a settled packing: wall time until a poured pile of cubes (or of mixed shapes) comes to rest.
 
 The scene is the settling benchmark's (benchmarks/settle.py: 1 cm cubes in loose columns in an open
-box of fixed slabs, hertz, e = 0.5, mu = 0.5, k for a 1% overlap under 20 column weights, dt
-"auto"). Each run goes until the pile is settled by the simulator's own stopping rule
+box of fixed slabs, hertz, e = 0.5, mu = 0.5, k by settle.py's ``--k-rule``: corners at most
+``--corner-depth`` (5%) of the edge deep under a column, or ``volume``, the former 1% overlap under 20
+column weights; dt "auto"). Each run goes until the pile is settled by the simulator's own stopping rule
 (``Simulation.run_until_settled``: the free bodies' kinetic energy below ``--kinetic-fraction`` of
 the gravitational energy released, held for ``--hold`` seconds) or ``--max-time`` simulated
 seconds. Reported per size: settled or not, simulated time and steps to it, wall time (the first
@@ -39,6 +40,7 @@ import numpy as np
 import warp as wp
 
 from polydem import Simulation
+from polydem import settle as polydem_settle
 from polydem.cli.diagnostics import body_volumes, relative_depths, relative_overlaps, settled_region
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -67,7 +69,10 @@ def run_size(n, args, device, dt_scale=1.0):
     """Pour ``n`` bodies and run to settled at ``dt_scale`` x the recommended step; returns the record."""
     import polydem
 
-    options = scene_options(edge=EDGE, precision=args.precision, order=args.order, shapes=args.shapes)
+    options = scene_options(
+        edge=EDGE, precision=args.precision, order=args.order, shapes=args.shapes, k_rule=args.k_rule,
+        corner_depth=args.corner_depth, k_factor=args.k_factor,
+    )  # fmt: skip
     scene, info = make_scene(n, options, seed=args.seed)
     scene = with_tangential_ratio(scene, args.tangential_ratio)
     ts = scene.time_step()
@@ -78,7 +83,9 @@ def run_size(n, args, device, dt_scale=1.0):
     sim.step(1)  # kernels compiled, graph captured
     wp.synchronize_device(sim.device)
     setup = time.perf_counter() - t0
-    criterion = polydem.SettleCriterion(kinetic_fraction=args.kinetic_fraction, hold=args.hold)
+    criterion = polydem.SettleCriterion(
+        kinetic_fraction=args.kinetic_fraction, speed_fraction=args.speed_fraction, hold=args.hold
+    )
     t1 = time.perf_counter()
     result = sim.run_until_settled(args.max_time, criterion)
     wp.synchronize_device(sim.device)
@@ -137,6 +144,13 @@ def main():
     ap.add_argument("--max-time", type=float, default=1.0, help="simulated seconds at most")
     ap.add_argument("--kinetic-fraction", type=float, default=1e-4, help="settled: kinetic < this x released")
     ap.add_argument("--hold", type=float, default=0.02, help="settled for this long [s]")
+    ap.add_argument(
+        "--speed-fraction",
+        type=lambda v: None if v == "off" else float(v),
+        default=polydem_settle.SettleCriterion().speed_fraction,
+        help="settled: every grain's fastest point below this x sqrt(g r_min) ('off': the kinetic part "
+        "alone, the rule before issue 22; default: the simulator's)",
+    )
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--shapes", default="cube", choices=SHAPE_SETS, help="cubes, or settle.py's mixed set")
     ap.add_argument("--seed", type=int, default=0)

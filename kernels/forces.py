@@ -62,6 +62,36 @@ from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
 
+# What the report variant of the step kernels (``report=True``) does besides the step, by bits of
+# its ``report`` argument: write each contact's geometry and force into the diagnostics outputs (what
+# Simulation.contacts() reads), and add each contact's force to the sums of an averaging interval.
+REPORT_CONTACTS = wp.constant(1)
+REPORT_SUMS = wp.constant(2)
+
+
+@wp.struct
+class ContactSums:
+    """Per contact (a pair, or a (body, wall) at ``body * W + wall``), sums over the steps of an
+    averaging interval, in float64 whatever the precision (a float32 sum of 10^6 steps would keep
+    only a few digits): ``force`` on A [N] (normal and tangential), ``tangential`` force on A [N],
+    ``normal`` force magnitude [N], contact ``point`` [m] (world), and the ``steps`` in contact."""
+
+    force: wp.array(dtype=wp.vec3d)
+    tangential: wp.array(dtype=wp.vec3d)
+    normal: wp.array(dtype=wp.float64)
+    point: wp.array(dtype=wp.vec3d)
+    steps: wp.array(dtype=int)
+
+
+@wp.func
+def add_to_sums(sums: ContactSums, k: int, force: wp.vec3d, ft: wp.vec3d, fn: wp.float64, point: wp.vec3d):
+    # One thread per contact (pair or body): plain adds, no atomics, the same order every run.
+    sums.force[k] = sums.force[k] + force
+    sums.tangential[k] = sums.tangential[k] + ft
+    sums.normal[k] = sums.normal[k] + fn
+    sums.point[k] = sums.point[k] + point
+    sums.steps[k] = sums.steps[k] + 1
+
 
 @dataclass(frozen=True)
 class ContactKernels:
@@ -71,6 +101,7 @@ class ContactKernels:
     friction: bool
     diagnostics: bool
     precision: str
+    report: bool
     geometry: Any  # polydem.kernels.geometry.Geometry
     respond: Any
     pair_contact_kernel: Any
@@ -102,10 +133,16 @@ def _make_contact_kernels(
     max_registers: int | None = None,
     variant: str = DEFAULT_PAIR_VARIANT,
     compound: bool = False,
+    report: bool = False,
 ):
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
     ``diagnostics`` builds the variant that reports contacts and energies without stepping.
+    ``report`` builds the step variant that can also, by the bits of its ``report`` argument, write
+    each contact as the step computed it into the diagnostics outputs (REPORT_CONTACTS: volume,
+    normal, point, normal and tangential force, depth; no energy) and add its force to the sums of
+    an averaging interval (REPORT_SUMS, :class:`ContactSums`); the plain step variant takes the same
+    arguments and ignores them, so that it pays nothing for them.
     ``precision`` (:mod:`polydem.kernels.precision`) sets the scalar S of the body state (poses,
     velocities, body forces, torques and dissipated energy, wall normals and offsets, contact
     points) and the scalar C of the geometry, the response, the material table and the per-pair
@@ -171,10 +208,13 @@ def _make_contact_kernels(
         pair_fn: wp.array(dtype=C),
         pair_ft: wp.array(dtype=vec3c),
         pair_depth: wp.array(dtype=C),
+        # Report (the report variant only)
+        report_bits: int,
+        pair_sums: ContactSums,
     ):
         """The step variant writes the wrench on A, the spring and the energy dissipated; the
-        diagnostics variant (run on request only) writes what contacts() and energy() report,
-        at the current state, and changes nothing."""
+        diagnostics variant (run on request only) writes what energy() reports, at the current
+        state, and changes nothing; the report variant steps and reports (see the factory)."""
         p = wp.tid()
         if p >= pair_count[0]:
             return
@@ -211,6 +251,9 @@ def _make_contact_kernels(
                 pair_force[p] = zero3
                 pair_torque_a[p] = zero3
                 pair_dissipated[p] = lost
+                if wp.static(report):
+                    if (report_bits & REPORT_CONTACTS) != 0:
+                        pair_volume[p] = C(0.0)
             return
         r_ab = vec3c(wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
         xi_in = zero3
@@ -239,6 +282,17 @@ def _make_contact_kernels(
             pair_force[p] = force
             pair_torque_a[p] = torque
             pair_dissipated[p] = lost
+            if wp.static(report):
+                world_point = vec3s(point) + wp.transform_get_translation(xa)
+                if (report_bits & REPORT_CONTACTS) != 0:
+                    pair_volume[p] = vol
+                    pair_normal[p] = n
+                    pair_point[p] = world_point
+                    pair_fn[p] = fn
+                    pair_ft[p] = ft
+                    pair_depth[p] = C(pair_depth_of(shapes, body_shape[a], body_shape[b], xa, xb))
+                if (report_bits & REPORT_SUMS) != 0:
+                    add_to_sums(pair_sums, p, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
 
     @wp.kernel(enable_backward=False, module="unique")
     def gather_kernel(
@@ -284,9 +338,13 @@ def _make_contact_kernels(
         plane_point: wp.array2d(dtype=vec3s),
         plane_ft: wp.array2d(dtype=vec3c),
         plane_depth: wp.array2d(dtype=C),
+        # Report (the report variant only)
+        report_bits: int,
+        wall_sums: ContactSums,
     ):
         """Sums each body's pair wrenches in key order and adds its wall contacts (step variant);
-        the diagnostics variant only reports the wall contacts."""
+        the diagnostics variant only reports the wall contacts; the report variant steps and reports
+        its wall contacts (see the factory)."""
         i = wp.tid()
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
@@ -326,7 +384,8 @@ def _make_contact_kernels(
                 if vol <= C(0.0):
                     e_mat = material_e[mat]
                     area = shapes.shape_face_area[s]
-                    vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, shapes.shape_radius[s], C(body_inv_mass[i]))
+                    r_s = shapes.shape_radius[s]
+                    vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, r_s, C(body_inv_mass[i]))
                     kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
                     if wp.static(diagnostics):
                         plane_volume[i, j] = C(0.0)
@@ -341,6 +400,9 @@ def _make_contact_kernels(
                             xi = plane_xi[i, j]
                             lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
                             plane_xi[i, j] = zero3
+                        if wp.static(report):
+                            if (report_bits & REPORT_CONTACTS) != 0:
+                                plane_volume[i, j] = C(0.0)
                     continue
                 xi_in = zero3
                 if wp.static(friction):
@@ -365,6 +427,19 @@ def _make_contact_kernels(
                     f += vec3s(force)
                     t += vec3s(torque)
                     lost += S(dl)
+                    if wp.static(report):
+                        world_point = vec3s(point) + xi_pos
+                        if (report_bits & REPORT_CONTACTS) != 0:
+                            plane_volume[i, j] = vol
+                            plane_fn[i, j] = fn
+                            plane_point[i, j] = world_point
+                            plane_ft[i, j] = ft
+                            plane_depth[i, j] = C(plane_depth_of(shapes, s, xa, pn, plane_offset[j]))
+                        if (report_bits & REPORT_SUMS) != 0:
+                            k = i * plane_turn.shape[1] + j
+                            add_to_sums(
+                                wall_sums, k, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point)
+                            )
         if wp.static(not diagnostics):
             body_f[i] = f
             body_t[i] = t
@@ -375,6 +450,7 @@ def _make_contact_kernels(
         friction=friction,
         diagnostics=diagnostics,
         precision=precision,
+        report=report,
         geometry=geom,
         respond=respond,
         pair_contact_kernel=pair_contact_kernel,
@@ -480,3 +556,80 @@ def make_remap_history_kernel(scalar):
             new_xi[p] = xi
 
     return remap_history_kernel
+
+
+@wp.kernel(enable_backward=False)
+def remap_sums_kernel(
+    # State in
+    old_key: wp.array(dtype=wp.int64),
+    old_count: wp.array(dtype=int),
+    old_sums: ContactSums,
+    new_key: wp.array(dtype=wp.int64),
+    new_count: wp.array(dtype=int),
+    # Out
+    new_sums: ContactSums,
+):
+    """Carries each pair's sums of an averaging interval over a rebuild, matched by the pair's key
+    (zero for a new pair and past the count)."""
+    p = wp.tid()
+    zero3 = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    force = zero3
+    tangential = zero3
+    normal = wp.float64(0.0)
+    point = zero3
+    steps = int(0)
+    if p < new_count[0]:
+        key = new_key[p]
+        count = old_count[0]
+        j = lower_bound(old_key, count, key)
+        if j < count and old_key[j] == key:
+            force = old_sums.force[j]
+            tangential = old_sums.tangential[j]
+            normal = old_sums.normal[j]
+            point = old_sums.point[j]
+            steps = old_sums.steps[j]
+    new_sums.force[p] = force
+    new_sums.tangential[p] = tangential
+    new_sums.normal[p] = normal
+    new_sums.point[p] = point
+    new_sums.steps[p] = steps
+
+
+@wp.kernel(enable_backward=False)
+def retire_sums_kernel(
+    # State in
+    old_key: wp.array(dtype=wp.int64),
+    old_count: wp.array(dtype=int),
+    old_sums: ContactSums,
+    new_key: wp.array(dtype=wp.int64),
+    new_count: wp.array(dtype=int),
+    # In/out
+    retired_key: wp.array(dtype=wp.int64),
+    retired: ContactSums,
+    retired_count: wp.array(dtype=int),
+    overflow: wp.array(dtype=int),
+):
+    """Appends the sums of each pair that a rebuild drops from the list after it was in contact in
+    the interval, so that they count in the average. The slots are taken atomically: entries of
+    different keys may come in any order, but those of one key are in the order of the rebuilds
+    (one launch each); past the capacity, ``overflow`` is set (the chunk is redone with more room)."""
+    p = wp.tid()
+    if p >= old_count[0]:
+        return
+    if old_sums.steps[p] == 0:
+        return
+    key = old_key[p]
+    count = new_count[0]
+    j = lower_bound(new_key, count, key)
+    if j < count and new_key[j] == key:
+        return
+    slot = wp.atomic_add(retired_count, 0, 1)
+    if slot >= retired_key.shape[0]:
+        wp.atomic_max(overflow, 0, 1)
+        return
+    retired_key[slot] = key
+    retired.force[slot] = old_sums.force[p]
+    retired.tangential[slot] = old_sums.tangential[p]
+    retired.normal[slot] = old_sums.normal[p]
+    retired.point[slot] = old_sums.point[p]
+    retired.steps[slot] = old_sums.steps[p]

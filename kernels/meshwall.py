@@ -20,6 +20,7 @@ import functools
 
 import warp as wp
 from polydem.kernels.compound import make_body_geometry
+from polydem.kernels.forces import REPORT_CONTACTS, REPORT_SUMS, ContactSums, add_to_sums
 from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
@@ -39,9 +40,11 @@ def make_mesh_kernels(
     precision: str = "float32",
     variant: str = DEFAULT_PAIR_VARIANT,
     compound: bool = False,
+    report: bool = False,
 ):
     """The mesh-wall contact kernel of one law, friction setting, polygon capacity and precision
-    (the step variant, or with ``diagnostics`` the one that reports and changes nothing);
+    (the step variant, or with ``diagnostics`` the one that reports and changes nothing, or with
+    ``report`` the step variant that also reports, as :func:`polydem.kernels.forces.make_contact_kernels`);
     ``compound``: bodies may be compound grains (each part is clipped against each cell)."""
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
@@ -104,6 +107,9 @@ def make_mesh_kernels(
         plane_ft: wp.array2d(dtype=vec3c),
         plane_depth: wp.array2d(dtype=C),
         plane_normal: wp.array2d(dtype=vec3c),
+        # Report (the report variant only)
+        report_bits: int,
+        wall_sums: ContactSums,
     ):
         i = wp.tid()
         if body_flags[i] != 0:
@@ -115,6 +121,10 @@ def make_mesh_kernels(
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
         lost = S(0.0)
+        # The report variant measures the depth only for a report of the contacts (not for the sums).
+        want_depth = wp.static(diagnostics)
+        if wp.static(report):
+            want_depth = (report_bits & REPORT_CONTACTS) != 0
         for m in range(mesh_bvh.shape[0]):
             xm = mesh_q[m]
             j = first_column + m
@@ -157,11 +167,11 @@ def make_mesh_kernels(
                     s_a += sa_c
                     m_a += ma_c
                     fb_a += fb_c
-                    if wp.static(diagnostics):
+                    if wp.static(diagnostics or report):
                         # How far the body reaches behind the plane of the triangle the cell lies
                         # behind (the cells of concave edges and corners have none).
                         fr = cell_front[cell]
-                        if fr[0] != S(0.0) or fr[1] != S(0.0) or fr[2] != S(0.0):
+                        if want_depth and (fr[0] != S(0.0) or fr[1] != S(0.0) or fr[2] != S(0.0)):
                             n_w = wp.quat_rotate(rot, vec3s(fr[0], fr[1], fr[2]))
                             off = fr[3] + wp.dot(n_w, wp.transform_get_translation(xm))
                             depth = wp.max(depth, C(plane_depth_of(shapes, s, xa, n_w, off)))
@@ -184,6 +194,9 @@ def make_mesh_kernels(
                         xi = plane_xi[i, j]
                         lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
                         plane_xi[i, j] = zero3
+                    if wp.static(report):
+                        if (report_bits & REPORT_CONTACTS) != 0:
+                            plane_volume[i, j] = C(0.0)
                 continue
             xi_in = zero3
             if wp.static(friction):
@@ -212,6 +225,18 @@ def make_mesh_kernels(
                 f += vec3s(force)
                 t += vec3s(torque)
                 lost += S(dl)
+                if wp.static(report):
+                    world_point = vec3s(point) + pa
+                    if (report_bits & REPORT_CONTACTS) != 0:
+                        plane_volume[i, j] = vol
+                        plane_fn[i, j] = fn
+                        plane_point[i, j] = world_point
+                        plane_ft[i, j] = ft
+                        plane_depth[i, j] = depth
+                        plane_normal[i, j] = n
+                    if (report_bits & REPORT_SUMS) != 0:
+                        k = i * plane_turn.shape[1] + j
+                        add_to_sums(wall_sums, k, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
         if wp.static(not diagnostics):
             body_f[i] = body_f[i] + f
             body_t[i] = body_t[i] + t

@@ -1601,7 +1601,10 @@ def test_run_until_settled_stops_and_reports(tmp_path, capsys):
     s = summary_of(tmp_path / "out")
     st = s["settle"]
     assert st["settled"] is True
-    assert st["criterion"] == {"kinetic_fraction": 1e-4, "max_speed": None, "hold": 0.02}
+    assert st["criterion"] == {"kinetic_fraction": 1e-4, "max_speed": None, "hold": 0.02, "speed_fraction": 3e-4}
+    # The default speed limit: 3e-4 sqrt(g r) of the 0.1 m cubes (r = sqrt(3) 0.05 m).
+    assert st["speed_limit"] == pytest.approx(3e-4 * np.sqrt(9.81 * np.sqrt(3.0) * 0.05), rel=1e-6)
+    assert st["largest_speed"] < st["speed_limit"]
     assert st["steps"] == s["steps"] and st["steps"] % 64 == 0 and st["steps"] < s["target_steps"]
     assert st["time_s"] == pytest.approx(s["simulated_time"]) and 0.15 < st["time_s"] < 0.5
     assert 0.0 < st["wall_s"] <= s["wall_time"] and st["max_time_s"] == pytest.approx(1.0, abs=s["dt"])
@@ -1612,7 +1615,10 @@ def test_run_until_settled_stops_and_reports(tmp_path, capsys):
     assert st["kinetic_fraction"] == pytest.approx(e["final"]["kinetic"] / released, rel=1e-5)
     assert st["kinetic_fraction"] < 1e-4
     assert f"settled at t = {st['time_s']:.6g} s ({st['steps']} steps, " in out
-    assert "until settled (kinetic energy < 0.0001 of the gravitational energy released, held for 0.02 s)" in out
+    assert (
+        "until settled (kinetic energy < 0.0001 of the gravitational energy released and largest speed < "
+        "0.000277 m/s = 0.0003 sqrt(g r_min), held for 0.02 s)" in out
+    )
     assert "kinetic/released" in err  # the progress lines
     assert (tmp_path / "out" / "checkpoints" / "final.npz").is_file()
 
@@ -1655,7 +1661,13 @@ def test_scene_until_settled_and_options_override_it(tmp_path, capsys):
     code, out, _ = run(["run", scene, "--device", "cpu", "--out", tmp_path / "a", "-q"], capsys)
     assert code == 0
     st = summary_of(tmp_path / "a")["settle"]
-    assert st["settled"] and st["criterion"] == {"kinetic_fraction": 1e-4, "max_speed": 1e-2, "hold": 0.02}
+    assert st["settled"] and st["criterion"] == {
+        "kinetic_fraction": 1e-4,
+        "max_speed": 1e-2,
+        "hold": 0.02,
+        "speed_fraction": 3e-4,
+    }
+    assert st["speed_limit"] == 1e-2  # max_speed replaces the limit of speed_fraction
     assert st["largest_speed"] < 1e-2
     code, out, _ = run(
         [
@@ -1675,7 +1687,7 @@ def test_scene_until_settled_and_options_override_it(tmp_path, capsys):
     )
     assert code == 0
     st = summary_of(tmp_path / "b")["settle"]
-    assert st["criterion"] == {"kinetic_fraction": None, "max_speed": 1e-2, "hold": 0.0}
+    assert st["criterion"] == {"kinetic_fraction": None, "max_speed": 1e-2, "hold": 0.0, "speed_fraction": 3e-4}
 
 
 @pytest.mark.parametrize(
@@ -1686,7 +1698,12 @@ def test_scene_until_settled_and_options_override_it(tmp_path, capsys):
         (["--until-settled", "--settle-hold", "-1"], [], ["--settle-hold", ">= 0"]),
         (["--until-settled", "--settle-speed", "0"], [], ["--settle-speed", "> 0"]),
         (["--settle-speed", "0.1"], [], ["--settle-speed", "add --until-settled"]),
-        (["--until-settled", "--settle-kinetic", "off"], [], ["--settle-kinetic", "give --settle-speed"]),
+        (
+            ["--until-settled", "--settle-kinetic", "off", "--settle-speed-fraction", "off"],
+            [],
+            ["--settle-kinetic", "give --settle-speed"],
+        ),
+        (["--until-settled", "--settle-speed-fraction", "0"], [], ["--settle-speed-fraction", "fraction > 0"]),
         (
             ["--until-settled"],
             [('name = "drop"', 'name = "drop"\ngravity = [0.0, 0.0, 0.0]')],

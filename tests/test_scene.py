@@ -1775,6 +1775,11 @@ def test_toml_until_settled(tmp_path):
     assert scene.settle == SettleCriterion(kinetic_fraction=1e-3, max_speed=0.01, hold=0.1)
     assert Scene.from_dict(scene.to_dict()).settle == scene.settle
     assert "until settled (kinetic energy < 0.001" in scene.describe()
+    table = table.replace("hold = 0.1", "hold = 0.1\nspeed_fraction = 1e-3")
+    table = table.replace("max_speed = 0.01\n", "")
+    scene = Scene.from_toml(write(tmp_path, table))
+    assert scene.settle == SettleCriterion(kinetic_fraction=1e-3, speed_fraction=1e-3, hold=0.1)
+    assert Scene.from_dict(scene.to_dict()).settle == scene.settle
     speed = BASE_TOML.replace(
         "steps = 100", "steps = 100\nuntil_settled = true\nsettle = {kinetic_fraction = false, max_speed = 0.01}"
     )
@@ -1794,7 +1799,12 @@ def test_toml_until_settled(tmp_path):
         ("settle = {kinetic_fraction = 2.0}", "simulation.settle.kinetic_fraction", "must be < 1"),
         ("settle = {hold = -0.1}", "simulation.settle.hold", "must not be negative"),
         ("settle = {max_speed = 0}", "simulation.settle.max_speed", "must be positive"),
-        ("settle = {kinetic_fraction = false}", "simulation.settle.max_speed", "give max_speed"),
+        (
+            "settle = {kinetic_fraction = false, speed_fraction = false}",
+            "simulation.settle.max_speed",
+            "give max_speed",
+        ),
+        ("settle = {speed_fraction = 0}", "simulation.settle.speed_fraction", "must be positive"),
         ("settle = {hodl = 0.1}", "simulation.settle.hodl", "did you mean 'hold'"),
         ("until_settled = true", "simulation.settle", "no gravity: give max_speed alone"),
     ],

@@ -8,6 +8,11 @@ across a rebuild, a redone chunk or a checkpoint keeps it, and a new pair starts
 The wall contacts' history is per (body, wall), has no list to follow, and lives in the
 :class:`~polydem.state.State`.
 
+While an interval of contact forces is averaged (:class:`ContactAverage`, from
+``Simulation.start_contact_average``), each pair also carries its sums of the force, by key like its
+history; a pair that a rebuild drops after it was in contact leaves its sums in a list of retired
+pairs, so that a contact that ended still counts in the average.
+
 The history is in the contact scalar of the model's precision (float32 in "float32" and "mixed",
 float64 in "float64"). The broad phase runs in float32 in every precision: with float64 poses it
 gets float32 copies of the centres and radii grown by the rounding of the cast
@@ -18,10 +23,17 @@ import numpy as np
 import warp as wp
 
 from polydem.kernels.broadphase import BroadPhase, float32_input_kernel
-from polydem.kernels.forces import b_keys_kernel, body_ranges_kernel, make_remap_history_kernel
+from polydem.kernels.forces import (
+    ContactSums,
+    b_keys_kernel,
+    body_ranges_kernel,
+    make_remap_history_kernel,
+    remap_sums_kernel,
+    retire_sums_kernel,
+)
 from polydem.kernels.precision import numpy_dtype
 
-__all__ = ["Contacts", "PairHistory"]
+__all__ = ["ContactAverage", "Contacts", "PairHistory"]
 
 
 class PairHistory:
@@ -106,6 +118,7 @@ class Contacts:
         body_pairs_a, body_pairs_b: (N,) ``wp.vec2i`` each body's range in the pairs ordered by
             A (``pair_key``) and by B (``pair_by_b``).
         previous: :class:`PairHistory` of the list before the last rebuild.
+        average: the :class:`ContactAverage` whose pair sums follow the list (None: no interval).
         capacity: host int.
         generation: host int, counts the times the per-pair buffers were replaced (a captured CUDA
             graph holds the old ones).
@@ -122,6 +135,7 @@ class Contacts:
         )
         self.capacity = 0
         self.generation = 0
+        self.average = None
         self._remap = make_remap_history_kernel(self.scalar)
         # Float64 poses reach the broad phase through float32 copies (module docstring).
         self._cast = model.scalar != wp.float32
@@ -186,6 +200,8 @@ class Contacts:
         self.pair_by_b = self._by_b[:capacity]
         self.body_pairs_a = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
         self.body_pairs_b = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
+        if self.average is not None:
+            self.average.resize(capacity)
 
     def _keep_previous(self):
         bp = self.broadphase
@@ -195,6 +211,8 @@ class Contacts:
         if self.friction:
             wp.copy(prev.xi, self.pair_xi)
         wp.copy(prev.count, bp.pair_count)
+        if self.average is not None:
+            self.average.keep_previous()
 
     def _after_rebuild(self):
         """Turning volumes and friction springs carried over by pair key; per-body ranges for the gather."""
@@ -209,6 +227,8 @@ class Contacts:
             outputs=[self.pair_xi, self.pair_turn],
             device=dev,
         )
+        if self.average is not None:
+            self.average.after_rebuild(prev.key, prev.count, bp.pair_key, bp.pair_count)
         wp.launch(
             b_keys_kernel,
             dim=cap,
@@ -292,8 +312,12 @@ class Contacts:
         into.assign(live)
         return into
 
-    def restore(self, history, body_q):
-        """Find the pairs at ``body_q`` afresh (host build) and give each pair of ``history`` its history back."""
+    def restore(self, history, body_q, pair_sums=None):
+        """Find the pairs at ``body_q`` afresh (host build) and give each pair of ``history`` its history back.
+
+        ``pair_sums``: the sums of the averaging interval (:class:`ContactAverage`) of ``history``'s pairs
+        (from :meth:`ContactAverage.snapshot`), given back to them likewise; None: they start from zero.
+        """
         bp = self.broadphase
         m = self.model
         bp.build(*self._inputs(body_q), m.body_flags)
@@ -306,6 +330,8 @@ class Contacts:
         if self.friction:
             wp.copy(prev.xi, history.xi, count=n_old)
         prev.count.fill_(n_old)
+        if self.average is not None:
+            self.average.load_previous(pair_sums, n_old)
         self._after_rebuild()
 
     def history_numpy(self):
@@ -317,3 +343,214 @@ class Contacts:
             "pair_xi": self.pair_xi.numpy()[:count] if self.friction else np.zeros((0, 3), numpy_dtype(self.scalar)),
             "pair_turn": self.pair_turn.numpy()[:count],
         }
+
+
+def _sums(size, device):
+    """A :class:`~polydem.kernels.forces.ContactSums` of ``size`` zero entries."""
+    s = ContactSums()
+    s.force = wp.zeros(size, dtype=wp.vec3d, device=device)
+    s.tangential = wp.zeros(size, dtype=wp.vec3d, device=device)
+    s.normal = wp.zeros(size, dtype=wp.float64, device=device)
+    s.point = wp.zeros(size, dtype=wp.vec3d, device=device)
+    s.steps = wp.zeros(size, dtype=int, device=device)
+    return s
+
+
+_SUM_FIELDS = ("force", "tangential", "normal", "point", "steps")
+
+
+def _copy_sums(dst, src, count=None):
+    for k in _SUM_FIELDS:
+        if count is None:
+            wp.copy(getattr(dst, k), getattr(src, k))
+        elif count:
+            wp.copy(getattr(dst, k), getattr(src, k), count=count)
+
+
+def _zero_sums(s):
+    for k in _SUM_FIELDS:
+        getattr(s, k).zero_()
+
+
+def _sums_numpy(s, count):
+    return {k: getattr(s, k).numpy()[:count] for k in _SUM_FIELDS}
+
+
+class AverageSnapshot:
+    """A copy of a :class:`ContactAverage` at one step (see :meth:`ContactAverage.snapshot`)."""
+
+    def __init__(self, interval, pairs, walls, retired_count):
+        self.interval = interval
+        self.pairs = pairs
+        self.walls = walls
+        self.retired_count = retired_count
+
+
+class ContactAverage:
+    """The device sums of the contact forces over an averaging interval (``Simulation.start_contact_average``).
+
+    Each step of the interval adds every contact's force to its sums (the report variant of the
+    step kernels, kernels/forces.py ``ContactSums``): no host synchronisation, so a captured CUDA
+    graph of the step does it too. The pairs' sums follow the pair list by key (:class:`Contacts`
+    calls :meth:`keep_previous`, :meth:`resize` and :meth:`after_rebuild`); a pair dropped by a rebuild
+    after it was in contact is appended to the retired list; the wall contacts' sums are per
+    (body, wall). :meth:`numpy` adds it all up on the host.
+
+    Args:
+        contacts: the :class:`Contacts` whose pairs are summed (this attaches itself to it).
+        num_walls: the wall columns of the state (max(W, 1)).
+        interval: a number that names the interval (a snapshot of another interval is not restored).
+        start_step, start_time: where the interval begins.
+
+    Attributes (device): ``pairs`` and ``previous`` (:class:`ContactSums` of the pair list and of
+    the list before the last rebuild), ``walls`` (N * max(W, 1)), ``retired_key`` (R,) int64 and
+    ``retired`` (R) with ``retired_count`` (1,), ``overflow`` (1,) set when R was too small.
+    generation: host int, counts the times the arrays were replaced (a captured graph holds them).
+    """
+
+    def __init__(self, contacts, num_walls, interval, start_step, start_time):
+        self.device = contacts.device
+        self.contacts = contacts
+        self.num_bodies = contacts.num_bodies
+        self.num_walls = max(int(num_walls), 1)
+        self.generation = 0
+        self.capacity = 0
+        self.walls = _sums(self.num_bodies * self.num_walls, self.device)
+        # The retired list starts as large as the pair list: more pairs than that must end within
+        # one chunk of steps for it to overflow (then it doubles and the chunk is redone).
+        self._allocate_retired(max(contacts.capacity, 64))
+        self.retired_count = wp.zeros(1, dtype=int, device=self.device)
+        self.overflow = wp.zeros(1, dtype=int, device=self.device)
+        self.resize(contacts.capacity)
+        self.reset(interval, start_step, start_time)
+        contacts.average = self
+
+    def _allocate_retired(self, size):
+        self.retired_key = wp.zeros(size, dtype=wp.int64, device=self.device)
+        self.retired = _sums(size, self.device)
+        self.generation += 1
+
+    def reset(self, interval, start_step, start_time):
+        """Start the interval ``interval`` at ``start_step`` / ``start_time`` [s] with every sum zero."""
+        self.interval = interval
+        self.start_step = int(start_step)
+        self.start_time = float(start_time)
+        _zero_sums(self.pairs)
+        _zero_sums(self.previous)
+        _zero_sums(self.walls)
+        self.retired_count.zero_()
+        self.overflow.zero_()
+
+    def detach(self):
+        """Stop following the pair list."""
+        if self.contacts.average is self:
+            self.contacts.average = None
+
+    # -- following the pair list (called by Contacts) ------------------------------------------
+
+    def resize(self, capacity):
+        """New pair arrays of ``capacity``; the previous list's sums are carried into the new ones."""
+        old = self.previous if self.capacity else None
+        self.pairs = _sums(capacity, self.device)
+        self.previous = _sums(capacity, self.device)
+        if old is not None:
+            _copy_sums(self.previous, old, count=min(self.capacity, capacity))
+        self.capacity = capacity
+        self.generation += 1
+
+    def keep_previous(self):
+        _copy_sums(self.previous, self.pairs)
+
+    def load_previous(self, pair_sums, count):
+        """The previous list's sums from a snapshot's (``pair_sums``; None: zero), ``count`` pairs."""
+        if pair_sums is None:
+            _zero_sums(self.previous)
+        else:
+            _copy_sums(self.previous, pair_sums, count=min(count, len(pair_sums.steps), self.capacity))
+
+    def after_rebuild(self, old_key, old_count, new_key, new_count):
+        dev = self.device
+        wp.launch(
+            retire_sums_kernel,
+            dim=self.capacity,
+            inputs=[old_key, old_count, self.previous, new_key, new_count],
+            outputs=[self.retired_key, self.retired, self.retired_count, self.overflow],
+            device=dev,
+        )
+        wp.launch(
+            remap_sums_kernel,
+            dim=self.capacity,
+            inputs=[old_key, old_count, self.previous, new_key, new_count],
+            outputs=[self.pairs],
+            device=dev,
+        )
+
+    # -- redo and snapshots ----------------------------------------------------------------------
+
+    def overflowed(self):
+        """Host: whether the retired list ran out of room (the steps since must be redone after :meth:`grow`)."""
+        return bool(int(self.overflow.numpy()[0]))
+
+    def grow(self):
+        """Double the retired list (keeping its entries); new arrays, so recapture a graph."""
+        old_key, old = self.retired_key, self.retired
+        self._allocate_retired(2 * len(old_key))
+        wp.copy(self.retired_key, old_key, count=len(old_key))
+        _copy_sums(self.retired, old, count=len(old_key))
+        self.overflow.zero_()
+
+    def snapshot(self, into=None):
+        """An :class:`AverageSnapshot` (device copies of the pairs' and walls' sums and of the number
+        of retired pairs: the retired entries before it stay as they are); reuses ``into`` where it fits."""
+        if into is not None and len(into.pairs.steps) == self.capacity:
+            _copy_sums(into.pairs, self.pairs)
+            _copy_sums(into.walls, self.walls)
+            wp.copy(into.retired_count, self.retired_count)
+            into.interval = self.interval
+            return into
+        pairs = _sums(self.capacity, self.device)
+        walls = _sums(len(self.walls.steps), self.device)
+        _copy_sums(pairs, self.pairs)
+        _copy_sums(walls, self.walls)
+        return AverageSnapshot(self.interval, pairs, walls, wp.clone(self.retired_count))
+
+    def restore(self, snap):
+        """The walls' sums and the retired count of ``snap`` (the pairs' go through :meth:`load_previous`)."""
+        _copy_sums(self.walls, snap.walls)
+        wp.copy(self.retired_count, snap.retired_count)
+        self.overflow.zero_()
+
+    # -- reading -----------------------------------------------------------------------------------
+
+    def numpy(self, pair_key, pair_count):
+        """Host float64 sums per contact that was in contact in the interval: pairs (the current list's
+        and the retired ones, added up by key in the order they were summed), then wall contacts.
+
+        Returns ``key`` (K,) int64 pair keys ``a * N + b`` then ``-1 - (body * W + wall)`` for the walls,
+        ``force``, ``tangential``, ``point`` (K, 3), ``normal`` (K,), ``steps`` (K,) int.
+        """
+        if self.overflowed():
+            raise RuntimeError("the list of the contacts that ended in the averaging interval overflowed; step again")
+        count = int(pair_count.numpy()[0])
+        retired = min(int(self.retired_count.numpy()[0]), len(self.retired_key))
+        keys = np.concatenate([self.retired_key.numpy()[:retired], pair_key.numpy()[:count]])
+        r, live = _sums_numpy(self.retired, retired), _sums_numpy(self.pairs, count)
+        cols = {k: np.concatenate([r[k], live[k]]) for k in _SUM_FIELDS}
+        on = cols["steps"] > 0
+        keys = keys[on]
+        order = np.argsort(keys, kind="stable")  # stable: one key's entries in the order they were summed
+        keys = keys[order]
+        cols = {k: v[on][order] for k, v in cols.items()}
+        out = {"key": np.unique(keys)}
+        if len(keys):
+            start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+            for k, v in cols.items():
+                out[k] = np.add.reduceat(v.astype(np.float64) if k != "steps" else v, start, axis=0)
+        else:
+            out.update({k: v for k, v in cols.items()})
+        walls = _sums_numpy(self.walls, len(self.walls.steps))
+        on = np.flatnonzero(walls["steps"] > 0)
+        out["key"] = np.concatenate([out["key"], -1 - on.astype(np.int64)])
+        for k in _SUM_FIELDS:
+            out[k] = np.concatenate([out[k], walls[k][on]])
+        return out

@@ -23,20 +23,25 @@ rebuild, or a clipped polygon) the copy is restored, the buffer grown, and the c
 no contact is ever dropped. A non-finite value stops the run with an error naming the step and
 the bodies; a body faster than a step or its contacts can stop before it has crossed the thinnest
 body (:meth:`polydem.Scene.tunnelling_limits`) is warned about once (:class:`SimulationWarning`).
+The last step of a :meth:`Simulation.step` call runs alone in its chunk: its saved copy is then what
+its force stage read, which :meth:`Simulation.contacts` runs again to report the forces that step
+applied. An average of the contact forces over an interval (:meth:`Simulation.start_contact_average`)
+is summed on the device by the steps themselves (:class:`~polydem.contacts.ContactAverage`).
 """
 
 import functools
 import math
 import time as _time
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
-from polydem.contacts import Contacts, PairHistory
+from polydem.contacts import ContactAverage, Contacts, PairHistory, _sums
 from polydem.kernels import geometry as _geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
-from polydem.kernels.forces import make_contact_kernels
+from polydem.kernels.forces import REPORT_CONTACTS, REPORT_SUMS, make_contact_kernels, make_remap_history_kernel
 from polydem.kernels.integrate import integrate_bodies, kinetic_energy, make_integrator
 from polydem.kernels.meshwall import make_mesh_kernels
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
@@ -44,7 +49,7 @@ from polydem.model import Model
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
 from polydem.state import State
 
-__all__ = ["Simulation", "SimulationError", "SimulationWarning", "Snapshot", "Stepper"]
+__all__ = ["Simulation", "SimulationError", "SimulationWarning", "Snapshot", "StepInputs", "Stepper"]
 
 CHUNK_STEPS = 64
 NO_STEP = 2**31 - 1
@@ -171,6 +176,10 @@ class Stepper:
             [m/s] (:meth:`polydem.Scene.tunnelling_limits`; inf until the Simulation sets it).
         body_peak_speed: (N,) float32 largest speed of each body's fastest point so far [m/s].
         too_fast: (1,) int32, set when a body went above its speed limit.
+        keep_inputs: a :class:`StepInputs` that the next steps copy their force stage's inputs into
+            (for :meth:`report`), or None.
+        average: a :class:`~polydem.contacts.ContactAverage` that the next steps add each contact's
+            force to, or None.
     """
 
     def __init__(self, model, device_rebuild=False):
@@ -192,6 +201,12 @@ class Stepper:
         self._diag = None
         self._diag_generation = None
         self._empty = None
+        self.keep_inputs = None
+        self.average = None
+        self._no_sums = None
+        self._report = None  # the outputs and scratch arrays of report()
+        self._report_generation = None
+        self._history_on = None  # the pair history of history_on()
 
     def _kernels(self):
         m = self.model
@@ -206,7 +221,7 @@ class Stepper:
         )
         self.mesh_kernels = self._mesh_kernels(False)
 
-    def _mesh_kernels(self, diagnostics):
+    def _mesh_kernels(self, diagnostics, report=False):
         m = self.model
         if not m.num_mesh_walls:
             return None
@@ -219,7 +234,25 @@ class Stepper:
             precision=m.precision,
             variant=self.pair_variant,
             compound=m.shapes.compound,
+            report=report,
         )
+
+    def _report_kernels(self):
+        """The report variant of the step's kernels (built on first use: a run that never asks for
+        its contacts or an average never compiles it): (contact kernels, mesh kernel or None)."""
+        m = self.model
+        kernels = make_contact_kernels(
+            m.law,
+            m.friction,
+            self.poly_capacity,
+            m.shapes.max_faces,
+            precision=m.precision,
+            variant=self.pair_variant,
+            compound=m.shapes.compound,
+            report=True,
+        )
+        mesh = self._mesh_kernels(False, report=True)
+        return kernels, None if mesh is None else mesh[0]
 
     def grow_polygons(self):
         """Double the room for clipped polygons (after an overflow); new kernels, so recapture a graph."""
@@ -249,10 +282,16 @@ class Stepper:
     # -- one step ------------------------------------------------------------------------------
 
     def step(self, state_in, state_out, contacts, dt):
-        """Advance ``state_in`` by ``dt`` into ``state_out`` (which may be ``state_in``); updates ``contacts``."""
+        """Advance ``state_in`` by ``dt`` into ``state_out`` (which may be ``state_in``); updates ``contacts``.
+
+        With :attr:`keep_inputs` set, the step copies what its force stage reads into it; with
+        :attr:`average` set, the force stage adds each contact's force to its sums.
+        """
         if state_out is not state_in:
             state_out.assign(state_in)
         self.collide(state_out, contacts)
+        if self.keep_inputs is not None:
+            self.keep_inputs.save(state_out, contacts)
         self.forces(state_out, contacts, dt)
         self.integrate(state_out, dt)
 
@@ -264,10 +303,20 @@ class Stepper:
             contacts.update(state.body_q)
 
     def forces(self, state, contacts, dt):
-        """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``."""
-        self._launch_contacts(self.kernels, None, state, contacts, dt, self.poly_overflow)
-        if self.mesh_kernels is not None:
-            self._launch_meshes(self.mesh_kernels[0], None, state, dt, self.poly_overflow)
+        """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``;
+        with :attr:`average` set, each contact's force is also added to its sums (the report variant
+        of the kernels)."""
+        average = self.average
+        if average is None:
+            self._launch_contacts(self.kernels, None, state, contacts, dt, self.poly_overflow)
+            if self.mesh_kernels is not None:
+                self._launch_meshes(self.mesh_kernels[0], None, state, dt, self.poly_overflow)
+            return
+        kernels, mesh = self._report_kernels()
+        sums = {"report": REPORT_SUMS, "pair_sums": average.pairs, "wall_sums": average.walls}
+        self._launch_contacts(kernels, None, state, contacts, dt, self.poly_overflow, **sums)
+        if mesh is not None:
+            self._launch_meshes(mesh, None, state, dt, self.poly_overflow, report=REPORT_SUMS, wall_sums=average.walls)
 
     def integrate(self, state, dt):
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
@@ -311,15 +360,17 @@ class Stepper:
             device=dev,
         )
 
-    def _launch_contacts(self, kernels, diag, state, contacts, dt, overflow):
-        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``;
-        a clipped polygon that did not fit sets ``overflow``."""
+    def _launch_contacts(self, kernels, diag, state, contacts, dt, overflow, report=0, pair_sums=None, wall_sums=None):
+        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``, or the
+        report variant (``report`` bits, into ``diag`` and the sums); a clipped polygon that did not
+        fit sets ``overflow``."""
         m = self.model
         s = m.shapes
         bp = contacts.broadphase
         dev = self.device
         materials = [m.num_materials, m.material_k, m.material_e, m.material_mu, m.material_kt, m.law_m, dt]
         d = diag if diag is not None else self._placeholders()
+        none = self._placeholder_sums()
         wp.launch(
             kernels.pair_contact_kernel,
             dim=contacts.capacity,
@@ -350,6 +401,8 @@ class Stepper:
                 d["pair_fn"],
                 d["pair_ft"],
                 d["pair_depth"],
+                int(report),
+                none if pair_sums is None else pair_sums,
             ],
             device=dev,
             block_dim=NARROWPHASE_BLOCK_DIM,
@@ -391,13 +444,16 @@ class Stepper:
                 d["plane_point"],
                 d["plane_ft"],
                 d["plane_depth"],
+                int(report),
+                none if wall_sums is None else wall_sums,
             ],
             device=dev,
         )
 
-    def _launch_meshes(self, kernel, diag, state, dt, overflow):
+    def _launch_meshes(self, kernel, diag, state, dt, overflow, report=0, wall_sums=None):
         """The mesh-wall contacts of every body, added to ``state.body_f`` and ``body_t`` after the
-        gather (step), or reported into ``diag``'s wall columns (diagnostics)."""
+        gather (step), or reported into ``diag``'s wall columns (diagnostics; the report variant:
+        ``report`` bits, as :meth:`_launch_contacts`)."""
         m = self.model
         d = diag if diag is not None else self._placeholders()
         wp.launch(
@@ -445,6 +501,8 @@ class Stepper:
                 d["plane_ft"],
                 d["plane_depth"],
                 d["plane_normal"],
+                int(report),
+                self._placeholder_sums() if wall_sums is None else wall_sums,
             ],
             device=self.device,
         )
@@ -475,6 +533,11 @@ class Stepper:
         if getattr(self, "_empty", None) is None:
             self._empty = self._diag_arrays(1, 1, 1)
         return self._empty
+
+    def _placeholder_sums(self):
+        if getattr(self, "_no_sums", None) is None:
+            self._no_sums = _sums(1, self.device)
+        return self._no_sums
 
     def diagnose(self, state, contacts, dt):
         """Runs the diagnostics variant of the contact kernels at ``state``; returns its host arrays.
@@ -519,8 +582,111 @@ class Stepper:
         return out
 
     def release_diagnostics(self):
-        """Let the buffers of :meth:`diagnose` go (they are allocated again when needed)."""
+        """Let the buffers of :meth:`diagnose` and :meth:`report` go (they are allocated again when needed)."""
         self._diag = None
+        self._report = None
+        self._history_on = None
+
+    def history_on(self, history, contacts):
+        """(xi, turn): the pair history ``history`` (a :class:`~polydem.contacts.PairHistory`, by key)
+        carried onto the current pair list of ``contacts``, in arrays of :meth:`report`'s."""
+        cap, scalar = contacts.capacity, contacts.scalar
+        r = self._history_on
+        if r is None or r[0] != contacts.generation:
+            springs = cap if contacts.friction else 1
+            r = self._history_on = (
+                contacts.generation,
+                wp.zeros(springs, dtype=wp.types.vector(3, scalar), device=self.device),
+                wp.zeros(cap, dtype=scalar, device=self.device),
+            )
+        bp = contacts.broadphase
+        wp.launch(
+            make_remap_history_kernel(scalar),
+            dim=cap,
+            inputs=[
+                history.key,
+                history.count,
+                history.xi,
+                history.turn,
+                bp.pair_key,
+                bp.pair_count,
+                int(contacts.friction),
+            ],
+            outputs=[r[1], r[2]],
+            device=self.device,
+        )
+        return r[1], r[2]
+
+    def report(self, inputs, contacts, dt):
+        """Runs the force stage of a step again on ``inputs`` (device arrays by name, as
+        :class:`StepInputs`' ``arrays``: what the force stage of a step read, after its broad phase,
+        the pair history on the current pair list), with the report variant of the kernels, into
+        arrays of its own; returns host arrays as :meth:`diagnose` does, without the energies.
+
+        The same kernel code on the same inputs: the contacts and forces the step computed, the ones
+        its integration applied (``state.body_f`` is their sum). The state, the pair history and
+        ``inputs`` are left as they are. The geometry (volume, normal, point, depth) is that of the
+        poses the step started from.
+        """
+        m = self.model
+        cap = contacts.capacity
+        n = m.num_bodies
+        if self._report is None or self._report_generation != contacts.generation:
+            self._report_generation = contacts.generation
+            out = self._diag_arrays(cap, n, max(m.num_walls, 1))
+            # What the step writes besides the report: scratch arrays, so that nothing of the run changes.
+            scratch = {k: wp.empty_like(inputs[k]) for k in ("plane_xi", "plane_turn", "pair_xi", "pair_turn")}
+            scratch["body_f"] = wp.zeros_like(inputs["body_v"])
+            scratch["body_t"] = wp.zeros_like(inputs["body_v"])
+            scratch["body_dissipated"] = wp.zeros(n, dtype=m.scalar, device=self.device)
+            for name in ("pair_force", "pair_torque_a", "pair_dissipated"):
+                scratch[name] = wp.zeros_like(getattr(contacts, name))
+            self._report = (out, scratch)
+        out, scratch = self._report
+        a = inputs
+        state = SimpleNamespace(
+            body_q=a["body_q"],
+            body_v=a["body_v"],
+            body_w=a["body_w"],
+            mesh_q=a["mesh_q"],
+            plane_xi=scratch["plane_xi"],
+            plane_turn=scratch["plane_turn"],
+            body_dissipated=scratch["body_dissipated"],
+            body_f=scratch["body_f"],
+            body_t=scratch["body_t"],
+        )
+        pairs = SimpleNamespace(
+            capacity=cap,
+            broadphase=contacts.broadphase,
+            pair_xi=scratch["pair_xi"],
+            pair_turn=scratch["pair_turn"],
+            pair_force=scratch["pair_force"],
+            pair_torque_a=scratch["pair_torque_a"],
+            pair_dissipated=scratch["pair_dissipated"],
+            body_pairs_a=contacts.body_pairs_a,
+            body_pairs_b=contacts.body_pairs_b,
+            pair_by_b=contacts.pair_by_b,
+        )
+        while True:
+            self._diag_overflow.zero_()
+            for name in ("plane_xi", "plane_turn", "pair_xi", "pair_turn"):
+                wp.copy(scratch[name], a[name])
+            kernels, mesh = self._report_kernels()
+            self._launch_contacts(kernels, out, state, pairs, dt, self._diag_overflow, report=REPORT_CONTACTS)
+            if mesh is not None:
+                self._launch_meshes(mesh, out, state, dt, self._diag_overflow, report=REPORT_CONTACTS)
+            if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= m.shapes.max_poly_bound:
+                break
+            # As in diagnose(): a clipped polygon did not fit; more room for the steps too, and again.
+            self.poly_capacity = min(2 * self.poly_capacity, m.shapes.max_poly_bound)
+            self._kernels()
+        count = contacts.count()
+        host = {k: v.numpy() for k, v in out.items() if not k.endswith("_energy")}
+        for k in ("pair_volume", "pair_normal", "pair_point", "pair_fn", "pair_ft", "pair_depth"):
+            host[k] = host[k][:count]
+        host["body_f"] = scratch["body_f"].numpy()
+        host["body_t"] = scratch["body_t"].numpy()
+        return host
 
     def kinetic_energy(self, state):
         """Host float64 (translational, rotational) kinetic energy of the free bodies [J]."""
@@ -531,17 +697,55 @@ class Stepper:
         return np.sum(lin.numpy(), dtype=np.float64), np.sum(ang.numpy(), dtype=np.float64)
 
 
+class StepInputs:
+    """Copies of what the force stage of a step read, taken after its broad phase: the poses and
+    velocities, the mesh walls' poses, the wall contacts' and the pairs' history (the pair list
+    itself stays in the :class:`~polydem.contacts.Contacts` until the next step's broad phase).
+    :meth:`Stepper.report` runs the force stage again on them. :meth:`Simulation.advance` keeps them
+    of its last step (:meth:`Simulation.step` needs none: its copy for a redo serves).
+
+    Attributes:
+        arrays: device arrays by name: ``body_q``, ``body_v``, ``body_w``, ``mesh_q``, ``plane_xi``,
+            ``plane_turn`` (as the :class:`~polydem.state.State`'s), ``pair_xi``, ``pair_turn`` (as the
+            :class:`~polydem.contacts.Contacts`').
+    """
+
+    STATE = ("body_q", "body_v", "body_w", "mesh_q", "plane_xi", "plane_turn")
+    PAIRS = ("pair_xi", "pair_turn")
+
+    def __init__(self):
+        self.arrays = {}
+
+    def _sources(self, state, contacts):
+        return [(k, getattr(state, k)) for k in self.STATE] + [(k, getattr(contacts, k)) for k in self.PAIRS]
+
+    def ensure(self, state, contacts):
+        """Arrays of the shapes of ``state`` and ``contacts`` (before a graph capture: none is made in it)."""
+        for name, src in self._sources(state, contacts):
+            dst = self.arrays.get(name)
+            if dst is None or dst.shape != src.shape or dst.dtype != src.dtype:
+                self.arrays[name] = wp.empty_like(src)
+
+    def save(self, state, contacts):
+        """Copy what the force stage will read from ``state`` and ``contacts``."""
+        self.ensure(state, contacts)
+        for name, src in self._sources(state, contacts):
+            wp.copy(self.arrays[name], src)
+
+
 class Snapshot:
-    """A copy of a simulation at one step: :class:`~polydem.state.State`, pair history, step count and time.
+    """A copy of a simulation at one step: :class:`~polydem.state.State`, pair history, step count and time,
+    and the sums of the contact-force average then running (``average``, None without one).
 
     From :meth:`Simulation.snapshot`; give it to :meth:`Simulation.restore` to go back to that step.
     """
 
-    def __init__(self, state, pairs, steps_done, time):
+    def __init__(self, state, pairs, steps_done, time, average=None):
         self.state = state
         self.pairs = pairs
         self.steps_done = int(steps_done)
         self.time = float(time)
+        self.average = average
 
 
 class Simulation:
@@ -601,10 +805,20 @@ class Simulation:
         self.stepper.body_speed_limit.assign(self._tunnel.body_speed_limit.astype(np.float32))
         # Warned once a run: already by the scene's validation where the initial speeds are too high.
         self._tunnel_warned = bool(scene.check_tunnelling(arrays, self.dt))
-        self._graph = None
+        self._graphs = {}
         self._graph_key = None
         self._last_good = None
         self._diag_cache = None
+        # contacts() runs the last step's force stage again on what it read: where that is kept
+        # (_last_step: "snapshot", the copy step() takes before its last step, which runs alone in its
+        # chunk; "inputs", the copies advance() keeps of its last step; None: no step since the state
+        # was set), and the host arrays of its report.
+        self._last_step = None
+        self._inputs = None
+        self._report_cache = None
+        # The contact-force average (start_contact_average): its device sums, and the intervals begun.
+        self._average = None
+        self._intervals = 0
         self.current_contacts.build(self.current_state.body_q, keep_history=False)
 
     # -- the arrays of the current state, by their former names --------------------------------
@@ -655,21 +869,43 @@ class Simulation:
         else:
             state = st.copy()
         pairs = self.current_contacts.history(into.pairs if into is not None else None)
+        average = None
+        if self._average is not None:
+            average = self._average.snapshot(getattr(into, "average", None))
         if into is None:
-            return Snapshot(state, pairs, self.steps_done, self.time)
+            return Snapshot(state, pairs, self.steps_done, self.time, average)
         into.state, into.pairs, into.steps_done, into.time = state, pairs, self.steps_done, self.time
+        into.average = average
         return into
 
     def restore(self, snapshot):
         """Go back to the step of ``snapshot`` (from :meth:`snapshot`, or a checkpoint's).
 
         The candidate pairs are found afresh at the restored poses; each pair gets its history back by key.
+        A contact-force average (:meth:`start_contact_average`) goes on: with the sums of ``snapshot``
+        where it was taken during the same interval, else started afresh at the restored step.
         """
         self._diag_cache = None
+        self._report_cache = None
+        self._last_step = None  # the last step is not the one that led to the restored state
         # A non-finite step recorded after the snapshot belongs to the states that are discarded now.
         self.stepper.clear_checks()
-        self.current_state.assign(snapshot.state)
-        self.current_contacts.restore(snapshot.pairs, self.current_state.body_q)
+        avg = self._average
+        while True:
+            self.current_state.assign(snapshot.state)
+            pair_sums = None
+            if avg is not None:
+                saved = getattr(snapshot, "average", None)
+                if saved is not None and saved.interval == avg.interval:
+                    avg.restore(saved)
+                    pair_sums = saved.pairs
+                else:
+                    avg.reset(avg.interval, snapshot.steps_done, snapshot.time)
+            self.current_contacts.restore(snapshot.pairs, self.current_state.body_q, pair_sums=pair_sums)
+            # The pairs of the snapshot that the fresh list has not are retired: room for them.
+            if avg is None or not avg.overflowed():
+                break
+            avg.grow()
         self.steps_done = snapshot.steps_done
         self.time = snapshot.time
 
@@ -713,21 +949,55 @@ class Simulation:
 
     # -- stepping ------------------------------------------------------------------------------
 
-    def _run_chunk(self, steps):
-        self._diag_cache = None
-        state, contacts = self.current_state, self.current_contacts
-        if self.use_graph:
-            key = (contacts.generation, self.stepper.poly_capacity)
-            if self._graph is None or self._graph_key != key:
+    def _graph(self, keep_inputs):
+        """The captured step (``keep_inputs``: the one that also keeps its inputs, for advance()), for
+        the current buffers, polygon room and average."""
+        state, contacts, avg = self.current_state, self.current_contacts, self._average
+        key = (contacts.generation, self.stepper.poly_capacity, None if avg is None else (id(avg), avg.generation))
+        if self._graph_key != key:
+            self._graphs = {}
+            self._graph_key = key
+        graph = self._graphs.get(keep_inputs)
+        if graph is None:
+            self.stepper.keep_inputs = self._inputs if keep_inputs else None
+            try:
                 with wp.ScopedCapture(device=self.device) as capture:
                     self.stepper.step(state, state, contacts, self.dt)
-                self._graph = capture.graph
-                self._graph_key = key
-            for _ in range(steps):
-                wp.capture_launch(self._graph)
+            finally:
+                self.stepper.keep_inputs = None
+            graph = self._graphs[keep_inputs] = capture.graph
+        return graph
+
+    def _run_chunk(self, steps, keep_inputs=False):
+        """``steps`` steps; ``keep_inputs``: the last one keeps what its force stage read (StepInputs)."""
+        if steps <= 0:
+            return
+        self._diag_cache = None
+        self._report_cache = None
+        self._last_step = None
+        state, contacts = self.current_state, self.current_contacts
+        self.stepper.average = self._average
+        if keep_inputs:
+            if self._inputs is None:
+                self._inputs = StepInputs()
+            self._inputs.ensure(state, contacts)
+        if self.use_graph:
+            plain = steps - 1 if keep_inputs else steps
+            if plain:
+                graph = self._graph(False)
+                for _ in range(plain):
+                    wp.capture_launch(graph)
+            if keep_inputs:
+                wp.capture_launch(self._graph(True))
         else:
-            for _ in range(steps):
-                self.stepper.step(state, state, contacts, self.dt)
+            try:
+                for k in range(steps):
+                    self.stepper.keep_inputs = self._inputs if keep_inputs and k == steps - 1 else None
+                    self.stepper.step(state, state, contacts, self.dt)
+            finally:
+                self.stepper.keep_inputs = None
+        if keep_inputs:
+            self._last_step = "inputs"
 
     def step(self, n=1):
         """Advance ``n`` steps of length ``dt``."""
@@ -737,6 +1007,10 @@ class Simulation:
         done = 0
         while done < n:
             chunk = min(CHUNK_STEPS, n - done)
+            if chunk == n - done and chunk > 1:
+                # The last step runs alone in its chunk: the copy taken before it (for a redo) is then
+                # what its force stage read, which contacts() runs again. No copy of its own.
+                chunk -= 1
             self._last_good = self.snapshot(into=self._last_good)
             self._run_chunk(chunk)
             redo = False
@@ -744,6 +1018,9 @@ class Simulation:
                 self.stepper.grow_polygons()
                 redo = True
             if self.stepper.device_rebuild and self.current_contacts.host_build_needed():
+                redo = True
+            if self._average is not None and self._average.overflowed():
+                self._average.grow()  # more contacts ended in the chunk than the retired list holds
                 redo = True
             if redo:
                 self.restore(self._last_good)
@@ -758,6 +1035,8 @@ class Simulation:
             done += chunk
             self.steps_done += chunk
             self.time += chunk * self.dt
+            if done == n:
+                self._last_step = "snapshot"
 
     def _warn_too_fast(self, chunk):
         # Once a run: the body the furthest above its limit, at its largest speed so far.
@@ -773,18 +1052,25 @@ class Simulation:
         )
 
     def advance(self, steps):
-        """Run ``steps`` steps with no host check, copy or redo (one CUDA graph launch each on a GPU).
+        """Run ``steps`` steps with no host check or redo (one CUDA graph launch each on a GPU).
 
         For callers that check for themselves what :meth:`step` checks after each chunk (the overflow
         flags of ``stepper`` and ``current_contacts``, the first non-finite step) and keep their own
         copy to go back to: a decomposed run (:mod:`polydem.distributed`) does, once per chunk of all
-        its ranks. Does not count the steps (``steps_done``, ``time``): the caller sets them.
+        its ranks. Does not count the steps (``steps_done``, ``time``): the caller sets them. The last
+        step keeps a copy of what its force stage read (:class:`StepInputs`), for :meth:`contacts`.
         """
-        self._run_chunk(int(steps))
+        self._run_chunk(int(steps), keep_inputs=True)
 
     def forget_diagnostics(self):
-        """Drop the contact diagnostics computed at this step (after the state was changed from outside)."""
+        """Drop the contact diagnostics computed at this step (after the state was changed from outside).
+
+        :meth:`contacts` still reports the last step as it ran (from copies of what it read); before
+        any step or after :meth:`restore`, it is computed again at the changed state.
+        """
         self._diag_cache = None
+        if self._last_step is None:
+            self._report_cache = None
 
     def diagnostics(self):
         """The per-pair and per-wall diagnostics of the current step (what :meth:`energy` and
@@ -850,8 +1136,10 @@ class Simulation:
 
     def settle_check(self, criterion=None, check=None):
         """A :class:`~polydem.settle.SettleCheck` of ``criterion`` (default :class:`SettleCriterion()`)
-        from the current step; ``check``: one to continue instead. Raises ValueError when the criterion
-        cannot be met in this scene (no free body; the kinetic part without gravity)."""
+        from the current step, with the criterion's speed limit in this scene (``speed_fraction`` of
+        ``sqrt(|g| r_min)``, or ``max_speed``); ``check``: one to continue instead. Raises ValueError
+        when the criterion cannot be met in this scene (no free body; the kinetic part or the scaled
+        speed limit without gravity)."""
         if check is not None:
             return check
         criterion = SettleCriterion() if criterion is None else criterion
@@ -860,11 +1148,14 @@ class Simulation:
         if not np.any(self.model.body_flags_np == 0):
             raise ValueError("the scene has no free bodies: there is nothing to settle")
         criterion.check_gravity(self.model.gravity)
-        return SettleCheck(criterion, self.settle_measures()[1])
+        limit = criterion.speed_limit_of(self.model.scene)
+        return SettleCheck(criterion, self.settle_measures()[1], speed_limit=limit)
 
     def run_until_settled(self, max_time, criterion=None, *, check=None):
-        """Step until the free bodies have settled (``criterion``, default :class:`SettleCriterion()`),
-        for at most ``max_time`` more simulated seconds.
+        """Step until the free bodies have settled (``criterion``, default :class:`SettleCriterion()`:
+        the kinetic energy below 1e-4 of the gravitational energy released and no free body's fastest
+        point at 1e-3 sqrt(|g| r_min) or faster, for 0.02 s), for at most ``max_time`` more simulated
+        seconds.
 
         The criterion is checked every ``CHUNK_STEPS`` steps (at step counts that are multiples of it;
         the last step is measured for the result); the energy released counts from the current step
@@ -901,6 +1192,7 @@ class Simulation:
             kinetic=check.kinetic,
             released=check.released,
             largest_speed=check.largest_speed,
+            speed_limit=check.speed_limit,
         )
 
     # -- reading the current step --------------------------------------------------------------
@@ -963,18 +1255,56 @@ class Simulation:
             "total": kin + contact + grav + diss,
         }
 
+    def _reported(self):
+        # The host arrays of contacts(): the last step's force stage run again (Stepper.report) on
+        # its kept inputs, or, with no step since the state was set (the start, a restore), on the
+        # current state: the forces the next step will apply. Kept until a step or a restore.
+        if self._report_cache is None:
+            self._report_cache = self.stepper.report(self._last_step_inputs(), self.current_contacts, self.dt)
+        return self._report_cache
+
+    def _last_step_inputs(self):
+        """What the force stage of the last step read, by name (as :class:`StepInputs`' arrays), or
+        the current state and pair history where no step ran since the state was set."""
+        contacts = self.current_contacts
+        if self._last_step == "inputs":
+            return self._inputs.arrays
+        if self._last_step == "snapshot":
+            snap = self._last_good
+            st, history = snap.state, snap.pairs
+            # The snapshot's pair history is by key, from before the step's broad phase: carried onto
+            # the pair list that phase made (the current one), as the step's rebuild carried it.
+            xi, turn = self.stepper.history_on(history, contacts)
+            arrays = {k: getattr(st, k) for k in StepInputs.STATE}
+            arrays.update(pair_xi=xi, pair_turn=turn)
+            return arrays
+        st = self.current_state
+        arrays = {k: getattr(st, k) for k in StepInputs.STATE}
+        arrays.update(pair_xi=contacts.pair_xi, pair_turn=contacts.pair_turn)
+        return arrays
+
     def contacts(self):
-        """Current contacts (overlap volume > 0) as numpy arrays, one row per contact.
+        """The contacts of the last step and the forces it applied, as numpy arrays, one row per contact.
 
         ``body_a``, ``body_b`` (int; ``body_b = -1 - p`` for wall p: the planes, then the mesh
-        walls), ``normal`` (N,3) from A
-        into B, ``point`` (N,3) [m], ``normal_force`` (N,) [N], ``tangential_force`` (N,3) on A [N],
-        ``volume`` (N,) [m^3], ``depth`` (N,) [m]: the penetration depth, the shortest translation along
-        a face normal of either body that separates the pair (for a wall, how far the body's lowest
-        vertex lies beyond it). Computed at the current state (after the last step).
+        walls), ``normal`` (N,3) from A into B, ``point`` (N,3) [m], ``normal_force`` (N,) [N],
+        ``tangential_force`` (N,3) on A [N], ``volume`` (N,) [m^3], ``depth`` (N,) [m]: the
+        penetration depth, the shortest translation along a face normal of either body that separates
+        the pair (for a wall, how far the body's lowest vertex lies beyond it).
+
+        The forces are those the last step computed and integrated: for each free body, the sum of
+        ``-normal_force * normal + tangential_force`` over its rows (negated where it is B) plus m g
+        is m (v - v_before) / dt of that step, to rounding. The geometry (volume, normal, point,
+        depth) is that of the poses the step started from, where its forces were evaluated (one
+        step before :meth:`state`). Before the first step, and after :meth:`restore`: the contacts at
+        the current state with the forces the next step will apply. The report runs the step's force
+        stage again (the same kernels, in a variant that also writes the contacts) on what it read:
+        :meth:`step` runs its last step alone in a chunk, so the copy it takes before each chunk, for
+        a redo, holds it (:meth:`advance` keeps a copy of its own). Stepping costs nothing more and
+        holds no more memory. See :meth:`start_contact_average` for forces averaged over an interval.
         """
         bp = self.current_contacts.broadphase
-        d = self._diagnostics()
+        d = self._reported()
         count = len(d["pair_volume"])
         vol = d["pair_volume"]
         on = vol > 0.0
@@ -1007,3 +1337,99 @@ class Simulation:
             out["volume"] = np.concatenate([out["volume"], pv[body, plane].astype(np.float64)])
             out["depth"] = np.concatenate([out["depth"], d["plane_depth"][body, plane].astype(np.float64)])
         return out
+
+    # -- contact forces averaged over an interval ------------------------------------------------
+
+    def start_contact_average(self):
+        """Start (or start again) averaging the contact forces over the steps from now on.
+
+        Every later :meth:`step` adds each contact's force, as the step applied it, to sums on the
+        device (no host synchronisation; a captured CUDA graph does it too), until
+        :meth:`stop_contact_average`; :meth:`contact_average` reads the average so far. While it runs
+        the steps use the report variant of the contact kernels (a few more stores per contact); the
+        plain step pays nothing. A :meth:`restore` keeps the interval going (with the sums of the
+        snapshot where it was taken in this interval, else from zero at the restored step); a
+        checkpoint does not hold the sums. Not in a decomposed run (:mod:`polydem.distributed`).
+        """
+        self._intervals += 1
+        if self._average is None:
+            self._average = ContactAverage(
+                self.current_contacts, self.model.num_walls, self._intervals, self.steps_done, self.time
+            )
+        else:
+            self._average.reset(self._intervals, self.steps_done, self.time)
+
+    @property
+    def contact_average_steps(self):
+        """Steps in the running contact-force average so far (None: none is running)."""
+        return None if self._average is None else self.steps_done - self._average.start_step
+
+    def contact_average(self):
+        """The contact forces averaged over the interval from :meth:`start_contact_average` to now.
+
+        One row per contact that had an overlap in some step of the interval (pairs by key, then
+        wall contacts by body and wall, as :meth:`contacts`), with its impulse over the interval
+        divided by the interval's length: a contact that lasted part of the interval (an impact)
+        counts over the whole of it, so that for each free body the sum of its rows' ``force``
+        (negated where it is B) plus m g is m (v_end - v_start) / (end_time - start_time), to rounding.
+
+        Returns a dict: ``body_a``, ``body_b`` (as :meth:`contacts`), ``force`` (M,3) mean force on
+        A [N], ``normal_force`` (M,) mean magnitude of the normal force [N], ``tangential_force``
+        (M,3) mean tangential force on A [N], ``normal`` (M,3) unit direction of the mean normal
+        force on A, negated (from A into B; zero where it vanishes), ``point`` (M,3) mean contact
+        point over the steps in contact [m], ``contact_time`` (M,) time in contact [s]; and
+        ``start_time``, ``end_time`` [s] and ``steps`` (int) of the interval.
+
+        Raises:
+            RuntimeError: no average is running (call :meth:`start_contact_average` first).
+            ValueError: the interval has no step yet.
+        """
+        avg = self._average
+        if avg is None:
+            raise RuntimeError("no contact-force average is running: call start_contact_average() first")
+        steps = self.steps_done - avg.start_step
+        if steps <= 0:
+            raise ValueError(
+                f"the contact-force average started at step {avg.start_step} has no step yet: step the simulation "
+                "before asking for it"
+            )
+        contacts = self.current_contacts
+        sums = avg.numpy(contacts.pair_key, contacts.pair_count)
+        key = sums["key"]
+        n = self.num_bodies
+        walls = avg.num_walls
+        pair = key >= 0
+        wall_index = -1 - key[~pair]
+        body_a = np.where(pair, key // n, 0)
+        body_a[~pair] = wall_index // walls
+        body_b = np.where(pair, key % n, 0)
+        body_b[~pair] = -1 - wall_index % walls
+        force = sums["force"] / steps
+        tangential = sums["tangential"] / steps
+        normal_vec = -(force - tangential)
+        size = np.linalg.norm(normal_vec, axis=1, keepdims=True)
+        in_contact = np.maximum(sums["steps"], 1)[:, None]
+        return {
+            "body_a": body_a.astype(np.int64),
+            "body_b": body_b.astype(np.int64),
+            "force": force,
+            "normal_force": sums["normal"] / steps,
+            "tangential_force": tangential,
+            "normal": np.divide(normal_vec, size, out=np.zeros_like(normal_vec), where=size > 0.0),
+            "point": sums["point"] / in_contact,
+            "contact_time": sums["steps"].astype(np.float64) * self.dt,
+            "start_time": avg.start_time,
+            "end_time": self.time,
+            "steps": steps,
+        }
+
+    def stop_contact_average(self):
+        """Stop the contact-force average (the steps go back to the plain kernels); returns its
+        :meth:`contact_average`, or None where it had no step (or none was running)."""
+        avg = self._average
+        if avg is None:
+            return None
+        result = self.contact_average() if self.steps_done > avg.start_step else None
+        avg.detach()
+        self._average = None
+        return result

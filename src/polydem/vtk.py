@@ -34,15 +34,26 @@ principal frame), ``velocity`` [m/s], ``angular_velocity`` [rad/s], ``radius`` (
 sphere [m]) and ``equivalent_radius`` (radius of the sphere of the body's volume [m]; for Glyph
 spheres of the body's size).
 
-``contacts``: one line cell per contact (``Simulation.contacts()``), from the centre of body A to the
-centre of body B, or to the contact point for a wall contact; each line has two points of its own.
-Cell data: ``body_a``, ``body_b`` (-1 for a wall), ``wall`` (the plane's index, -1 between bodies),
-``normal`` (unit, from A into B or the wall), ``normal_force`` (vector on A [N]: ``-fn * normal``),
+``contacts``: one line cell per contact (``Simulation.contacts()``: the contacts of the frame's
+last step, with the forces that step applied), from the centre of body A to the centre of body B, or
+to the contact point for a wall contact; each line has two points of its own. Cell data:
+``body_a``, ``body_b`` (-1 for a wall), ``wall`` (the plane's index, -1 between bodies), ``normal``
+(unit, from A into B or the wall), ``normal_force`` (vector on A [N]: ``-fn * normal``),
 ``normal_force_magnitude`` (``fn`` [N]), ``tangential_force`` (friction force on A [N]),
 ``tangential_force_magnitude``, ``force`` (their sum) and ``force_magnitude``, ``overlap_volume``
 [m^3] and ``contact_point`` [m]. Point data ``normal_force_magnitude`` repeats the cell's value at
 both ends, so that ParaView's Tube filter can scale the tubes by it (it varies the radius by point
 scalars): the force chains.
+
+With the forces averaged over the time before the frame (``Simulation.contact_average()``, given
+as ``average``; ``polydem run`` averages over each interval between frames), the frame also has a
+line for each contact that ended in that interval, and the cell data ``current`` (1: a contact of
+the frame's last step, 0: one that only the average has; its instantaneous fields are zero and a
+wall contact's line ends at its mean point), ``mean_force`` (vector on A [N]: the impulse over the
+interval divided by its length) and ``mean_force_magnitude``, ``mean_normal_force`` (vector on A
+[N]), ``mean_normal_force_magnitude`` (the mean of ``fn`` [N]), ``mean_tangential_force`` [N] and
+``contact_time`` (time in contact in the interval [s]); point data ``mean_normal_force_magnitude``
+as above, for tubes of the averaged force chains.
 
 The ``.pvd`` files are rewritten (atomically) after every frame, so an interrupted run leaves a
 valid series of the frames so far. ``meshio`` writes the ``.vtu`` files (binary, zlib-compressed;
@@ -256,7 +267,9 @@ class VtkWriter:
 
     # ------------------------------------------------------------------ recording
 
-    def record(self, time_s: float, state: dict, contacts: dict, index: int | None = None, mesh_poses=None) -> int:
+    def record(
+        self, time_s: float, state: dict, contacts: dict, index: int | None = None, mesh_poses=None, average=None
+    ) -> int:
         """Write one frame of every series; returns its index.
 
         Args:
@@ -269,6 +282,9 @@ class VtkWriter:
             mesh_poses: (M, 7) poses of the mesh walls' frames (pivot position [m], quaternion xyzw;
                 ``Simulation.current_state.mesh_q``) for the moving walls' series; None: their
                 initial pose.
+            average: ``Simulation.contact_average()`` over the time before the frame: the contacts file
+                gets the averaged fields (module docstring); an empty dict: an interval without a step
+                (the fields, all zero). None: no averaged fields.
         """
         import meshio
 
@@ -293,7 +309,7 @@ class VtkWriter:
         files = {name: f"{name}/{name}_{k:06d}.vtu" for name in self._series}
         self._write_particles(meshio, self.folder / files["particles"], x, q, v, w)
         self._write_centres(meshio, self.folder / files["centres"], x, q, v, w)
-        self._write_contacts(meshio, self.folder / files["contacts"], x, contacts)
+        self._write_contacts(meshio, self.folder / files["contacts"], x, contacts, average)
         if self._moving:
             if mesh_poses is not None:
                 mesh_poses = np.asarray(mesh_poses, dtype=np.float64)
@@ -319,10 +335,14 @@ class VtkWriter:
         return k
 
     def record_simulation(self, sim, index: int | None = None) -> int:
-        """Record a :class:`~polydem.Simulation`'s current state and contacts at ``sim.time``."""
+        """Record a :class:`~polydem.Simulation`'s current state and contacts at ``sim.time``, with its
+        contact-force average where one is running (``sim.start_contact_average()``; start it again
+        after each frame for an average over each interval between frames)."""
         m = sim.model.num_mesh_walls
         mesh = sim.current_state.mesh_q.numpy()[:m] if m else None
-        return self.record(sim.time, sim.state(), sim.contacts(), index, mesh_poses=mesh)
+        steps = sim.contact_average_steps
+        average = None if steps is None else sim.contact_average() if steps > 0 else {}
+        return self.record(sim.time, sim.state(), sim.contacts(), index, mesh_poses=mesh, average=average)
 
     def _write_particles(self, meshio, path, x, q, v, w) -> None:
         from polydem.quaternions import quat_to_matrix
@@ -374,7 +394,7 @@ class VtkWriter:
             },
         )
 
-    def _write_contacts(self, meshio, path, x, contacts) -> None:
+    def _write_contacts(self, meshio, path, x, contacts, average=None) -> None:
         a = np.asarray(contacts["body_a"], dtype=np.int64)
         b = np.asarray(contacts["body_b"], dtype=np.int64)
         m = len(a)
@@ -383,6 +403,42 @@ class VtkWriter:
         fn = np.asarray(contacts["normal_force"], dtype=np.float64).reshape(m)
         ft = np.asarray(contacts["tangential_force"], dtype=np.float64).reshape(m, 3)
         volume = np.asarray(contacts["volume"], dtype=np.float64).reshape(m)
+        mean = None
+        if average is not None:
+            # The union of the frame's contacts and the averaged ones: the frame's first, in their
+            # order, then those that ended in the interval; each row gets both kinds of field.
+            avg_a = np.asarray(average.get("body_a", np.zeros(0)), dtype=np.int64)
+            avg_b = np.asarray(average.get("body_b", np.zeros(0)), dtype=np.int64)
+            k = len(avg_a)
+
+            def column(name, width):
+                return np.asarray(average.get(name, np.zeros((0, width))), dtype=np.float64).reshape(k, width)
+
+            row = {(int(i), int(j)): r for r, (i, j) in enumerate(zip(a.tolist(), b.tolist(), strict=True))}
+            where = np.array([row.get((int(i), int(j)), -1) for i, j in zip(avg_a, avg_b, strict=True)], dtype=np.int64)
+            extra = np.flatnonzero(where < 0)
+            where[extra] = m + np.arange(len(extra))
+            total = m + len(extra)
+            a = np.concatenate([a, avg_a[extra]])
+            b = np.concatenate([b, avg_b[extra]])
+            mean_point = column("point", 3)
+            point = np.concatenate([point, mean_point[extra]])
+            normal = np.concatenate([normal, np.zeros((len(extra), 3))])
+            fn = np.concatenate([fn, np.zeros(len(extra))])
+            ft = np.concatenate([ft, np.zeros((len(extra), 3))])
+            volume = np.concatenate([volume, np.zeros(len(extra))])
+            mean = {"current": (np.arange(total) < m).astype(np.int32)}
+            for name, src, width in (
+                ("mean_force", "force", 3),
+                ("mean_tangential_force", "tangential_force", 3),
+                ("mean_normal_force_magnitude", "normal_force", 1),
+                ("contact_time", "contact_time", 1),
+            ):
+                values = np.zeros((total, width))
+                values[where] = column(src, width)
+                mean[name] = values if width == 3 else values[:, 0]
+            mean["mean_normal_force"] = mean["mean_force"] - mean["mean_tangential_force"]
+            m = total
         wall = b < 0
         end = np.where(wall[:, None], point, x[np.maximum(b, 0)])
         ends = np.stack([x[a], end], axis=1).reshape(-1, 3)
@@ -392,12 +448,25 @@ class VtkWriter:
         def f32(values):
             return np.asarray(values, dtype=np.float32)
 
+        point_data = {"normal_force_magnitude": f32(np.repeat(fn, 2))}
+        extra_cells = {}
+        if mean is not None:
+            point_data["mean_normal_force_magnitude"] = f32(np.repeat(mean["mean_normal_force_magnitude"], 2))
+            extra_cells = {
+                "current": [mean["current"]],
+                "mean_force": [f32(mean["mean_force"])],
+                "mean_force_magnitude": [f32(np.linalg.norm(mean["mean_force"], axis=1))],
+                "mean_normal_force": [f32(mean["mean_normal_force"])],
+                "mean_normal_force_magnitude": [f32(mean["mean_normal_force_magnitude"])],
+                "mean_tangential_force": [f32(mean["mean_tangential_force"])],
+                "contact_time": [f32(mean["contact_time"])],
+            }
         _write_vtu(
             meshio,
             path,
             f32(ends),
             [("line", np.arange(2 * m, dtype=np.int64).reshape(m, 2))],
-            point_data={"normal_force_magnitude": f32(np.repeat(fn, 2))},
+            point_data=point_data,
             cell_data={
                 "body_a": [a.astype(np.int32)],
                 "body_b": [np.where(wall, -1, b).astype(np.int32)],
@@ -411,6 +480,7 @@ class VtkWriter:
                 "force_magnitude": [f32(np.linalg.norm(force, axis=1))],
                 "overlap_volume": [f32(volume)],
                 "contact_point": [f32(point)],
+                **extra_cells,
             },
         )
 

@@ -1,6 +1,12 @@
 """The files of one part of a run (from t = 0, or from the checkpoint it resumed from): the USD
 animation, the VTK series, pictures, checkpoints, plots and the summary.
 
+With VTK output the contact forces are averaged over each interval between frames
+(``Simulation.start_contact_average``, started again at every frame): the VTK contact network of a
+frame carries the average over the interval before it, and the summary the average over the last
+interval. Without it nothing is averaged: the steps of an average run the report variant of the
+contact kernels, measured 7% slower (27k cubes on an H200).
+
 A file that cannot be written once the run has started is an :class:`OutputError` (the run
 stops, the other outputs are still written) or, at the end, a line in ``errors``.
 """
@@ -10,6 +16,8 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+
+import numpy as np
 
 from polydem.cli.common import relative, remove, resolve, shorten
 from polydem.cli.errors import CliError, OutputError, why
@@ -52,6 +60,7 @@ class Outputs:
         self.checkpoints: list[str] = []
         self.plot_files: list[str] = []
         self.summary_written = False
+        self.last_average: dict | None = None  # the contact-force average over the last interval between frames
 
     def rel(self, path) -> str:
         """``path`` as the closing lines and the summary name it: relative to the output folder."""
@@ -73,8 +82,57 @@ class Outputs:
 
             self.vtk = VtkWriter(self.vtk_dir, self.scene, resume=self.resumed_from is not None)
 
+    def frame_average(self, sim) -> dict | None:
+        """The contact-force average over the interval since the last frame ({} at the first one),
+        and a new interval from this step; None without VTK output (nothing is averaged)."""
+        if self.vtk_dir is None:
+            return None
+        steps = sim.contact_average_steps
+        average = sim.contact_average() if steps else {}
+        if average:
+            self.last_average = average
+        sim.start_contact_average()
+        return average
+
+    def average_summary(self, sim) -> dict | None:
+        """The summary's ``contact_average``: the contact forces averaged over the last interval between
+        frames (or from the last frame to the end where the run stopped between frames); None where
+        nothing was averaged (no VTK output)."""
+        if self.vtk_dir is None:
+            return None
+        steps = sim.contact_average_steps
+        a = sim.contact_average() if steps else self.last_average
+        if not a:
+            return None
+        b = a["body_b"]
+        fn = a["normal_force"]
+        walls = []
+        for j in range(sim.model.num_walls):
+            on = b == -1 - j
+            walls.append({"wall": j, "force": (-a["force"][on].sum(axis=0)).tolist()})
+        largest = None
+        if len(fn):
+            i = int(np.argmax(fn))
+            largest = {
+                "normal_force": float(fn[i]),
+                "body_a": int(a["body_a"][i]),
+                "body_b": int(b[i]) if b[i] >= 0 else None,
+                "wall": int(-1 - b[i]) if b[i] < 0 else None,
+            }
+        return {
+            "from_time": a["start_time"],
+            "to_time": a["end_time"],
+            "steps": a["steps"],
+            "contacts": len(fn),
+            "mean_normal_force": float(np.mean(fn)) if len(fn) else None,
+            "largest": largest,
+            "walls": walls,
+        }
+
     def record_frame(self, sim, contacts, frame: int) -> None:
-        """Add the state of ``sim`` as frame ``frame`` to the USD file and the VTK series."""
+        """Add the state of ``sim`` as frame ``frame`` to the USD file and the VTK series (with the
+        contact forces averaged since the last frame)."""
+        average = self.frame_average(sim)
         rec = self.usd
         if rec is not None and (rec.last_time_code is None or rec.time_code(sim.time) > rec.last_time_code):
             try:
@@ -86,7 +144,7 @@ class Outputs:
         if self.vtk is not None and (self.vtk.last_index is None or frame > self.vtk.last_index):
             try:
                 mesh = sim.current_state.mesh_q.numpy() if sim.model.num_mesh_walls else None
-                self.vtk.record(sim.time, sim.state(), contacts, index=frame, mesh_poses=mesh)
+                self.vtk.record(sim.time, sim.state(), contacts, index=frame, mesh_poses=mesh, average=average)
             except OSError as exc:
                 raise OutputError(f"cannot write the VTK files in {self.rel(self.vtk_dir)}: {why(exc)}") from exc
 

@@ -66,6 +66,21 @@ def _fraction(text: str) -> float | None:
     return value
 
 
+def _speed_fraction(text: str) -> float | None:
+    if text.strip().lower() in ("off", "none", "false"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(
+            f"expected a fraction > 0 of sqrt(g r_min) (r_min the smallest grain's bounding radius), or off, got "
+            f"{text!r}; e.g. --settle-speed-fraction 3e-4"
+        )
+    return value
+
+
 def _nonnegative(what: str, example: str):
     def parse(text: str) -> float:
         try:
@@ -139,11 +154,13 @@ paths inside that folder; the closing lines name every file written):
 
 until settled: with --until-settled (or [simulation] until_settled = true in the scene) the run
 stops once the pile has settled: the kinetic energy of the free bodies below --settle-kinetic
-(default 1e-4) of the gravitational energy released since t = 0, and with --settle-speed V also no
-free body's fastest point (|v| + |w| r) at V m/s or more, at every check for --settle-hold seconds
-(default 0.02 s); checks every 64 steps. --steps or --duration is then the maximum. The summary's
-"settle" entry and the closing lines give the time, the steps and the wall time it took (or say
-it did not settle); a resumed run continues the check.
+(default 1e-4) of the gravitational energy released since t = 0, and no free body's fastest point
+(|v| + |w| r) at the speed limit or faster: --settle-speed-fraction (default 3e-4) of sqrt(g r_min),
+r_min the smallest bounding radius of a free body (0.087 mm/s for 1 cm cubes), or --settle-speed V
+m/s instead; at every check for --settle-hold seconds (default 0.02 s); checks every 64 steps.
+--steps or --duration is then the maximum. The summary's "settle" entry and the closing lines give
+the time, the steps and the wall time it took (or say it did not settle); a resumed run continues
+the check.
 
 progress: one line per 5% of the steps on stderr (one line kept up to date on a terminal), with
 the wall time left once it can be estimated.
@@ -251,14 +268,23 @@ def _add_run(sub, fmt) -> None:
         default=False,
         metavar="F",
         help="with --until-settled: settled when the kinetic energy is below F of the gravitational energy released "
-        "(default: the scene's, else 1e-4); off to check --settle-speed alone",
+        "(default: the scene's, else 1e-4); off to check the speed alone",
+    )
+    run.add_argument(
+        "--settle-speed-fraction",
+        type=_speed_fraction,
+        default=False,
+        metavar="F",
+        help="with --until-settled: also require every free body's fastest point to move slower than F sqrt(g r_min), "
+        "r_min the smallest bounding radius of a free body (default: the scene's, else 3e-4); off for no speed limit",
     )
     run.add_argument(
         "--settle-speed",
         type=_positive("a speed in m/s", "--settle-speed 0.01"),
         default=None,
         metavar="V",
-        help="with --until-settled: also require every free body's fastest point to move slower than V [m/s]",
+        help="with --until-settled: require every free body's fastest point to move slower than V [m/s], in place "
+        "of the limit of --settle-speed-fraction",
     )
     run.add_argument(
         "--settle-hold",

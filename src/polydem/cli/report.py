@@ -143,6 +143,7 @@ class Report:
                 "final": energy,
             },
             "settled_region": settled_region(scene, sim.state(), contacts) if consistent else None,
+            "contact_average": o.average_summary(sim) if consistent else None,
             "outputs": self._files(),
         }
         notes = self._notes(notes)
@@ -224,8 +225,9 @@ class Report:
             return []
         frac = st["kinetic_fraction"]
         now = f"kinetic energy {frac:.3g} of the gravitational energy released" if frac is not None else ""
-        if st["largest_speed"] is not None and st["criterion"]["max_speed"] is not None:
-            now += (", " if now else "") + f"largest speed {st['largest_speed']:.3g} m/s"
+        if st["largest_speed"] is not None and st.get("speed_limit") is not None:
+            speed = f"largest speed {st['largest_speed']:.3g} m/s (limit {st['speed_limit']:.3g})"
+            now += (", " if now else "") + speed
         if st["settled"]:
             wall = f", {st['wall_s']:.2f} s wall" if st["wall_s"] is not None else ""
             return [f"  settled at t = {st['time_s']:.6g} s ({st['steps']} steps{wall}): {now}"]
@@ -279,6 +281,9 @@ class Report:
             cmd.append("--until-settled")
         if getattr(a, "settle_kinetic", False) is not False:
             cmd += ["--settle-kinetic", "off" if a.settle_kinetic is None else repr(a.settle_kinetic)]
+        if getattr(a, "settle_speed_fraction", False) is not False:
+            f = a.settle_speed_fraction
+            cmd += ["--settle-speed-fraction", "off" if f is None else repr(f)]
         for option, value in (
             ("--settle-speed", getattr(a, "settle_speed", None)),
             ("--settle-hold", getattr(a, "settle_hold", None)),

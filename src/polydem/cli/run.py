@@ -104,9 +104,12 @@ class Run:
             settled = False
         else:
             settled = self.settle.update(sim.steps_done, sim.dt, *sim.settle_measures())
-        frac = self.settle.kinetic_fraction
+        frac, limit = self.settle.kinetic_fraction, self.settle.speed_limit
         if self.progress is not None:
-            self.progress.settle_note = f"  kinetic/released {frac:.2e}" if frac is not None else ""
+            note = f"  kinetic/released {frac:.2e}" if frac is not None else ""
+            if limit is not None:
+                note += f"  largest speed {self.settle.largest_speed:.2e} m/s (limit {limit:.2e})"
+            self.progress.settle_note = note
         if settled:
             self.settle_wall = time.perf_counter() - self.t0
         return settled
@@ -133,6 +136,7 @@ class Run:
                 "released": c.released,
                 "kinetic_fraction": c.kinetic_fraction,
                 "largest_speed": c.largest_speed,
+                "speed_limit": c.speed_limit,
             }
         )
 
@@ -431,7 +435,7 @@ def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
     kind = np.asarray(scene.body_kind)
     what = f"from step {sim.steps_done} (t = {sim.time:.6g} s) " if resume is not None else ""
     if criterion is not None:
-        what += f"until settled ({criterion.describe()}), at most "
+        what += f"until settled ({criterion.describe(scene)}), at most "
     out.write(
         f"{scene.name}: {plural(sim.num_bodies, 'body', 'bodies')} ({int(np.sum(kind == 0))} free) on {sim.device}, "
         f"dt {sim.dt:.4g} s; "
@@ -444,6 +448,7 @@ def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
 
 _SETTLE_OPTIONS = (
     ("--settle-kinetic", "settle_kinetic"),
+    ("--settle-speed-fraction", "settle_speed_fraction"),
     ("--settle-speed", "settle_speed"),
     ("--settle-hold", "settle_hold"),
 )
@@ -459,7 +464,7 @@ def _settle_criterion(args, scene):
     given = [
         (option, getattr(args, dest))
         for option, dest in _SETTLE_OPTIONS
-        if getattr(args, dest, None) is not (False if dest == "settle_kinetic" else None)
+        if getattr(args, dest, None) is not (False if dest in ("settle_kinetic", "settle_speed_fraction") else None)
     ]
     base = scene.settle if scene.settle is not None else SettleCriterion() if args.until_settled else None
     if base is None:
@@ -470,13 +475,19 @@ def _settle_criterion(args, scene):
                 key=given[0][0],
             )
         return None
-    fields = {"--settle-kinetic": "kinetic_fraction", "--settle-speed": "max_speed", "--settle-hold": "hold"}
+    fields = {
+        "--settle-kinetic": "kinetic_fraction",
+        "--settle-speed-fraction": "speed_fraction",
+        "--settle-speed": "max_speed",
+        "--settle-hold": "hold",
+    }
     try:
         criterion = replace(base, **{fields[option]: value for option, value in given})
     except ValueError:
         raise CliError(
-            "--settle-kinetic off leaves nothing to check: give --settle-speed V too (the largest speed in m/s)",
-            key="--settle-kinetic",
+            "--settle-kinetic off with no speed limit (--settle-speed-fraction off) leaves nothing to check: give "
+            "--settle-speed V (the largest speed in m/s) or a --settle-speed-fraction",
+            key="--settle-kinetic" if args.settle_kinetic is None else "--settle-speed-fraction",
         ) from None
     if not np.any(np.asarray(scene.body_kind) == 0):
         raise CliError("the scene has no free bodies: there is nothing to settle; leave --until-settled out", key=None)
@@ -496,12 +507,13 @@ def _settle_check(sim, criterion, ck, path):
     from polydem.settle import SettleCheck
 
     rec = (ck.run or {}).get("settle") if ck is not None else None
+    limit = criterion.speed_limit_of(sim.model.scene)
     if rec is None:
         # A run from t = 0, or one resumed from a run of fixed length: the energy released counts from t = 0
         # where the checkpoint's record knows it.
         energy = (ck.run or {}).get("energy_initial") if ck is not None else None
         start = energy["gravity"] if energy is not None and energy.get("gravity") is not None else None
-        return SettleCheck(criterion, sim.settle_measures()[1] if start is None else start)
+        return SettleCheck(criterion, sim.settle_measures()[1] if start is None else start, speed_limit=limit)
     if rec.get("settled_at") is not None:
         raise CliError(
             f"the run of this checkpoint settled at step {rec['settled_at']} (t = {rec['settled_at'] * sim.dt:.6g} s): "
@@ -520,7 +532,7 @@ def _settle_check(sim, criterion, ck, path):
             "--resume",
         )
     same = rec.get("criterion") == criterion.to_dict()
-    return SettleCheck(criterion, float(start), held if same else None)
+    return SettleCheck(criterion, float(start), held if same else None, speed_limit=limit)
 
 
 def _resume(sim, scene, path: Path, ck, args) -> None:

@@ -9,7 +9,7 @@ from polydem.cli.common import plural, steps_at
 from polydem.cli.errors import EXIT_OK, EXIT_USER_ERROR
 from polydem.cli.settings import DEFAULT_STEPS, load_scene, usd_setting
 
-__all__ = ["cmd_validate"]
+__all__ = ["cmd_validate", "depth_lines"]
 
 
 def cmd_validate(args) -> int:
@@ -55,6 +55,7 @@ def cmd_validate(args) -> int:
         lines.append(
             f"  time step: {dt:.4g} s ({auto}; recommended {ts.recommended:.4g} s, stable limit {ts.limit:.4g} s)"
         )
+        lines += depth_lines(scene, ts)
         frames = math.floor(steps * dt * scene.output.fps + 1e-9) + 1
         lines.append(
             f"  a run: {steps} steps to t = {steps * dt:.6g} s ({how}); {frames} frames at {scene.output.fps:g} fps"
@@ -64,3 +65,42 @@ def cmd_validate(args) -> int:
         out.write("\n".join(lines) + "\n")
     out.flush()
     return status
+
+
+def _share(rest, size: float) -> str:
+    """A resting depth as a percentage of the size, marked * where it lies in the resolved toe."""
+    if not math.isfinite(rest.depth):
+        return "through"
+    return f"{100.0 * rest.depth / size:.2g}%" + ("*" if rest.in_toe else "")
+
+
+def depth_lines(scene, ts) -> list[str]:
+    """What ``polydem validate`` prints of the resting depths to expect (:func:`polydem.scene.depth.pile_depths`):
+    per free (shape, material), its deepest face / edge / corner under its own weight and under a column of
+    the pile (where that holds at least 1.5 grains), at the scene's time step ``ts`` (its TimeStep, for the
+    resolved toe), and the k that keeps a corner at 1% of the size under the heavier of the two."""
+    from polydem.scene.depth import pile_depths
+    from polydem.scene.materials import LAW_UNITS
+
+    rows = pile_depths(scene, ts)
+    if not rows:
+        return []
+    law = scene.pair_table()["law"]
+    toe = any(r.in_toe for row in rows for d in (row.depth_weight, row.depth_column) for r in d.values())
+    lines = [
+        "  resting depth of the deepest face / edge / corner on a flat face, % of the body's size V^(1/3) "
+        f"({law}, loading branch, on {rows[0].partner}" + ("; * in the resolved toe, set by dt" if toe else "") + "):"
+    ]
+    for row in rows:
+        own = " / ".join(_share(row.depth_weight[f], row.size) for f in ("face", "edge", "corner"))
+        text = f"    {row.shape} ({row.material}, k {row.k:.3g}): own weight {own}"
+        load = "its weight"
+        if row.column >= 1.5:
+            col = " / ".join(_share(row.depth_column[f], row.size) for f in ("face", "edge", "corner"))
+            text += f"; a column of {row.column:.3g} ({row.height:.3g} m) {col}"
+            load = "the column"
+        need = f"{row.k_corner:.3g} {LAW_UNITS[law]}" if math.isfinite(row.k_corner) else "a shorter dt"
+        if row.k_corner != row.k_corner_law:
+            need += f" ({row.k_corner_law:.3g} by the law alone)"
+        lines.append(f"{text}; a corner {100.0 * row.allowed:g}% deep under {load} needs k {need}")
+    return lines

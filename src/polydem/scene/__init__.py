@@ -39,9 +39,10 @@ did-you-mean and the list of valid keys, and every error names the file and the 
                      "float64": float64 throughout), until_settled (true: run until the pile has
                      settled, steps | duration being the maximum; polydem.SettleCriterion)
     [simulation.settle]  the settle criterion (implies until_settled): kinetic_fraction (of the
-                     gravitational energy released, default 1e-4; false to check max_speed
-                     alone), max_speed [m/s] (of any free body's fastest point), hold [s]
-                     (default 0.02)
+                     gravitational energy released, default 1e-4; false for none),
+                     speed_fraction (limit on any free body's fastest point, as a fraction of
+                     sqrt(g r_min), default 3e-4; false for none), max_speed [m/s] (replaces
+                     speed_fraction's limit), hold [s] (default 0.02)
     [materials.NAME] density, law, k, restitution, friction (+ m, tangential_stiffness)
     [shapes.NAME]    type = box | tetrahedron | ... | mesh | points, and its parameters
     [[bodies]]       shape, material, position, orientation | rotation, velocity, angular_velocity,

@@ -10,6 +10,7 @@ import numpy as np
 from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
 from polydem.scene.materials import LAW_UNITS
 from polydem.scene.values import check_quats
+from polydem.shapes import polygon_areas
 
 # The time step resolves a contact oscillation at the reference overlap (0.1% of a body's size,
 # over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
@@ -48,17 +49,19 @@ TUNNEL_STEP_FRACTION = 0.5
 TUNNEL_ENERGY_FRACTION = 0.5
 
 
-def reference_stiffness(law, k, exponent, volume):
-    """Secant normal stiffness [N/m] of a face contact of area V^(2/3) at 0.1% of the size V^(1/3).
+def reference_stiffness(law, k, exponent, volume, area=None, width=None):
+    """Secant normal stiffness [N/m] of a face contact of area ``area`` [m^2] pressed to 0.1% of ``width`` [m].
 
-    With W'(V) the law, a face of area A pressed to depth d gives V = A d and a force W'(A d) A;
-    the secant stiffness is that force over d. Computed in float64 numpy (never an OverflowError:
-    out-of-range values become 0 or inf, which :meth:`Scene.validate` rejects beforehand).
+    ``area`` defaults to V^(2/3) and ``width`` to the size V^(1/3) (``volume`` V [m^3]); a shape's own
+    values come from :func:`face_contact_size`. With W'(V) the law, a face of area A pressed to depth d
+    gives V = A d and a force W'(A d) A; the secant stiffness is that force over d. Computed in float64
+    numpy (never an OverflowError: out-of-range values become 0 or inf, which :meth:`Scene.validate`
+    rejects beforehand).
     """
     volume = np.float64(volume)
     with np.errstate(all="ignore"):
-        area = volume ** (2.0 / 3.0)
-        depth = REFERENCE_DEPTH * np.cbrt(volume)
+        area = volume ** (2.0 / 3.0) if area is None else np.float64(area)
+        depth = REFERENCE_DEPTH * (np.cbrt(volume) if width is None else np.float64(width))
         v = area * depth
         if law == "linear":
             dw = np.asarray(k, dtype=np.float64)
@@ -69,10 +72,10 @@ def reference_stiffness(law, k, exponent, volume):
         return dw * area / depth
 
 
-def resting_stiffness(law, k, exponent, volume, weight):
-    """Tangent normal stiffness [N/m] of a face contact of area V^(2/3) carrying ``weight`` [N]: a
-    body resting on a face under its own weight. NaN for the linear law (its force k A does not
-    depend on the depth: no resting depth).
+def resting_stiffness(law, k, exponent, volume, weight, area=None):
+    """Tangent normal stiffness [N/m] of a face contact of area ``area`` [m^2] (default V^(2/3), V =
+    ``volume`` [m^3]) carrying ``weight`` [N]: a body resting on a face under its own weight. NaN for
+    the linear law (its force k A does not depend on the depth: no resting depth).
 
     With W'(V) the law and V = A d, the force W'(A d) A equals the weight at the resting depth d;
     hertz (W' = k sqrt(V)): d = (F / (k A^1.5))^2 and dF/dd = F / (2 d); power (W' = k V^(m-1)):
@@ -84,7 +87,7 @@ def resting_stiffness(law, k, exponent, volume, weight):
     weight = np.float64(weight)
     k = np.asarray(k, dtype=np.float64)
     with np.errstate(all="ignore"):
-        area = volume ** (2.0 / 3.0)
+        area = volume ** (2.0 / 3.0) if area is None else np.float64(area)
         if law == "hertz":
             depth = (weight / (k * area**1.5)) ** 2
             return weight / (2.0 * depth)
@@ -92,6 +95,32 @@ def resting_stiffness(law, k, exponent, volume, weight):
             depth = (weight / (k * area)) ** (1.0 / (np.float64(exponent) - 1.0)) / area
             return (np.float64(exponent) - 1.0) * weight / depth
         return np.full(np.shape(k), np.nan)
+
+
+def has_toe(law, exponent) -> bool:
+    """Whether the simulator continues the law below a small volume V_c as a resolved toe (hertz, and power
+    laws with 1 < m < 2, whose face stiffness W''(V) A^2 grows without bound as V -> 0): it chooses V_c
+    per pair from the step so that a face contact is never stiffer than the step resolves (polydem.kernels
+    .response.toe_volume), so a body resting on a face needs no shorter step than the law's elsewhere."""
+    return law == "hertz" or (law == "power" and 1.0 < float(exponent) < 2.0)
+
+
+def largest_face_area(shape) -> float:
+    """Area of a shape's largest face [m^2] (of its convex parts, for a compound shape)."""
+    parts = getattr(shape, "parts", None) or [shape]
+    return max(float(np.max(polygon_areas(p.vertices, p.faces, p.face_normals), initial=0.0)) for p in parts)
+
+
+def face_contact_size(shape) -> tuple[float, float]:
+    """``(area [m^2], width [m])`` of the stiffest face contact of a shape, for the time step: its largest face
+    (:func:`largest_face_area`), at least V^(2/3), and its thinnest width (:func:`shape_width`, of its
+    convex parts for a compound shape), at most V^(1/3). A cube gives V^(2/3) and V^(1/3); a plate its face
+    and its thickness (a face contact of a flat body is as stiff as its face is large, and a step resolves
+    it at an overlap of 0.1% of its thickness, not of its mean size)."""
+    size = float(np.cbrt(shape.volume))
+    area = max(largest_face_area(shape), size * size)
+    width = min([shape_width(part) for part in getattr(shape, "parts", None) or [shape]] + [size])
+    return area, width
 
 
 def rotation_factor(shape, mass, inertia) -> float:
@@ -117,17 +146,18 @@ class TimeStep:
 
     Attributes:
         dt: the step a run uses [s]: the scene's dt, or ``recommended`` for dt = "auto".
-        recommended: 1/50 of the period of the stiffest contact of the lightest free body at the
-            reference overlap (0.1% of its size), or less where that body resting on a face under
-            its own weight needs less (``resting``) [s].
-        resting: the step that resolves the lightest free body resting on a face under its own
-            weight, min(1, 2 e) / omega with omega the frequency of that contact's tangent
-            stiffness and e the smallest restitution [s]; inf without gravity or with the linear law.
-        limit: 1/8 of that period, the largest accurate step [s].
-        period: that period [s].
-        lightest: index of the body whose mass sets the period.
+        recommended: 1/50 of ``period``, or less where a free body resting on a face under its own
+            weight needs less (``resting``) [s].
+        resting: the step that resolves a free body resting on a face under its own weight, min(1, 2 e) /
+            omega with omega the frequency of that contact's tangent stiffness and e the smallest
+            restitution, the least over the free shapes [s]; inf without gravity or with the linear law.
+        limit: 1/8 of ``period``, the largest accurate step [s].
+        period: the shortest contact period of a free shape [s]: 2 pi sqrt(m / k) with m the mass of its
+            lightest body and k the stiffest pair's secant stiffness of its largest face pressed to 0.1%
+            of its thinnest width (:func:`face_contact_size`), or a larger tangential stiffness.
+        lightest: index of the lightest body of the shape that sets ``period``.
         tangential_stiffness: (M, M) tangential stiffness of every material pair [N/m], the derived
-            value (the reference normal stiffness over the free bodies' largest
+            value (the least over the free shapes of the reference normal stiffness over the shape's
             :func:`rotation_factor`) where the materials give none.
     """
 
@@ -315,12 +345,14 @@ class CheckMethods:
     def time_step(self) -> TimeStep:
         """The time step of a run and its bounds (host-only: ``polydem validate`` needs no Warp).
 
-        The period is ``2 pi sqrt(m / k_n)`` of the lightest free body (mass m) against the stiffest
-        pair: ``k_n`` is the secant stiffness of a face contact of area ``V^(2/3)`` pressed to 0.1%
-        of the size ``V^(1/3)`` (:func:`reference_stiffness`), or a larger tangential stiffness.
-        ``dt = "auto"`` takes 1/50 of it, or less where that body resting on a face under its own
-        weight needs less (:func:`resting_stiffness`, ``TimeStep.resting``); a given dt must not
-        exceed 1/8 of the period (SceneError, key ``simulation.dt``).
+        Per free shape (the lightest body of each; fixed bodies do not move): the period ``2 pi sqrt(m /
+        k_n)``, with ``k_n`` of the stiffest pair the secant stiffness of the shape's largest face pressed
+        to 0.1% of its thinnest width (:func:`face_contact_size`, :func:`reference_stiffness`: for a cube
+        the face V^(2/3) and the size V^(1/3); a plate's face contact is far stiffer and the step resolves
+        it at a fraction of its thickness), or a larger tangential stiffness. The shortest period of the
+        free shapes sets the step. ``dt = "auto"`` takes 1/50 of it, or less where a body resting on a
+        face under its own weight needs less (:func:`resting_stiffness`, ``TimeStep.resting``); a given
+        dt must not exceed 1/8 of the period (SceneError, key ``simulation.dt``).
         """
         if self.num_bodies == 0:
             raise self.error("the scene has no bodies; add at least one with [[bodies]] or Scene.add_body()", "bodies")
@@ -331,8 +363,9 @@ class CheckMethods:
         shapes = list(self.shapes.values())
         mass = np.asarray(self.body_mass(), dtype=np.float64)
         free = self.body_kind == KIND_FREE
-        # The lightest free body (or, with none, the lightest body with a mass) and the stiffest pair
-        # set the time step and default spring.
+        # The free bodies (or, with none, the bodies with a mass) set the step, the lightest body of
+        # each shape with the stiffest pair: a light compact grain may need a longer step than a heavier
+        # plate, whose large face is stiff, so every shape in use is looked at (once, whatever the count).
         pool = free if free.any() else mass > 0.0
         if not pool.any():
             raise self.error(
@@ -340,62 +373,71 @@ class CheckMethods:
                 "body or give dt in seconds",
                 "simulation.dt",
             )
-        light = int(np.argmin(np.where(pool, mass, np.inf)))
-        inertia = np.asarray(self.body_inertia(), dtype=np.float64)
-        v_ref = shapes[int(self.body_shape[light])].volume
-        k_n = reference_stiffness(law, k, m, v_ref)
-        # A sticking tangential spring turns the body as well as moving it: at a contact point p (body
-        # frame) a tangential force along t meets the inverse mass 1/m + (p x t).I^-1.(p x t), up to
-        # `rotation` / m. The derived spring is the reference normal stiffness over `rotation`, so that
-        # this tangential-rotational oscillation has the normal one's frequency (for a sphere,
-        # rotation = 7/2 and kt = 2/7 k_n, the usual choice); a spring given in the materials enters
-        # the time step with its factor.
         pooled = np.flatnonzero(pool)
-        used, first = np.unique(np.asarray(self.body_shape)[pooled], return_index=True)
-        rotation = max(
-            (
-                rotation_factor(shapes[int(s)], float(mass[pooled[j]]), inertia[pooled[j]])
-                for s, j in zip(used, first, strict=True)
-            ),
-            default=1.0,
-        )
-        kt_step = np.where(np.isnan(kt), k_n, kt * rotation)
-        kt = np.where(np.isnan(kt), k_n / rotation, kt)
-        with np.errstate(all="ignore"):
-            stiffest = max(float(np.max(k_n)), float(np.max(kt_step)))
-            period = float(2.0 * np.pi * np.sqrt(mass[light] / stiffest))
-        recommended = period / STEPS_PER_CONTACT_PERIOD
-        limit = period * MAX_DT_FRACTION
-        # A body resting flat under its own weight sits far shallower than the reference overlap,
-        # where the hertz and power laws are far stiffer: with a step above about 2 / omega there
-        # (symplectic Euler's limit, and the unloading branch is 1/e stiffer in frequency) the body
-        # never comes to rest but hops by nanometres, in contact a fraction of the time.
-        resting = math.inf
-        weight = float(mass[light]) * float(np.linalg.norm(np.asarray(self.gravity, dtype=np.float64)))
-        if weight > 0.0:
+        pool_shape = np.asarray(self.body_shape)[pooled]
+        order = np.lexsort((mass[pooled], pool_shape))
+        used, first = np.unique(pool_shape[order], return_index=True)
+        lightest = pooled[order[first]]
+        inertia = np.asarray(self.body_inertia(), dtype=np.float64)
+        gravity = float(np.linalg.norm(np.asarray(self.gravity, dtype=np.float64)))
+        e_min = max(float(np.min(np.asarray(table["restitution"], dtype=np.float64))), 0.1)
+        toe = has_toe(law, m)
+        period, light, k_n, resting = math.inf, int(lightest[0]), None, math.inf
+        kt_derived = np.full(k.shape, np.inf)
+        for s, body in zip(used.tolist(), lightest.tolist(), strict=True):
+            shape, mb = shapes[s], float(mass[body])
+            area, width = face_contact_size(shape)
+            kn_s = reference_stiffness(law, k, m, shape.volume, area, width)
+            # A sticking tangential spring turns the body as well as moving it: at a contact point p
+            # (body frame) a tangential force along t meets the inverse mass 1/m + (p x t).I^-1.(p x t),
+            # up to `rotation` / m. The derived spring is the reference normal stiffness over `rotation`,
+            # so that this tangential-rotational oscillation has the normal one's frequency (for a sphere,
+            # rotation = 7/2 and kt = 2/7 k_n, the usual choice); a spring given in the materials enters
+            # the step with the factor.
+            rotation = rotation_factor(shape, mb, inertia[body])
+            kt_derived = np.minimum(kt_derived, kn_s / rotation)
             with np.errstate(all="ignore"):
-                stiff = np.asarray(resting_stiffness(law, k, m, v_ref, weight))
-                # (the linear law has none: all NaN, and nanmax would warn)
-                k_rest = float(np.nanmax(stiff)) if np.isfinite(stiff).any() else math.nan
-                e_min = max(float(np.min(np.asarray(table["restitution"], dtype=np.float64))), 0.1)
-                if math.isfinite(k_rest) and k_rest > 0.0:
-                    resting = min(1.0, 2.0 * e_min) / math.sqrt(k_rest / float(mass[light]))
-        recommended = min(recommended, resting)
-        if not (math.isfinite(period) and period > 0.0):
-            raise self.error(
-                f"the contact period 2 pi sqrt(m / k) of body {light} (mass {mass[light]:.3g} kg, stiffest contact "
-                f"{stiffest:.3g} N/m) is {period:.3g} s, so no time step can be derived; check the materials' density "
-                "and k",
-                "simulation.dt",
-            )
+                stiffest = max(float(np.max(kn_s)), float(np.max(np.where(np.isnan(kt), kn_s, kt * rotation))))
+                p_s = float(2.0 * np.pi * np.sqrt(mb / stiffest))
+            if not (math.isfinite(p_s) and p_s > 0.0):
+                raise self.error(
+                    f"the contact period 2 pi sqrt(m / k) of {self.body_label(body)} (mass {mb:.3g} kg, stiffest "
+                    f"contact {stiffest:.3g} N/m) is {p_s:.3g} s, so no time step can be derived; check the "
+                    "materials' density and k",
+                    "simulation.dt",
+                )
+            if p_s < period:
+                period, light, k_n = p_s, body, kn_s
+            # A body resting flat under its own weight sits far shallower than the reference overlap,
+            # where the hertz and power laws are far stiffer: with a step above about 2 / omega there
+            # (symplectic Euler's limit, and the unloading branch is 1/e stiffer in frequency) the body
+            # never comes to rest but hops by nanometres, in contact a fraction of the time. Where the
+            # simulator's toe bounds that stiffness (has_toe) the face of area V^(2/3) is kept: the toe
+            # resolves a larger face at any step, which would otherwise ask a plate for a step 100 times
+            # shorter (the hertz step goes like A^-1.5 at rest); a stiffening law has no toe.
+            weight = mb * gravity
+            if weight > 0.0:
+                with np.errstate(all="ignore"):
+                    stiff = np.asarray(resting_stiffness(law, k, m, shape.volume, weight, None if toe else area))
+                    # (the linear law has none: all NaN, and nanmax would warn)
+                    k_rest = float(np.nanmax(stiff)) if np.isfinite(stiff).any() else math.nan
+                    if math.isfinite(k_rest) and k_rest > 0.0:
+                        resting = min(resting, min(1.0, 2.0 * e_min) / math.sqrt(k_rest / mb))
+        kt = np.where(np.isnan(kt), kt_derived, kt)
+        recommended = min(period / STEPS_PER_CONTACT_PERIOD, resting)
+        limit = period * MAX_DT_FRACTION
         if self.dt == "auto":
             dt = recommended
         else:
             dt = float(self.dt)
             if dt > limit:
+                shape = shapes[int(self.body_shape[light])]
+                area, width = face_contact_size(shape)
                 raise self.error(
-                    f"time step {dt:.3g} s is above the stable limit {limit:.3g} s for the stiffest contact and the "
-                    f'lightest body (recommended {recommended:.3g} s); use dt = "auto" or a smaller value',
+                    f"time step {dt:.3g} s is above the stable limit {limit:.3g} s, 1/8 of the period of the stiffest "
+                    f"contact of {self.body_label(light)} (mass {mass[light]:.3g} kg, a face of {area:.3g} m^2, "
+                    f"{width:.3g} m thin, {float(np.max(k_n)):.3g} N/m at an overlap of {REFERENCE_DEPTH:g} of that "
+                    f'width; recommended {recommended:.3g} s); use dt = "auto" or a value of at most {limit:.3g} s',
                     "simulation.dt",
                 )
         return TimeStep(
@@ -506,6 +548,8 @@ class CheckMethods:
           (1/pi of the local period).
         * otherwise d / L above OVERLAP_WARNING (or an unstable step at the impact overlap): a
           warning. Initial speeds only warn: the bodies need not meet anything.
+        * the linear law with gravity and something to carry the bodies: a warning that a face
+          contact has no resting depth (its force k A is the same at any depth).
         """
         free = a["kind"] == KIND_FREE
         if not free.any():
@@ -528,6 +572,15 @@ class CheckMethods:
         shapes = list(self.shapes.values())
         dt = ts.dt
         out = []
+        rest = []
+        if law == "linear" and support and g > 0.0:
+            rest.append(
+                "law = 'linear' cannot bring a body to rest on a face: its force k A (A the contact area) does not "
+                "grow with the overlap depth, so a face that carries a body's weight is either pushed off (k A above "
+                "the weight) or sinks until the area changes, and the body chatters or sinks instead of resting; use "
+                "law = 'hertz' or law = 'power' (with m > 1) for bodies that rest under gravity "
+                f"(materials.{mats[0].name}.law)"
+            )
         combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])
         for c in combo.tolist():
             sh, mi = shapes[c // len(mats)], c % len(mats)
@@ -545,11 +598,11 @@ class CheckMethods:
                 if found is not None:
                     out.append(found)
         if not out:
-            return []
+            return rest
         # One line for the scene: the softest case, and how many more there are.
         out.sort(key=lambda x: -x[0])
         more = f" ({len(out) - 1} more shapes or materials are soft too)" if len(out) > 1 else ""
-        return [out[0][1] + more]
+        return rest + [out[0][1] + more]
 
     def _judge_load(self, case, m, law, k, soft, mass, ln_a, ln_l, dt, label):
         """One load of :func:`_loads` on a face contact of stiffness ``k``: raise a SceneError where it

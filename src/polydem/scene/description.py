@@ -30,7 +30,7 @@ from polydem.scene.output import Output
 from polydem.scene.overlaps import OverlapMethods
 from polydem.scene.values import read_choice, read_integer, read_number, read_string, read_vector, typename
 from polydem.scene.walls import WallMethods
-from polydem.settle import SettleCriterion
+from polydem.settle import SPEED_FRACTION, SettleCriterion
 from polydem.shapes import ConvexShape
 
 PRECISIONS = ("float32", "mixed", "float64")
@@ -164,11 +164,12 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             return SettleCriterion()
         if not isinstance(settle, dict):
             raise SceneError(
-                f"expected a table {{kinetic_fraction = 1e-4, max_speed = ..., hold = 0.02}}, got {typename(settle)}",
+                "expected a table {kinetic_fraction = 1e-4, speed_fraction = 3e-4, max_speed = ..., hold = 0.02}, got "
+                f"{typename(settle)}",
                 key,
                 self.file,
             )
-        fields = ("kinetic_fraction", "max_speed", "hold")
+        fields = ("kinetic_fraction", "speed_fraction", "max_speed", "hold")
         unknown = [k for k in settle if k not in fields]
         if unknown:
             k = unknown[0]
@@ -186,6 +187,12 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             values["kinetic_fraction"] = read_number(kf, f"{key}.kinetic_fraction", self.file, positive=True, hint=hint)
             if values["kinetic_fraction"] >= 1.0:
                 raise SceneError(f"must be < 1, got {kf:g}{hint}", f"{key}.kinetic_fraction", self.file)
+        sf = settle.get("speed_fraction", SPEED_FRACTION)
+        if sf is False or sf is None:
+            values["speed_fraction"] = None
+        else:
+            hint = f" (the speed limit as a fraction of sqrt(g r_min), e.g. {SPEED_FRACTION:g}; false for none)"
+            values["speed_fraction"] = read_number(sf, f"{key}.speed_fraction", self.file, positive=True, hint=hint)
         if settle.get("max_speed") is not None:
             values["max_speed"] = read_number(
                 settle["max_speed"], f"{key}.max_speed", self.file, positive=True, hint=" (largest speed in m/s)"
@@ -194,9 +201,10 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             values["hold"] = read_number(
                 settle["hold"], f"{key}.hold", self.file, nonneg=True, hint=" (how long it must hold, in s)"
             )
-        if values["kinetic_fraction"] is None and "max_speed" not in values:
+        if values["kinetic_fraction"] is None and values["speed_fraction"] is None and "max_speed" not in values:
             raise SceneError(
-                "with kinetic_fraction = false give max_speed (in m/s): with neither nothing is checked",
+                "with kinetic_fraction = false and speed_fraction = false give max_speed (in m/s): with none of them "
+                "nothing is checked",
                 f"{key}.max_speed",
                 self.file,
             )
@@ -208,7 +216,9 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 self.settle.check_gravity(self.gravity)
             except ValueError as exc:
                 raise SceneError(
-                    f"{exc}; in a scene file: kinetic_fraction = false, max_speed = V", "simulation.settle", self.file
+                    f"{exc}; in a scene file: settle = {{kinetic_fraction = false, max_speed = V}}",
+                    "simulation.settle",
+                    self.file,
                 ) from None
 
     def error(self, message: str, key: str) -> SceneError:
@@ -400,7 +410,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         run += f", duration {self.duration:g} s" if self.duration is not None else ""
         run += f", {self.precision}" + (f", device {self.device}" if self.device else "")
         if self.settle is not None:
-            run += f"; until settled ({self.settle.describe()})"
+            run += f"; until settled ({self.settle.describe(self)})"
         lines = [
             f"Scene {self.name!r}" + (f" from {self.file}" if self.file else ""),
             f"  gravity [{g}] m/s^2, dt {dt}{run}",

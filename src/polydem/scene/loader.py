@@ -350,7 +350,11 @@ def scene_dict(scene: Scene) -> dict:
         sim["device"] = scene.device
     if scene.settle is not None:
         c = scene.settle
-        table = {"kinetic_fraction": c.kinetic_fraction if c.kinetic_fraction is not None else False, "hold": c.hold}
+        table = {
+            "kinetic_fraction": c.kinetic_fraction if c.kinetic_fraction is not None else False,
+            "speed_fraction": c.speed_fraction if c.speed_fraction is not None else False,
+            "hold": c.hold,
+        }
         if c.max_speed is not None:
             table["max_speed"] = c.max_speed
         sim["settle"] = table
