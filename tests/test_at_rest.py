@@ -51,7 +51,7 @@ def wall_forces(sim):
         ("hertz", None, 0.3, "float64", 1.0e10),
         # float32 rounds the cube's faces to 3.7e-9 m: a softer k, whose rest that spacing resolves.
         ("hertz", None, 0.3, "float32", 1.0e8),
-        ("power", 1.25, 0.5, "mixed", 1.0e10),
+        ("power", 1.75, 0.5, "mixed", 1.0e12),
         ("power", 2.0, 0.5, "mixed", 1.0e10),
         ("power", 3.0, 0.5, "mixed", 1.0e16),
     ],
@@ -67,7 +67,8 @@ def test_resting_cube_reports_its_weight_in_every_step(device, law, m, e, precis
     scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
     sim = Simulation(scene, device)
     weight = 7800.0 * 1e-3 * G
-    sim.step(int(0.02 / sim.dt))
+    # A power law with m >= 2 has no toe: its face is a linear (m = 2) or softer spring that rings longer.
+    sim.step(int((0.3 if law == "power" and m >= 2.0 else 0.02) / sim.dt))
     fz, z = [], []
     for _ in range(200):
         sim.step(1)
@@ -93,7 +94,7 @@ def test_resting_cube_reports_its_weight_in_every_step(device, law, m, e, precis
 BLOCK = (0.2, 0.1, 0.05)  # along the slope, across, height [m] (scenes/incline.toml)
 
 
-def incline_sim(device, theta_deg, e, precision="mixed", law="hertz", mu=0.5, m=None):
+def incline_sim(device, theta_deg, e, precision="mixed", law="hertz", mu=0.5, m=None, k=1.0e9):
     """scenes/incline.toml's stone block (hertz k 1e9) on a plane tilted by theta (gravity turned
     instead of the plane, so that along-slope is x), set down on its face at rest."""
     th = math.radians(theta_deg)
@@ -103,7 +104,7 @@ def incline_sim(device, theta_deg, e, precision="mixed", law="hertz", mu=0.5, m=
         density=2700.0,
         law=law,
         m=m,
-        k=1.0e9,
+        k=k,
         restitution=e,
         friction=mu,
     )
@@ -131,8 +132,11 @@ def test_block_holds_below_the_friction_angle(device, e, precision, law, m):
     in the next 50 ms (the issue's 1e-6 m in 1 s, scaled), and the normal force stays m g cos(theta)
     within 1% at every sample. BEFORE (hertz, mixed): it crept at 3.5 mm/s (e = 0.3; 30 mm/s at
     e = 0.9), with the normal force falling to 0 at most samples."""
-    sim = incline_sim(device, 20.0, e, precision, law=law, m=m)
-    sim.step(int(0.02 / sim.dt))
+    # float32 rounds the block's faces to 1.9e-9 m, a third of its resting depth in the toe at k 1e9: the
+    # softer k 1e7 takes a 10 times longer step and rests 100 times deeper, which float32 resolves.
+    sim = incline_sim(device, 20.0, e, precision, law=law, m=m, k=1.0e7 if precision == "float32" else 1.0e9)
+    slow = (law == "power" and m >= 2.0) or precision == "float32"  # no toe, or the softer k: longer ringing
+    sim.step(int((0.3 if slow else 0.02) / sim.dt))
     x0 = sim.state()["body_position"][0].copy()
     weight_n = 2700.0 * 1e-3 * G * math.cos(math.radians(20.0))
     fn = []
@@ -226,7 +230,7 @@ def test_stack_of_five_cubes_holds_on_a_slope(device):
 def test_leaning_pair_holds(device):
     """Two 2 x 10 x 20 cm boards leaning on each other at 15 degrees from the vertical, top edges
     touching, on a floor with mu = 0.5 (each needs a friction of 0.084 times its normal force):
-    after 30 ms neither moves more than 5e-8 m in 40 ms."""
+    after 0.24 s neither moves more than 5e-8 m in 40 ms."""
     w, d, h = 0.02, 0.1, 0.2
     tilt = math.radians(15.0)
     scene = material_scene(density=2700.0, k=1.0e9, friction=0.5)
@@ -241,7 +245,9 @@ def test_leaning_pair_holds(device):
         scene.add_body("board", "m", position=pos, orientation=tuple(rot.as_quat()))
     scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
     sim = Simulation(scene, device)
-    sim.step(int(0.03 / sim.dt))
+    # Set down touching, they sink into their contacts and settle (0.4 mm in the first 20 ms, 1e-7 m per
+    # 20 ms at 0.2 s, 1e-10 m from 0.26 s on).
+    sim.step(int(0.24 / sim.dt))
     x0 = sim.state()["body_position"].copy()
     sim.step(int(0.04 / sim.dt))
     moved = np.linalg.norm(sim.state()["body_position"] - x0, axis=1)

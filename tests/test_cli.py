@@ -451,6 +451,12 @@ def test_resume_refuses_other_physics(tmp_path, capsys, earlier_run, replace, wo
     before = files_of(out_dir)
     checkpoint = out_dir / "checkpoints" / "step_000000150.npz"
     code, _, err = run(["run", other, "--device", "cpu", "--out", out_dir, "--resume", checkpoint], capsys)
+    # The scene is validated before the checkpoint is compared: a linear law under gravity gets its warning
+    # (scene.checks.check_loads) on a line of its own above the error; no other scene here warns.
+    warnings = [line for line in err.splitlines() if line.startswith("polydem: warning: ")]
+    expected = ["law = 'linear' cannot bring a body to rest on a face"] if 'law = "linear"' in other.read_text() else []
+    assert len(warnings) == len(expected) and all(w in line for w, line in zip(expected, warnings, strict=True)), err
+    err = "".join(line + "\n" for line in err.splitlines() if line not in warnings)
     assert_user_error(
         code,
         err,
@@ -943,10 +949,18 @@ def test_render_scene_checkpoint_and_usd_frame(tmp_path, capsys, unbroken):
 def test_render_errors(tmp_path, capsys, unbroken):
     scene, out_dir = unbroken
     png = tmp_path / "pic.png"
+    # The frame count follows from the auto step (400 steps at 500 frames/s): it was 8 (0 to 7) before the
+    # step came from each shape's largest face (0.64x shorter for the tetrahedra: 5 frames, 0 to 4).
+    summary = json.loads((out_dir / "summary.json").read_text())
+    frames = expected_frames(STEPS, summary["dt"], 500.0)
+    assert summary["outputs"]["usd_frames"] == frames > 1
     cases = [
         (["render", scene, "--out", tmp_path / "pic.jpg"], ["pic.jpg", "--out", ".png"]),
         (["render", scene, "--out", png, "--frame", "3"], ["tiny.toml", "--frame", "frame 0 only"]),
-        (["render", out_dir / "tiny.usda", "--scene", scene, "--frame", "99", "--out", png], ["no frame 99", "0 to 7"]),
+        (
+            ["render", out_dir / "tiny.usda", "--scene", scene, "--frame", "99", "--out", png],
+            ["no frame 99", f"{frames} frames, 0 to {frames - 1}"],
+        ),
         (["render", out_dir / "checkpoints" / "final.npz", "--out", png], ["built-in default scene has 305"]),
         (
             ["render", out_dir / "checkpoints" / "final.npz", "--scene", scene, "--frame", "1", "--out", png],
@@ -1050,7 +1064,10 @@ def test_closing_lines_name_every_file_and_a_picture_of_the_end(tmp_path, capsys
         assert (out_dir / name).is_file() and (out_dir / name).stat().st_size > 0
     on_disk = sorted(str(p.relative_to(out_dir)) for p in out_dir.rglob("*") if p.is_file())
     assert on_disk == sorted(named)  # nothing written that the closing lines do not name
-    assert "USD animation, 8 frames" in text and "picture of the final state" in text
+    # The frame count follows from the auto step (it was 8 before the step came from each shape's largest face).
+    frames = expected_frames(STEPS, summary["dt"], 500.0)
+    assert o["usd_frames"] == frames > 1
+    assert f"USD animation, {frames} frames" in text and "picture of the final state" in text
 
 
 def test_pictures_true_is_the_last_frame(tmp_path, capsys):

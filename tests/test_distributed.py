@@ -81,7 +81,7 @@ needs_mpi = pytest.mark.skipif(not _have_mpi(), reason="needs mpi4py and mpiexec
         ("box_pour", 3000, 0.004, 2, 50),  # a small margin: bodies move to other ranks many times
         ("box_pour", 3000, 0.004, 4, 50),
         ("box_pour", 3000, 0.002, 2, 1000),  # chunks past the margin: stepped again after a new partition
-        ("mixer", 1500, 0.01, 2, 50),  # turning mesh walls, non-convex grains
+        ("mixer", 2450, 0.01, 2, 50),  # turning mesh walls, non-convex grains (0.031 s: 11 contacts)
         ("chain", 1500, 0.05, 2, 50),  # a pulse through contacts across the boundary
         ("chain", 1500, 0.05, 4, 50),
     ],

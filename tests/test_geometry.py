@@ -200,12 +200,13 @@ def response_kernel(law):
         s = VEC3(F64(0.0), F64(0.0), F64(1.0))
         vel = VEC3(F64(0.0), F64(0.0), dvdt[i])
         zero = F64(0.0)
+        # face_area 0: no resolved toe, so the branches are those of the law itself.
         f, t, xi, tn, en, dl, n, point, fn, ft = respond(
             v, v * VEC3(F64(0.0), F64(0.0), F64(0.5)), s, zero3, zero3, VEC3(F64(0.0), F64(0.0), F64(1.0)),
             vel, zero3, zero3, zero3,
             k, m, e, zero, zero,
             zero3, turn[i],
-            F64(1.0e-4), F64(1.0), F64(1.0),
+            F64(1.0e-4), F64(1.0), F64(0.0), F64(1.0),
         )  # fmt: skip
         force[i] = f
         turn_out[i] = tn

@@ -33,7 +33,7 @@ from polydem.kernels.forces import (
 )
 from polydem.kernels.precision import numpy_dtype
 
-__all__ = ["ContactAverage", "Contacts", "PairHistory"]
+__all__ = ["ContactAverage", "Contacts", "PairHistory", "contact_sums"]
 
 
 class PairHistory:
@@ -345,7 +345,7 @@ class Contacts:
         }
 
 
-def _sums(size, device):
+def contact_sums(size, device):
     """A :class:`~polydem.kernels.forces.ContactSums` of ``size`` zero entries."""
     s = ContactSums()
     s.force = wp.zeros(size, dtype=wp.vec3d, device=device)
@@ -415,7 +415,7 @@ class ContactAverage:
         self.num_walls = max(int(num_walls), 1)
         self.generation = 0
         self.capacity = 0
-        self.walls = _sums(self.num_bodies * self.num_walls, self.device)
+        self.walls = contact_sums(self.num_bodies * self.num_walls, self.device)
         # The retired list starts as large as the pair list: more pairs than that must end within
         # one chunk of steps for it to overflow (then it doubles and the chunk is redone).
         self._allocate_retired(max(contacts.capacity, 64))
@@ -427,7 +427,7 @@ class ContactAverage:
 
     def _allocate_retired(self, size):
         self.retired_key = wp.zeros(size, dtype=wp.int64, device=self.device)
-        self.retired = _sums(size, self.device)
+        self.retired = contact_sums(size, self.device)
         self.generation += 1
 
     def reset(self, interval, start_step, start_time):
@@ -451,8 +451,8 @@ class ContactAverage:
     def resize(self, capacity):
         """New pair arrays of ``capacity``; the previous list's sums are carried into the new ones."""
         old = self.previous if self.capacity else None
-        self.pairs = _sums(capacity, self.device)
-        self.previous = _sums(capacity, self.device)
+        self.pairs = contact_sums(capacity, self.device)
+        self.previous = contact_sums(capacity, self.device)
         if old is not None:
             _copy_sums(self.previous, old, count=min(self.capacity, capacity))
         self.capacity = capacity
@@ -508,8 +508,8 @@ class ContactAverage:
             wp.copy(into.retired_count, self.retired_count)
             into.interval = self.interval
             return into
-        pairs = _sums(self.capacity, self.device)
-        walls = _sums(len(self.walls.steps), self.device)
+        pairs = contact_sums(self.capacity, self.device)
+        walls = contact_sums(len(self.walls.steps), self.device)
         _copy_sums(pairs, self.pairs)
         _copy_sums(walls, self.walls)
         return AverageSnapshot(self.interval, pairs, walls, wp.clone(self.retired_count))

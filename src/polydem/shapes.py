@@ -107,6 +107,15 @@ def polygon_areas(vertices, faces, normals) -> np.ndarray:
     )
 
 
+def largest_face_area(shape) -> float:
+    """Area of a shape's largest face [m^2]: of a convex shape's polygons; of a compound grain, the largest
+    face of the convex hull of its parts (a flat side made of several parts' faces counts whole). The
+    face contact whose stiffness the resolved toe bounds and the time step resolves."""
+    if hasattr(shape, "part_vertices"):
+        return float(np.max(ConvexShape.from_points(np.concatenate(shape.part_vertices())).face_areas))
+    return float(np.max(polygon_areas(shape.vertices, shape.faces, shape.face_normals), initial=0.0))
+
+
 class ConvexShape:
     """Rigid convex polyhedron in its body frame, with polygon faces.
 

@@ -4,7 +4,7 @@ import numpy as np
 import warp as wp
 
 from polydem.kernels.geometry import shapes_struct
-from polydem.shapes import polygon_areas
+from polydem.shapes import largest_face_area
 
 PRECISIONS = {"float32": wp.float32, "float64": wp.float64}
 
@@ -120,13 +120,7 @@ class ShapeSet:
         self.shape_vert_start = arr(np.array(vert_start, dtype=np.int32), int)
         self.shape_face_start = arr(np.array(face_start, dtype=np.int32), int)
         self.shape_radius = arr(radii.astype(np_scalar), self.scalar)
-        areas = np.zeros(len(entries))
-        for k, shape in enumerate(entries):
-            if not is_compound(shape):
-                areas[k] = float(np.max(polygon_areas(shape.vertices, shape.faces, shape.face_normals)))
-        for k in range(len(shapes)):
-            parts = part_shape[part_start[k] : part_start[k + 1]]
-            areas[k] = max(areas[k], max((areas[p] for p in parts), default=0.0))
+        areas = np.array([largest_face_area(shape) for shape in entries])
         self.shape_face_area = arr(areas.astype(np_scalar), self.scalar)
         self.face_plane = arr(np.concatenate(planes).astype(np_scalar), vec4)
         self.face_sphere = arr(spheres.astype(np_scalar), vec4)

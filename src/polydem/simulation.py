@@ -38,7 +38,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from polydem.contacts import ContactAverage, Contacts, PairHistory, _sums
+from polydem.contacts import ContactAverage, Contacts, PairHistory, contact_sums
 from polydem.kernels import geometry as _geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 from polydem.kernels.forces import REPORT_CONTACTS, REPORT_SUMS, make_contact_kernels, make_remap_history_kernel
@@ -536,7 +536,7 @@ class Stepper:
 
     def _placeholder_sums(self):
         if getattr(self, "_no_sums", None) is None:
-            self._no_sums = _sums(1, self.device)
+            self._no_sums = contact_sums(1, self.device)
         return self._no_sums
 
     def diagnose(self, state, contacts, dt):

@@ -177,6 +177,7 @@ class DistributedSimulation:
             raise ValueError(f"chunk must be >= 1 step, got {chunk!r}")
         self._good = None
         self.redone = 0
+        self._repartition_due = False  # half the margin used by the last step() call's last chunk
         self.sync_timers = False
         self.sim = None
         self._initial_partition(pos[:, self.axis])
@@ -254,6 +255,7 @@ class DistributedSimulation:
         self.local_index = np.asarray(index, dtype=np.int64)
         self.owned = np.asarray(owned, dtype=bool)
         self._x_partition = np.asarray(x, dtype=np.float64)
+        self._repartition_due = False
         self.sim = None
         self._good = None
         # A rank steps its ghosts too, even with no body of its own: its neighbours send to every rank
@@ -465,6 +467,8 @@ class DistributedSimulation:
             raise ValueError(f"step count must be >= 0, got {n}")
         done = 0
         chunk = self.chunk
+        if n and self._repartition_due:
+            self._timed_repartition()
         while done < n:
             k = min(chunk, n - done)
             t0 = time.perf_counter()
@@ -506,9 +510,7 @@ class DistributedSimulation:
                 if moved > 0.5 * self.margin:
                     # The chunk went past the halo's margin: partition at its start and step it again,
                     # in shorter chunks (a body that fast reaches the margin sooner).
-                    t4 = time.perf_counter()
-                    self._repartition()
-                    self.timers["partition"] += time.perf_counter() - t4
+                    self._timed_repartition()
                     chunk = max(1, chunk // 2)
                 continue
             if sim is not None and sim.stepper.device_rebuild:
@@ -519,11 +521,19 @@ class DistributedSimulation:
             if sim is not None:
                 sim.steps_done, sim.time = self.steps_done, self.time
             if moved > 0.25 * self.margin:
-                # Half the allowance used: partition now, so that the next chunk has room.
-                t4 = time.perf_counter()
-                self._repartition()
-                self.timers["partition"] += time.perf_counter() - t4
+                # Half the allowance used: partition before the next chunk, so that it has room. After
+                # the call's last chunk that waits for the next call: a partition builds new local
+                # simulations, which would lose the last step's inputs that contacts() reports from.
+                if done < n:
+                    self._timed_repartition()
+                else:
+                    self._repartition_due = True
             self.timers["total"] += time.perf_counter() - t0
+
+    def _timed_repartition(self):
+        t0 = time.perf_counter()
+        self._repartition()
+        self.timers["partition"] += time.perf_counter() - t0
 
     def _chunk_flags(self):
         """(polygon overflow, pair list overflow, non-finite state, largest move [m]) of this rank's chunk."""

@@ -10,7 +10,7 @@ import numpy as np
 from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
 from polydem.scene.materials import LAW_UNITS
 from polydem.scene.values import check_quats
-from polydem.shapes import polygon_areas
+from polydem.shapes import largest_face_area
 
 # The time step resolves a contact oscillation at the reference overlap (0.1% of a body's size,
 # over its face area) in this many steps; above 1/8 of the period symplectic Euler loses accuracy
@@ -105,21 +105,16 @@ def has_toe(law, exponent) -> bool:
     return law == "hertz" or (law == "power" and 1.0 < float(exponent) < 2.0)
 
 
-def largest_face_area(shape) -> float:
-    """Area of a shape's largest face [m^2] (of its convex parts, for a compound shape)."""
-    parts = getattr(shape, "parts", None) or [shape]
-    return max(float(np.max(polygon_areas(p.vertices, p.faces, p.face_normals), initial=0.0)) for p in parts)
-
-
 def face_contact_size(shape) -> tuple[float, float]:
     """``(area [m^2], width [m])`` of the stiffest face contact of a shape, for the time step: its largest face
-    (:func:`largest_face_area`), at least V^(2/3), and its thinnest width (:func:`shape_width`, of its
-    convex parts for a compound shape), at most V^(1/3). A cube gives V^(2/3) and V^(1/3); a plate its face
+    (:func:`largest_face_area`), at least V^(2/3), and its thinnest width (:func:`shape_width`, of the
+    union's surface for a compound shape), at most V^(1/3). A cube gives V^(2/3) and V^(1/3); a plate its face
     and its thickness (a face contact of a flat body is as stiff as its face is large, and a step resolves
     it at an overlap of 0.1% of its thickness, not of its mean size)."""
     size = float(np.cbrt(shape.volume))
     area = max(largest_face_area(shape), size * size)
-    width = min([shape_width(part) for part in getattr(shape, "parts", None) or [shape]] + [size])
+    # A compound grain's own surface (the union's), not its parts': a grain cut in two is as thick as the whole.
+    width = min(shape_width(shape), size)
     return area, width
 
 

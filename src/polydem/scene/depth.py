@@ -67,7 +67,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from polydem.scene.checks import largest_face_area
+from polydem.shapes import largest_face_area
 
 __all__ = [
     "FEATURES",
