@@ -209,17 +209,24 @@ class Stepper:
         self._history_on = None  # the pair history of history_on()
 
     def _kernels(self):
+        self.kernels = self._contact_kernels()
+        self.mesh_kernels = self._mesh_kernels(False)
+
+    def _contact_kernels(self, diagnostics=False, report=False):
+        """The pair and gather kernels of the model at the current polygon capacity: the step's, the
+        diagnostics variant or the report variant."""
         m = self.model
-        self.kernels = make_contact_kernels(
+        return make_contact_kernels(
             m.law,
             m.friction,
             self.poly_capacity,
             m.shapes.max_faces,
+            diagnostics=diagnostics,
             precision=m.precision,
             variant=self.pair_variant,
             compound=m.shapes.compound,
+            report=report,
         )
-        self.mesh_kernels = self._mesh_kernels(False)
 
     def _mesh_kernels(self, diagnostics, report=False):
         m = self.model
@@ -240,17 +247,7 @@ class Stepper:
     def _report_kernels(self):
         """The report variant of the step's kernels (built on first use: a run that never asks for
         its contacts or an average never compiles it): (contact kernels, mesh kernel or None)."""
-        m = self.model
-        kernels = make_contact_kernels(
-            m.law,
-            m.friction,
-            self.poly_capacity,
-            m.shapes.max_faces,
-            precision=m.precision,
-            variant=self.pair_variant,
-            compound=m.shapes.compound,
-            report=True,
-        )
+        kernels = self._contact_kernels(report=True)
         mesh = self._mesh_kernels(False, report=True)
         return kernels, None if mesh is None else mesh[0]
 
@@ -556,16 +553,7 @@ class Stepper:
         m = self.model
         while True:
             self._diag_overflow.zero_()
-            kernels = make_contact_kernels(
-                m.law,
-                m.friction,
-                self.poly_capacity,
-                m.shapes.max_faces,
-                diagnostics=True,
-                precision=m.precision,
-                variant=self.pair_variant,
-                compound=m.shapes.compound,
-            )
+            kernels = self._contact_kernels(diagnostics=True)
             self._launch_contacts(kernels, self._diag, state, contacts, dt, self._diag_overflow)
             if m.num_mesh_walls:
                 self._launch_meshes(self._mesh_kernels(True)[0], self._diag, state, dt, self._diag_overflow)

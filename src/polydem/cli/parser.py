@@ -51,34 +51,35 @@ def _positive(what: str, example: str):
     return parse
 
 
-def _fraction(text: str) -> float | None:
+def _optional_number(text: str, ok, expected: str, example: str) -> float | None:
+    """A number that ``ok`` accepts, or None for off/none/false."""
     if text.strip().lower() in ("off", "none", "false"):
         return None
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not (math.isfinite(value) and 0.0 < value < 1.0):
-        raise argparse.ArgumentTypeError(
-            f"expected a fraction between 0 and 1 (exclusive) of the gravitational energy released, or off, got "
-            f"{text!r}; e.g. --settle-kinetic 1e-4"
-        )
+    if not (math.isfinite(value) and ok(value)):
+        raise argparse.ArgumentTypeError(f"expected {expected}, or off, got {text!r}; e.g. {example}")
     return value
+
+
+def _fraction(text: str) -> float | None:
+    return _optional_number(
+        text,
+        lambda v: 0.0 < v < 1.0,
+        "a fraction between 0 and 1 (exclusive) of the gravitational energy released",
+        "--settle-kinetic 1e-4",
+    )
 
 
 def _speed_fraction(text: str) -> float | None:
-    if text.strip().lower() in ("off", "none", "false"):
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0.0):
-        raise argparse.ArgumentTypeError(
-            f"expected a fraction > 0 of sqrt(g r_min) (r_min the smallest grain's bounding radius), or off, got "
-            f"{text!r}; e.g. --settle-speed-fraction 3e-4"
-        )
-    return value
+    return _optional_number(
+        text,
+        lambda v: v > 0.0,
+        "a fraction > 0 of sqrt(g r_min) (r_min the smallest grain's bounding radius)",
+        "--settle-speed-fraction 3e-4",
+    )
 
 
 def _nonnegative(what: str, example: str):
