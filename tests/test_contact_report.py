@@ -257,8 +257,8 @@ def test_restore_brings_the_average_back(device):
     assert sim.stop_contact_average()["steps"] == 20 and sim.contact_average_steps is None
 
 
-def test_average_errors():
-    sim = polydem.Simulation(impact_scene(), "cpu")
+def test_average_errors(device):
+    sim = polydem.Simulation(impact_scene(), device)
     with pytest.raises(RuntimeError, match="start_contact_average"):
         sim.contact_average()
     sim.start_contact_average()
@@ -267,7 +267,7 @@ def test_average_errors():
     assert sim.stop_contact_average() is None
 
 
-def test_vtk_contact_network_carries_the_average(tmp_path):
+def test_vtk_contact_network_carries_the_average(tmp_path, device):
     meshio = pytest.importorskip("meshio")
     from polydem.vtk import VtkWriter
 
@@ -275,7 +275,7 @@ def test_vtk_contact_network_carries_the_average(tmp_path):
     scene.add_body("cube", "steel", position=(0.0, 0.0, 0.0502), velocity=(0.3, 0.0, -1.0), angular_velocity=(0, 3, 0))
     scene.add_body("cube", "steel", position=(0.4, 0.0, 0.0499))
     scene.add_plane(point=(0, 0, 0), normal=(0, 0, 1), material="steel")
-    sim = polydem.Simulation(scene, "cpu")
+    sim = polydem.Simulation(scene, device)
     frames = []
     with VtkWriter(tmp_path / "vtk", sim) as writer:
         for _ in range(3):  # as polydem run: the average over the interval before each frame
