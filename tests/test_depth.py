@@ -273,3 +273,37 @@ def test_auto_dt_follows_k_as_the_scene_time_step_does():
         for name, mat in scene.materials.items():
             scene._materials[name] = dataclasses.replace(mat, k=scale * 1e8)
         assert depth.auto_dt(ts, "hertz", None, scale) == pytest.approx(scene.time_step().recommended, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    "k, precision, warned", [(1.0e9, "float32", True), (1.0e7, "float32", False), (1.0e9, "mixed", False)]
+)
+def test_validate_warns_where_float32_cannot_rest(k, precision, warned):
+    """The incline's block at k 1e9 rests on its largest face 5.3e-9 m deep in the toe, and creeps 0.24 mm in
+    0.5 s on a 20 degree slope in float32 (BENCHMARKS.md 10a); at k 1e7 it rests 100 times deeper and holds
+    (tests/test_at_rest.py). The spacing is float32's at its bounding radius (above its height)."""
+    from polydem.cli.validate import float32_rest_warnings
+
+    th = math.radians(20.0)
+    scene = Scene(gravity=(9.81 * math.sin(th), 0, -9.81 * math.cos(th)), dt="auto", precision=precision)
+    scene.add_material("m", density=2700.0, law="hertz", k=k, restitution=0.3, friction=0.5)
+    scene.add_shape("block", ConvexShape.box(0.2, 0.1, 0.05))
+    scene.add_body("block", "m", position=(0.0, 0.0, 0.025))
+    scene.add_plane((0, 0, 0), (0, 0, 1), "m")
+    rows = depth.pile_depths(scene, scene.time_step())
+    messages = float32_rest_warnings(scene, rows)
+    assert bool(messages) == warned, messages
+    if warned:
+        assert "shape 'block'" in messages[0] and 'precision = "mixed"' in messages[0]
+        spacings = float(re.search(r"m deep, (\S+) float32 spacings", messages[0]).group(1))
+        # The toe's closed form (kernels/response.py toe_volume): the face of 0.02 m^2 under the block's
+        # normal load, on the plane (the pair's mass is the block's).
+        a, mass, e, dt = 0.02, 2.7, 0.3, scene.time_step().dt
+        slope = (depth.TOE_OMEGA_DT * e / dt) ** 2 * mass / a**2
+        vc = (1.5 * k / slope) ** 2
+        load = mass * 9.81  # pile_depths: the weight, not its normal part
+        x = 1.5 - math.sqrt(2.25 - 2.0 * load / (k * math.sqrt(vc) * a))
+        want = x * vc / a
+        assert want == pytest.approx(5.6e-9, rel=0.02)
+        spacing = float(np.spacing(np.float32(math.sqrt(0.1**2 + 0.05**2 + 0.025**2))))
+        assert spacings == pytest.approx(want / spacing, rel=0.01)

@@ -9,13 +9,22 @@ from polydem.cli.common import plural, steps_at
 from polydem.cli.errors import EXIT_OK, EXIT_USER_ERROR
 from polydem.cli.settings import DEFAULT_STEPS, load_scene, usd_setting
 
-__all__ = ["cmd_validate", "depth_lines"]
+__all__ = ["cmd_validate", "depth_lines", "float32_rest_warnings"]
+
+FLOAT32_REST_SPACINGS = 16.0
+"""A face resting fewer float32 spacings deep than this chatters from one representable position to the
+next in precision "float32". The spacing is float32's at the larger of the body's farthest coordinate and
+its bounding radius (the two terms of a vertex's world position). Measured (BENCHMARKS.md 10a,
+tests/test_at_rest.py): 77 spacings (the 0.1 m cube at k 1e8) rest within 10% of the weight in every step
+and 1% on average; 71 (the incline's block at k 1e7) hold on 20 degrees; 0.7 (the block at k 1e9) creep
+0.24 mm in 0.5 s. The threshold lies between, not at a measured edge."""
 
 
 def cmd_validate(args) -> int:
     import warnings
 
     from polydem.scene import SceneError, SceneWarning
+    from polydem.scene.depth import pile_depths
 
     out, err = sys.stdout, sys.stderr
     status = EXIT_OK
@@ -36,6 +45,9 @@ def cmd_validate(args) -> int:
                 err.write(f"polydem: warning: {w.message}\n")
             else:
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        rows = pile_depths(scene, ts)
+        for message in float32_rest_warnings(scene, rows):
+            err.write(f"polydem: warning: {message}\n")
         err.flush()
         dt = ts.dt
         if scene.duration is not None:
@@ -55,7 +67,7 @@ def cmd_validate(args) -> int:
         lines.append(
             f"  time step: {dt:.4g} s ({auto}; recommended {ts.recommended:.4g} s, stable limit {ts.limit:.4g} s)"
         )
-        lines += depth_lines(scene, ts)
+        lines += depth_lines(scene, rows)
         frames = math.floor(steps * dt * scene.output.fps + 1e-9) + 1
         lines.append(
             f"  a run: {steps} steps to t = {steps * dt:.6g} s ({how}); {frames} frames at {scene.output.fps:g} fps"
@@ -74,15 +86,13 @@ def _share(rest, size: float) -> str:
     return f"{100.0 * rest.depth / size:.2g}%" + ("*" if rest.in_toe else "")
 
 
-def depth_lines(scene, ts) -> list[str]:
-    """What ``polydem validate`` prints of the resting depths to expect (:func:`polydem.scene.depth.pile_depths`):
-    per free (shape, material), its deepest face / edge / corner under its own weight and under a column of
-    the pile (where that holds at least 1.5 grains), at the scene's time step ``ts`` (its TimeStep, for the
-    resolved toe), and the k that keeps a corner at 1% of the size under the heavier of the two."""
-    from polydem.scene.depth import pile_depths
+def depth_lines(scene, rows) -> list[str]:
+    """What ``polydem validate`` prints of the resting depths to expect (``rows`` from
+    :func:`polydem.scene.depth.pile_depths` at the scene's time step): per free (shape, material), its
+    deepest face / edge / corner under its own weight and under a column of the pile (where that holds at
+    least 1.5 grains), and the k that keeps a corner at 1% of the size under the heavier of the two."""
     from polydem.scene.materials import LAW_UNITS
 
-    rows = pile_depths(scene, ts)
     if not rows:
         return []
     law = scene.pair_table()["law"]
@@ -104,3 +114,31 @@ def depth_lines(scene, ts) -> list[str]:
             need += f" ({row.k_corner_law:.3g} by the law alone)"
         lines.append(f"{text}; a corner {100.0 * row.allowed:g}% deep under {load} needs k {need}")
     return lines
+
+
+def float32_rest_warnings(scene, rows) -> list[str]:
+    """Warnings for precision "float32" where the shallowest face's resting depth under its own weight
+    (``rows`` from :func:`polydem.scene.depth.pile_depths`) is under FLOAT32_REST_SPACINGS spacings of
+    float32 numbers (see there): positions are float32 numbers, so the body hops between representable
+    depths instead of resting."""
+    import numpy as np
+
+    if scene.precision != "float32" or not rows:
+        return []
+    a = scene.body_arrays()
+    free = a["kind"] == 0
+    radius = np.array([s.radius for s in scene.shapes.values()])[a["shape"][free]]
+    reach = float(np.max(np.maximum(np.abs(a["position"][free]).max(axis=1), radius)))
+    spacing = float(np.spacing(np.float32(reach)))
+    out = []
+    for row in rows:
+        depth = row.shallowest_face.depth
+        if math.isfinite(depth) and depth < FLOAT32_REST_SPACINGS * spacing:
+            out.append(
+                f"shape {row.shape!r} ({row.material}) rests on a face {depth:.2g} m deep, "
+                f"{depth / spacing:.3g} float32 spacings ({spacing:.2g} m at {reach:.3g} m), "
+                f'under the {FLOAT32_REST_SPACINGS:g} that precision = "float32" needs to rest: it will chatter '
+                'and creep; use precision = "mixed" (float64 positions), a softer k (the depth grows as 1/k), '
+                "or place the scene nearer the origin (simulation.precision)"
+            )
+    return out

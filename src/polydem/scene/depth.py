@@ -433,18 +433,19 @@ class Rest:
 
 def resting_contact(
     shape, law: str, k: float, load: float, feature: str = "corner", *, m: float | None = None, toe: Toe | None = None,
-    cuts: list[Cut] | None = None,
+    cuts: list[Cut] | None = None, shallowest: bool = False,
 ) -> Rest:  # fmt: skip
-    """The deepest of a shape's faces, edges or corners (``feature``) resting on a flat face under ``load``
-    [N] with the law ``law`` ("linear", "hertz", "power" with ``m``) of stiffness ``k``; with ``toe``, the
-    simulator's resolved toe of that pair (module docstring). ``cuts`` reuses :func:`shape_cuts`."""
+    """The deepest (``shallowest``: the shallowest) of a shape's faces, edges or corners (``feature``)
+    resting on a flat face under ``load`` [N] with the law ``law`` ("linear", "hertz", "power" with ``m``)
+    of stiffness ``k``; with ``toe``, the simulator's resolved toe of that pair (module docstring). ``cuts``
+    reuses :func:`shape_cuts`."""
     if not (math.isfinite(load) and load >= 0.0):
         raise ValueError(f"load must be a finite force >= 0 [N], got {load!r}")
     w = Law.with_toe(law, k, m, toe, shape)
     best = None
     for cut in shape_cuts(shape, feature) if cuts is None else cuts:
         d = cut.depth(w, load)
-        if best is None or d > best[0]:
+        if best is None or (d < best[0] if shallowest else d > best[0]):
             best = (d, cut)
     d, cut = best
     v, a = cut.cap(d) if math.isfinite(d) else (math.inf, 0.0)
@@ -539,7 +540,8 @@ class PileDepth:
     column's; ``allowed``: a corner depth as a share of the size, and the k that keeps every corner at most
     that deep under the column: ``k_corner`` with the toe of the scene's time step (inf where its dt is
     given and too long), ``k_corner_law`` by the law alone; ``partner``: what the toe's pair mass takes the
-    grain to rest on ("a like grain", or "a wall" for a lone body).
+    grain to rest on ("a like grain", or "a wall" for a lone body); ``shallowest_face``: the
+    :class:`Rest` of its shallowest face (its largest, as a rule) under its own weight.
     """
 
     shape: str
@@ -555,6 +557,7 @@ class PileDepth:
     k_corner: float
     k_corner_law: float
     partner: str
+    shallowest_face: Rest
 
 
 BED_PACKING = 0.6
@@ -625,6 +628,7 @@ def pile_depths(scene, ts=None, allowed: float = ALLOWED_CORNER_DEPTH) -> list[P
             {f: resting_contact(shape, law, k, load, f, m=m_law, toe=toe, cuts=cuts[f]) for f in FEATURES}
             for load in (weight, column * weight)
         ]
+        shallow = resting_contact(shape, law, k, weight, "face", m=m_law, toe=toe, cuts=cuts["face"], shallowest=True)
         corner = (shape, law, allowed * size, column * weight, "corner")
         k_law = stiffness_for_depth(*corner, m=m_law, cuts=cuts["corner"])
         k_toe = k_law if toe is None else stiffness_for_depth(*corner, m=m_law, toe=toe_at, cuts=cuts["corner"])
@@ -643,6 +647,7 @@ def pile_depths(scene, ts=None, allowed: float = ALLOWED_CORNER_DEPTH) -> list[P
                 k_toe,
                 k_law,
                 partner,
+                shallow,
             )  # fmt: skip
         )
     return rows
