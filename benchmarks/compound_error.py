@@ -168,7 +168,7 @@ def main():
         poses = sample_contacts(grain, args.samples, rng)
         spaces = world_part_spaces(grain)
         ident = np.array([0, 0, 0, 0, 0, 0, 1.0])
-        got = polydem.overlap(grain, ident, cube, poses, device="cpu", precision="float64")
+        got = polydem.overlap(grain, ident, cube, poses, frame="body", device="cpu", precision="float64")
         ex = np.array([exact(spaces, p)[0] for p in poses])
         grads = np.array([exact(spaces, p)[1] for p in poses])
         ev = np.abs(got.volume - ex) / ex

@@ -46,7 +46,7 @@ def main():
         pb = np.concatenate([st["body_position"][ib], st["body_orientation"][ib]])
         sa = scene.shapes[shapes[scene.body_shape[ia]]]
         sb = scene.shapes[shapes[scene.body_shape[ib]]]
-        ref = polydem.overlap(sa, pa, sb, pb, device=a.device, precision="float64")
+        ref = polydem.overlap(sa, pa, sb, pb, frame="body", device=a.device, precision="float64")
         print(
             f"pair {ia}-{ib} kinds {scene.body_kind[ia]},{scene.body_kind[ib]}: V sim {c['volume'][k] / cube_v:.3%}, "
             f"V f64 {ref.volume[0] / cube_v:.3%}, normal {c['normal'][k].round(3)}, pos a {pa[:3].round(5)}, "

@@ -53,8 +53,8 @@ def contact_kinds(scene, state, contacts, device):
     for sa, sb in {(int(shape_of[i]), int(shape_of[j])) for i, j in zip(a[body], b[body], strict=True)}:
         rows = np.flatnonzero(body & (shape_of[a] == sa) & (shape_of[np.maximum(b, 0)] == sb))
         res = overlap(
-            scene.shapes[names[sa]], poses[a[rows]], scene.shapes[names[sb]], poses[b[rows]], device=device,
-            precision="float64",
+            scene.shapes[names[sa]], poses[a[rows]], scene.shapes[names[sb]], poses[b[rows]], frame="body",
+            device=device, precision="float64",
         )  # fmt: skip
         with np.errstate(all="ignore"):
             ratio[rows] = res.volume / (np.linalg.norm(res.area_vector, axis=1) * res.depth)

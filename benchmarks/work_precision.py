@@ -206,7 +206,7 @@ def touch_distance(shape_a, q_a, shape_b, q_b, lateral, direction):
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         pose_b = np.concatenate([lateral - mid * direction + cb, qb_body])
-        res = polydem.overlap(shape_a, pose_a, shape_b, pose_b, precision="float64")  # default device
+        res = polydem.overlap(shape_a, pose_a, shape_b, pose_b, frame="body", precision="float64")  # default device
         if res.volume[0] > 0.0:
             lo = mid
         else:

@@ -37,9 +37,15 @@ rounding), f is not clipped by g's plane nor g by f's, and both pieces count wit
 shared region is split half to each body, and S_A + S_B = 0 holds to rounding. One function
 decides, evaluated with the same arguments from both sides, so both reach the same decision.
 
-Faces with opposite outward normals in one plane need no rule: the bodies overlap through that
-plane by some thickness, and both faces are clipped like any other, so a flat contact of any
-positive thickness has S_A = area * n (exactly touching faces give V = 0 and no contact).
+Faces with opposite outward normals in one plane need no rule of their own: the bodies overlap
+through that plane by some thickness, and both faces are clipped like any other, so a flat contact
+of any positive thickness has S_A = area * n (exactly touching faces give V = 0 and no contact). But
+that thickness (the depth of a resting contact: nanometres) must survive the rounding: the pair-local
+frame is turned so that the face of body 1 in such a flat contact (of the active faces with opposite
+normals, the pair whose planes lie nearest) is a coordinate plane through the apex, and the apex is
+moved onto it. Every coordinate across the thin overlap is then a small number, exact to its own
+size, and both bodies' pieces of it agree. In body 1's own axes an oblique face (a rock's, a
+tetrahedron's, a mesh-wall cell's) had its vertices rounded off its plane by units of the body's size.
 
 Enclosed pairs: when |S_A| < ENCLOSED_RATIO V^(2/3) (one body (nearly) wholly inside the other,
 or two identical bodies on top of each other), :func:`pair_geometry` also returns a fallback area
@@ -501,10 +507,12 @@ def make_geometry(
         return vec3d(pl[0], pl[1], pl[2]), pl[3]
 
     @wp.func
-    def plane_row_1(shapes: Shapes, f: int, apex: vec3d):
-        # Plane of face f of body 1 in the pair-local frame, rounded to the clipping precision.
+    def plane_row_1(shapes: Shapes, f: int, frame: mat33d, apex: vec3d):
+        # Plane of face f of body 1 in the pair-local frame (axes `frame` times body 1's, origin at
+        # the apex), rounded to the clipping precision.
         n, d = plane64(shapes, f)
-        return vec4(scalar(n[0]), scalar(n[1]), scalar(n[2]), scalar(d - wp.dot(n, apex)))
+        n1 = frame * n
+        return vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d - wp.dot(n, apex)))
 
     @wp.func
     def plane_row_2(shapes: Shapes, g: int, rot: mat33d, off_2: vec3d):
@@ -514,11 +522,11 @@ def make_geometry(
         return vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d + wp.dot(n1, off_2)))
 
     @wp.func
-    def face_vertex(shapes: Shapes, of_1: bool, k: int, rot: mat33d, off_2: vec3d, apex: vec3d):
+    def face_vertex(shapes: Shapes, of_1: bool, k: int, frame: mat33d, rot: mat33d, off_2: vec3d, apex: vec3d):
         # Vertex face_loop[k] of body 1 (of_1) or body 2 in the pair-local frame, rounded.
         v = shapes.vert64[shapes.face_loop[k]]
         if of_1:
-            return to_scalar3(v - apex)
+            return to_scalar3(frame * (v - apex))
         return to_scalar3(rot * v + off_2)
 
     @wp.func
@@ -648,6 +656,30 @@ def make_geometry(
                 best = o2
                 best_u = -u
         return best_u, best
+
+    @wp.func
+    def axes_onto(n: vec3d):
+        # A rotation taking the unit vector n onto the coordinate axis nearest it (the identity
+        # where n is an axis already, so that axis-aligned faces keep their exact coordinates).
+        k = int(0)
+        if wp.abs(n[1]) > wp.abs(n[k]):
+            k = 1
+        if wp.abs(n[2]) > wp.abs(n[k]):
+            k = 2
+        eye = mat33d(wp.identity(n=3, dtype=wp.float64))
+        if n[(k + 1) % 3] == wp.float64(0.0) and n[(k + 2) % 3] == wp.float64(0.0):
+            return eye
+        e = vec3d()
+        e[k] = wp.sign(n[k])
+        v = wp.cross(n, e)
+        c = wp.dot(n, e)
+        vx = mat33d(
+            wp.float64(0.0), -v[2], v[1],
+            v[2], wp.float64(0.0), -v[0],
+            -v[1], v[0], wp.float64(0.0),
+        )  # fmt: skip
+        # Rodrigues: c >= 1/sqrt(3) here, so 1 + c is far from 0.
+        return eye + vx + (vx * vx) / (wp.float64(1.0) + c)
 
     @wp.func
     def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
@@ -821,46 +853,94 @@ def make_geometry(
             # outside the overlap, up to metres from it (in float32 the facets close only to ~1e-3
             # of their area: that gap times the apex's distance came out as V errors of 10-100x
             # for shallow face contacts of a cube on a floor box). Take instead the foot of body 2's
-            # centre on the active plane of body 1 it lies farthest above: within body 2's sphere,
-            # and on the contact face, whose cones then vanish exactly.
-            s_top = -(r1 + r2)
-            foot = pos
-            for j in range(slots_1):
-                f = int(0)
-                if wp.static(face_masks):
-                    if not active(mask_1, mask_1h, j):
-                        continue
-                    f = f10 + j
-                else:
-                    f = ids_1[j]
-                n, d = plane64(shapes, f)
-                sj = wp.dot(n, pos) - d
-                if sj > s_top:
-                    s_top = sj
-                    foot = pos - sj * n
+            # centre on body 1: projected onto the active plane of body 1 it lies farthest above, then
+            # again while it lies above another (a box's closest point in at most three rounds). On
+            # the contact face, whose cones then vanish exactly, and next to the overlap where body 2
+            # overhangs an edge or a corner of body 1: the foot on one side plane alone lay up to a
+            # body's size above the overlap, and float32 coordinates of that size round a shallow
+            # overlap's facets apart (V off by 1e7 times at 1e-8 m deep).
             apex = pos
-            if s_top > wp.float64(0.0):
-                apex = foot
-        # The pair-local frame: body 1's axes, origin at the apex. Planes and vertices are moved
-        # there in float64 and only then rounded to the clipping precision (plane_row_1,
+            for _round in range(3):
+                s_top = wp.float64(0.0)
+                n_top = vec3d()
+                for j in range(slots_1):
+                    f = int(0)
+                    if wp.static(face_masks):
+                        if not active(mask_1, mask_1h, j):
+                            continue
+                        f = f10 + j
+                    else:
+                        f = ids_1[j]
+                    n, d = plane64(shapes, f)
+                    sj = wp.dot(n, apex) - d
+                    if sj > s_top:
+                        s_top = sj
+                        n_top = n
+                if s_top <= wp.float64(0.0):
+                    break
+                apex = apex - s_top * n_top
+        # A flat contact: of the active faces with opposite outward normals (within PARALLEL_COS),
+        # the pair whose planes lie nearest each other. The pair-local frame then turns body 1's
+        # face onto a coordinate plane through the apex: the coordinates across the thin overlap
+        # are small numbers, exact to their own size, so both faces' pieces agree on it. In body
+        # 1's axes an oblique face (a rock's, a tetrahedron's, a cell of a tilted mesh wall) had
+        # vertices rounded off its own plane by units of the body's size, as far as the depth of a
+        # resting contact: the facets of the two bodies disagreed and V came out 1e9 times off.
+        frame = mat33d(wp.identity(n=3, dtype=wp.float64))
+        flat = int(-1)
+        gap = scalar(1.0e30)
+        for j in range(slots_1):
+            f = int(0)
+            if wp.static(face_masks):
+                if not active(mask_1, mask_1h, j):
+                    continue
+                f = f10 + j
+            else:
+                f = ids_1[j]
+            pf = shapes.face_plane[f]
+            nf1 = vec3(pf[0], pf[1], pf[2])
+            for jj in range(slots_2):
+                g = int(0)
+                if wp.static(face_masks):
+                    if not active(mask_2, mask_2h, jj):
+                        continue
+                    g = f20 + jj
+                else:
+                    g = ids_2[jj]
+                pg = shapes.face_plane[g]
+                ng = rot_c * vec3(pg[0], pg[1], pg[2])
+                if wp.dot(nf1, ng) < -scalar(parallel_cos):
+                    # the slab between the two planes: d_f + (d_g + n_g . pos), along n_f
+                    slab = wp.abs(pf[3] + pg[3] + wp.dot(ng, pos_c))
+                    if slab < gap:
+                        gap = slab
+                        flat = f
+        if flat >= 0:
+            n_flat, d_flat = plane64(shapes, flat)
+            apex = apex - (wp.dot(n_flat, apex) - d_flat) * n_flat
+            frame = axes_onto(n_flat)
+        # The pair-local frame: `frame` times body 1's axes, origin at the apex. Planes and vertices
+        # are moved there in float64 and only then rounded to the clipping precision (plane_row_1,
         # plane_row_2, face_vertex), either once per pair into per-thread tables or ("planes")
-        # again wherever a plane is read: the same arithmetic, so the same bits.
-        off_2 = pos - apex  # body 2's centre, pair-local
+        # again wherever a plane is read: the same arithmetic, so the same bits. `rot_l` and
+        # `off_2` place body 2 there; `rot` and `pos` still place it in body 1's frame.
+        rot_l = frame * rot
+        off_2 = frame * (pos - apex)  # body 2's centre, pair-local
         if wp.static(not local_planes):
             planes_1 = planes_t()
             for j in range(slots_1):
                 if wp.static(face_masks):
                     if active(mask_1, mask_1h, j):
-                        planes_1[j] = plane_row_1(shapes, f10 + j, apex)
+                        planes_1[j] = plane_row_1(shapes, f10 + j, frame, apex)
                 else:
-                    planes_1[j] = plane_row_1(shapes, ids_1[j], apex)
+                    planes_1[j] = plane_row_1(shapes, ids_1[j], frame, apex)
             planes_2 = planes_t()
             for j in range(slots_2):
                 if wp.static(face_masks):
                     if active(mask_2, mask_2h, j):
-                        planes_2[j] = plane_row_2(shapes, f20 + j, rot, off_2)
+                        planes_2[j] = plane_row_2(shapes, f20 + j, rot_l, off_2)
                 else:
-                    planes_2[j] = plane_row_2(shapes, ids_2[j], rot, off_2)
+                    planes_2[j] = plane_row_2(shapes, ids_2[j], rot_l, off_2)
         tol_c = scalar(tol_rel) * scalar(r2)  # coincident-face tolerance, before the rounding
 
         vol = scalar(0.0)
@@ -894,7 +974,7 @@ def make_geometry(
                 if wp.static(bit_visits):
                     num_planes = num_2
                 if wp.static(local_planes):
-                    plane = plane_row_1(shapes, face, apex)
+                    plane = plane_row_1(shapes, face, frame, apex)
                 else:
                     plane = planes_1[j]
             else:
@@ -908,7 +988,7 @@ def make_geometry(
                 if wp.static(bit_visits):
                     num_planes = num_1
                 if wp.static(local_planes):
-                    plane = plane_row_2(shapes, face, rot, off_2)
+                    plane = plane_row_2(shapes, face, rot_l, off_2)
                 else:
                     plane = planes_2[j - slots_1]
             nf = vec3(plane[0], plane[1], plane[2])
@@ -918,14 +998,14 @@ def make_geometry(
             c64 = vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2]))
             centre = zero3
             if face_is_1:
-                centre = to_scalar3(c64 - apex)
+                centre = to_scalar3(frame * (c64 - apex))
             else:
-                centre = to_scalar3(rot * c64 + off_2)
+                centre = to_scalar3(rot_l * c64 + off_2)
             # from_face: the live polygon is still the face itself (not in `poly`).
             from_face = bool(wp.static(stream_in))
             if wp.static(not stream_in):
                 for k in range(count):
-                    poly[k] = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
+                    poly[k] = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
             weight = scalar(1.0)
             alive = bool(True)
             cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
@@ -971,9 +1051,9 @@ def make_geometry(
                 pl = vec4()
                 if wp.static(local_planes):
                     if face_is_1:
-                        pl = plane_row_2(shapes, other, rot, off_2)
+                        pl = plane_row_2(shapes, other, rot_l, off_2)
                     else:
-                        pl = plane_row_1(shapes, other, apex)
+                        pl = plane_row_1(shapes, other, frame, apex)
                 else:
                     if face_is_1:
                         pl = planes_2[i]
@@ -994,9 +1074,9 @@ def make_geometry(
                     # case: a flat contact of any thickness is clipped like any other.
                     same = bool(False)
                     if face_is_1:
-                        same = coincident(shapes, plane, other, rot, off_2, tol_c)
+                        same = coincident(shapes, plane, other, rot_l, off_2, tol_c)
                     else:
-                        same = coincident(shapes, pl, face, rot, off_2, tol_c)
+                        same = coincident(shapes, pl, face, rot_l, off_2, tol_c)
                     if same:
                         weight = scalar(0.5)
                         continue
@@ -1017,14 +1097,14 @@ def make_geometry(
                 full = int(0)
                 prev = vec3()
                 if from_face:
-                    prev = face_vertex(shapes, face_is_1, begin + count - 1, rot, off_2, apex)
+                    prev = face_vertex(shapes, face_is_1, begin + count - 1, frame, rot_l, off_2, apex)
                 else:
                     prev = poly[cur + count - 1]
                 s_prev = plane_distance(ncut, dcut, prev)
                 for k in range(count):
                     v = vec3()
                     if from_face:
-                        v = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
+                        v = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
                     else:
                         v = poly[cur + k]
                     sk = plane_distance(ncut, dcut, v)
@@ -1065,14 +1145,14 @@ def make_geometry(
                 dcut = held[3]
                 prev = vec3()
                 if from_face:
-                    prev = face_vertex(shapes, face_is_1, begin + count - 1, rot, off_2, apex)
+                    prev = face_vertex(shapes, face_is_1, begin + count - 1, frame, rot_l, off_2, apex)
                 else:
                     prev = poly[cur + count - 1]
                 s_prev = plane_distance(ncut, dcut, prev)
                 for k in range(count):
                     v = vec3()
                     if from_face:
-                        v = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
+                        v = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
                     else:
                         v = poly[cur + k]
                     if pending:
@@ -1090,10 +1170,10 @@ def make_geometry(
                     continue
             elif from_face:
                 # stream-in, and no plane clipped the face: its own vertices make the fan.
-                p0 = face_vertex(shapes, face_is_1, begin, rot, off_2, apex)
-                pk = face_vertex(shapes, face_is_1, begin + 1, rot, off_2, apex)
+                p0 = face_vertex(shapes, face_is_1, begin, frame, rot_l, off_2, apex)
+                pk = face_vertex(shapes, face_is_1, begin + 1, frame, rot_l, off_2, apex)
                 for k in range(2, count):
-                    pn = face_vertex(shapes, face_is_1, begin + k, rot, off_2, apex)
+                    pn = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
                     sum_a2, sum_c = fan_add(p0, pk, pn, nf, sum_a2, sum_c)
                     pk = pn
             else:
@@ -1117,13 +1197,14 @@ def make_geometry(
             if wp.length(s_1) < scalar(enclosed_ratio) * wp.pow(vol, scalar(2.0) / scalar(3.0)):
                 u_best, sep = least_penetration(shapes, s1, s2, rot, pos)
                 fb_1 = projected_area(shapes, s2, rot_t * u_best) * u_best
-        # Back to body 1's centre (float64), then to world axes and A's centre.
+        # Back to body 1's axes and centre (float64), then to world axes and A's centre.
+        frame_t = wp.transpose(frame)
         vol64 = wp.float64(vol)
-        s1_64 = to_f64(s_1)
-        s2_64 = to_f64(s_2)
-        vol_c64 = wp.quat_rotate(q1, to_f64(vol_c) + vol64 * apex)
-        m1_64 = wp.quat_rotate(q1, to_f64(m_1) + wp.cross(apex, s1_64))
-        m2_64 = wp.quat_rotate(q1, to_f64(m_2) + wp.cross(apex, s2_64))
+        s1_64 = frame_t * to_f64(s_1)
+        s2_64 = frame_t * to_f64(s_2)
+        vol_c64 = wp.quat_rotate(q1, frame_t * to_f64(vol_c) + vol64 * apex)
+        m1_64 = wp.quat_rotate(q1, frame_t * to_f64(m_1) + wp.cross(apex, s1_64))
+        m2_64 = wp.quat_rotate(q1, frame_t * to_f64(m_2) + wp.cross(apex, s2_64))
         s1_64 = wp.quat_rotate(q1, s1_64)
         s2_64 = wp.quat_rotate(q1, s2_64)
         fb_1 = wp.quat_rotate(q1, fb_1)

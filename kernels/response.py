@@ -111,22 +111,27 @@ def make_frame(scalar) -> Frame:
         """Kind (REGULAR, ENCLOSED or SLIVER), unit normal, contact point, effective S_A and M_A,
         and |S_A| of an overlap V > 0 (V * centroid, S_A, M_A about x_A; all relative to x_A).
         ``fallback`` is the geometry's fallback area vector (zero unless enclosed), ``r_ab`` is
-        x_B - x_A, ``r_min`` the smaller bounding radius."""
+        x_B - x_A, ``r_min`` the smaller bounding radius.
+
+        Enclosure is decided here, on the S_A and V given, not on whether a fallback came: a mesh wall
+        or a compound grain sums the geometry of many cells or parts, and one of them may be an
+        enclosed sliver (a face within rounding of a cell's side) whose fallback, as large as the
+        body's projected area, must not turn a regular contact's force sideways."""
         c = first_moment / volume
         s = area
         mom = moment
         s_norm = wp.length(s)
-        fb_norm = wp.length(fallback)
         kind = int(REGULAR)
-        if fb_norm > scalar(0.0):
-            # Enclosed: push along the direction of least penetration (module docstring).
-            s = fallback
-            mom = wp.cross(c, s)
-            s_norm = fb_norm
-            kind = int(ENCLOSED)
-        else:
-            v23 = wp.pow(volume, scalar(2.0) / scalar(3.0))
-            if s_norm < scalar(ENCLOSED_RATIO) * v23:
+        v23 = wp.pow(volume, scalar(2.0) / scalar(3.0))
+        if s_norm < scalar(ENCLOSED_RATIO) * v23:
+            fb_norm = wp.length(fallback)
+            if fb_norm > scalar(0.0):
+                # Enclosed: push along the direction of least penetration (module docstring).
+                s = fallback
+                mom = wp.cross(c, s)
+                s_norm = fb_norm
+                kind = int(ENCLOSED)
+            else:
                 line = centre_line(r_ab)
                 if volume <= scalar(ENCLOSED_MIN_VOLUME) * r_min * r_min * r_min:
                     # A sliver without a gradient: no force.

@@ -21,7 +21,8 @@ def pose(position, rotation=None):
 
 
 def world_vertices(shape, p):
-    return Rotation.from_quat(p[3:]).apply(np.array(shape.vertices)) + p[:3]
+    """World vertices of ``shape`` at the pose ``p`` of its input frame (overlap()'s default frame)."""
+    return Rotation.from_quat(p[3:]).apply(shape.to_input_frame(shape.vertices)) + p[:3]
 
 
 def scale_of(a, b):
@@ -289,10 +290,11 @@ def test_vertex_into_face(device, precision):
 
 
 def projected_area(shape, rotation, u):
-    """Area of the shadow of ``shape`` turned by ``rotation`` along the unit vector ``u`` (hull facets)."""
+    """Area of the shadow of ``shape`` with its input axes turned by ``rotation`` along the unit vector
+    ``u`` (hull facets)."""
     from scipy.spatial import ConvexHull
 
-    hull = ConvexHull(rotation.apply(np.array(shape.vertices)))
+    hull = ConvexHull(rotation.apply(shape.to_input_frame(shape.vertices)))
     total = 0.0
     for tri in hull.simplices:
         p = hull.points[tri]
@@ -345,7 +347,7 @@ def test_identical_coincident_bodies(device, precision):
     # Pushed apart along one of the rock's face normals (they are the candidates, both bodies
     # alike), with its projected area along it.
     u = f.force_a[0] / np.linalg.norm(f.force_a[0])
-    normals = Rotation.from_rotvec([0.3, -0.2, 0.5]).apply(np.array(r.face_normals))
+    normals = Rotation.from_rotvec([0.3, -0.2, 0.5]).apply(np.array(r.face_normals) @ r.input_rotation.T)
     assert np.abs(normals @ u).max() > 1.0 - 1e-6
     area = projected_area(r, Rotation.from_rotvec([0.3, -0.2, 0.5]), u)
     np.testing.assert_allclose(np.linalg.norm(f.force_a[0]), law.derivative(res.volume)[0] * area, rtol=1e-4)

@@ -102,7 +102,8 @@ def kernel_force(shape, direction, depths, law):
     of ``depths`` [m] into the top face of a large box, float64."""
     floor = ConvexShape.box(0.2, 0.2, 0.05)
     poses = np.array([pose_pressed(shape, direction, d) for d in depths])
-    res = overlap(shape, poses, floor, np.array([0.0, 0.0, -0.025, 0, 0, 0, 1]), precision="float64")
+    # pose_pressed places the body frame (principal axes), as the simulator's state does
+    res = overlap(shape, poses, floor, np.array([0.0, 0.0, -0.025, 0, 0, 0, 1]), frame="body", precision="float64")
     assert np.allclose(res.depth, depths, rtol=1e-9)
     return contact_forces(res, law).force_a[:, 2]
 

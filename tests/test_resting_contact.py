@@ -276,7 +276,7 @@ def test_depth_against_numpy(device, precision):
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     pb = np.hstack([pa[:, :3] + d * rng.uniform(0.1, 1.2, size=(n, 1)), Rotation.random(n, random_state=2).as_quat()])
-    res = overlap(a, pa, b, pb, device=device, precision=precision)
+    res = overlap(a, pa, b, pb, frame="body", device=device, precision=precision)  # world() takes body frames
     ref = np.array([depth_reference(world(a, pa[i]), world(b, pb[i])) for i in range(n)])
     ref[res.volume <= 0.0] = 0.0
     assert (ref > 0.0).sum() > 10 and (ref == 0.0).sum() > 3

@@ -151,7 +151,9 @@ def measure_overlaps(positions, quats, scene):
     vols = []
     depths = []
     if len(pairs):
-        res = polydem.overlap(cube, poses[pairs[:, 0]], cube, poses[pairs[:, 1]], device="cpu", precision="float64")
+        res = polydem.overlap(
+            cube, poses[pairs[:, 0]], cube, poses[pairs[:, 1]], frame="body", device="cpu", precision="float64"
+        )
         vols.append(res.volume)
         depths.append(res.depth)
     for w in scene["walls"]:
@@ -166,7 +168,7 @@ def measure_overlaps(positions, quats, scene):
         near = np.flatnonzero(np.linalg.norm(gap, axis=1) < r)
         if len(near):
             wall_pose = np.concatenate([centre, w["orientation_xyzw"]])
-            res = polydem.overlap(cube, poses[near], box, wall_pose, device="cpu", precision="float64")
+            res = polydem.overlap(cube, poses[near], box, wall_pose, frame="body", device="cpu", precision="float64")
             vols.append(res.volume)
             depths.append(res.depth)
     v = np.concatenate(vols) if vols else np.zeros(0)

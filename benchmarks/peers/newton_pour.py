@@ -409,7 +409,7 @@ def yardstick_contacts(scene, position, orientation, device):
             for k in range(0, len(rows), YARDSTICK_CHUNK):
                 r = rows[k : k + YARDSTICK_CHUNK]
                 a, b = poses[pairs[r, 0]], poses[pairs[r, 1]]
-                res = polydem.overlap(shapes[sa], a, shapes[sb], b, device=device, precision="float64")
+                res = polydem.overlap(shapes[sa], a, shapes[sb], b, frame="body", device=device, precision="float64")
                 volume[r] = res.volume
                 depth[r] = res.depth
     hit = volume > 0.0

@@ -5,6 +5,17 @@ exact energy-model quantities as numpy arrays; :func:`contact_forces` turns them
 :class:`ContactLaw` into forces and torques. Both launch the Warp functions that the simulator's
 contacts use (:mod:`polydem.kernels.geometry` and :mod:`polydem.kernels.response`).
 
+Frames. By default (``frame="input"``) a pose places a shape the way :meth:`polydem.Scene.add_body`
+and scene files do: its position is where the shape's *input-frame* origin goes (the origin of the
+coordinates its points or mesh were given in) and its quaternion turns the input axes into world
+axes. So ``ConvexShape.box(0.05, 0.05, 0.17)`` at the identity stands with its long edge along
+world z, and a rock or mesh at the origin sits where its points were. ``frame="body"`` takes poses
+of the *body frame* instead (the centre of mass and the principal axes of inertia, what a shape's
+``vertices`` are given in and what ``Simulation.state()`` reports as ``body_position`` and
+``body_orientation``). Either way every result is in world coordinates: points (centroid, contact
+point) are world positions, ``moment`` is taken about the world origin, ``position_a`` and
+``position_b`` are the centres of mass, and :func:`contact_forces` gives torques about them.
+
 Degenerate pairs. When one body lies (almost) wholly inside the other, or two identical bodies
 sit on top of each other, the gradient of the overlap volume vanishes and so would the force.
 Such a pair is flagged ``enclosed`` (|S_A| < 1e-4 V^(2/3)) and pushed apart along the direction
@@ -25,10 +36,14 @@ import warp as wp
 from polydem.compound import CompoundShape
 from polydem.kernels.narrowphase import launch_depth, launch_overlap
 from polydem.kernels.response import ENCLOSED, LAWS, launch_contact_force, launch_contact_frame
+from polydem.quaternions import quat_from_matrix, quat_multiply, quat_rotate
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
 
-__all__ = ["ContactLaw", "OverlapResult", "ContactForces", "overlap", "contact_forces"]
+__all__ = ["ContactLaw", "OverlapResult", "ContactForces", "overlap", "contact_forces", "FRAMES"]
+
+FRAMES = ("input", "body")
+"""The frames :func:`overlap` takes poses in (see the module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -76,18 +91,23 @@ class ContactLaw:
 
 @dataclass
 class OverlapResult:
-    """Energy-model contact geometry of N pairs; every array has one row per pair, world axes.
+    """Energy-model contact geometry of N pairs; one row per pair, world axes and world positions.
+
+    The same whichever frame the poses were given in (:func:`overlap`'s ``frame``): points are in
+    world coordinates and moments are about the world origin or, where said, a centre of mass.
 
     Attributes:
         volume: (N,) overlap volume V [m^3].
-        centroid: (N, 3) centroid of the overlap [m].
+        centroid: (N, 3) centroid of the overlap, world position [m].
         area_vector: (N, 3) S_A = sum of A's facet areas times A's outward normals [m^2]; the
             gradient of V under translation of A.
-        moment: (N, 3) M_A = sum A_k (c_k x n_k) about the world origin [m^3]; M_A - x_A x S_A is
-            the gradient of V under rotation of A about its centre.
+        moment: (N, 3) M_A = sum A_k (c_k x n_k) about the world origin [m^3]; ``M_A - c x S_A`` is
+            the gradient of V under rotation of A about the point c: ``M_A - position_a x S_A``
+            about A's centre of mass; for input-frame poses, ``M_A - p x S_A`` with p the pose's
+            position under a turn of the pose's quaternion (which turns A about p).
         normal: (N, 3) unit contact normal S_A/|S_A|, pointing from A into B.
-        contact_point: (N, 3) where the wrench's central axis meets the plane through the
-            centroid normal to ``normal`` [m].
+        contact_point: (N, 3) world position where the wrench's central axis meets the plane
+            through the centroid normal to ``normal`` [m].
         area_vector_b, moment_b: (N, 3) the same sums over B's facets (S_B = -S_A, M_B = -M_A).
         enclosed: (N,) bool, the gradient of V vanishes (see the module docstring).
         enclosed_area_vector: (N, 3) the effective area vector that pushes an enclosed pair
@@ -95,7 +115,9 @@ class OverlapResult:
         depth: (N,) penetration depth [m]: the shortest translation along a face normal of either
             body that separates them (for a corner or edge in a face, its depth below that face;
             where two edges cross, an upper bound), 0 where V = 0.
-        position_a, position_b: (N, 3) the body centres [m].
+        position_a, position_b: (N, 3) world positions of the bodies' centres of mass [m] (for
+            ``frame="input"`` not the positions given, unless the shape's input origin is its
+            centroid, as for every generated shape except ``rock``).
     """
 
     volume: np.ndarray
@@ -118,7 +140,12 @@ class OverlapResult:
 
 @dataclass
 class ContactForces:
-    """Forces [N] and torques about each body's centre [N m], (N, 3) arrays in world axes."""
+    """Forces [N] and torques [N m], (N, 3) arrays in world axes.
+
+    ``torque_a`` and ``torque_b`` are about each body's centre of mass (``OverlapResult.position_a``
+    and ``position_b``), whichever frame the poses were given in; about another point p the torque
+    on A is ``torque_a + (position_a - p) x force_a``.
+    """
 
     force_a: np.ndarray
     torque_a: np.ndarray
@@ -168,14 +195,38 @@ def _check_poses(poses, name):
     return p
 
 
-def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float32"):
+def _body_poses(shape, poses):
+    """Body-frame poses of ``shape`` placed by its input frame at ``poses``, converted as
+    :meth:`polydem.Scene.add_body` converts them: centre of mass ``p + R(q) t_in``, orientation
+    ``q * q(R_in)``."""
+    t_in = np.asarray(shape.input_translation, dtype=np.float64)
+    q_in = quat_from_matrix(shape.input_rotation)
+    out = poses.copy()
+    # Skipping the no-op transforms keeps the poses of shapes built in their principal frame exact.
+    if np.any(t_in):
+        out[:, :3] = poses[:, :3] + quat_rotate(poses[:, 3:], np.broadcast_to(t_in, (len(poses), 3)))
+    if not np.all(q_in == (0.0, 0.0, 0.0, 1.0)):
+        q = quat_multiply(poses[:, 3:], q_in)
+        out[:, 3:] = q / np.sqrt(np.einsum("ij,ij->i", q, q))[:, None]
+    return out
+
+
+def overlap(shape_a, poses_a, shape_b, poses_b, *, frame="input", device=None, precision="float32"):
     """Contact geometry of ``shape_a`` at each of ``poses_a`` against ``shape_b`` at ``poses_b``.
 
     Args:
         shape_a, shape_b: :class:`~polydem.ConvexShape` or :class:`~polydem.CompoundShape` (a
             compound one's results are the sums over its part pairs, about its centre).
-        poses_a, poses_b: (N, 7) arrays ``[px, py, pz, qx, qy, qz, qw]`` placing each body frame
-            in the world (positions in m, unit quaternions); a single (7,) pose is broadcast.
+        poses_a, poses_b: (N, 7) arrays ``[px, py, pz, qx, qy, qz, qw]`` placing each shape in the
+            world (positions in m, unit quaternions), in the frame that ``frame`` names; a single
+            (7,) pose is broadcast.
+        frame: ``"input"`` (default): the poses place each shape's input frame, the frame its
+            points or mesh were given in, as :meth:`polydem.Scene.add_body` and scene files do;
+            ``"body"``: they place its body frame (centre of mass, principal axes of inertia), as
+            ``Simulation.state()``'s ``body_position`` and ``body_orientation`` do. The two agree
+            where a shape's input frame is its body frame (``box(1.0)``, ``octahedron()``), not
+            for ``box(0.05, 0.05, 0.17)``, whose body x axis is its input z axis (the axis of
+            least inertia), nor for a ``rock``, whose centroid is off its input origin.
         device: Warp device ("cpu", "cuda:0", ...), default Warp's default device.
         precision: "float32" (default) or "float64" arithmetic in the clipping. The poses reach
             the kernel in float64 either way (the mixed mode for "float32"), relative to A's
@@ -183,14 +234,23 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, device=None, precision="float
             origin is not lost before the geometry starts.
 
     Returns:
-        :class:`OverlapResult`.
+        :class:`OverlapResult`, in world coordinates whatever ``frame`` (its ``position_a`` and
+        ``position_b`` are the centres of mass).
     """
+    if not isinstance(frame, str) or frame not in FRAMES:
+        raise ValueError(
+            f"frame must be 'input' (poses of the frame the shape's points were given in, as in scenes) or "
+            f"'body' (poses of its centre of mass and principal axes, as Simulation.state() gives), got {frame!r}"
+        )
     for s, name in ((shape_a, "shape_a"), (shape_b, "shape_b")):
         if not isinstance(s, ConvexShape | CompoundShape):
             raise TypeError(f"{name} must be a polydem.ConvexShape or CompoundShape, got {type(s).__name__}")
     scalar_type(precision)
     pa = _check_poses(poses_a, "poses_a")
     pb = _check_poses(poses_b, "poses_b")
+    if frame == "input":
+        pa = _body_poses(shape_a, pa)
+        pb = _body_poses(shape_b, pb)
     if len(pa) != len(pb):
         if len(pa) == 1:
             pa = np.repeat(pa, len(pb), axis=0)
@@ -267,10 +327,12 @@ def _finish(res, origin, position_b, rel_b, radius_a, radius_b, device):
 def contact_forces(result, law, *, device=None):
     """Forces and torques of the energy model for an :class:`OverlapResult` and a :class:`ContactLaw`.
 
-    Force on A ``-W'(V) S_A``, torque on A about its centre ``-W'(V) (M_A - x_A x S_A)``; B gets the
-    exact opposite force and the torque that balances the pair. Enclosed pairs are pushed apart
-    along their ``enclosed_area_vector`` (module docstring). Computed in float64 by the simulator's contact
-    response function on ``device`` (default Warp's default device).
+    Force on A ``-W'(V) S_A``, torque on A about its centre of mass x_A (``result.position_a``)
+    ``-W'(V) (M_A - x_A x S_A)``; B gets the exact opposite force and the torque about its centre of
+    mass that balances the pair. The poses' frame (:func:`overlap`'s ``frame``) changes none of this.
+    Enclosed pairs are pushed apart along their ``enclosed_area_vector`` (module docstring). Computed
+    in float64 by the simulator's contact response function on ``device`` (default Warp's default
+    device).
     """
     if not isinstance(result, OverlapResult):
         raise TypeError(f"result must be an OverlapResult from polydem.overlap(), got {type(result).__name__}")
