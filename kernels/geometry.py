@@ -114,6 +114,9 @@ def shapes_struct(scalar):
         "face_sphere": wp.array(dtype=vec4),
         "face_loop_start": wp.array(dtype=int),
         "face_loop": wp.array(dtype=int),
+        # 1 for a face inside its grain (a compound's cut plane): a coincident face of another body
+        # takes the whole shared region (see pair_geometry).
+        "face_internal": wp.array(dtype=int),
         "vert": wp.array(dtype=vec3),
         # The same in float64 (the same arrays in float64), for the pair set-up.
         "face_plane64": wp.array(dtype=wp.types.vector(4, wp.float64)),
@@ -507,11 +510,13 @@ def make_geometry(
         return vec3d(pl[0], pl[1], pl[2]), pl[3]
 
     @wp.func
-    def plane_row_1(shapes: Shapes, f: int, frame: mat33d, apex: vec3d):
-        # Plane of face f of body 1 in the pair-local frame (axes `frame` times body 1's, origin at
-        # the apex), rounded to the clipping precision.
+    def plane_row_1(shapes: Shapes, f: int, turned: bool, frame: mat33d, apex: vec3d):
+        # Plane of face f of body 1 in the pair-local frame (axes `frame` times body 1's where
+        # `turned`, else body 1's; origin at the apex), rounded to the clipping precision.
         n, d = plane64(shapes, f)
-        n1 = frame * n
+        n1 = n
+        if turned:
+            n1 = frame * n
         return vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d - wp.dot(n, apex)))
 
     @wp.func
@@ -522,11 +527,15 @@ def make_geometry(
         return vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d + wp.dot(n1, off_2)))
 
     @wp.func
-    def face_vertex(shapes: Shapes, of_1: bool, k: int, frame: mat33d, rot: mat33d, off_2: vec3d, apex: vec3d):
+    def face_vertex(
+        shapes: Shapes, of_1: bool, k: int, turned: bool, frame: mat33d, rot: mat33d, off_2: vec3d, apex: vec3d
+    ):
         # Vertex face_loop[k] of body 1 (of_1) or body 2 in the pair-local frame, rounded.
         v = shapes.vert64[shapes.face_loop[k]]
         if of_1:
-            return to_scalar3(frame * (v - apex))
+            if turned:
+                return to_scalar3(frame * (v - apex))
+            return to_scalar3(v - apex)
         return to_scalar3(rot * v + off_2)
 
     @wp.func
@@ -887,6 +896,7 @@ def make_geometry(
         # vertices rounded off its own plane by units of the body's size, as far as the depth of a
         # resting contact: the facets of the two bodies disagreed and V came out 1e9 times off.
         frame = mat33d(wp.identity(n=3, dtype=wp.float64))
+        turned = bool(False)  # frame is not the identity: body 1's planes and vertices are rotated
         flat = int(-1)
         gap = scalar(1.0e30)
         for j in range(slots_1):
@@ -919,6 +929,9 @@ def make_geometry(
             n_flat, d_flat = plane64(shapes, flat)
             apex = apex - (wp.dot(n_flat, apex) - d_flat) * n_flat
             frame = axes_onto(n_flat)
+            # An axis-aligned face (a box's) keeps body 1's axes: no rotation to pay per plane and vertex.
+            turned = n_flat[0] * n_flat[1] != wp.float64(0.0) or n_flat[1] * n_flat[2] != wp.float64(0.0)
+            turned = turned or n_flat[0] * n_flat[2] != wp.float64(0.0)
         # The pair-local frame: `frame` times body 1's axes, origin at the apex. Planes and vertices
         # are moved there in float64 and only then rounded to the clipping precision (plane_row_1,
         # plane_row_2, face_vertex), either once per pair into per-thread tables or ("planes")
@@ -931,9 +944,9 @@ def make_geometry(
             for j in range(slots_1):
                 if wp.static(face_masks):
                     if active(mask_1, mask_1h, j):
-                        planes_1[j] = plane_row_1(shapes, f10 + j, frame, apex)
+                        planes_1[j] = plane_row_1(shapes, f10 + j, turned, frame, apex)
                 else:
-                    planes_1[j] = plane_row_1(shapes, ids_1[j], frame, apex)
+                    planes_1[j] = plane_row_1(shapes, ids_1[j], turned, frame, apex)
             planes_2 = planes_t()
             for j in range(slots_2):
                 if wp.static(face_masks):
@@ -974,7 +987,7 @@ def make_geometry(
                 if wp.static(bit_visits):
                     num_planes = num_2
                 if wp.static(local_planes):
-                    plane = plane_row_1(shapes, face, frame, apex)
+                    plane = plane_row_1(shapes, face, turned, frame, apex)
                 else:
                     plane = planes_1[j]
             else:
@@ -998,14 +1011,17 @@ def make_geometry(
             c64 = vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2]))
             centre = zero3
             if face_is_1:
-                centre = to_scalar3(frame * (c64 - apex))
+                if turned:
+                    centre = to_scalar3(frame * (c64 - apex))
+                else:
+                    centre = to_scalar3(c64 - apex)
             else:
                 centre = to_scalar3(rot_l * c64 + off_2)
             # from_face: the live polygon is still the face itself (not in `poly`).
             from_face = bool(wp.static(stream_in))
             if wp.static(not stream_in):
                 for k in range(count):
-                    poly[k] = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
+                    poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
             weight = scalar(1.0)
             alive = bool(True)
             cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
@@ -1053,7 +1069,7 @@ def make_geometry(
                     if face_is_1:
                         pl = plane_row_2(shapes, other, rot_l, off_2)
                     else:
-                        pl = plane_row_1(shapes, other, frame, apex)
+                        pl = plane_row_1(shapes, other, turned, frame, apex)
                 else:
                     if face_is_1:
                         pl = planes_2[i]
@@ -1078,7 +1094,16 @@ def make_geometry(
                     else:
                         same = coincident(shapes, pl, face, rot_l, off_2, tol_c)
                     if same:
+                        # Half to each body; but where one of the two faces lies inside its grain (a
+                        # compound's cut plane), the other is the boundary of the union there and
+                        # takes it all. The same rule read from both sides: the weights sum to 1.
+                        inside_face = shapes.face_internal[face]
+                        inside_other = shapes.face_internal[other]
                         weight = scalar(0.5)
+                        if inside_face != inside_other:
+                            weight = scalar(1.0)
+                            if inside_face != 0:
+                                weight = scalar(0.0)
                         continue
                 cut_by = pl
                 if wp.static(stream_out):
@@ -1097,14 +1122,14 @@ def make_geometry(
                 full = int(0)
                 prev = vec3()
                 if from_face:
-                    prev = face_vertex(shapes, face_is_1, begin + count - 1, frame, rot_l, off_2, apex)
+                    prev = face_vertex(shapes, face_is_1, begin + count - 1, turned, frame, rot_l, off_2, apex)
                 else:
                     prev = poly[cur + count - 1]
                 s_prev = plane_distance(ncut, dcut, prev)
                 for k in range(count):
                     v = vec3()
                     if from_face:
-                        v = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
+                        v = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
                     else:
                         v = poly[cur + k]
                     sk = plane_distance(ncut, dcut, v)
@@ -1145,14 +1170,14 @@ def make_geometry(
                 dcut = held[3]
                 prev = vec3()
                 if from_face:
-                    prev = face_vertex(shapes, face_is_1, begin + count - 1, frame, rot_l, off_2, apex)
+                    prev = face_vertex(shapes, face_is_1, begin + count - 1, turned, frame, rot_l, off_2, apex)
                 else:
                     prev = poly[cur + count - 1]
                 s_prev = plane_distance(ncut, dcut, prev)
                 for k in range(count):
                     v = vec3()
                     if from_face:
-                        v = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
+                        v = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
                     else:
                         v = poly[cur + k]
                     if pending:
@@ -1170,10 +1195,10 @@ def make_geometry(
                     continue
             elif from_face:
                 # stream-in, and no plane clipped the face: its own vertices make the fan.
-                p0 = face_vertex(shapes, face_is_1, begin, frame, rot_l, off_2, apex)
-                pk = face_vertex(shapes, face_is_1, begin + 1, frame, rot_l, off_2, apex)
+                p0 = face_vertex(shapes, face_is_1, begin, turned, frame, rot_l, off_2, apex)
+                pk = face_vertex(shapes, face_is_1, begin + 1, turned, frame, rot_l, off_2, apex)
                 for k in range(2, count):
-                    pn = face_vertex(shapes, face_is_1, begin + k, frame, rot_l, off_2, apex)
+                    pn = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
                     sum_a2, sum_c = fan_add(p0, pk, pn, nf, sum_a2, sum_c)
                     pk = pn
             else:

@@ -175,3 +175,33 @@ def test_cube_slides_across_grid_lines_without_spikes(device, precision):
     assert x > -0.047  # both faces across x have crossed a grid line (x = -0.1 and 0)
     spread = np.abs(np.array(push) / weight - 1.0).max()
     assert spread < (1e-2 if precision == "mixed" else 1e-3), spread
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_face_in_a_compound_cut_plane_gets_the_union_force(device, precision):
+    """A cube cut in two along z = 0 (a compound of two half boxes) against a box whose top face lies in
+    that cut plane: the overlap of the two unions is that of the uncut cube, and so must be V, S_A and M_A.
+    The cut face of the lower half coincides with the box's top face (the same outward normal): half and half,
+    as for any coincident face, left S_A with half of that region (-0.05 d instead of -0.1 d along z); the
+    box's face is the union's boundary there and takes it all."""
+    from polydem import CompoundShape
+
+    halves = [ConvexShape.box(0.1, 0.1, 0.05).placed(np.eye(3), (0.0, 0.0, z)) for z in (0.025, -0.025)]
+    cut = CompoundShape(halves)
+    whole = ConvexShape.box(0.1)
+    box = ConvexShape.box(0.1)
+    rng = np.random.default_rng(5)
+    n = 12
+    pa = np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], (n, 1))
+    depth = rng.uniform(0.002, 0.03, n)
+    pb = np.column_stack([0.1 - depth, rng.uniform(-0.03, 0.03, n), np.full(n, -0.05), np.tile([0, 0, 0, 1.0], (n, 1))])
+    pb[0, 1] = 0.0  # one pose with the faces' edges in line as well
+    got = polydem.overlap(cut, pa, box, pb, device=device, precision=precision)
+    want = polydem.overlap(whole, pa, box, pb, device=device, precision="float64")
+    tol = 1e-6 if precision == "float32" else 1e-12
+    np.testing.assert_allclose(got.volume, want.volume, rtol=tol)
+    np.testing.assert_allclose(got.area_vector, want.area_vector, atol=tol * 0.01)
+    np.testing.assert_allclose(got.moment, want.moment, atol=tol * 0.01 * 0.1)
+    np.testing.assert_allclose(got.area_vector_b, want.area_vector_b, atol=tol * 0.01)
+    # The region in the cut plane, d by the overlap along y, is all in S_A (along -z: A's bottom face).
+    np.testing.assert_allclose(got.area_vector[:, 2], -depth * (0.1 - np.abs(pb[:, 1])), rtol=tol * 10)

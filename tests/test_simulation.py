@@ -1,9 +1,12 @@
 """Verification of polydem.Simulation: closed forms against the integrator, and physics checks.
 
-Scenes are sized for Warp's single-threaded CPU backend (the file takes ~105 s there, 75 s of it the
-512-body pour, 16 s the 10^5-step energy run). Units SI; float32 state,
-unit roundoff EPS = 2^-24. The integrator (kernels/integrate.py) is symplectic Euler for
-translation (v += dt a, then x += dt v) with a Strang-split free-rotor drift for rotation.
+Scenes are sized for Warp's single-threaded CPU backend (the file takes about 3 minutes there besides
+the 512-body pour, 75 s on an idle core; 16 to 26 s of it the 10^5-step energy run). Units SI. Scenes
+run in the default precision, "mixed" (float64 state, velocities and force sums; float32 contact
+geometry), and the closed-form and conservation tests in "float64" and "float32" beside it, each held
+to the unit roundoff of the state's scalar (UNIT_ROUNDOFF: 2^-53 for mixed and float64, 2^-24 for
+float32). The integrator (kernels/integrate.py) is symplectic Euler for translation (v += dt a, then
+x += dt v) with a Strang-split free-rotor drift for rotation.
 
 Energy checks use the first-order *modified energy* of symplectic Euler. For the kick-then-drift
 map the conserved quantity is, to O(dt^2),
@@ -26,18 +29,21 @@ import polydem
 from polydem import ConvexShape, Scene, SceneError, Simulation, SimulationError
 from polydem.scene import quat_from_axis_angle, quat_to_matrix
 
-EPS = 2.0**-24
 G = 9.81
+# Unit roundoff of the body state (positions, velocities, per-body force sums) in each precision.
+UNIT_ROUNDOFF = {"float32": 2.0**-24, "mixed": 2.0**-53, "float64": 2.0**-53}
 
 
 # ---------------------------------------------------------------------------------------------
 # Helpers
 
 
-def single_material_scene(gravity=(0.0, 0.0, -G), dt="auto", **material):
+def single_material_scene(gravity=(0.0, 0.0, -G), dt="auto", precision="mixed", **material):
     props = dict(density=1000.0, law="hertz", k=1.0e9, restitution=1.0, friction=0.0)
     props.update(material)
-    scene = Scene(gravity=gravity, dt=dt)
+    if props.get("m") is None:
+        props.pop("m", None)
+    scene = Scene(gravity=gravity, dt=dt, precision=precision)
     scene.add_material("m", **props)
     return scene
 
@@ -81,10 +87,11 @@ def angular_momentum(scene, state):
 # 1. Free fall and projectile: the closed form of symplectic Euler
 
 
-def test_free_fall_and_projectile_closed_form(device):
+@pytest.mark.parametrize("precision", ["mixed", "float64", "float32"])
+def test_free_fall_and_projectile_closed_form(device, precision):
     # A large step (2 ms; the soft material's stable limit is seconds) makes the closed form's
     # first-order term g t dt / 2 large against float32 rounding of the position.
-    scene = single_material_scene(dt=2.0e-3, k=1.0e3)
+    scene = single_material_scene(dt=2.0e-3, k=1.0e3, precision=precision)
     cube = scene.add_shape("cube", ConvexShape.box(0.1))
     x0 = np.array([[0.0, 0.0, 1.0], [0.5, -0.2, 0.5]])
     v0 = np.array([[0.0, 0.0, 0.0], [1.5, -0.7, 4.0]])
@@ -95,17 +102,19 @@ def test_free_fall_and_projectile_closed_form(device):
     sim.step(steps)
     st = sim.state()
 
-    dt = float(np.float32(sim.dt))  # the kernels step with the float32 dt
+    eps = UNIT_ROUNDOFF[precision]
+    dt = float(np.float32(sim.dt)) if precision == "float32" else sim.dt  # the dt of the integrator's scalar
     t = steps * dt
     g = np.array([0.0, 0.0, -G])
     x_exact = x0 + v0 * t + 0.5 * g * t * t + 0.5 * g * t * dt
     v_exact = v0 + g * t
-    # Worst case, every one of the `steps` float32 additions x += dt v and v += dt g rounds by half
-    # an ulp of its result, the same way (errors add up linearly, and the velocity error is carried
-    # into x for the remaining time): steps * EPS * (max|x| + t max|v|) and steps * EPS * max|v|.
+    # Worst case, every one of the `steps` additions x += dt v and v += dt g rounds by half an ulp of
+    # its result, the same way (errors add up linearly, and the velocity error is carried into x for
+    # the remaining time): steps * eps * (max|x| + t max|v|) and steps * eps * max|v|. In float64
+    # (mixed, float64) that is 1e-12 m; gravity 1e-4 off moves the bodies 4.9e-4 m.
     vmax = np.abs(v0).max() + G * t
-    tol_x = steps * EPS * (np.abs(x_exact).max() + np.abs(x0).max() + t * vmax)
-    tol_v = steps * EPS * vmax
+    tol_x = steps * eps * (np.abs(x_exact).max() + np.abs(x0).max() + t * vmax)
+    tol_v = steps * eps * vmax
     err_x = np.abs(st["body_position"] - x_exact).max()
     err_v = np.abs(st["body_velocity"] - v_exact).max()
     print(f"\nfree fall: t = {t:.4f} s, |x - exact| = {err_x:.2e} m (tol {tol_x:.1e}), |v - exact| = {err_v:.2e}")
@@ -114,8 +123,9 @@ def test_free_fall_and_projectile_closed_form(device):
     # The closed form differs from the exact parabola by g t dt / 2; make sure the test resolves it.
     assert 0.5 * G * t * dt > 10 * tol_x
     # No contact ever happened: the spin of the projectile is untouched (a cube is isotropic, so its
-    # angular velocity is constant in the torque-free case; float32 rounding of the drift only).
-    np.testing.assert_allclose(st["body_angular_velocity"][1], [2.0, -1.0, 3.0], rtol=0, atol=1e-4)
+    # angular velocity is constant in the torque-free case; rounding of the drift only, at most one
+    # unit of |w| per step).
+    np.testing.assert_allclose(st["body_angular_velocity"][1], [2.0, -1.0, 3.0], rtol=0, atol=steps * eps * 4.0)
     assert np.all(st["body_angular_velocity"][0] == 0.0)
 
 
@@ -136,11 +146,11 @@ def test_restitution_face_down_cube(device, e):
     probe.add_shape("cube", ConvexShape.box(0.1))
     probe.add_body("cube", "m", position=(0.0, 0.0, 0.0505), velocity=(0.0, 0.0, -impact))
     probe.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
-    # Time step: a quarter of the recommended one. The recommended step resolves a contact 1% of
-    # the size deep; this impact only reaches 0.08 mm (0.08%), where the face contact of the
-    # hertz law (force ~ sqrt(depth)) is 3.5 times stiffer, and the whole contact then lasts ~20
-    # steps, its unloading (1/e^2 stiffer) only ~20 e. Measured at 1 m/s and the recommended step:
-    # e = 0.3 +1.4%, e = 0.6 -1.4%, e = 0.9 +0.03%; at a quarter step all are within 0.4%.
+    # Time step: a quarter of the recommended one, where the bound can be tight. This impact only
+    # reaches 0.08 mm (0.08% of the size) and its face contact, in the hertz law's resolved toe,
+    # lasts 45 to 70 steps at dt = "auto" (test_restitution_at_the_default_step holds that to 1.5%:
+    # measured +0.39%, +0.61%, +0.41% for e = 0.3, 0.6, 0.9; 1.4% was seen at an earlier auto step).
+    # Measured at a quarter step: -0.04%, +0.08%, +0.09%.
     dt = Simulation(probe, device).model.dt_recommended / 4
     scene = single_material_scene(dt=dt, restitution=e)
     scene.add_shape("cube", ConvexShape.box(0.1))
@@ -171,8 +181,8 @@ def test_restitution_face_down_cube(device, e):
     print(f"\nrestitution e = {e}: v_in = {v_in:.4f}, v_out = {v_out:.4f}, measured {e_measured:.4f}, "
           f"expected {e_expected:.4f} ({100 * (e_measured / e_expected - 1):+.2f}%)")  # fmt: skip
     assert v_in < -0.99 * impact  # the cube did land with the intended speed
-    # The issue's criterion: within 5% (measured within 0.5% at this step).
-    assert abs(e_measured / e_expected - 1.0) < 0.05
+    # Measured within 0.4% at this step; the issue asked for 5%, 1% catches a restitution 1% off.
+    assert abs(e_measured / e_expected - 1.0) < 0.01
 
 
 def vertex_down_orientation():
@@ -181,6 +191,72 @@ def vertex_down_orientation():
     b = np.array([0.0, 0.0, -1.0])
     axis = np.cross(a, b)
     return quat_from_axis_angle(axis, math.acos(float(a @ b)))
+
+
+def feature_down(feature, edge=0.1):
+    """(orientation, height of the centre over the lowest point) of a cube with a face, an edge (along
+    x) or a corner pointing straight down: the contact force then passes through the centre."""
+    if feature == "face":
+        return np.array([0.0, 0.0, 0.0, 1.0]), 0.5 * edge
+    if feature == "edge":
+        return quat_from_axis_angle((1.0, 0.0, 0.0), 0.25 * math.pi), 0.5 * edge * math.sqrt(2.0)
+    return vertex_down_orientation(), 0.5 * edge * math.sqrt(3.0)
+
+
+# Bounds of |measured / expected - 1| at dt = "auto". Measured at 1 m/s (mixed and float64 alike):
+# corner -0.02% (e 0.6), -0.01% (0.9); edge -0.01%, -0.02%, -0.01% (0.3, 0.6, 0.9); face +0.39%, +0.61%,
+# +0.41%, and up to +1.2% at 0.3 m/s. The face is the hardest to resolve: its hertz contact sits in the
+# resolved toe, 0.08 mm deep, and lasts 45 to 70 steps (a corner, 1 cm deep, some 5000); a face
+# contact 1.4% off has been seen, so the face keeps 1.5% here and 1% at a quarter step
+# (test_restitution_face_down_cube).
+RESTITUTION_BOUND = {"corner": 0.01, "edge": 0.01, "face": 0.015}
+
+
+@pytest.mark.parametrize(
+    "feature, e, precision",
+    [(f, e, "mixed") for f, e in [("corner", 0.6), ("corner", 0.9), ("edge", 0.3), ("edge", 0.6), ("edge", 0.9)]]
+    + [("face", 0.3, "mixed"), ("face", 0.9, "mixed")]
+    + [("corner", 0.9, "float64"), ("edge", 0.6, "float64"), ("face", 0.9, "float64")],
+)
+def test_restitution_at_the_default_step(device, feature, e, precision):
+    """A cube lands on a plane corner, edge or face first (hertz, the law of the shipped scenes; no
+    friction; gravity) at 1 m/s and dt = "auto", and leaves with e times its impact speed, less what
+    gravity takes back over the deepest penetration d: v_out^2 = e^2 v_in^2 - 2 g d (1 - e^2) (loading
+    stores m v_in^2 / 2 + m g d, unloading returns e^2 of it, and the cube climbs d). A corner at e = 0.3
+    sinks 1 cm and cannot climb out against gravity, so corners start at e = 0.6."""
+    impact = 1.0
+    scene = single_material_scene(restitution=e, precision=precision)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    q, height = feature_down(feature)
+    scene.add_body("cube", "m", position=(0.0, 0.0, height + 5e-4), orientation=q, velocity=(0.0, 0.0, -impact))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    sim = Simulation(scene, device)
+    assert scene.dt == "auto"
+    v_in = v_out = None
+    deepest = 0.0
+    for _ in range(20000):
+        sim.step(1)
+        c = sim.contacts()
+        vz = sim.state()["body_velocity"][0, 2]
+        touching = len(c["volume"]) > 0 and float(c["volume"].sum()) > 0.0
+        if v_in is None and touching:
+            v_in = vz
+        if v_in is not None:
+            if not touching:
+                v_out = vz
+                break
+            deepest = max(deepest, float(c["depth"].max()))
+    assert v_in is not None and v_out is not None, "the cube never hit or never left the plane"
+    e_expected = math.sqrt(e * e - 2.0 * G * deepest * (1.0 - e * e) / (v_in * v_in))
+    e_measured = -v_out / v_in
+    spin = float(np.abs(sim.state()["body_angular_velocity"][0]).max())
+    print(f"\n{feature} down, e = {e}, {precision}, dt {sim.dt:.3g} s: v_in {v_in:.4f}, v_out {v_out:.4f}, "
+          f"depth {deepest:.3g} m; measured {e_measured:.4f}, expected {e_expected:.4f} "
+          f"({100 * (e_measured / e_expected - 1):+.2f}%), spin {spin:.1e} rad/s")  # fmt: skip
+    assert v_in < -0.99 * impact
+    # The force passed through the centre: a straight bounce, no spin (rounding of the float32 geometry).
+    assert spin < 1e-5
+    assert abs(e_measured / e_expected - 1.0) < RESTITUTION_BOUND[feature]
 
 
 @pytest.mark.parametrize("e", [1.0, 0.5])
@@ -242,26 +318,45 @@ def test_corner_impact_gains_no_energy(device, e):
 BLOCK = (0.2, 0.1, 0.05)  # along the slope, across, height [m]; 1 kg at 1000 kg/m^3
 BLOCK_AREA = BLOCK[0] * BLOCK[1]
 INCLINE_K = 1.0e10  # power law m = 2: a face contact is a linear spring of stiffness k A^2 = 4e6 N/m
+# The friction tests run under two laws: the power law with m = 2 (force k V S, a linear spring k A^2
+# for a face, resting 2.3 um deep here) and the hertz law of the shipped scenes, whose face contact
+# rests in the resolved toe of the step (kernels/response.py toe_volume). Its k, 1e7, is softer than
+# scenes/incline.toml's 1e9 so that dt = "auto" is the power law's 6.3e-5 s instead of the resting
+# step of 4.4e-6 s (test_at_rest.py runs the shipped stiffness). Either block starts at rest at the
+# equilibrium depth of its law: set down touching, an undamped (e = 1) hertz block would bounce on
+# its contact forever, its normal force and friction cap falling to 0 at the top of every bounce.
+FRICTION_LAWS = {"power": dict(law="power", m=2.0, k=INCLINE_K), "hertz": dict(law="hertz", k=1.0e7)}
 
 
-def incline_run(device, theta_deg, mu, e, duration):
-    """Times, along-slope positions and velocities of a block on a plane tilted by theta.
-
-    The power law with m = 2 (force k V S: a linear spring k A^2 for a face) gives the resting
-    contact a resolvable equilibrium overlap (2.3 um here); the block starts at that overlap, at
-    rest. (With the hertz law the face contact's force goes as sqrt(depth), infinitely stiff at
-    zero overlap: the equilibrium overlap is ~1e-11 m, below float32 resolution of the position,
-    and the resting contact chatters.)
-    """
+def incline_scene(theta_deg, e, mu=0.5, law="power", precision="mixed", depth=None):
+    """A 1 kg block at rest on a plane tilted by theta (gravity turned instead, so along-slope is x),
+    ``depth`` into it (default: the depth at which its face carries it under the law and the step)."""
     th = math.radians(theta_deg)
     scene = single_material_scene(
-        gravity=(G * math.sin(th), 0.0, -G * math.cos(th)), law="power", m=2.0, k=INCLINE_K, restitution=e, friction=mu
-    )
+        gravity=(G * math.sin(th), 0.0, -G * math.cos(th)), restitution=e, friction=mu, precision=precision,
+        **FRICTION_LAWS[law],
+    )  # fmt: skip
     scene.add_shape("block", ConvexShape.box(*BLOCK))
-    depth = G * math.cos(th) / (INCLINE_K * BLOCK_AREA**2)
+    if depth is None:
+        from polydem.scene import depth as depth_model
+
+        probe = incline_scene(theta_deg, e, mu, law, precision, depth=0.0)
+        mat, mass = probe.materials["m"], float(probe.body_mass()[0])
+        toe = depth_model.Toe(e, probe.time_step().dt, 1.0 / mass)
+        load = mass * G * math.cos(th)
+        rest = depth_model.resting_contact(
+            probe.shapes["block"], mat.law, mat.k, load, "face", m=mat.m, toe=toe, shallowest=True
+        )
+        depth = rest.depth
     scene.add_body("block", "m", position=(0.0, 0.0, 0.5 * BLOCK[2] - depth))
     scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
-    sim = Simulation(scene, device)
+    return scene
+
+
+def incline_run(device, theta_deg, mu, e, duration, law="power"):
+    """Times, along-slope positions and velocities of a block on a plane tilted by theta, and the
+    tangential stiffness of its contact."""
+    sim = Simulation(incline_scene(theta_deg, e, mu, law), device)
     samples = 300
     every = max(1, int(duration / sim.dt) // samples)
     t, x, v = [], [], []
@@ -275,46 +370,52 @@ def incline_run(device, theta_deg, mu, e, duration):
     return np.array(t), np.array(x), np.array(v), kt
 
 
+@pytest.mark.parametrize("law", ["power", "hertz"])
 @pytest.mark.parametrize("e", [1.0, 0.9, 0.3])
-def test_incline_sticks_below_friction_angle(device, e):
+def test_incline_sticks_below_friction_angle(device, e, law):
     theta, mu = 20.0, 0.5  # tan(20 deg) = 0.36 < mu
-    t, x, v, kt = incline_run(device, theta, mu, e, duration=0.3)
+    t, x, v, kt = incline_run(device, theta, mu, e, duration=0.3, law=law)
     fn = G * math.cos(math.radians(theta))
     creep = mu * fn / kt  # the longest the friction spring gets before it slips [m]
     late = t > 0.1
-    print(f"\nincline {theta} deg, mu {mu}, e {e}: displacement {x[-1]:.3e} m, range after settling "
+    print(f"\nincline {theta} deg, mu {mu}, e {e}, {law}: displacement {x[-1]:.3e} m, range after settling "
           f"{np.ptp(x[late]):.3e} m, creep bound mu Fn/kt {creep:.3e} m")  # fmt: skip
     # From rest with an unstretched spring, the load m g sin(theta) swings the spring to twice its
-    # static stretch (7.3e-6 m), past the slip limit (4.6e-6 m): one small slip, after which it
-    # oscillates within the limit. So: never more than 3 creep lengths overall (measured 2.2),
-    # and after settling a spring that holds moves the block by at most 2 creep lengths (+-limit).
+    # static stretch (2 x 5.7e-6 m), past the slip limit (7.8e-6 m): one small slip, after which it
+    # oscillates within the limit. So: never more than 3 creep lengths overall (measured at the end
+    # 2.6 for e = 1 under the power law, 1.9 under hertz), and after settling a spring that holds
+    # moves the block by at most 2 creep lengths (+-limit).
     # A sliding block (a = 1.25 m/s^2 without friction's hold) would be 5e-2 m away.
     assert np.abs(x).max() < 3.0 * creep
     assert np.ptp(x[late]) < 2.0 * creep
 
 
+@pytest.mark.parametrize("law", ["power", "hertz"])
 @pytest.mark.parametrize("theta, e", [(35.0, 0.3), (45.0, 0.9)])
-def test_incline_slides_above_friction_angle(device, theta, e):
+def test_incline_slides_above_friction_angle(device, theta, e, law):
     mu = 0.5
-    t, x, v, _ = incline_run(device, theta, mu, e, duration=0.25)
+    t, x, v, _ = incline_run(device, theta, mu, e, duration=0.25, law=law)
     th = math.radians(theta)
     a_expected = G * (math.sin(th) - mu * math.cos(th))
     late = t > 0.05  # after the spring's transient (it loads to mu Fn within ~1 ms)
     a_fit = np.polyfit(t[late], v[late], 1)[0]
-    print(f"\nincline {theta} deg, mu {mu}, e {e}: a = {a_fit:.4f} m/s^2, expected {a_expected:.4f} "
+    print(f"\nincline {theta} deg, mu {mu}, e {e}, {law}: a = {a_fit:.4f} m/s^2, expected {a_expected:.4f} "
           f"({100 * (a_fit / a_expected - 1):+.3f}%)")  # fmt: skip
-    assert abs(a_fit / a_expected - 1.0) < 0.02  # the issue's criterion (measured within 0.1%)
+    # Measured within 0.001% under either law. The issue asked for 2%; 0.5% catches a friction cap 1%
+    # high, which slows the block by 2.5% at 35 degrees and 1% at 45.
+    assert abs(a_fit / a_expected - 1.0) < 0.005
 
 
 # ---------------------------------------------------------------------------------------------
 # 4. Torque-free brick
 
 
-def test_torque_free_brick_conserves_energy_and_momentum(device):
+@pytest.mark.parametrize("precision", ["mixed", "float64", "float32"])
+def test_torque_free_brick_conserves_energy_and_momentum(device, precision):
     """A 1 x 2 x 3 brick spun near its intermediate axis tumbles (flips) for 10^4 steps."""
     dt = 1.0e-3
     wdt = 0.03  # |w| dt, the docstring's test case
-    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), dt=dt, k=1.0e3)
+    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), dt=dt, k=1.0e3, precision=precision)
     brick = scene.add_shape("brick", ConvexShape.box(1.0, 2.0, 3.0).scaled(0.1))
     q = np.array([0.1, 0.2, 0.3, 0.9])
     q /= np.linalg.norm(q)
@@ -340,16 +441,18 @@ def test_torque_free_brick_conserves_energy_and_momentum(device):
             flips += 1
             sign = np.sign(pi_mid)
     dl, dk = np.array(dl), np.array(dk)
-    print(f"\nbrick: {sim.steps_done} steps, |w| dt = {wdt}: max |dL|/|L| = {dl.max():.2e}, "
+    print(f"\nbrick, {precision}: {sim.steps_done} steps, |w| dt = {wdt}: max |dL|/|L| = {dl.max():.2e}, "
           f"max |dK|/K = {np.abs(dk).max():.2e}, {flips} flips")  # fmt: skip
     assert sim.steps_done == 10_000
     assert flips >= 4  # it did tumble about the unstable axis
-    # integrate.py: L is kept to rounding, an unbiased walk of ~3e-7 per sqrt(step): 3e-5 after
-    # 10^4 steps (measured 8e-6). 1e-4 is three times that walk.
-    assert dl.max() < 1e-4
+    # integrate.py: L is kept to rounding, an unbiased walk of ~4 eps per sqrt(step); the bound is four
+    # times that walk after 10^4 steps: 9.6e-5 in float32 (measured 8.4e-6), 1.8e-13 in mixed and
+    # float64 (measured 2.5e-14).
+    rounding = 16.0 * math.sqrt(sim.steps_done) * UNIT_ROUNDOFF[precision]
+    assert dl.max() < rounding
     # The energy error has the same rounding walk plus the splitting's bounded O((|w| dt)^2)
-    # term, (|w| dt)^2 / 12 = 7.5e-5 for a Strang splitting; measured 2.1e-5.
-    assert np.abs(dk).max() < 3e-5 + wdt**2 / 12
+    # term, (|w| dt)^2 / 12 = 7.5e-5 for a Strang splitting; measured 2.1e-5 in float32, 1.1e-5 in float64.
+    assert np.abs(dk).max() < rounding + wdt**2 / 12
 
 
 # ---------------------------------------------------------------------------------------------
@@ -422,9 +525,12 @@ def test_energy_conserved_in_closed_box(device):
     assert np.all(np.abs(st["body_position"][:8]) < 0.2)  # nobody left the box
 
 
-def test_momentum_conserved_without_walls(device):
-    """8 free bodies thrown together in zero gravity: linear and angular momentum stay put."""
-    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), restitution=0.7, friction=0.4)
+@pytest.mark.parametrize("precision", ["mixed", "float64", "float32"])
+def test_momentum_conserved_without_walls(device, precision):
+    """8 free bodies thrown together in zero gravity: linear and angular momentum stay put, to the
+    rounding of the precision's state (a reaction 1e-4 short of its action changes P by 1e-4 of the
+    impulses exchanged, far above the float64 bound and below float32's)."""
+    scene = single_material_scene(gravity=(0.0, 0.0, 0.0), restitution=0.7, friction=0.4, precision=precision)
     shapes = mixed_shapes(scene)
     rng = np.random.default_rng(3)
     grid = np.array([(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=float)
@@ -454,13 +560,16 @@ def test_momentum_conserved_without_walls(device):
         c = sim.contacts()
         met.update(zip(c["body_a"].tolist(), c["body_b"].tolist(), strict=True))
     en = sim.energy()
-    print(f"\nfree collisions: {len(met)} pairs met; max |dP| = {dp:.2e} (scale {p_scale:.2f} kg m/s), "
-          f"max |dL| = {dl:.2e}; dissipated {en['dissipated']:.3f} J")  # fmt: skip
+    # Pair forces and torques act on both bodies with one value (float32 in float32 and mixed, float64
+    # in float64), summed per body and integrated in the state's scalar, so the momenta change only by
+    # the rounding of those sums and of v += dt F/m and w's update: at most eps of sum m|v| per step,
+    # added up linearly over the steps as the worst case. float32: 5.8e-3 kg m/s (measured ~1e-6);
+    # mixed and float64: 1.1e-11 (measured 8.8e-15 and 2.8e-13 for L).
+    tol = steps * UNIT_ROUNDOFF[precision] * p_scale
+    print(f"\nfree collisions, {precision}: {steps} steps, {len(met)} pairs met; max |dP| = {dp:.2e} "
+          f"(scale {p_scale:.2f} kg m/s, bound {tol:.1e}), max |dL| = {dl:.2e}; "
+          f"dissipated {en['dissipated']:.3f} J")  # fmt: skip
     assert len(met) >= 4 and en["dissipated"] > 0.0  # they collided (and friction and damping acted)
-    # Pair forces and torques act on both bodies with one float32 value, so the momenta change only
-    # by the rounding of v += dt F/m and w's update: at most EPS of sum m|v| per step, added up
-    # linearly over the steps as the worst case (measured: ~1e-7 relative).
-    tol = steps * EPS * p_scale
     assert dp < tol
     # Angular momentum about the origin: the same per step, with lever arms up to 1 m.
     assert dl < 2.0 * tol
@@ -879,23 +988,11 @@ def test_normal_drop_is_not_warned_about_tunnelling(device):
 # 12. The energy balance of friction
 
 
-def tumbling_cube_scene(e):
+def tumbling_cube_scene(e, law="power"):
     """A 1 kg cube thrown spinning onto a floor (mu 0.5): it tumbles on edges and faces, slides and sticks."""
-    scene = single_material_scene(law="power", m=2.0, k=INCLINE_K, restitution=e, friction=0.5)
+    scene = single_material_scene(restitution=e, friction=0.5, **FRICTION_LAWS[law])
     scene.add_shape("cube", ConvexShape.box(0.1))
     scene.add_body("cube", "m", position=(0.0, 0.0, 0.1), velocity=(0.5, 0.0, -0.5), angular_velocity=(15.0, 5.0, 2.0))
-    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
-    return scene
-
-
-def incline_scene(theta_deg, e):
-    th = math.radians(theta_deg)
-    scene = single_material_scene(
-        gravity=(G * math.sin(th), 0.0, -G * math.cos(th)), law="power", m=2.0, k=INCLINE_K, restitution=e, friction=0.5
-    )
-    scene.add_shape("block", ConvexShape.box(*BLOCK))
-    depth = G * math.cos(th) / (INCLINE_K * BLOCK_AREA**2)
-    scene.add_body("block", "m", position=(0.0, 0.0, 0.5 * BLOCK[2] - depth))
     scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
     return scene
 
@@ -923,19 +1020,20 @@ def friction_energy_run(device, scene, duration, dt_factor=1.0, every=2):
 # as -ft.vt dt less the spring's change: this step's force with the last step's displacement):
 # slide 2.5e-3 (e = 1 and 0.3), stick 0.115 (e = 1), tumble 4.7e-2 (e = 1) and 5.5e-3 (e = 0.5), all
 # first order in dt. AFTER: 7.8e-5, 4.3e-5, 4.3e-3 (float32 positions: 1e-7 J), 7.3e-4, 5.9e-4.
+@pytest.mark.parametrize("law", ["power", "hertz"])
 @pytest.mark.parametrize(
     "case, e, bound",
     [("slide", 1.0, 5e-4), ("slide", 0.3, 5e-4), ("stick", 1.0, 1e-2), ("tumble", 1.0, 2e-3), ("tumble", 0.5, 2e-3)],
 )
-def test_friction_energy_balance(device, case, e, bound):
+def test_friction_energy_balance(device, case, e, bound, law):
     """kinetic + contact + gravity + dissipated stays constant to the integrator's error, and no step
     books a negative dissipation (the friction springs create no energy): a block sliding down and one
     sticking on an incline, a cube thrown spinning onto a floor."""
-    scene = {"slide": lambda: incline_scene(35.0, e), "stick": lambda: incline_scene(20.0, e)}.get(
-        case, lambda: tumbling_cube_scene(e)
+    scene = {"slide": lambda: incline_scene(35.0, e, law=law), "stick": lambda: incline_scene(20.0, e, law=law)}.get(
+        case, lambda: tumbling_cube_scene(e, law)
     )()
     dissipated, drift, _, worst_step = friction_energy_run(device, scene, 0.3 if case == "tumble" else 0.1)
-    print(f"\n{case} e = {e}: dissipated {dissipated:.4e} J, largest |change| of the modified energy "
+    print(f"\n{case} e = {e}, {law}: dissipated {dissipated:.4e} J, largest |change| of the modified energy "
           f"{drift:.3e} J ({drift / dissipated:.2e} of it), most negative step {worst_step:.2e} J")  # fmt: skip
     assert dissipated > 0.0
     assert worst_step >= -1e-7 * dissipated  # rounding only
@@ -947,9 +1045,13 @@ def test_sliding_friction_with_its_dashpot_books_what_it_dissipates(device):
     modified energy's drift shrinks with dt. BEFORE: a sliding spring was re-pointed along the capped
     total force, which the dashpot turns towards vt, and the turn of an unchanged length was booked as
     slip: +7.2e-3, +1.0e-2 and +1.1e-2 of the dissipated energy at dt, dt/2 and dt/4 (with the
-    derived spring k_n / 5.5). AFTER: 9.6e-4, 5.0e-4, 2.5e-4."""
+    derived spring k_n / 5.5). AFTER: 9.6e-4, 5.0e-4, 2.5e-4.
+
+    The power law only: under the hertz law the resolved toe, and so the law itself, changes with dt
+    (V_c grows as dt^4), so runs at dt and dt/2 are not the same problem."""
     coarse = friction_energy_run(device, tumbling_cube_scene(0.5), 0.3)
     fine = friction_energy_run(device, tumbling_cube_scene(0.5), 0.3, dt_factor=0.5)
+    print(f"\ntumble with dashpot: drift {coarse[1] / coarse[0]:.2e} at dt, {fine[1] / fine[0]:.2e} at dt/2")
     assert coarse[1] < 2e-3 * coarse[0]
     assert fine[1] < 0.7 * coarse[1] * fine[0] / coarse[0]
 
@@ -958,7 +1060,10 @@ def test_friction_energy_error_of_a_sticking_block_is_second_order(device):
     """The damped sticking block (e = 0.3): the final change of the modified energy at dt and dt/2.
 
     BEFORE: +2.3e-7 J and +1.5e-7 J (first order: the booked kt |vt|^2 dt^2 / 2 per step).
-    AFTER: -2.6e-7 J and -8.3e-8 J.
+    AFTER: -4.5e-8 J and -1.4e-8 J.
+
+    The power law only (as the dashpot test above): the hertz block at dt/2 rests on another toe than
+    at dt, and starts away from its equilibrium (measured -4.0e-8 J and -1.7e-7 J).
     """
     _, _, coarse, _ = friction_energy_run(device, incline_scene(20.0, 0.3), 0.1)
     _, _, fine, _ = friction_energy_run(device, incline_scene(20.0, 0.3), 0.1, dt_factor=0.5)

@@ -29,6 +29,10 @@ class ShapeSet:
         face_loop_start: (F+1,) int32, first entry of each face in ``face_loop``.
         face_loop: (L,) int32, global vertex indices of each face, counter-clockwise from outside.
         vert: (V,) vec3 vertex positions [m].
+        face_internal: (F,) int32, 1 for a face inside its grain: a compound grain's part face lying
+            wholly on a sibling part's face with the opposite normal (a cut plane), or a face a convex
+            shape marks in its ``internal_faces`` (bool per face). A coincident face of another body
+            there is the union's boundary: it takes the whole shared region, the internal face none.
         shape_part_start: (S+1) int32, first part of each shape in ``part_shape``.
         part_shape: (P,) int32, the convex shape (an index in this set) of each part.
         part_q: (P,) float64 transform, each part's pose in its grain's body frame ([m] and a
@@ -51,6 +55,7 @@ class ShapeSet:
         "face_sphere",
         "face_loop_start",
         "face_loop",
+        "face_internal",
         "vert",
         "face_plane64",
         "vert64",
@@ -69,13 +74,17 @@ class ShapeSet:
         self.compound = any(is_compound(s) for s in shapes)
         # Every convex entry: the shapes given (a compound one as an empty entry), then the parts.
         entries = list(shapes)
+        internal = [None] * len(entries)
         part_start, part_shape, part_q = [0], [], []
         for k, shape in enumerate(shapes):
             if is_compound(shape):
-                for part, t, q in zip(shape.parts, shape.part_translation, shape.part_orientation, strict=True):
+                for part, t, q, inside in zip(
+                    shape.parts, shape.part_translation, shape.part_orientation, internal_part_faces(shape), strict=True
+                ):
                     part_shape.append(len(entries))
                     part_q.append(np.concatenate([t, q]))
                     entries.append(part)
+                    internal.append(inside)
             else:
                 part_shape.append(k)
                 part_q.append(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
@@ -91,8 +100,8 @@ class ShapeSet:
         vert_start = [0]
         face_start = [0]
         loop_start = [0]
-        loops, verts, planes, spheres = [], [], [], []
-        for shape in entries:
+        loops, verts, planes, spheres, inside = [], [], [], [], []
+        for shape, marked in zip(entries, internal, strict=True):
             if is_compound(shape):
                 vert_start.append(vert_start[-1])
                 face_start.append(face_start[-1])
@@ -103,6 +112,9 @@ class ShapeSet:
                 loops.append(np.asarray(loop, dtype=np.int64) + base)
                 loop_start.append(loop_start[-1] + len(loop))
             planes.append(np.column_stack([shape.face_normals, shape.face_offsets]))
+            if marked is None:
+                marked = getattr(shape, "internal_faces", None)
+            inside.append(np.zeros(len(shape.faces), bool) if marked is None else np.asarray(marked, bool))
             spheres.append(np.column_stack([shape.face_centers, shape.face_radii]))
             vert_start.append(base + len(shape.vertices))
             face_start.append(face_start[-1] + len(shape.faces))
@@ -126,6 +138,7 @@ class ShapeSet:
         self.face_sphere = arr(spheres.astype(np_scalar), vec4)
         self.face_loop_start = arr(np.array(loop_start, dtype=np.int32), int)
         self.face_loop = arr(np.concatenate(loops).astype(np.int32), int)
+        self.face_internal = arr(np.concatenate(inside).astype(np.int32), int)
         self.vert = arr(np.concatenate(verts).astype(np_scalar), vec3)
         self.shape_part_start = arr(np.array(part_start, dtype=np.int32), int)
         self.part_shape = arr(np.array(part_shape, dtype=np.int32), int)
@@ -154,3 +167,74 @@ class ShapeSet:
     def kernel_args(self):
         """The shape arguments of the geometry kernels: one ``shapes`` struct."""
         return [self.arrays]
+
+
+# Two part faces lie on one cut plane when their normals are opposite within this and their planes within
+# this share of the grain's bounding radius; the face is inside when the other covers all but this share of it.
+CUT_PLANE_COS = 1.0 - 1.0e-9
+CUT_PLANE_TOL = 1.0e-9
+CUT_COVER = 1.0e-6
+
+
+def _clip_polygon(poly: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The part of the convex 2D polygon ``poly`` left of the directed line a -> b (Sutherland-Hodgman)."""
+    if len(poly) == 0:
+        return poly
+    edge = b - a
+    side = edge[0] * (poly[:, 1] - a[1]) - edge[1] * (poly[:, 0] - a[0])
+    out = []
+    for i in range(len(poly)):
+        j = (i + 1) % len(poly)
+        if side[i] >= 0.0:
+            out.append(poly[i])
+        if (side[i] >= 0.0) != (side[j] >= 0.0):
+            t = side[i] / (side[i] - side[j])
+            out.append(poly[i] + t * (poly[j] - poly[i]))
+    return np.array(out).reshape(-1, 2)
+
+
+def _area(poly: np.ndarray) -> float:
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def internal_part_faces(compound) -> list[np.ndarray]:
+    """Per part of a compound grain, which of its faces lie inside the grain: on a cut plane, wholly covered
+    by a face of a sibling part with the opposite normal (a grain cut in two, a convex decomposition). A
+    face only partly covered is not marked (the shared region is then split half to each body, as for any
+    coincident face)."""
+    placed = []
+    for part, rot, t in zip(compound.parts, compound.part_rotation, compound.part_translation, strict=True):
+        v = np.asarray(part.vertices) @ np.asarray(rot).T + t
+        n = np.asarray(part.face_normals) @ np.asarray(rot).T
+        placed.append(
+            (v, [np.asarray(f) for f in part.faces], n, np.einsum("ij,ij->i", n, v[[f[0] for f in part.faces]]))
+        )
+    tol = CUT_PLANE_TOL * compound.radius
+    marks = [np.zeros(len(p[1]), bool) for p in placed]
+    for k, (vk, fk, nk, dk) in enumerate(placed):
+        for l_, (vl, fl, nl, dl) in enumerate(placed):
+            if l_ == k:
+                continue
+            for i, fi in enumerate(fk):
+                if marks[k][i]:
+                    continue
+                for j, fj in enumerate(fl):
+                    if nk[i] @ nl[j] > -CUT_PLANE_COS or abs(dk[i] + dl[j]) > tol:
+                        continue
+                    # Both polygons in face i's plane, counter-clockwise about n_i.
+                    u = vk[fi[1]] - vk[fi[0]]
+                    u /= np.linalg.norm(u)
+                    w = np.cross(nk[i], u)
+                    pi = np.column_stack([vk[fi] @ u, vk[fi] @ w])
+                    pj = np.column_stack([vl[fj] @ u, vl[fj] @ w])[::-1]  # opposite normal: reverse its order
+                    cut = pi
+                    for m in range(len(pj)):
+                        cut = _clip_polygon(cut, pj[m], pj[(m + 1) % len(pj)])
+                    area = _area(pi)
+                    if area > 0.0 and _area(cut) >= (1.0 - CUT_COVER) * area:
+                        marks[k][i] = True
+                        break
+    return marks

@@ -1,0 +1,228 @@
+#!/usr/bin/env python3
+"""Mutation check: deliberate faults that some test must catch.
+
+A fault injected into a copy of the package (each pair's reaction 1e-4 too small) once passed every
+physics and checkpoint test: their bounds were float32 ones while the default precision keeps
+velocities and force sums in float64. This check keeps that from coming back. It copies the source
+tree into a temporary folder, applies each fault below by text substitution to that copy, and runs the
+few tests chosen to catch it (``-x``, on the CPU) against the copy. Every fault must make them fail;
+the run exits non-zero naming each fault that survived.
+
+The copy is imported, not installed: PYTHONPATH puts its ``src`` first, and its ``kernels`` folder
+is copied to ``src/polydem/kernels``, the place where the package maps ``polydem.kernels``
+(pyproject.toml, ``package-dir``), so that the mutated kernels are the ones loaded whether polydem is
+installed plainly or editable. The check verifies that, and that each fault's target text is in its
+file exactly once (a refactor that moves the text stops the check instead of disabling the fault).
+The selected tests must first pass on the unmutated copy (a fault is only caught by tests that pass
+without it).
+
+Usage: python .ci/mutations.py [--list] [--only NAME ...] [--keep]
+"""
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass(frozen=True)
+class Fault:
+    name: str
+    path: str  # relative to the repository root
+    old: str
+    new: str
+    tests: tuple[str, ...]  # pytest node ids, relative to the repository root
+
+
+FAULTS = (
+    Fault(
+        "reaction 1e-4 short",
+        "kernels/forces.py",
+        "                f -= fa\n",
+        "                f -= fa * S(1.0 - 1.0e-4)\n",
+        ("tests/test_simulation.py::test_momentum_conserved_without_walls[cpu-mixed]",),
+    ),
+    Fault(
+        "friction cap 1% high",
+        "kernels/response.py",
+        "            cap = mu * fn\n",
+        "            cap = mu * fn * scalar(1.01)\n",
+        ("tests/test_simulation.py::test_incline_slides_above_friction_angle[cpu-35.0-0.3-hertz]",),
+    ),
+    Fault(
+        "gravity 1e-4 strong",
+        "kernels/integrate.py",
+        "        v_new = v + (body_f[i] * body_inv_mass[i] + gravity) * dt\n",
+        "        v_new = v + (body_f[i] * body_inv_mass[i] + gravity * scalar(1.0 + 1.0e-4)) * dt\n",
+        ("tests/test_simulation.py::test_free_fall_and_projectile_closed_form[cpu-mixed]",),
+    ),
+    Fault(
+        "restitution 2% low",
+        "kernels/response.py",
+        "        return turn - (turn - volume) / e2\n",
+        "        return turn - (turn - volume) / (e2 * scalar(0.96))\n",
+        ("tests/test_simulation.py::test_restitution_at_the_default_step[cpu-edge-0.6-mixed]",),
+    ),
+    Fault(
+        "toe volume doubled",
+        "kernels/response.py",
+        "                vc = wp.exp(wp.min(ln_x / (scalar(2.0) - m), scalar(3.0) * wp.log(r_min)))\n",
+        "                vc = scalar(2.0) * wp.exp(wp.min(ln_x / (scalar(2.0) - m), scalar(3.0) * wp.log(r_min)))\n",
+        ("tests/test_depth.py::test_toe_depth_is_where_a_resting_simulation_carries_the_load[cpu-0.5]",),
+    ),
+    Fault(
+        "coincident facets weighted 0.6",
+        "kernels/geometry.py",
+        "                        weight = scalar(0.5)\n",
+        "                        weight = scalar(0.6)\n",
+        ("tests/test_contact.py::test_aligned_stacked_cubes[cpu-float32]",),
+    ),
+    Fault(
+        "drum turns against its axis",
+        "src/polydem/scene/walls.py",
+        "        omega_vec = np.broadcast_to(w * a, (n, 3))\n",
+        "        omega_vec = np.broadcast_to(-w * a, (n, 3))\n",
+        ("tests/test_drum.py::test_grains_ride_up_the_rising_side",),
+    ),
+    Fault(
+        "energy plot without its curves",
+        "src/polydem/plots.py",
+        "        ax.plot(t, history[key], style, label=key)\n",
+        "        pass\n",
+        ("tests/test_plots.py::test_write_plots_of_a_simulation",),
+    ),
+)
+
+# What the copy needs to run the tests from its own root; kernels/ goes to src/polydem/kernels alone.
+COPIED = ("src", "tests", "scenes", "pyproject.toml", "README.md")
+
+
+def copy_tree(dest: Path) -> None:
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info")
+    for name in COPIED:
+        src = ROOT / name
+        if src.is_dir():
+            shutil.copytree(src, dest / name, ignore=ignore)
+        else:
+            shutil.copy2(src, dest / name)
+    target = dest / "src" / "polydem" / "kernels"
+    if target.exists():
+        sys.exit(f"mutations: {target.relative_to(dest)} exists in the source tree; the kernels layout changed")
+    shutil.copytree(ROOT / "kernels", target, ignore=ignore)
+
+
+def copied_path(path: str) -> str:
+    """Where a file of the repository lies in the copy."""
+    return "src/polydem/" + path if path.startswith("kernels/") else path
+
+
+def child_env(copy: Path) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(copy / "src"), *filter(None, [env.get("PYTHONPATH")])])
+    env["POLYDEM_TEST_DEVICES"] = "cpu"
+    env["PYTHONDONTWRITEBYTECODE"] = "1"
+    return env
+
+
+def check_imports(copy: Path, env: dict) -> None:
+    """polydem and polydem.kernels (and a module of each) must come from the copy."""
+    code = (
+        "import polydem, polydem.kernels, polydem.kernels.forces, polydem.scene.walls, polydem.plots\n"
+        "for m in (polydem, polydem.kernels, polydem.kernels.forces, polydem.scene.walls, polydem.plots):\n"
+        "    print(m.__file__)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=copy, env=env, capture_output=True, text=True)
+    if out.returncode != 0:
+        sys.exit(f"mutations: the copy does not import:\n{out.stderr}")
+    for line in out.stdout.split():
+        if not Path(line).resolve().is_relative_to(copy.resolve()):
+            sys.exit(f"mutations: {line} is imported from outside the copy {copy}; the faults would not be tested")
+
+
+def pytest(copy: Path, env: dict, tests, extra=()) -> tuple[int, str]:
+    cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *extra, *tests]
+    out = subprocess.run(cmd, cwd=copy, env=env, capture_output=True, text=True)
+    return out.returncode, out.stdout + out.stderr
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--list", action="store_true", help="list the faults and their tests")
+    parser.add_argument("--only", nargs="+", metavar="NAME", help="run only the faults whose name contains NAME")
+    parser.add_argument("--keep", action="store_true", help="keep the temporary copy")
+    args = parser.parse_args(argv)
+    faults = [f for f in FAULTS if not args.only or any(n in f.name for n in args.only)]
+    if args.list:
+        for f in faults:
+            print(f"{f.name}: {f.path}\n    " + "\n    ".join(f.tests))
+        return 0
+    if not faults:
+        sys.exit("mutations: no fault matches --only")
+
+    start = time.perf_counter()
+    copy = Path(tempfile.mkdtemp(prefix="polydem-mutations-"))
+    try:
+        copy_tree(copy)
+        env = child_env(copy)
+        check_imports(copy, env)
+        for f in faults:
+            if (ROOT / f.path).read_text().count(f.old) != 1:
+                sys.exit(
+                    f"mutations: the text of fault '{f.name}' is not in {f.path} exactly once; update .ci/mutations.py "
+                    f"to the code as it is now (the fault would otherwise test nothing):\n{f.old}"
+                )
+
+        # Baseline: every selected test passes on the unmutated copy.
+        tests = list(dict.fromkeys(t for f in faults for t in f.tests))
+        t0 = time.perf_counter()
+        rc, log = pytest(copy, env, tests)
+        took = time.perf_counter() - t0
+        print(f"mutations: baseline, {len(tests)} tests on the unmutated copy: exit code {rc} ({took:.0f} s)")
+        if rc != 0:
+            print(log)
+            print("mutations: the selected tests fail without any fault; fix them first")
+            return 1
+
+        survived, broken = [], []
+        for f in faults:
+            path = copy / copied_path(f.path)
+            original = path.read_text()
+            path.write_text(original.replace(f.old, f.new))
+            t0 = time.perf_counter()
+            try:
+                rc, log = pytest(copy, env, f.tests)
+            finally:
+                path.write_text(original)
+            took = time.perf_counter() - t0
+            if rc == 1:
+                failed = [line for line in log.splitlines() if line.startswith("FAILED")]
+                print(f"mutations: caught   '{f.name}' ({took:.0f} s): {failed[0] if failed else 'a test failed'}")
+            elif rc == 0:
+                survived.append(f.name)
+                print(f"mutations: SURVIVED '{f.name}' ({took:.0f} s): {', '.join(f.tests)} passed with the fault")
+            else:
+                broken.append(f.name)
+                print(f"mutations: ERROR    '{f.name}' ({took:.0f} s): pytest exit code {rc}\n{log}")
+        print(f"mutations: {len(faults) - len(survived) - len(broken)} of {len(faults)} faults caught "
+              f"in {time.perf_counter() - start:.0f} s")  # fmt: skip
+        if survived:
+            print("mutations: faults no test caught: " + "; ".join(survived))
+        if broken:
+            print("mutations: faults whose tests did not run: " + "; ".join(broken))
+        return 1 if survived or broken else 0
+    finally:
+        if args.keep:
+            print(f"mutations: the copy is kept in {copy}")
+        else:
+            shutil.rmtree(copy, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
