@@ -908,7 +908,8 @@ def make_geometry(
             else:
                 f = ids_1[j]
             pf = shapes.face_plane[f]
-            nf1 = vec3(pf[0], pf[1], pf[2])
+            # n_f in body 2's frame, where body 2's planes are read as stored
+            nf2 = rot_ct * vec3(pf[0], pf[1], pf[2])
             for jj in range(slots_2):
                 g = int(0)
                 if wp.static(face_masks):
@@ -918,10 +919,10 @@ def make_geometry(
                 else:
                     g = ids_2[jj]
                 pg = shapes.face_plane[g]
-                ng = rot_c * vec3(pg[0], pg[1], pg[2])
-                if wp.dot(nf1, ng) < -scalar(parallel_cos):
-                    # the slab between the two planes: d_f + (d_g + n_g . pos), along n_f
-                    slab = wp.abs(pf[3] + pg[3] + wp.dot(ng, pos_c))
+                ng = vec3(pg[0], pg[1], pg[2])
+                if wp.dot(nf2, ng) < -scalar(parallel_cos):
+                    # the slab between the two planes along n_f: d_f + d_g - n_g . (body 1's centre in 2's frame)
+                    slab = wp.abs(pf[3] + pg[3] - wp.dot(ng, pos_2c))
                     if slab < gap:
                         gap = slab
                         flat = f
