@@ -510,13 +510,13 @@ def make_geometry(
         return vec3d(pl[0], pl[1], pl[2]), pl[3]
 
     @wp.func
-    def plane_row_1(shapes: Shapes, f: int, turned: bool, frame: mat33d, apex: vec3d):
+    def plane_row_1(shapes: Shapes, f: int, turned: bool, frame: quatd, apex: vec3d):
         # Plane of face f of body 1 in the pair-local frame (axes `frame` times body 1's where
         # `turned`, else body 1's; origin at the apex), rounded to the clipping precision.
         n, d = plane64(shapes, f)
         n1 = n
         if turned:
-            n1 = frame * n
+            n1 = wp.quat_rotate(frame, n)
         return vec4(scalar(n1[0]), scalar(n1[1]), scalar(n1[2]), scalar(d - wp.dot(n, apex)))
 
     @wp.func
@@ -528,13 +528,13 @@ def make_geometry(
 
     @wp.func
     def face_vertex(
-        shapes: Shapes, of_1: bool, k: int, turned: bool, frame: mat33d, rot: mat33d, off_2: vec3d, apex: vec3d
+        shapes: Shapes, of_1: bool, k: int, turned: bool, frame: quatd, rot: mat33d, off_2: vec3d, apex: vec3d
     ):
         # Vertex face_loop[k] of body 1 (of_1) or body 2 in the pair-local frame, rounded.
         v = shapes.vert64[shapes.face_loop[k]]
         if of_1:
             if turned:
-                return to_scalar3(frame * (v - apex))
+                return to_scalar3(wp.quat_rotate(frame, v - apex))
             return to_scalar3(v - apex)
         return to_scalar3(rot * v + off_2)
 
@@ -668,27 +668,18 @@ def make_geometry(
 
     @wp.func
     def axes_onto(n: vec3d):
-        # A rotation taking the unit vector n onto the coordinate axis nearest it (the identity
-        # where n is an axis already, so that axis-aligned faces keep their exact coordinates).
+        # A rotation (a quaternion: it stays live through the clipping loop, in fewer registers than a
+        # matrix) taking the unit vector n onto the coordinate axis nearest it.
         k = int(0)
         if wp.abs(n[1]) > wp.abs(n[k]):
             k = 1
         if wp.abs(n[2]) > wp.abs(n[k]):
             k = 2
-        eye = mat33d(wp.identity(n=3, dtype=wp.float64))
-        if n[(k + 1) % 3] == wp.float64(0.0) and n[(k + 2) % 3] == wp.float64(0.0):
-            return eye
         e = vec3d()
         e[k] = wp.sign(n[k])
+        # Half-way between n and e: c = n . e >= 1/sqrt(3) here, so 1 + c is far from 0.
         v = wp.cross(n, e)
-        c = wp.dot(n, e)
-        vx = mat33d(
-            wp.float64(0.0), -v[2], v[1],
-            v[2], wp.float64(0.0), -v[0],
-            -v[1], v[0], wp.float64(0.0),
-        )  # fmt: skip
-        # Rodrigues: c >= 1/sqrt(3) here, so 1 + c is far from 0.
-        return eye + vx + (vx * vx) / (wp.float64(1.0) + c)
+        return wp.normalize(quatd(v[0], v[1], v[2], wp.float64(1.0) + wp.dot(n, e)))
 
     @wp.func
     def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
@@ -736,7 +727,6 @@ def make_geometry(
         if dist2 >= (r1 + r2) * (r1 + r2):
             return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
         rot = wp.quat_to_matrix(q1_inv * q2)
-        rot_t = wp.transpose(rot)
         f10 = shapes.shape_face_start[s1]
         f11 = shapes.shape_face_start[s1 + 1]
         f20 = shapes.shape_face_start[s2]
@@ -855,6 +845,44 @@ def make_geometry(
             slots_1 = f11 - f10
             slots_2 = f21 - f20
 
+        # A flat contact: of the active faces with opposite outward normals (within PARALLEL_COS),
+        # the pair whose planes lie nearest each other. The pair-local frame then turns body 1's
+        # face onto a coordinate plane through the apex: the coordinates across the thin overlap
+        # are small numbers, exact to their own size, so both faces' pieces agree on it. In body
+        # 1's axes an oblique face (a rock's, a tetrahedron's, a cell of a tilted mesh wall) had
+        # vertices rounded off its own plane by units of the body's size, as far as the depth of a
+        # resting contact: the facets of the two bodies disagreed and V came out 1e9 times off.
+        frame = quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+        turned = bool(False)  # frame is not the identity: body 1's planes and vertices are rotated
+        flat = int(-1)
+        gap = scalar(1.0e30)
+        for j in range(slots_1):
+            f = int(0)
+            if wp.static(face_masks):
+                if not active(mask_1, mask_1h, j):
+                    continue
+                f = f10 + j
+            else:
+                f = ids_1[j]
+            pf = shapes.face_plane[f]
+            # n_f in body 2's frame, where body 2's planes are read as stored
+            nf2 = rot_ct * vec3(pf[0], pf[1], pf[2])
+            for jj in range(slots_2):
+                g = int(0)
+                if wp.static(face_masks):
+                    if not active(mask_2, mask_2h, jj):
+                        continue
+                    g = f20 + jj
+                else:
+                    g = ids_2[jj]
+                pg = shapes.face_plane[g]
+                ng = vec3(pg[0], pg[1], pg[2])
+                if wp.dot(nf2, ng) < -scalar(parallel_cos):
+                    # the slab between the two planes along n_f: d_f + d_g - n_g . (body 1's centre in 2's frame)
+                    slab = wp.abs(pf[3] + pg[3] - wp.dot(ng, pos_2c))
+                    if slab < gap:
+                        gap = slab
+                        flat = f
         apex = pos * (wp.float64(0.5) * (tau_1 + tau_2))
         if tau_2 > tau_1:
             # The line of centres misses the overlap (it leaves body 1 before it enters body 2: a
@@ -888,58 +916,21 @@ def make_geometry(
                 if s_top <= wp.float64(0.0):
                     break
                 apex = apex - s_top * n_top
-        # A flat contact: of the active faces with opposite outward normals (within PARALLEL_COS),
-        # the pair whose planes lie nearest each other. The pair-local frame then turns body 1's
-        # face onto a coordinate plane through the apex: the coordinates across the thin overlap
-        # are small numbers, exact to their own size, so both faces' pieces agree on it. In body
-        # 1's axes an oblique face (a rock's, a tetrahedron's, a cell of a tilted mesh wall) had
-        # vertices rounded off its own plane by units of the body's size, as far as the depth of a
-        # resting contact: the facets of the two bodies disagreed and V came out 1e9 times off.
-        frame = mat33d(wp.identity(n=3, dtype=wp.float64))
-        turned = bool(False)  # frame is not the identity: body 1's planes and vertices are rotated
-        flat = int(-1)
-        gap = scalar(1.0e30)
-        for j in range(slots_1):
-            f = int(0)
-            if wp.static(face_masks):
-                if not active(mask_1, mask_1h, j):
-                    continue
-                f = f10 + j
-            else:
-                f = ids_1[j]
-            pf = shapes.face_plane[f]
-            # n_f in body 2's frame, where body 2's planes are read as stored
-            nf2 = rot_ct * vec3(pf[0], pf[1], pf[2])
-            for jj in range(slots_2):
-                g = int(0)
-                if wp.static(face_masks):
-                    if not active(mask_2, mask_2h, jj):
-                        continue
-                    g = f20 + jj
-                else:
-                    g = ids_2[jj]
-                pg = shapes.face_plane[g]
-                ng = vec3(pg[0], pg[1], pg[2])
-                if wp.dot(nf2, ng) < -scalar(parallel_cos):
-                    # the slab between the two planes along n_f: d_f + d_g - n_g . (body 1's centre in 2's frame)
-                    slab = wp.abs(pf[3] + pg[3] - wp.dot(ng, pos_2c))
-                    if slab < gap:
-                        gap = slab
-                        flat = f
         if flat >= 0:
             n_flat, d_flat = plane64(shapes, flat)
             apex = apex - (wp.dot(n_flat, apex) - d_flat) * n_flat
-            frame = axes_onto(n_flat)
             # An axis-aligned face (a box's) keeps body 1's axes: no rotation to pay per plane and vertex.
             turned = n_flat[0] * n_flat[1] != wp.float64(0.0) or n_flat[1] * n_flat[2] != wp.float64(0.0)
             turned = turned or n_flat[0] * n_flat[2] != wp.float64(0.0)
+            if turned:
+                frame = axes_onto(n_flat)
         # The pair-local frame: `frame` times body 1's axes, origin at the apex. Planes and vertices
         # are moved there in float64 and only then rounded to the clipping precision (plane_row_1,
         # plane_row_2, face_vertex), either once per pair into per-thread tables or ("planes")
         # again wherever a plane is read: the same arithmetic, so the same bits. `rot_l` and
         # `off_2` place body 2 there; `rot` and `pos` still place it in body 1's frame.
-        rot_l = frame * rot
-        off_2 = frame * (pos - apex)  # body 2's centre, pair-local
+        rot_l = wp.quat_to_matrix(frame) * rot
+        off_2 = wp.quat_rotate(frame, pos - apex)  # body 2's centre, pair-local
         if wp.static(not local_planes):
             planes_1 = planes_t()
             for j in range(slots_1):
@@ -1013,7 +1004,7 @@ def make_geometry(
             centre = zero3
             if face_is_1:
                 if turned:
-                    centre = to_scalar3(frame * (c64 - apex))
+                    centre = to_scalar3(wp.quat_rotate(frame, c64 - apex))
                 else:
                     centre = to_scalar3(c64 - apex)
             else:
@@ -1221,16 +1212,19 @@ def make_geometry(
         fb_1 = zero3d
         if vol > scalar(0.0):
             if wp.length(s_1) < scalar(enclosed_ratio) * wp.pow(vol, scalar(2.0) / scalar(3.0)):
-                u_best, sep = least_penetration(shapes, s1, s2, rot, pos)
-                fb_1 = projected_area(shapes, s2, rot_t * u_best) * u_best
+                # Body 2's pose in body 1's frame again, from the pair-local one: keeping the originals
+                # live through the clipping loop cost registers, and spills, in every pair.
+                rot_b = wp.quat_to_matrix(wp.quat_inverse(frame)) * rot_l
+                pos_b = wp.quat_rotate_inv(frame, off_2) + apex
+                u_best, sep = least_penetration(shapes, s1, s2, rot_b, pos_b)
+                fb_1 = projected_area(shapes, s2, wp.transpose(rot_b) * u_best) * u_best
         # Back to body 1's axes and centre (float64), then to world axes and A's centre.
-        frame_t = wp.transpose(frame)
         vol64 = wp.float64(vol)
-        s1_64 = frame_t * to_f64(s_1)
-        s2_64 = frame_t * to_f64(s_2)
-        vol_c64 = wp.quat_rotate(q1, frame_t * to_f64(vol_c) + vol64 * apex)
-        m1_64 = wp.quat_rotate(q1, frame_t * to_f64(m_1) + wp.cross(apex, s1_64))
-        m2_64 = wp.quat_rotate(q1, frame_t * to_f64(m_2) + wp.cross(apex, s2_64))
+        s1_64 = wp.quat_rotate_inv(frame, to_f64(s_1))
+        s2_64 = wp.quat_rotate_inv(frame, to_f64(s_2))
+        vol_c64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(vol_c)) + vol64 * apex)
+        m1_64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(m_1)) + wp.cross(apex, s1_64))
+        m2_64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(m_2)) + wp.cross(apex, s2_64))
         s1_64 = wp.quat_rotate(q1, s1_64)
         s2_64 = wp.quat_rotate(q1, s2_64)
         fb_1 = wp.quat_rotate(q1, fb_1)
