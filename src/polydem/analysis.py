@@ -2,7 +2,9 @@
 
 Plain numpy (and scipy for the free-exponent fit); the benchmarks that run the scenes
 (``benchmarks/hopper_discharge.py``, ``benchmarks/repose.py``) call these, and the tests check them
-on synthetic data of known answer.
+on synthetic data of known answer. Arguments that are not finite real numbers of the shape asked
+for (NaN, ragged or empty arrays, times that do not increase) raise a ValueError naming the
+argument, before any fit.
 """
 
 from __future__ import annotations
@@ -10,6 +12,37 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
+
+def _numbers(name: str, values, ndim: int | None = 1) -> np.ndarray:
+    """``values`` as a float64 array of finite real numbers with ``ndim`` dimensions (None: any);
+    ValueError naming ``name`` otherwise."""
+    try:
+        a = np.asarray(values)
+    except ValueError:  # ragged nesting
+        raise ValueError(f"{name} must be an array of numbers, got a ragged sequence") from None
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        raise ValueError(f"{name} must be an array of numbers, got {type(values).__name__} of {a.dtype}")
+    if np.iscomplexobj(a):
+        raise ValueError(f"{name} must be real numbers, got complex ones")
+    a = a.astype(np.float64)
+    if ndim is not None and a.ndim != ndim:
+        raise ValueError(f"{name} must be a {ndim}-D array, got shape {a.shape}")
+    bad = np.flatnonzero(~np.isfinite(a.reshape(-1)))
+    if len(bad):
+        raise ValueError(f"{name} must be finite, got {a.reshape(-1)[bad[0]]} at flat index {int(bad[0])}")
+    return a
+
+
+def _number(name: str, value, positive: bool = False) -> float:
+    """``value`` as a finite float (> 0 with ``positive``); ValueError naming ``name`` otherwise."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if isinstance(value, bool) or not np.isfinite(v) or (positive and v <= 0.0):
+        raise ValueError(f"{name} must be a finite number{' > 0' if positive else ''}, got {value!r}")
+    return v
 
 
 @dataclass
@@ -35,10 +68,16 @@ def discharge_rate(times, discharged, lo: float = 0.2, hi: float = 0.7) -> Rate:
     low. A least-squares line over the samples in it gives the rate and its standard error.
     Raises ValueError when fewer than 3 samples fall in the window (run longer, sample more often).
     """
-    t = np.asarray(times, dtype=np.float64)
-    m = np.asarray(discharged, dtype=np.float64)
+    t = _numbers("times", times, None)
+    m = _numbers("discharged", discharged, None)
     if t.shape != m.shape or t.ndim != 1:
         raise ValueError(f"times and discharged must be 1-D of one length, got {t.shape} and {m.shape}")
+    if len(t) < 3:
+        raise ValueError(f"need at least 3 samples of the discharged amount to fit a rate, got {len(t)}")
+    if np.any(np.diff(t) <= 0.0):
+        k = int(np.flatnonzero(np.diff(t) <= 0.0)[0])
+        raise ValueError(f"times must increase from sample to sample, got {t[k]} then {t[k + 1]} at index {k + 1}")
+    lo, hi = _number("lo", lo), _number("hi", hi)
     if not 0.0 <= lo < hi <= 1.0:
         raise ValueError(f"need 0 <= lo < hi <= 1, got lo = {lo}, hi = {hi}")
     final = m[-1] if len(m) else 0.0
@@ -93,15 +132,23 @@ def fit_beverloo(D, W, d: float, n: float | None = None) -> BeverlooFit:
     fitted too (scipy's least squares in W, started from the fixed-n fit), which needs at least 4
     orifices. ``d`` is the grain size the law's k is measured in.
     """
-    D = np.asarray(D, dtype=np.float64)
-    W = np.asarray(W, dtype=np.float64)
+    D = _numbers("D", D, None)
+    W = _numbers("W", W, None)
     if D.shape != W.shape or D.ndim != 1:
         raise ValueError(f"D and W must be 1-D of one length, got {D.shape} and {W.shape}")
     if np.any(W <= 0.0):
         raise ValueError("every rate must be positive (a jammed orifice has no rate: leave it out)")
+    if np.any(D <= 0.0):
+        raise ValueError(f"every orifice size D must be positive, got {float(D.min())}")
+    d = _number("d (the grain size)", d, positive=True)
+    if n is not None:
+        n = _number("n (the exponent)", n, positive=True)
     need = 3 if n is not None else 4
-    if len(D) < need:
-        raise ValueError(f"need at least {need} orifice sizes to fit {'C, k' if n else 'C, k and n'}, got {len(D)}")
+    sizes = len(np.unique(D))
+    if sizes < need:
+        raise ValueError(
+            f"need at least {need} different orifice sizes to fit {'C, k' if n else 'C, k and n'}, got {sizes}"
+        )
     if n is not None:
         C, k = _fixed_n(D, W, d, n)
         pred = C * np.clip(D - k * d, 0.0, None) ** n
@@ -161,13 +208,31 @@ def angle_of_repose(positions, grain_size: float, floor: float = 0.0, axis=None,
     line through the surface grains' centres, parallel to the surface. ``bins`` caps the number of
     rings over the foot radius (wider rings for large heaps).
     """
-    p = np.asarray(positions, dtype=np.float64)
+    p = _numbers("positions", positions, None)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 20:
         raise ValueError(f"need (N, 3) grain positions with N >= 20, got shape {p.shape}")
-    xy = np.median(p[:, :2], axis=0) if axis is None else np.asarray(axis, dtype=np.float64)
+    grain_size = _number("grain_size", grain_size, positive=True)
+    floor = _number("floor", floor)
+    if axis is None:
+        xy = np.median(p[:, :2], axis=0)
+    else:
+        xy = _numbers("axis", axis)
+        if xy.shape != (2,):
+            raise ValueError(f"axis must be the heap's (x, y), got shape {xy.shape}")
+    f0, f1 = (_number("flank", f) for f in flank) if np.shape(flank) == (2,) else (None, None)
+    if f0 is None or not 0.0 <= f0 < f1 <= 1.0:
+        raise ValueError(f"flank must be (start, end) fractions of the foot radius with 0 <= start < end <= 1, "
+                         f"got {flank!r}")  # fmt: skip
+    if isinstance(bins, bool) or not isinstance(bins, int | np.integer) or bins < 1:
+        raise ValueError(f"bins must be a whole number >= 1, got {bins!r}")
     r = np.linalg.norm(p[:, :2] - xy, axis=1)
     z = p[:, 2] - floor
     width = grain_size
+    if r.max() / width > 1e6:
+        raise ValueError(
+            f"grain_size {grain_size:g} m is too small for a heap {r.max():g} m wide (over a million rings): "
+            "give the grains' size in metres"
+        )
     n_rings = int(np.ceil(r.max() / width)) + 1
     ring = np.minimum((r / width).astype(np.int64), n_rings - 1)
     tops = np.full(n_rings, -np.inf)

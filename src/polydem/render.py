@@ -27,10 +27,21 @@ import warp as wp
 
 from polydem.compound import expand_bodies
 from polydem.kernels.raycast import launch_raycast
+from polydem.picture_memory import PictureSizeError, check_picture_size
 from polydem.quaternions import quat_to_matrix
 from polydem.shapeset import ShapeSet
 
-__all__ = ["Camera", "FIXED_COLOR", "PALETTE", "render", "render_layers", "render_simulation", "save_png"]
+__all__ = [
+    "Camera",
+    "FIXED_COLOR",
+    "PALETTE",
+    "PictureSizeError",
+    "check_picture",
+    "render",
+    "render_layers",
+    "render_simulation",
+    "save_png",
+]
 
 PALETTE = np.array(
     [
@@ -337,9 +348,66 @@ def render_layers(
     (H, W) int32 (body index; ``-2 - p`` for plane p; ``-2 - P - w`` for mesh wall w, P planes; -1
     for nothing) and ``camera`` (the :class:`Camera` used).
     """
-    width, height = int(width), int(height)
-    if width < 1 or height < 1:
-        raise ValueError(f"width and height must be positive, got {width} x {height}")
+    device = wp.get_device(device)
+    width, height = _checked_size(width, height, 1, device, layers=True)
+    color, depth, hit, trees, owner, camera = _cast(
+        positions,
+        orientations_xyzw,
+        body_shape,
+        shapes,
+        planes,
+        width,
+        height,
+        camera,
+        device,
+        light=light,
+        shadows=shadows,
+        up=up,
+        shape_colors=shape_colors,
+        body_colors=body_colors,
+        visible=visible,
+        mesh_walls=mesh_walls,
+        checker=checker,
+        azimuth=azimuth,
+        elevation=elevation,
+        fov=fov,
+    )
+    rgb = color.numpy().reshape(height, width, 3)
+    depth_np = depth.numpy().astype(np.float64)
+    hit_np = hit.numpy()
+    del trees
+    depth_np[hit_np == -1] = np.inf
+    if owner is not None:
+        hit_np = np.where(hit_np >= 0, owner[np.maximum(hit_np, 0)], hit_np)
+    return {"image": _to_uint8(rgb), "color": rgb, "depth": depth_np, "hit": hit_np, "camera": camera}
+
+
+def _cast(
+    positions,
+    orientations_xyzw,
+    body_shape,
+    shapes,
+    planes,
+    width: int,
+    height: int,
+    camera,
+    device,
+    *,
+    light=None,
+    shadows: bool = True,
+    up=(0.0, 0.0, 1.0),
+    shape_colors=None,
+    body_colors=None,
+    visible=None,
+    mesh_walls=None,
+    checker: float | None = None,
+    azimuth: float = -60.0,
+    elevation: float = 50.0,
+    fov: float = 35.0,
+):
+    """Casts the rays of a ``width`` x ``height`` picture (checked by the caller): (colour, depth and
+    hit Warp arrays, the trees to keep until they are read, the body owning each convex part or
+    None, the camera). The arguments are those of :func:`render_layers`."""
     device = wp.get_device(device)
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = len(pos)
@@ -419,7 +487,7 @@ def render_layers(
     body_q = arr(np.hstack([pos, quat]).reshape(-1, 7), wp.transform)
     bvh_body = arr(np.flatnonzero(shown), int)
     scale = max(view_distance, float(np.abs(eye).max()), 1e-30)
-    color, depth, hit, bvh = launch_raycast(
+    color, depth, hit, trees = launch_raycast(
         shape_set,
         arr(body_shape, int),
         arr(colors.reshape(-1, 3), wp.vec3),
@@ -437,18 +505,54 @@ def render_layers(
         device=device,
         triangles=(arr(tri_vertex, wp.vec3), arr(tri_wall, int)),
     )
-    rgb = color.numpy().reshape(height, width, 3)
-    depth_np = depth.numpy().astype(np.float64)
-    hit_np = hit.numpy()
-    del bvh
-    depth_np[hit_np == -1] = np.inf
-    if owner is not None:
-        hit_np = np.where(hit_np >= 0, owner[np.maximum(hit_np, 0)], hit_np)
-    return {"image": _to_uint8(rgb), "color": rgb, "depth": depth_np, "hit": hit_np, "camera": camera}
+    return color, depth, hit, trees, owner, camera
 
 
 def _to_uint8(rgb: np.ndarray) -> np.ndarray:
-    return np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
+    # In place on one float32 copy: a large picture holds two copies of its colour at most.
+    x = np.multiply(rgb, 255.0, dtype=np.float32)
+    np.rint(x, out=x)
+    np.clip(x, 0, 255, out=x)
+    return x.astype(np.uint8)
+
+
+def _gpu_room(device) -> int | None:
+    """Bytes a picture can take on a CUDA device: its free memory, plus what Warp's memory pool
+    keeps after frees (up to its release threshold), which counts as used yet serves Warp's next
+    allocations; None where Warp cannot tell."""
+    try:
+        room = int(device.free_memory)
+        if wp.is_mempool_enabled(device):
+            room += int(wp.get_mempool_release_threshold(device))
+        return min(room, int(device.total_memory))
+    except Exception:  # a Warp without these queries: the allocation itself will tell
+        return None
+
+
+def check_picture(width: int, height: int, supersample: int = 1, device=None) -> None:
+    """Raises :class:`~polydem.picture_memory.PictureSizeError` (a ValueError) where :func:`render`
+    could not hold a ``width`` x ``height`` picture of ``supersample``^2 rays per pixel on ``device``
+    (None: Warp's default) in the memory free now, and ValueError for a size below 1."""
+    _checked_size(width, height, supersample, wp.get_device(device), layers=False)
+
+
+def _checked_size(width, height, supersample, device, *, layers: bool) -> tuple[int, int]:
+    """(width, height) as ints; ValueError for a size below 1, PictureSizeError for a picture
+    the memory of the host (or of ``device``, a GPU) cannot hold, before anything is allocated."""
+    width, height = int(width), int(height)
+    if width < 1 or height < 1:
+        raise ValueError(f"width and height must be positive, got {width} x {height}")
+    gpu = device.is_cuda
+    check_picture_size(
+        width,
+        height,
+        supersample,
+        gpu=gpu,
+        layers=layers,
+        gpu_available=_gpu_room(device) if gpu else None,
+        gpu_name=str(device.alias),
+    )
+    return width, height
 
 
 def render(
@@ -486,6 +590,10 @@ def render(
         device: Warp device ("cpu", "cuda:0"); None: Warp's default device.
         supersample: rays per pixel along each axis (anti-aliasing; the cost grows as its square).
 
+    A picture that the memory free now cannot hold (:mod:`polydem.picture_memory`: 20 bytes per ray
+    on the rendering device, the picture's own on the host) raises
+    :class:`~polydem.picture_memory.PictureSizeError`, a ValueError, before anything is allocated.
+
     Keyword options (see :func:`render_layers`): ``light`` (direction towards the light; default
     from above, over the camera's right shoulder), ``shadows`` (default True), ``up`` (world up,
     for the automatic camera, the light and the sky; default +z), ``shape_colors`` ((S, 3) RGB in
@@ -494,19 +602,22 @@ def render(
     size of the walls' checker [m]; default four times the median body radius); ``azimuth``,
     ``elevation``, ``fov`` (degrees, for the automatic camera: -60, 50, 35).
     """
-    s = int(supersample)
-    if s < 1:
+    if isinstance(supersample, bool) or int(supersample) != supersample or supersample < 1:
         raise ValueError(f"supersample must be a positive integer, got {supersample!r}")
-    if s == 1:
-        return render_layers(
-            positions, orientations_xyzw, body_shape, shapes, planes, width, height, camera, device, **options
-        )["image"]
+    s = int(supersample)
+    device = wp.get_device(device)
+    width, height = _checked_size(width, height, s, device, layers=False)
     # The automatic camera depends on the aspect ratio only, the same for the larger image.
-    layers = render_layers(
+    color, depth, hit, trees, _, _ = _cast(
         positions, orientations_xyzw, body_shape, shapes, planes, width * s, height * s, camera, device, **options
     )
-    rgb = layers["color"].reshape(height, s, width, s, 3).mean(axis=(1, 3))
-    return _to_uint8(rgb)
+    del depth, hit  # only the colour makes the picture: the other layers never come to the host
+    rgb = color.numpy().reshape(height, s, width, s, 3)
+    del trees  # after the read, which waits for the launch that uses them
+    if s > 1:
+        rgb = rgb.mean(axis=(1, 3), dtype=np.float32)
+    del color
+    return _to_uint8(rgb.reshape(height, width, 3))
 
 
 def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool = True, **kw) -> np.ndarray:
@@ -544,6 +655,8 @@ def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool 
         colors[container] = FIXED_COLOR
         kw["body_colors"] = colors
     pos, quat = state["body_position"], state["body_orientation"]
+    # The picture asked for first: a refusal names its size, not that of the cut-away's small pictures.
+    check_picture(kw.get("width", 800), kw.get("height", 600), kw.get("supersample", 1), kw["device"])
     if cutaway and kw.get("visible") is None and container.any() and not container.all():
         kw["camera"], kw["visible"] = _cut_away(pos, quat, body_shape, shapes, container, kw)
     image = render(pos, quat, body_shape, shapes, **kw)

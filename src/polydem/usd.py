@@ -28,6 +28,11 @@ Layout of the file (Z up and metres unless told otherwise)::
 
 Every body, whatever its kind, is an instance: fixed bodies stay put and kinematic ones move.
 
+Metadata (the root layer's customLayerData, read by :func:`read_metadata`): ``polydem:version``,
+``polydem:scene`` (its name), ``polydem:frame_dt`` and ``polydem:shapes_sha256``
+(:func:`shapes_digest` of the scene), which ``polydem render`` compares with the scene it is given:
+the poses of a file drawn with another scene's shapes would look right and be wrong.
+
 Time. Stage ``timeCodesPerSecond`` and ``framesPerSecond`` are ``fps`` (playback rate) and a frame
 recorded at simulated time ``t`` gets the time code ``round(t / frame_dt)``, where ``frame_dt`` is
 the simulated time between consecutive time codes (default ``1 / fps``: playback in real time;
@@ -69,6 +74,7 @@ the whole file on each save: meant for small scenes and for reading by eye.
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import os
 import time as _time
@@ -77,7 +83,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PALETTE", "UsdRecorder", "read_frame", "read_metadata", "read_time_codes", "read_velocities"]
+__all__ = [
+    "PALETTE",
+    "UsdRecorder",
+    "read_frame",
+    "read_metadata",
+    "read_time_codes",
+    "read_velocities",
+    "shapes_digest",
+]
 
 EXTENSIONS = (".usda", ".usdc", ".usd")
 """File extensions the recorder writes: text (``.usda``) or binary crate (``.usdc``, ``.usd``)."""
@@ -101,6 +115,34 @@ WALL_COLOR = (0.6, 0.6, 0.6)
 BODIES_PATH = "/World/Bodies"
 WALLS_PATH = "/World/Walls"
 TIME_ATTR = "polydem:time"
+
+
+def shapes_digest(scene) -> str:
+    """sha256 (hex) of what a scene's bodies look like: each body's shape index and, shape by shape,
+    the convex hulls it is drawn from (a compound grain's parts, placed in its body frame).
+
+    A file records it (``polydem:shapes_sha256``, see :func:`read_metadata`) so that a reader
+    can tell whether a scene is the one the file was written from: body counts and fixed bodies
+    alike do not make the shapes alike. A convex hull is its vertex set, so the faces (and the
+    order a hull algorithm lists the vertices in) are left out; the vertices are sorted and
+    rounded to 1e-6 of the shape's size, so that the last bits of a shape rebuilt by another
+    version of numpy or trimesh do not count.
+    """
+    scene = getattr(getattr(scene, "model", None), "scene", scene)  # a Simulation -> its Scene
+    h = hashlib.sha256(b"polydem shapes 1\n")
+    h.update(np.ascontiguousarray(scene.body_shape, dtype="<i8").tobytes())
+    for name in scene.shape_names:
+        shape = scene.shapes[name]
+        hulls = shape.part_vertices() if getattr(shape, "is_compound", False) else [shape.vertices]
+        hulls = [np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in hulls]
+        size = max((float(np.abs(v).max()) for v in hulls if v.size), default=0.0) or 1.0
+        h.update(f"shape {len(hulls)}\n".encode())
+        for v in hulls:
+            q = np.rint(v / (1e-6 * size)).astype("<i8")
+            q = q[np.lexsort(q.T[::-1])]
+            h.update(f"hull {len(q)}\n".encode())
+            h.update(q.tobytes())
+    return h.hexdigest()
 
 
 def _check_path(path) -> Path:
@@ -280,6 +322,7 @@ class UsdRecorder:
             "polydem:version": __version__,
             "polydem:scene": str(getattr(scene, "name", "")),
             "polydem:frame_dt": self.frame_dt,
+            "polydem:shapes_sha256": shapes_digest(scene),
         }
         world = UsdGeom.Xform.Define(stage, "/World")
         stage.SetDefaultPrim(world.GetPrim())
@@ -667,7 +710,8 @@ def read_velocities(path: str | PathLike, time_code: float) -> tuple[np.ndarray,
 
 def read_metadata(path: str | PathLike) -> dict:
     """The ``polydem:`` entries of a file's customLayerData, without the prefix: ``version``,
-    ``scene`` (its name), ``frame_dt`` and those of :meth:`UsdRecorder.set_metadata`."""
+    ``scene`` (its name), ``frame_dt``, ``shapes_sha256`` (:func:`shapes_digest` of its scene; not in
+    files of polydem before it) and those of :meth:`UsdRecorder.set_metadata`."""
     stage, _ = _open_instancer(path)
     data = stage.GetRootLayer().customLayerData
     return {key[len("polydem:") :]: value for key, value in data.items() if key.startswith("polydem:")}

@@ -43,7 +43,9 @@ to the contact point for a wall contact; each line has two points of its own. Ce
 ``tangential_force_magnitude``, ``force`` (their sum) and ``force_magnitude``, ``overlap_volume``
 [m^3] and ``contact_point`` [m]. Point data ``normal_force_magnitude`` repeats the cell's value at
 both ends, so that ParaView's Tube filter can scale the tubes by it (it varies the radius by point
-scalars): the force chains.
+scalars): the force chains. A frame without contacts has one vertex cell instead of lines (meshio
+cannot read a grid without cells): a point at body 0's centre with ``body_a``, ``body_b`` and
+``wall`` -1 and every force zero, which draws nothing outside the body and no tube.
 
 With the forces averaged over the time before the frame (``Simulation.contact_average()``, given
 as ``average``; ``polydem run`` averages over each interval between frames), the frame also has a
@@ -461,28 +463,34 @@ class VtkWriter:
                 "mean_tangential_force": [f32(mean["mean_tangential_force"])],
                 "contact_time": [f32(mean["contact_time"])],
             }
-        _write_vtu(
-            meshio,
-            path,
-            f32(ends),
-            [("line", np.arange(2 * m, dtype=np.int64).reshape(m, 2))],
-            point_data=point_data,
-            cell_data={
-                "body_a": [a.astype(np.int32)],
-                "body_b": [np.where(wall, -1, b).astype(np.int32)],
-                "wall": [np.where(wall, -1 - b, -1).astype(np.int32)],
-                "normal": [f32(normal)],
-                "normal_force": [f32(f_n)],
-                "normal_force_magnitude": [f32(fn)],
-                "tangential_force": [f32(ft)],
-                "tangential_force_magnitude": [f32(np.linalg.norm(ft, axis=1))],
-                "force": [f32(force)],
-                "force_magnitude": [f32(np.linalg.norm(force, axis=1))],
-                "overlap_volume": [f32(volume)],
-                "contact_point": [f32(point)],
-                **extra_cells,
-            },
-        )
+        points = f32(ends)
+        cells = [("line", np.arange(2 * m, dtype=np.int64).reshape(m, 2))]
+        cell_data = {
+            "body_a": [a.astype(np.int32)],
+            "body_b": [np.where(wall, -1, b).astype(np.int32)],
+            "wall": [np.where(wall, -1 - b, -1).astype(np.int32)],
+            "normal": [f32(normal)],
+            "normal_force": [f32(f_n)],
+            "normal_force_magnitude": [f32(fn)],
+            "tangential_force": [f32(ft)],
+            "tangential_force_magnitude": [f32(np.linalg.norm(ft, axis=1))],
+            "force": [f32(force)],
+            "force_magnitude": [f32(np.linalg.norm(force, axis=1))],
+            "overlap_volume": [f32(volume)],
+            "contact_point": [f32(point)],
+            **extra_cells,
+        }
+        if m == 0:
+            # meshio cannot read a grid without cells back (its reader looks up the first cell's type),
+            # so a frame without contacts holds one vertex cell instead: at body 0's centre, hidden
+            # inside it, with body_a = body_b = wall = -1 and zero forces; the contacts are the lines.
+            points = f32(x[:1]) if len(x) else np.zeros((1, 3), dtype=np.float32)
+            cells = [("vertex", np.zeros((1, 1), dtype=np.int64))]
+            cell_data = {key: [np.zeros((1, *v[0].shape[1:]), dtype=v[0].dtype)] for key, v in cell_data.items()}
+            for key in ("body_a", "body_b", "wall"):
+                cell_data[key][0][:] = -1
+            point_data = {key: np.zeros(1, dtype=np.float32) for key in point_data}
+        _write_vtu(meshio, path, points, cells, point_data=point_data, cell_data=cell_data)
 
     # ------------------------------------------------------------------ the end
 

@@ -160,6 +160,7 @@ class Outputs:
             self.usd_failed = True
 
     def picture(self, sim, name: str) -> None:
+        from polydem.picture_memory import PictureSizeError
         from polydem.render import render_simulation
 
         path = self.out_dir / "pictures" / name
@@ -169,6 +170,13 @@ class Outputs:
             render_simulation(sim, path, width=width, height=height)
         except OSError as exc:
             raise OutputError(f"cannot write the picture {self.rel(path)}: {why(exc)}") from exc
+        except PictureSizeError as exc:  # the GPU's memory, or memory the run took since it was checked
+            fix = "give a smaller --picture-size"
+            raise OutputError(f"cannot draw the picture {self.rel(path)}: {exc}; {fix}") from exc
+        except (MemoryError, RuntimeError) as exc:
+            # Warp's failed allocations are RuntimeErrors: the picture is lost, not the plots and the
+            # summary written after it.
+            raise OutputError(f"cannot draw the picture {self.rel(path)}: {why(exc)}") from exc
         self.picture_files.append(relative(path, self.out_dir))
 
     def checkpoint(self, sim, name: str, run_record) -> Path:

@@ -122,6 +122,26 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message):
         raise CliError(f"{message} (see '{self.prog} --help')", key=None)
 
+    def parse_args(self, args=None, namespace=None):
+        parsed = super().parse_args(args, namespace)
+        if getattr(parsed, "command", None) == "run":
+            _check_picture_size(parsed)
+        return parsed
+
+
+def _check_picture_size(args) -> None:
+    """CliError for a --picture-size the memory cannot hold. Checked here, before the run, because
+    the pictures are drawn during the run and at its end: a picture refused then would cost the run."""
+    from polydem.picture_memory import PictureSizeError, check_picture_size
+
+    width, height = args.picture_size
+    try:
+        # The host's memory holds the picture on any device: on the CPU (the default where there is
+        # no GPU) the ray caster's buffers too. A GPU's memory is checked when it draws.
+        check_picture_size(width, height, gpu=str(args.device or "cpu").startswith("cuda"))
+    except PictureSizeError as exc:
+        raise CliError(f"{exc}; give a smaller --picture-size", key="--picture-size") from None
+
 
 RUN_EPILOG = """\
 outputs (in --out, default polydem_out/<scene name>/; the scene's [output] table names them, as
@@ -330,7 +350,8 @@ def _add_run(sub, fmt) -> None:
         type=_size,
         default=(800, 600),
         metavar="WxH",
-        help="size of the pictures (pictures/last.png and those of output.pictures) in pixels (default 800x600)",
+        help="size of the pictures (pictures/last.png and those of output.pictures) in pixels (default 800x600); "
+        "one the memory available cannot hold (about 60 bytes per pixel on the CPU) is refused before the run",
     )
     run.add_argument(
         "--vtk",
@@ -410,7 +431,8 @@ def _add_render(sub, fmt) -> None:
         type=_count("rays per pixel side", "--supersample 2", "ray per pixel side"),
         default=1,
         metavar="S",
-        help="S x S rays per pixel, for smoother edges (default 1)",
+        help="S x S rays per pixel, for smoother edges (default 1); the memory grows as S^2 (20 bytes per ray): a "
+        "picture the memory available cannot hold is refused, naming the largest S that fits",
     )
     render.add_argument(
         "--azimuth",

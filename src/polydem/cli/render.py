@@ -83,7 +83,33 @@ def _usd_frame(args, source: Path):
         )
     positions, orientations = read_frame(source, frame)
     check_poses(source, positions, scene, scene_arg, "USD file", _FIX)
+    _check_shapes(source, recorded, scene, scene_arg, args.scene is not None)
     return scene, positions, orientations, f"frame {frame} of {source}", None
+
+
+def _check_shapes(source: Path, recorded: dict, scene, scene_arg, given: bool) -> None:
+    """CliError unless ``scene`` has the shapes the USD file was written with: another scene of as many
+    bodies passes the body count, and its shapes would be drawn at the file's poses without a word."""
+    from polydem.usd import shapes_digest
+
+    digest = recorded.get("shapes_sha256")
+    label = "the built-in default scene" if scene_arg is None else f"the scene {scene_arg}"
+    if digest is None:
+        sys.stdout.flush()
+        sys.stderr.write(
+            f"polydem: warning: {source}: written by an older polydem, without a record of its shapes: "
+            f"it cannot be checked to come from {label}\n"
+        )
+        sys.stderr.flush()
+        return
+    if digest != shapes_digest(scene):
+        if given:
+            why_not = f"{label} has other shapes (or assigns them to other bodies) than the scene it was written from"
+            fix = _FIX
+        else:
+            why_not = f"the shapes of {label}, which it was written from, have changed since"
+            fix = "give the scene as it was with --scene SCENE"
+        raise CliError(f"{why_not}; {fix}", source, "--scene")
 
 
 def _source(args) -> Path:
@@ -104,6 +130,24 @@ def _source(args) -> Path:
     return source
 
 
+def _check_size(args, dev) -> None:
+    """CliError for a picture the memory of this machine (or of the GPU that draws) cannot hold,
+    naming the option to change: --supersample where a smaller one fits, else --width/--height."""
+    from polydem.picture_memory import PictureSizeError
+    from polydem.render import check_picture
+
+    try:
+        check_picture(args.width, args.height, args.supersample, dev)
+    except PictureSizeError as exc:
+        if exc.supersample > 1 and exc.largest_supersample >= 1:
+            raise CliError(
+                f"{exc}; give --supersample {exc.largest_supersample} or less, or a smaller --width/--height",
+                key="--supersample",
+            ) from None
+        fix = "a smaller --width/--height" + (" with --supersample 1" if exc.supersample > 1 else "")
+        raise CliError(f"{exc}; give {fix}", key="--width/--height") from None
+
+
 def cmd_render(args) -> int:
     from polydem.render import render_simulation
 
@@ -112,6 +156,7 @@ def cmd_render(args) -> int:
         raise CliError("the picture must be a .png file, e.g. --out frame.png", out_png, "--out")
     source = _source(args)
     dev = device(args.device)
+    _check_size(args, dev)
     read = {".toml": _scene_file, ".npz": _checkpoint}.get(source.suffix.lower(), _usd_frame)
     scene, positions, orientations, what, mesh_q = read(args, source)
     poses = Poses(scene, positions, orientations, dev, mesh_q=mesh_q)
