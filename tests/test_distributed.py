@@ -50,8 +50,12 @@ def test_one_rank_is_the_simulation(device):
     scene = build("box_pour")
     ds = DistributedSimulation(scene, device=device, comm=SerialComm())
     sim = Simulation(build("box_pour"), device=device)
-    ds.step(300)
-    sim.step(300)
+    # Step calls of several lengths: the time must round as Simulation's sum over its own chunks does (a
+    # checkpoint and the frame times of a decomposed run are the undivided run's), not as steps * dt.
+    for n in (1, 2, 63, 64, 65, 105):
+        ds.step(n)
+        sim.step(n)
+        assert ds.steps_done == sim.steps_done and ds.time == sim.time, (n, ds.time.hex(), sim.time.hex())
     a, b = ds.state(), sim.state()
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
@@ -127,12 +131,15 @@ def test_command_on_two_ranks_writes_the_undivided_run(tmp_path):
         assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
         return done.stdout, np.load(out / "checkpoints" / "final.npz")
 
+    # The time too between one and two ranks, not after resuming: Simulation adds up dt per chunk of its
+    # own, and a resumed run's chunks differ from the unbroken run's (the last bits of the sum).
     fields = ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn", "plane_xi", "steps_done")
+    fields += ("pair_key", "pair_xi", "pair_turn")
     _, one = run(1, tmp_path / "one", 0.02)
     text, two = run(2, tmp_path / "two", 0.02)
     assert "decomposed over 2 ranks" in text
     assert (tmp_path / "two" / "summary.json").is_file() and (tmp_path / "two" / "default.usd").is_file()
-    for k in fields:
+    for k in (*fields, "time"):
         np.testing.assert_array_equal(one[k], two[k], err_msg=k)
     _, straight = run(1, tmp_path / "straight", 0.04)
     _, from_two = run(1, tmp_path / "from_two", 0.04, resume=tmp_path / "two" / "checkpoints" / "final.npz")
@@ -145,11 +152,15 @@ def test_command_on_two_ranks_writes_the_undivided_run(tmp_path):
 @needs_mpi
 def test_an_error_on_one_rank_stops_every_rank(tmp_path):
     """Only rank 0 checks the output folder: its error must end the run on every rank, not leave the
-    others waiting (exit code 2 from MPI_Abort, one line naming the rank)."""
+    others waiting. The ranks agree before the run: exit code 2 on every rank, and rank 0's one line, as a
+    run of one process prints it (no line per rank, no MPI_Abort)."""
     not_a_folder = tmp_path / "file"
     not_a_folder.write_text("x")
     scene = str(HERE.parent / "scenes" / "default.toml")
     cmd = [_mpiexec(), "-n", "2", sys.executable, "-m", "polydem", "run", scene, "--out", str(not_a_folder)]
     done = subprocess.run(cmd + ["--device", "cpu", "-q"], capture_output=True, text=True, timeout=300)
-    assert done.returncode != 0
-    assert "polydem: error: rank 0 of 2:" in done.stderr and "output folder is a file" in done.stderr
+    assert done.returncode == 2
+    assert (
+        done.stderr == f"polydem: error: {not_a_folder}: --out: the output folder is a file; give a folder with --out\n"
+    )
+    assert not_a_folder.read_text() == "x"

@@ -257,7 +257,9 @@ def test_mesh_force_is_the_gradient_of_the_overlap(device, where):
     """Central differences of the overlap volume along x, y, z against the force -k S_A of the linear law."""
     delta = 1e-6
     if where == "crease":
-        mesh, d, p0 = crease_mesh(width=0.8), np.array([-1.0, 0.0, -1.0]) / np.sqrt(2.0), np.array([0.002, 0.01, 0.003])
+        # d points out of the solid (as at the edge below), so the cube reaches 1 mm into the crease,
+        # behind both faces; it pointed in and buried the cube 2.4 cm deep, which validation now refuses.
+        mesh, d, p0 = crease_mesh(width=0.8), np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0), np.array([0.0, 0.01, 0.0])
     else:
         mesh, d, p0 = (
             box_mesh([0.2, 0.9, 0.1], [0.0, 0.0, -0.05]),

@@ -5,7 +5,9 @@ the normal hysteresis and the friction springs of the persisting contacts (with 
 identify their pairs), those of the wall contacts, the energy
 dissipated so far, the step count and the time. Resuming gives the same result, bit for bit on
 the same device, as a run that was never interrupted: the candidate pairs are found again, and
-pairs out of contact contribute exact zeros.
+pairs out of contact contribute exact zeros. So only the pairs that carry a history are kept
+(:func:`pairs_with_history`), and the file does not depend on which candidates the broad phase
+happened to list: a decomposed run writes the checkpoints of a run of one process.
 
 A checkpoint also records the physics of its scene (:func:`physics_description`: materials, shape
 geometry, walls, drums, the kind, shape and material of every body and the fixed and kinematic
@@ -37,6 +39,7 @@ __all__ = [
     "CheckpointError",
     "CheckpointWarning",
     "load_checkpoint",
+    "pairs_with_history",
     "physics_description",
     "physics_differences",
     "read_checkpoint",
@@ -288,6 +291,35 @@ def physics_differences(stored, stored_arrays, desc, arrays) -> list[str]:
 # ---------------------------------------------------------------------- writing
 
 
+def _bits_set(a) -> np.ndarray:
+    # -0.0 counts as a value: the run carries its sign on, a pair restored without it gets +0.0.
+    a = np.asarray(a)
+    return (a != 0) | np.signbit(a)
+
+
+def pairs_with_history(history: dict) -> dict:
+    """The pairs of ``history`` (``pair_key``, ``pair_xi``, ``pair_turn`` as ``history_numpy`` gives them)
+    that carry a history (a friction spring or a turning volume other than +0.0), each key once, ascending.
+
+    What a checkpoint keeps of the pair list. The others are candidate pairs out of contact; a pair missing
+    from the checkpoint is found again on resuming and starts from zeros, so dropping them changes nothing,
+    and it makes the file independent of which candidates the broad phase happened to list: a decomposed run
+    rebuilds each rank's list at its own times, so its candidates differ from a run of one process while the
+    histories are the same bits.
+    """
+    key = np.asarray(history["pair_key"], dtype=np.int64)
+    xi, turn = np.asarray(history["pair_xi"]), np.asarray(history["pair_turn"])
+    live = _bits_set(turn)
+    if len(xi):
+        live |= _bits_set(xi).any(axis=1)
+    key, first = np.unique(key[live], return_index=True)
+    return {
+        "pair_key": key,
+        "pair_xi": xi[live][first] if len(xi) else xi,
+        "pair_turn": turn[live][first],
+    }
+
+
 def save_checkpoint(sim, path, run=None):
     """Write the state of ``sim`` to ``path`` (a ``.npz`` file), atomically.
 
@@ -306,7 +338,7 @@ def save_checkpoint(sim, path, run=None):
         "dt": np.array(sim.dt),
         **sim.current_state.numpy(_STATE),
         **({"mesh_q": sim.current_state.mesh_q.numpy()} if sim.model.num_mesh_walls else {}),
-        **sim.current_contacts.history_numpy(),
+        **pairs_with_history(sim.current_contacts.history_numpy()),
         "physics_fingerprint": np.array(fingerprint),
         "physics_json": np.array(text),
     }

@@ -148,7 +148,9 @@ class CompoundShape:
             pieces = mesh.split(only_watertight=False)
             if len(pieces) == 0:
                 raise CompoundShapeError("the mesh has no connected pieces")
-            return cls.from_meshes(pieces, name=name)
+            grain = cls.from_meshes(pieces, name=name)
+            _warn_non_convex_pieces(pieces, grain.parts, name)
+            return grain
         if decompose != "coacd":
             raise CompoundShapeError(f"decompose must be 'coacd' or 'components', got {decompose!r}")
         if not 0.0 < float(threshold) <= 1.0:
@@ -273,6 +275,37 @@ def expand_bodies(shapes, body_shape, position, orientation):
 
 
 # ---------------------------------------------------------------------- helpers
+
+
+def _warn_non_convex_pieces(pieces, parts, name) -> None:
+    """The warning ``ConvexShape.from_mesh`` gives for a non-convex mesh, for the pieces that
+    ``decompose = "components"`` takes whole: each becomes its convex hull."""
+    import warnings
+
+    from polydem.scene.errors import SceneWarning
+    from polydem.shapes import _CONVEX_VOLUME_RTOL
+
+    label = f"compound shape {name!r}" if name else "compound shape"
+    hint = "use decompose = 'coacd' (CompoundShape.from_mesh(..., decompose='coacd')) to cut it into convex parts"
+    for k, (piece, part) in enumerate(zip(pieces, parts, strict=True)):
+        if piece.is_watertight:
+            volume = abs(float(piece.volume))
+            rel = abs(part.volume - volume) / part.volume
+            if rel > _CONVEX_VOLUME_RTOL:
+                what = (
+                    f"is not convex: mesh volume {volume:.6g} m^3, convex hull volume {part.volume:.6g} m^3 "
+                    f"(relative difference {rel:.3%})"
+                )
+            else:
+                continue
+        else:
+            what = "is not watertight, so its volume is undefined and its convexity cannot be checked"
+        warnings.warn(
+            f"{label}: piece {k} of {len(pieces)} of the mesh {what}; decompose = 'components' takes each "
+            f"connected piece as its convex hull; {hint}",
+            SceneWarning,
+            stacklevel=4,
+        )
 
 
 def _frozen(a, dtype=np.float64) -> np.ndarray:

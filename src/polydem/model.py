@@ -75,9 +75,9 @@ class Model:
         vec3s = wp.types.vector(3, self.scalar)
         self.num_bodies = n = scene.num_bodies
         self._mesh_walls(scene, shape_list, dev, s_np)
-        self.shapes = ShapeSet(shape_list + self._cells, device=dev, precision=np.dtype(c_np).name)
+        self.shapes = ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name, packed=self.mesh_cells)
         self.grain_shapes = (
-            ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name) if self._cells else self.shapes
+            ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name) if self.mesh_cells else self.shapes
         )
         self.num_materials = len(scene.material_names)
 
@@ -151,7 +151,6 @@ class Model:
         walls = scene.mesh_walls
         self.num_mesh_walls = len(walls)
         self.num_walls = len(scene.planes) + len(walls)
-        self._cells = []
         self.mesh_cells = []
         vec3s = wp.types.vector(3, self.scalar)
         self.mesh_moves = False
@@ -171,10 +170,9 @@ class Model:
             except MeshWallError as exc:
                 raise SceneError(str(exc), key=key, file=scene.file) from None
             self.mesh_cells.append(mc)
-            self._cells.extend(mc.cells)
-            starts.append(starts[-1] + len(mc.cells))
-            centers.append(np.array([c.center for c in mc.cells]))
-            fronts.append(np.array([c.front for c in mc.cells]))
+            starts.append(starts[-1] + mc.num_cells)
+            centers.append(mc.cell_center)
+            fronts.append(mc.cell_front)
             # float32 bounds, grown by their rounding, so that the query never misses a cell.
             size = np.abs(mc.lower).max() + np.abs(mc.upper).max()
             lowers.append(mc.lower - 1e-6 * size)

@@ -660,7 +660,19 @@ def _load_mesh(path: Path):
         )
     # Merge duplicate vertices as trimesh.load does by default (an STL repeats them per triangle), so
     # that watertightness and the volume can be checked.
-    return trimesh.Trimesh(vertices=verts, faces=np.asarray(mesh.faces), process=True)
+    merged = trimesh.Trimesh(vertices=verts, faces=np.asarray(mesh.faces), process=True)
+    distinct = len(np.unique(verts, axis=0))
+    extent = float(np.ptp(verts, axis=0).max())
+    if len(merged.vertices) < 4 <= distinct and extent < 100.0 * trimesh.tol.merge:
+        # The merge tolerance is absolute: a mesh not much larger than it collapses to a point or two, which
+        # the hull would then report as "got 1 point" (a flat mesh of any size is the hull's to report).
+        raise ValueError(
+            f"mesh file '{path}': its {distinct} vertices span only {extent:.3g} m, too little against the distance "
+            f"within which vertices are merged ({trimesh.tol.merge:g} m), so they merge into "
+            f"{len(merged.vertices)}; export the mesh in larger units (e.g. micrometres) and scale it down with the "
+            "shape's scale"
+        )
+    return merged
 
 
 def _check_obj(data: bytes, path: Path) -> bytes:

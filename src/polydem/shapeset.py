@@ -64,15 +64,20 @@ class ShapeSet:
         "part_q",
     )
 
-    def __init__(self, shapes, device=None, precision="float32"):
+    def __init__(self, shapes, device=None, precision="float32", packed=()):
+        """``packed``: the cells of mesh walls (:class:`~polydem.meshwall.MeshCells`), shapes of their own
+        after ``shapes``, taken from their packed arrays (no object per cell)."""
         from polydem.compound import is_compound
 
         shapes = list(shapes)
+        packed = list(packed)
         if not shapes:
             raise ValueError("a ShapeSet needs at least one shape")
         self.shapes = shapes
         self.compound = any(is_compound(s) for s in shapes)
-        # Every convex entry: the shapes given (a compound one as an empty entry), then the parts.
+        n_packed = sum(c.num_cells for c in packed)
+        # Every convex entry: the shapes given (a compound one as an empty entry), the packed cells, then
+        # the compound shapes' parts.
         entries = list(shapes)
         internal = [None] * len(entries)
         part_start, part_shape, part_q = [0], [], []
@@ -81,7 +86,7 @@ class ShapeSet:
                 for part, t, q, inside in zip(
                     shape.parts, shape.part_translation, shape.part_orientation, internal_part_faces(shape), strict=True
                 ):
-                    part_shape.append(len(entries))
+                    part_shape.append(len(entries) + n_packed)
                     part_q.append(np.concatenate([t, q]))
                     entries.append(part)
                     internal.append(inside)
@@ -89,6 +94,9 @@ class ShapeSet:
                 part_shape.append(k)
                 part_q.append(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
             part_start.append(len(part_shape))
+        part_shape += range(len(shapes), len(shapes) + n_packed)
+        part_q += [np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])] * n_packed
+        part_start += range(part_start[-1] + 1, part_start[-1] + 1 + n_packed)
         convex = [s for s in entries if not is_compound(s)]
         self.precision = precision
         self.scalar = scalar_type(precision)
@@ -101,11 +109,15 @@ class ShapeSet:
         face_start = [0]
         loop_start = [0]
         loops, verts, planes, spheres, inside = [], [], [], [], []
-        for shape, marked in zip(entries, internal, strict=True):
+        radii, areas = [], []
+
+        def add(shape, marked):
+            radii.append(np.array([shape.radius]))
+            areas.append(np.array([largest_face_area(shape)]))
             if is_compound(shape):
                 vert_start.append(vert_start[-1])
                 face_start.append(face_start[-1])
-                continue
+                return
             base = vert_start[-1]
             verts.append(np.asarray(shape.vertices, dtype=np.float64))
             for loop in shape.faces:
@@ -119,10 +131,33 @@ class ShapeSet:
             vert_start.append(base + len(shape.vertices))
             face_start.append(face_start[-1] + len(shape.faces))
 
+        def add_cells(cells):
+            base = vert_start[-1]
+            nf, nloop = np.diff(cells.cell_face_start), np.diff(cells.face_loop_start)
+            loop_cell = np.repeat(np.repeat(np.arange(cells.num_cells), nf), nloop)
+            loops.append(cells.face_loop + base + cells.cell_vert_start[loop_cell])
+            loop_start.extend((loop_start[-1] + cells.face_loop_start[1:]).tolist())
+            verts.append(cells.cell_vertices)
+            planes.append(cells.face_planes)
+            inside.append(np.zeros(len(nloop), bool))
+            spheres.append(cells.face_spheres())
+            vert_start.extend((base + cells.cell_vert_start[1:]).tolist())
+            face_start.extend((face_start[-1] + cells.cell_face_start[1:]).tolist())
+            radii.append(cells.cell_radius)
+            areas.append(cells.largest_face_areas())
+
+        for shape, marked in zip(entries[: len(shapes)], internal[: len(shapes)], strict=True):
+            add(shape, marked)
+        for cells in packed:
+            add_cells(cells)
+        for shape, marked in zip(entries[len(shapes) :], internal[len(shapes) :], strict=True):
+            add(shape, marked)
+
         # The culling spheres are padded so that rounding in the float32 tests cannot cull a face
         # that touches.
         spheres = np.concatenate(spheres)
-        radii = np.array([s.radius for s in entries])
+        radii = np.concatenate(radii)
+        areas = np.concatenate(areas)
         spheres[:, 3] *= 1.0 + 1e-5
         spheres[:, 3] += 1e-6 * radii.max()
 
@@ -132,7 +167,6 @@ class ShapeSet:
         self.shape_vert_start = arr(np.array(vert_start, dtype=np.int32), int)
         self.shape_face_start = arr(np.array(face_start, dtype=np.int32), int)
         self.shape_radius = arr(radii.astype(np_scalar), self.scalar)
-        areas = np.array([largest_face_area(shape) for shape in entries])
         self.shape_face_area = arr(areas.astype(np_scalar), self.scalar)
         self.face_plane = arr(np.concatenate(planes).astype(np_scalar), vec4)
         self.face_sphere = arr(spheres.astype(np_scalar), vec4)
@@ -143,7 +177,7 @@ class ShapeSet:
         self.shape_part_start = arr(np.array(part_start, dtype=np.int32), int)
         self.part_shape = arr(np.array(part_shape, dtype=np.int32), int)
         self.part_q = arr(np.array(part_q, dtype=np.float64), wp.types.transformation(wp.float64))
-        self.num_entries = len(entries)
+        self.num_entries = len(radii)
         if self.scalar == wp.float64:
             self.face_plane64 = self.face_plane
             self.vert64 = self.vert
@@ -155,8 +189,10 @@ class ShapeSet:
         for name in self.ARRAYS:
             setattr(self.arrays, name, getattr(self, name))
 
-        max_face_verts = max(s.max_face_vertices for s in convex)
-        max_faces = max(s.num_faces for s in convex)
+        max_face_verts = max(
+            [s.max_face_vertices for s in convex] + [int(np.diff(c.face_loop_start).max()) for c in packed]
+        )
+        max_faces = max([s.num_faces for s in convex] + [int(np.diff(c.cell_face_start).max()) for c in packed])
         # Clipping a convex polygon by k planes adds at most one vertex per plane.
         self.max_poly_bound = max_face_verts + max_faces
         # Pieces met in practice are far below the bound for shapes with many faces; start small

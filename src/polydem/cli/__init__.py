@@ -156,6 +156,12 @@ def _main(argv) -> int:
             args = parser.parse_args(argv)
         except SystemExit as exc:  # --help
             return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USER_ERROR
+        except CliError:
+            from polydem.distributed.comm import launched_rank
+
+            if launched_rank() != 0:
+                return EXIT_USER_ERROR  # under mpiexec every rank parses the same line: rank 0 says it once
+            raise
         module, name = _COMMANDS[args.command]
         command = getattr(importlib.import_module(module), name)
         signals.check()

@@ -142,7 +142,7 @@ class Report:
                 "at_resume": self.energy_at_start if resumed_from is not None else None,
                 "final": energy,
             },
-            "settled_region": settled_region(scene, sim.state(), contacts) if consistent else None,
+            "settled_region": self._region(scene, sim, contacts) if consistent else None,
             "contact_average": o.average_summary(sim) if consistent else None,
             "outputs": self._files(),
         }
@@ -150,6 +150,27 @@ class Report:
         if notes:
             summary["notes"] = notes
         return summary
+
+    def _region(self, scene, sim, contacts) -> dict:
+        """:func:`settled_region` of the final state, with ``at_rest``: whether the free bodies are at rest by
+        the default settle criterion (no hold; None where it cannot judge: no gravity, no energy released).
+        A pile whose grains still fall has a region below its top, but nothing settled in it."""
+        from polydem.settle import SettleCheck, SettleCriterion
+
+        region = settled_region(scene, sim.state(), contacts)
+        at_rest = None
+        start = (self.log.energy_initial or {}).get("gravity")
+        try:
+            criterion = SettleCriterion()
+            criterion.check_gravity(scene.gravity)
+            kinetic, gravity, speed = sim.settle_measures()
+            if start is not None and start - gravity > 0.0:
+                check = SettleCheck(criterion, start, speed_limit=criterion.speed_limit_of(scene))
+                at_rest = bool(check.holds(kinetic, gravity, speed))
+        except ValueError:  # no gravity or no free bodies: nothing to judge
+            pass
+        region["at_rest"] = at_rest
+        return region
 
     def closing_lines(self, s) -> list[str]:
         """The closing lines of the summary ``s``: what the run did and every file written."""
@@ -179,8 +200,9 @@ class Report:
             lines.append(f"  largest depth (of the smaller body's size, cube root of its volume): {', '.join(parts)}")
         region = s["settled_region"]
         if region is not None and region["packing_fraction"] is not None:
+            head = "settled region" if region.get("at_rest") is not False else "region below the top, not at rest"
             lines.append(
-                f"  settled region ({plural(region['bodies'], 'body', 'bodies')}): packing fraction "
+                f"  {head} ({plural(region['bodies'], 'body', 'bodies')}): packing fraction "
                 f"{region['packing_fraction']:.3f}, "
                 f"coordination number {region['coordination_number']:.2f}"
             )
@@ -194,6 +216,9 @@ class Report:
         files = self.written(s)
         width = min(max((len(name) for name, _ in files), default=0), 40)
         lines += [f"    {name:<{width}}  {what}" for name, what in files] or ["    nothing"]
+        earlier = self.earlier_files(s)
+        if earlier is not None:
+            lines.append(earlier)
         for note in s.get("notes", []):
             lines.append(f"  note: {note}")
         for error in self.outputs.errors:
@@ -251,17 +276,33 @@ class Report:
             files.append((names, f"VTK series for ParaView, {plural(vtk['frames'], 'frame')}{walls}"))
         if o["summary"] and self.outputs.summary_written:
             files.append((shorten(o["summary"]), "summary"))
-        pictures = o["pictures"]
+        # This run's files only: a resumed run's summary lists the earlier parts' too (earlier_files).
+        pictures = list(self.outputs.picture_files)
         if pictures:
             last = pictures[-1] == "pictures/last.png"
             what = ("picture of the final state" if last else "picture") if len(pictures) == 1 else "pictures"
             files.append((listing(pictures, "pictures", 6), what))
         if self.outputs.plot_files:
             files.append((", ".join(self.outputs.plot_files), "plots"))
-        if o["checkpoints"]:
-            what = "checkpoint" if len(o["checkpoints"]) == 1 else "checkpoints"
-            files.append((listing(o["checkpoints"], "checkpoints", 4), what))
+        checkpoints = list(dict.fromkeys(self.outputs.checkpoints))
+        if checkpoints:
+            what = "checkpoint" if len(checkpoints) == 1 else "checkpoints"
+            files.append((listing(checkpoints, "checkpoints", 4), what))
         return files
+
+    def earlier_files(self, s) -> str | None:
+        """The line naming the files of the earlier parts of a resumed run (listed in its summary, not
+        written by this run), or None."""
+        o = s["outputs"]
+        mine = set(self.outputs.picture_files) | set(self.outputs.checkpoints)
+        pictures = [p for p in o["pictures"] if p not in mine]
+        checkpoints = [p for p in o["checkpoints"] if p not in mine]
+        if not (pictures or checkpoints):
+            return None
+        folders = sorted({os.path.dirname(os.path.dirname(p)) or "." for p in [*pictures, *checkpoints]})
+        where = ", ".join("this folder" if f == "." else shorten(f) for f in folders)
+        what = [plural(len(x), name) for x, name in ((checkpoints, "checkpoint"), (pictures, "picture")) if x]
+        return f"  earlier parts of the run wrote {' and '.join(what)} (in {where}; listed in the summary)"
 
     def resume_command(self, cp_path) -> str:
         a = self.args

@@ -9,6 +9,7 @@ lines (:class:`~polydem.cli.report.Report`).
 
 from __future__ import annotations
 
+import errno
 import os
 import sys
 import time
@@ -19,7 +20,7 @@ import numpy as np
 from polydem import signals
 from polydem.cli.common import plural, safe_name, shorten, steps_at
 from polydem.cli.device import device, warp
-from polydem.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, CliError, OutputError, why
+from polydem.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USER_ERROR, CliError, OutputError, why
 from polydem.cli.outputs import Outputs, scene_metadata
 from polydem.cli.poses import check_poses, read_checkpoint
 from polydem.cli.progress import Progress
@@ -306,13 +307,39 @@ def _checkpoint_to_resume(args):
 
 def _output_folder(args, scene) -> Path:
     """The output folder (``--out``, default ``polydem_out/<scene name>/``), made if missing."""
-    out_dir = Path(args.out) if args.out is not None else Path("polydem_out") / safe_name(scene.name)
+    if args.out is not None:
+        out_dir = Path(args.out)
+        try:
+            if out_dir.exists() and not out_dir.is_dir():
+                raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CliError(f"cannot create the output folder ({why(exc)})", shorten(out_dir), "--out") from None
+        return out_dir
+    # No --out: the folder is named after the scene, so a failure is the name's or the current folder's.
+    out_dir = Path("polydem_out") / safe_name(scene.name)
+    made = not out_dir.parent.exists()
     try:
         if out_dir.exists() and not out_dir.is_dir():
-            raise CliError("the output folder is a file; give a folder with --out", out_dir, "--out")
+            raise CliError(
+                f"the default output folder {shorten(out_dir)} is a file; remove it or give a folder with --out",
+                key=None,
+            )
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise CliError(f"cannot create the output folder ({why(exc)})", shorten(out_dir), "--out") from None
+        if made:
+            try:
+                out_dir.parent.rmdir()  # made for this run, which writes nothing
+            except OSError:
+                pass
+        if exc.errno == errno.ENAMETOOLONG:
+            raise CliError(
+                f"the name ({len(scene.name)} characters) is too long for the name of the default output folder "
+                f"polydem_out/NAME/ ({exc.strerror}); give a shorter simulation.name, or an output folder with --out",
+                scene.file,
+                "simulation.name",
+            ) from None
+        raise CliError(f"cannot create the default output folder {shorten(out_dir)} ({why(exc)})", key=None) from None
     return out_dir
 
 
@@ -351,13 +378,16 @@ def _cmd_run_decomposed(args) -> int:
     """``mpiexec -n R polydem run``: rank 0 runs the command on a RootSimulation, the others follow it
     (:mod:`polydem.distributed.root`).
 
-    MPI starts first, before anything can fail on one rank alone: an error on some rank before the run
-    (or a rank failing while the others wait for it) prints its message and aborts every rank, where
-    it would otherwise leave the others waiting for ever. Only rank 0 checks and writes the outputs.
+    Before the run every rank checks what it loads (the scene, the checkpoint, the settings; rank 0 also
+    the output folder) and then all agree (:func:`_agree`): where some rank failed, rank 0 prints the
+    error once, as a run of one process would (naming the rank when it is another's), and every rank
+    exits normally with the same code, with nothing written. A rank that fails during the run, while
+    the others wait for it, aborts every rank instead (MPI_Abort), with one line naming it.
     """
     import warnings
 
     from polydem.distributed import DistributedSimulation, world
+    from polydem.distributed.comm import launched_rank
     from polydem.distributed.root import RootSimulation, device_for_rank, serve
 
     warp()
@@ -365,20 +395,44 @@ def _cmd_run_decomposed(args) -> int:
     try:
         comm = world()
     except RuntimeError as exc:  # no mpi4py: every rank fails alike, before MPI
+        if launched_rank() != 0:
+            return EXIT_USER_ERROR
         raise CliError(str(exc), key=None) from None
     root = comm.Get_rank() == 0
     if not root:
         warnings.simplefilter("ignore")  # rank 0 says it once
+    failure = None
+    resume = checkpoint = scene = dev = out_dir = criterion = None
     try:
         resume, checkpoint, scene, dev = _load(args)
-        out_dir = None
         if root:
             out_dir = _output_folder(args, scene)
             check_outputs(args, scene, out_dir)
         criterion = _settle_criterion(args, scene)
-        ds = DistributedSimulation(scene, device=device_for_rank(dev, comm), comm=comm)
     except Exception as exc:
-        _abort(comm, exc)
+        failure = exc
+    code = _agree(comm, failure)
+    if code is not None:
+        return code
+    # Split_type in device_for_rank is collective: only once every rank is known to get there.
+    dev = device_for_rank(dev, comm)
+    try:
+        import warp as wp
+
+        wp.get_device(dev)  # a device missing on some node fails here, not inside the collective constructor
+    except Exception as exc:
+        failure = exc
+    code = _agree(comm, failure)
+    if code is not None:
+        return code
+    ds = None
+    try:
+        ds = DistributedSimulation(scene, device=dev, comm=comm)
+    except Exception as exc:  # after its collective steps (the partition): building the rank's Simulation
+        failure = exc
+    code = _agree(comm, failure)
+    if code is not None:
+        return code
     if not root:
         # Ctrl-C and SIGTERM reach every rank: rank 0 decides (it stops after the steps under way and
         # writes the outputs with the others' help); a follower that died of them would leave it waiting.
@@ -387,32 +441,79 @@ def _cmd_run_decomposed(args) -> int:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         try:
-            serve(ds)
+            return serve(ds)
         except Exception as exc:
             _abort(comm, exc)
-        return EXIT_OK
     sim = RootSimulation(ds, on_error=lambda exc: _abort(comm, exc))
+    code = EXIT_FAILED
     try:
         owned, _ = sim.balance()
         sys.stdout.write(
             f"{scene.name}: decomposed over {ds.size} ranks (slabs along {'xyz'[ds.axis]}, "
             f"{int(owned.min())} to {int(owned.max())} bodies each)\n"
         )
-        return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
+        code = _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
+        return code
+    except KeyboardInterrupt:
+        code = signals.exit_code()
+        raise
+    except Exception as exc:
+        code = EXIT_USER_ERROR if _user_error(exc) else EXIT_FAILED
+        raise
     finally:
-        sim.stop()
+        sim.stop(code)  # the others exit with rank 0's code
+
+
+def _user_error(exc) -> bool:
+    return isinstance(exc, CliError) or type(exc).__name__ == "SceneError"
+
+
+def _agree(comm, failure) -> int | None:
+    """Whether some rank failed (``failure``: this rank's exception, or None), agreed by all (collective).
+
+    None where none did. Else rank 0 raises its own exception (printed as a run of one process prints it)
+    or, where only another rank failed, that rank's error naming it (the lowest such rank's; an internal
+    error with its traceback); the other ranks return the exit code rank 0 ends with (2 for a user error,
+    1 for an internal one) without printing: each would otherwise print the same line, and an MPI_Abort
+    adds lines of its own.
+    """
+    import traceback
+
+    mine = None
+    if failure is not None:
+        user = _user_error(failure)
+        line = str(failure) if user else f"{type(failure).__name__}: {failure}"
+        text = "" if user else "".join(traceback.format_exception(failure))
+        mine = (user, line, text)
+    reports = comm.allgather(mine)
+    failed = [(r, rep) for r, rep in enumerate(reports) if rep is not None]
+    if not failed:
+        return None
+    rank, (user, line, text) = failed[0]
+    code = EXIT_USER_ERROR if user else EXIT_FAILED
+    if comm.Get_rank() != 0:
+        return code
+    if rank == 0:
+        raise failure
+    where = f"rank {rank} of {comm.Get_size()}"
+    if user:
+        raise CliError(f"{where}: {line}", key=None)
+    sys.stdout.flush()
+    sys.stderr.write(f"{text}polydem: error: {where}: internal error: {line}\n")
+    sys.stderr.flush()
+    return code
 
 
 def _abort(comm, exc):
-    """Print ``exc`` as this rank's error and abort every rank (MPI_Abort, exit code 2)."""
-    message = (
-        str(exc)
-        if isinstance(exc, CliError) or type(exc).__name__ == "SceneError"
-        else (f"{type(exc).__name__}: {exc}")
-    )
+    """Print ``exc`` as this rank's error and abort every rank (MPI_Abort, exit code 2): during the run,
+    where the others may be waiting for this rank inside a collective call and cannot agree."""
+    message = str(exc) if _user_error(exc) else f"{type(exc).__name__}: {exc}"
     sys.stderr.write(f"polydem: error: rank {comm.Get_rank()} of {comm.Get_size()}: {message}\n")
     sys.stderr.flush()
     comm.Abort(2)
+    # MPICH's MPI_Abort may return to the caller before the process manager ends the ranks: carrying on
+    # would fail again on state that was never built (and print a second error).
+    os._exit(2)
 
 
 def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
@@ -428,6 +529,8 @@ def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
                 resume,
                 "--resume",
             )
+    else:
+        _warn_run_span(scene, sim.dt, target, source)
     settle = _settle_check(sim, criterion, checkpoint, resume) if criterion is not None else None
     run = Run(args, scene, sim, out_dir, target, resume, settle)
     if checkpoint is not None:
@@ -444,6 +547,17 @@ def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
     )
     out.flush()
     return run.execute(out, err)
+
+
+def _warn_run_span(scene, dt, target, source) -> None:
+    """A warning where the run would change nothing or, of the default length, covers next to no time
+    (:meth:`Scene.check_run_span`): the scene is sound, but the run is most likely not what was meant."""
+    import warnings
+
+    from polydem.scene import SceneWarning
+
+    for message in scene.check_run_span(dt, target, source, default=source == "the default"):
+        warnings.warn(f"{scene.file}: {message}" if scene.file else message, SceneWarning, stacklevel=2)
 
 
 _SETTLE_OPTIONS = (

@@ -7,7 +7,7 @@ undivided run's). ``mpiexec -n 4 polydem run scene.toml`` runs a scene so; in Py
 DistributedSimulation on every rank with the same scene.
 """
 
-from polydem.distributed.comm import launched_size, world
+from polydem.distributed.comm import launched_rank, launched_size, world
 from polydem.distributed.simulation import DistributedError, DistributedSimulation
 
-__all__ = ["DistributedError", "DistributedSimulation", "launched_size", "world"]
+__all__ = ["DistributedError", "DistributedSimulation", "launched_rank", "launched_size", "world"]

@@ -21,6 +21,24 @@ def launched_size() -> int:
     return 1
 
 
+# ... and this rank's number among them.
+_RANK_VARIABLES = ("PMI_RANK", "OMPI_COMM_WORLD_RANK", "PMIX_RANK", "SLURM_PROCID", "ALPS_APP_PE")
+
+
+def launched_rank() -> int:
+    """This process's rank as an MPI launcher numbered it, from its environment variables (0 when none).
+
+    Known before MPI starts: an error that every rank finds alike before then (a bad option, no mpi4py)
+    is printed by rank 0 alone, the others exiting with the same code."""
+    if launched_size() <= 1:
+        return 0
+    for name in _RANK_VARIABLES:
+        value = os.environ.get(name)
+        if value and value.isdigit():
+            return int(value)
+    return 0
+
+
 class SerialComm:
     """A communicator of one rank with mpi4py's lower-case methods: a run that was not launched by MPI."""
 

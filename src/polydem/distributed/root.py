@@ -136,17 +136,18 @@ class RootSimulation:
     def balance(self):
         return self._call("balance")
 
-    def stop(self):
-        """Release the other ranks from :func:`serve`."""
-        self.ds.comm.bcast((_STOP, ()), root=self.ds.root)
+    def stop(self, code=0):
+        """Release the other ranks from :func:`serve`, which returns ``code`` (the command's exit code)."""
+        self.ds.comm.bcast((_STOP, (int(code),)), root=self.ds.root)
 
 
-def serve(ds: DistributedSimulation) -> None:
-    """The loop of the ranks other than the root: do what the root asks until it says stop."""
+def serve(ds: DistributedSimulation) -> int:
+    """The loop of the ranks other than the root: do what the root asks until it says stop; returns the exit
+    code the root gave with it, so that every rank ends the command alike."""
     while True:
         name, args = ds.comm.bcast(None, root=ds.root)
         if name == _STOP:
-            return
+            return int(args[0]) if args else 0
         try:
             getattr(ds, name)(*args)
         except DistributedError:

@@ -36,7 +36,7 @@ import warp as wp
 from polydem.distributed import partition
 from polydem.distributed.comm import SerialComm, world
 from polydem.kernels.integrate import kinetic_energy
-from polydem.simulation import Simulation, SimulationError
+from polydem.simulation import CHUNK_STEPS, Simulation, SimulationError
 
 
 @wp.kernel(enable_backward=False)
@@ -97,6 +97,24 @@ allreduce; a chunk that must be redone costs up to this many steps."""
 ROW = 13
 """What a ghost receives after every step, per body: pose (7), velocity (3), angular velocity (3); the
 rest of its state is only read by its owner."""
+
+
+def simulation_time(start: float, done: int, n: int, dt: float) -> float:
+    """The time of a :class:`~polydem.Simulation` at ``start`` [s] after ``done`` of the ``n`` steps of one
+    ``step(n)`` call: it adds ``chunk * dt`` per chunk of its own (:meth:`Simulation.step`), whose rounding
+    the checkpoints, frame times and summaries of a decomposed run must repeat to be the undivided run's
+    (``steps_done * dt`` differs in the last bits). Between two of its chunk ends: the last end plus the
+    steps since, times dt."""
+    t, at = float(start), 0
+    while at < n:
+        chunk = min(CHUNK_STEPS, n - at)
+        if chunk == n - at and chunk > 1:
+            chunk -= 1  # as Simulation.step: the last step runs in a chunk of its own
+        if at + chunk > done:
+            return t + (done - at) * dt
+        t += chunk * dt
+        at += chunk
+    return t
 
 
 class DistributedError(SimulationError):
@@ -467,6 +485,7 @@ class DistributedSimulation:
             raise ValueError(f"step count must be >= 0, got {n}")
         done = 0
         chunk = self.chunk
+        start_time = self.time
         if n and self._repartition_due:
             self._timed_repartition()
         while done < n:
@@ -517,7 +536,7 @@ class DistributedSimulation:
                 sim.current_contacts.broadphase.renew_tree(sim.tree_rebuild)
             done += k
             self.steps_done += k
-            self.time = self.steps_done * self.dt
+            self.time = simulation_time(start_time, done, n, self.dt)
             if sim is not None:
                 sim.steps_done, sim.time = self.steps_done, self.time
             if moved > 0.25 * self.margin:

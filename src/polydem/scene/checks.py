@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from polydem.quaternions import quat_to_matrix
 from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
 from polydem.scene.materials import LAW_UNITS
 from polydem.scene.values import check_quats
@@ -47,6 +48,13 @@ TUNNEL_STEP_FRACTION = 0.5
 # the margin covers the estimate of the crossing area (an oblique body meets the thin one with more
 # or less than its mean cross-section) and the partner's own motion.
 TUNNEL_ENERGY_FRACTION = 0.5
+# A gravity is blamed (rather than the materials) where its weight needs a k beyond float32's range but
+# this one's would not.
+STANDARD_GRAVITY = 9.80665
+# A run whose length comes from the command's default (no steps or duration anywhere) and covers less
+# simulated time than this is most likely a time step far shorter than meant (a k or a density off by
+# powers of ten, or a dt in the wrong unit): the default steps are meant to show a scene moving.
+DEFAULT_RUN_MIN_TIME = 1.0e-6
 
 
 def reference_stiffness(law, k, exponent, volume, area=None, width=None):
@@ -545,7 +553,13 @@ class CheckMethods:
           warning. Initial speeds only warn: the bodies need not meet anything.
         * the linear law with gravity and something to carry the bodies: a warning that a face
           contact has no resting depth (its force k A is the same at any depth).
+
+        The mesh walls are checked first (:meth:`check_mesh_walls`), their warnings returned with these.
         """
+        return self.check_mesh_walls(a, ts) + self._check_body_loads(a, ts)
+
+    def _check_body_loads(self, a, ts: TimeStep) -> list[str]:
+        """The bodies' part of :meth:`check_loads`."""
         free = a["kind"] == KIND_FREE
         if not free.any():
             return []
@@ -626,7 +640,19 @@ class CheckMethods:
                 f", where the law (m = {m:g} > 2 stiffens with depth) has a stiffness of {k_tan:.3g} N/m "
                 f"and the time step {dt:.3g} s is above the stable {2.0 * math.sqrt(mass / k_tan):.3g} s"
             )
-        if ln_need > _ln(F32_HIGH):
+        key = f"materials.{soft}.k"
+        g_max = (
+            self._gravity_beyond_any_k(mass, m, ln_target, ln_a, ln_l) if weight and ln_need > _ln(F32_HIGH) else None
+        )
+        if g_max is not None:
+            g = float(np.linalg.norm(self.gravity))
+            fix = (
+                f"no k within float32's range (up to {F32_HIGH:.2g}) carries that weight: the gravity "
+                f"{list(self.gravity)!r} ({g / STANDARD_GRAVITY:.3g} times standard gravity) is too strong for these "
+                f"bodies; use a gravity of at most {g_max:.3g} m/s^2"
+            )
+            key = "simulation.gravity"
+        elif ln_need > _ln(F32_HIGH):
             fix = f"no k within float32's range (up to {F32_HIGH:.2g}) is stiff enough: " + (
                 "use a smaller m (W = k V^m / m gives almost no force at small overlaps when m is large)"
                 if law == "power"
@@ -646,9 +672,9 @@ class CheckMethods:
             raise self.error(
                 f"the contacts of {label} are {head}: {depth}{why}; {fix}"
                 + (" (a pair's k is the harmonic mean of its materials' k)" if fix.startswith("raise") else ""),
-                "simulation.dt" if fix.startswith("lower") else f"materials.{soft}.k",
+                "simulation.dt" if fix.startswith("lower") else key,
             )
-        return rel, f"the contacts of {label} are soft: {depth}; {fix} (materials.{soft}.k)"
+        return rel, f"the contacts of {label} are soft: {depth}; {fix} ({key})"
 
     def tunnelling_limits(self, a, dt: float) -> TunnelLimits:
         """Per body, the speed of its fastest point (``|v| + |w| r``, r its bounding radius) above which
@@ -727,3 +753,396 @@ class CheckMethods:
                 + (" or use a larger time step (a softer k gives a longer automatic one)" if self.duration else ""),
                 key,
             )
+
+    # ------------------------------------------------------------------ scales a run cannot resolve
+
+    def _gravity_beyond_any_k(self, mass, m, ln_target, ln_a, ln_l) -> float | None:
+        """The largest gravity [m/s^2] whose weight of a body of ``mass`` the stiffest k within float32's range
+        holds at the overlap ``ln_target`` (ln(A d), :func:`_face_overlap`), where standard gravity's weight
+        would be held: the scene's gravity, not its materials, is then what no k can carry. Else None."""
+        # _stiffness_for solved for the force at k = F32_HIGH.
+        if m == 1.0:
+            ln_load = _ln(F32_HIGH) + ln_a + (ln_target - ln_a - ln_l)
+        else:
+            ln_load = _ln(F32_HIGH) + ln_a + (m - 1.0) * ln_target
+        g_max = _exp(ln_load) / mass
+        return g_max if g_max >= STANDARD_GRAVITY else None
+
+    def check_position_spacing(self, a) -> None:
+        """SceneError where a body lies so far from the origin that float64 positions cannot resolve a contact
+        there.
+
+        The time step resolves a contact at an overlap of REFERENCE_DEPTH of a body's width (see
+        :meth:`time_step`); where the spacing of float64 numbers is larger than that for the thinnest body, an
+        overlap is a few spacings deep at most, its force jumps between a few values and a body neither moves
+        smoothly nor comes to rest (one at rest under gravity may never move at all). Closer in, the mixed
+        precision moves a far body as it would at the origin (tests/test_precision.py). (The float32 positions
+        of precision = "float32" resolve far less; ``polydem validate`` warns of those.)
+        """
+        shapes = list(self.shapes.values())
+        free = a["kind"] == KIND_FREE
+        used = np.unique(a["shape"][free] if free.any() else a["shape"])
+        thinnest = min(shape_width(shapes[int(s)]) for s in used)
+        resolve = REFERENCE_DEPTH * thinnest
+        if not (math.isfinite(resolve) and resolve > 0.0):
+            return
+        far = np.abs(np.asarray(a["position"], dtype=np.float64)).max(axis=1)
+        i = int(np.argmax(far))
+        spacing = float(np.spacing(far[i]))
+        if not spacing > resolve:
+            return
+        # The largest distance whose float64 spacing (2^(e - 52) in [2^e, 2^(e+1))) is at most `resolve`.
+        limit = 2.0 ** (math.floor(math.log2(resolve)) + 53)
+        where = next((e["key"] for e in self.emitters if e["first"] <= i <= e["last"]), None)
+        raise self.error(
+            f"{self.body_label(i)} is at {a['position'][i].tolist()!r} m, where float64 numbers are {spacing:.3g} m "
+            f"apart: more than {REFERENCE_DEPTH:g} of the thinnest body's width ({thinnest:.3g} m), the overlap at "
+            f"which the time step resolves a contact, so no contact can be resolved there; place the bodies within "
+            f"{limit:.3g} m of the origin (move the whole scene: only relative positions matter)",
+            f"{where}.region" if where is not None else f"bodies[{i}].position",
+        )
+
+    def check_run_span(self, dt: float, steps: int, source: str, default: bool = False) -> list[str]:
+        """Warnings about the simulated time a run of ``steps`` steps of ``dt`` [s] covers (``source``: where the
+        steps come from, for the message; ``default``: they are the command's default, nothing asked for them).
+
+        * No body moves: over the run, gravity and the initial velocities move no free or kinematic body by
+          the spacing of its position numbers (float64, or float32 for precision = "float32"), so the run
+          ends where it started: a time step far too short (an extreme k or density, a dt in the wrong
+          unit) or a run of a few steps of a fine one.
+        * Else, a run of the default length covering less than DEFAULT_RUN_MIN_TIME.
+        """
+        a = self.body_arrays()
+        moving = a["kind"] != KIND_FIXED
+        if not moving.any() or not (dt > 0.0 and steps > 0):
+            return []
+        span = steps * dt
+        shapes = list(self.shapes.values())
+        radius = np.array([sh.radius for sh in shapes], dtype=np.float64)[a["shape"]]
+        g = float(np.linalg.norm(np.asarray(self.gravity, dtype=np.float64)))
+        driven = g > 0.0 or np.any(a["velocity"][moving] != 0.0) or np.any(a["angular_velocity"][moving] != 0.0)
+        with np.errstate(all="ignore"):
+            # Symplectic Euler from rest: g t (t + dt) / 2 after t.
+            fall = np.where(a["kind"] == KIND_FREE, 0.5 * g * span * (span + dt), 0.0)
+            reach = (
+                np.linalg.norm(a["velocity"], axis=1) * span
+                + np.linalg.norm(a["angular_velocity"], axis=1) * radius * span
+                + fall
+            )
+            dtype = np.float32 if self.precision == "float32" else np.float64
+            far = np.abs(np.asarray(a["position"], dtype=np.float64)).max(axis=1) + radius
+            spacing = np.spacing(far.astype(dtype)).astype(np.float64)
+        run = f"{steps} steps of {dt:.3g} s ({source}) cover {span:.3g} s"
+        # Without gravity or initial velocities only contacts (initial overlaps) move bodies: nothing to estimate.
+        if driven and not np.any(reach[moving] >= spacing[moving]):
+            i = int(np.flatnonzero(moving)[np.argmax(reach[moving] / spacing[moving])])
+            return [
+                f"{run}, in which gravity and the initial velocities move no body as far as the spacing of its "
+                f"position numbers ({self.body_label(i)} the furthest: {reach[i]:.3g} m against {spacing[i]:.3g} m): "
+                f"unless contacts push them, the run leaves every body where it is; {self._time_step_cause()}"
+            ]
+        if default and span < DEFAULT_RUN_MIN_TIME:
+            return [
+                f"{run}, less than {DEFAULT_RUN_MIN_TIME:g} s; {self._time_step_cause()}, or give the run's length "
+                "(simulation.duration or --duration)"
+            ]
+        return []
+
+    def _time_step_cause(self) -> str:
+        """What sets the time step of a run, and what to check, for :meth:`check_run_span`."""
+        if self.dt != "auto":
+            return f'simulation.dt = {self.dt!r} s sets it: check its unit (seconds) or use dt = "auto"'
+        try:
+            ts = self.time_step()
+        except Exception:  # validate() reports the scene's own problems; only the cause is wanted here
+            return "check the materials' k and density"
+        i = ts.lightest
+        mat = list(self.materials.values())[int(np.asarray(self.body_material)[i])]
+        return (
+            f'dt = "auto" takes it from the stiffest contact of {self.body_label(i)}: check k = {mat.k!r} and '
+            f"density = {mat.density!r} of materials.{mat.name}"
+        )
+
+    # ------------------------------------------------------------------ mesh walls
+
+    def check_mesh_walls(self, a, ts: TimeStep) -> list[str]:
+        """Mesh walls: a thickness their cells resolve (SceneError), free bodies that start in their solid
+        (as plane walls: a SceneError beyond INITIAL_OVERLAP_ERROR of the body's thickness, a warning beyond
+        INITIAL_OVERLAP_WARNING), a thickness above half the thinnest part of a closed wall (warning) and a
+        wall that moves faster than the bodies it meets can take (warning, as :meth:`check_tunnelling`
+        warns of a drum's parts). Returns the warnings."""
+        walls = list(zip(self.mesh_walls, self.mesh_wall_keys, strict=True))
+        if not walls:
+            return []
+        for wall, key in walls:
+            self._check_mesh_thickness(wall, key)
+        found = self._mesh_wall_speeds(a, ts.dt)
+        records = []
+        for wall, key in walls:
+            records += self._mesh_overlaps(wall, key, a)
+        found += self._report_mesh_overlaps(records)
+        for wall, key in walls:
+            found += self._mesh_thickness_rule(wall, key)
+        return found
+
+    def _check_mesh_thickness(self, wall, key):
+        """A SceneError where the wall's thickness and its triangles are too far apart for its cells."""
+        from polydem.meshwall import MAX_SIZE_RATIO, thickness_problem, thickness_range, triangle_sizes
+
+        h = self.mesh_wall_thickness(wall)
+        low, high = thickness_range(wall.vertices, wall.triangles)
+        if low <= h <= high:
+            return
+        default = wall.thickness is None
+        why = thickness_problem(
+            wall.vertices, wall.triangles, h, " (the default: the free bodies' largest diameter)" if default else ""
+        )
+        if h < low and low <= high and not np.allclose(wall.scale, 1.0):
+            # Triangles too large for the bodies: most likely the file's units.
+            sizes = triangle_sizes(wall.vertices, wall.triangles)
+            s = float(np.max(np.abs(wall.scale)))
+            s_hi = s * MAX_SIZE_RATIO * h / float(sizes.max())
+            s_lo = s * h / (MAX_SIZE_RATIO * float(sizes.min()))
+            raise self.error(
+                f"with scale {s:g}, {why}; or, with this thickness, a scale from {s_lo:.3g} to {s_hi:.3g} (the mesh "
+                "file's unit in m: 0.001 for mm)",
+                f"{key}.scale",
+            )
+        raise self.error(why + (f" ({key}.thickness)" if default else ""), f"{key}.thickness")
+
+    def _mesh_wall_speeds(self, a, dt: float) -> list[str]:
+        """A warning per mesh wall whose fastest point (``|v| + |w| r``, r its farthest vertex from the
+        pivot) moves faster than the slowest :meth:`tunnelling_limits` of the free bodies it may meet."""
+        free = a["kind"] == KIND_FREE
+        moving = [(w, k) for w, k in zip(self.mesh_walls, self.mesh_wall_keys, strict=True) if w.moving]
+        if not moving or not free.any():
+            return []
+        limits = self.tunnelling_limits(a, dt)
+        i = int(np.flatnonzero(free)[np.argmin(limits.body_speed_limit[free])])
+        limit = float(limits.body_speed_limit[i])
+        out = []
+        for wall, key in moving:
+            reach = float(np.linalg.norm(wall.vertices - np.asarray(wall.pivot), axis=1).max())
+            slide = float(np.linalg.norm(wall.velocity))
+            turn = float(np.linalg.norm(wall.angular_velocity)) * reach
+            speed = slide + turn
+            if not speed > limit:
+                continue
+            if limits.body_step_bound[i]:
+                why = (
+                    f"a step of {dt:.3g} s moves it {TUNNEL_STEP_FRACTION:g} times the smallest half-thickness of a "
+                    f"body ({limits.half_thickness:.3g} m)"
+                )
+                fix = "or dt"
+            else:
+                why = (
+                    f"{self.body_label(i)}, hit at that speed, would carry {1.0 / TUNNEL_ENERGY_FRACTION:g} times the "
+                    "energy its contact stores before the body is through"
+                )
+                fix = "or raise k"
+            field = "angular_velocity" if turn >= slide else "velocity"
+            out.append(
+                f"mesh wall {key} moves its farthest point ({reach:.3g} m from the pivot) at {speed:.3g} m/s, above "
+                f"the {limit:.3g} m/s at which {why}: the bodies it hits may pass through it or be thrown out at that "
+                f"speed; lower its {field} ({key}.{field}) {fix}"
+            )
+        return out
+
+    def _mesh_overlaps(self, wall, key, a) -> list[tuple]:
+        """(relative depth, depth, body, where, of what, fix) of the free bodies (compound grains part by
+        part) in the solid of ``wall`` at t = 0: a body vertex in a cell (its depth behind the triangle,
+        over the body's thickness along the triangle's normal; behind a concave edge or corner, its
+        distance from it over the body's width), a mesh vertex in a body (its depth in it over the body's
+        width), and, in a closed wall, a body whose centre is inside the surface."""
+        from polydem.compound import expand_bodies
+        from polydem.meshwall import EDGE, TRIANGLE, cell_reach, is_closed, near_pairs, winding
+
+        free = np.flatnonzero(a["kind"] == KIND_FREE)
+        if not free.size:
+            return []
+        h = self.mesh_wall_thickness(wall)
+        cells = self.mesh_wall_cells(wall, h)
+        shapes = list(self.shapes.values())
+        convex, part, pos, quat, owner = expand_bodies(
+            shapes, a["shape"][free], a["position"][free], a["orientation"][free]
+        )
+        owner = free[owner]
+        radius = np.array([s.radius for s in convex])[part]
+        pi, ci = near_pairs(pos, radius, cells.cell_center, cells.cell_radius)
+        best = {}  # body -> the deepest record
+
+        def keep(rec):
+            if rec[0] > INITIAL_OVERLAP_WARNING and (rec[2] not in best or rec[0] > best[rec[2]][0]):
+                best[rec[2]] = rec
+
+        rot = quat_to_matrix(quat)
+        tol = 1e-9 * max(h, float(np.linalg.norm(np.ptp(wall.vertices, axis=0))))
+        v, f = cells.vertices, cells.faces
+        for s in np.unique(part[pi]).tolist():
+            shape = convex[s]
+            width = shape_width(shape)
+            rows = np.flatnonzero(part[pi] == s)
+            for lo in range(0, len(rows), 4096):
+                sel = rows[lo : lo + 4096]
+                p, c = pi[sel], ci[sel]
+                pts = np.einsum("pij,vj->pvi", rot[p], shape.vertices) + pos[p][:, None, :]
+                inside = cell_reach(cells, c, pts) <= tol
+                kind = cells.cell_kind[c]
+                src = cells.cell_source[c]
+                front = cells.cell_front[c]
+                depth = np.einsum("pvk,pk->pv", pts, front[:, :3]) * -1.0 + front[:, 3, None]
+                along = np.einsum("pvk,pk->pv", pts, front[:, :3])
+                thick = along.max(axis=1) - along.min(axis=1)
+                # Behind a concave edge (src: its two vertices) or corner (its vertex): the distance from it.
+                a_pt = v[np.where(kind == TRIANGLE, 0, src[:, 0])]
+                b_pt = v[np.where(kind == EDGE, src[:, 1], 0)]
+                axis = b_pt - a_pt
+                axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-300)
+                off = pts - a_pt[:, None, :]
+                off_line = off - np.einsum("pvk,pk->pv", off, axis)[..., None] * axis[:, None, :]
+                dist = np.where((kind == EDGE)[:, None], np.linalg.norm(off_line, axis=2), np.linalg.norm(off, axis=2))
+                depth = np.where((kind == TRIANGLE)[:, None], depth, dist)
+                depth = np.where(inside, depth, -np.inf)
+                deepest = np.argmax(depth, axis=1)
+                d = depth[np.arange(len(p)), deepest]
+                rel = d / np.where(kind == TRIANGLE, thick, width)
+                for j in np.flatnonzero(rel > INITIAL_OVERLAP_WARNING).tolist():
+                    keep(self._mesh_record(key, int(owner[p[j]]), float(rel[j]), float(d[j]), kind[j], src[j],
+                                           front[j], pos[p[j]]))  # fmt: skip
+                # Mesh vertices (the corners of the cells' triangles) inside the body.
+                tri = kind == TRIANGLE
+                if tri.any():
+                    corners = v[f[src[tri, 0]]]
+                    local = np.einsum("pji,pvj->pvi", rot[p[tri]], corners - pos[p[tri]][:, None, :])
+                    gap = shape.face_offsets - np.einsum("pvk,fk->pvf", local, shape.face_normals)
+                    inner = gap.min(axis=2)
+                    which = np.argmax(inner, axis=1)
+                    dd = inner[np.arange(len(which)), which]
+                    for j in np.flatnonzero(dd > INITIAL_OVERLAP_WARNING * width).tolist():
+                        vi = int(f[src[tri][j, 0], which[j]])
+                        keep(
+                            (
+                                float(dd[j] / width),
+                                float(dd[j]),
+                                int(owner[p[tri][j]]),
+                                f"onto vertex {vi} of the mesh wall {key}, which pokes into it",
+                                "its width",
+                                f"move it off the wall by at least {dd[j]:.3g} m, or move the wall",
+                            )
+                        )
+        # A body whose centre is inside a closed surface facing out lies in its solid, however deep.
+        if is_closed(wall.triangles):
+            bodies = np.setdiff1d(free, np.fromiter(best, dtype=np.int64, count=len(best)))
+            wn = winding(a["position"][bodies], wall.vertices, wall.triangles)
+            for i in bodies[wn > 0].tolist():
+                best[i] = (
+                    1.0,
+                    h,
+                    i,
+                    f"or more inside the closed mesh wall {key} (past its thickness, where its cells end)",
+                    "its thickness",
+                    "move it out of the wall; if the bodies belong inside, the triangles face the wrong way: set "
+                    f"flip_normals = true ({key}.flip_normals)",
+                )
+        return list(best.values())
+
+    @staticmethod
+    def _mesh_record(key, body, rel, depth, kind, src, front, centre):
+        """The overlap record of a body vertex ``depth`` [m] in a cell of kind ``kind`` behind ``src``."""
+        from polydem.meshwall import EDGE, TRIANGLE
+
+        if kind == TRIANGLE:
+            n = ", ".join(f"{x:.3g}" for x in front[:3])
+            where = f"behind triangle {int(src[0])} of the mesh wall {key}"
+            fix = (
+                f"move it by at least {depth:.3g} m along the triangle's normal [{n}], to the side it faces, or move "
+                "the wall"
+            )
+            if float(np.dot(front[:3], centre) - front[3]) < 0.0:
+                fix += (
+                    "; if the bodies belong on the other side, the triangles face the wrong way: set flip_normals = "
+                    f"true ({key}.flip_normals)"
+                )
+            return rel, depth, body, where, "its thickness along the triangle's normal", fix
+        what = (
+            f"the concave edge between vertices {int(src[0])} and {int(src[1])}"
+            if kind == EDGE
+            else f"the concave corner at vertex {int(src[0])}"
+        )
+        return (
+            rel,
+            depth,
+            body,
+            f"behind {what} of the mesh wall {key}",
+            "its width",
+            f"move it out of the corner by at least {depth:.3g} m, or move the wall",
+        )
+
+    def _report_mesh_overlaps(self, records) -> list[str]:
+        """Raise a SceneError for the deepest record beyond INITIAL_OVERLAP_ERROR; else one warning."""
+        if not records:
+            return []
+        records.sort(key=lambda r: -r[0])
+        deep = [r for r in records if r[0] > INITIAL_OVERLAP_ERROR]
+        if deep:
+            rel, depth, i, what, basis, fix = deep[0]
+            more = f" ({len(deep) - 1} more bodies start this deep)" if len(deep) > 1 else ""
+            share = "wholly" if rel >= 1.0 else f"{rel:.0%} of {basis}"
+            raise self.error(
+                f"{self.body_label(i)} starts {depth:.3g} m {what} ({share}): the contact would throw it out at a "
+                f"high speed{more}; {fix}",
+                f"bodies[{i}].position",
+            )
+        shown = "; ".join(f"{self.body_label(i)} {d:.3g} m {what} ({rel:.1%})" for rel, d, i, what, _, _ in records[:3])
+        more = f", and {len(records) - 3} more" if len(records) > 3 else ""
+        return [
+            f"{len(records)} bodies start in the solid of a mesh wall by more than {INITIAL_OVERLAP_WARNING:.0%} of "
+            f"their thickness, pushed out at the start: {shown}{more}; move them out"
+        ]
+
+    def _mesh_thickness_rule(self, wall, key) -> list[str]:
+        """A warning where the cells behind two sides of the wall overlap: along the ray back from each
+        triangle's centroid, the first triangle it leaves the solid through (one that shares no vertex
+        with it) lies nearer than the two cells reach into the solid between them (twice the thickness
+        where the two sides are parallel). Kept with the cells: it depends on nothing else."""
+        from polydem.meshwall import near_pairs, ray_exit, ray_hits, triangle_normals, triangle_sizes
+
+        h = self.mesh_wall_thickness(wall)
+        memo = self.mesh_wall_memo(wall, h)
+        if "rule" in memo:
+            return memo["rule"]
+        cells = self.mesh_wall_cells(wall, h)
+        v, f = cells.vertices, cells.faces
+        normals, _ = triangle_normals(v, f)
+        centroid = v[f].mean(axis=1)
+        mid = centroid - h * normals
+        ri, tj = near_pairs(mid, np.full(len(f), h), centroid, triangle_sizes(v, f))
+        shares = (f[ri][:, :, None] == f[tj][:, None, :]).any(axis=(1, 2))
+        ri, tj = ri[~shares], tj[~shares]
+        t = ray_hits(centroid[ri], -normals[ri], v[f[tj]])
+        ok = (t > 0.0) & (t <= 2.0 * h)
+        ri, tj, t = ri[ok], tj[ok], t[ok]
+        found = []
+        if len(ri):
+            # The nearest crossing of each ray, if it leaves the solid there.
+            order = np.lexsort((t, ri))
+            ri, tj, t = ri[order], tj[order], t[order]
+            first = np.r_[True, ri[1:] != ri[:-1]]
+            ri, tj, t = ri[first], tj[first], t[first]
+            leaves = np.einsum("pk,pk->p", -normals[ri], normals[tj]) > 0.0
+            ri, tj, t = ri[leaves], tj[leaves], t[leaves]
+            here = ray_exit(cells, ri, centroid[ri], -normals[ri])
+            there = ray_exit(cells, tj, centroid[ri] - t[:, None] * normals[ri], normals[ri])
+            over = here + there > t * (1.0 + 1e-9)
+            if over.any():
+                k = int(np.argmin(np.where(over, t, np.inf)))
+                default = " (the default: the free bodies' largest diameter)" if wall.thickness is None else ""
+                found.append(
+                    f"mesh wall {key}: its thickness {h:.3g} m{default} is more than half the thickness of the wall "
+                    f"the mesh makes at triangle {int(ri[k])}, {t[k]:.3g} m through to triangle {int(tj[k])} "
+                    f"({int(over.sum())} triangles are that close to another side): the cells behind one side "
+                    "reach into those behind the other, and a body pressed in there meets the solid twice; give a "
+                    f"thickness below {0.5 * t[k]:.3g} m ({key}.thickness)"
+                )
+        memo["rule"] = found
+        return found

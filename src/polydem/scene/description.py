@@ -308,6 +308,8 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
 
         * float32: shape sizes, masses, inertias, stiffnesses and the power law's V^m within
           [F32_LOW, F32_HIGH] (float32's normal range, 10^6 from both ends);
+        * positions near enough the origin that their float64 spacing resolves a contact
+          (:meth:`check_position_spacing`);
         * the time step (:meth:`time_step`): finite, a given dt within the stable limit, and the
           steps of the run (``duration / dt``) at most MAX_STEPS;
         * contacts stiff enough for the bodies' weight and initial speeds (see :meth:`check_loads`);
@@ -337,6 +339,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             if not (np.all(np.isfinite(nrm)) and abs(np.linalg.norm(nrm) - 1.0) < 1e-9):
                 raise self.error(f"normal {list(plane.normal)} is not a unit vector", f"planes[{j}].normal")
         self.check_float32(a)
+        self.check_position_spacing(a)
         ts = self.time_step()
         self.check_steps(ts)
         found = self.check_loads(a, ts)

@@ -166,10 +166,20 @@ def _read_simulation(cls, data, file) -> Scene:
                 file,
             )
         settle = (settle if settle is not None else True) if until else None
+    stem = Path(file).stem if file is not None else "scene"
+    name = sim.get("name", stem)
+    if isinstance(name, str) and not name.strip():
+        # A blank name would head every line of the run's output with ": " and name no folder.
+        raise SceneError(
+            f"the name is empty: it heads the run's output and names its default folder (polydem_out/NAME/); "
+            f"give a name, or leave name out to use the file's ({stem!r})",
+            "simulation.name",
+            file,
+        )
     return cls(
         gravity=sim.get("gravity", (0.0, 0.0, -9.81)),
         dt=sim.get("dt", "auto"),
-        name=sim.get("name", Path(file).stem if file is not None else "scene"),
+        name=name,
         steps=sim.get("steps"),
         duration=sim.get("duration"),
         description=sim.get("description", ""),

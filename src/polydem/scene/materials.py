@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from polydem.scene.errors import SceneError, unknown_name
-from polydem.scene.values import check_keys, read_choice, read_number, typename
+from polydem.scene.values import as_given, check_keys, read_choice, read_number, typename
 
 LAWS = ("linear", "hertz", "power")
 """Contact laws W(V): linear W = k V; hertz W = 2/3 k V^1.5; power W = k V^m / m."""
@@ -64,7 +64,9 @@ class Material:
         k = read_number(self.k, f"{key}.k", positive=True, hint=f" (stiffness in {LAW_UNITS[law]} for law = {law!r})")
         e = read_number(self.restitution, f"{key}.restitution", hint=f" ({h['restitution']})")
         if not 0.0 < e <= 1.0:
-            raise SceneError(f"must be in (0, 1], got {e:g} ({h['restitution']})", f"{key}.restitution")
+            raise SceneError(
+                f"must be in (0, 1], got {as_given(self.restitution)} ({h['restitution']})", f"{key}.restitution"
+            )
         mu = read_number(self.friction, f"{key}.friction", nonneg=True, hint=f" ({h['friction']})")
         m = self.m
         if law == "power":
@@ -72,7 +74,9 @@ class Material:
                 raise SceneError("law = 'power' needs the exponent m (W = k V^m / m), e.g. m = 2.0", f"{key}.m")
             m = read_number(m, f"{key}.m", hint=f" ({h['m']})")
             if m < 1.0:
-                raise SceneError(f"must be >= 1 (m < 1 gives an infinite force at first touch), got {m:g}", f"{key}.m")
+                raise SceneError(
+                    f"must be >= 1 (m < 1 gives an infinite force at first touch), got {as_given(self.m)}", f"{key}.m"
+                )
         elif m is not None:
             raise SceneError(
                 f"m is only used by law = 'power'; law = {law!r} has the fixed exponent "

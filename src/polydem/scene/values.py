@@ -42,6 +42,13 @@ def is_number(v) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_)
 
 
+def as_given(value) -> str:
+    """A number for a message with every digit it was given (1.0000001, where :g prints 1), as :g prints it
+    otherwise (-1, not -1.0)."""
+    text = repr(float(value))
+    return text[:-2] if text.endswith(".0") else text
+
+
 def read_number(value, key, file=None, *, positive=False, nonneg=False, hint="") -> float:
     """A finite float; ``positive`` requires > 0 and ``nonneg`` >= 0."""
     if not is_number(value):
@@ -50,9 +57,9 @@ def read_number(value, key, file=None, *, positive=False, nonneg=False, hint="")
     if not math.isfinite(v):
         raise SceneError(f"expected a finite number, got {v}{hint}", key, file)
     if positive and v <= 0.0:
-        raise SceneError(f"must be positive (> 0), got {v:g}{hint}", key, file)
+        raise SceneError(f"must be positive (> 0), got {as_given(value)}{hint}", key, file)
     if nonneg and v < 0.0:
-        raise SceneError(f"must not be negative, got {v:g}{hint}", key, file)
+        raise SceneError(f"must not be negative, got {as_given(value)}{hint}", key, file)
     return v
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,7 @@ class MeshWall:
         thickness: depth of the solid behind each triangle [m], or None: the largest bounding
             diameter of the scene's free bodies.
         source: where the mesh came from (a file path, or "vertices" for arrays), for messages.
+        scale: (3,) the factors applied to the given coordinates (for messages; ``vertices`` has them).
     """
 
     vertices: np.ndarray
@@ -73,6 +75,7 @@ class MeshWall:
     angular_velocity: tuple = (0.0, 0.0, 0.0)
     thickness: float | None = None
     source: str = "vertices"
+    scale: tuple = (1.0, 1.0, 1.0)
 
     @property
     def moving(self) -> bool:
@@ -133,6 +136,11 @@ def mesh_input(mesh, key, file, base_dir):
         f"{key}.file",
         file,
     )
+
+
+# Each mesh wall's cells at its last thickness, and what the checks derived from them: a wall is
+# immutable (frozen, its arrays read-only), so they hold as long as it lives.
+_CELLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 @dataclass(frozen=True)
@@ -274,7 +282,10 @@ class WallMethods:
         side a counter-clockwise triangle faces), ``thickness`` [m] deep (default: the largest
         bounding diameter of the free bodies); ``flip_normals`` reverses every triangle. Keep the
         thickness below half the thinnest part of a closed wall, or the cells behind one side
-        reach out of the other.
+        reach out of the other (:meth:`validate` warns where they do), and within a factor of
+        10^6 of the triangles' sizes (validation refuses others: the cells are built to 10^-9 of
+        their size). Validation also refuses free bodies that start deep in the solid (as for
+        plane walls) and warns of a wall moving faster than the bodies it hits can take.
 
         Args:
             mesh: a mesh file (STL, OBJ, PLY; relative paths from ``base_dir``), a trimesh.Trimesh,
@@ -339,10 +350,43 @@ class WallMethods:
             angular_velocity=as_tuple(omega),
             thickness=thickness,
             source=source,
+            scale=as_tuple(sc),
         )
         self._mesh_walls.append(wall)
         self._mesh_wall_keys.append(key)
         return wall
+
+    def mesh_wall_thickness(self, wall: MeshWall) -> float:
+        """The depth [m] of a mesh wall's solid: its ``thickness``, or by default the largest bounding
+        diameter of the free bodies' shapes (of all shapes where no body is free), as the Model takes it."""
+        if wall.thickness is not None:
+            return float(wall.thickness)
+        shapes = list(self.shapes.values())
+        kind = np.asarray(self.body_kind)
+        used = np.unique(np.asarray(self.body_shape)[kind == 0]) if (kind == 0).any() else range(len(shapes))
+        return 2.0 * max(shapes[int(k)].radius for k in used)
+
+    def mesh_wall_cells(self, wall: MeshWall, thickness: float):
+        """The :class:`~polydem.meshwall.MeshCells` of ``wall`` [m, world frame at t = 0] at ``thickness``
+        [m], kept for the next call (the checks run at every validation; the cells only change with the
+        thickness)."""
+        from polydem.meshwall import build_cells
+
+        key = self.mesh_wall_keys[[id(w) for w in self._mesh_walls].index(id(wall))]
+        kept = _CELLS.get(wall)
+        if kept is None or kept[0] != thickness:
+            try:
+                cells = build_cells(wall.vertices, wall.triangles, thickness, label=f"mesh wall {key} ({wall.source})")
+            except MeshWallError as exc:
+                raise self.error(str(exc), key) from None
+            kept = _CELLS[wall] = (thickness, cells, {})
+        return kept[1]
+
+    def mesh_wall_memo(self, wall: MeshWall, thickness: float) -> dict:
+        """A dict kept with the cells of ``wall`` at ``thickness`` (see :meth:`mesh_wall_cells`), for the
+        checks' results that depend on nothing else."""
+        self.mesh_wall_cells(wall, thickness)
+        return _CELLS[wall][2]
 
     def add_box_container(
         self, center, inner_size, material, wall_thickness=None, open_top: bool = True, *, key: str | None = None
