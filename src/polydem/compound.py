@@ -283,7 +283,7 @@ def _warn_non_convex_pieces(pieces, parts, name) -> None:
     import warnings
 
     from polydem.scene.errors import SceneWarning
-    from polydem.shapes import _CONVEX_VOLUME_RTOL
+    from polydem.shapes import CONVEX_VOLUME_RTOL
 
     label = f"compound shape {name!r}" if name else "compound shape"
     hint = "use decompose = 'coacd' (CompoundShape.from_mesh(..., decompose='coacd')) to cut it into convex parts"
@@ -291,7 +291,7 @@ def _warn_non_convex_pieces(pieces, parts, name) -> None:
         if piece.is_watertight:
             volume = abs(float(piece.volume))
             rel = abs(part.volume - volume) / part.volume
-            if rel > _CONVEX_VOLUME_RTOL:
+            if rel > CONVEX_VOLUME_RTOL:
                 what = (
                     f"is not convex: mesh volume {volume:.6g} m^3, convex hull volume {part.volume:.6g} m^3 "
                     f"(relative difference {rel:.3%})"

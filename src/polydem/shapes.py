@@ -74,7 +74,7 @@ _VOLUME_RTOL = 1e-12
 # then chosen to follow the input axes instead of whatever eigh happens to return.
 _MOMENT_RTOL = 1e-9
 # A watertight mesh whose volume differs from its hull's by more than this is reported as not convex.
-_CONVEX_VOLUME_RTOL = 1e-6
+CONVEX_VOLUME_RTOL = 1e-6
 # Limit for sphere(): subdivision 5 already has 20480 faces.
 _MAX_SUBDIVISIONS = 5
 
@@ -233,7 +233,7 @@ class ConvexShape:
         if has_faces and mesh.is_watertight:
             mesh_volume = abs(float(mesh.volume))
             rel = abs(shape.volume - mesh_volume) / shape.volume
-            if rel > _CONVEX_VOLUME_RTOL:
+            if rel > CONVEX_VOLUME_RTOL:
                 warnings.warn(
                     f"mesh '{name}' is not convex: mesh volume {mesh_volume:.6g} m^3, convex hull volume "
                     f"{shape.volume:.6g} m^3 (relative difference {rel:.3%}); using the convex hull",
