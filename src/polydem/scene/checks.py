@@ -10,6 +10,7 @@ import numpy as np
 from polydem.quaternions import quat_to_matrix
 from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
 from polydem.scene.materials import LAW_UNITS
+from polydem.scene.overlaps import INITIAL_OVERLAP_WARNING
 from polydem.scene.values import check_quats
 from polydem.shapes import largest_face_area
 
@@ -35,9 +36,7 @@ F32_HIGH = float(np.finfo(np.float32).max) / _F32_MARGIN
 # fraction of the body's size V^(1/3): above the first a warning, above the second an error.
 OVERLAP_WARNING = 0.1
 OVERLAP_ERROR = 0.5
-# Initial overlaps, as a fraction of the thinner body's thickness along the separating axis.
-INITIAL_OVERLAP_WARNING = 0.01
-INITIAL_OVERLAP_ERROR = 0.5
+
 # Tunnelling (see CheckMethods.tunnelling_limits). Per step a body moves at most this fraction of
 # the smallest half-thickness in the scene: a contact across the thinnest body (thickness 2 h) then
 # spans at least 4 steps, the fewest in which a step-wise force can turn a body round; beyond it the
@@ -1079,26 +1078,12 @@ class CheckMethods:
         )
 
     def _report_mesh_overlaps(self, records) -> list[str]:
-        """Raise a SceneError for the deepest record beyond INITIAL_OVERLAP_ERROR; else one warning."""
-        if not records:
-            return []
-        records.sort(key=lambda r: -r[0])
-        deep = [r for r in records if r[0] > INITIAL_OVERLAP_ERROR]
-        if deep:
-            rel, depth, i, what, basis, fix = deep[0]
-            more = f" ({len(deep) - 1} more bodies start this deep)" if len(deep) > 1 else ""
-            share = "wholly" if rel >= 1.0 else f"{rel:.0%} of {basis}"
-            raise self.error(
-                f"{self.body_label(i)} starts {depth:.3g} m {what} ({share}): the contact would throw it out at a "
-                f"high speed{more}; {fix}",
-                f"bodies[{i}].position",
-            )
-        shown = "; ".join(f"{self.body_label(i)} {d:.3g} m {what} ({rel:.1%})" for rel, d, i, what, _, _ in records[:3])
-        more = f", and {len(records) - 3} more" if len(records) > 3 else ""
-        return [
-            f"{len(records)} bodies start in the solid of a mesh wall by more than {INITIAL_OVERLAP_WARNING:.0%} of "
-            f"their thickness, pushed out at the start: {shown}{more}; move them out"
-        ]
+        return self.report_overlaps(
+            records,
+            f"bodies start in the solid of a mesh wall by more than {INITIAL_OVERLAP_WARNING:.0%} of their "
+            "thickness, pushed out at the start",
+            "move them out",
+        )
 
     def _mesh_thickness_rule(self, wall, key) -> list[str]:
         """A warning where the cells behind two sides of the wall overlap: along the ray back from each
