@@ -11,6 +11,7 @@ import matplotlib
 import numpy as np
 from cli_helpers import run, write_scene
 from PIL import Image
+from test_cli import TINY
 
 from polydem import ConvexShape, Scene, Simulation
 from polydem.plots import write_plots
@@ -21,47 +22,12 @@ matplotlib.use("Agg")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 # 12 cubes and tetrahedra thrown into an open box: 400 steps, a frame every 2 ms (about 13 frames).
-SMALL = """\
-[simulation]
-name = "small"
-dt = "auto"
-steps = 400
-
-[materials.stone]
-density = 2500.0
-law = "hertz"
-k = 1.0e8
-restitution = 0.4
-friction = 0.5
-
-[shapes.cube]
-type = "box"
-size = 0.02
-
-[shapes.tet]
-type = "tetrahedron"
-edge = 0.028
-
-[[walls]]
-type = "box"
-center = [0.0, 0.0, 0.04]
-inner_size = [0.16, 0.16, 0.08]
-wall_thickness = 0.01
-material = "stone"
-
-[[emitters]]
-shape = ["cube", "tet"]
-material = "stone"
-count = 12
-region = { min = [-0.08, -0.08, 0.0], max = [0.08, 0.08, 0.08] }
-velocity = [0.0, 0.0, -1.5]
-seed = 1
-
-[output]
-fps = 500
-usd = "small.usda"
-pictures = false
-"""
+SMALL = (
+    TINY.replace('name = "tiny"', 'name = "small"')
+    .replace('usd = "tiny.usda"', 'usd = "small.usda"')
+    .replace("checkpoint = { steps = 150 }\n", "")
+    .replace("pictures = [1]\n", "pictures = false\n")
+)
 
 
 def assert_drawn(path):
