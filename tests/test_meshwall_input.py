@@ -304,3 +304,14 @@ def test_scene_file_with_a_non_convex_component_warns(tmp_path, capsys):
     assert code == 0, err
     assert "polydem: warning: compound shape 'ring': piece 0 of 1 of the mesh is not convex" in err
     assert "decompose = 'coacd'" in err
+
+
+def test_emitter_beside_a_mesh_its_cells_cannot_resolve_is_refused():
+    """The emitter keeps its grains clear of a mesh wall's cells, built at the emitter's cell size; a mesh a
+    million times smaller than that raised MeshWallError (a traceback from the command) before any check."""
+    sc = scene()
+    sc.add_mesh_wall(floor(size=1e-9), "m")
+    with pytest.raises(SceneError) as err:
+        sc.emit("cube", "m", 10, ((-0.1, -0.1, 0.05), (0.1, 0.1, 0.3)))
+    assert err.value.key == "mesh_walls[0]"
+    assert "times the size of its smallest triangle" in err.value.message

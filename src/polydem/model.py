@@ -146,8 +146,6 @@ class Model:
             raise SceneError("the scene has no bodies", key="bodies")
 
     def _mesh_walls(self, scene, shape_list, dev, s_np):
-        from polydem.meshwall import MeshWallError, build_cells
-
         walls = scene.mesh_walls
         self.num_mesh_walls = len(walls)
         self.num_walls = len(scene.planes) + len(walls)
@@ -157,18 +155,11 @@ class Model:
         if not walls:
             self.mesh_bvhs = []
             return
-        kind = np.asarray(scene.body_kind)
-        used = np.unique(np.asarray(scene.body_shape)[kind == 0]) if (kind == 0).any() else np.arange(len(shape_list))
-        diameter = 2.0 * max(shape_list[k].radius for k in used.tolist())
         mat_index = {name: i for i, name in enumerate(scene.material_names)}
         starts, centers, fronts, lowers, uppers = [0], [], [], [], []
-        for wall, key in zip(walls, scene.mesh_wall_keys, strict=True):
-            pivot = np.asarray(wall.pivot, dtype=np.float64)
-            h = diameter if wall.thickness is None else wall.thickness
-            try:
-                mc = build_cells(wall.vertices - pivot, wall.triangles, h, label=f"mesh wall {key} ({wall.source})")
-            except MeshWallError as exc:
-                raise SceneError(str(exc), key=key, file=scene.file) from None
+        for wall in walls:
+            # The scene's cells (its checks built them at validation): one build, one thickness rule.
+            mc = scene.mesh_wall_cells(wall, scene.mesh_wall_thickness(wall))
             self.mesh_cells.append(mc)
             starts.append(starts[-1] + mc.num_cells)
             centers.append(mc.cell_center)

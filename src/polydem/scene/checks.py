@@ -966,6 +966,7 @@ class CheckMethods:
             shapes, a["shape"][free], a["position"][free], a["orientation"][free]
         )
         owner = free[owner]
+        pos = pos - np.asarray(wall.pivot, dtype=np.float64)  # into the cells' frame
         radius = np.array([s.radius for s in convex])[part]
         pi, ci = near_pairs(pos, radius, cells.cell_center, cells.cell_radius)
         best = {}  # body -> the deepest record

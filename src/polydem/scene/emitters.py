@@ -160,11 +160,15 @@ class _Obstacles:
             self.shape = shape[self.body]
             self.rot = quat_to_matrix(quat[self.body])
         self.mesh_planes = []
-        for wall in scene.mesh_walls:
-            from polydem.meshwall import build_cells
+        from polydem.meshwall import MeshWallError, build_cells
 
+        for wall, key in zip(scene.mesh_walls, scene.mesh_wall_keys, strict=True):
             depth = wall.thickness if wall.thickness is not None else cell
-            cells = build_cells(wall.vertices, wall.triangles, depth).cells
+            try:
+                cells = build_cells(wall.vertices, wall.triangles, depth, label=f"mesh wall {key} ({wall.source})").cells
+            except MeshWallError as exc:
+                # The emitter places its bodies before the checks run: the same one-line refusal as theirs.
+                raise scene.error(str(exc), key) from None
             for c in cells:
                 off = c.face_offsets + c.face_normals @ c.center
                 self.mesh_planes.append((c.center, c.radius, c.face_normals, off, c.vertices + c.center))

@@ -367,16 +367,18 @@ class WallMethods:
         return 2.0 * max(shapes[int(k)].radius for k in used)
 
     def mesh_wall_cells(self, wall: MeshWall, thickness: float):
-        """The :class:`~polydem.meshwall.MeshCells` of ``wall`` [m, world frame at t = 0] at ``thickness``
-        [m], kept for the next call (the checks run at every validation; the cells only change with the
-        thickness)."""
+        """The :class:`~polydem.meshwall.MeshCells` of ``wall`` at ``thickness`` [m], in the wall's own frame
+        (world axes at t = 0, origin at its pivot: what the Model steps), kept for the next call (the checks
+        run at every validation and the Model reuses them; the cells only change with the thickness)."""
         from polydem.meshwall import build_cells
 
         key = self.mesh_wall_keys[[id(w) for w in self._mesh_walls].index(id(wall))]
         kept = _CELLS.get(wall)
         if kept is None or kept[0] != thickness:
             try:
-                cells = build_cells(wall.vertices, wall.triangles, thickness, label=f"mesh wall {key} ({wall.source})")
+                pivot = np.asarray(wall.pivot, dtype=np.float64)
+                label = f"mesh wall {key} ({wall.source})"
+                cells = build_cells(wall.vertices - pivot, wall.triangles, thickness, label=label)
             except MeshWallError as exc:
                 raise self.error(str(exc), key) from None
             kept = _CELLS[wall] = (thickness, cells, {})
