@@ -133,6 +133,13 @@ FAULTS = (
         "    w = np.ones(len(start))\n",
         ("tests/test_measures.py::test_column_stress_is_the_weight_above[cpu]",),
     ),
+    Fault(
+        "spin scale not restored",
+        "kernels/integrate.py",
+        "            pi = pi + pi * ((norm - n) / n)\n",
+        "            pi = pi\n",
+        ("tests/test_integrate.py::test_many_float32_spins_keep_their_angular_momentum_unbiased[cpu]",),
+    ),
 )
 
 # What the copy needs to run the tests from its own root; kernels/ goes to src/polydem/kernels alone.

@@ -436,6 +436,28 @@ def test_torque_free_long_run(device, scalar):
     np.testing.assert_allclose(angular.numpy(), spin[-1], rtol=0, atol=16.0 * bodies.eps * l_scale)
 
 
+def test_many_float32_spins_keep_their_angular_momentum_unbiased(device):
+    """512 bodies of inertia 1:2:3 at random spins and orientations, 10^4 steps at max |w| dt = 0.03, float32.
+
+    The rounded cosine and sine of each sub-rotation scale pi by nearly the same factor every step, a bias
+    that grows like N; the drift restores |pi| (module docstring). Over many bodies the random walk of the
+    rest averages out and a bias shows: measured spread 203 eps and mean -51 eps of d|L|/|L| (2.0 and
+    0.5 sqrt(N) eps); without the restoration 1859 and -938 eps. (float64 rounds its sub-rotations below
+    the rest: 161 eps either way, so only float32 can tell.)"""
+    nb, steps = 512, 10_000
+    rng = np.random.default_rng(1)
+    inertia = np.tile([1.0, 2.0, 3.0], (nb, 1))
+    w_body = rng.normal(size=(nb, 3))
+    q0 = Rotation.random(nb, random_state=3).as_quat()
+    bodies = Bodies(device, np.zeros((nb, 3)), q0, 0.0, Rotation.from_quat(q0).apply(w_body), 1.0, inertia, BODY_FREE)
+    _, l0 = rigid_body_invariants(*bodies.numpy_state()[::2], inertia)
+    bodies.run(steps, 0.03 / np.linalg.norm(w_body, axis=1).max())
+    _, l1 = rigid_body_invariants(*bodies.numpy_state()[::2], inertia)
+    rel = (np.linalg.norm(l1, axis=-1) - np.linalg.norm(l0, axis=-1)) / np.linalg.norm(l0, axis=-1)
+    walk = np.sqrt(steps) * bodies.eps
+    assert rel.std() < 6.0 * walk and abs(rel.mean()) < 2.0 * walk, (rel.std() / walk, rel.mean() / walk)
+
+
 def test_energy_error_is_second_order(device, scalar):
     """Halving dt divides the maximal energy error over a fixed time by about 4.
 
