@@ -211,6 +211,7 @@ def test_run_writes_every_output(tmp_path, capsys):
     assert set(summary["energy"]["final"]) >= {"kinetic", "contact", "gravity", "dissipated", "total"}
     region = summary["settled_region"]
     assert set(region) >= {"packing_fraction", "coordination_number", "bodies"}
+    assert "packing_fraction" in summary["measures"] or summary["measures"]["note"].startswith("no settled region")
     assert summary["outputs"]["checkpoints"] == [
         "checkpoints/step_000000150.npz",
         "checkpoints/step_000000300.npz",
@@ -1008,6 +1009,32 @@ def test_settled_region_of_a_regular_packing():
     width = (n - 1) - 4 * d
     assert region["packing_fraction"] == pytest.approx(len(inside) ** 2 * 4 / (width**2 * 3.5))
     assert region["coordination_number"] == 0.0
+
+
+def test_measures_of_the_settled_region_of_a_regular_packing():
+    """The summary's measures in the same region of the cubic stack: the cubes fill it, so the grains clipped
+    by it fill it exactly (the centre count above gives another number); no cube overlaps a neighbour, so
+    every grain is a rattler and no coordination is left. A region without a box gives a note."""
+    from polydem.cli.report import Report
+
+    scene = polydem.Scene(gravity=(0, 0, -9.81), name="stack")
+    scene.add_material("m", density=1000, law="linear", k=1e6, restitution=0.5, friction=0.0)
+    scene.add_shape("cube", polydem.ConvexShape.box(1.0))
+    for i in range(12):
+        for j in range(12):
+            for k in range(4):
+                scene.add_body("cube", "m", position=(i, j, k + 0.5))
+    sim = polydem.Simulation(scene, device="cpu")
+    contacts = sim.contacts()
+    region = cli.settled_region(scene, sim.state(), contacts)
+    region["at_rest"] = True
+    m = Report._measures(scene, sim, region, contacts)
+    assert region["packing_fraction"] != pytest.approx(1.0)
+    assert m["packing_fraction"] == pytest.approx(1.0, abs=1e-12)
+    assert m["coordination"]["z"] is None and m["coordination"]["rattler_fraction"] == 1.0
+    assert m["at_rest"] is True and sum(m["contact_features"].values()) == 0
+    empty = Report._measures(scene, sim, {"bodies": 0, "note": "too narrow"}, contacts)
+    assert empty == {"note": "no settled region to measure: too narrow"}
 
 
 if os.environ.get("POLYDEM_TEST_DEVICES", "cpu").split(",")[0] != "cpu":  # the CLI tests need the CPU

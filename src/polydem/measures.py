@@ -1575,7 +1575,15 @@ def settled_box(scene, region: dict) -> Box | None:
     return Box(lo, hi)
 
 
-def summary(sim, box: Box | None = None, *, margin: float = 0.0, min_contacts: int = MIN_CONTACTS) -> dict:
+def summary(
+    source,
+    box: Box | None = None,
+    *,
+    contacts=None,
+    margin: float = 0.0,
+    min_contacts: int = MIN_CONTACTS,
+    device=None,
+) -> dict:
     """The measures of a simulation's current state in ``box``, as plain numbers (for summary.json).
 
     Keys: ``box``; ``packing_fraction`` (exact); ``contact_types`` (counts of the contacts with
@@ -1584,14 +1592,18 @@ def summary(sim, box: Box | None = None, *, margin: float = 0.0, min_contacts: i
     grains with their centre in the box); ``fabric`` (3x3, pair contacts in the box);
     ``stress`` (3x3 [Pa], Love-Weber); ``mean_normal_force`` [N] of the pair contacts in the box.
     ``box`` defaults to the box around the free grains, moved in by ``margin`` grain sizes.
+    ``source`` is a :class:`polydem.Simulation` or :class:`Grains` (then give ``contacts``, and
+    ``device`` for the pair geometry).
     """
-    g = Grains.from_simulation(sim)
+    g = _grains(source)
     if box is None:
         box = Box.around(g)
         if margin:
             box = box.shrunk(float(margin) * g.grain_size())
-    c = sim.contacts()
-    types = classify_contacts(sim, c)
+    c = _contacts(source, contacts)
+    if device is None and hasattr(source, "model"):
+        device = source.model.device
+    types = classify_contacts(g, c, device=device)
     features = replace(types, kind=classify_features(types.feature_a, types.feature_b), method="features")
     in_box = box.contains(c["point"])
     centred = Grains(g.shapes, g.body_shape, g.position, g.orientation, g.counted & box.contains(g.position), g.free,

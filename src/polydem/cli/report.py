@@ -94,6 +94,7 @@ class Report:
             for k in ("usd", "resumed_from"):
                 if p.get(k) is not None:
                     p[k] = relative(p[k], o.out_dir)
+        region = self._region(scene, sim, contacts) if consistent else None
         summary = {
             "polydem": __version__,
             "scene": scene.name,
@@ -142,7 +143,8 @@ class Report:
                 "at_resume": self.energy_at_start if resumed_from is not None else None,
                 "final": energy,
             },
-            "settled_region": self._region(scene, sim, contacts) if consistent else None,
+            "settled_region": region,
+            "measures": self._measures(scene, sim, region, contacts) if consistent else None,
             "contact_average": o.average_summary(sim) if consistent else None,
             "outputs": self._files(),
         }
@@ -171,6 +173,25 @@ class Report:
             pass
         region["at_rest"] = at_rest
         return region
+
+    @staticmethod
+    def _measures(scene, sim, region, contacts) -> dict:
+        """:func:`polydem.measures.summary` in the settled region (exact packing fraction, contact types,
+        coordination without rattlers, fabric, Love-Weber stress), or a ``note`` saying why there is none.
+        A measure that fails leaves its reason here and the rest of the summary intact."""
+        from polydem import measures
+
+        box = measures.settled_box(scene, region)
+        if box is None:
+            why = (region or {}).get("note") or "gravity does not lie along a coordinate axis"
+            return {"note": f"no settled region to measure: {why}"}
+        try:
+            grains = measures.Grains.from_scene(scene, sim.state())
+            out = measures.summary(grains, box, contacts=contacts, device=sim.device)
+        except (ValueError, RuntimeError, MemoryError) as exc:
+            return {"note": f"the measures failed: {type(exc).__name__}: {exc}"}
+        out["at_rest"] = region.get("at_rest")
+        return out
 
     def closing_lines(self, s) -> list[str]:
         """The closing lines of the summary ``s``: what the run did and every file written."""
@@ -206,6 +227,15 @@ class Report:
                 f"{region['packing_fraction']:.3f}, "
                 f"coordination number {region['coordination_number']:.2f}"
             )
+            m = s.get("measures") or {}
+            coord = m.get("coordination") or {}
+            if m.get("packing_fraction") is not None and coord.get("z") is not None:
+                kinds = ", ".join(f"{k} {n}" for k, n in (m.get("contact_features") or {}).items() if n)
+                lines.append(
+                    f"  measured there: packing fraction {m['packing_fraction']:.3f} (grains clipped by the region), "
+                    f"coordination {coord['z']:.2f} without the {coord['rattler_fraction']:.1%} rattlers (fewer than "
+                    f"{coord['min_contacts']} contacts)" + (f"; contacts {kinds}" if kinds else "")
+                )
         e = s["energy"]["final"]
         if e is not None:
             lines.append(
