@@ -87,8 +87,8 @@ FAULTS = (
     Fault(
         "drum turns against its axis",
         "src/polydem/scene/walls.py",
-        "        omega_vec = np.broadcast_to(w * a, (n, 3))\n",
-        "        omega_vec = np.broadcast_to(-w * a, (n, 3))\n",
+        "    omega_vec = np.broadcast_to(w * a, (n, 3))\n",
+        "    omega_vec = np.broadcast_to(-w * a, (n, 3))\n",
         ("tests/test_drum.py::test_grains_ride_up_the_rising_side",),
     ),
     Fault(

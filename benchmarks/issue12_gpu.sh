@@ -2,12 +2,17 @@
 # The GPU measurements of BENCHMARKS.md section 7 (issue 12, packings fast), one part per device call
 # (see ../shared/gpu/README.md for getting Warp, and Newton for the peer parts, there):
 #
-#   bash benchmarks/issue12_gpu.sh levers OUTDIR    # pair-kernel variants, register caps, ncu, order, tree
+#   bash benchmarks/issue12_gpu.sh levers OUTDIR    # register caps, ncu, order, tree
 #   bash benchmarks/issue12_gpu.sh settle OUTDIR    # time to settled at 1e4 and 1e5, Newton at 1e4
 #   bash benchmarks/issue12_gpu.sh large OUTDIR     # Newton at 1e5, polydem at 1e6 (settled and the step)
 #
 # The "before" time-to-settle figures of section 7 (tts_base_*.json) were taken on the tree of
 # 3f2ab56 with `time_to_settle.py --dt-scales 1,2,3,4` (its k_t = k_n friction spring).
+# The pair-kernel variants of section 7c (pair_variants.json, s1e5_buffered_*.json, s1e6_before.json)
+# live at the git tag pair-variants-7c, whose copy of this script runs them (in a virtual environment
+# of its own, so that polydem is imported from the tag's tree):
+#   git worktree add /tmp/pair-variants pair-variants-7c && cd /tmp/pair-variants
+#   python -m venv .venv && . .venv/bin/activate && pip install -e . && bash benchmarks/issue12_gpu.sh levers OUTDIR
 set -u
 part=$1
 out=$2
@@ -17,14 +22,9 @@ row() { grep -E "^ +[0-9]+ " | sed "s/^/$1: /"; }
 
 if [ "$part" = levers ]; then
     POLYDEM_TEST_DEVICES=cuda:0 python -m pytest tests/test_pair_variants.py tests/test_broadphase.py -q 2>&1 | tail -2
-    python $B/pair_kernel.py --device cuda:0 --shapes cube,rock20,hull64 --precisions float32 --depths 0.01 --sample 8 \
-        --variants buffered,planes,planes+masks,planes+masks+stream-in,planes+masks+popc+stream-in,planes+masks+popc+stream-in+stream-out \
-        --out "$out/pair_variants.json" 2>&1 | grep -v "^Module" | tail -19
     common="--device cuda:0 --sizes 100000 --steps 100 --warmup-time 0.1 --no-graph-compare --precision mixed"
-    for v in buffered planes; do
-        for cap in 0 128 96; do
-            python $B/settle.py $common --variants $v --max-registers $cap --out "$out/s1e5_${v}_${cap}.json" 2>&1 | row "$v cap $cap"
-        done
+    for cap in 0 128 96; do
+        python $B/settle.py $common --max-registers $cap --out "$out/s1e5_planes_${cap}.json" 2>&1 | row "planes cap $cap"
     done
     for order in grid shuffled morton; do
         python $B/settle.py $common --order $order --out "$out/s1e5_order_${order}.json" 2>&1 | row "order $order"
@@ -53,6 +53,5 @@ if [ "$part" = large ]; then
     cp $B/results/peers/newton_settle_cuda0_100000.json "$out/"
     python $B/time_to_settle.py --device cuda:0 --max-time 1.5 --sizes 1e6 --dt-scales 4 --out "$out/tts_1e6.json" 2>&1 | tail -2
     common="--device cuda:0 --sizes 1000000 --steps 50 --stage-steps 5 --warmup-time 0.05 --no-graph-compare --precision mixed"
-    python $B/settle.py $common --variants buffered --max-registers 0 --out "$out/s1e6_before.json" 2>&1 | row before
     python $B/settle.py $common --out "$out/s1e6_after.json" 2>&1 | row after
 fi

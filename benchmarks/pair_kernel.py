@@ -7,10 +7,9 @@ do), in float32 and float64. Prints a table and writes JSON.
 
     python benchmarks/pair_kernel.py --device cuda:0            # GPU: 2^20 pairs per case
     python benchmarks/pair_kernel.py --device cpu --pairs 4096  # one CPU core
-    python benchmarks/pair_kernel.py --variants buffered,planes+masks,planes+masks+stream
 
-``--variants`` times several pair-kernel variants (kernels/geometry.py, ``PAIR_FEATURES``) on the
-same pairs, one after the other, and checks that their outputs agree bit for bit with the first's.
+The other ways of holding the kernel's working set that BENCHMARKS.md section 7c compares live at
+the git tag ``pair-variants-7c``, where this script takes ``--variants``.
 """
 
 import argparse
@@ -21,7 +20,6 @@ import time
 
 import numpy as np
 import warp as wp
-from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, pair_variant
 from polydem.kernels.narrowphase import OVERLAP_OUTPUTS, make_narrowphase
 
 from polydem import ConvexShape
@@ -86,16 +84,14 @@ def make_pairs(shape, n, depth, rng, device):
     return pa, np.hstack([u * (hi + gap)[:, None], qb])
 
 
-def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, variant=DEFAULT_PAIR_VARIANT):
+def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64):
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
     np_scalar = np.float32 if scalar == wp.float32 else np.float64
     vec3 = wp.types.vector(3, scalar)
     tf = wp.types.transformation(scalar)
-    ns = make_narrowphase(
-        scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=max_registers, variant=variant
-    )
+    ns = make_narrowphase(scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=max_registers)
     args = [
         *shapes.kernel_args(),
         wp.zeros(n, dtype=int, device=dev),
@@ -149,11 +145,6 @@ def main():
     ap.add_argument("--precisions", default="float32,float64")
     ap.add_argument("--shapes", default="cube,tetrahedron,rock20,hull64")
     ap.add_argument("--depths", default="0.001,0.01,0.1")
-    ap.add_argument(
-        "--variants",
-        default=DEFAULT_PAIR_VARIANT,
-        help="comma-separated pair-kernel variants to time side by side (e.g. buffered,planes+masks)",
-    )
     ap.add_argument("--out", default=os.path.join(HERE, "results", "pair_kernel.json"))
     args = ap.parse_args()
 
@@ -163,13 +154,12 @@ def main():
     n = args.pairs or (1 << 20 if dev.is_cuda else 4096)
     repeats = args.repeats or (20 if dev.is_cuda else 5)
     lib = shape_library()
-    variants = [pair_variant(v) for v in args.variants.split(",")]
     rows = []
     cases = {}  # poses per (shape, depth), shared by both precisions
     print(f"device {dev.name} ({dev.alias}), {n} pairs per case, half touching, median of {repeats}")
     print(
         f"{'shape':<12}{'faces':>6}{'depth':>8}{'prec':>9}{'touch':>7}{'Mpairs/s':>11}{'ns/pair':>10}"
-        f"{'err V':>10}{'err S':>10}  variant"
+        f"{'err V':>10}{'err S':>10}"
     )
     for prec in args.precisions.split(","):
         for name in args.shapes.split(","):
@@ -179,39 +169,29 @@ def main():
                 if (name, depth) not in cases:
                     cases[name, depth] = make_pairs(shape, n, depth, np.random.default_rng(12345), dev)
                 pa, pb = cases[name, depth]
-                first = None
-                for variant in variants:
-                    t, outs = time_kernel(shapes, pa, pb, repeats, variant=variant)
-                    if first is None:
-                        first = outs
-                        ev, es = reference_errors(shape, pa, pb, outs, args.sample)
-                    same = all(
-                        np.array_equal(a.view(np.uint8), b.view(np.uint8)) for a, b in zip(outs, first, strict=True)
-                    )
-                    touching = int((outs[0][: n // 2] > 0).sum())
-                    row = {
-                        "shape": name,
-                        "faces": shape.num_faces,
-                        "vertices": shape.num_vertices,
-                        "depth": depth,
-                        "precision": prec,
-                        "variant": variant,
-                        "same_bits_as_first_variant": same,
-                        "pairs": n,
-                        "touching": touching,
-                        "seconds": t,
-                        "pairs_per_second": n / t,
-                        "error_volume": ev,
-                        "error_area_vector": es,
-                    }
-                    rows.append(row)
-                    print(
-                        f"{name:<12}{shape.num_faces:>6}{depth:>8.3g}{prec:>9}{touching / (n // 2):>7.0%}"
-                        f"{n / t / 1e6:>11.1f}{t / n * 1e9:>10.1f}"
-                        f"{ev:>10.1e}{es:>10.1e}  {variant}{'' if same else ' (DIFFERENT BITS)'}",
-                        flush=True,
-                    )
-                    write(args.out, dev, rows)
+                t, outs = time_kernel(shapes, pa, pb, repeats)
+                ev, es = reference_errors(shape, pa, pb, outs, args.sample)
+                touching = int((outs[0][: n // 2] > 0).sum())
+                row = {
+                    "shape": name,
+                    "faces": shape.num_faces,
+                    "vertices": shape.num_vertices,
+                    "depth": depth,
+                    "precision": prec,
+                    "pairs": n,
+                    "touching": touching,
+                    "seconds": t,
+                    "pairs_per_second": n / t,
+                    "error_volume": ev,
+                    "error_area_vector": es,
+                }
+                rows.append(row)
+                print(
+                    f"{name:<12}{shape.num_faces:>6}{depth:>8.3g}{prec:>9}{touching / (n // 2):>7.0%}"
+                    f"{n / t / 1e6:>11.1f}{t / n * 1e9:>10.1f}{ev:>10.1e}{es:>10.1e}",
+                    flush=True,
+                )
+                write(args.out, dev, rows)
     print(f"wrote {args.out}")
 
 

@@ -1,14 +1,16 @@
-"""Registers, stack frame and spills of the pair kernels per variant, from ptxas: no GPU needed.
+"""Registers, stack frame and spills of the pair kernels, from ptxas: no GPU needed.
 
 Warp generates the CUDA source and compiles it to PTX with its NVRTC (sm_90 by default); ptxas -v
 then reports, per kernel, the registers per thread and the per-thread stack frame (the local
 memory that holds the polygon, plane and face buffers) and spill bytes. Static figures: they say
 what each thread holds, not how often it is touched (ncu on a GPU measures the traffic).
 
-    python benchmarks/pair_kernel_ptxas.py --variants buffered,planes+masks+stream-in
+    python benchmarks/pair_kernel_ptxas.py --shapes cube,rock20 --precisions mixed
 
 Needs ptxas on the PATH (the CUDA toolkit). When ptxas is older than Warp's NVRTC, the PTX's
-.version line is lowered to --ptx-version (the kernels use no newer PTX feature).
+.version line is lowered to --ptx-version (the kernels use no newer PTX feature). The pair-kernel
+variants of BENCHMARKS.md section 7c live at the git tag ``pair-variants-7c``, where this script
+takes ``--variants``.
 """
 
 import argparse
@@ -20,7 +22,6 @@ import tempfile
 
 import warp as wp
 from polydem.kernels.forces import make_contact_kernels
-from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, pair_variant
 from polydem.kernels.narrowphase import make_narrowphase
 
 from polydem import ConvexShape
@@ -60,7 +61,6 @@ def ptxas_stats(kernel, arch, ptx_version):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--variants", default=f"buffered,{DEFAULT_PAIR_VARIANT}")
     ap.add_argument("--shapes", default="cube,rock20,hull64")
     ap.add_argument("--precisions", default="float32,mixed")
     ap.add_argument("--arch", type=int, default=90)
@@ -69,21 +69,20 @@ def main():
 
     wp.config.quiet = True
     wp.init()
-    print(f"{'shape':<8}{'prec':>9}  {'kernel':<13}{'regs':>5}{'stack B':>9}{'spill st':>9}{'spill ld':>9}  variant")
+    print(f"{'shape':<8}{'prec':>9}  {'kernel':<13}{'regs':>5}{'stack B':>9}{'spill st':>9}{'spill ld':>9}")
     for name in args.shapes.split(","):
         shapes = ShapeSet([SHAPES[name]()], device="cpu", precision="float32")
         cap, faces = shapes.default_poly_capacity, shapes.max_faces
         for prec in args.precisions.split(","):
-            for variant in (pair_variant(v) for v in args.variants.split(",")):
-                kernels = []
-                if prec != "mixed":
-                    scalar = wp.float32 if prec == "float32" else wp.float64
-                    kernels.append(("overlap", make_narrowphase(scalar, cap, faces, variant=variant).overlap_kernel))
-                contact = make_contact_kernels("hertz", True, cap, faces, precision=prec, variant=variant)
-                kernels.append(("pair_contact", contact.pair_contact_kernel))
-                for label, kernel in kernels:
-                    regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version)
-                    print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}  {variant}", flush=True)
+            kernels = []
+            if prec != "mixed":
+                scalar = wp.float32 if prec == "float32" else wp.float64
+                kernels.append(("overlap", make_narrowphase(scalar, cap, faces).overlap_kernel))
+            contact = make_contact_kernels("hertz", True, cap, faces, precision=prec)
+            kernels.append(("pair_contact", contact.pair_contact_kernel))
+            for label, kernel in kernels:
+                regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version)
+                print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}", flush=True)
 
 
 if __name__ == "__main__":

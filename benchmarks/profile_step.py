@@ -33,7 +33,7 @@ sys.path.insert(0, HERE)
 
 import pair_ceiling as pc  # noqa: E402
 from _meta import run_meta  # noqa: E402
-from settle import add_kernel_options, apply_kernel_options, make_scene, scene_options  # noqa: E402
+from settle import add_kernel_options, kernel_options, make_scene, scene_options  # noqa: E402
 
 METRICS = [
     "gpu__time_duration.sum",
@@ -63,7 +63,7 @@ def build(args, device):
     options = scene_options(edge=0.01, precision=args.precision)
     scene, _ = make_scene(args.bodies, options, seed=args.seed)
     # Without the graph every kernel is its own launch, which ncu then finds by name.
-    return Simulation(scene, device=device, use_graph=False)
+    return Simulation(scene, device=device, use_graph=False, **kernel_options(args))
 
 
 def child(args):
@@ -90,7 +90,7 @@ def timing(args, device):
 
     options = scene_options(edge=0.01, precision=args.precision)
     scene, _ = make_scene(args.bodies, options, seed=args.seed)
-    sim = Simulation(scene, device=device)
+    sim = Simulation(scene, device=device, **kernel_options(args))
     sim.step(max(1, int(round(args.warmup_time / sim.dt))))
     times = []
     for _ in range(5):
@@ -113,7 +113,6 @@ def main():
     ap.add_argument("--out", default=None)
     ap.add_argument("--child-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    apply_kernel_options(args)
     if args.child_out:
         child(args)
         return

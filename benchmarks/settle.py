@@ -102,7 +102,6 @@ import traceback
 
 import numpy as np
 import warp as wp
-from polydem.kernels import geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import ConvexShape, Scene, Simulation
@@ -626,7 +625,7 @@ def run_size(n, args, device, record, save):
     if args.skin is not None:
         # In units of the cube's bounding radius; 0 turns the Verlet list off (rebuild every step).
         skin = args.skin * scene.shapes["cube"].radius
-    sim = Simulation(scene, device=device, skin=skin, tree_rebuild=args.tree_rebuild)
+    sim = Simulation(scene, device=device, skin=skin, tree_rebuild=args.tree_rebuild, **kernel_options(args))
     wp.synchronize_device(device)
     t2 = time.perf_counter()
     warmup = args.warmup if args.warmup is not None else max(CHUNK, math.ceil(args.warmup_time / sim.dt))
@@ -636,7 +635,7 @@ def run_size(n, args, device, record, save):
     record.update(
         {
             "status": "built",
-            "pair_variant": sim.stepper.kernels.geometry.variant,
+            "pair_max_registers": sim.stepper.pair_max_registers,
             "dt": sim.dt,
             "skin": sim.skin,
             "use_graph": sim.use_graph,
@@ -660,10 +659,10 @@ def run_size(n, args, device, record, save):
 
     warm_up(sim, warmup, record)
     record["status"] = "warm"
-    record["warmup_tree_rebuilds"] = sim.broadphase.num_tree_rebuilds
+    record["warmup_tree_rebuilds"] = sim.current_contacts.broadphase.num_tree_rebuilds
     save()
 
-    trees0 = sim.broadphase.num_tree_rebuilds
+    trees0 = sim.current_contacts.broadphase.num_tree_rebuilds
     seconds, host_builds, dev_rebuilds = timed_steps(sim, args.steps)
     record.update(
         {
@@ -674,7 +673,7 @@ def run_size(n, args, device, record, save):
             "body_steps_per_s": n * args.steps / seconds,
             "host_builds": host_builds,
             "device_rebuilds": dev_rebuilds,
-            "tree_rebuilds": sim.broadphase.num_tree_rebuilds - trees0,
+            "tree_rebuilds": sim.current_contacts.broadphase.num_tree_rebuilds - trees0,
             "simulated_time_s": sim.time,
         }
     )
@@ -807,7 +806,7 @@ def graph_off(sim, scene, args, record, warmup):
     """
     n = record["grains"]
     if args.fresh_no_graph:
-        other = Simulation(scene, device=sim.device, use_graph=False)
+        other = Simulation(scene, device=sim.device, use_graph=False, **kernel_options(args))
         other.step(warmup)
         seconds, host_builds, _ = timed_steps(other, args.steps)
         del other
@@ -854,7 +853,7 @@ def print_table(records):
         ("rebuilds", 8, lambda r: f"{r['host_builds'] + r['device_rebuilds']}"),
         ("B/body", 7, lambda r: f"{r['memory']['bytes_per_body']:.0f}"),
         ("nograph", 9, lambda r: f"{1e3 * r['no_graph']['step_s']:.3f}" if "no_graph" in r else "-"),
-        ("variant", 24, lambda r: r.get("pair_variant", "-")),
+        ("regs", 5, lambda r: str(r.get("pair_max_registers") or "none")),
     ]
     log("")
     log(
@@ -920,16 +919,11 @@ def make_parser():
         help="after the run: the broad phase on its tree and on a fresh one, then --steps steps with this policy",
     )
     ap.add_argument("--precision", choices=("float32", "mixed", "float64"), default="float32", help="precision")
-    ap.add_argument(
-        "--variants",
-        default=geometry.DEFAULT_PAIR_VARIANT,
-        help="comma-separated pair-kernel variants (kernels/geometry.py PAIR_FEATURES), each timed per size",
-    )
     return ap
 
 
 def add_kernel_options(ap):
-    """``--max-registers``: the register cap of the step's pair kernel (see :func:`apply_kernel_options`)."""
+    """``--max-registers``: the register cap of the step's pair kernel (see :func:`kernel_options`)."""
     ap.add_argument(
         "--max-registers",
         type=int,
@@ -938,12 +932,11 @@ def add_kernel_options(ap):
     )
 
 
-def apply_kernel_options(args):
-    """Set the pair kernel's register cap from ``--max-registers`` before any Simulation is built."""
-    if args.max_registers is not None:
-        import polydem.kernels.forces as forces
-
-        forces.PAIR_MAX_REGISTERS = args.max_registers or None
+def kernel_options(args):
+    """The ``Simulation`` keyword arguments of ``--max-registers`` (none at its default)."""
+    if args.max_registers is None:
+        return {}
+    return {"pair_max_registers": args.max_registers or None}
 
 
 def add_pile_options(ap):
@@ -998,7 +991,6 @@ def scene_options(**overrides):
 
 def main():
     args = parse_args(make_parser())
-    apply_kernel_options(args)
 
     wp.config.quiet = True
     wp.init()
@@ -1031,11 +1023,9 @@ def main():
     log(f"settle benchmark on {device.name} ({device.alias}), Warp {wp.config.version}; sizes {sizes}, ")
     warm = f"{args.warmup} warm-up steps" if args.warmup else f"{args.warmup_time} s simulated warm-up"
     log(f"  {args.steps} timed steps after {warm}; walls {args.walls}; JSON -> {out}")
-    variants = [geometry.pair_variant(v) for v in args.variants.split(",")]
-    for n, variant in ((n, v) for n in sizes for v in variants):
-        record = {"grains": n, "pair_variant": variant, "status": "started"}
+    for n in sizes:
+        record = {"grains": n, "status": "started"}
         records.append(record)
-        geometry.DEFAULT_PAIR_VARIANT = variant  # read by each new Simulation
         try:
             run_size(n, args, device, record, save)
         except Exception as err:  # keep what was measured, go on with the next size

@@ -45,7 +45,7 @@ from polydem.cli.diagnostics import body_volumes, relative_depths, relative_over
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _meta import run_meta  # noqa: E402
-from settle import SHAPE_SETS, add_pile_options, apply_kernel_options, make_scene, scene_options  # noqa: E402
+from settle import SHAPE_SETS, add_pile_options, kernel_options, make_scene, scene_options  # noqa: E402
 
 EDGE = 0.01  # cube edge [m]
 
@@ -61,7 +61,8 @@ def with_tangential_ratio(scene, ratio):
         return scene
     kn = float(np.nanmax(scene.time_step().tangential_stiffness))
     for name, mat in scene.materials.items():
-        scene._materials[name] = dataclasses.replace(mat, tangential_stiffness=ratio * kn)  # validated again
+        # validated again by the run
+        scene.material_table.by_name[name] = dataclasses.replace(mat, tangential_stiffness=ratio * kn)
     return scene
 
 
@@ -78,7 +79,7 @@ def run_size(n, args, device, dt_scale=1.0):
     ts = scene.time_step()
     scene.dt = dt_scale * ts.recommended
     t0 = time.perf_counter()
-    sim = Simulation(scene, device=device, tree_rebuild=args.tree_rebuild)
+    sim = Simulation(scene, device=device, tree_rebuild=args.tree_rebuild, **kernel_options(args))
     e0 = sim.energy()
     sim.step(1)  # kernels compiled, graph captured
     wp.synchronize_device(sim.device)
@@ -114,7 +115,7 @@ def run_size(n, args, device, dt_scale=1.0):
         "precision": args.precision,
         "order": args.order,
         "tree_rebuild": sim.tree_rebuild,
-        "tree_rebuilds": sim.broadphase.num_tree_rebuilds,
+        "tree_rebuilds": sim.current_contacts.broadphase.num_tree_rebuilds,
         "dt": sim.dt,
         "dt_scale": dt_scale,
         "dt_recommended": ts.recommended,
@@ -166,7 +167,6 @@ def main():
     add_pile_options(ap)
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
     args = ap.parse_args()
-    apply_kernel_options(args)
 
     wp.config.quiet = True
     wp.init()

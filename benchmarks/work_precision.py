@@ -436,10 +436,11 @@ def modified_energy(sim, en):
     m = sim.model
     free = m.body_flags_np == 0
     mass = m.body_mass[free].astype(np.float64)
-    v = sim.body_v.numpy()[free].astype(np.float64)
-    w = sim.body_w.numpy()[free].astype(np.float64)
-    f = sim.body_f.numpy()[free].astype(np.float64) + mass[:, None] * m.gravity[None, :]
-    tau = sim.body_t.numpy()[free].astype(np.float64)
+    st = sim.current_state
+    v = st.body_v.numpy()[free].astype(np.float64)
+    w = st.body_w.numpy()[free].astype(np.float64)
+    f = st.body_f.numpy()[free].astype(np.float64) + mass[:, None] * m.gravity[None, :]
+    tau = st.body_t.numpy()[free].astype(np.float64)
     return en["total"] + 0.5 * sim.dt * (float(np.sum(f * v)) + float(np.sum(tau * w)))
 
 

@@ -148,6 +148,22 @@ def box_area(lower: wp.vec3, upper: wp.vec3):
     return 2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
 
 
+@wp.func
+def store_block(
+    b: int,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    slot: int,
+    block_lower: wp.array(dtype=wp.vec3),
+    block_upper: wp.array(dtype=wp.vec3),
+    tree_cost: wp.array(dtype=wp.float64),
+):
+    # Block b of a level of the implicit tree: its box, and its area added to the tree's cost.
+    block_lower[b] = lo
+    block_upper[b] = hi
+    wp.atomic_add(tree_cost, slot, wp.float64(box_area(lo, hi)))
+
+
 # ---------------------------------------------------------------------------------------------
 # Kernels
 
@@ -563,9 +579,7 @@ def leaf_blocks_kernel(
             if body_flags[i] == FLAG_FREE:
                 lo = wp.min(lo, box_lower[i])
                 hi = wp.max(hi, box_upper[i])
-    block_lower[b] = lo
-    block_upper[b] = hi
-    wp.atomic_add(tree_cost, slot, wp.float64(box_area(lo, hi)))
+    store_block(b, lo, hi, slot, block_lower, block_upper, tree_cost)
 
 
 @wp.kernel(enable_backward=False)
@@ -593,9 +607,25 @@ def merge_blocks_kernel(
         if c < num_children:
             lo = wp.min(lo, child_lower[c])
             hi = wp.max(hi, child_upper[c])
-    block_lower[b] = lo
-    block_upper[b] = hi
-    wp.atomic_add(tree_cost, slot, wp.float64(box_area(lo, hi)))
+    store_block(b, lo, hi, slot, block_lower, block_upper, tree_cost)
+
+
+# ---------------------------------------------------------------------------------------------
+# Launch functions (the BroadPhase below launches its own kernels)
+
+
+def launch_float32_inputs(
+    *, body_radius: wp.array, body_q: wp.array, body_q32: wp.array, body_radius32: wp.array
+) -> None:
+    """Float32 copies ``body_q32`` and ``body_radius32`` of float64 poses ``body_q`` and of the radii
+    grown by the cast's rounding (:func:`float32_input_kernel`), for the broad phase."""
+    wp.launch(
+        float32_input_kernel,
+        dim=body_q.shape[0],
+        inputs=[body_radius, body_q],
+        outputs=[body_q32, body_radius32],
+        device=body_q.device,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -660,6 +690,7 @@ class BroadPhase:
         class_ratio: float = 8.0,
         rotation_term: bool = True,
         body_box=None,
+        radius_ref: float | None = None,
     ):
         """
         Args:
@@ -675,6 +706,8 @@ class BroadPhase:
                 Non-free bodies always count it (they are tested by their boxes).
             body_box: optional pair of (N, 3) arrays, the lower and upper corners of a box around
                 each body's shape in its own frame [m], used to test pairs with non-free bodies.
+            radius_ref: the unit of the size classes [m] (default None: the smallest positive radius
+                of the free bodies, found at each build).
         """
         if num_bodies < 0:
             raise ValueError("num_bodies must be >= 0")
@@ -712,7 +745,7 @@ class BroadPhase:
         # A fixed reference radius for the size classes, instead of the smallest free radius of these
         # bodies: a rank of a decomposed run gives the whole scene's, so that its classes, and with
         # them which body of a pair is A, are those of the undivided run (polydem.distributed).
-        self.radius_ref: float | None = None
+        self.radius_ref = None if radius_ref is None else float(radius_ref)
         self.class_max = wp.zeros(1, dtype=int, device=dev)
         self.pair_counter = wp.zeros(1, dtype=int, device=dev)
         self.pair_count = wp.zeros(1, dtype=int, device=dev)

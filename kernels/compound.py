@@ -51,6 +51,7 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
     convex_plane_depth = prim.plane_depth
     pose_to_f64 = prim.pose_to_f64
     to_scalar3 = prim.to_scalar3
+    zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.func
     def part_pose(shapes: Shapes, x: transform_p, k: int):
@@ -65,14 +66,23 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
         return pose, to_scalar3(d64)
 
     @wp.func
+    def add_part(
+        vol: C, first_moment: vec3c, s_a: vec3c, m_a: vec3c, fb_a: vec3c,
+        v: C, fm: vec3c, sa_k: vec3c, ma_k: vec3c, fb_k: vec3c, d: vec3c,
+    ):  # fmt: skip
+        # The sums with a part's overlap, moved from the part's centre to the body's (d from the
+        # body's to the part's): x = x' + d moves a first moment by V d and a moment of areas by d x S.
+        return vol + v, first_moment + (fm + v * d), s_a + sa_k, m_a + (ma_k + wp.cross(d, sa_k)), fb_a + fb_k
+
+    @wp.func
     def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform_p, xb: transform_p):
         vol = C(0.0)
-        first_moment = vec3c(C(0.0), C(0.0), C(0.0))
-        s_a = vec3c(C(0.0), C(0.0), C(0.0))
-        m_a = vec3c(C(0.0), C(0.0), C(0.0))
-        s_b = vec3c(C(0.0), C(0.0), C(0.0))
-        m_b = vec3c(C(0.0), C(0.0), C(0.0))
-        fb_a = vec3c(C(0.0), C(0.0), C(0.0))
+        first_moment = zero3
+        s_a = zero3
+        m_a = zero3
+        s_b = zero3
+        m_b = zero3
+        fb_a = zero3
         overflow = int(0)
         for i in range(shapes.shape_part_start[sa], shapes.shape_part_start[sa + 1]):
             xpa, da = part_pose(shapes, xa, i)
@@ -83,33 +93,28 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
                 )
                 overflow = wp.max(overflow, of)
                 if v > C(0.0):
-                    # From part A's centre to the body's: x = x' + d moves a first moment by V d
-                    # and a moment of areas by d x S.
-                    vol += v
-                    first_moment += fm + v * da
-                    s_a += sa_k
-                    m_a += ma_k + wp.cross(da, sa_k)
+                    vol, first_moment, s_a, m_a, fb_a = add_part(
+                        vol, first_moment, s_a, m_a, fb_a, v, fm, sa_k, ma_k, fb_k, da
+                    )
+                    # B's moments are about A's centre too: moved by the same d.
                     s_b += sb_k
                     m_b += mb_k + wp.cross(da, sb_k)
-                    fb_a += fb_k
         return vol, first_moment, s_a, m_a, s_b, m_b, fb_a, overflow
 
     @wp.func
     def plane_geometry(shapes: Shapes, s: int, xa: transform_p, normal: vec3p, offset: P):
         vol = C(0.0)
-        first_moment = vec3c(C(0.0), C(0.0), C(0.0))
-        s_a = vec3c(C(0.0), C(0.0), C(0.0))
-        m_a = vec3c(C(0.0), C(0.0), C(0.0))
-        fb_a = vec3c(C(0.0), C(0.0), C(0.0))
+        first_moment = zero3
+        s_a = zero3
+        m_a = zero3
+        fb_a = zero3
         for i in range(shapes.shape_part_start[s], shapes.shape_part_start[s + 1]):
             xp, d = part_pose(shapes, xa, i)
             v, fm, sa_k, ma_k, fb_k = convex_plane(shapes, shapes.part_shape[i], xp, normal, offset)
             if v > C(0.0):
-                vol += v
-                first_moment += fm + v * d
-                s_a += sa_k
-                m_a += ma_k + wp.cross(d, sa_k)
-                fb_a += fb_k
+                vol, first_moment, s_a, m_a, fb_a = add_part(
+                    vol, first_moment, s_a, m_a, fb_a, v, fm, sa_k, ma_k, fb_k, d
+                )
         return vol, first_moment, s_a, m_a, fb_a
 
     @wp.func

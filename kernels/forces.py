@@ -47,18 +47,23 @@ that a run is bit-for-bit repeatable on a device: no floating-point atomics. The
 the contacts with the infinite planes (walls), which clip the body by one plane with the same
 energy model.
 
-Layout: the factory :func:`make_contact_kernels` builds the pair and gather kernels for one contact
-law and friction setting from the shared geometry and response functions; the pair bookkeeping
-kernels of a broad-phase rebuild follow it.
+Layout: :func:`make_wall_contact` builds the bookkeeping of one body's contact with one wall, which
+the gather kernel (plane walls) and :mod:`polydem.kernels.meshwall` (mesh walls) share; the factory
+:func:`make_contact_kernels` builds the pair and gather kernels for one contact law and friction
+setting from the shared geometry and response functions; :func:`launch_pair_contacts` and
+:func:`launch_gather` launch them on what the Protocols :class:`ContactModel`, :class:`BodyState`
+and :class:`PairArrays` name (a Model, a State and the Contacts have it). The pair list's own
+bookkeeping at a broad-phase rebuild is in :mod:`polydem.kernels.pairlist`.
 """
 
 import functools
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, fields
+from typing import Any, Protocol, Self
 
 import warp as wp
 from polydem.kernels.compound import make_body_geometry
-from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
+from polydem.kernels.geometry import make_geometry
+from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
 
@@ -67,6 +72,11 @@ from polydem.kernels.response import make_response
 # Simulation.contacts() reads), and add each contact's force to the sums of an averaging interval.
 REPORT_CONTACTS = wp.constant(1)
 REPORT_SUMS = wp.constant(2)
+
+# The default CUDA register cap of the pair kernel. Uncapped it takes about 200 registers, which
+# leaves 12% of the warp slots active; at 128 twice as many warps hide the local-memory latency
+# despite the spills (BENCHMARKS.md section 7c).
+PAIR_MAX_REGISTERS = 128
 
 
 @wp.struct
@@ -108,33 +118,252 @@ class ContactKernels:
     gather_kernel: Any
 
 
-# CUDA register cap of the step's pair kernel (None: the compiler's choice). Uncapped it takes about
-# 200 registers, which leaves 12% of the warp slots active; at 128 twice as many warps hide the
-# local-memory latency despite the spills (BENCHMARKS.md section 7). A module setting so that
-# benchmarks can compare caps (benchmarks/settle.py --max-registers).
-PAIR_MAX_REGISTERS: int | None = 128
+# What the launch functions read, by name: a polydem Model, State and Contacts have these members
+# (kernels/ does not import the host package; any object with them will do, as Stepper.report's).
 
 
-def make_contact_kernels(*args, max_registers: int | None = None, **kwargs):
-    """:func:`_make_contact_kernels` with the register cap resolved (see there)."""
-    return _make_contact_kernels(
-        *args, max_registers=PAIR_MAX_REGISTERS if max_registers is None else max_registers, **kwargs
-    )
+class ShapeArgs(Protocol):
+    """A shape set (:class:`polydem.shapeset.ShapeSet`): the geometry kernels' ``shapes`` struct."""
+
+    def kernel_args(self) -> list[Any]: ...
+
+
+class ContactModel(Protocol):
+    """The static arrays the contact kernels read (:class:`polydem.model.Model`): shapes, bodies,
+    the material table (M x M, row-major by A's and B's material) and the plane walls."""
+
+    num_bodies: int
+    shapes: ShapeArgs
+    body_shape: wp.array
+    body_material: wp.array
+    body_flags: wp.array
+    body_inv_mass: wp.array
+    num_materials: int
+    material_k: wp.array
+    material_e: wp.array
+    material_mu: wp.array
+    material_kt: wp.array
+    law_m: float
+    plane_normal: wp.array
+    plane_offset: wp.array
+    plane_material: wp.array
+
+
+class BodyState(Protocol):
+    """The bodies' arrays a step's force stage reads and writes (:class:`polydem.state.State`)."""
+
+    body_q: wp.array
+    body_v: wp.array
+    body_w: wp.array
+    plane_xi: wp.array
+    plane_turn: wp.array
+    body_dissipated: wp.array
+    body_f: wp.array
+    body_t: wp.array
+
+
+class PairArrays(Protocol):
+    """The candidate pairs and their per-pair arrays (:class:`polydem.contacts.Contacts`): ``capacity``
+    entries each (``pair_xi``: 1 without friction), the first ``pair_count[0]`` of them pairs."""
+
+    capacity: int
+
+    # Read-only: the Contacts forward them from their broad phase.
+    @property
+    def pair_a(self) -> wp.array: ...
+    @property
+    def pair_b(self) -> wp.array: ...
+    @property
+    def pair_count(self) -> wp.array: ...
+
+    pair_xi: wp.array
+    pair_turn: wp.array
+    pair_force: wp.array
+    pair_torque_a: wp.array
+    pair_dissipated: wp.array
+    pair_by_b: wp.array
+    body_pairs_a: wp.array
+    body_pairs_b: wp.array
+
+
+@dataclass
+class ContactOutputs:
+    """What the diagnostics and report variants write per contact: ``pair_*`` per candidate pair,
+    ``plane_*`` per (body, wall column). The contact points are in the state's scalar (world
+    positions), the rest in the contact scalar; ``plane_normal`` is written for the mesh walls only
+    (a plane's normal is the plane's). The step variant takes them and writes none."""
+
+    pair_volume: wp.array
+    pair_energy: wp.array
+    pair_normal: wp.array
+    pair_point: wp.array
+    pair_fn: wp.array
+    pair_ft: wp.array
+    pair_depth: wp.array
+    plane_volume: wp.array
+    plane_energy: wp.array
+    plane_point: wp.array
+    plane_fn: wp.array
+    plane_ft: wp.array
+    plane_depth: wp.array
+    plane_normal: wp.array
+
+    @classmethod
+    def zeros(cls, pairs: int, bodies: int, walls: int, precision: str, device: Any) -> Self:
+        """Zero arrays for ``pairs`` candidate pairs and ``bodies`` x ``walls`` wall columns."""
+        S, C = scalars(precision)
+        vec3s, vec3c = wp.types.vector(3, S), wp.types.vector(3, C)
+        dtypes = {"volume": C, "energy": C, "normal": vec3c, "point": vec3s, "fn": C, "ft": vec3c, "depth": C}
+        arrays = {}
+        for f in fields(cls):
+            prefix, quantity = f.name.split("_", 1)
+            shape = pairs if prefix == "pair" else (bodies, walls)
+            arrays[f.name] = wp.zeros(shape, dtype=dtypes[quantity], device=device)
+        return cls(**arrays)
+
+    def arrays(self) -> dict[str, wp.array]:
+        """The arrays by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @functools.cache
-def _make_contact_kernels(
+def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: str, report: bool):
+    """``wall_contact``: one body's contact with one wall column, from its overlap geometry (with one
+    plane, or summed over a mesh wall's cells) to the body's force, torque and energy dissipated, the
+    column's turning volume and spring, and what the diagnostics and report variants write. The gather
+    kernel runs it for the plane walls and the mesh-wall kernel for the mesh walls, so that both keep
+    their books alike. Arguments as for :func:`make_contact_kernels`."""
+    S, C = scalars(precision)
+    vec3s = wp.types.vector(3, S)
+    vec3c = wp.types.vector(3, C)
+    resp = make_response(C, law, friction, diagnostics)
+    law_energy = resp.law_energy
+    toe_volume = resp.toe_volume
+    respond = resp.respond
+    zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
+
+    @wp.func
+    def wall_contact(
+        # The contact: body i, wall column j, material pair mat
+        i: int,
+        j: int,
+        mat: int,
+        # Its geometry (positions relative to the body's centre, world axes) and depth
+        vol: C,
+        first_moment: vec3c,
+        s_a: vec3c,
+        m_a: vec3c,
+        fb_a: vec3c,
+        depth: C,
+        # The body (A) and the wall (B): B's reference point from A, the velocities, A's centre
+        r_ab: vec3c,
+        v_a: vec3c,
+        w_a: vec3c,
+        v_b: vec3c,
+        w_b: vec3c,
+        origin: vec3s,
+        radius: C,
+        face_area: C,
+        inv_mass: C,
+        # Model
+        material_k: wp.array(dtype=C),
+        material_e: wp.array(dtype=C),
+        material_mu: wp.array(dtype=C),
+        material_kt: wp.array(dtype=C),
+        law_m: C,
+        dt: C,
+        # State in/out
+        plane_xi: wp.array2d(dtype=vec3c),
+        plane_turn: wp.array2d(dtype=C),
+        # Out (diagnostics)
+        plane_volume: wp.array2d(dtype=C),
+        plane_energy: wp.array2d(dtype=C),
+        plane_fn: wp.array2d(dtype=C),
+        plane_point: wp.array2d(dtype=vec3s),
+        plane_ft: wp.array2d(dtype=vec3c),
+        plane_depth: wp.array2d(dtype=C),
+        # Report (the report variant only)
+        report_bits: int,
+        wall_sums: ContactSums,
+        # The body's sums so far
+        f: vec3s,
+        t: vec3s,
+        lost: S,
+    ):
+        # Returns the body's sums with this contact and the contact's normal (zero when open).
+        if vol <= C(0.0):
+            # What the last impact never gave back (see the pair kernel) is dissipated as it opens.
+            e_mat = material_e[mat]
+            vc = toe_volume(material_k[mat], law_m, e_mat, dt, face_area, radius, inv_mass)
+            kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
+            if wp.static(diagnostics):
+                plane_volume[i, j] = C(0.0)
+                plane_energy[i, j] = kept
+                plane_fn[i, j] = C(0.0)
+                plane_ft[i, j] = zero3
+                plane_depth[i, j] = C(0.0)
+            else:
+                lost += S(kept)
+                plane_turn[i, j] = C(0.0)
+                if wp.static(friction):
+                    xi = plane_xi[i, j]
+                    lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
+                    plane_xi[i, j] = zero3
+                if wp.static(report):
+                    if (report_bits & REPORT_CONTACTS) != 0:
+                        plane_volume[i, j] = C(0.0)
+            return f, t, lost, zero3
+        xi_in = zero3
+        if wp.static(friction):
+            xi_in = plane_xi[i, j]
+        force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
+            vol, first_moment, s_a, m_a, fb_a, r_ab, v_a, w_a, v_b, w_b,
+            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
+            plane_turn[i, j], dt, radius, face_area, inv_mass,
+        )  # fmt: skip
+        if wp.static(diagnostics):
+            plane_volume[i, j] = vol
+            plane_energy[i, j] = energy
+            plane_fn[i, j] = fn
+            plane_point[i, j] = vec3s(point) + origin
+            plane_ft[i, j] = ft
+            plane_depth[i, j] = depth
+        else:
+            if wp.static(friction):
+                plane_xi[i, j] = xi
+            plane_turn[i, j] = turn
+            f += vec3s(force)
+            t += vec3s(torque)
+            lost += S(dl)
+            if wp.static(report):
+                world_point = vec3s(point) + origin
+                if (report_bits & REPORT_CONTACTS) != 0:
+                    plane_volume[i, j] = vol
+                    plane_fn[i, j] = fn
+                    plane_point[i, j] = world_point
+                    plane_ft[i, j] = ft
+                    plane_depth[i, j] = depth
+                if (report_bits & REPORT_SUMS) != 0:
+                    k = i * plane_turn.shape[1] + j
+                    add_to_sums(wall_sums, k, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
+        return f, t, lost, n
+
+    return wall_contact
+
+
+@functools.cache
+def make_contact_kernels(
     law: str,
     friction: bool,
     max_poly: int,
     max_faces: int,
+    *,
     diagnostics: bool = False,
     precision: str = "float32",
-    max_registers: int | None = None,
-    variant: str = DEFAULT_PAIR_VARIANT,
+    max_registers: int | None = PAIR_MAX_REGISTERS,
     compound: bool = False,
     report: bool = False,
-):
+) -> ContactKernels:
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
     ``diagnostics`` builds the variant that reports contacts and energies without stepping.
@@ -148,11 +377,10 @@ def _make_contact_kernels(
     points) and the scalar C of the geometry, the response, the material table and the per-pair
     and per-wall arrays. In "mixed" (S float64, C float32) each pair is clipped in a frame centred
     on A, and each wall contact in one centred on the body, so that the float32 geometry sees
-    coordinates of the bodies' size however far they are from the origin. ``variant`` picks how
-    the pair geometry holds its working set (:func:`polydem.kernels.geometry.make_geometry`).
-    ``max_registers`` caps the pair kernel's CUDA registers per thread (default
-    :data:`PAIR_MAX_REGISTERS`). ``compound`` builds the variant whose bodies may be compound
-    grains (:mod:`polydem.kernels.compound`: the geometry loops over their parts).
+    coordinates of the bodies' size however far they are from the origin. ``max_registers`` caps
+    the pair kernel's CUDA registers per thread (None: the compiler's choice; the results do not
+    depend on it). ``compound`` builds the variant whose bodies may be compound grains
+    (:mod:`polydem.kernels.compound`: the geometry loops over their parts).
     """
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
@@ -162,7 +390,8 @@ def _make_contact_kernels(
     law_energy = resp.law_energy
     toe_volume = resp.toe_volume
     respond = resp.respond
-    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
+    wall_contact = make_wall_contact(law, friction, diagnostics, precision, report)
+    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S)
     body_geom = make_body_geometry(geom, compound)
     Shapes = geom.shapes
     pair_geometry = body_geom.pair_geometry
@@ -377,69 +606,27 @@ def _make_contact_kernels(
         if body_flags[i] == 0:
             xa = body_q[i]
             s = body_shape[i]
+            # The depth only for the diagnostics and a report of the contacts (not for the sums).
+            want_depth = wp.static(diagnostics)
+            if wp.static(report):
+                want_depth = (report_bits & REPORT_CONTACTS) != 0
             for j in range(plane_normal.shape[0]):
                 pn = plane_normal[j]
                 vol, first_moment, s_a, m_a, fb_a = plane_geometry(shapes, s, xa, pn, plane_offset[j])
                 mat = body_material[i] * num_materials + plane_material[j]
-                if vol <= C(0.0):
-                    e_mat = material_e[mat]
-                    area = shapes.shape_face_area[s]
-                    r_s = shapes.shape_radius[s]
-                    vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, r_s, C(body_inv_mass[i]))
-                    kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
-                    if wp.static(diagnostics):
-                        plane_volume[i, j] = C(0.0)
-                        plane_energy[i, j] = kept
-                        plane_fn[i, j] = C(0.0)
-                        plane_ft[i, j] = zero3
-                        plane_depth[i, j] = C(0.0)
-                    else:
-                        lost += S(kept)
-                        plane_turn[i, j] = C(0.0)
-                        if wp.static(friction):
-                            xi = plane_xi[i, j]
-                            lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
-                            plane_xi[i, j] = zero3
-                        if wp.static(report):
-                            if (report_bits & REPORT_CONTACTS) != 0:
-                                plane_volume[i, j] = C(0.0)
-                    continue
-                xi_in = zero3
-                if wp.static(friction):
-                    xi_in = plane_xi[i, j]
-                force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
-                    vol, first_moment, s_a, m_a, fb_a, -vec3c(pn), vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3,
-                    material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
-                    plane_turn[i, j], dt,
+                depth = C(0.0)
+                if wp.static(diagnostics or report):
+                    if want_depth and vol > C(0.0):
+                        depth = C(plane_depth_of(shapes, s, xa, pn, plane_offset[j]))
+                f, t, lost, _ = wall_contact(
+                    i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
+                    -vec3c(pn), vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3, xi_pos,
                     shapes.shape_radius[s], shapes.shape_face_area[s], C(body_inv_mass[i]),
+                    material_k, material_e, material_mu, material_kt, law_m, dt,
+                    plane_xi, plane_turn,
+                    plane_volume, plane_energy, plane_fn, plane_point, plane_ft, plane_depth,
+                    report_bits, wall_sums, f, t, lost,
                 )  # fmt: skip
-                if wp.static(diagnostics):
-                    plane_volume[i, j] = vol
-                    plane_energy[i, j] = energy
-                    plane_fn[i, j] = fn
-                    plane_point[i, j] = vec3s(point) + xi_pos
-                    plane_ft[i, j] = ft
-                    plane_depth[i, j] = C(plane_depth_of(shapes, s, xa, pn, plane_offset[j]))
-                else:
-                    if wp.static(friction):
-                        plane_xi[i, j] = xi
-                    plane_turn[i, j] = turn
-                    f += vec3s(force)
-                    t += vec3s(torque)
-                    lost += S(dl)
-                    if wp.static(report):
-                        world_point = vec3s(point) + xi_pos
-                        if (report_bits & REPORT_CONTACTS) != 0:
-                            plane_volume[i, j] = vol
-                            plane_fn[i, j] = fn
-                            plane_point[i, j] = world_point
-                            plane_ft[i, j] = ft
-                            plane_depth[i, j] = C(plane_depth_of(shapes, s, xa, pn, plane_offset[j]))
-                        if (report_bits & REPORT_SUMS) != 0:
-                            k = i * plane_turn.shape[1] + j
-                            add_to_sums(
-                                wall_sums, k, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point)
-                            )
         if wp.static(not diagnostics):
             body_f[i] = f
             body_t[i] = t
@@ -459,177 +646,140 @@ def _make_contact_kernels(
 
 
 # ---------------------------------------------------------------------------------------------
-# Pair bookkeeping at a broad-phase rebuild (no floating point: deterministic by construction)
+# Launch functions
+# ---------------------------------------------------------------------------------------------
 
 
-@wp.func
-def lower_bound(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
-    lo = int(0)
-    hi = count
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
+def material_args(model: ContactModel, dt: float) -> list[Any]:
+    """The material table, the law's exponent and the step, in the order every contact kernel takes them."""
+    m = model
+    return [m.num_materials, m.material_k, m.material_e, m.material_mu, m.material_kt, m.law_m, dt]
 
 
-@wp.kernel(enable_backward=False)
-def b_keys_kernel(
-    # Model
-    num_bodies: int,
-    sentinel: wp.int64,
-    # State in
-    pair_a: wp.array(dtype=int),
-    pair_b: wp.array(dtype=int),
-    pair_count: wp.array(dtype=int),
-    # Out
-    keys_b: wp.array(dtype=wp.int64),
-    pair_by_b: wp.array(dtype=int),
-):
-    """Keys ``b * N + a`` (sentinel past the count) with the pair index, to sort by the B body."""
-    p = wp.tid()
-    if p < pair_count[0]:
-        keys_b[p] = wp.int64(pair_b[p]) * wp.int64(num_bodies) + wp.int64(pair_a[p])
-    else:
-        keys_b[p] = sentinel
-    pair_by_b[p] = p
+def launch_pair_contacts(
+    kernels: ContactKernels,
+    *,
+    model: ContactModel,
+    state: BodyState,
+    pairs: PairArrays,
+    dt: float,
+    overflow: wp.array,
+    out: ContactOutputs,
+    report_bits: int,
+    pair_sums: ContactSums,
+) -> None:
+    """The pair kernel of ``kernels``, one thread per candidate pair: each pair's wrench on A, spring,
+    turning volume and energy dissipated into ``pairs`` (the step and report variants), its contact
+    into ``out`` (the diagnostics variant; the report variant by ``report_bits``), its force into
+    ``pair_sums`` (the report variant, ``REPORT_SUMS``). A clipped polygon that did not fit sets
+    ``overflow``. ``out`` and ``pair_sums`` may be placeholders of one entry where nothing is written
+    to them."""
+    m = model
+    wp.launch(
+        kernels.pair_contact_kernel,
+        dim=pairs.capacity,
+        inputs=[
+            # Model
+            *m.shapes.kernel_args(),
+            m.body_shape,
+            m.body_material,
+            m.body_inv_mass,
+            *material_args(m, dt),
+            # State in
+            state.body_q,
+            state.body_v,
+            state.body_w,
+            pairs.pair_a,
+            pairs.pair_b,
+            pairs.pair_count,
+            # State in/out
+            pairs.pair_xi,
+            pairs.pair_turn,
+        ],
+        outputs=[
+            # Out (step)
+            pairs.pair_force,
+            pairs.pair_torque_a,
+            pairs.pair_dissipated,
+            overflow,
+            # Out (diagnostics)
+            out.pair_volume,
+            out.pair_energy,
+            out.pair_normal,
+            out.pair_point,
+            out.pair_fn,
+            out.pair_ft,
+            out.pair_depth,
+            # Report
+            int(report_bits),
+            pair_sums,
+        ],
+        device=state.body_q.device,
+        block_dim=NARROWPHASE_BLOCK_DIM,
+    )
 
 
-@wp.kernel(enable_backward=False)
-def body_ranges_kernel(
-    # Model
-    num_bodies: int,
-    # State in
-    pair_key: wp.array(dtype=wp.int64),
-    keys_b: wp.array(dtype=wp.int64),
-    pair_count: wp.array(dtype=int),
-    # Out
-    body_pairs_a: wp.array(dtype=wp.vec2i),
-    body_pairs_b: wp.array(dtype=wp.vec2i),
-):
-    """Each body's ranges in the pairs sorted by (a, b) and in those sorted by (b, a)."""
-    i = wp.tid()
-    count = pair_count[0]
-    n = wp.int64(num_bodies)
-    lo = wp.int64(i) * n
-    hi = lo + n
-    body_pairs_a[i] = wp.vec2i(lower_bound(pair_key, count, lo), lower_bound(pair_key, count, hi))
-    body_pairs_b[i] = wp.vec2i(lower_bound(keys_b, count, lo), lower_bound(keys_b, count, hi))
-
-
-@functools.cache
-def make_remap_history_kernel(scalar):
-    """The kernel that carries the pair history (in ``scalar``) over a rebuild."""
-    vec3 = wp.types.vector(3, scalar)
-
-    @wp.kernel(enable_backward=False, module="unique")
-    def remap_history_kernel(
-        # State in
-        old_key: wp.array(dtype=wp.int64),
-        old_count: wp.array(dtype=int),
-        old_xi: wp.array(dtype=vec3),
-        old_turn: wp.array(dtype=scalar),
-        new_key: wp.array(dtype=wp.int64),
-        new_count: wp.array(dtype=int),
-        friction: int,
-        # Out
-        new_xi: wp.array(dtype=vec3),
-        new_turn: wp.array(dtype=scalar),
-    ):
-        """Carries each pair's history (turning volume; friction spring, with ``friction``) over a
-        rebuild, matched by the pair's key."""
-        p = wp.tid()
-        xi = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-        turn = scalar(0.0)
-        if p < new_count[0]:
-            key = new_key[p]
-            count = old_count[0]
-            j = lower_bound(old_key, count, key)
-            if j < count and old_key[j] == key:
-                turn = old_turn[j]
-                if friction != 0:
-                    xi = old_xi[j]
-        new_turn[p] = turn
-        if friction != 0:
-            new_xi[p] = xi
-
-    return remap_history_kernel
-
-
-@wp.kernel(enable_backward=False)
-def remap_sums_kernel(
-    # State in
-    old_key: wp.array(dtype=wp.int64),
-    old_count: wp.array(dtype=int),
-    old_sums: ContactSums,
-    new_key: wp.array(dtype=wp.int64),
-    new_count: wp.array(dtype=int),
-    # Out
-    new_sums: ContactSums,
-):
-    """Carries each pair's sums of an averaging interval over a rebuild, matched by the pair's key
-    (zero for a new pair and past the count)."""
-    p = wp.tid()
-    zero3 = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    force = zero3
-    tangential = zero3
-    normal = wp.float64(0.0)
-    point = zero3
-    steps = int(0)
-    if p < new_count[0]:
-        key = new_key[p]
-        count = old_count[0]
-        j = lower_bound(old_key, count, key)
-        if j < count and old_key[j] == key:
-            force = old_sums.force[j]
-            tangential = old_sums.tangential[j]
-            normal = old_sums.normal[j]
-            point = old_sums.point[j]
-            steps = old_sums.steps[j]
-    new_sums.force[p] = force
-    new_sums.tangential[p] = tangential
-    new_sums.normal[p] = normal
-    new_sums.point[p] = point
-    new_sums.steps[p] = steps
-
-
-@wp.kernel(enable_backward=False)
-def retire_sums_kernel(
-    # State in
-    old_key: wp.array(dtype=wp.int64),
-    old_count: wp.array(dtype=int),
-    old_sums: ContactSums,
-    new_key: wp.array(dtype=wp.int64),
-    new_count: wp.array(dtype=int),
-    # In/out
-    retired_key: wp.array(dtype=wp.int64),
-    retired: ContactSums,
-    retired_count: wp.array(dtype=int),
-    overflow: wp.array(dtype=int),
-):
-    """Appends the sums of each pair that a rebuild drops from the list after it was in contact in
-    the interval, so that they count in the average. The slots are taken atomically: entries of
-    different keys may come in any order, but those of one key are in the order of the rebuilds
-    (one launch each); past the capacity, ``overflow`` is set (the chunk is redone with more room)."""
-    p = wp.tid()
-    if p >= old_count[0]:
-        return
-    if old_sums.steps[p] == 0:
-        return
-    key = old_key[p]
-    count = new_count[0]
-    j = lower_bound(new_key, count, key)
-    if j < count and new_key[j] == key:
-        return
-    slot = wp.atomic_add(retired_count, 0, 1)
-    if slot >= retired_key.shape[0]:
-        wp.atomic_max(overflow, 0, 1)
-        return
-    retired_key[slot] = key
-    retired.force[slot] = old_sums.force[p]
-    retired.tangential[slot] = old_sums.tangential[p]
-    retired.normal[slot] = old_sums.normal[p]
-    retired.point[slot] = old_sums.point[p]
-    retired.steps[slot] = old_sums.steps[p]
+def launch_gather(
+    kernels: ContactKernels,
+    *,
+    model: ContactModel,
+    state: BodyState,
+    pairs: PairArrays,
+    dt: float,
+    out: ContactOutputs,
+    report_bits: int,
+    wall_sums: ContactSums,
+) -> None:
+    """The gather kernel of ``kernels``, one thread per body, after :func:`launch_pair_contacts`: each
+    body's pair wrenches in key order plus its plane-wall contacts into ``state.body_f`` and
+    ``body_t`` (the step and report variants), its wall contacts into ``out`` and ``wall_sums`` as
+    the pair kernel does."""
+    m = model
+    wp.launch(
+        kernels.gather_kernel,
+        dim=m.num_bodies,
+        inputs=[
+            # Model
+            *m.shapes.kernel_args(),
+            m.body_shape,
+            m.body_material,
+            m.body_flags,
+            m.body_inv_mass,
+            *material_args(m, dt),
+            m.plane_normal,
+            m.plane_offset,
+            m.plane_material,
+            # State in
+            state.body_q,
+            state.body_v,
+            state.body_w,
+            pairs.pair_a,
+            pairs.pair_b,
+            pairs.body_pairs_a,
+            pairs.body_pairs_b,
+            pairs.pair_by_b,
+            pairs.pair_force,
+            pairs.pair_torque_a,
+            pairs.pair_dissipated,
+            # State in/out
+            state.plane_xi,
+            state.plane_turn,
+            state.body_dissipated,
+        ],
+        outputs=[
+            # Out (step)
+            state.body_f,
+            state.body_t,
+            # Out (diagnostics)
+            out.plane_volume,
+            out.plane_energy,
+            out.plane_fn,
+            out.plane_point,
+            out.plane_ft,
+            out.plane_depth,
+            # Report
+            int(report_bits),
+            wall_sums,
+        ],
+        device=state.body_q.device,
+    )

@@ -172,7 +172,6 @@ class Geometry:
     max_poly: int
     max_faces: int
     tol_rel: float
-    variant: str  # the pair-kernel variant (see PAIR_FEATURES), canonical spelling
     primitives: Primitives
     pair_geometry: Any
     pair_depth: Any
@@ -408,41 +407,6 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
     )
 
 
-# Ways of holding a pair's working set in pair_geometry (a variant names those it uses, joined by
-# "+"; "buffered" names none). Each gives the same results bit for bit, only the per-thread memory
-# traffic differs (benchmarks/pair_kernel.py --variants times them side by side,
-# benchmarks/pair_kernel_ptxas.py gives their registers and stack frames):
-# - "planes": the clipping planes are computed again from the float64 shape table wherever they
-#   are read, instead of once per pair into per-thread tables (max_faces x 4 per body);
-# - "masks": the active faces of each body are one bit each in one or two 64-bit registers instead
-#   of a per-thread list of max_faces indices (only where every shape has at most 128 faces);
-# - "popc" (with "masks"): the clipping loop visits the set bits of the other body's mask, found by
-#   population count, instead of testing the bit of each of its faces (fewer steps, more registers);
-# - "stream-in": a face's vertices are read from the shape (and moved to the pair-local frame) by
-#   the first clipping pass instead of copied into the polygon buffer first;
-# - "stream-out": each clipping pass is held back until the next clipping plane is known, so that
-#   the last one feeds the fan triangulation directly instead of the buffer.
-# With both, a face clipped by one plane never touches the buffer; but they hold more registers.
-PAIR_FEATURES = ("planes", "masks", "popc", "stream-in", "stream-out")
-# "planes" alone is the fastest measured (BENCHMARKS.md section 7): the masks' bit loops cost more
-# instructions than the lists' local loads saved, and streaming needs more registers.
-DEFAULT_PAIR_VARIANT = "planes"
-
-
-def pair_variant(name: str) -> str:
-    """The canonical spelling of a pair-kernel variant ("buffered" or features of PAIR_FEATURES
-    joined by "+", in any order); ValueError for an unknown feature."""
-    parts = [p.strip() for p in name.split("+") if p.strip()]
-    if parts == ["buffered"]:
-        parts = []
-    unknown = [p for p in parts if p not in PAIR_FEATURES]
-    if unknown or not name.strip():
-        raise ValueError(
-            f"unknown pair-kernel variant {name!r}: 'buffered' or features of {', '.join(PAIR_FEATURES)} joined by '+'"
-        )
-    return "+".join(f for f in PAIR_FEATURES if f in parts) or "buffered"
-
-
 @functools.cache
 def make_geometry(
     scalar,
@@ -450,7 +414,6 @@ def make_geometry(
     max_faces: int,
     coincident_tol: float | None = None,
     pose_scalar=None,
-    variant: str = DEFAULT_PAIR_VARIANT,
 ) -> Geometry:
     """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
@@ -459,22 +422,14 @@ def make_geometry(
         max_poly: capacity of the per-thread polygon buffer (vertices of one clipped facet). A
             facet that would exceed it raises the returned ``overflow`` flag; the host then
             rebuilds with a larger capacity and runs again.
-        max_faces: the most faces of any shape in use (capacity of the per-thread plane lists).
+        max_faces: the most faces of any shape in use (capacity of the per-thread lists of active
+            faces).
         coincident_tol: relative tolerance of the coincident-face test (default per precision).
         pose_scalar: precision of the poses taken (default ``scalar``); ``wp.float64`` with a
             ``wp.float32`` ``scalar`` is the mixed mode.
-        variant: how :func:`pair_geometry` holds its working set (see ``PAIR_FEATURES``); the
-            results are the same bit for bit.
     """
     if pose_scalar is None:
         pose_scalar = scalar
-    features = pair_variant(variant).split("+")
-    local_planes = "planes" in features
-    face_masks = "masks" in features and max_faces <= 128
-    two_words = max_faces > 64  # the masks' second word (faces 64-127)
-    bit_visits = face_masks and "popc" in features
-    stream_in = "stream-in" in features
-    stream_out = "stream-out" in features
     prim = make_primitives(scalar, pose_scalar)
     vec3 = prim.vec3
     vec4 = prim.vec4
@@ -482,7 +437,6 @@ def make_geometry(
     transform = wp.types.transformation(pose_scalar)
     Shapes = prim.shapes
     poly_t = wp.types.matrix(shape=(2 * max_poly, 3), dtype=scalar)
-    planes_t = wp.types.matrix(shape=(max_faces, 4), dtype=scalar)
     ids_t = wp.types.vector(length=max_faces, dtype=int)
     tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
     noise_rel = float(COORDINATE_NOISE[scalar])
@@ -495,7 +449,6 @@ def make_geometry(
     crosses = prim.crosses
     edge_cut = prim.edge_cut
     fan_add = prim.fan_add
-    fan_push = prim.fan_push
     fan_close = prim.fan_close
     cone = prim.cone
     to_scalar3 = prim.to_scalar3
@@ -537,42 +490,6 @@ def make_geometry(
                 return to_scalar3(wp.quat_rotate(frame, v - apex))
             return to_scalar3(v - apex)
         return to_scalar3(rot * v + off_2)
-
-    @wp.func
-    def active(lo: wp.uint64, hi: wp.uint64, k: int):
-        # Whether bit k of a face mask (words lo, hi) is set.
-        if wp.static(two_words):
-            if k >= 64:
-                return ((hi >> wp.uint64(k - 64)) & wp.uint64(1)) != wp.uint64(0)
-        return ((lo >> wp.uint64(k)) & wp.uint64(1)) != wp.uint64(0)
-
-    @wp.func
-    def with_bit(lo: wp.uint64, hi: wp.uint64, k: int):
-        # The face mask (lo, hi) with bit k set.
-        if wp.static(two_words):
-            if k >= 64:
-                return lo, hi | (wp.uint64(1) << wp.uint64(k - 64))
-        return lo | (wp.uint64(1) << wp.uint64(k)), hi
-
-    @wp.func
-    def next_bit(lo: wp.uint64, hi: wp.uint64):
-        # The lowest set bit of the face mask (lo, hi): its index (the count of the bits below
-        # it), and the mask without it.
-        if wp.static(two_words):
-            if lo == wp.uint64(0):
-                k = wp.bit_count((hi & (wp.uint64(0) - hi)) - wp.uint64(1))
-                return k + 64, lo, hi & (hi - wp.uint64(1))
-        k = wp.bit_count((lo & (wp.uint64(0) - lo)) - wp.uint64(1))
-        return k, lo & (lo - wp.uint64(1)), hi
-
-    @wp.func
-    def none_from(lo: wp.uint64, hi: wp.uint64, k: int):
-        # Whether no bit k or above of the face mask (lo, hi) is set.
-        if wp.static(two_words):
-            if k >= 64:
-                return (hi >> wp.uint64(k - 64)) == wp.uint64(0)
-            return (lo >> wp.uint64(k)) == wp.uint64(0) and hi == wp.uint64(0)
-        return (lo >> wp.uint64(k)) == wp.uint64(0)
 
     @wp.func
     def support64(shapes: Shapes, v0: int, v1: int, rot: mat33d, off: vec3d, u: vec3d, floor: wp.float64):
@@ -774,15 +691,10 @@ def make_geometry(
         # precision for shallow overlaps. The tau are only an apex: the clipping precision will do.
         tau_1c = scalar(1.0)
         tau_2c = scalar(0.0)
-        # The active faces of each body: a bit per face in a register (face_masks), or a list of
-        # their indices in per-thread memory. Either way they are visited in increasing index order.
-        mask_1 = wp.uint64(0)
-        mask_1h = wp.uint64(0)
-        mask_2 = wp.uint64(0)
-        mask_2h = wp.uint64(0)
-        if wp.static(not face_masks):
-            ids_1 = ids_t()
-            ids_2 = ids_t()
+        # The active faces of each body, a list of their indices in per-thread memory, in increasing
+        # index order.
+        ids_1 = ids_t()
+        ids_2 = ids_t()
         num_1 = int(0)
         for f in range(f10, f11):
             plc = shapes.face_plane[f]
@@ -803,10 +715,7 @@ def make_geometry(
             sph_c = shapes.face_sphere[f]
             if sphere_misses_c(vec3(sph_c[0], sph_c[1], sph_c[2]), sph_c[3] + slack, uc, lo_c, hi_c, pos_c, r2_c):
                 continue
-            if wp.static(face_masks):
-                mask_1, mask_1h = with_bit(mask_1, mask_1h, f - f10)
-            else:
-                ids_1[num_1] = f
+            ids_1[num_1] = f
             num_1 += 1
         num_2 = int(0)
         pos_2c = -(rot_ct * pos_c)  # body 1's centre in body 2's frame
@@ -830,20 +739,10 @@ def make_geometry(
             cc = rot_c * vec3(sph_c[0], sph_c[1], sph_c[2]) + pos_c
             if sphere_misses_c(cc, sph_c[3] + slack, uc, lo_c, hi_c, zero3, r1_c):
                 continue
-            if wp.static(face_masks):
-                mask_2, mask_2h = with_bit(mask_2, mask_2h, g - f20)
-            else:
-                ids_2[num_2] = g
+            ids_2[num_2] = g
             num_2 += 1
         tau_1 = wp.float64(tau_1c)
         tau_2 = wp.float64(tau_2c)
-        # Slots to visit per body: every face of the body (face_masks: inactive ones skipped by
-        # their bit), or the listed active faces.
-        slots_1 = num_1
-        slots_2 = num_2
-        if wp.static(face_masks):
-            slots_1 = f11 - f10
-            slots_2 = f21 - f20
 
         # A flat contact: of the active faces with opposite outward normals (within PARALLEL_COS),
         # the pair whose planes lie nearest each other. The pair-local frame then turns body 1's
@@ -856,25 +755,13 @@ def make_geometry(
         turned = bool(False)  # frame is not the identity: body 1's planes and vertices are rotated
         flat = int(-1)
         gap = scalar(1.0e30)
-        for j in range(slots_1):
-            f = int(0)
-            if wp.static(face_masks):
-                if not active(mask_1, mask_1h, j):
-                    continue
-                f = f10 + j
-            else:
-                f = ids_1[j]
+        for j in range(num_1):
+            f = ids_1[j]
             pf = shapes.face_plane[f]
             # n_f in body 2's frame, where body 2's planes are read as stored
             nf2 = rot_ct * vec3(pf[0], pf[1], pf[2])
-            for jj in range(slots_2):
-                g = int(0)
-                if wp.static(face_masks):
-                    if not active(mask_2, mask_2h, jj):
-                        continue
-                    g = f20 + jj
-                else:
-                    g = ids_2[jj]
+            for jj in range(num_2):
+                g = ids_2[jj]
                 pg = shapes.face_plane[g]
                 ng = vec3(pg[0], pg[1], pg[2])
                 if wp.dot(nf2, ng) < -scalar(parallel_cos):
@@ -900,15 +787,8 @@ def make_geometry(
             for _round in range(3):
                 s_top = wp.float64(0.0)
                 n_top = vec3d()
-                for j in range(slots_1):
-                    f = int(0)
-                    if wp.static(face_masks):
-                        if not active(mask_1, mask_1h, j):
-                            continue
-                        f = f10 + j
-                    else:
-                        f = ids_1[j]
-                    n, d = plane64(shapes, f)
+                for j in range(num_1):
+                    n, d = plane64(shapes, ids_1[j])
                     sj = wp.dot(n, apex) - d
                     if sj > s_top:
                         s_top = sj
@@ -926,26 +806,11 @@ def make_geometry(
                 frame = axes_onto(n_flat)
         # The pair-local frame: `frame` times body 1's axes, origin at the apex. Planes and vertices
         # are moved there in float64 and only then rounded to the clipping precision (plane_row_1,
-        # plane_row_2, face_vertex), either once per pair into per-thread tables or ("planes")
-        # again wherever a plane is read: the same arithmetic, so the same bits. `rot_l` and
-        # `off_2` place body 2 there; `rot` and `pos` still place it in body 1's frame.
+        # plane_row_2, face_vertex) wherever they are read: recomputed, not kept in per-thread tables
+        # (BENCHMARKS.md section 7c). `rot_l` and `off_2` place body 2 there; `rot` and `pos` still
+        # place it in body 1's frame.
         rot_l = wp.quat_to_matrix(frame) * rot
         off_2 = wp.quat_rotate(frame, pos - apex)  # body 2's centre, pair-local
-        if wp.static(not local_planes):
-            planes_1 = planes_t()
-            for j in range(slots_1):
-                if wp.static(face_masks):
-                    if active(mask_1, mask_1h, j):
-                        planes_1[j] = plane_row_1(shapes, f10 + j, turned, frame, apex)
-                else:
-                    planes_1[j] = plane_row_1(shapes, ids_1[j], turned, frame, apex)
-            planes_2 = planes_t()
-            for j in range(slots_2):
-                if wp.static(face_masks):
-                    if active(mask_2, mask_2h, j):
-                        planes_2[j] = plane_row_2(shapes, f20 + j, rot_l, off_2)
-                else:
-                    planes_2[j] = plane_row_2(shapes, ids_2[j], rot_l, off_2)
         tol_c = scalar(tol_rel) * scalar(r2)  # coincident-face tolerance, before the rounding
 
         vol = scalar(0.0)
@@ -957,45 +822,24 @@ def make_geometry(
         overflow = int(0)
         # Clip each active face polygon by the other body's active planes and integrate the
         # surviving piece. This loop is written out here rather than in a helper called per face:
-        # a @wp.func takes its arguments by value, and the per-thread buffers (polygon, planes, ids)
-        # live in local memory, so a call per face copied and zero-filled them again each time.
+        # a @wp.func takes its arguments by value, and the per-thread buffers (polygon, ids) live
+        # in local memory, so a call per face copied and zero-filled them again each time.
         # One polygon buffer serves every face; its halves [0, max_poly) and [max_poly, 2 max_poly)
-        # take turns as input and output of the Sutherland-Hodgman passes (with stream-in the
-        # first pass reads the face from the shape; with stream-out the last feeds the fan).
+        # take turns as input and output of the Sutherland-Hodgman passes.
         poly = poly_t()
-        for j in range(slots_1 + slots_2):
-            face_is_1 = j < slots_1
+        for j in range(num_1 + num_2):
+            face_is_1 = j < num_1
             face = int(0)
             num_planes = int(0)
             plane = vec4()
             if face_is_1:
-                if wp.static(face_masks):
-                    if not active(mask_1, mask_1h, j):
-                        continue
-                    face = f10 + j
-                else:
-                    face = ids_1[j]
-                num_planes = slots_2
-                if wp.static(bit_visits):
-                    num_planes = num_2
-                if wp.static(local_planes):
-                    plane = plane_row_1(shapes, face, turned, frame, apex)
-                else:
-                    plane = planes_1[j]
+                face = ids_1[j]
+                num_planes = num_2
+                plane = plane_row_1(shapes, face, turned, frame, apex)
             else:
-                if wp.static(face_masks):
-                    if not active(mask_2, mask_2h, j - slots_1):
-                        continue
-                    face = f20 + j - slots_1
-                else:
-                    face = ids_2[j - slots_1]
-                num_planes = slots_1
-                if wp.static(bit_visits):
-                    num_planes = num_1
-                if wp.static(local_planes):
-                    plane = plane_row_2(shapes, face, rot_l, off_2)
-                else:
-                    plane = planes_2[j - slots_1]
+                face = ids_2[j - num_1]
+                num_planes = num_1
+                plane = plane_row_2(shapes, face, rot_l, off_2)
             nf = vec3(plane[0], plane[1], plane[2])
             begin = shapes.face_loop_start[face]
             count = shapes.face_loop_start[face + 1] - begin
@@ -1009,64 +853,22 @@ def make_geometry(
                     centre = to_scalar3(c64 - apex)
             else:
                 centre = to_scalar3(rot_l * c64 + off_2)
-            # from_face: the live polygon is still the face itself (not in `poly`).
-            from_face = bool(wp.static(stream_in))
-            if wp.static(not stream_in):
-                for k in range(count):
-                    poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
+            for k in range(count):
+                poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
             weight = scalar(1.0)
             alive = bool(True)
             cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
-            pending = bool(False)  # stream-out: a clip by `held` is still to run
-            held = vec4()
-            # popc: the other body's planes still to visit (copies: Warp would alias a plain name).
-            rest = wp.uint64(0)
-            rest_h = wp.uint64(0)
-            if wp.static(bit_visits):
-                if face_is_1:
-                    rest = wp.uint64(mask_2)
-                    rest_h = wp.uint64(mask_2h)
-                else:
-                    rest = wp.uint64(mask_1)
-                    rest_h = wp.uint64(mask_1h)
             for t in range(num_planes):
-                i = t  # the plane's row in planes_1 / planes_2 (face_masks: its face's slot)
                 other = int(0)
                 if face_is_1:
-                    if wp.static(bit_visits):
-                        i, rest, rest_h = next_bit(rest, rest_h)
-                        other = f20 + i
-                    elif wp.static(face_masks):
-                        if none_from(mask_2, mask_2h, i):
-                            break
-                        if not active(mask_2, mask_2h, i):
-                            continue
-                        other = f20 + i
-                    else:
-                        other = ids_2[i]
+                    other = ids_2[t]
                 else:
-                    if wp.static(bit_visits):
-                        i, rest, rest_h = next_bit(rest, rest_h)
-                        other = f10 + i
-                    elif wp.static(face_masks):
-                        if none_from(mask_1, mask_1h, i):
-                            break
-                        if not active(mask_1, mask_1h, i):
-                            continue
-                        other = f10 + i
-                    else:
-                        other = ids_1[i]
+                    other = ids_1[t]
                 pl = vec4()
-                if wp.static(local_planes):
-                    if face_is_1:
-                        pl = plane_row_2(shapes, other, rot_l, off_2)
-                    else:
-                        pl = plane_row_1(shapes, other, turned, frame, apex)
+                if face_is_1:
+                    pl = plane_row_2(shapes, other, rot_l, off_2)
                 else:
-                    if face_is_1:
-                        pl = planes_2[i]
-                    else:
-                        pl = planes_1[i]
+                    pl = plane_row_1(shapes, other, turned, frame, apex)
                 nc = vec3(pl[0], pl[1], pl[2])
                 dc = pl[3]
                 dist_c = plane_distance(nc, dc, centre)
@@ -1097,33 +899,18 @@ def make_geometry(
                             if inside_face != 0:
                                 weight = scalar(0.0)
                         continue
-                cut_by = pl
-                if wp.static(stream_out):
-                    # Run the clip held back so far (if any) and hold back this one.
-                    cut_by = held
-                    held = pl
-                    if not pending:
-                        pending = True
-                        continue
-                ncut = vec3(cut_by[0], cut_by[1], cut_by[2])
-                dcut = cut_by[3]
-                # Sutherland-Hodgman against ncut.x <= dcut, from rows [cur, cur+count) (or the
-                # face) into the other half.
+                # Sutherland-Hodgman against ncut.x <= dcut (the plane nc, dc, read again: with nc and
+                # dc themselves the kernel compiles otherwise than the one timed in BENCHMARKS.md 7c),
+                # from rows [cur, cur+count) into the other half.
+                ncut = vec3(pl[0], pl[1], pl[2])
+                dcut = pl[3]
                 out = max_poly - cur
                 n_out = int(0)
                 full = int(0)
-                prev = vec3()
-                if from_face:
-                    prev = face_vertex(shapes, face_is_1, begin + count - 1, turned, frame, rot_l, off_2, apex)
-                else:
-                    prev = poly[cur + count - 1]
+                prev = poly[cur + count - 1]
                 s_prev = plane_distance(ncut, dcut, prev)
                 for k in range(count):
-                    v = vec3()
-                    if from_face:
-                        v = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
-                    else:
-                        v = poly[cur + k]
+                    v = poly[cur + k]
                     sk = plane_distance(ncut, dcut, v)
                     if crosses(s_prev, sk):
                         if n_out >= max_poly:
@@ -1146,57 +933,14 @@ def make_geometry(
                     break
                 cur = out
                 count = n_out
-                from_face = False
             if not alive:
                 continue
             # Fan triangulation: facet area and area-weighted centroid.
             sum_a2 = scalar(0.0)
             sum_c = zero3
-            if wp.static(stream_out):
-                # The last clip (if any) streams its output into the fan: the same vertices in the
-                # same order as the buffered pass would have written, so the same sums.
-                first = zero3
-                last = zero3
-                emitted = int(0)
-                ncut = vec3(held[0], held[1], held[2])
-                dcut = held[3]
-                prev = vec3()
-                if from_face:
-                    prev = face_vertex(shapes, face_is_1, begin + count - 1, turned, frame, rot_l, off_2, apex)
-                else:
-                    prev = poly[cur + count - 1]
-                s_prev = plane_distance(ncut, dcut, prev)
-                for k in range(count):
-                    v = vec3()
-                    if from_face:
-                        v = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
-                    else:
-                        v = poly[cur + k]
-                    if pending:
-                        sk = plane_distance(ncut, dcut, v)
-                        if crosses(s_prev, sk):
-                            cut = edge_cut(prev, s_prev, v, sk)
-                            first, last, emitted, sum_a2, sum_c = fan_push(cut, first, last, emitted, nf, sum_a2, sum_c)
-                        if sk <= scalar(0.0):
-                            first, last, emitted, sum_a2, sum_c = fan_push(v, first, last, emitted, nf, sum_a2, sum_c)
-                        prev = v
-                        s_prev = sk
-                    else:
-                        first, last, emitted, sum_a2, sum_c = fan_push(v, first, last, emitted, nf, sum_a2, sum_c)
-                if emitted < 3:
-                    continue
-            elif from_face:
-                # stream-in, and no plane clipped the face: its own vertices make the fan.
-                p0 = face_vertex(shapes, face_is_1, begin, turned, frame, rot_l, off_2, apex)
-                pk = face_vertex(shapes, face_is_1, begin + 1, turned, frame, rot_l, off_2, apex)
-                for k in range(2, count):
-                    pn = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
-                    sum_a2, sum_c = fan_add(p0, pk, pn, nf, sum_a2, sum_c)
-                    pk = pn
-            else:
-                p0 = poly[cur]
-                for k in range(1, count - 1):
-                    sum_a2, sum_c = fan_add(p0, poly[cur + k], poly[cur + k + 1], nf, sum_a2, sum_c)
+            p0 = poly[cur]
+            for k in range(1, count - 1):
+                sum_a2, sum_c = fan_add(p0, poly[cur + k], poly[cur + k + 1], nf, sum_a2, sum_c)
             area, area_c = fan_close(sum_a2, sum_c, weight)
             dv, dv_c = cone(area, area_c, plane, zero3)
             vol += dv
@@ -1310,7 +1054,6 @@ def make_geometry(
         max_poly=max_poly,
         max_faces=max_faces,
         tol_rel=tol_rel,
-        variant=pair_variant(variant),
         primitives=prim,
         pair_geometry=pair_geometry,
         pair_depth=pair_depth,

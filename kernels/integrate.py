@@ -67,18 +67,42 @@ their prescribed v and w; their position advances by v dt and their orientation 
 rotation exp(w dt) (about world axes), and forces and gravity are ignored. A kinematic body with a
 pivot p (a part of a drum) turns about it instead: x <- p + exp(w dt)(x - p), v = w x (x - p).
 
+After the integration the step counts itself and checks its state on the device (finite; each
+body's fastest point against its speed limit); a settling run measures the free bodies' energies and
+largest speed here too.
+
 Layout of this file: ``@wp.func`` helpers, the kernels, then the plain launch functions.
 """
 
 import functools
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import warp as wp
 
 BODY_FREE = wp.constant(0)
 BODY_FIXED = wp.constant(1)
 BODY_KINEMATIC = wp.constant(2)
+
+
+class BodyModel(Protocol):
+    """The bodies' static arrays that the check and the settle measures read (:class:`polydem.model.Model`):
+    flags, inverse masses, principal inertias, bounding radii [m], and the gravity (three numbers [m/s^2])."""
+
+    body_flags: wp.array
+    body_inv_mass: wp.array
+    body_inertia: wp.array
+    body_radius: wp.array
+    gravity: Iterable[float]
+
+
+class BodyMotion(Protocol):
+    """The bodies' poses and velocities (:class:`polydem.state.State`)."""
+
+    body_q: wp.array
+    body_v: wp.array
+    body_w: wp.array
 
 
 @dataclass(frozen=True)
@@ -294,6 +318,102 @@ body_momentum = make_integrator(wp.float32).body_momentum
 
 
 # ---------------------------------------------------------------------------------------------
+# After the step: its count and its check; the measures of a settling run
+
+
+@functools.cache
+def make_check_state_kernel(scalar):
+    """The check of a state in ``scalar``: finiteness, and each body's peak speed against its limit."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def check_state_kernel(
+        # Model
+        body_flags: wp.array(dtype=int),
+        body_radius: wp.array(dtype=float),
+        body_speed_limit: wp.array(dtype=float),
+        # State in
+        step: wp.array(dtype=int),
+        body_q: wp.array(dtype=wp.types.transformation(scalar)),
+        body_v: wp.array(dtype=vec3),
+        body_w: wp.array(dtype=vec3),
+        # Out
+        bad_step: wp.array(dtype=int),
+        body_peak_speed: wp.array(dtype=float),
+        too_fast: wp.array(dtype=int),
+    ):
+        """Records (atomic min) the first step at which a body's state is not finite, each body's
+        largest speed of its fastest point (|v| + |w| r), and whether one went above its speed limit."""
+        i = wp.tid()
+        speed = float(wp.length(body_v[i]) + wp.length(body_w[i]) * scalar(body_radius[i]))
+        # One thread per body: a plain running maximum, no atomics.
+        if speed > body_peak_speed[i]:
+            body_peak_speed[i] = speed
+        if speed > body_speed_limit[i]:
+            wp.atomic_max(too_fast, 0, 1)
+        q = body_q[i]
+        p = wp.transform_get_translation(q)
+        r = wp.transform_get_rotation(q)
+        v = body_v[i]
+        w = body_w[i]
+        total = p[0] + p[1] + p[2] + r[0] + r[1] + r[2] + r[3] + v[0] + v[1] + v[2] + w[0] + w[1] + w[2]
+        if not wp.isfinite(total):
+            wp.atomic_min(bad_step, 0, step[0])
+
+    return check_state_kernel
+
+
+@functools.cache
+def make_settle_measures_kernel(scalar):
+    """Per free body, in float64: kinetic and gravitational energy; the largest speed of a fastest point."""
+    vec3 = wp.types.vector(3, scalar)
+    body_kinetic_energy = make_integrator(scalar).body_kinetic_energy
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def settle_measures_kernel(
+        # Model
+        body_flags: wp.array(dtype=int),
+        body_inv_mass: wp.array(dtype=scalar),
+        body_inertia: wp.array(dtype=vec3),
+        body_radius: wp.array(dtype=float),
+        gravity: wp.vec3d,
+        # State in
+        body_q: wp.array(dtype=wp.types.transformation(scalar)),
+        body_v: wp.array(dtype=vec3),
+        body_w: wp.array(dtype=vec3),
+        # Out
+        body_kinetic: wp.array(dtype=wp.float64),
+        body_gravity: wp.array(dtype=wp.float64),
+        largest_speed: wp.array(dtype=wp.float64),
+    ):
+        """Zero for fixed, kinematic and infinite-mass bodies (driven from outside the pile); the
+        speeds go into one running maximum (atomic: a maximum does not depend on the order)."""
+        i = wp.tid()
+        inv_mass = body_inv_mass[i]
+        body_kinetic[i] = wp.float64(0.0)
+        body_gravity[i] = wp.float64(0.0)
+        if body_flags[i] == 0 and inv_mass > scalar(0.0):
+            v = body_v[i]
+            w = body_w[i]
+            q = body_q[i]
+            e_lin, e_ang = body_kinetic_energy(inv_mass, body_inertia[i], q, v, w)
+            body_kinetic[i] = wp.float64(e_lin + e_ang)
+            x = wp.transform_get_translation(q)
+            mass = wp.float64(1.0) / wp.float64(inv_mass)
+            h = wp.float64(x[0]) * gravity[0] + wp.float64(x[1]) * gravity[1] + wp.float64(x[2]) * gravity[2]
+            body_gravity[i] = -mass * h
+            speed = wp.float64(wp.length(v)) + wp.float64(wp.length(w)) * wp.float64(body_radius[i])
+            wp.atomic_max(largest_speed, 0, speed)
+
+    return settle_measures_kernel
+
+
+@wp.kernel(enable_backward=False)
+def advance_step_kernel(step: wp.array(dtype=int)):
+    step[0] = step[0] + 1
+
+
+# ---------------------------------------------------------------------------------------------
 # Launch functions
 # ---------------------------------------------------------------------------------------------
 
@@ -302,9 +422,13 @@ def _device(device, array):
     return array.device if device is None else wp.get_device(device)
 
 
+def _pose_scalar(body_q):
+    # The scalar of the poses (float32 or float64 transforms): that of the state's kernels.
+    return wp.float64 if wp.types.types_equal(body_q.dtype, wp.transformd) else wp.float32
+
+
 def _integrator(body_q):
-    # The integrator in the scalar of the poses (float32 or float64 transforms).
-    return make_integrator(wp.float64 if wp.types.types_equal(body_q.dtype, wp.transformd) else wp.float32)
+    return make_integrator(_pose_scalar(body_q))
 
 
 def integrate_bodies(
@@ -405,3 +529,65 @@ def kinetic_energy(
         device=device,
     )
     return energy_lin, energy_ang
+
+
+def launch_count_step(step_count: wp.array) -> None:
+    """Add one to ``step_count`` (1,) on the device: a captured step counts itself."""
+    wp.launch(advance_step_kernel, dim=1, inputs=[step_count], device=step_count.device)
+
+
+def launch_check_state(
+    *,
+    model: BodyModel,
+    state: BodyMotion,
+    step_count: wp.array,
+    body_speed_limit: wp.array,
+    bad_step: wp.array,
+    body_peak_speed: wp.array,
+    too_fast: wp.array,
+) -> None:
+    """Check the state after a step: ``bad_step`` (1,) lowered to ``step_count[0]`` where a body's state is
+    not finite; ``body_peak_speed`` (N,) float32 raised to the speed of each body's fastest point
+    (``|v| + |w| r``, r its bounding radius) [m/s]; ``too_fast`` (1,) set where one is above
+    ``body_speed_limit``. The kernel is in the scalar of ``state.body_q``."""
+    m = model
+    wp.launch(
+        make_check_state_kernel(_pose_scalar(state.body_q)),
+        dim=state.body_q.shape[0],
+        inputs=[m.body_flags, m.body_radius, body_speed_limit, step_count, state.body_q, state.body_v, state.body_w],
+        outputs=[bad_step, body_peak_speed, too_fast],
+        device=state.body_q.device,
+    )
+
+
+def launch_settle_measures(
+    *,
+    model: BodyModel,
+    state: BodyMotion,
+    body_kinetic: wp.array,
+    body_gravity: wp.array,
+    largest_speed: wp.array,
+) -> None:
+    """Per free body, in float64: its kinetic energy into ``body_kinetic`` (N,) and its gravitational
+    energy ``-m g.x`` into ``body_gravity`` (N,) [J] (zero for the other bodies); ``largest_speed``
+    (1,) raised to the speed of the fastest point of a free body [m/s]. The kernel is in the scalar of
+    ``state.body_q``."""
+    m = model
+    wp.launch(
+        make_settle_measures_kernel(_pose_scalar(state.body_q)),
+        dim=state.body_q.shape[0],
+        inputs=[
+            # Model
+            m.body_flags,
+            m.body_inv_mass,
+            m.body_inertia,
+            m.body_radius,
+            wp.vec3d(*(float(g) for g in m.gravity)),
+            # State in
+            state.body_q,
+            state.body_v,
+            state.body_w,
+        ],
+        outputs=[body_kinetic, body_gravity, largest_speed],
+        device=state.body_q.device,
+    )

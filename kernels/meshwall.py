@@ -12,22 +12,53 @@ triangles add nothing. One friction spring and one turning volume per (body, wal
 wall columns of ``State.plane_xi`` / ``plane_turn`` after the plane walls.
 
 A wall moves rigidly: its frame's origin (the pivot) with ``mesh_v``, its orientation turning at
-``mesh_w``; :func:`advance_meshes` steps its pose. The thread runs after the gather kernel and adds
+``mesh_w``; :func:`launch_advance_meshes` steps its pose. The thread runs after the gather kernel and adds
 to the body's force and torque (one thread per body: a fixed order, no atomics).
 """
 
 import functools
+from typing import Protocol
 
 import warp as wp
 from polydem.kernels.compound import make_body_geometry
-from polydem.kernels.forces import REPORT_CONTACTS, REPORT_SUMS, ContactSums, add_to_sums
-from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, make_geometry
+from polydem.kernels.forces import (
+    REPORT_CONTACTS,
+    BodyState,
+    ContactModel,
+    ContactOutputs,
+    ContactSums,
+    make_wall_contact,
+    material_args,
+)
+from polydem.kernels.geometry import make_geometry
 from polydem.kernels.precision import scalars
-from polydem.kernels.response import make_response
 
 # Rounding allowance of the float32 BVH query box, relative to the body's distance from the wall's
 # origin plus its radius (the box is cast from the state's scalar).
 QUERY_ROUNDING = 4.0e-7
+
+
+class MeshWallModel(ContactModel, Protocol):
+    """What the mesh-wall kernel reads of a model besides the contact arrays (:class:`polydem.model.Model`):
+    the bodies' bounding radii, the walls' cells (their BVHs, shapes, frames and fronts), materials
+    and motion, and the number of planes (the mesh walls' columns come after theirs)."""
+
+    body_radius: wp.array
+    mesh_bvh: wp.array
+    mesh_cell_start: wp.array
+    mesh_material: wp.array
+    mesh_v: wp.array
+    mesh_w: wp.array
+    cell_shape: wp.array
+    cell_center: wp.array
+    cell_front: wp.array
+    num_planes: int
+
+
+class MeshWallState(BodyState, Protocol):
+    """A state with the poses of the mesh walls (:class:`polydem.state.State`)."""
+
+    mesh_q: wp.array
 
 
 @functools.cache
@@ -36,9 +67,9 @@ def make_mesh_kernels(
     friction: bool,
     max_poly: int,
     max_faces: int,
+    *,
     diagnostics: bool = False,
     precision: str = "float32",
-    variant: str = DEFAULT_PAIR_VARIANT,
     compound: bool = False,
     report: bool = False,
 ):
@@ -51,11 +82,8 @@ def make_mesh_kernels(
     vec3c = wp.types.vector(3, C)
     quat_s = wp.types.quaternion(S)
     transform_s = wp.types.transformation(S)
-    resp = make_response(C, law, friction, diagnostics)
-    law_energy = resp.law_energy
-    toe_volume = resp.toe_volume
-    respond = resp.respond
-    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S, variant=variant)
+    wall_contact = make_wall_contact(law, friction, diagnostics, precision, report)
+    geom = make_geometry(C, max_poly, max_faces, pose_scalar=S)
     body_geom = make_body_geometry(geom, compound)
     Shapes = geom.shapes
     pair_geometry = body_geom.pair_geometry
@@ -121,7 +149,7 @@ def make_mesh_kernels(
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
         lost = S(0.0)
-        # The report variant measures the depth only for a report of the contacts (not for the sums).
+        # The depth and normal only for the diagnostics and a report of the contacts (not for the sums).
         want_depth = wp.static(diagnostics)
         if wp.static(report):
             want_depth = (report_bits & REPORT_CONTACTS) != 0
@@ -176,67 +204,20 @@ def make_mesh_kernels(
                             off = fr[3] + wp.dot(n_w, wp.transform_get_translation(xm))
                             depth = wp.max(depth, C(plane_depth_of(shapes, s, xa, n_w, off)))
             mat = body_material[i] * num_materials + mesh_material[m]
-            if vol <= C(0.0):
-                e_mat = material_e[mat]
-                area = shapes.shape_face_area[s]
-                vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, shapes.shape_radius[s], C(body_inv_mass[i]))
-                kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
-                if wp.static(diagnostics):
-                    plane_volume[i, j] = C(0.0)
-                    plane_energy[i, j] = kept
-                    plane_fn[i, j] = C(0.0)
-                    plane_ft[i, j] = zero3
-                    plane_depth[i, j] = C(0.0)
-                else:
-                    lost += S(kept)
-                    plane_turn[i, j] = C(0.0)
-                    if wp.static(friction):
-                        xi = plane_xi[i, j]
-                        lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
-                        plane_xi[i, j] = zero3
-                    if wp.static(report):
-                        if (report_bits & REPORT_CONTACTS) != 0:
-                            plane_volume[i, j] = C(0.0)
-                continue
-            xi_in = zero3
-            if wp.static(friction):
-                xi_in = plane_xi[i, j]
             # B's motion about the wall's origin: r_ab from the body to it, its velocity there.
             r_ab = vec3c(wp.transform_get_translation(xm) - pa)
-            force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
-                vol, first_moment, s_a, m_a, fb_a, r_ab,
-                vec3c(body_v[i]), vec3c(body_w[i]), vec3c(mesh_v[m]), vec3c(mesh_w[m]),
-                material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
-                plane_turn[i, j], dt,
+            f, t, lost, n = wall_contact(
+                i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
+                r_ab, vec3c(body_v[i]), vec3c(body_w[i]), vec3c(mesh_v[m]), vec3c(mesh_w[m]), pa,
                 shapes.shape_radius[s], shapes.shape_face_area[s], C(body_inv_mass[i]),
+                material_k, material_e, material_mu, material_kt, law_m, dt,
+                plane_xi, plane_turn,
+                plane_volume, plane_energy, plane_fn, plane_point, plane_ft, plane_depth,
+                report_bits, wall_sums, f, t, lost,
             )  # fmt: skip
-            if wp.static(diagnostics):
-                plane_volume[i, j] = vol
-                plane_energy[i, j] = energy
-                plane_fn[i, j] = fn
-                plane_point[i, j] = vec3s(point) + pa
-                plane_ft[i, j] = ft
-                plane_depth[i, j] = depth
-                plane_normal[i, j] = n
-            else:
-                if wp.static(friction):
-                    plane_xi[i, j] = xi
-                plane_turn[i, j] = turn
-                f += vec3s(force)
-                t += vec3s(torque)
-                lost += S(dl)
-                if wp.static(report):
-                    world_point = vec3s(point) + pa
-                    if (report_bits & REPORT_CONTACTS) != 0:
-                        plane_volume[i, j] = vol
-                        plane_fn[i, j] = fn
-                        plane_point[i, j] = world_point
-                        plane_ft[i, j] = ft
-                        plane_depth[i, j] = depth
-                        plane_normal[i, j] = n
-                    if (report_bits & REPORT_SUMS) != 0:
-                        k = i * plane_turn.shape[1] + j
-                        add_to_sums(wall_sums, k, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
+            if wp.static(diagnostics or report):
+                if want_depth and vol > C(0.0):
+                    plane_normal[i, j] = n
         if wp.static(not diagnostics):
             body_f[i] = body_f[i] + f
             body_t[i] = body_t[i] + t
@@ -259,3 +240,84 @@ def make_mesh_kernels(
         mesh_q[m] = transform_s(wp.transform_get_translation(x) + mesh_v[m] * dt, quat_s(rot))
 
     return mesh_contact_kernel, advance_meshes_kernel
+
+
+# ---------------------------------------------------------------------------------------------
+# Launch functions
+# ---------------------------------------------------------------------------------------------
+
+
+def launch_mesh_contacts(
+    kernel: wp.Kernel,
+    *,
+    model: MeshWallModel,
+    state: MeshWallState,
+    dt: float,
+    overflow: wp.array,
+    out: ContactOutputs,
+    report_bits: int,
+    wall_sums: ContactSums,
+) -> None:
+    """The mesh-wall contact kernel (``make_mesh_kernels(...)[0]``), one thread per body, after the
+    gather: adds each free body's mesh-wall contacts to ``state.body_f`` and ``body_t`` (the step and
+    report variants) or writes them into the wall columns of ``out`` (diagnostics; the report variant
+    by ``report_bits``), as :func:`polydem.kernels.forces.launch_gather` does for the planes."""
+    m = model
+    wp.launch(
+        kernel,
+        dim=m.num_bodies,
+        inputs=[
+            # Model
+            *m.shapes.kernel_args(),
+            m.body_shape,
+            m.body_material,
+            m.body_flags,
+            m.body_inv_mass,
+            m.body_radius,
+            *material_args(m, dt),
+            m.mesh_bvh,
+            m.mesh_cell_start,
+            m.mesh_material,
+            m.mesh_v,
+            m.mesh_w,
+            m.cell_shape,
+            m.cell_center,
+            m.cell_front,
+            m.num_planes,
+            # State in
+            state.body_q,
+            state.body_v,
+            state.body_w,
+            state.mesh_q,
+            # State in/out
+            state.plane_xi,
+            state.plane_turn,
+            state.body_dissipated,
+            state.body_f,
+            state.body_t,
+            overflow,
+        ],
+        outputs=[
+            # Out (diagnostics)
+            out.plane_volume,
+            out.plane_energy,
+            out.plane_fn,
+            out.plane_point,
+            out.plane_ft,
+            out.plane_depth,
+            out.plane_normal,
+            # Report
+            int(report_bits),
+            wall_sums,
+        ],
+        device=state.body_q.device,
+    )
+
+
+def launch_advance_meshes(
+    kernel: wp.Kernel, *, mesh_v: wp.array, mesh_w: wp.array, dt: float, mesh_q: wp.array
+) -> None:
+    """The wall-motion kernel (``make_mesh_kernels(...)[1]``): each mesh wall's pose ``mesh_q`` moved by
+    ``dt`` at its velocity ``mesh_v`` and turned at its angular velocity ``mesh_w`` (one thread per wall of
+    ``mesh_v``; ``mesh_q`` may hold a placeholder more)."""
+    wp.launch(kernel, dim=mesh_v.shape[0], inputs=[mesh_v, mesh_w, dt, mesh_q], device=mesh_q.device)

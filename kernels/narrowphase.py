@@ -12,7 +12,7 @@ from typing import Any
 
 import warp as wp
 from polydem.kernels.compound import make_body_geometry
-from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, DEFAULT_PAIR_VARIANT, make_geometry
+from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, make_geometry
 
 __all__ = [
     "COINCIDENT_TOL",
@@ -54,19 +54,18 @@ def make_narrowphase(
     coincident_tol: float | None = None,
     max_registers: int | None = 128,
     pose_scalar=None,
-    variant: str = DEFAULT_PAIR_VARIANT,
     compound: bool = False,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
     Args:
         scalar: ``wp.float32`` or ``wp.float64``.
-        max_poly, max_faces, coincident_tol, pose_scalar, variant: as for
+        max_poly, max_faces, coincident_tol, pose_scalar: as for
             :func:`polydem.kernels.geometry.make_geometry`.
         max_registers: CUDA register cap per thread (128 is faster than no cap for 20-vertex rocks
             and slightly slower for cubes; see benchmarks/tune_pair_kernel.py and BENCHMARKS.md).
     """
-    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, variant)
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
@@ -179,15 +178,13 @@ def launch_overlap(
     out,
     max_poly=None,
     pose_scalar=None,
-    variant=DEFAULT_PAIR_VARIANT,
 ):
     """Run the overlap kernel over all pairs; grow the polygon buffer and redo on overflow.
 
     ``shapes`` is a :class:`polydem.shapeset.ShapeSet`; ``out`` a dict of output arrays named as
     the kernel's ``# Out`` arguments (``pair_fallback_a`` may be left out). The poses are
-    transforms of ``pose_scalar`` (default the shape set's precision). ``variant``: the pair
-    kernel's (:func:`polydem.kernels.geometry.make_geometry`). Returns the :class:`Narrowphase`
-    that ran.
+    transforms of ``pose_scalar`` (default the shape set's precision). Returns the
+    :class:`Narrowphase` that ran.
     """
     n = len(pair_shape_a)
     capacity = shapes.default_poly_capacity if max_poly is None else max_poly
@@ -200,7 +197,6 @@ def launch_overlap(
             capacity,
             shapes.max_faces,
             pose_scalar=pose_scalar,
-            variant=variant,
             compound=shapes.compound,
         )
         overflow = wp.zeros(1, dtype=int, device=shapes.device)

@@ -340,6 +340,18 @@ def raycast_kernel(
 # ---------------------------------------------------------------------------------------------
 
 
+def _bounds_bvh(bounds_kernel, count, inputs, device):
+    """A ``wp.Bvh`` over the boxes that ``bounds_kernel`` writes for ``count`` items, and its id
+    (None and 0 where there are none)."""
+    if count == 0:
+        return None, wp.uint64(0)
+    lowers = wp.empty(count, dtype=wp.vec3, device=device)
+    uppers = wp.empty(count, dtype=wp.vec3, device=device)
+    wp.launch(bounds_kernel, dim=count, inputs=inputs, outputs=[lowers, uppers], device=device)
+    bvh = wp.Bvh(lowers, uppers)
+    return bvh, bvh.id
+
+
 def launch_raycast(
     shapes,
     body_shape,
@@ -384,33 +396,13 @@ def launch_raycast(
             None: no mesh walls.
     """
     device = wp.get_device(device)
-    m = bvh_body.shape[0]
-    bvh = None
-    bvh_id = wp.uint64(0)
-    if m > 0:
-        lowers = wp.empty(m, dtype=wp.vec3, device=device)
-        uppers = wp.empty(m, dtype=wp.vec3, device=device)
-        wp.launch(
-            body_bounds_kernel,
-            dim=m,
-            inputs=[shapes.shape_radius, body_shape, bvh_body, body_q],
-            outputs=[lowers, uppers],
-            device=device,
-        )
-        bvh = wp.Bvh(lowers, uppers)
-        bvh_id = bvh.id
+    bvh, bvh_id = _bounds_bvh(
+        body_bounds_kernel, bvh_body.shape[0], [shapes.shape_radius, body_shape, bvh_body, body_q], device
+    )
     if triangles is None:
         triangles = (wp.zeros(0, dtype=wp.vec3, device=device), wp.zeros(0, dtype=int, device=device))
     tri_vertex, tri_wall = triangles
-    num_tri = tri_wall.shape[0]
-    tri_bvh = None
-    tri_bvh_id = wp.uint64(0)
-    if num_tri > 0:
-        lowers = wp.empty(num_tri, dtype=wp.vec3, device=device)
-        uppers = wp.empty(num_tri, dtype=wp.vec3, device=device)
-        wp.launch(triangle_bounds_kernel, dim=num_tri, inputs=[tri_vertex], outputs=[lowers, uppers], device=device)
-        tri_bvh = wp.Bvh(lowers, uppers)
-        tri_bvh_id = tri_bvh.id
+    tri_bvh, tri_bvh_id = _bounds_bvh(triangle_bounds_kernel, tri_wall.shape[0], [tri_vertex], device)
     color = wp.empty((height, width), dtype=wp.vec3, device=device)
     depth = wp.empty((height, width), dtype=float, device=device)
     hit = wp.empty((height, width), dtype=int, device=device)

@@ -34,20 +34,13 @@ from typing import Any
 import numpy as np
 import warp as wp
 from polydem.kernels.geometry import ENCLOSED_RATIO
+from polydem.kernels.laws import LAW_SPECS, LAWS, TOE_MIN_RESTITUTION, TOE_OMEGA_DT, Law
 
 # A pair whose |S_A| falls below ENCLOSED_RATIO V^(2/3) is "enclosed": one body (nearly) inside
 # the other, or two identical bodies on top of each other. The gradient of V vanishes there.
 # Without a fallback area vector from the geometry, only when the overlap is a real share of the
 # smaller body (V > this times r_min^3): a sliver has no gradient either, and no force.
 ENCLOSED_MIN_VOLUME = 1.0e-3
-
-LAWS = ("linear", "hertz", "power")
-
-# The resolved toe of the hertz and power laws with m < 2 (see toe_volume): a face contact is at
-# most as stiff as a frequency of TOE_OMEGA_DT / dt against the pair's translational mass, on the
-# unloading branch (1 / e^2 stiffer than the loading one). Symplectic Euler is stable below 2; a
-# face contact of one degree of freedom rests for every restitution up to 1.5.
-TOE_OMEGA_DT = 1.0
 
 # The friction spring's twist channel (respond): the lever of the twist, as a fraction of the radius
 # sqrt(|S_A| / pi) of a disc of the contact's area: 2/3, Coulomb's friction torque over a disc under
@@ -150,8 +143,45 @@ def make_frame(scalar) -> Frame:
 
 
 @functools.cache
+def make_law_funcs(scalar) -> dict:
+    """Each :class:`~polydem.kernels.laws.Law`'s own W'(V) [Pa] and W(V) [J] as a pair of ``@wp.func``
+    ``(volume, k, m)`` of one precision, without the resolved toe (``law_derivative`` and ``law_energy``
+    of :func:`make_response` add it); their host twins are in :data:`polydem.kernels.laws.LAW_SPECS`."""
+
+    @wp.func
+    def linear_derivative(volume: scalar, k: scalar, m: scalar):
+        return k
+
+    @wp.func
+    def linear_energy(volume: scalar, k: scalar, m: scalar):
+        return k * volume
+
+    @wp.func
+    def hertz_derivative(volume: scalar, k: scalar, m: scalar):
+        return k * wp.sqrt(volume)
+
+    @wp.func
+    def hertz_energy(volume: scalar, k: scalar, m: scalar):
+        return (scalar(2.0) / scalar(3.0)) * k * volume * wp.sqrt(volume)
+
+    @wp.func
+    def power_derivative(volume: scalar, k: scalar, m: scalar):
+        return k * wp.pow(volume, m - scalar(1.0))
+
+    @wp.func
+    def power_energy(volume: scalar, k: scalar, m: scalar):
+        return k * wp.pow(volume, m) / m
+
+    return {
+        Law.LINEAR: (linear_derivative, linear_energy),
+        Law.HERTZ: (hertz_derivative, hertz_energy),
+        Law.POWER: (power_derivative, power_energy),
+    }
+
+
+@functools.cache
 def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -> Response:
-    """:func:`respond` for one contact law ("linear", "hertz" or "power"), with or without friction.
+    """:func:`respond` for one contact law (a name of :data:`polydem.kernels.laws.LAWS`), with or without friction.
 
     ``diagnostics`` builds the variant that reports a contact without stepping it (the turning
     volume stays as it is).
@@ -162,11 +192,12 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
     vec3 = frame.vec3
     contact_frame = frame.contact_frame
     zero3 = wp.constant(vec3(scalar(0.0), scalar(0.0), scalar(0.0)))
+    own_derivative, own_energy = make_law_funcs(scalar)[law]
 
     # The resolved toe (module docstring of polydem.kernels.forces): below V_c a law stiffer than
     # linear at V = 0 (1 < m < 2, the hertz law among them) continues as W'(V) = a V + b V^2, with W'
     # and W'' continuous at V_c, so that a face contact is never stiffer than the step resolves.
-    toe_law = wp.static(law == "hertz" or law == "power")
+    toe_law = LAW_SPECS[law].toe
 
     @wp.func
     def toe_volume(k: scalar, m: scalar, e: scalar, dt: scalar, area: scalar, r_min: scalar, inv_mass: scalar):
@@ -190,7 +221,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
                     wp.log((scalar(3.0) - m) * k)
                     + scalar(2.0) * wp.log(area * dt)
                     + wp.log(inv_mass)
-                    - scalar(2.0) * wp.log(wp.max(e, scalar(1.0e-3)) * scalar(TOE_OMEGA_DT))
+                    - scalar(2.0) * wp.log(wp.max(e, scalar(TOE_MIN_RESTITUTION)) * scalar(TOE_OMEGA_DT))
                 )
                 # Never beyond the smaller body's bounding cube: past it the toe would be the law.
                 vc = wp.exp(wp.min(ln_x / (scalar(2.0) - m), scalar(3.0) * wp.log(r_min)))
@@ -199,23 +230,20 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
     @wp.func
     def law_derivative(volume: scalar, k: scalar, m: scalar, vc: scalar):
         # W'(V) [Pa]
-        if wp.static(law == "linear"):
-            return k
+        if wp.static(not toe_law):
+            return own_derivative(volume, k, m)
         else:
             if volume < vc:
                 # a V + b V^2 with a = (3 - m) k V_c^(m - 2), b = (m - 2) k V_c^(m - 3)
                 x = volume / vc
                 return k * wp.pow(vc, m - scalar(1.0)) * x * ((scalar(3.0) - m) + (m - scalar(2.0)) * x)
-            if wp.static(law == "hertz"):
-                return k * wp.sqrt(volume)
-            else:
-                return k * wp.pow(volume, m - scalar(1.0))
+            return own_derivative(volume, k, m)
 
     @wp.func
     def law_energy(volume: scalar, k: scalar, m: scalar, vc: scalar):
         # W(V) [J]
-        if wp.static(law == "linear"):
-            return k * volume
+        if wp.static(not toe_law):
+            return own_energy(volume, k, m)
         else:
             if volume < vc:
                 x = volume / vc
@@ -226,10 +254,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             offset = scalar(0.0)
             if vc > scalar(0.0):
                 offset = k * wp.pow(vc, m) * ((scalar(5.0) - m) / scalar(6.0) - scalar(1.0) / m)
-            if wp.static(law == "hertz"):
-                return (scalar(2.0) / scalar(3.0)) * k * volume * wp.sqrt(volume) + offset
-            else:
-                return k * wp.pow(volume, m) / m + offset
+            return own_energy(volume, k, m) + offset
 
     @wp.func
     def elastic_volume(volume: scalar, turn: scalar, e2: scalar):
@@ -429,6 +454,23 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
 
 
 @functools.cache
+def batch_struct(scalar):
+    """The ``wp.struct`` of N overlaps that both batch kernels read: V, V times the centroid, S_A, M_A and
+    the fallback area vector (about and relative to x_A), and r_ab = x_B - x_A; one precision."""
+    vec3 = wp.types.vector(3, scalar)
+
+    class BatchOverlaps:
+        volume: wp.array(dtype=scalar)
+        volume_moment: wp.array(dtype=vec3)
+        area_a: wp.array(dtype=vec3)
+        moment_a: wp.array(dtype=vec3)
+        fallback_a: wp.array(dtype=vec3)
+        r_ab: wp.array(dtype=vec3)
+
+    return wp.struct(BatchOverlaps)
+
+
+@functools.cache
 def make_frame_kernel(scalar):
     """Kernel: normal, contact point and kind of N overlaps (kind -1 where V <= 0)."""
     frame = make_frame(scalar)
@@ -442,20 +484,15 @@ def make_frame_kernel(scalar):
         r_min: scalar,
         share_a: scalar,
         # State in
-        pair_volume: wp.array(dtype=scalar),
-        pair_volume_moment: wp.array(dtype=vec3),
-        pair_area_a: wp.array(dtype=vec3),
-        pair_moment_a: wp.array(dtype=vec3),
-        pair_fallback_a: wp.array(dtype=vec3),
-        pair_r_ab: wp.array(dtype=vec3),
+        pairs: batch_struct(scalar),
         # Out
         pair_kind: wp.array(dtype=int),
         pair_normal: wp.array(dtype=vec3),
         pair_point: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        vol = pair_volume[i]
-        r_ab = pair_r_ab[i]
+        vol = pairs.volume[i]
+        r_ab = pairs.r_ab[i]
         if vol <= scalar(0.0):
             # No overlap: the normal along the line of centres, the point on it where the
             # bounding spheres would meet in proportion to their radii.
@@ -464,7 +501,7 @@ def make_frame_kernel(scalar):
             pair_point[i] = share_a * r_ab
             return
         kind, n, point, s, mom, s_norm = contact_frame(
-            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], pair_fallback_a[i], r_ab, r_min
+            vol, pairs.volume_moment[i], pairs.area_a[i], pairs.moment_a[i], pairs.fallback_a[i], r_ab, r_min
         )
         pair_kind[i] = kind
         pair_normal[i] = n
@@ -488,12 +525,7 @@ def make_force_kernel(scalar, law: str):
         k: scalar,
         m: scalar,
         # State in
-        pair_volume: wp.array(dtype=scalar),
-        pair_volume_moment: wp.array(dtype=vec3),
-        pair_area_a: wp.array(dtype=vec3),
-        pair_moment_a: wp.array(dtype=vec3),
-        pair_fallback_a: wp.array(dtype=vec3),
-        pair_r_ab: wp.array(dtype=vec3),
+        pairs: batch_struct(scalar),
         pair_r_min: wp.array(dtype=scalar),
         # Out
         pair_force: wp.array(dtype=vec3),
@@ -501,7 +533,7 @@ def make_force_kernel(scalar, law: str):
         pair_energy: wp.array(dtype=scalar),
     ):
         i = wp.tid()
-        vol = pair_volume[i]
+        vol = pairs.volume[i]
         if vol <= scalar(0.0):
             pair_force[i] = zero3
             pair_torque_a[i] = zero3
@@ -509,7 +541,7 @@ def make_force_kernel(scalar, law: str):
             return
         zero = scalar(0.0)
         force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
-            vol, pair_volume_moment[i], pair_area_a[i], pair_moment_a[i], pair_fallback_a[i], pair_r_ab[i],
+            vol, pairs.volume_moment[i], pairs.area_a[i], pairs.moment_a[i], pairs.fallback_a[i], pairs.r_ab[i],
             zero3, zero3, zero3, zero3,
             k, m, scalar(1.0), zero, zero,
             zero3, zero,
@@ -522,15 +554,18 @@ def make_force_kernel(scalar, law: str):
     return contact_force_kernel
 
 
-def _arrays(device, scalar, **columns):
+def _batch(scalar, device, volume, first_moment, area, moment, fallback, r_ab):
+    """The :func:`batch_struct` of N overlaps given as numpy arrays, on ``device``."""
     vec3 = wp.types.vector(3, scalar)
     np_scalar = np.float32 if scalar == wp.float32 else np.float64
-    return {
-        name: wp.array(
-            np.ascontiguousarray(a, dtype=np_scalar), dtype=vec3 if np.ndim(a) == 2 else scalar, device=device
-        )
-        for name, a in columns.items()
-    }
+    pairs = batch_struct(scalar)()
+    columns = dict(
+        volume=volume, volume_moment=first_moment, area_a=area, moment_a=moment, fallback_a=fallback, r_ab=r_ab
+    )
+    for name, a in columns.items():
+        a = np.ascontiguousarray(a, dtype=np_scalar)
+        setattr(pairs, name, wp.array(a, dtype=vec3 if a.ndim == 2 else scalar, device=device))
+    return pairs
 
 
 def launch_contact_frame(scalar, device, volume, first_moment, area, moment, fallback, r_ab, r_min, share_a):
@@ -538,16 +573,14 @@ def launch_contact_frame(scalar, device, volume, first_moment, area, moment, fal
     of N overlaps given as numpy arrays relative to x_A; runs in ``scalar`` precision."""
     n = len(volume)
     vec3 = wp.types.vector(3, scalar)
-    ins = _arrays(
-        device, scalar, volume=volume, first_moment=first_moment, area=area, moment=moment, fallback=fallback, r_ab=r_ab
-    )
+    pairs = _batch(scalar, device, volume, first_moment, area, moment, fallback, r_ab)
     kind = wp.zeros(n, dtype=int, device=device)
     normal = wp.zeros(n, dtype=vec3, device=device)
     point = wp.zeros(n, dtype=vec3, device=device)
     wp.launch(
         make_frame_kernel(scalar),
         dim=n,
-        inputs=[scalar(r_min), scalar(share_a), *ins.values()],
+        inputs=[scalar(r_min), scalar(share_a), pairs],
         outputs=[kind, normal, point],
         device=device,
     )
@@ -560,24 +593,15 @@ def launch_contact_force(law, k, m, device, volume, first_moment, area, moment, 
     n = len(volume)
     scalar = wp.float64
     vec3 = wp.types.vector(3, scalar)
-    ins = _arrays(
-        device,
-        scalar,
-        volume=volume,
-        first_moment=first_moment,
-        area=area,
-        moment=moment,
-        fallback=fallback,
-        r_ab=r_ab,
-        r_min=r_min,
-    )
+    pairs = _batch(scalar, device, volume, first_moment, area, moment, fallback, r_ab)
+    r_min = wp.array(np.ascontiguousarray(r_min, dtype=np.float64), dtype=scalar, device=device)
     force = wp.zeros(n, dtype=vec3, device=device)
     torque = wp.zeros(n, dtype=vec3, device=device)
     energy = wp.zeros(n, dtype=scalar, device=device)
     wp.launch(
         make_force_kernel(scalar, law),
         dim=n,
-        inputs=[scalar(k), scalar(m), *ins.values()],
+        inputs=[scalar(k), scalar(m), pairs, r_min],
         outputs=[force, torque, energy],
         device=device,
     )

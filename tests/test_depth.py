@@ -208,13 +208,6 @@ def test_stiffness_for_depth_inverts_the_resting_depth():
                 assert depth.resting_depth(shape, law, k, load, feature, m=m) == pytest.approx(d, rel=1e-9)
 
 
-def test_toe_matches_the_kernel_constants():
-    """depth.py's copy of the toe's constants is the kernel's (kernels/response.py imports Warp)."""
-    from polydem.kernels import response
-
-    assert depth.TOE_OMEGA_DT == response.TOE_OMEGA_DT
-
-
 def test_bad_input_says_what_is_wrong():
     cube = ConvexShape.box(EDGE)
     with pytest.raises(ValueError, match="law must be one of linear, hertz, power"):
@@ -272,7 +265,7 @@ def test_auto_dt_follows_k_as_the_scene_time_step_does():
     assert depth.auto_dt(ts, "hertz", None, 1.0) == pytest.approx(ts.recommended, rel=1e-12)
     for scale in (4.0, 16.0, 256.0):
         for name, mat in scene.materials.items():
-            scene._materials[name] = dataclasses.replace(mat, k=scale * 1e8)
+            scene.material_table.by_name[name] = dataclasses.replace(mat, k=scale * 1e8)
         assert depth.auto_dt(ts, "hertz", None, scale) == pytest.approx(scene.time_step().recommended, rel=1e-9)
 
 

@@ -19,6 +19,7 @@ from polydem import Simulation
 from polydem.distributed import DistributedSimulation, launched_size
 from polydem.distributed import partition as part
 from polydem.distributed.comm import SerialComm
+from polydem.run_settings import run_settings
 
 HERE = Path(__file__).resolve().parent
 
@@ -60,6 +61,34 @@ def test_one_rank_is_the_simulation(device):
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     assert ds.partitions >= 1 and launched_size() == 1
+
+
+def test_a_simulation_of_some_bodies_takes_the_whole_scenes_settings(device):
+    """A rank's Simulation: the bodies given, sliced out of the scene, with the settings of the whole scene's
+    run, although these bodies alone (the larger tetrahedra and the box) would give others."""
+    scene = build("box_pour")
+    settings = run_settings(scene)
+    whole = Simulation(scene, device=device, settings=settings)
+    kind = np.asarray(scene.body_kind)
+    big = np.asarray(scene.body_shape) == scene.shape_index("big")
+    index = np.flatnonzero(big | (kind != 0))
+    part = Simulation(scene, device=device, validate=False, settings=settings, bodies=index)
+    # The cubes set the skin and the size classes: smaller than any free body of the part.
+    radius = part.model.body_radius.numpy()
+    assert settings.radius_ref < radius[kind[index] == 0].min()
+    assert part.dt == whole.dt and part.skin == whole.skin == settings.skin
+    assert part.current_contacts.broadphase.radius_ref == settings.radius_ref
+    m, w = part.model, whole.model
+    np.testing.assert_array_equal(m.body_index, index)
+    np.testing.assert_array_equal(m.material_kt.numpy(), w.material_kt.numpy())
+    np.testing.assert_array_equal(m.body_mass.astype(np.float64), scene.body_mass()[index])
+    np.testing.assert_array_equal(m.body_inertia.numpy(), w.body_inertia.numpy()[index])
+    np.testing.assert_array_equal(m.body_inv_mass.numpy(), w.body_inv_mass.numpy()[index])
+    np.testing.assert_array_equal(m.body_radius.numpy(), w.body_radius.numpy()[index])
+    for k, v in part.state().items():
+        np.testing.assert_array_equal(v, whole.state()[k][index], err_msg=k)
+    with pytest.raises(ValueError, match="run_settings"):
+        Simulation(scene, device=device, settings=settings, skin=1e-3)
 
 
 def _mpiexec():

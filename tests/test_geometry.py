@@ -261,12 +261,3 @@ def test_respond_branches_against_the_law(device, law):
     reload_loss = (1.0 - e2) * law.energy(vt) + e2 * law.energy(u[-1]) - law.energy(v[-1])
     np.testing.assert_allclose(lost, [0, 0, 0, 0, 0, reload_loss], rtol=1e-12, atol=0.0)
     assert reload_loss > 0.0
-
-
-def test_contact_laws_are_the_same_list_everywhere():
-    """The scene package cannot import Warp, so it keeps its own list of laws: it must match the kernels'."""
-    from polydem.kernels.response import LAWS as kernel_laws
-
-    from polydem.scene.materials import LAWS as scene_laws
-
-    assert scene_laws == kernel_laws

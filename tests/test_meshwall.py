@@ -67,7 +67,8 @@ def contacts_by_body(sim, wall_rows=True):
 
 def first_forces(sim):
     sim.step(1)  # the forces of the first step are those at the initial state
-    return sim.body_f.numpy().astype(np.float64), sim.body_t.numpy().astype(np.float64)
+    st = sim.current_state
+    return st.body_f.numpy().astype(np.float64), st.body_t.numpy().astype(np.float64)
 
 
 def grid_centres(n=6, spacing=0.12, z=0.0):

@@ -1,27 +1,31 @@
-"""The pair-kernel variants (how pair_geometry holds its working set) give the same bits.
+"""The pair kernels' register cap changes how they compile, never what they compute.
 
-Each variant of :func:`polydem.kernels.geometry.make_geometry` only moves data differently
-(planes recomputed where read, active faces as bitmasks, the polygon streamed), so every output of
-the overlap kernel must equal that of the "buffered" variant (per-thread tables, as before the
-variants) bit for bit: on random pairs of cubes, rocks and a 64-vertex hull (shallow, deep and
-separated), on stacked aligned cubes (the coincident-face rule) and on enclosed pairs (the fallback).
+The engine keeps one way of holding a pair's working set (the clipping planes recomputed where they
+are read, the active faces listed in per-thread memory); the others measured in BENCHMARKS.md
+section 7c (per-thread plane tables, faces as bit masks, polygons streamed) live at the git tag
+``pair-variants-7c`` with the test that they agree bit for bit. What remains an option is the CUDA
+register cap of the pair kernels (:func:`polydem.kernels.forces.make_contact_kernels`,
+:func:`polydem.kernels.narrowphase.make_narrowphase`, ``Simulation(pair_max_registers=)``): every
+output of the overlap kernel must be the same bits under every cap, on random pairs of cubes, rocks
+and a 64-vertex hull (shallow, deep and separated), on stacked aligned cubes (the coincident-face
+rule) and on enclosed pairs (the fallback), and a Simulation must build its contact kernels with
+the cap it is given and step to the same state with any.
 """
 
 import numpy as np
 import pytest
 import warp as wp
-from polydem.kernels.geometry import DEFAULT_PAIR_VARIANT, PAIR_FEATURES, make_geometry, pair_variant
-from polydem.kernels.narrowphase import OVERLAP_OUTPUTS, launch_overlap
+from polydem.kernels.forces import PAIR_MAX_REGISTERS
+from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM, OVERLAP_OUTPUTS, make_narrowphase
 from scipy.spatial.transform import Rotation
 
-from polydem import ConvexShape
+from polydem import ConvexShape, Scene, Simulation
 from polydem.shapeset import ShapeSet
 
-ALL_FEATURES = "+".join(PAIR_FEATURES)
+# The default cap, a lower one and none (the compiler's choice).
+CAPS = (PAIR_MAX_REGISTERS, 64, None)
 SETS = {
-    # At most 64 faces per shape: the "masks" feature is in use.
     "cube_rock": lambda: [ConvexShape.box(1.0), ConvexShape.rock(n_points=20, size=0.7, seed=1)],
-    # 64 to 128 faces: the masks take two words.
     "hull64": lambda: [ConvexShape.rock(n_points=64, size=1.0, seed=2), ConvexShape.box(0.5)],
 }
 
@@ -57,65 +61,83 @@ def random_pairs(shapes, rng, n):
     return sa, sb, pa, pb
 
 
-def run(shapes, sa, sb, pa, pb, variant, pose_scalar, device):
+def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device):
     scalar = shapes.scalar
     tf = wp.types.transformation(pose_scalar)
     np_pose = np.float64 if pose_scalar == wp.float64 else np.float32
     n = len(sa)
     vec3 = wp.types.vector(3, scalar)
-    out = {name: wp.zeros(n, dtype=vec3, device=device) for name in OVERLAP_OUTPUTS[1:]}
-    out["pair_volume"] = wp.zeros(n, dtype=scalar, device=device)
-    ns = launch_overlap(
-        shapes,
-        wp.array(sa.astype(np.int32), dtype=int, device=device),
-        wp.array(sb.astype(np.int32), dtype=int, device=device),
-        wp.array(pa.astype(np_pose), dtype=tf, device=device),
-        wp.array(pb.astype(np_pose), dtype=tf, device=device),
-        out,
-        pose_scalar=pose_scalar,
-        variant=variant,
+    out = [wp.zeros(n, dtype=scalar, device=device)]
+    out += [wp.zeros(n, dtype=vec3, device=device) for _ in OVERLAP_OUTPUTS[1:]]
+    overflow = wp.zeros(1, dtype=int, device=device)
+    # Room for the largest clipped facet: no overflow, so one launch per cap.
+    ns = make_narrowphase(
+        scalar, shapes.max_poly_bound, shapes.max_faces, max_registers=max_registers, pose_scalar=pose_scalar
     )
-    assert ns.geometry.variant == pair_variant(variant)
-    return {name: out[name].numpy() for name in OVERLAP_OUTPUTS}
+    assert ns.overlap_kernel.options.get("cuda_max_registers") == max_registers
+    wp.launch(
+        ns.overlap_kernel,
+        dim=n,
+        inputs=[
+            *shapes.kernel_args(),
+            wp.array(sa.astype(np.int32), dtype=int, device=device),
+            wp.array(sb.astype(np.int32), dtype=int, device=device),
+            wp.array(pa.astype(np_pose), dtype=tf, device=device),
+            wp.array(pb.astype(np_pose), dtype=tf, device=device),
+        ],
+        outputs=[*out, overflow],
+        device=device,
+        block_dim=NARROWPHASE_BLOCK_DIM,
+    )
+    assert int(overflow.numpy()[0]) == 0
+    return {name: a.numpy() for name, a in zip(OVERLAP_OUTPUTS, out, strict=True)}
 
 
 @pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
 @pytest.mark.parametrize("shape_set", sorted(SETS))
-def test_variants_agree_bit_for_bit(device, shape_set, precision):
+def test_register_caps_agree_bit_for_bit(device, shape_set, precision):
     shapes_list = SETS[shape_set]()
     shapes = ShapeSet(shapes_list, device=device, precision="float64" if precision == "float64" else "float32")
-    assert (shapes.max_faces <= 64) == (shape_set == "cube_rock") and shapes.max_faces <= 128
     pose_scalar = wp.float32 if precision == "float32" else wp.float64
     sa, sb, pa, pb = random_pairs(shapes_list, np.random.default_rng(7), 1024)
-    ref = run(shapes, sa, sb, pa, pb, "buffered", pose_scalar, device)
+    ref = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device)
     touching = ref["pair_volume"] > 0.0
     assert 0.3 * len(sa) < touching.sum() < 0.9 * len(sa)  # overlapping and separated pairs both
     assert (np.linalg.norm(ref["pair_fallback_a"], axis=1) > 0.0).sum() > 10  # enclosed pairs
-    for variant in sorted({*PAIR_FEATURES, "masks+popc", ALL_FEATURES, DEFAULT_PAIR_VARIANT}):
-        got = run(shapes, sa, sb, pa, pb, variant, pose_scalar, device)
-        # On CUDA the compiler may contract a streamed vertex's arithmetic (read from the shape or
-        # held back) otherwise than a buffered one's: those variants agree to rounding there (seen
-        # on an H100: the all-features variant's V differed in the last bits). Everything else,
-        # and everything on the CPU, agrees bit for bit.
-        streamed = "stream" in variant and wp.get_device(device).is_cuda
+    for cap in CAPS[1:]:
+        got = run(shapes, sa, sb, pa, pb, cap, pose_scalar, device)
         for name in OVERLAP_OUTPUTS:
             a = got[name].reshape(len(sa), -1)
             b = ref[name].reshape(len(sa), -1)
-            if streamed:
-                scale = float(np.max(np.abs(b))) if b.size else 0.0
-                bad = ~np.all(np.abs(a - b) <= 1e-4 * np.abs(b) + 1e-6 * scale, axis=1)
-                assert not bad.any(), (
-                    f"{variant}: {name} differs from 'buffered' beyond rounding in {np.flatnonzero(bad)[:10]}"
-                )
-                continue
             # Compared as raw bytes: equal bits, not merely equal values (-0.0 == 0.0).
             same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
-            assert same.all(), f"{variant}: {name} differs from 'buffered' in {np.flatnonzero(~same)[:10]}"
+            assert same.all(), f"cap {cap}: {name} differs from cap {CAPS[0]} in {np.flatnonzero(~same)[:10]}"
 
 
-def test_variant_names():
-    assert pair_variant("stream-out+planes") == "planes+stream-out"
-    assert pair_variant("buffered") == "buffered"
-    assert make_geometry(wp.float32, 8, 6, variant="masks+planes").variant == "planes+masks"
-    with pytest.raises(ValueError, match="unknown pair-kernel variant"):
-        pair_variant("planes+fast")
+def test_simulation_builds_and_steps_with_its_register_cap(device):
+    # Cubes and rocks thrown at each other over a floor plane: pair and wall contacts.
+    scene = Scene(dt="auto")
+    scene.add_material("m", density=1000.0, law="hertz", k=1.0e6, restitution=0.5, friction=0.5)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_shape("rock", ConvexShape.rock(n_points=20, size=0.1, seed=3))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    quats = Rotation.random(4, random_state=1).as_quat()
+    for i, q in enumerate(quats):
+        scene.add_body(
+            ("cube", "rock")[i % 2], "m", position=(0.18 * i, 0.0, 0.1), orientation=q,
+            velocity=(0.5 * (-1.0) ** i, 0.0, 0.0), angular_velocity=(0.0, 3.0, 0.0),
+        )  # fmt: skip
+    assert Simulation(scene, device).stepper.kernels.pair_contact_kernel.options["cuda_max_registers"] == 128
+    runs = []
+    for cap in CAPS:
+        sim = Simulation(scene, device, pair_max_registers=cap)
+        assert sim.stepper.kernels.pair_contact_kernel.options.get("cuda_max_registers") == cap
+        sim.step(400)  # 0.14 s: on the floor, and pairs that met
+        runs.append((sim.state(), sim.contacts()))
+    (state0, contacts0), *others = runs
+    assert len(contacts0["volume"]) >= 3
+    for state, contacts in others:
+        for k in state0:
+            assert np.array_equal(state[k], state0[k]), k
+        for k in contacts0:
+            assert np.array_equal(contacts[k], contacts0[k]), k

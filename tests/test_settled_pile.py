@@ -98,8 +98,8 @@ def balance(sim, w_before):
     c = sim.contacts()
     st = sim.state()
     n = sim.num_bodies
-    mass = np.asarray(sim.model.scene.body_mass(), dtype=np.float64)
-    inertia = np.asarray(sim.model.scene.body_inertia(), dtype=np.float64)
+    mass = np.asarray(sim.scene.body_mass(), dtype=np.float64)
+    inertia = np.asarray(sim.scene.body_inertia(), dtype=np.float64)
     assert np.allclose(inertia, inertia[:, :1], rtol=1e-9), "the spin check needs isotropic inertia (cubes)"
     radius = float(np.sqrt(3.0) * 0.5 * EDGE)
     g = np.array([0.0, 0.0, -G])

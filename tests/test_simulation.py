@@ -704,7 +704,7 @@ def test_tree_rebuild_leaves_results_bit_identical(device):
         # The device rebuild path (refit, conditional branch) also where there is no graph (the CPU).
         sim.stepper.device_rebuild = True
         sim.step(700)
-        return sim.state(), sim.contacts(), sim.broadphase
+        return sim.state(), sim.contacts(), sim.current_contacts.broadphase
 
     (s1, c1, bp1), (s2, c2, bp2) = run(None), run(0.0)
     assert bp1.num_tree_rebuilds == 0 and bp2.num_tree_rebuilds >= 5

@@ -179,7 +179,7 @@ def _sim_physics(sim):
     """(description, json text, arrays, fingerprint) of a simulation's physics."""
     cached = _PHYSICS_RECORDS.get(sim.model)
     if cached is None:
-        desc, arrays = physics_description(sim.model.scene, sim.dt)
+        desc, arrays = physics_description(sim.scene, sim.dt)
         text = _physics_json(desc)
         cached = (desc, text, arrays, _fingerprint(text, arrays))
         _PHYSICS_RECORDS[sim.model] = cached

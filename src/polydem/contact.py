@@ -34,8 +34,9 @@ import numpy as np
 import warp as wp
 
 from polydem.compound import CompoundShape
+from polydem.kernels.laws import LAW_SPECS, LAWS
 from polydem.kernels.narrowphase import launch_depth, launch_overlap
-from polydem.kernels.response import ENCLOSED, LAWS, launch_contact_force, launch_contact_frame
+from polydem.kernels.response import ENCLOSED, launch_contact_force, launch_contact_frame
 from polydem.quaternions import quat_from_matrix, quat_multiply, quat_rotate
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
@@ -48,7 +49,8 @@ FRAMES = ("input", "body")
 
 @dataclass(frozen=True)
 class ContactLaw:
-    """Contact energy W(V) of the overlap volume V [m^3].
+    """Contact energy W(V) of the overlap volume V [m^3]; ``kind`` names a
+    :class:`polydem.kernels.laws.Law` (a string or the enum), whose W and W' this evaluates.
 
     * ``linear``: W = k V, W' = k (k in Pa = J/m^3)
     * ``hertz``: W = 2/3 k V^1.5, W' = k V^0.5 (k in J/m^4.5)
@@ -62,31 +64,30 @@ class ContactLaw:
     def __post_init__(self):
         if self.kind not in LAWS:
             raise ValueError(f"contact law must be one of {', '.join(LAWS)}, got {self.kind!r}")
+        # A Law is kept by its name, as the kernels and messages take it.
+        object.__setattr__(self, "kind", str(self.kind))
         if not np.isfinite(self.k) or self.k <= 0.0:
             raise ValueError(f"contact stiffness k must be a positive finite number, got {self.k!r}")
-        if self.kind == "power" and (not np.isfinite(self.m) or self.m < 1.0):
+        if LAW_SPECS[self.kind].fixed_exponent is None and (not np.isfinite(self.m) or self.m < 1.0):
             raise ValueError(
-                f"power-law exponent m must be >= 1 (m < 1 gives an infinite force at first touch), got {self.m!r}"
+                f"{self.kind}-law exponent m must be >= 1 (m < 1 gives an infinite force at first touch), "
+                f"got {self.m!r}"
             )
 
     @property
     def exponent(self):
-        """The exponent m of W = k V^m / m (1 linear, 1.5 Hertz-type)."""
-        return {"linear": 1.0, "hertz": 1.5, "power": self.m}[self.kind]
+        """The exponent m of W = k V^m / m (1 linear, 1.5 Hertz-type, ``m`` power)."""
+        return LAW_SPECS[self.kind].exponent(self.m)
 
     def energy(self, volume):
         """W(V) [J] for an array of overlap volumes [m^3]."""
         v = np.maximum(np.asarray(volume, dtype=np.float64), 0.0)
-        m = self.exponent
-        return self.k * v**m / m
+        return LAW_SPECS[self.kind].energy(v, self.k, self.exponent)
 
     def derivative(self, volume):
         """W'(V) [Pa] for an array of overlap volumes [m^3]."""
         v = np.maximum(np.asarray(volume, dtype=np.float64), 0.0)
-        m = self.exponent
-        if m == 1.0:
-            return np.full_like(v, self.k)
-        return self.k * v ** (m - 1.0)
+        return LAW_SPECS[self.kind].derivative(v, self.k, self.exponent)
 
 
 @dataclass

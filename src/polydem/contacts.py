@@ -2,7 +2,7 @@
 
 A pair's history is its friction spring and the turning volume of the normal hysteresis
 (kernels/forces.py). The pair list changes at every broad-phase rebuild; the history goes with the
-pair's key ``a * N + b`` (kernels/forces.py ``remap_history_kernel``), so a pair that persists
+pair's key ``a * N + b`` (kernels/pairlist.py ``launch_remap_history``), so a pair that persists
 across a rebuild, a redone chunk or a checkpoint keeps it, and a new pair starts from zero.
 
 The wall contacts' history is per (body, wall), has no list to follow, and lives in the
@@ -16,21 +16,15 @@ pairs, so that a contact that ended still counts in the average.
 The history is in the contact scalar of the model's precision (float32 in "float32" and "mixed",
 float64 in "float64"). The broad phase runs in float32 in every precision: with float64 poses it
 gets float32 copies of the centres and radii grown by the rounding of the cast
-(``kernels/broadphase.py`` ``float32_input_kernel``), so no candidate pair is missed.
+(``kernels/broadphase.py`` ``launch_float32_inputs``), so no candidate pair is missed.
 """
 
 import numpy as np
 import warp as wp
 
-from polydem.kernels.broadphase import BroadPhase, float32_input_kernel
-from polydem.kernels.forces import (
-    ContactSums,
-    b_keys_kernel,
-    body_ranges_kernel,
-    make_remap_history_kernel,
-    remap_sums_kernel,
-    retire_sums_kernel,
-)
+from polydem.kernels.broadphase import BroadPhase, launch_float32_inputs
+from polydem.kernels.forces import ContactSums
+from polydem.kernels.pairlist import launch_body_ranges, launch_remap_history, launch_remap_sums, launch_retire_sums
 from polydem.kernels.precision import numpy_dtype
 
 __all__ = ["ContactAverage", "Contacts", "PairHistory", "contact_sums"]
@@ -103,6 +97,8 @@ class Contacts:
         skin: Verlet skin [m].
         body_box: (lower, upper), two (N, 3) arrays: a box around each body's shape in its own frame [m].
         capacity: initial number of pairs there is room for (grows on overflow).
+        radius_ref: the unit of the broad phase's size classes [m] (``RunSettings.radius_ref``; None:
+            the smallest free radius of the model's bodies).
 
     Attributes (device arrays; C = :attr:`capacity`, N bodies):
         broadphase: the :class:`~polydem.kernels.broadphase.BroadPhase`, which owns the pair list
@@ -124,19 +120,24 @@ class Contacts:
             graph holds the old ones).
     """
 
-    def __init__(self, model, skin, body_box, capacity):
+    def __init__(self, model, skin, body_box, capacity, radius_ref: float | None = None):
         self.model = model
         self.device = model.device
         self.num_bodies = model.num_bodies
         self.friction = model.friction
         self.scalar = model.contact_scalar
         self.broadphase = BroadPhase(
-            self.num_bodies, self.device, skin, capacity=capacity, rotation_term=False, body_box=body_box
+            self.num_bodies,
+            self.device,
+            skin,
+            capacity=capacity,
+            rotation_term=False,
+            body_box=body_box,
+            radius_ref=radius_ref,
         )
         self.capacity = 0
         self.generation = 0
         self.average = None
-        self._remap = make_remap_history_kernel(self.scalar)
         # Float64 poses reach the broad phase through float32 copies (module docstring).
         self._cast = model.scalar != wp.float32
         if self._cast:
@@ -148,12 +149,8 @@ class Contacts:
         m = self.model
         if not self._cast:
             return body_q, m.body_radius
-        wp.launch(
-            float32_input_kernel,
-            dim=self.num_bodies,
-            inputs=[m.body_radius, body_q],
-            outputs=[self._q32, self._radius32],
-            device=self.device,
+        launch_float32_inputs(
+            body_radius=m.body_radius, body_q=body_q, body_q32=self._q32, body_radius32=self._radius32
         )
         return self._q32, self._radius32
 
@@ -214,35 +211,39 @@ class Contacts:
         if self.average is not None:
             self.average.keep_previous()
 
+    def carry_history(self, history: PairHistory, xi: wp.array, turn: wp.array) -> None:
+        """Give each pair of the current list the history that ``history`` (a :class:`PairHistory`) holds
+        under its key, into ``xi`` and ``turn`` (arrays shaped as :attr:`pair_xi` and :attr:`pair_turn`);
+        zero for a new pair. A rebuild carries the previous list's into the live arrays so."""
+        bp = self.broadphase
+        launch_remap_history(
+            old=history,
+            new_key=bp.pair_key,
+            new_count=bp.pair_count,
+            friction=self.friction,
+            new_xi=xi,
+            new_turn=turn,
+        )
+
     def _after_rebuild(self):
         """Turning volumes and friction springs carried over by pair key; per-body ranges for the gather."""
         bp = self.broadphase
-        dev = self.device
-        cap = self.capacity
         prev = self.previous
-        wp.launch(
-            self._remap,
-            dim=cap,
-            inputs=[prev.key, prev.count, prev.xi, prev.turn, bp.pair_key, bp.pair_count, int(self.friction)],
-            outputs=[self.pair_xi, self.pair_turn],
-            device=dev,
-        )
+        self.carry_history(prev, self.pair_xi, self.pair_turn)
         if self.average is not None:
             self.average.after_rebuild(prev.key, prev.count, bp.pair_key, bp.pair_count)
-        wp.launch(
-            b_keys_kernel,
-            dim=cap,
-            inputs=[self.num_bodies, bp.sentinel, bp.pair_a, bp.pair_b, bp.pair_count],
-            outputs=[self._keys_b, self._by_b],
-            device=dev,
-        )
-        wp.utils.radix_sort_pairs(self._keys_b, self._by_b, cap, 0, bp.key_bits)
-        wp.launch(
-            body_ranges_kernel,
-            dim=self.num_bodies,
-            inputs=[self.num_bodies, bp.pair_key, self._keys_b, bp.pair_count],
-            outputs=[self.body_pairs_a, self.body_pairs_b],
-            device=dev,
+        launch_body_ranges(
+            num_bodies=self.num_bodies,
+            sentinel=bp.sentinel,
+            key_bits=bp.key_bits,
+            pair_a=bp.pair_a,
+            pair_b=bp.pair_b,
+            pair_key=bp.pair_key,
+            pair_count=bp.pair_count,
+            keys_b=self._keys_b,
+            by_b=self._by_b,
+            body_pairs_a=self.body_pairs_a,
+            body_pairs_b=self.body_pairs_b,
         )
 
     # -- rebuilds (the broad phase of a step) -------------------------------------------------
@@ -469,20 +470,24 @@ class ContactAverage:
             _copy_sums(self.previous, pair_sums, count=min(count, len(pair_sums.steps), self.capacity))
 
     def after_rebuild(self, old_key, old_count, new_key, new_count):
-        dev = self.device
-        wp.launch(
-            retire_sums_kernel,
-            dim=self.capacity,
-            inputs=[old_key, old_count, self.previous, new_key, new_count],
-            outputs=[self.retired_key, self.retired, self.retired_count, self.overflow],
-            device=dev,
+        launch_retire_sums(
+            old_key=old_key,
+            old_count=old_count,
+            old_sums=self.previous,
+            new_key=new_key,
+            new_count=new_count,
+            retired_key=self.retired_key,
+            retired=self.retired,
+            retired_count=self.retired_count,
+            overflow=self.overflow,
         )
-        wp.launch(
-            remap_sums_kernel,
-            dim=self.capacity,
-            inputs=[old_key, old_count, self.previous, new_key, new_count],
-            outputs=[self.pairs],
-            device=dev,
+        launch_remap_sums(
+            old_key=old_key,
+            old_count=old_count,
+            old_sums=self.previous,
+            new_key=new_key,
+            new_count=new_count,
+            new_sums=self.pairs,
         )
 
     # -- redo and snapshots ----------------------------------------------------------------------

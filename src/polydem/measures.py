@@ -212,7 +212,7 @@ class Grains:
     @classmethod
     def from_simulation(cls, sim, bodies=None) -> Grains:
         """The grains of a :class:`polydem.Simulation` at its current state (see :meth:`from_scene`)."""
-        return cls.from_scene(sim.model.scene, sim.state(), bodies)
+        return cls.from_scene(sim.scene, sim.state(), bodies)
 
     @property
     def num_bodies(self) -> int:

@@ -4,10 +4,15 @@ What changes during a run is not here: see :class:`~polydem.state.State` (bodies
 :class:`~polydem.contacts.Contacts` (the pair list and its history).
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
 import warp as wp
 
 from polydem.kernels.precision import numpy_dtype, scalars
+from polydem.run_settings import RunSettings, run_settings
 from polydem.scene import (  # noqa: F401  (re-exported: the time step is computed host-side in polydem.scene)
     MAX_DT_FRACTION,
     REFERENCE_DEPTH,
@@ -18,6 +23,9 @@ from polydem.scene import (  # noqa: F401  (re-exported: the time step is comput
 from polydem.shapeset import ShapeSet
 from polydem.state import State
 
+if TYPE_CHECKING:
+    from polydem.scene import Scene
+
 
 class Model:
     """Static device arrays of a simulation, from a :class:`~polydem.Scene`.
@@ -27,12 +35,26 @@ class Model:
     the material table. "float32": S = C = float32; "mixed": S = float64, C = float32;
     "float64": S = C = float64. The bounding radii feed the broad phase and stay float32.
 
+    A model of some of the scene's bodies (``bodies``, their indices) holds their rows alone, with the
+    settings of the whole scene's run (``settings``): a rank of a decomposed run steps its bodies so.
+
+    Args:
+        scene: the :class:`~polydem.Scene`; the model keeps none of it but the cells of its mesh walls.
+        device: Warp device.
+        validate: run ``scene.validate()`` first.
+        settings: the :class:`~polydem.run_settings.RunSettings` of the run (default: the scene's,
+            :func:`~polydem.run_settings.run_settings`).
+        bodies: (N,) indices of the scene's bodies to hold, in the order to hold them (default: all).
+
     Attributes:
+        settings: the :class:`~polydem.run_settings.RunSettings` (time step, friction springs, skin, ...).
+        body_index: (N,) int64 index in the scene of each body of the model.
         precision: "float32", "mixed" or "float64"; scalar, contact_scalar: the Warp scalars S, C.
         shapes: :class:`~polydem.shapeset.ShapeSet` of the scene's shapes (``shape_*``, ``face_*``).
         body_shape: (N,) int32 shape index.
         body_material: (N,) int32 material index.
-        body_flags: (N,) int32: 0 free, 1 fixed, 2 kinematic.
+        body_flags: (N,) int32: 0 free, 1 fixed, 2 kinematic; body_flags_np, body_shape_np: the flags and
+            shape indices on the host.
         body_mass: (N,) mass [kg] (numpy, host; float32 in "float32", else float64).
         body_inv_mass: (N,) S inverse mass [1/kg], 0 for fixed and kinematic bodies.
         body_inertia: (N,) S vec3 principal moments of inertia [kg m^2].
@@ -58,22 +80,43 @@ class Model:
             mesh_w: (M,) S vec3 angular velocity [rad/s]; mesh_q0: (M, 7) initial poses (pivot and
             identity rotation).
         grain_shapes: the ShapeSet of the scene's shapes alone (``shapes`` without the cells).
-        gravity: (3,) [m/s^2]; dt: time step [s]; dt_limit: largest accurate step [s].
+        gravity: (3,) [m/s^2]; dt: time step [s]; dt_recommended, dt_limit: the recommended and the
+            largest accurate step [s] (from ``settings``).
     """
 
-    def __init__(self, scene, device=None, validate=True):
+    def __init__(
+        self,
+        scene: Scene,
+        device=None,
+        validate: bool = True,
+        *,
+        settings: RunSettings | None = None,
+        bodies: np.ndarray | None = None,
+    ):
         if validate:
             scene.validate()
+        self.settings = run_settings(scene) if settings is None else settings
         self.device = wp.get_device(device)
         dev = self.device
-        self.scene = scene
         names = scene.shape_names
         shape_list = [scene.shapes[n] for n in names]
         self.precision = scene.precision
         self.scalar, self.contact_scalar = scalars(self.precision)
         s_np, c_np = numpy_dtype(self.scalar), numpy_dtype(self.contact_scalar)
         vec3s = wp.types.vector(3, self.scalar)
-        self.num_bodies = n = scene.num_bodies
+        rows = {name: v.view() for name, v in scene.body_arrays().items()}
+        if bodies is None:
+            self.body_index = np.arange(scene.num_bodies, dtype=np.int64)
+        else:
+            self.body_index = np.asarray(bodies, dtype=np.int64)
+            index = self.body_index
+            if index.ndim != 1 or not np.all((index >= 0) & (index < scene.num_bodies)):
+                raise ValueError(f"bodies must be a 1-D array of the scene's body indices, 0 to {scene.num_bodies - 1}")
+            # Copies of these bodies' rows alone: a rank's model costs the host what its own bodies do.
+            rows = {name: np.ascontiguousarray(v[index]) for name, v in rows.items()}
+        for v in rows.values():
+            v.setflags(write=False)  # the scene's own arrays where the model has every body
+        self.num_bodies = n = len(self.body_index)
         self._mesh_walls(scene, shape_list, dev, s_np)
         self.shapes = ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name, packed=self.mesh_cells)
         self.grain_shapes = (
@@ -81,14 +124,20 @@ class Model:
         )
         self.num_materials = len(scene.material_names)
 
-        body_shape = np.asarray(scene.body_shape, dtype=np.int32)
-        kind = np.asarray(scene.body_kind, dtype=np.int32)
-        mass = np.asarray(scene.body_mass(), dtype=np.float64)
-        inertia = np.asarray(scene.body_inertia(), dtype=np.float64)
+        body_shape = np.asarray(rows["shape"], dtype=np.int32)
+        body_material = np.asarray(rows["material"], dtype=np.int32)
+        kind = np.asarray(rows["kind"], dtype=np.int32)
+        # Scene.body_mass() and body_inertia() over these bodies alone (the same products, so the same bits).
+        volume = np.array([s.volume for s in scene.shapes.values()])
+        density = np.array([m.density for m in scene.materials.values()])
+        shape_inertia = np.array([s.inertia for s in scene.shapes.values()]).reshape(-1, 3)
+        mass = np.asarray(density[body_material] * volume[body_shape], dtype=np.float64)
+        inertia = np.asarray(density[body_material][:, None] * shape_inertia[body_shape], dtype=np.float64)
         radius = np.array([s.radius for s in shape_list])[body_shape]
         free = kind == 0
         self.body_mass = mass.astype(s_np)
         self.body_flags_np = kind
+        self.body_shape_np = body_shape
         inv_mass = np.where(free, 1.0 / np.maximum(mass, 1e-300), 0.0)
 
         table = scene.pair_table()
@@ -96,12 +145,10 @@ class Model:
         self.law_m = float(table["exponent"])
         k = np.asarray(table["k"], dtype=np.float64)
 
-        # Computed host-side so that `polydem validate` gives the same numbers without Warp.
-        ts = scene.time_step()
-        kt = ts.tangential_stiffness
-        self.dt_recommended = ts.recommended
-        self.dt_limit = ts.limit
-        self.dt = ts.dt
+        kt = self.settings.tangential_stiffness
+        self.dt_recommended = self.settings.dt_recommended
+        self.dt_limit = self.settings.dt_limit
+        self.dt = self.settings.dt
         self.gravity = np.asarray(scene.gravity, dtype=np.float64)
         self.friction = bool(np.any(np.asarray(table["friction"]) > 0.0))
 
@@ -109,12 +156,12 @@ class Model:
             return wp.array(a, dtype=dtype, device=dev)
 
         self.body_shape = arr(body_shape, int)
-        self.body_material = arr(np.asarray(scene.body_material, dtype=np.int32), int)
+        self.body_material = arr(body_material, int)
         self.body_flags = arr(kind, int)
         self.body_inv_mass = arr(inv_mass.astype(s_np), self.scalar)
         self.body_inertia = arr(inertia.astype(s_np), vec3s)
         self.body_radius = arr(radius.astype(np.float32), float)
-        pivot = np.asarray(getattr(scene, "body_pivot", np.full((n, 3), np.nan)), dtype=np.float64)
+        pivot = np.asarray(rows["pivot"], dtype=np.float64)
         # Only kinematic bodies turning about a pivot (drum parts) need the array.
         self.body_pivot = arr(pivot.astype(s_np), vec3s) if np.isfinite(pivot).any() else None
         c = self.contact_scalar
@@ -131,6 +178,8 @@ class Model:
         self.plane_normal = arr(normals.astype(s_np), vec3s)
         self.plane_offset = arr(offsets.astype(s_np), self.scalar)
         self.plane_material = arr(np.array([mat_index[p.material] for p in planes], dtype=np.int32), int)
+        # The initial state's rows (state()): views of the scene's arrays, or the copies of the slice.
+        self._initial = {k: rows[k] for k in ("position", "orientation", "velocity", "angular_velocity")}
         self.bytes = sum(
             a.capacity
             for a in (
@@ -157,9 +206,9 @@ class Model:
             return
         mat_index = {name: i for i, name in enumerate(scene.material_names)}
         starts, centers, fronts, lowers, uppers = [0], [], [], [], []
-        for wall in walls:
-            # The scene's cells (its checks built them at validation): one build, one thickness rule.
-            mc = scene.mesh_wall_cells(wall, scene.mesh_wall_thickness(wall))
+        for wall, thickness in zip(walls, self.settings.mesh_wall_thickness, strict=True):
+            # The scene's cells (its checks built them at validation, at this thickness): one build.
+            mc = scene.mesh_wall_cells(wall, thickness)
             self.mesh_cells.append(mc)
             starts.append(starts[-1] + mc.num_cells)
             centers.append(mc.cell_center)
@@ -188,15 +237,16 @@ class Model:
         self.mesh_q0 = np.array([[*w.pivot, 0.0, 0.0, 0.0, 1.0] for w in walls], dtype=np.float64)
 
     def state(self):
-        """The scene's initial :class:`~polydem.state.State`: its bodies' poses and velocities, no contact history."""
-        scene = self.scene
+        """The initial :class:`~polydem.state.State` of the model's bodies: their poses and velocities in the
+        scene, no contact history."""
+        initial = self._initial
         state = State(
             self.num_bodies, self.num_walls, self.friction, self.device, self.precision, num_meshes=self.num_mesh_walls
         )
         s_np = numpy_dtype(self.scalar)
-        state.body_q.assign(np.hstack([scene.body_position, scene.body_orientation]).astype(s_np))
-        state.body_v.assign(np.asarray(scene.body_velocity, dtype=s_np))
-        state.body_w.assign(np.asarray(scene.body_angular_velocity, dtype=s_np))
+        state.body_q.assign(np.hstack([initial["position"], initial["orientation"]]).astype(s_np))
+        state.body_v.assign(np.asarray(initial["velocity"], dtype=s_np))
+        state.body_w.assign(np.asarray(initial["angular_velocity"], dtype=s_np))
         if self.num_mesh_walls:
             state.mesh_q.assign(self.mesh_q0.astype(s_np))
         return state

@@ -635,7 +635,7 @@ def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool 
     """
     if path is not None:
         _check_png_path(path)
-    scene = sim.model.scene
+    scene = sim.scene
     state = sim.state()
     kw.setdefault("device", sim.device)
     kw.setdefault("planes", scene.planes)

@@ -29,23 +29,39 @@ applied. An average of the contact forces over an interval (:meth:`Simulation.st
 is summed on the device by the steps themselves (:class:`~polydem.contacts.ContactAverage`).
 """
 
-import functools
 import math
 import time as _time
 import warnings
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
 from polydem.contacts import ContactAverage, Contacts, PairHistory, contact_sums
-from polydem.kernels import geometry as _geometry
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
-from polydem.kernels.forces import REPORT_CONTACTS, REPORT_SUMS, make_contact_kernels, make_remap_history_kernel
-from polydem.kernels.integrate import integrate_bodies, kinetic_energy, make_integrator
-from polydem.kernels.meshwall import make_mesh_kernels
-from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
+from polydem.kernels.forces import (
+    PAIR_MAX_REGISTERS,
+    REPORT_CONTACTS,
+    REPORT_SUMS,
+    ContactKernels,
+    ContactOutputs,
+    ContactSums,
+    PairArrays,
+    launch_gather,
+    launch_pair_contacts,
+    make_contact_kernels,
+)
+from polydem.kernels.integrate import (
+    integrate_bodies,
+    kinetic_energy,
+    launch_check_state,
+    launch_count_step,
+    launch_settle_measures,
+)
+from polydem.kernels.meshwall import MeshWallState, launch_advance_meshes, launch_mesh_contacts, make_mesh_kernels
 from polydem.model import Model
+from polydem.run_settings import RunSettings, run_settings
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
 from polydem.state import State
 
@@ -63,98 +79,6 @@ class SimulationWarning(UserWarning):
     """Something in the run is suspect but it goes on (a body fast enough to tunnel)."""
 
 
-@functools.cache
-def make_check_state_kernel(scalar):
-    """The check of a state in ``scalar``: finiteness, and each body's peak speed against its limit."""
-    vec3 = wp.types.vector(3, scalar)
-
-    @wp.kernel(enable_backward=False, module="unique")
-    def check_state_kernel(
-        # Model
-        body_flags: wp.array(dtype=int),
-        body_radius: wp.array(dtype=float),
-        body_speed_limit: wp.array(dtype=float),
-        # State in
-        step: wp.array(dtype=int),
-        body_q: wp.array(dtype=wp.types.transformation(scalar)),
-        body_v: wp.array(dtype=vec3),
-        body_w: wp.array(dtype=vec3),
-        # Out
-        bad_step: wp.array(dtype=int),
-        body_peak_speed: wp.array(dtype=float),
-        too_fast: wp.array(dtype=int),
-    ):
-        """Records (atomic min) the first step at which a body's state is not finite, each body's
-        largest speed of its fastest point (|v| + |w| r), and whether one went above its speed limit."""
-        i = wp.tid()
-        speed = float(wp.length(body_v[i]) + wp.length(body_w[i]) * scalar(body_radius[i]))
-        # One thread per body: a plain running maximum, no atomics.
-        if speed > body_peak_speed[i]:
-            body_peak_speed[i] = speed
-        if speed > body_speed_limit[i]:
-            wp.atomic_max(too_fast, 0, 1)
-        q = body_q[i]
-        p = wp.transform_get_translation(q)
-        r = wp.transform_get_rotation(q)
-        v = body_v[i]
-        w = body_w[i]
-        total = p[0] + p[1] + p[2] + r[0] + r[1] + r[2] + r[3] + v[0] + v[1] + v[2] + w[0] + w[1] + w[2]
-        if not wp.isfinite(total):
-            wp.atomic_min(bad_step, 0, step[0])
-
-    return check_state_kernel
-
-
-@functools.cache
-def make_settle_measures_kernel(scalar):
-    """Per free body, in float64: kinetic and gravitational energy; the largest speed of a fastest point."""
-    vec3 = wp.types.vector(3, scalar)
-    body_kinetic_energy = make_integrator(scalar).body_kinetic_energy
-
-    @wp.kernel(enable_backward=False, module="unique")
-    def settle_measures_kernel(
-        # Model
-        body_flags: wp.array(dtype=int),
-        body_inv_mass: wp.array(dtype=scalar),
-        body_inertia: wp.array(dtype=vec3),
-        body_radius: wp.array(dtype=float),
-        gravity: wp.vec3d,
-        # State in
-        body_q: wp.array(dtype=wp.types.transformation(scalar)),
-        body_v: wp.array(dtype=vec3),
-        body_w: wp.array(dtype=vec3),
-        # Out
-        body_kinetic: wp.array(dtype=wp.float64),
-        body_gravity: wp.array(dtype=wp.float64),
-        largest_speed: wp.array(dtype=wp.float64),
-    ):
-        """Zero for fixed, kinematic and infinite-mass bodies (driven from outside the pile); the
-        speeds go into one running maximum (atomic: a maximum does not depend on the order)."""
-        i = wp.tid()
-        inv_mass = body_inv_mass[i]
-        body_kinetic[i] = wp.float64(0.0)
-        body_gravity[i] = wp.float64(0.0)
-        if body_flags[i] == 0 and inv_mass > scalar(0.0):
-            v = body_v[i]
-            w = body_w[i]
-            q = body_q[i]
-            e_lin, e_ang = body_kinetic_energy(inv_mass, body_inertia[i], q, v, w)
-            body_kinetic[i] = wp.float64(e_lin + e_ang)
-            x = wp.transform_get_translation(q)
-            mass = wp.float64(1.0) / wp.float64(inv_mass)
-            h = wp.float64(x[0]) * gravity[0] + wp.float64(x[1]) * gravity[1] + wp.float64(x[2]) * gravity[2]
-            body_gravity[i] = -mass * h
-            speed = wp.float64(wp.length(v)) + wp.float64(wp.length(w)) * wp.float64(body_radius[i])
-            wp.atomic_max(largest_speed, 0, speed)
-
-    return settle_measures_kernel
-
-
-@wp.kernel(enable_backward=False)
-def advance_step_kernel(step: wp.array(dtype=int)):
-    step[0] = step[0] + 1
-
-
 class Stepper:
     """One time step of a :class:`~polydem.model.Model`: ``step(state_in, state_out, contacts, dt)``.
 
@@ -167,6 +91,8 @@ class Stepper:
         model: the model.
         device_rebuild: rebuild the pair list on the device, without host synchronisation (for
             CUDA graph capture); an overflow is then reported by ``contacts.host_build_needed()``.
+        pair_max_registers: CUDA register cap per thread of the pair kernels (None: the compiler's
+            choice); the results do not depend on it (benchmarks/settle.py --max-registers).
 
     Attributes:
         poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_polygons`).
@@ -182,7 +108,7 @@ class Stepper:
             force to, or None.
     """
 
-    def __init__(self, model, device_rebuild=False):
+    def __init__(self, model, device_rebuild=False, pair_max_registers=PAIR_MAX_REGISTERS):
         self.model = model
         self.device = model.device
         self.device_rebuild = bool(device_rebuild)
@@ -195,15 +121,15 @@ class Stepper:
         self.body_speed_limit = wp.full(n, float("inf"), dtype=float, device=self.device)
         self.body_peak_speed = wp.zeros(n, dtype=float, device=self.device)
         self.too_fast = wp.zeros(1, dtype=int, device=self.device)
-        # How the pair kernel holds its working set (same results; benchmarks/settle.py --variants).
-        self.pair_variant = _geometry.DEFAULT_PAIR_VARIANT
+        self.pair_max_registers = pair_max_registers
         self._kernels()
         self._diag = None
         self._diag_generation = None
-        self._empty = None
+        # What the kernels take where they write nothing: made here, not on the first (captured) step.
+        self._no_outputs = ContactOutputs.zeros(1, 1, 1, model.precision, self.device)
+        self._no_sums = contact_sums(1, self.device)
         self.keep_inputs = None
         self.average = None
-        self._no_sums = None
         self._report = None  # the outputs and scratch arrays of report()
         self._report_generation = None
         self._history_on = None  # the pair history of history_on()
@@ -223,7 +149,7 @@ class Stepper:
             m.shapes.max_faces,
             diagnostics=diagnostics,
             precision=m.precision,
-            variant=self.pair_variant,
+            max_registers=self.pair_max_registers,
             compound=m.shapes.compound,
             report=report,
         )
@@ -239,7 +165,6 @@ class Stepper:
             m.shapes.max_faces,
             diagnostics=diagnostics,
             precision=m.precision,
-            variant=self.pair_variant,
             compound=m.shapes.compound,
             report=report,
         )
@@ -305,236 +230,116 @@ class Stepper:
         of the kernels)."""
         average = self.average
         if average is None:
-            self._launch_contacts(self.kernels, None, state, contacts, dt, self.poly_overflow)
-            if self.mesh_kernels is not None:
-                self._launch_meshes(self.mesh_kernels[0], None, state, dt, self.poly_overflow)
+            mesh = None if self.mesh_kernels is None else self.mesh_kernels[0]
+            self._force_stage(self.kernels, mesh, state=state, pairs=contacts, dt=dt, overflow=self.poly_overflow)
             return
         kernels, mesh = self._report_kernels()
-        sums = {"report": REPORT_SUMS, "pair_sums": average.pairs, "wall_sums": average.walls}
-        self._launch_contacts(kernels, None, state, contacts, dt, self.poly_overflow, **sums)
-        if mesh is not None:
-            self._launch_meshes(mesh, None, state, dt, self.poly_overflow, report=REPORT_SUMS, wall_sums=average.walls)
+        self._force_stage(
+            kernels,
+            mesh,
+            state=state,
+            pairs=contacts,
+            dt=dt,
+            overflow=self.poly_overflow,
+            report_bits=REPORT_SUMS,
+            pair_sums=average.pairs,
+            wall_sums=average.walls,
+        )
 
     def integrate(self, state, dt):
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
         m = self.model
-        dev = self.device
         integrate_bodies(
-            m.body_inv_mass,
-            m.body_inertia,
-            m.body_flags,
-            m.gravity,
-            state.body_q,
-            state.body_v,
-            state.body_w,
-            state.body_f,
-            state.body_t,
-            dt,
-            device=dev,
+            body_inv_mass=m.body_inv_mass,
+            body_inertia=m.body_inertia,
+            body_flags=m.body_flags,
+            gravity=m.gravity,
+            body_q=state.body_q,
+            body_v=state.body_v,
+            body_w=state.body_w,
+            body_f=state.body_f,
+            body_t=state.body_t,
+            dt=dt,
+            device=self.device,
             body_pivot=m.body_pivot,
         )
         if self.mesh_kernels is not None and m.mesh_moves:
-            wp.launch(
-                self.mesh_kernels[1],
-                dim=m.num_mesh_walls,
-                inputs=[m.mesh_v, m.mesh_w, m.scalar(dt), state.mesh_q],
-                device=dev,
+            launch_advance_meshes(self.mesh_kernels[1], mesh_v=m.mesh_v, mesh_w=m.mesh_w, dt=dt, mesh_q=state.mesh_q)
+        launch_count_step(state.step_count)
+        launch_check_state(
+            model=m,
+            state=state,
+            step_count=state.step_count,
+            body_speed_limit=self.body_speed_limit,
+            bad_step=self.bad_step,
+            body_peak_speed=self.body_peak_speed,
+            too_fast=self.too_fast,
+        )
+
+    def _force_stage(
+        self,
+        kernels: ContactKernels,
+        mesh_kernel: wp.Kernel | None,
+        *,
+        state: MeshWallState,
+        pairs: PairArrays,
+        dt: float,
+        overflow: wp.array,
+        out: ContactOutputs | None = None,
+        report_bits: int = 0,
+        # A wp.struct is not a type that `|` takes: quoted.
+        pair_sums: "ContactSums | None" = None,
+        wall_sums: "ContactSums | None" = None,
+    ) -> None:
+        """The pair, gather and mesh-wall kernels (``kernels``; ``mesh_kernel``, None without mesh walls):
+        the step variant, or the diagnostics one into ``out``, or the report variant (``report_bits``,
+        into ``out`` and the sums); a clipped polygon that did not fit sets ``overflow``."""
+        m = self.model
+        out = self._no_outputs if out is None else out
+        launch_pair_contacts(
+            kernels,
+            model=m,
+            state=state,
+            pairs=pairs,
+            dt=dt,
+            overflow=overflow,
+            out=out,
+            report_bits=report_bits,
+            pair_sums=self._no_sums if pair_sums is None else pair_sums,
+        )
+        wall_sums = self._no_sums if wall_sums is None else wall_sums
+        launch_gather(
+            kernels, model=m, state=state, pairs=pairs, dt=dt, out=out, report_bits=report_bits, wall_sums=wall_sums
+        )
+        if mesh_kernel is not None:
+            launch_mesh_contacts(
+                mesh_kernel,
+                model=m,
+                state=state,
+                dt=dt,
+                overflow=overflow,
+                out=out,
+                report_bits=report_bits,
+                wall_sums=wall_sums,
             )
-        wp.launch(advance_step_kernel, dim=1, inputs=[state.step_count], device=dev)
-        wp.launch(
-            make_check_state_kernel(m.scalar),
-            dim=m.num_bodies,
-            inputs=[
-                m.body_flags,
-                m.body_radius,
-                self.body_speed_limit,
-                state.step_count,
-                state.body_q,
-                state.body_v,
-                state.body_w,
-            ],
-            outputs=[self.bad_step, self.body_peak_speed, self.too_fast],
-            device=dev,
-        )
 
-    def _launch_contacts(self, kernels, diag, state, contacts, dt, overflow, report=0, pair_sums=None, wall_sums=None):
-        """The pair and gather kernels: the step variant, or the diagnostics one into ``diag``, or the
-        report variant (``report`` bits, into ``diag`` and the sums); a clipped polygon that did not
-        fit sets ``overflow``."""
+    def _diag_arrays(self, pairs: int) -> ContactOutputs:
+        # The outputs of the diagnostics and report variants for ``pairs`` candidate pairs.
         m = self.model
-        s = m.shapes
-        bp = contacts.broadphase
-        dev = self.device
-        materials = [m.num_materials, m.material_k, m.material_e, m.material_mu, m.material_kt, m.law_m, dt]
-        d = diag if diag is not None else self._placeholders()
-        none = self._placeholder_sums()
-        wp.launch(
-            kernels.pair_contact_kernel,
-            dim=contacts.capacity,
-            inputs=[
-                *s.kernel_args(),
-                m.body_shape,
-                m.body_material,
-                m.body_inv_mass,
-                *materials,
-                state.body_q,
-                state.body_v,
-                state.body_w,
-                bp.pair_a,
-                bp.pair_b,
-                bp.pair_count,
-                contacts.pair_xi,
-                contacts.pair_turn,
-            ],
-            outputs=[
-                contacts.pair_force,
-                contacts.pair_torque_a,
-                contacts.pair_dissipated,
-                overflow,
-                d["pair_volume"],
-                d["pair_energy"],
-                d["pair_normal"],
-                d["pair_point"],
-                d["pair_fn"],
-                d["pair_ft"],
-                d["pair_depth"],
-                int(report),
-                none if pair_sums is None else pair_sums,
-            ],
-            device=dev,
-            block_dim=NARROWPHASE_BLOCK_DIM,
-        )
-        wp.launch(
-            kernels.gather_kernel,
-            dim=m.num_bodies,
-            inputs=[
-                *s.kernel_args(),
-                m.body_shape,
-                m.body_material,
-                m.body_flags,
-                m.body_inv_mass,
-                *materials,
-                m.plane_normal,
-                m.plane_offset,
-                m.plane_material,
-                state.body_q,
-                state.body_v,
-                state.body_w,
-                bp.pair_a,
-                bp.pair_b,
-                contacts.body_pairs_a,
-                contacts.body_pairs_b,
-                contacts.pair_by_b,
-                contacts.pair_force,
-                contacts.pair_torque_a,
-                contacts.pair_dissipated,
-                state.plane_xi,
-                state.plane_turn,
-                state.body_dissipated,
-            ],
-            outputs=[
-                state.body_f,
-                state.body_t,
-                d["plane_volume"],
-                d["plane_energy"],
-                d["plane_fn"],
-                d["plane_point"],
-                d["plane_ft"],
-                d["plane_depth"],
-                int(report),
-                none if wall_sums is None else wall_sums,
-            ],
-            device=dev,
-        )
+        return ContactOutputs.zeros(pairs, m.num_bodies, max(m.num_walls, 1), m.precision, self.device)
 
-    def _launch_meshes(self, kernel, diag, state, dt, overflow, report=0, wall_sums=None):
-        """The mesh-wall contacts of every body, added to ``state.body_f`` and ``body_t`` after the
-        gather (step), or reported into ``diag``'s wall columns (diagnostics; the report variant:
-        ``report`` bits, as :meth:`_launch_contacts`)."""
-        m = self.model
-        d = diag if diag is not None else self._placeholders()
-        wp.launch(
-            kernel,
-            dim=m.num_bodies,
-            inputs=[
-                *m.shapes.kernel_args(),
-                m.body_shape,
-                m.body_material,
-                m.body_flags,
-                m.body_inv_mass,
-                m.body_radius,
-                m.num_materials,
-                m.material_k,
-                m.material_e,
-                m.material_mu,
-                m.material_kt,
-                m.law_m,
-                dt,
-                m.mesh_bvh,
-                m.mesh_cell_start,
-                m.mesh_material,
-                m.mesh_v,
-                m.mesh_w,
-                m.cell_shape,
-                m.cell_center,
-                m.cell_front,
-                m.num_planes,
-                state.body_q,
-                state.body_v,
-                state.body_w,
-                state.mesh_q,
-                state.plane_xi,
-                state.plane_turn,
-                state.body_dissipated,
-                state.body_f,
-                state.body_t,
-                overflow,
-            ],
-            outputs=[
-                d["plane_volume"],
-                d["plane_energy"],
-                d["plane_fn"],
-                d["plane_point"],
-                d["plane_ft"],
-                d["plane_depth"],
-                d["plane_normal"],
-                int(report),
-                self._placeholder_sums() if wall_sums is None else wall_sums,
-            ],
-            device=self.device,
-        )
-
-    def _diag_arrays(self, pairs, bodies, planes):
-        # The outputs of the diagnostics variant: contact points in the state's scalar (they are
-        # world positions), the rest in the contact scalar.
-        dev = self.device
-        m = self.model
-        c = m.contact_scalar
-        vec3c = wp.types.vector(3, c)
-        vec3s = wp.types.vector(3, m.scalar)
-        out = {}
-        for prefix, shape in (("pair", pairs), ("plane", (bodies, planes))):
-            out[f"{prefix}_volume"] = wp.zeros(shape, dtype=c, device=dev)
-            out[f"{prefix}_energy"] = wp.zeros(shape, dtype=c, device=dev)
-            if prefix == "pair":
-                out["pair_normal"] = wp.zeros(shape, dtype=vec3c, device=dev)
-            out[f"{prefix}_point"] = wp.zeros(shape, dtype=vec3s, device=dev)
-            out[f"{prefix}_fn"] = wp.zeros(shape, dtype=c, device=dev)
-            out[f"{prefix}_ft"] = wp.zeros(shape, dtype=vec3c, device=dev)
-            out[f"{prefix}_depth"] = wp.zeros(shape, dtype=c, device=dev)
-        # The normals of the mesh-wall contacts (a plane's is the plane's).
-        out["plane_normal"] = wp.zeros((bodies, planes), dtype=vec3c, device=dev)
-        return out
-
-    def _placeholders(self):
-        if getattr(self, "_empty", None) is None:
-            self._empty = self._diag_arrays(1, 1, 1)
-        return self._empty
-
-    def _placeholder_sums(self):
-        if getattr(self, "_no_sums", None) is None:
-            self._no_sums = contact_sums(1, self.device)
-        return self._no_sums
+    def _until_polygons_fit(self, run_pass: Callable[[], None]) -> None:
+        """Run ``run_pass`` (a diagnostics or report pass, with the current kernels) until no clipped polygon
+        overflowed: an overflowed contact is wrong, so the room grows (for the steps too from now on: their
+        kernels and graph are rebuilt) and the pass runs again."""
+        bound = self.model.shapes.max_poly_bound
+        while True:
+            self._diag_overflow.zero_()
+            run_pass()
+            if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= bound:
+                return
+            self.poly_capacity = min(2 * self.poly_capacity, bound)
+            self._kernels()
 
     def diagnose(self, state, contacts, dt):
         """Runs the diagnostics variant of the contact kernels at ``state``; returns its host arrays.
@@ -544,27 +349,21 @@ class Stepper:
         (body, wall): ``plane_volume``, ``plane_energy``, ``plane_fn``, ``plane_point``, ``plane_ft``,
         ``plane_depth``.
         """
-        cap = contacts.capacity
-        n = self.model.num_bodies
-        p = max(self.model.num_walls, 1)
         if self._diag is None or self._diag_generation != contacts.generation:
             self._diag_generation = contacts.generation
-            self._diag = self._diag_arrays(cap, n, p)
-        m = self.model
-        while True:
-            self._diag_overflow.zero_()
+            self._diag = self._diag_arrays(contacts.capacity)
+
+        def run_pass() -> None:
             kernels = self._contact_kernels(diagnostics=True)
-            self._launch_contacts(kernels, self._diag, state, contacts, dt, self._diag_overflow)
-            if m.num_mesh_walls:
-                self._launch_meshes(self._mesh_kernels(True)[0], self._diag, state, dt, self._diag_overflow)
-            if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= m.shapes.max_poly_bound:
-                break
-            # A clipped polygon did not fit: its contact is wrong. Grow the room (the steps use it
-            # too from now on: their kernels and graph are rebuilt) and run the pass again.
-            self.poly_capacity = min(2 * self.poly_capacity, m.shapes.max_poly_bound)
-            self._kernels()
+            mesh = self._mesh_kernels(True)
+            mesh = None if mesh is None else mesh[0]
+            self._force_stage(
+                kernels, mesh, state=state, pairs=contacts, dt=dt, overflow=self._diag_overflow, out=self._diag
+            )
+
+        self._until_polygons_fit(run_pass)
         count = contacts.count()
-        out = {k: v.numpy() for k, v in self._diag.items()}
+        out = {k: v.numpy() for k, v in self._diag.arrays().items()}
         for k in ("pair_volume", "pair_energy", "pair_normal", "pair_point", "pair_fn", "pair_ft", "pair_depth"):
             out[k] = out[k][:count]
         return out
@@ -578,31 +377,14 @@ class Stepper:
     def history_on(self, history, contacts):
         """(xi, turn): the pair history ``history`` (a :class:`~polydem.contacts.PairHistory`, by key)
         carried onto the current pair list of ``contacts``, in arrays of :meth:`report`'s."""
-        cap, scalar = contacts.capacity, contacts.scalar
         r = self._history_on
         if r is None or r[0] != contacts.generation:
-            springs = cap if contacts.friction else 1
             r = self._history_on = (
                 contacts.generation,
-                wp.zeros(springs, dtype=wp.types.vector(3, scalar), device=self.device),
-                wp.zeros(cap, dtype=scalar, device=self.device),
+                wp.zeros_like(contacts.pair_xi),
+                wp.zeros_like(contacts.pair_turn),
             )
-        bp = contacts.broadphase
-        wp.launch(
-            make_remap_history_kernel(scalar),
-            dim=cap,
-            inputs=[
-                history.key,
-                history.count,
-                history.xi,
-                history.turn,
-                bp.pair_key,
-                bp.pair_count,
-                int(contacts.friction),
-            ],
-            outputs=[r[1], r[2]],
-            device=self.device,
-        )
+        contacts.carry_history(history, r[1], r[2])
         return r[1], r[2]
 
     def report(self, inputs, contacts, dt):
@@ -621,7 +403,7 @@ class Stepper:
         n = m.num_bodies
         if self._report is None or self._report_generation != contacts.generation:
             self._report_generation = contacts.generation
-            out = self._diag_arrays(cap, n, max(m.num_walls, 1))
+            out = self._diag_arrays(cap)
             # What the step writes besides the report: scratch arrays, so that nothing of the run changes.
             scratch = {k: wp.empty_like(inputs[k]) for k in ("plane_xi", "plane_turn", "pair_xi", "pair_turn")}
             scratch["body_f"] = wp.zeros_like(inputs["body_v"])
@@ -645,7 +427,9 @@ class Stepper:
         )
         pairs = SimpleNamespace(
             capacity=cap,
-            broadphase=contacts.broadphase,
+            pair_a=contacts.pair_a,
+            pair_b=contacts.pair_b,
+            pair_count=contacts.pair_count,
             pair_xi=scratch["pair_xi"],
             pair_turn=scratch["pair_turn"],
             pair_force=scratch["pair_force"],
@@ -655,33 +439,41 @@ class Stepper:
             body_pairs_b=contacts.body_pairs_b,
             pair_by_b=contacts.pair_by_b,
         )
-        while True:
-            self._diag_overflow.zero_()
+
+        def run_pass() -> None:
             for name in ("plane_xi", "plane_turn", "pair_xi", "pair_turn"):
                 wp.copy(scratch[name], a[name])
             kernels, mesh = self._report_kernels()
-            self._launch_contacts(kernels, out, state, pairs, dt, self._diag_overflow, report=REPORT_CONTACTS)
-            if mesh is not None:
-                self._launch_meshes(mesh, out, state, dt, self._diag_overflow, report=REPORT_CONTACTS)
-            if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= m.shapes.max_poly_bound:
-                break
-            # As in diagnose(): a clipped polygon did not fit; more room for the steps too, and again.
-            self.poly_capacity = min(2 * self.poly_capacity, m.shapes.max_poly_bound)
-            self._kernels()
+            overflow = self._diag_overflow
+            self._force_stage(
+                kernels, mesh, state=state, pairs=pairs, dt=dt, overflow=overflow, out=out, report_bits=REPORT_CONTACTS
+            )
+
+        self._until_polygons_fit(run_pass)
         count = contacts.count()
-        host = {k: v.numpy() for k, v in out.items() if not k.endswith("_energy")}
+        host = {k: v.numpy() for k, v in out.arrays().items() if not k.endswith("_energy")}
         for k in ("pair_volume", "pair_normal", "pair_point", "pair_fn", "pair_ft", "pair_depth"):
             host[k] = host[k][:count]
         host["body_f"] = scratch["body_f"].numpy()
         host["body_t"] = scratch["body_t"].numpy()
         return host
 
+    def kinetic_energies(self, state: State) -> tuple[wp.array, wp.array]:
+        """Device (translational, rotational) kinetic energy of each body [J] (0 for those not free)."""
+        m = self.model
+        return kinetic_energy(
+            body_inv_mass=m.body_inv_mass,
+            body_inertia=m.body_inertia,
+            body_flags=m.body_flags,
+            body_q=state.body_q,
+            body_v=state.body_v,
+            body_w=state.body_w,
+            device=self.device,
+        )
+
     def kinetic_energy(self, state):
         """Host float64 (translational, rotational) kinetic energy of the free bodies [J]."""
-        m = self.model
-        lin, ang = kinetic_energy(
-            m.body_inv_mass, m.body_inertia, m.body_flags, state.body_q, state.body_v, state.body_w, device=self.device
-        )
+        lin, ang = self.kinetic_energies(state)
         return np.sum(lin.numpy(), dtype=np.float64), np.sum(ang.numpy(), dtype=np.float64)
 
 
@@ -742,17 +534,26 @@ class Simulation:
     Args:
         scene: the scene (validated here).
         device: Warp device, default Warp's default device ("cuda:0" when there is one).
-        skin: Verlet skin [m]; default a fifth of the smallest free body's bounding radius.
+        skin: Verlet skin [m]; default a fifth of the smallest free body's bounding radius
+            (:func:`~polydem.run_settings.run_settings`; give it there where ``settings`` is given).
         use_graph: capture the step as a CUDA graph (default: on CUDA devices).
-        validate: validate the scene first (off only for scenes built from a validated one, such as the
-            parts of a decomposed run, :mod:`polydem.distributed`).
+        validate: validate the scene first (off only for a scene validated already, such as the whole
+            scene of a decomposed run, :mod:`polydem.distributed`).
         tree_rebuild: when the broad phase rebuilds on the device (the CUDA graph), it refits the tree of
             the last host build; after each chunk of steps the tree is rebuilt when refitting has made it
             this many times as costly as a fresh one (:meth:`~polydem.kernels.broadphase.BroadPhase.renew_tree`);
             0: after every chunk with a device rebuild; None (default): never. The pairs, and so the
             results, do not depend on it. Without the graph every rebuild builds a fresh tree.
+        pair_max_registers: as for :class:`Stepper`.
+        settings: the :class:`~polydem.run_settings.RunSettings` of the run (default: the scene's).
+        bodies: indices of the scene's bodies to step, ascending (default: all): with the whole scene's
+            ``settings``, the bodies step as in the whole scene's run where their contacts are all
+            among them (a rank of a decomposed run); body indices of the results are then positions
+            in ``bodies``.
 
     Attributes:
+        scene: the :class:`~polydem.Scene` it was built from (the whole scene, where ``bodies`` is given).
+        settings: the :class:`~polydem.run_settings.RunSettings`.
         model: the :class:`~polydem.model.Model` (static).
         current_state: the :class:`~polydem.state.State` after the last step (stepped in place).
         current_contacts: the :class:`~polydem.contacts.Contacts` (pair list and its history).
@@ -761,12 +562,30 @@ class Simulation:
     """
 
     def __init__(
-        self, scene, device=None, skin=None, use_graph=None, tree_rebuild=TREE_REBUILD_RATIO, *, validate=True
+        self,
+        scene,
+        device=None,
+        skin=None,
+        use_graph=None,
+        tree_rebuild=TREE_REBUILD_RATIO,
+        *,
+        validate=True,
+        pair_max_registers=PAIR_MAX_REGISTERS,
+        settings: RunSettings | None = None,
+        bodies: np.ndarray | None = None,
     ):
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
         self.tree_rebuild = None if tree_rebuild is None else float(tree_rebuild)
-        self.model = model = Model(scene, device, validate=validate)
+        if validate:
+            scene.validate()
+        if settings is None:
+            settings = run_settings(scene, skin=skin)
+        elif skin is not None:
+            raise ValueError("give the skin to run_settings(scene, skin=...), which made the settings given")
+        self.scene = scene
+        self.settings = settings
+        self.model = model = Model(scene, device, validate=False, settings=settings, bodies=bodies)
         self.device = dev = model.device
         self.dt = model.dt
         n = model.num_bodies
@@ -776,23 +595,21 @@ class Simulation:
         self.steps_done = 0
         self.time = 0.0
 
-        radius = model.body_radius.numpy()
-        free = model.body_flags_np == 0
-        r_min = float(radius[free].min()) if free.any() else float(radius.min())
-        self.skin = 0.2 * r_min if skin is None else float(skin)
+        self.skin = settings.skin
         # Bounding spheres about the centre do not change as a body turns: no rotation term.
         shape_list = [scene.shapes[name] for name in scene.shape_names]
-        lower = np.array([s.vertices.min(axis=0) for s in shape_list])[scene.body_shape]
-        upper = np.array([s.vertices.max(axis=0) for s in shape_list])[scene.body_shape]
+        lower = np.array([s.vertices.min(axis=0) for s in shape_list])[model.body_shape_np]
+        upper = np.array([s.vertices.max(axis=0) for s in shape_list])[model.body_shape_np]
         # Settled packings of convex grains have 3-4 candidate pairs per body at this skin: start
         # with room for 5 (an overflow grows the buffers and redoes the step).
-        self.current_contacts = Contacts(model, self.skin, body_box=(lower, upper), capacity=max(1024, 5 * n))
-        self.stepper = Stepper(model, device_rebuild=self.use_graph)
-        arrays = scene.body_arrays()
-        self._tunnel = scene.tunnelling_limits(arrays, self.dt)
-        self.stepper.body_speed_limit.assign(self._tunnel.body_speed_limit.astype(np.float32))
+        self.current_contacts = Contacts(
+            model, self.skin, body_box=(lower, upper), capacity=max(1024, 5 * n), radius_ref=settings.radius_ref
+        )
+        self.stepper = Stepper(model, device_rebuild=self.use_graph, pair_max_registers=pair_max_registers)
+        self._speed_limit = settings.tunnel.body_speed_limit[model.body_index]
+        self.stepper.body_speed_limit.assign(self._speed_limit.astype(np.float32))
         # Warned once a run: already by the scene's validation where the initial speeds are too high.
-        self._tunnel_warned = bool(scene.check_tunnelling(arrays, self.dt))
+        self._tunnel_warned = settings.starts_too_fast
         self._graphs = {}
         self._graph_key = None
         self._last_good = None
@@ -808,43 +625,6 @@ class Simulation:
         self._average = None
         self._intervals = 0
         self.current_contacts.build(self.current_state.body_q, keep_history=False)
-
-    # -- the arrays of the current state, by their former names --------------------------------
-
-    @property
-    def body_q(self):
-        """``current_state.body_q``."""
-        return self.current_state.body_q
-
-    @property
-    def body_v(self):
-        """``current_state.body_v``."""
-        return self.current_state.body_v
-
-    @property
-    def body_w(self):
-        """``current_state.body_w``."""
-        return self.current_state.body_w
-
-    @property
-    def body_f(self):
-        """``current_state.body_f``."""
-        return self.current_state.body_f
-
-    @property
-    def body_t(self):
-        """``current_state.body_t``."""
-        return self.current_state.body_t
-
-    @property
-    def step_count(self):
-        """``current_state.step_count``."""
-        return self.current_state.step_count
-
-    @property
-    def broadphase(self):
-        """``current_contacts.broadphase``."""
-        return self.current_contacts.broadphase
 
     # -- snapshots -----------------------------------------------------------------------------
 
@@ -1030,10 +810,10 @@ class Simulation:
         # Once a run: the body the furthest above its limit, at its largest speed so far.
         self._tunnel_warned = True
         peak = self.stepper.body_peak_speed.numpy().astype(np.float64)
-        i = int(np.argmax(peak / self._tunnel.body_speed_limit))
-        scene = self.model.scene
+        i = int(np.argmax(peak / self._speed_limit))
+        body = int(self.model.body_index[i])
         warnings.warn(
-            f"{scene.body_label(i)} reached {self._tunnel.describe(i, float(peak[i]), self.dt)} "
+            f"{self.scene.body_label(body)} reached {self.settings.tunnel.describe(body, float(peak[i]), self.dt)} "
             f"(in steps {self.steps_done + 1} to {self.steps_done + chunk})",
             SimulationWarning,
             stacklevel=3,
@@ -1100,22 +880,8 @@ class Simulation:
             )
         kin, grav, out = self._settle_arrays
         out.zero_()
-        st = self.current_state
-        wp.launch(
-            make_settle_measures_kernel(m.scalar),
-            dim=n,
-            inputs=[
-                m.body_flags,
-                m.body_inv_mass,
-                m.body_inertia,
-                m.body_radius,
-                wp.vec3d(*m.gravity.tolist()),
-                st.body_q,
-                st.body_v,
-                st.body_w,
-            ],
-            outputs=[kin, grav, out[2:3]],
-            device=dev,
+        launch_settle_measures(
+            model=m, state=self.current_state, body_kinetic=kin, body_gravity=grav, largest_speed=out[2:3]
         )
         wp.utils.array_sum(kin, out=out[0:1])
         wp.utils.array_sum(grav, out=out[1:2])
@@ -1136,7 +902,7 @@ class Simulation:
         if not np.any(self.model.body_flags_np == 0):
             raise ValueError("the scene has no free bodies: there is nothing to settle")
         criterion.check_gravity(self.model.gravity)
-        limit = criterion.speed_limit_of(self.model.scene)
+        limit = criterion.speed_limit_of(self.scene)
         return SettleCheck(criterion, self.settle_measures()[1], speed_limit=limit)
 
     def run_until_settled(self, max_time, criterion=None, *, check=None):
@@ -1230,9 +996,7 @@ class Simulation:
             lin, ang = self.stepper.kinetic_energy(st)
             kin = float(lin + ang)
         else:
-            lin, ang = kinetic_energy(
-                m.body_inv_mass, m.body_inertia, m.body_flags, st.body_q, st.body_v, st.body_w, device=self.device
-            )
+            lin, ang = self.stepper.kinetic_energies(st)
             kin = float(np.sum(lin.numpy()[keep], dtype=np.float64) + np.sum(ang.numpy()[keep], dtype=np.float64))
         diss = float(np.sum(st.body_dissipated.numpy()[keep], dtype=np.float64))
         return {

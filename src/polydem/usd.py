@@ -128,7 +128,7 @@ def shapes_digest(scene) -> str:
     rounded to 1e-6 of the shape's size, so that the last bits of a shape rebuilt by another
     version of numpy or trimesh do not count.
     """
-    scene = getattr(getattr(scene, "model", None), "scene", scene)  # a Simulation -> its Scene
+    scene = getattr(scene, "scene", scene)  # a Simulation (any front) -> its Scene
     h = hashlib.sha256(b"polydem shapes 1\n")
     h.update(np.ascontiguousarray(scene.body_shape, dtype="<i8").tobytes())
     for name in scene.shape_names:
@@ -252,7 +252,7 @@ class UsdRecorder:
         wall_size: float | None = None,
     ):
         self.path = _check_path(path)
-        scene = getattr(getattr(scene, "model", None), "scene", scene)  # a Simulation -> its Scene
+        scene = getattr(scene, "scene", scene)  # a Simulation (any front) -> its Scene
         self.fps = _positive("fps", fps)
         self.frame_dt = 1.0 / self.fps if frame_dt is None else _positive("frame_dt", frame_dt)
         axis = str(up_axis).upper()

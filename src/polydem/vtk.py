@@ -142,7 +142,7 @@ class VtkWriter:
     def __init__(self, folder: str | PathLike, scene, *, resume: bool = False, wall_size: float | None = None):
         import meshio  # noqa: F401  (fail here, before any frame, if it is missing)
 
-        scene = getattr(getattr(scene, "model", None), "scene", scene)  # a Simulation -> its Scene
+        scene = getattr(scene, "scene", scene)  # a Simulation (any front) -> its Scene
         self._mesh_walls = list(getattr(scene, "mesh_walls", ()))
         self._num_planes = len(scene.planes)
         self._moving = [k for k, w in enumerate(self._mesh_walls) if w.moving]

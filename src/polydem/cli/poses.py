@@ -67,8 +67,8 @@ class Poses:
         from types import SimpleNamespace
 
         self.device = device
+        self.scene = scene
         self.model = SimpleNamespace(
-            scene=scene,
             shapes=[scene.shapes[name] for name in scene.shape_names],
             body_flags_np=np.asarray(scene.body_kind),
         )

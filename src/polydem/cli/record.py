@@ -70,7 +70,7 @@ class RunLog:
         """Add the state of ``sim`` (with its ``contacts``) to the history; returns its energies."""
         self.frame_contacts.append(len(contacts["volume"]))
         energy = sim.energy()
-        region = settled_region(sim.model.scene, sim.state(), contacts)
+        region = settled_region(sim.scene, sim.state(), contacts)
         self.history["time"].append(sim.time)
         for key in ENERGY_KEYS:
             self.history[key].append(energy[key])

@@ -621,7 +621,7 @@ def _settle_check(sim, criterion, ck, path):
     from polydem.settle import SettleCheck
 
     rec = (ck.run or {}).get("settle") if ck is not None else None
-    limit = criterion.speed_limit_of(sim.model.scene)
+    limit = criterion.speed_limit_of(sim.scene)
     if rec is None:
         # A run from t = 0, or one resumed from a run of fixed length: the energy released counts from t = 0
         # where the checkpoint's record knows it.

@@ -64,8 +64,9 @@ class RootSimulation:
         self.dt = ds.dt
         self.device = ds.device
         self.num_bodies = ds.num_bodies
+        self.scene = ds.scene
         # The whole scene's static arrays, for what the outputs read of a model (shapes, walls, flags).
-        self.model = Model(ds.scene, ds.device, validate=False)
+        self.model = Model(ds.scene, ds.device, validate=False, settings=ds.settings)
         self._consistent = True
         self._cache = None
         # What to do when a collective method fails on the root alone (the others would wait inside it).

@@ -15,80 +15,28 @@ their new owners and holders, and each pair's history (friction spring, turning 
 every rank that holds both its bodies.
 
 What makes the result the undivided run's, bit for bit on one device type and precision: the
-same time step, tangential stiffness and mesh-wall thickness as the whole scene (they depend on its
-bodies and are taken from it, not from the rank's); the same size classes in the broad phase (a
-reference radius), so the same body of a pair is A; pair histories carried by key; a pair that is
-a candidate but not in contact contributes exact zeros, so the rank's own candidate lists and
-their rebuild times do not matter. Sums over bodies (energies, the settle measures) are added per
-rank and then across ranks, so they agree with the undivided run to rounding, not to the bit.
+settings that depend on the bodies (time step, friction springs, mesh-wall thickness, the broad
+phase's reference radius: :class:`~polydem.run_settings.RunSettings`) decided once from the whole
+scene and given to every rank's Simulation, so that its size classes are the undivided run's and the
+same body of a pair is A; pair histories carried by key; a pair that is a candidate but not in
+contact contributes exact zeros, so the rank's own candidate lists and their rebuild times do not
+matter. Sums over bodies (energies, the settle measures) are added per rank and then across ranks,
+so they agree with the undivided run to rounding, not to the bit.
 """
 
 from __future__ import annotations
 
-import copy
-import dataclasses
 import time
-from typing import Any
 
 import numpy as np
 import warp as wp
 
 from polydem.distributed import partition
 from polydem.distributed.comm import SerialComm, world
+from polydem.kernels.ghosts import launch_largest_move, launch_pack_rows, launch_unpack_rows
 from polydem.kernels.integrate import kinetic_energy
+from polydem.run_settings import run_settings
 from polydem.simulation import CHUNK_STEPS, Simulation, SimulationError
-
-
-@wp.kernel(enable_backward=False)
-def pack_kernel(
-    # State in (scalar views: (n, 7), (n, 3), (n, 3))
-    q: wp.array2d(dtype=Any),
-    v: wp.array2d(dtype=Any),
-    w: wp.array2d(dtype=Any),
-    index: wp.array(dtype=int),
-    # Out: (len(index), 13) rows to send
-    rows: wp.array2d(dtype=Any),
-):
-    k = wp.tid()
-    i = index[k]
-    for c in range(7):
-        rows[k, c] = q[i, c]
-    for c in range(3):
-        rows[k, 7 + c] = v[i, c]
-        rows[k, 10 + c] = w[i, c]
-
-
-@wp.kernel(enable_backward=False)
-def unpack_kernel(
-    rows: wp.array2d(dtype=Any),
-    index: wp.array(dtype=int),
-    # Out: the ghosts' rows of the state (scalar views)
-    q: wp.array2d(dtype=Any),
-    v: wp.array2d(dtype=Any),
-    w: wp.array2d(dtype=Any),
-):
-    k = wp.tid()
-    i = index[k]
-    for c in range(7):
-        q[i, c] = rows[k, c]
-    for c in range(3):
-        v[i, c] = rows[k, 7 + c]
-        w[i, c] = rows[k, 10 + c]
-
-
-@wp.kernel(enable_backward=False)
-def moved_kernel(
-    q: wp.array2d(dtype=Any),
-    axis: int,
-    x0: wp.array(dtype=wp.float64),
-    mine: wp.array(dtype=int),
-    # Out: (1,) the largest move along the axis since the partition [m]
-    moved: wp.array(dtype=wp.float64),
-):
-    i = wp.tid()
-    if mine[i] != 0:
-        wp.atomic_max(moved, 0, wp.abs(wp.float64(q[i, axis]) - x0[i]))
-
 
 CHUNK = 50
 """Steps between two agreements of the ranks (errors, overflows, moves): each costs a synchronisation and an
@@ -142,6 +90,9 @@ class DistributedSimulation:
     Attributes:
         rank, size: this rank and the number of ranks.
         num_bodies: bodies of the whole scene; dt: time step [s]; steps_done; time [s].
+        settings: the whole scene's :class:`~polydem.run_settings.RunSettings`, which every rank's
+            Simulation takes; skin: its Verlet skin [m]; r_max: its largest free bounding radius [m].
+        margin, halo: the ``margin`` and the halo [m] (see Args).
         local_index: (n,) global indices of this rank's local bodies, ascending.
         owned: (n,) bool, which local bodies this rank owns.
         cuts: (size + 1,) slab boundaries along ``axis``; partitions: partitions made so far; redone:
@@ -162,28 +113,18 @@ class DistributedSimulation:
         self.device = wp.get_device(device)
         self.use_graph = use_graph
         self.num_bodies = n = scene.num_bodies
-        ts = scene.time_step()
-        self.dt = float(ts.dt)
-        self._kt = np.asarray(ts.tangential_stiffness, dtype=np.float64)
-        names = scene.shape_names
-        shape_list = [scene.shapes[k] for k in names]
-        radius = np.array([s.radius for s in shape_list], dtype=np.float64)[np.asarray(scene.body_shape)]
-        kind = np.asarray(scene.body_kind)
-        free = kind == 0
+        # Decided once from the whole scene, and the same on every rank: each rank's Simulation takes them.
+        self.settings = run_settings(scene, skin=skin)
+        self.dt = self.settings.dt
+        self.skin = self.settings.skin
         # Fixed and kinematic bodies (container slabs, drums) move as prescribed, the same on every rank,
         # and may be large: every rank holds them all and none is exchanged.
-        self._free = free
-        self.r_max = float(radius[free].max() if free.any() else radius.max())
-        r32 = radius.astype(np.float32)
-        positive = free & (r32 > 0)
-        self._radius_ref = float(r32[positive].min()) if positive.any() else None
-        r_min = float(radius[free].min()) if free.any() else float(radius.min())
-        self.skin = 0.2 * r_min if skin is None else float(skin)
+        self._free = np.asarray(scene.body_kind) == 0
+        self.r_max = self.settings.radius_max
         self.margin = self.r_max if margin is None else float(margin)
         if not self.margin > 0.0:
             raise ValueError(f"margin must be > 0 [m], got {margin!r}")
         self.halo = 2.0 * self.r_max + self.margin
-        self._scene_for_ranks = self._fixed_scene(scene, shape_list, kind)
         pos = np.asarray(scene.body_position, dtype=np.float64)
         self.axis = partition.longest_axis(pos.min(axis=0), pos.max(axis=0)) if n else 0
         self.steps_done = 0
@@ -200,39 +141,13 @@ class DistributedSimulation:
         self.sim = None
         self._initial_partition(pos[:, self.axis])
 
-    # -- the rank's scene -------------------------------------------------------------------------
-
-    def _fixed_scene(self, scene, shape_list, kind):
-        """A shallow copy of ``scene`` whose body-dependent settings are fixed to the whole scene's
-        values: the time step, and the thickness of mesh walls that take the default."""
-        base = copy.copy(scene)
-        base.dt = self.dt
-        walls = list(getattr(scene, "_mesh_walls", []))
-        if walls:
-            used = np.unique(np.asarray(scene.body_shape)[kind == 0]) if (kind == 0).any() else range(len(shape_list))
-            diameter = 2.0 * max(shape_list[k].radius for k in list(used))
-            base._mesh_walls = [
-                w if w.thickness is not None else dataclasses.replace(w, thickness=diameter) for w in walls
-            ]
-        return base
-
-    def _local_scene(self, index):
-        sub = copy.copy(self._scene_for_ranks)
-        full = self.scene.body_arrays()
-        sub._arrays = {name: np.ascontiguousarray(a[index]) for name, a in full.items()}
-        sub._n = sub._cap = len(index)
-        return sub
+    # -- the rank's simulation ------------------------------------------------------------------
 
     def _local_simulation(self, index):
         """A Simulation of the bodies ``index`` (global, ascending) with the whole scene's settings."""
-        sim = Simulation(
-            self._local_scene(index), self.device, skin=self.skin, use_graph=self.use_graph, validate=False
+        return Simulation(
+            self.scene, self.device, use_graph=self.use_graph, validate=False, settings=self.settings, bodies=index
         )
-        m = sim.model
-        c_np = m.material_kt.numpy().dtype
-        m.material_kt.assign(self._kt.astype(c_np).ravel())
-        sim.current_contacts.broadphase.radius_ref = self._radius_ref
-        return sim
 
     # -- partitions -----------------------------------------------------------------------------
 
@@ -251,10 +166,6 @@ class DistributedSimulation:
         beyond the histogram's sums (each rank histograms the bodies it would own by index)."""
         index, owner = self._partition_all(x_all)
         self._set_local(index, owner[index] == self.rank, owner[index], x_all[index])
-        if self.sim is not None:
-            # The reference radius applies from the first build on: rebuild the pairs with it.
-            st = self.sim.current_state
-            self.sim.restore_from_arrays({**st.numpy(), **_empty_history(self.sim)}, self.steps_done, self.time)
         self.partitions += 1
 
     def _partition_all(self, x_all):
@@ -306,7 +217,8 @@ class DistributedSimulation:
                 self._recv[s] = self._buffers(recv)
         if self.sim is not None:
             st = self.sim.current_state
-            scalar = getattr(st.body_q.dtype, "_wp_scalar_type_", wp.float32)
+            # The poses and velocities hold the model's body scalar (State.dtypes): viewed as rows of it.
+            scalar = self.sim.model.scalar
             self._views = tuple(getattr(st, f).view(scalar) for f in ("body_q", "body_v", "body_w"))
             mine = (self.owned & self._free[self.local_index]).astype(np.int32)
             self._mine = wp.array(mine, dtype=int, device=dev)
@@ -317,7 +229,7 @@ class DistributedSimulation:
         """(device index, device rows, host rows) for the ghost rows of ``index`` (local) that go to or
         come from one rank; the host rows are pinned memory on a GPU, the device rows themselves on the CPU."""
         dev = self.device
-        scalar = getattr(self.sim.current_state.body_q.dtype, "_wp_scalar_type_", wp.float32)
+        scalar = self.sim.model.scalar
         rows = wp.empty((len(index), ROW), dtype=scalar, device=dev)
         host = rows if dev.is_cpu else wp.empty((len(index), ROW), dtype=scalar, device="cpu", pinned=True)
         return wp.array(np.asarray(index, dtype=np.int32), dtype=int, device=dev), rows, host
@@ -588,8 +500,9 @@ class DistributedSimulation:
 
         dev = self.device
         requests = []
+        q, v, w = self._views
         for index, rows, host in self._send.values():
-            wp.launch(pack_kernel, dim=index.shape[0], inputs=[*self._views, index], outputs=[rows], device=dev)
+            launch_pack_rows(q=q, v=v, w=w, index=index, rows=rows)
             if host is not rows:
                 wp.copy(host, rows)
         if not dev.is_cpu:
@@ -602,7 +515,7 @@ class DistributedSimulation:
         for index, rows, host in self._recv.values():
             if host is not rows:
                 wp.copy(rows, host)
-            wp.launch(unpack_kernel, dim=index.shape[0], inputs=[rows, index], outputs=[*self._views], device=dev)
+            launch_unpack_rows(rows=rows, index=index, q=q, v=v, w=w)
         self.sim.forget_diagnostics()
 
     def _track_move(self):
@@ -610,13 +523,7 @@ class DistributedSimulation:
         partition [m]; no host synchronisation."""
         if self.sim is None:
             return
-        wp.launch(
-            moved_kernel,
-            dim=len(self.local_index),
-            inputs=[self._views[0], self.axis, self._x0, self._mine],
-            outputs=[self._moved],
-            device=self.device,
-        )
+        launch_largest_move(q=self._views[0], axis=self.axis, x0=self._x0, mine=self._mine, moved=self._moved)
 
     def _allreduce(self, value, how):
         comm = self.comm
@@ -730,12 +637,3 @@ class DistributedSimulation:
         """Owned and local (owned + ghost) body counts of every rank, on every rank: two (size,) arrays."""
         counts = self.comm.allgather((int(self.owned.sum()), len(self.local_index)))
         return np.array([c[0] for c in counts]), np.array([c[1] for c in counts])
-
-
-def _empty_history(sim):
-    xi = sim.current_state.plane_xi.numpy()
-    return {
-        "pair_key": np.zeros(0, np.int64),
-        "pair_xi": np.zeros((0, 3), xi.dtype),
-        "pair_turn": np.zeros(0, xi.dtype),
-    }

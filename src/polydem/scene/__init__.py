@@ -55,16 +55,20 @@ did-you-mean and the list of valid keys, and every error names the file and the 
 Bodies are added in the file's order of sections: ``[[bodies]]``, then ``[[walls]]``, then
 ``[[emitters]]`` (so emitters avoid every body and wall given before them), each in its order.
 
-The package keeps each concern in one file: :mod:`.description` (the Scene class, its settings and
-registries), :mod:`.bodies`, :mod:`.materials`, :mod:`.walls` (planes, box containers, drums),
-:mod:`.emitters`, :mod:`.output`, :mod:`.checks` (float32 ranges, the time step, loads),
-:mod:`.overlaps` (initial overlaps), :mod:`.shape_specs` and :mod:`.loader` (scene files), with
-:mod:`.errors` and :mod:`.values` (the typed readers every value goes through); quaternion maths is
-:mod:`polydem.quaternions`.
+The package keeps each concern in one file: :mod:`.description` (the Scene class and its shape
+registry), :mod:`.settings` (the ``[simulation]`` table), :mod:`.bodies`, :mod:`.materials`,
+:mod:`.walls` (planes, meshes, box containers, drums), :mod:`.emitters`, :mod:`.output`,
+:mod:`.checks` (float32 ranges, the time step, loads), :mod:`.overlaps` (initial overlaps),
+:mod:`.shape_specs` and :mod:`.loader` (scene files), with :mod:`.errors`, :mod:`.values` (the typed
+readers every value goes through) and :mod:`.schema` (``Key`` and ``Table``: each table of a scene
+file is declared once, beside the module that uses it, and the loader, the checks of single values,
+the messages and ``Scene.to_dict`` come from the declaration); quaternion maths is
+:mod:`polydem.quaternions`. No module of the package imports another that imports it back
+(tests/test_scene_imports.py).
 """
 
 from polydem.quaternions import quat_to_matrix
-from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS, MAX_BODIES, Body, quat_from_axis_angle
+from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS, MAX_BODIES, Body
 from polydem.scene.checks import (
     F32_HIGH,
     F32_LOW,
@@ -77,14 +81,15 @@ from polydem.scene.checks import (
     TimeStep,
     reference_stiffness,
 )
-from polydem.scene.description import PRECISIONS, Scene
+from polydem.scene.description import Scene
 from polydem.scene.emitters import FILLS, ORIENTATIONS
 from polydem.scene.errors import SceneError, SceneWarning
 from polydem.scene.materials import LAWS, Material, PairMaterial, pair_material
 from polydem.scene.output import Output
 from polydem.scene.overlaps import INITIAL_OVERLAP_ERROR, INITIAL_OVERLAP_WARNING
+from polydem.scene.settings import PRECISIONS
 from polydem.scene.shape_specs import SHAPE_TYPES
-from polydem.scene.values import QUAT_TOL
+from polydem.scene.values import QUAT_TOL, quat_from_axis_angle
 from polydem.scene.walls import Drum, PlaneWall
 
 __all__ = [

@@ -67,6 +67,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from polydem.kernels.laws import LAW_SPECS, LAWS, TOE_MIN_RESTITUTION, TOE_OMEGA_DT
 from polydem.shapes import largest_face_area
 
 __all__ = [
@@ -90,13 +91,6 @@ __all__ = [
 FEATURES = ("face", "edge", "corner")
 """What of a body presses into a flat face: j = 1, 2, 3 in ``V = c d^j``."""
 
-# The resolved toe of polydem.kernels.response (TOE_OMEGA_DT and toe_volume's floor on e), which imports
-# Warp; tests/test_depth.py holds these to the kernel's.
-TOE_OMEGA_DT = 1.0
-TOE_MIN_RESTITUTION = 1.0e-3
-
-LAWS = ("linear", "hertz", "power")
-
 # Most steps of the root finder within one piece of V(d) (it takes about ten).
 _STEPS = 110
 # Where a piece is searched for the load, as fractions of it, in order: the first that carries it and the
@@ -107,12 +101,11 @@ _SAMPLES = np.linspace(0.0, 1.0, 33)[1:]
 def _exponent(law: str, m: float | None) -> float:
     if law not in LAWS:
         raise ValueError(f"law must be one of {', '.join(LAWS)}, got {law!r}")
-    if law == "linear":
-        return 1.0
-    if law == "hertz":
-        return 1.5
+    spec = LAW_SPECS[law]
+    if spec.fixed_exponent is not None:
+        return spec.fixed_exponent
     if m is None or not math.isfinite(m) or m < 1.0:
-        raise ValueError(f"the power law needs an exponent m >= 1 (W = k V^m / m), got m = {m!r}")
+        raise ValueError(f"the {law} law needs an exponent m >= 1 ({spec.formula}), got m = {m!r}")
     return float(m)
 
 
@@ -127,7 +120,7 @@ def toe_volume(
     never above r_min^3.
     """
     mm = _exponent(law, m)
-    if law == "linear" or not (mm < 2.0 and dt > 0.0 and inv_mass > 0.0 and k > 0.0 and area > 0.0):
+    if not LAW_SPECS[law].toe or not (mm < 2.0 and dt > 0.0 and inv_mass > 0.0 and k > 0.0 and area > 0.0):
         return 0.0
     ln_x = (
         math.log((3.0 - mm) * k)
@@ -155,7 +148,8 @@ class Toe:
 class Law:
     """A contact law W(V) with the simulator's toe below ``vc`` [m^3] (0: none).
 
-    ``kind`` "linear" (W = k V), "hertz" (W = 2/3 k V^1.5) or "power" (W = k V^m / m, ``m`` >= 1).
+    ``kind`` a name of :data:`polydem.kernels.laws.LAWS`: "linear" (W = k V), "hertz" (W = 2/3 k V^1.5)
+    or "power" (W = k V^m / m, ``m`` >= 1).
     """
 
     kind: str
@@ -180,16 +174,14 @@ class Law:
         return cls(kind, k, m, toe_volume(kind, k, m, toe.e, toe.dt, area, r_min, toe.inv_mass))
 
     def derivative(self, volume: float) -> float:
-        """W'(V) [Pa] at an overlap volume V >= 0 [m^3]."""
+        """W'(V) [Pa] at an overlap volume V >= 0 [m^3]: the toe's below ``vc``, else the law's."""
         m = self.exponent
-        if m == 1.0 and self.kind == "linear":
-            return self.k
         if volume < self.vc:
             x = volume / self.vc
             return self.k * self.vc ** (m - 1.0) * x * ((3.0 - m) + (m - 2.0) * x)
         if volume <= 0.0:
             return self.k if m == 1.0 else 0.0
-        return self.k * volume ** (m - 1.0)
+        return float(LAW_SPECS[self.kind].derivative(volume, self.k, m))
 
 
 def cube_cap(edge: float, feature: str) -> tuple[float, int, float]:
@@ -595,7 +587,7 @@ def pile_depths(scene, ts=None, allowed: float = ALLOWED_CORNER_DEPTH) -> list[P
     height = float(min(span[0], solid / (BED_PACKING * span[1] * span[2])))
     table = scene.pair_table()
     law, m = table["law"], float(table["exponent"])
-    m_law = m if law == "power" else None
+    m_law = m if LAW_SPECS[law].fixed_exponent is None else None
     k_pair = np.asarray(table["k"], dtype=np.float64)
     e_pair = np.asarray(table["restitution"], dtype=np.float64)
     present = set(np.unique(a["material"]).tolist())

@@ -1,18 +1,20 @@
-"""The Scene class: simulation settings, the shape registry, validate and describe.
+"""The Scene class: a description record of a simulation, with thin methods for its public API.
 
-Every other concern is a group of methods in the module of that concern, which also sets up and
-owns the state it keeps (in its ``__init__``): bodies and their arrays (:mod:`.bodies`), materials
-(:mod:`.materials`), plane walls, box containers and drums (:mod:`.walls`), emitters
-(:mod:`.emitters`), and the checks of :meth:`Scene.validate` (:mod:`.checks`, :mod:`.overlaps`).
-Scene files are read and written by :mod:`.loader` through the public methods only. The groups
-reach each other only through public methods (:meth:`Scene.error`, :meth:`Scene.material_index`,
-:meth:`Scene.append_bodies`, ...): a private name is used only in the module that defines it.
+A Scene holds its settings (read as :mod:`.settings` declares them), its shape registry and a registry per
+concern as plain attributes: :attr:`Scene.body_table` (:class:`.bodies.BodyTable`, the body arrays),
+:attr:`Scene.material_table` (:class:`.materials.MaterialTable`), :attr:`Scene.wall_table`
+(:class:`.walls.WallTable`: planes, mesh walls, drums), :attr:`Scene.emitters` and
+:attr:`Scene.scaled_shapes`. The work is done by functions that take the scene, in the module of each
+concern: :mod:`.bodies`, :mod:`.materials`, :mod:`.walls`, :mod:`.emitters`, and the checks of
+:meth:`Scene.validate` in :mod:`.checks` and :mod:`.overlaps`; the Scene's methods of the same names call
+them. Scene files are read and written by :mod:`.loader` through the public methods only. A module reads
+another's registry only through the scene's public attributes and methods: a private name is used only in
+the module that defines it.
 """
 
 from __future__ import annotations
 
 import math
-import re
 import warnings
 from os import PathLike
 
@@ -20,26 +22,23 @@ import numpy as np
 
 from polydem.compound import CompoundShape
 from polydem.quaternions import quat_from_matrix
-from polydem.scene import loader
-from polydem.scene.bodies import BodyMethods
-from polydem.scene.checks import CheckMethods
-from polydem.scene.emitters import EmitterMethods
-from polydem.scene.errors import SceneError, SceneWarning, did_you_mean, unknown_name
-from polydem.scene.materials import LAW_UNITS, MaterialMethods
+from polydem.scene import bodies as scene_bodies
+from polydem.scene import checks, loader, overlaps
+from polydem.scene import emitters as scene_emitters
+from polydem.scene import materials as scene_materials
+from polydem.scene import walls as scene_walls
+from polydem.scene.bodies import BODY, Body, BodyTable
+from polydem.scene.emitters import EMITTER
+from polydem.scene.errors import SceneError, SceneWarning, unknown_name
+from polydem.scene.materials import LAW_UNITS, Material, MaterialTable, PairMaterial
 from polydem.scene.output import Output
-from polydem.scene.overlaps import OverlapMethods
-from polydem.scene.values import read_choice, read_integer, read_number, read_string, read_vector, typename
-from polydem.scene.walls import WallMethods
-from polydem.settle import SPEED_FRACTION, SettleCriterion
+from polydem.scene.settings import SETTING_NAMES, SIMULATION, read_settings
+from polydem.scene.values import typename
+from polydem.scene.walls import BOX, DRUM, MESH, Drum, MeshWall, PlaneWall, WallTable
 from polydem.shapes import ConvexShape
 
-PRECISIONS = ("float32", "mixed", "float64")
-"""Values of ``[simulation] precision`` (:mod:`polydem.kernels.precision`): everything in float32;
-"mixed" (the default), float64 positions, velocities and force sums with float32 contact geometry in
-a frame local to each contact; everything in float64."""
 
-
-class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMethods, OverlapMethods):
+class Scene:
     """Validated, host-only description of a simulation (see :mod:`polydem.scene` for the frames).
 
     Bodies are stored as per-body numpy arrays (read-only views; scenes reach 10^6 bodies):
@@ -69,81 +68,46 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
             ``duration`` is then the maximum): a criterion, True for the default one, a dict of its
             fields, or None (the default) to run the whole duration.
 
-    Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`),
-    :attr:`emitters` (one dict per :meth:`emit` call: key, count, first and last body index) and
-    :attr:`warnings` (the :class:`SceneWarning` messages of the last :meth:`validate`).
+    Other attributes: :attr:`drums` (the :class:`Drum` records of :meth:`add_drum`) and :attr:`warnings` (the
+    :class:`SceneWarning` messages of the last :meth:`validate`). The registries, which the functions of the
+    scene's modules fill and read: :attr:`body_table` (:class:`.bodies.BodyTable`), :attr:`material_table`
+    (:class:`.materials.MaterialTable`), :attr:`wall_table` (:class:`.walls.WallTable`), :attr:`emitters` (one
+    dict per :meth:`emit` call: key, count, first and last body index) and :attr:`scaled_shapes` (the shapes
+    emitters scaled: (shape index, factor) -> index of the scaled shape).
     """
 
     def __init__(
         self,
-        gravity=(0.0, 0.0, -9.81),
-        dt="auto",
-        name: str = "scene",
+        gravity=SIMULATION.defaults["gravity"],
+        dt=SIMULATION.defaults["dt"],
+        name: str = SIMULATION.defaults["name"],
         *,
-        steps: int | None = None,
-        duration: float | None = None,
-        description: str = "",
+        steps: int | None = SIMULATION.defaults["steps"],
+        duration: float | None = SIMULATION.defaults["duration"],
+        description: str = SIMULATION.defaults["description"],
         file=None,
-        device: str | None = None,
-        precision: str = "mixed",
+        device: str | None = SIMULATION.defaults["device"],
+        precision: str = SIMULATION.defaults["precision"],
         output: Output | None = None,
-        settle=None,
+        settle=SIMULATION.defaults["settle"],
     ):
+        # The arguments named as [simulation] keys are read as SIMULATION declares them.
+        given = {attr: value for attr, value in locals().items() if attr in SETTING_NAMES}
         self.file = file
-        self.name = read_string(name, "simulation.name", file)
-        self.description = read_string(description, "simulation.description", file)
-        self.gravity = tuple(read_vector(gravity, 3, "simulation.gravity", file).tolist())
-        self.dt = self._check_dt(dt)
-        if steps is not None and duration is not None:
-            raise SceneError(
-                f"give either steps or duration, not both (got steps = {steps}, duration = {duration})",
-                "simulation.duration",
-                file,
-            )
-        self.steps = None if steps is None else read_integer(steps, "simulation.steps", file, minimum=1)
-        self.duration = (
-            None
-            if duration is None
-            else read_number(duration, "simulation.duration", file, positive=True, hint=" (simulated time in s)")
-        )
-        self.device = self._check_device(device)
-        self.precision = self._check_precision(precision)
+        for attr, value in read_settings(given, file).items():
+            setattr(self, attr, value)
         self.output = self._check_output(output)
-        self.settle = self._check_settle(settle)
         self._shapes: dict[str, ConvexShape] = {}
         self._shape_index: dict[str, int] = {}
         self._shape_specs: dict[str, dict] = {}
         self._shape_frames: list[tuple[np.ndarray, np.ndarray]] = []  # (q(R_in), t_in) per shape
         self.warnings: list[str] = []  # of the last validate()
         self._warned: list[str] = []
-        # Each concern keeps its own state, set up by the __init__ of its method group.
-        super().__init__()
-
-    def _check_dt(self, dt):
-        if isinstance(dt, str):
-            if dt != "auto":
-                raise SceneError(
-                    f'expected a time step in seconds or "auto", got string {dt!r}', "simulation.dt", self.file
-                )
-            return "auto"
-        return read_number(dt, "simulation.dt", self.file, positive=True, hint=' (time step in s, or "auto")')
-
-    def _check_device(self, device):
-        if device is None:
-            return None
-        device = read_string(device, "simulation.device", self.file, what='a device name such as "cpu" or "cuda:0"')
-        if not re.fullmatch(r"cpu|cuda(:\d+)?", device):
-            raise SceneError(
-                f'unknown device {device!r}{did_you_mean(device, ("cpu", "cuda", "cuda:0")) or "."} Give "cpu", '
-                '"cuda" (the default GPU) or "cuda:N" (GPU number N), or leave device out to use the GPU when '
-                "there is one",
-                "simulation.device",
-                self.file,
-            )
-        return device
-
-    def _check_precision(self, precision):
-        return read_choice(precision, PRECISIONS, "simulation.precision", self.file, what="precision")
+        self.body_table = BodyTable()
+        self.material_table = MaterialTable()
+        self.wall_table = WallTable()
+        self.emitters: list[dict] = []
+        self.scaled_shapes: dict[tuple[int, float], int] = {}
 
     def _check_output(self, output):
         if output is None:
@@ -155,60 +119,6 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 self.file,
             )
         return output
-
-    def _check_settle(self, settle):
-        key = "simulation.settle"
-        if settle is None or settle is False or isinstance(settle, SettleCriterion):
-            return settle or None
-        if settle is True:
-            return SettleCriterion()
-        if not isinstance(settle, dict):
-            raise SceneError(
-                "expected a table {kinetic_fraction = 1e-4, speed_fraction = 3e-4, max_speed = ..., hold = 0.02}, got "
-                f"{typename(settle)}",
-                key,
-                self.file,
-            )
-        fields = ("kinetic_fraction", "speed_fraction", "max_speed", "hold")
-        unknown = [k for k in settle if k not in fields]
-        if unknown:
-            k = unknown[0]
-            raise SceneError(
-                f"unknown key {k!r}{did_you_mean(k, fields) or '.'} Valid keys: {', '.join(fields)}",
-                f"{key}.{k}",
-                self.file,
-            )
-        values = {}
-        kf = settle.get("kinetic_fraction", 1e-4)
-        if kf is False or kf is None:
-            values["kinetic_fraction"] = None
-        else:
-            hint = " (a fraction of the gravitational energy released, e.g. 1e-4; false to check max_speed alone)"
-            values["kinetic_fraction"] = read_number(kf, f"{key}.kinetic_fraction", self.file, positive=True, hint=hint)
-            if values["kinetic_fraction"] >= 1.0:
-                raise SceneError(f"must be < 1, got {kf:g}{hint}", f"{key}.kinetic_fraction", self.file)
-        sf = settle.get("speed_fraction", SPEED_FRACTION)
-        if sf is False or sf is None:
-            values["speed_fraction"] = None
-        else:
-            hint = f" (the speed limit as a fraction of sqrt(g r_min), e.g. {SPEED_FRACTION:g}; false for none)"
-            values["speed_fraction"] = read_number(sf, f"{key}.speed_fraction", self.file, positive=True, hint=hint)
-        if settle.get("max_speed") is not None:
-            values["max_speed"] = read_number(
-                settle["max_speed"], f"{key}.max_speed", self.file, positive=True, hint=" (largest speed in m/s)"
-            )
-        if "hold" in settle:
-            values["hold"] = read_number(
-                settle["hold"], f"{key}.hold", self.file, nonneg=True, hint=" (how long it must hold, in s)"
-            )
-        if values["kinetic_fraction"] is None and values["speed_fraction"] is None and "max_speed" not in values:
-            raise SceneError(
-                "with kinetic_fraction = false and speed_fraction = false give max_speed (in m/s): with none of them "
-                "nothing is checked",
-                f"{key}.max_speed",
-                self.file,
-            )
-        return SettleCriterion(**values)
 
     def _check_settle_gravity(self):
         if self.settle is not None:
@@ -222,7 +132,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 ) from None
 
     def error(self, message: str, key: str) -> SceneError:
-        """A :class:`SceneError` about ``key`` of this scene's file, for its method groups to raise."""
+        """A :class:`SceneError` about ``key`` of this scene's file, for the functions of its modules to raise."""
         return SceneError(message, key, self.file)
 
     # ------------------------------------------------------------------ shapes
@@ -309,10 +219,10 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         * float32: shape sizes, masses, inertias, stiffnesses and the power law's V^m within
           [F32_LOW, F32_HIGH] (float32's normal range, 10^6 from both ends);
         * positions near enough the origin that their float64 spacing resolves a contact
-          (:meth:`check_position_spacing`);
+          (:func:`.checks.check_position_spacing`);
         * the time step (:meth:`time_step`): finite, a given dt within the stable limit, and the
           steps of the run (``duration / dt``) at most MAX_STEPS;
-        * contacts stiff enough for the bodies' weight and initial speeds (see :meth:`check_loads`);
+        * contacts stiff enough for the bodies' weight and initial speeds (see :func:`.checks.check_loads`);
         * tunnelling: a warning where a body starts faster than a step or its contacts can stop it
           before it is through the thinnest body (:meth:`tunnelling_limits`);
         * initial overlaps: a free body deep behind a plane wall or deep inside another body
@@ -324,7 +234,7 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         """
         self.warnings = []
         self._check_settings()
-        self.check_laws()
+        scene_materials.check_laws(self)
         if self.num_bodies == 0:
             raise self.error(
                 "the scene has no bodies; add at least one with a [[bodies]] table in the scene file or "
@@ -332,19 +242,19 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
                 "bodies",
             )
         a = self.body_arrays()
-        self.check_body_arrays(a)
+        checks.check_body_arrays(self, a)
         for j, plane in enumerate(self.planes):
             self.material_index(plane.material, key=f"planes[{j}].material")
             nrm = np.asarray(plane.normal)
             if not (np.all(np.isfinite(nrm)) and abs(np.linalg.norm(nrm) - 1.0) < 1e-9):
                 raise self.error(f"normal {list(plane.normal)} is not a unit vector", f"planes[{j}].normal")
-        self.check_float32(a)
-        self.check_position_spacing(a)
-        ts = self.time_step()
-        self.check_steps(ts)
-        found = self.check_loads(a, ts)
-        found += self.check_initial_overlaps(a)
-        found += self.check_tunnelling(a, ts.dt)
+        checks.check_float32(self, a)
+        checks.check_position_spacing(self, a)
+        ts = checks.time_step(self)
+        checks.check_steps(self, ts)
+        found = checks.check_loads(self, a, ts)
+        found += overlaps.check_initial_overlaps(self, a)
+        found += checks.check_tunnelling(self, a, ts.dt)
         found += self._check_compound_parts(a)
         # A run validates twice (loading the file, building the Model): say each thing once.
         if found != self._warned:
@@ -353,6 +263,461 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
         self._warned = found
         self.warnings = found
         return self
+
+    # ------------------------------------------------------------------ bodies (see bodies.py)
+
+    def body_arrays(self) -> dict[str, np.ndarray]:
+        """The stored body arrays by field name (see BODY_FIELDS), trimmed to the bodies: not copies, for reading."""
+        return self.body_table.trimmed()
+
+    @property
+    def num_bodies(self) -> int:
+        return self.body_table.n
+
+    @property
+    def body_shape(self) -> np.ndarray:
+        """(N,) int32 shape index (into :attr:`shapes`)."""
+        return self.body_table.view("shape")
+
+    @property
+    def body_material(self) -> np.ndarray:
+        """(N,) int32 material index (into :attr:`materials`)."""
+        return self.body_table.view("material")
+
+    @property
+    def body_position(self) -> np.ndarray:
+        """(N, 3) world position of each body's centre of mass [m]."""
+        return self.body_table.view("position")
+
+    @property
+    def body_orientation(self) -> np.ndarray:
+        """(N, 4) unit xyzw quaternion of each body's principal (body) frame, body -> world."""
+        return self.body_table.view("orientation")
+
+    @property
+    def body_velocity(self) -> np.ndarray:
+        """(N, 3) velocity of the centre of mass [m/s]."""
+        return self.body_table.view("velocity")
+
+    @property
+    def body_angular_velocity(self) -> np.ndarray:
+        """(N, 3) angular velocity in world axes [rad/s]."""
+        return self.body_table.view("angular_velocity")
+
+    @property
+    def body_kind(self) -> np.ndarray:
+        """(N,) int32 kind code: 0 free, 1 fixed, 2 kinematic (see :data:`KINDS`)."""
+        return self.body_table.view("kind")
+
+    @property
+    def body_pivot(self) -> np.ndarray:
+        """(N, 3) fixed point each kinematic body turns about [m]; NaN rows for bodies without one.
+
+        A body with a pivot p and angular velocity w moves rigidly about p: after a time t its
+        centroid is ``p + Rot(w t) (x0 - p)`` and its velocity ``w x (x - p)``. The parts of a
+        :meth:`add_drum` drum have the drum centre as their pivot.
+        """
+        return self.body_table.view("pivot")
+
+    def add_body(
+        self,
+        shape,
+        material,
+        position=(0.0, 0.0, 0.0),
+        orientation=BODY.defaults["orientation"],
+        velocity=BODY.defaults["velocity"],
+        angular_velocity=BODY.defaults["angular_velocity"],
+        kind: str = BODY.defaults["kind"],
+        *,
+        pivot=BODY.defaults["pivot"],
+        key: str | None = None,
+    ) -> int:
+        """Add one body; returns its index.
+
+        Args:
+            shape: name of a registered shape, or a :class:`ConvexShape` (registered under its
+                ``name`` if it is not yet).
+            material: name of a registered material.
+            position: (3,) world position of the shape's input-frame origin [m].
+            orientation: (4,) unit quaternion xyzw of the shape's input axes.
+            velocity: (3,) velocity of the centre of mass [m/s].
+            angular_velocity: (3,) world axes [rad/s].
+            kind: ``"free"``, ``"fixed"`` (velocities must be zero) or ``"kinematic"``.
+            pivot: (3,) for a kinematic body only: a fixed point [m] the body turns about at
+                ``angular_velocity``; its velocity is then derived, ``angular_velocity x (centroid -
+                pivot)``, so leave ``velocity`` at zero.
+            key: where the value came from, for error messages (default ``bodies[N]``).
+        """
+        return scene_bodies.add_body(
+            self, shape, material, position, orientation, velocity, angular_velocity, kind, pivot=pivot, key=key
+        )
+
+    def add_bodies(
+        self,
+        shape,
+        material,
+        positions,
+        orientations=None,
+        velocities=None,
+        angular_velocities=None,
+        kind: str = "free",
+        *,
+        pivots=None,
+    ) -> np.ndarray:
+        """Add N bodies of one shape and material at once; returns their indices (int64, (N,)).
+
+        Args:
+            positions: (N, 3) world positions of the input-frame origins [m].
+            orientations: (N, 4) or (4,) unit xyzw quaternions; default identity.
+            velocities: (N, 3) or (3,) [m/s]; default zero.
+            angular_velocities: (N, 3) or (3,) world axes [rad/s]; default zero.
+            kind: one kind for all of them.
+            pivots: (N, 3) or (3,) fixed points the (kinematic) bodies turn about [m], or None; see
+                :meth:`add_body`.
+        """
+        return scene_bodies.add_bodies(
+            self, shape, material, positions, orientations, velocities, angular_velocities, kind, pivots=pivots
+        )
+
+    def body_label(self, i: int) -> str:
+        """``body 12 (shape 'cube', free, from emitters[0])``: how messages name a body."""
+        return scene_bodies.body_label(self, i)
+
+    def body(self, i: int) -> Body:
+        """Body ``i`` as a :class:`Body` (input-frame pose as given, plus its centroid and body frame)."""
+        return scene_bodies.body(self, i)
+
+    def input_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) positions [m] and (N, 4) xyzw orientations of the bodies' input frames: the poses as
+        given to :meth:`add_body` (see the module docstring of :mod:`polydem.scene` for the frames)."""
+        return scene_bodies.input_poses(self)
+
+    def body_vertices(self, i: int) -> np.ndarray:
+        """(nv, 3) world coordinates of body ``i``'s vertices [m]."""
+        return scene_bodies.body_vertices(self, i)
+
+    def body_mass(self) -> np.ndarray:
+        """(N,) mass of each body [kg] (density times volume, whatever the kind)."""
+        return scene_bodies.body_mass(self)
+
+    def body_inertia(self) -> np.ndarray:
+        """(N, 3) principal moments of inertia of each body [kg m^2], about its body-frame axes."""
+        return scene_bodies.body_inertia(self)
+
+    # ------------------------------------------------------------------ materials (see materials.py)
+
+    @property
+    def materials(self) -> dict[str, Material]:
+        """Registered materials, name -> :class:`Material`, in insertion (= index) order (a copy)."""
+        return dict(self.material_table.by_name)
+
+    @property
+    def material_names(self) -> list[str]:
+        return list(self.material_table.by_name)
+
+    def material_index(self, name: str, *, key: str = "material") -> int:
+        """Index of a material in :attr:`materials` (the value stored in :attr:`body_material`).
+
+        ``name`` may also be a registered :class:`Material`; ``key`` is where the name came from, for
+        error messages.
+        """
+        return scene_materials.material_index(self, name, key=key)
+
+    def add_material(self, name: str, **props) -> Material:
+        """Register a material; ``props`` are the :class:`Material` fields (density, law, k,
+        restitution, friction, and m / tangential_stiffness where needed)."""
+        return scene_materials.add_material(self, name, **props)
+
+    def pair_material(self, a, b) -> PairMaterial:
+        """Contact properties between two materials (names or :class:`Material`); see :func:`pair_material`."""
+        return scene_materials.scene_pair_material(self, a, b)
+
+    def pair_table(self) -> dict:
+        """Mixed contact properties of every material pair, as (M, M) float64 arrays indexed like
+        :attr:`materials`: ``k``, ``restitution``, ``friction``, ``tangential_stiffness`` (NaN where
+        the simulator derives it); plus ``law`` (str) and ``exponent`` (float) shared by all."""
+        return scene_materials.pair_table(self)
+
+    # ------------------------------------------------------------------ walls (see walls.py)
+
+    @property
+    def planes(self) -> list[PlaneWall]:
+        """Plane walls (a copy of the list)."""
+        return list(self.wall_table.planes)
+
+    @property
+    def plane_keys(self) -> list[str]:
+        """Where each plane wall came from, e.g. ``walls[0]`` of a scene file or ``planes[1]`` (for messages)."""
+        return list(self.wall_table.plane_keys)
+
+    @property
+    def mesh_walls(self) -> list[MeshWall]:
+        """Triangle-mesh walls (a copy of the list)."""
+        return list(self.wall_table.mesh_walls)
+
+    @property
+    def mesh_wall_keys(self) -> list[str]:
+        """Where each mesh wall came from, e.g. ``walls[2]`` (for messages)."""
+        return list(self.wall_table.mesh_wall_keys)
+
+    @property
+    def drums(self) -> list[Drum]:
+        """The :class:`Drum` records of :meth:`add_drum`."""
+        return self.wall_table.drums
+
+    def add_plane(self, point, normal, material, *, key: str | None = None) -> PlaneWall:
+        """Add an infinite plane through ``point`` [m] facing ``normal`` (normalised; non-zero).
+
+        ``key`` is where the value came from, for error messages (default ``planes[N]``).
+        """
+        return scene_walls.add_plane(self, point, normal, material, key=key)
+
+    def add_mesh_wall(
+        self,
+        mesh,
+        material,
+        *,
+        scale=MESH.defaults["scale"],
+        orientation=MESH.defaults["orientation"],
+        position=MESH.defaults["position"],
+        velocity=MESH.defaults["velocity"],
+        angular_velocity=MESH.defaults["angular_velocity"],
+        pivot=MESH.defaults["pivot"],
+        thickness=MESH.defaults["thickness"],
+        flip_normals: bool = MESH.defaults["flip_normals"],
+        key: str | None = None,
+        base_dir=None,
+    ) -> MeshWall:
+        """Add a wall made of a triangle mesh: open or closed, convex or not (see :mod:`polydem.meshwall`).
+
+        The wall is solid behind its triangles (against their normals, i.e. the bodies are on the
+        side a counter-clockwise triangle faces), ``thickness`` [m] deep (default: the largest
+        bounding diameter of the free bodies); ``flip_normals`` reverses every triangle. Keep the
+        thickness below half the thinnest part of a closed wall, or the cells behind one side
+        reach out of the other (:meth:`validate` warns where they do), and within a factor of
+        10^6 of the triangles' sizes (validation refuses others: the cells are built to 10^-9 of
+        their size). Validation also refuses free bodies that start deep in the solid (as for
+        plane walls) and warns of a wall moving faster than the bodies it hits can take.
+
+        Args:
+            mesh: a mesh file (STL, OBJ, PLY; relative paths from ``base_dir``), a trimesh.Trimesh,
+                or ``(vertices, triangles)`` arrays.
+            material: a material name registered in the scene.
+            scale: a factor or (sx, sy, sz) applied to the file's coordinates first.
+            orientation: unit quaternion xyzw applied after the scale (default: none).
+            position: translation applied last [m].
+            velocity: (3,) [m/s]; angular_velocity: (3,) [rad/s] about ``pivot`` (default
+                ``position``): a kinematic wall, e.g. a turning mixer.
+            key: where the values came from, for messages (default ``mesh_walls[N]``).
+        """
+        return scene_walls.add_mesh_wall(
+            self,
+            mesh,
+            material,
+            scale=scale,
+            orientation=orientation,
+            position=position,
+            velocity=velocity,
+            angular_velocity=angular_velocity,
+            pivot=pivot,
+            thickness=thickness,
+            flip_normals=flip_normals,
+            key=key,
+            base_dir=base_dir,
+        )
+
+    def mesh_wall_thickness(self, wall: MeshWall) -> float:
+        """The depth [m] of a mesh wall's solid: its ``thickness``, or by default the largest bounding
+        diameter of the free bodies' shapes (of all shapes where no body is free), as the Model takes it."""
+        return scene_walls.mesh_wall_thickness(self, wall)
+
+    def mesh_wall_cells(self, wall: MeshWall, thickness: float):
+        """The :class:`~polydem.meshwall.MeshCells` of ``wall`` at ``thickness`` [m], in the wall's own frame
+        (world axes at t = 0, origin at its pivot: what the Model steps), kept for the next call (the checks
+        run at every validation and the Model reuses them; the cells only change with the thickness)."""
+        return scene_walls.mesh_wall_cells(self, wall, thickness)
+
+    def add_box_container(
+        self,
+        center,
+        inner_size,
+        material,
+        wall_thickness=BOX.defaults["wall_thickness"],
+        open_top: bool = BOX.defaults["open_top"],
+        *,
+        key: str | None = None,
+    ) -> list[int]:
+        """Add an axis-aligned box container made of fixed box-shaped bodies; returns their indices.
+
+        The cavity is ``inner_size`` = (lx, ly, lz) [m] centred on ``center`` [m], z up. The walls,
+        ``wall_thickness`` [m] thick (default 10% of the smallest inner size), are: a floor plate
+        covering the whole outer footprint, two x walls spanning the outer y extent, two y walls
+        between them, and a lid like the floor unless ``open_top``. Walls touch but do not overlap.
+        The needed box shapes are registered as ``"wall_box_{sx}x{sy}x{sz}"``. ``key`` is where the
+        value came from, for error messages (default ``box_container``).
+        """
+        return scene_walls.add_box_container(self, center, inner_size, material, wall_thickness, open_top, key=key)
+
+    def add_drum(
+        self,
+        center,
+        axis,
+        radius,
+        length,
+        material,
+        *,
+        omega=DRUM.defaults["omega"],
+        rpm=DRUM.defaults["rpm"],
+        sides=DRUM.defaults["sides"],
+        thickness=DRUM.defaults["thickness"],
+        caps=DRUM.defaults["caps"],
+        key: str | None = None,
+    ) -> Drum:
+        """Add a rotating polygonal drum made of kinematic bodies; returns its :class:`Drum` record.
+
+        A hollow drum is not convex, so it is built from ``sides`` box slabs, ``thickness`` thick
+        and ``length`` long, whose inner faces are the sides of a regular polygon of inradius
+        ``radius`` around the axis (adjacent slabs meet along the polygon's corners and open up
+        outwards, so the inside is closed). With ``caps`` two polygonal plates (prisms centred on
+        the axis, covering the slabs' outer corners) close the ends at ``+-length / 2``.
+
+        Every part is a kinematic body with angular velocity ``omega * axis`` and the drum centre
+        as its pivot (:attr:`body_pivot`); a slab's velocity is ``omega x r``, r from the axis to
+        the slab's centre, and the caps only spin. The registered shapes are
+        ``"wall_box_{w}x{length}x{thickness}"`` (w = 2 radius tan(pi / sides)) and
+        ``"drum_cap_{sides}_{r}x{thickness}"``.
+
+        Args:
+            center: (3,) middle of the drum on its axis [m].
+            axis: (3,) direction of the axis (any non-zero length) [-]; the drum turns by the
+                right-hand rule about it.
+            radius: inradius of the inner polygon [m], > 0.
+            length: inner length along the axis [m], > 0.
+            material: material name.
+            omega: angular speed [rad/s] (negative turns the other way); or give ``rpm``.
+            rpm: revolutions per minute (2 pi / 60 rad/s each); or give ``omega``.
+            sides: number of slabs, >= 3 (default 24).
+            thickness: slab and cap thickness [m], default a tenth of ``radius``.
+            caps: close the ends with rotating plates (default True).
+            key: where the value came from, for error messages (default ``drums[N]``).
+        """
+        return scene_walls.add_drum(
+            self,
+            center,
+            axis,
+            radius,
+            length,
+            material,
+            omega=omega,
+            rpm=rpm,
+            sides=sides,
+            thickness=thickness,
+            caps=caps,
+            key=key,
+        )
+
+    # ------------------------------------------------------------------ emitters (see emitters.py)
+
+    def emit(
+        self,
+        shape,
+        material,
+        count,
+        region,
+        *,
+        weights=EMITTER.defaults["weights"],
+        orientation=EMITTER.defaults["orientation"],
+        seed=EMITTER.defaults["seed"],
+        velocity=EMITTER.defaults["velocity"],
+        velocity_jitter=EMITTER.defaults["velocity_jitter"],
+        scale=EMITTER.defaults["scale"],
+        scale_range=EMITTER.defaults["scale_range"],
+        scale_lognormal=EMITTER.defaults["scale_lognormal"],
+        scale_bins=EMITTER.defaults["scale_bins"],
+        kind=EMITTER.defaults["kind"],
+        spacing=EMITTER.defaults["spacing"],
+        jitter=EMITTER.defaults["jitter"],
+        fill=EMITTER.defaults["fill"],
+        key: str | None = None,
+    ) -> np.ndarray:
+        """Place ``count`` bodies in a box region without overlaps; returns their indices.
+
+        This is the ``[[emitters]]`` table of a scene file (same argument names).
+
+        Placement. Each body gets a cell of a cubic grid filling the region (centred in it); the
+        cell side is ``spacing`` times the largest bounding diameter among the emitted bodies, and
+        each body's centre of mass is moved from its cell centre by up to ``jitter`` times its free
+        room (half the cell minus its bounding radius) along each axis, uniformly at random. So
+        every bounding sphere stays inside its own cell: no two emitted bodies overlap and none
+        crosses the region's faces. Cells that would cross a plane wall, any body already in the
+        scene (a container's slabs, a drum's slabs, earlier bodies and emitters; tested against
+        the body's face planes) or that lie beside a drum (within its axial span) without being
+        wholly inside it are left out.
+        ``fill = "bottom"`` takes the lowest cells first (layers against gravity; within the last
+        layer at random), ``fill = "random"`` cells anywhere in the region. Bodies are stored in
+        the grid order of their cells. If the region cannot hold ``count`` bodies, SceneError
+        (key ``.count``, or ``.region`` when not even one cell fits) says how many fit.
+
+        Everything is deterministic for a given ``seed`` (independent random streams for the
+        shape mix, the sizes, the cells, the jitter, the orientations and the velocities) and
+        vectorised: 10^6 bodies take a few seconds.
+
+        Args:
+            shape: a shape name (or :class:`ConvexShape`), a list of names (a mix; ``weights``
+                gives their proportions, equal by default), or a dict name -> weight. The counts
+                follow the weights exactly (largest remainders), in random order.
+            material: material name.
+            count: number of bodies, >= 1.
+            region: the box to fill, ``{"min": (x0, y0, z0), "max": (x1, y1, z1)}`` or a pair
+                ``(min, max)`` [m].
+            weights: proportions of a list of shapes (non-negative, not all zero).
+            orientation: ``"random"`` (uniform) or ``"aligned"`` (input axes along world axes).
+            seed: integer >= 0.
+            velocity: (3,) initial velocity of every body [m/s].
+            velocity_jitter: each velocity component gets a uniform random addition in
+                ``[-velocity_jitter, velocity_jitter]`` [m/s].
+            scale: one size factor for all bodies (default 1), or
+            scale_range: ``(lo, hi)``, factors uniform in [lo, hi], or
+            scale_lognormal: ``{"mean": m, "sigma": s}``: ln(factor) normal with standard deviation
+                s, its mean chosen so that the factors average m; truncated at 3 s either side.
+            scale_bins: a distribution is quantised into this many equal bins (in log for the
+                lognormal), each body taking its bin's centre, so at most ``scale_bins`` new shapes
+                per base shape are registered (``ConvexShape.scaled``, named ``"{name}_x{factor}"``).
+                Factors scale about each shape's input origin (its centroid but for rocks).
+            kind: ``"free"`` (default), ``"fixed"`` or ``"kinematic"``.
+            spacing: cell side over the largest bounding diameter, >= 1 (default 1.1).
+            jitter: fraction of each body's free room used for its random offset, in [0, 1].
+            fill: ``"bottom"`` (default) or ``"random"``.
+            key: where the value came from, for error messages (default ``emitters[N]``).
+        """
+        args = {k: v for k, v in locals().items() if k not in ("self", "shape", "material", "count", "region")}
+        return scene_emitters.emit(self, shape, material, count, region, **args)
+
+    # ------------------------------------------------------------------ checks (see checks.py)
+
+    def time_step(self) -> checks.TimeStep:
+        """The time step of a run and its bounds (:func:`.checks.time_step`; host-only: ``polydem validate`` needs
+        no Warp)."""
+        return checks.time_step(self)
+
+    def tunnelling_limits(self, a, dt: float) -> checks.TunnelLimits:
+        """Per body, the speed of its fastest point above which it may tunnel at time step ``dt`` [s] (``a``: the
+        body arrays; :func:`.checks.tunnelling_limits`)."""
+        return checks.tunnelling_limits(self, a, dt)
+
+    def check_tunnelling(self, a, dt: float) -> list[str]:
+        """A warning when a body starts faster than its :meth:`tunnelling_limits` (:func:`.checks.check_tunnelling`)."""
+        return checks.check_tunnelling(self, a, dt)
+
+    def check_run_span(self, dt: float, steps: int, source: str, default: bool = False) -> list[str]:
+        """Warnings about the simulated time a run of ``steps`` steps of ``dt`` [s] covers
+        (:func:`.checks.check_run_span`)."""
+        return checks.check_run_span(self, dt, steps, source, default)
+
+    def check_initial_overlaps(self, a) -> list[str]:
+        """Warnings of free bodies that start behind a plane wall or inside another body (``a``: the body arrays);
+        a SceneError for one deeper than INITIAL_OVERLAP_ERROR (:func:`.overlaps.check_initial_overlaps`)."""
+        return overlaps.check_initial_overlaps(self, a)
 
     def _check_compound_parts(self, a) -> list[str]:
         """A warning per compound shape in use whose parts overlap each other: their contacts count the shared
@@ -370,20 +735,10 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
 
     def _check_settings(self):
         """The simulation settings again: they are attributes a user may have changed since __init__."""
-        f = self.file
-        self.gravity = tuple(read_vector(list(self.gravity), 3, "simulation.gravity", f).tolist())
-        self.dt = self._check_dt(self.dt)
-        self.device = self._check_device(self.device)
-        self.precision = self._check_precision(self.precision)
+        for attr, value in read_settings({a: getattr(self, a) for a in SETTING_NAMES}, self.file).items():
+            setattr(self, attr, value)
         self.output = self._check_output(self.output)
-        self.settle = self._check_settle(self.settle)
         self._check_settle_gravity()
-        if self.steps is not None and self.duration is not None:
-            raise self.error("give either steps or duration, not both", "simulation.duration")
-        if self.steps is not None:
-            self.steps = read_integer(self.steps, "simulation.steps", f, minimum=1)
-        if self.duration is not None:
-            self.duration = read_number(self.duration, "simulation.duration", f, positive=True)
 
     # ------------------------------------------------------------------ scene files (see loader.py)
 
@@ -398,11 +753,12 @@ class Scene(BodyMethods, MaterialMethods, WallMethods, EmitterMethods, CheckMeth
 
     @classmethod
     def from_dict(cls, data: dict, *, file=None, base_dir=None, validate: bool = True) -> Scene:
-        """Settings from an ``[output]`` table (errors name ``output.KEY`` and ``file``)."""
+        """A scene from the nested dict of a scene file (as ``tomllib`` reads one, or :meth:`to_dict` gives);
+        errors name ``file``, and relative mesh paths are taken from ``base_dir`` (default: the working folder)."""
         return loader.load_dict(cls, data, file, base_dir, validate)
 
     def to_dict(self) -> dict:
-        """The ``[materials.NAME]`` table of a scene file (without the name)."""
+        """The scene as the nested dict of a scene file, which :meth:`from_dict` reads back to the same scene."""
         return loader.scene_dict(self)
 
     def describe(self) -> str:

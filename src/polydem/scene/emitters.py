@@ -9,10 +9,11 @@ import numpy as np
 from polydem.compound import expand_bodies
 from polydem.quaternions import quat_rotate, quat_to_matrix
 from polydem.scene import bodies as scene_bodies  # MAX_BODIES read at call time: one setting for both checks
-from polydem.scene.bodies import KIND_FIXED, KINDS
+from polydem.scene.bodies import BODY, KIND_FIXED, KINDS, append_bodies
 from polydem.scene.errors import SceneError
+from polydem.scene.schema import REQUIRED, SPEED, SPEED_WHY, Key, Table
 from polydem.scene.shape_specs import scaled_spec
-from polydem.scene.values import check_keys, read_choice, read_integer, read_number, read_table, read_vector, typename
+from polydem.scene.values import F32_HIGH, RADIUS_HIGH, RADIUS_LOW, as_integer, read_number, read_table, typename
 
 ORIENTATIONS = ("random", "aligned")
 """Emitter orientations: uniformly random, or every body with its input axes along the world axes."""
@@ -20,23 +21,99 @@ ORIENTATIONS = ("random", "aligned")
 FILLS = ("bottom", "random")
 """Emitter fill orders: the lowest cells first (against gravity), or cells anywhere in the region."""
 
+_REGION_HINT = "region = {min = [x0, y0, z0], max = [x1, y1, z1]} in m"
+_LOGNORMAL_HINT = "scale_lognormal = {mean = 1.0, sigma = 0.2}: the mean size factor and the spread of its logarithm"
+
+REGION = Table(
+    "region",
+    (
+        Key("min", "vector", unit="m", default=REQUIRED, hint=_REGION_HINT),
+        Key("max", "vector", unit="m", default=REQUIRED, hint=_REGION_HINT),
+    ),
+)
+"""An emitter's ``region = {min = [..], max = [..]}``."""
+
+LOGNORMAL = Table(
+    "scale_lognormal",
+    (
+        Key("mean", range="> 0", default=REQUIRED, hint=_LOGNORMAL_HINT, about="mean size factor"),
+        Key(
+            "sigma",
+            range=">= 0 and <= 2",
+            why=" (factors from e^-6 to e^6 times the median)",
+            default=REQUIRED,
+            hint=_LOGNORMAL_HINT,
+            about="standard deviation of ln(factor)",
+        ),
+    ),
+)
+"""An emitter's ``scale_lognormal = {mean = m, sigma = s}``."""
+
+EMITTER = Table(
+    "[[emitters]]",
+    (
+        Key(
+            "shape",
+            "any",
+            default=REQUIRED,
+            hint="a shape name, a list of names, or a table of weights such as {cube = 2, rock = 1}",
+        ),
+        Key("weights", "any"),
+        Key("material", "any", default=REQUIRED, hint="a material name"),
+        Key(
+            "count",
+            "integer",
+            range=">= 1",
+            default=REQUIRED,
+            hint="number of bodies, an integer >= 1",
+            about="number of bodies to place",
+        ),
+        Key("region", "any", unit="m", default=REQUIRED, hint="the box to fill: " + _REGION_HINT),
+        Key("orientation", "choice", choices=ORIENTATIONS, what="orientation", default="random"),
+        Key("seed", "integer", range=">= 0", default=0),
+        Key("velocity", "vector", unit="m/s", range=SPEED, why=SPEED_WHY, default=(0.0, 0.0, 0.0)),
+        Key(
+            "velocity_jitter",
+            unit="m/s",
+            range=f">= 0 and <= {F32_HIGH:.3g}",
+            why=SPEED_WHY,
+            default=0.0,
+            hint="in m/s",
+        ),
+        Key("scale", range="> 0", hint="size factor of the shapes"),
+        Key("scale_range", "vector", size=2, label="[lo, hi]"),
+        Key("scale_lognormal", "any"),
+        Key("scale_bins", "integer", range="[1, 64]", default=8),
+        Key("kind", "choice", choices=KINDS, what="body kind", default=BODY.defaults["kind"]),
+        Key(
+            "spacing",
+            range=">= 1",
+            why=" (narrower cells would let bounding spheres overlap)",
+            default=1.1,
+            hint="cell side over the largest bounding diameter",
+        ),
+        Key("jitter", range="[0, 1]", why=" (a fraction of each body's free room)", default=0.9, about=""),
+        Key("fill", "choice", choices=FILLS, what="fill order", default="bottom"),
+    ),
+)
+"""An ``[[emitters]]`` table: the arguments of :meth:`Scene.emit`."""
+
 _MAX_EMITTER_CELLS = 20_000_000  # grid cells an emitter may scan (random fill) or hold in one layer
 _EMITTER_CHUNK = 1 << 20  # grid cells tested at a time
+_MAX_GRID_CELLS = 2.0**62  # cells of a grid filled from the bottom: its indices are int64
 _PAIR_BATCH = 1 << 20  # (obstacle, cell) pairs tested at a time
 
 
 def _region(region, key, file) -> tuple[np.ndarray, np.ndarray]:
     """``(min, max)`` corners of an emitter region given as {min = [..], max = [..]} or a pair."""
-    hint = "region = {min = [x0, y0, z0], max = [x1, y1, z1]} in m"
     if isinstance(region, dict):
-        check_keys(region, ("min", "max"), key, file, required=("min", "max"), hints={"min": hint, "max": hint})
-        lo = read_vector(region["min"], 3, f"{key}.min", file)
-        hi = read_vector(region["max"], 3, f"{key}.max", file)
+        REGION.check(region, key, file)
     elif isinstance(region, list | tuple) and len(region) == 2:
-        lo = read_vector(region[0], 3, f"{key}.min", file)
-        hi = read_vector(region[1], 3, f"{key}.max", file)
+        region = {"min": region[0], "max": region[1]}
     else:
-        raise SceneError(f"expected a box, {hint}, got {typename(region)}", key, file)
+        raise SceneError(f"expected a box, {_REGION_HINT}, got {typename(region)}", key, file)
+    corners = REGION.read(region, key, file)
+    lo, hi = corners["min"], corners["max"]
     bad = np.flatnonzero(hi <= lo)
     if bad.size:
         ax = int(bad[0])
@@ -59,7 +136,8 @@ def _largest_remainder(count: int, frac: np.ndarray) -> np.ndarray:
 
 
 def _scale_sampler(scale, scale_range, scale_lognormal, bins: int, key: str, file):
-    """A function ``(rng, n) -> (bin index per body, factor per bin)`` for an emitter's sizes."""
+    """A function ``(rng, n) -> (bin index per body, factor per bin)`` for an emitter's sizes, and the key of the
+    distribution (None for none: the factor 1)."""
     given = [
         k
         for k, v in (("scale", scale), ("scale_range", scale_range), ("scale_lognormal", scale_lognormal))
@@ -76,35 +154,27 @@ def _scale_sampler(scale, scale_range, scale_lognormal, bins: int, key: str, fil
         return lambda rng, n: (np.zeros(n, dtype=np.int64), np.array([value]))
 
     if scale_range is not None:
-        lo, hi = read_vector(scale_range, 2, f"{key}.scale_range", file, label="[lo, hi]")
+        lo, hi = EMITTER["scale_range"].read(scale_range, f"{key}.scale_range", file)
         if lo <= 0.0 or hi < lo:
             raise SceneError(f"expected 0 < lo <= hi (size factors), got [{lo:g}, {hi:g}]", f"{key}.scale_range", file)
         if hi == lo:
-            return single(float(lo))
+            return single(float(lo)), f"{key}.scale_range"
         values = lo + (np.arange(bins) + 0.5) * (hi - lo) / bins
 
         def uniform(rng, n):
             u = rng.uniform(lo, hi, size=n)
             return np.clip(np.floor((u - lo) / (hi - lo) * bins).astype(np.int64), 0, bins - 1), values
 
-        return uniform
+        return uniform, f"{key}.scale_range"
     if scale_lognormal is not None:
         lk = f"{key}.scale_lognormal"
-        hint = "scale_lognormal = {mean = 1.0, sigma = 0.2}: the mean size factor and the spread of its logarithm"
         if isinstance(scale_lognormal, list | tuple) and len(scale_lognormal) == 2:
             scale_lognormal = {"mean": scale_lognormal[0], "sigma": scale_lognormal[1]}
-        table = read_table(scale_lognormal, lk, file, what=f"a table, {hint}")
-        check_keys(table, ("mean", "sigma"), lk, file, required=("mean", "sigma"), hints={"mean": hint, "sigma": hint})
-        mean = read_number(table["mean"], f"{lk}.mean", file, positive=True, hint=" (mean size factor)")
-        sigma = read_number(
-            table["sigma"], f"{lk}.sigma", file, nonneg=True, hint=" (standard deviation of ln(factor))"
-        )
-        if sigma > 2.0:
-            raise SceneError(
-                f"must be <= 2 (factors from e^-6 to e^6 times the median), got {sigma:g}", f"{lk}.sigma", file
-            )
+        table = read_table(scale_lognormal, lk, file, what=f"a table, {_LOGNORMAL_HINT}")
+        LOGNORMAL.check(table, lk, file)
+        mean, sigma = LOGNORMAL.read(table, lk, file).values()
         if sigma == 0.0:
-            return single(mean)
+            return single(mean), lk
         mu = math.log(mean) - 0.5 * sigma * sigma
         a, width = mu - 3.0 * sigma, 6.0 * sigma
         values = np.exp(a + (np.arange(bins) + 0.5) * width / bins)
@@ -113,10 +183,10 @@ def _scale_sampler(scale, scale_range, scale_lognormal, bins: int, key: str, fil
             x = rng.normal(mu, sigma, size=n)
             return np.clip(np.floor((x - a) / width * bins).astype(np.int64), 0, bins - 1), values
 
-        return lognormal
+        return lognormal, lk
     if scale is None:
-        return single(1.0)
-    return single(read_number(scale, f"{key}.scale", file, positive=True, hint=" (size factor of the shapes)"))
+        return single(1.0), None
+    return single(EMITTER["scale"].read(scale, f"{key}.scale", file)), f"{key}.scale"
 
 
 def _cell_index(layer, m, k, ax_a, ax_b, nb, nk, ascending) -> np.ndarray:
@@ -165,7 +235,9 @@ class _Obstacles:
         for wall, key in zip(scene.mesh_walls, scene.mesh_wall_keys, strict=True):
             depth = wall.thickness if wall.thickness is not None else cell
             try:
-                cells = build_cells(wall.vertices, wall.triangles, depth, label=f"mesh wall {key} ({wall.source})").cells
+                cells = build_cells(
+                    wall.vertices, wall.triangles, depth, label=f"mesh wall {key} ({wall.source})"
+                ).cells
             except MeshWallError as exc:
                 # The emitter places its bodies before the checks run: the same one-line refusal as theirs.
                 raise scene.error(str(exc), key) from None
@@ -300,314 +372,275 @@ def _orientations(orientation, count, rng) -> np.ndarray:
     return np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), (count, 4))
 
 
-class EmitterMethods:
-    """The :class:`~polydem.scene.Scene` method :meth:`emit` and its helpers."""
-
-    def __init__(self):
-        # The state of this group; Scene.__init__ reaches every group's __init__ through super().
-        self.emitters: list[dict] = []
-        self._scaled: dict[tuple[int, float], int] = {}  # (shape index, factor) -> index of the scaled shape
-        super().__init__()
-
-    def emit(
-        self,
-        shape,
-        material,
-        count,
-        region,
-        *,
-        weights=None,
-        orientation="random",
-        seed=0,
-        velocity=(0.0, 0.0, 0.0),
-        velocity_jitter=0.0,
-        scale=None,
-        scale_range=None,
-        scale_lognormal=None,
-        scale_bins=8,
-        kind="free",
-        spacing=1.1,
-        jitter=0.9,
-        fill="bottom",
-        key: str | None = None,
-    ) -> np.ndarray:
-        """Place ``count`` bodies in a box region without overlaps; returns their indices.
-
-        This is the ``[[emitters]]`` table of a scene file (same argument names).
-
-        Placement. Each body gets a cell of a cubic grid filling the region (centred in it); the
-        cell side is ``spacing`` times the largest bounding diameter among the emitted bodies, and
-        each body's centre of mass is moved from its cell centre by up to ``jitter`` times its free
-        room (half the cell minus its bounding radius) along each axis, uniformly at random. So
-        every bounding sphere stays inside its own cell: no two emitted bodies overlap and none
-        crosses the region's faces. Cells that would cross a plane wall, any body already in the
-        scene (a container's slabs, a drum's slabs, earlier bodies and emitters; tested against
-        the body's face planes) or that lie beside a drum (within its axial span) without being
-        wholly inside it are left out.
-        ``fill = "bottom"`` takes the lowest cells first (layers against gravity; within the last
-        layer at random), ``fill = "random"`` cells anywhere in the region. Bodies are stored in
-        the grid order of their cells. If the region cannot hold ``count`` bodies, SceneError
-        (key ``.count``, or ``.region`` when not even one cell fits) says how many fit.
-
-        Everything is deterministic for a given ``seed`` (independent random streams for the
-        shape mix, the sizes, the cells, the jitter, the orientations and the velocities) and
-        vectorised: 10^6 bodies take a few seconds.
-
-        Args:
-            shape: a shape name (or :class:`ConvexShape`), a list of names (a mix; ``weights``
-                gives their proportions, equal by default), or a dict name -> weight. The counts
-                follow the weights exactly (largest remainders), in random order.
-            material: material name.
-            count: number of bodies, >= 1.
-            region: the box to fill, ``{"min": (x0, y0, z0), "max": (x1, y1, z1)}`` or a pair
-                ``(min, max)`` [m].
-            weights: proportions of a list of shapes (non-negative, not all zero).
-            orientation: ``"random"`` (uniform) or ``"aligned"`` (input axes along world axes).
-            seed: integer >= 0.
-            velocity: (3,) initial velocity of every body [m/s].
-            velocity_jitter: each velocity component gets a uniform random addition in
-                ``[-velocity_jitter, velocity_jitter]`` [m/s].
-            scale: one size factor for all bodies (default 1), or
-            scale_range: ``(lo, hi)``, factors uniform in [lo, hi], or
-            scale_lognormal: ``{"mean": m, "sigma": s}``: ln(factor) normal with standard deviation
-                s, its mean chosen so that the factors average m; truncated at 3 s either side.
-            scale_bins: a distribution is quantised into this many equal bins (in log for the
-                lognormal), each body taking its bin's centre, so at most ``scale_bins`` new shapes
-                per base shape are registered (``ConvexShape.scaled``, named ``"{name}_x{factor}"``).
-                Factors scale about each shape's input origin (its centroid but for rocks).
-            kind: ``"free"`` (default), ``"fixed"`` or ``"kinematic"``.
-            spacing: cell side over the largest bounding diameter, >= 1 (default 1.1).
-            jitter: fraction of each body's free room used for its random offset, in [0, 1].
-            fill: ``"bottom"`` (default) or ``"random"``.
-            key: where the value came from, for error messages (default ``emitters[N]``).
-        """
-        key = key or f"emitters[{len(self.emitters)}]"
-        f = self.file
-        count = read_integer(count, f"{key}.count", f, minimum=1, hint=" (number of bodies to place)")
-        lo, hi = _region(region, f"{key}.region", f)
-        base, frac = self._emitter_shapes(shape, weights, key)
-        mat = self.material_index(material, key=f"{key}.material")
-        kind_code = KINDS.index(read_choice(kind, KINDS, f"{key}.kind", f, what="body kind"))
-        orientation = read_choice(orientation, ORIENTATIONS, f"{key}.orientation", f, what="orientation")
-        fill = read_choice(fill, FILLS, f"{key}.fill", f, what="fill order")
-        seed = read_integer(seed, f"{key}.seed", f, minimum=0)
-        vel = read_vector(velocity, 3, f"{key}.velocity", f)
-        vj = read_number(velocity_jitter, f"{key}.velocity_jitter", f, nonneg=True, hint=" (in m/s)")
-        spacing = read_number(spacing, f"{key}.spacing", f, hint=" (cell side over the largest bounding diameter)")
-        if spacing < 1.0:
-            raise self.error(
-                f"must be >= 1 (narrower cells would let bounding spheres overlap), got {spacing:g}",
-                f"{key}.spacing",
-            )
-        jitter = read_number(jitter, f"{key}.jitter", f, nonneg=True)
-        if jitter > 1.0:
-            raise self.error(
-                f"must be in [0, 1] (a fraction of each body's free room), got {jitter:g}", f"{key}.jitter"
-            )
-        bins = read_integer(scale_bins, f"{key}.scale_bins", f, minimum=1, maximum=64)
-        sample_scales = _scale_sampler(scale, scale_range, scale_lognormal, bins, key, f)
-        if kind_code == KIND_FIXED and (vj > 0.0 or np.any(vel != 0.0)):
-            raise self.error(
-                "fixed bodies cannot move; remove velocity and velocity_jitter or use kind = 'kinematic'",
-                f"{key}.velocity",
-            )
-        self._check_capacity(count, lo, hi, base, frac, sample_scales, spacing, key)
-
-        streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)]
-        rng_shape, rng_scale, rng_cells, rng_jitter, rng_orient, rng_vel = streams
-        rows, radius = self._emitted_shapes(base, frac, sample_scales, count, rng_shape, rng_scale)
-        r_max = float(radius.max())
-        cell = spacing * 2.0 * r_max
-        centres = self._emitter_cells(lo, hi, cell, count, fill, rng_cells, key, r_max, spacing)
-        room = jitter * np.maximum(0.5 * cell - radius, 0.0)
-        centres = centres + rng_jitter.uniform(-1.0, 1.0, size=(count, 3)) * room[:, None]
-        q = _orientations(orientation, count, rng_orient)
-        v = np.broadcast_to(vel, (count, 3))
-        if vj > 0.0:
-            v = v + rng_vel.uniform(-vj, vj, size=(count, 3))
-        frames = self.shape_input_frames()
-        t_in = np.array([frames[s][1] for s in range(len(frames))])[rows]
-        positions = centres - quat_rotate(q, t_in) if np.any(t_in) else centres
-        idx = self.append_bodies(rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
-        self.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
-        return idx
-
-    def _emitted_shapes(self, base, frac, sample_scales, count, rng_shape, rng_scale):
-        """(count,) shape index and bounding radius of each emitted body: the mix of ``base`` shapes in the
-        proportions ``frac``, each scaled by a factor drawn from ``sample_scales``."""
-        label = rng_shape.permutation(np.repeat(np.arange(len(base)), _largest_remainder(count, frac)))
-        bin_index, values = sample_scales(rng_scale, count)
-        combo, inverse = np.unique(label * len(values) + bin_index, return_inverse=True)
-        combo_shape = np.array(
-            [self._scaled_shape(base[int(cb) // len(values)], float(values[int(cb) % len(values)])) for cb in combo],
-            dtype=np.int32,
+def emit(
+    scene,
+    shape,
+    material,
+    count,
+    region,
+    *,
+    weights=EMITTER.defaults["weights"],
+    orientation=EMITTER.defaults["orientation"],
+    seed=EMITTER.defaults["seed"],
+    velocity=EMITTER.defaults["velocity"],
+    velocity_jitter=EMITTER.defaults["velocity_jitter"],
+    scale=EMITTER.defaults["scale"],
+    scale_range=EMITTER.defaults["scale_range"],
+    scale_lognormal=EMITTER.defaults["scale_lognormal"],
+    scale_bins=EMITTER.defaults["scale_bins"],
+    kind=EMITTER.defaults["kind"],
+    spacing=EMITTER.defaults["spacing"],
+    jitter=EMITTER.defaults["jitter"],
+    fill=EMITTER.defaults["fill"],
+    key: str | None = None,
+) -> np.ndarray:
+    """:meth:`Scene.emit <polydem.scene.Scene.emit>`: place ``count`` bodies of ``scene`` in a box region without
+    overlaps; returns their indices."""
+    key = key or f"emitters[{len(scene.emitters)}]"
+    f = scene.file
+    count = EMITTER["count"].read(count, f"{key}.count", f)
+    lo, hi = _region(region, f"{key}.region", f)
+    base, frac = _emitter_shapes(scene, shape, weights, key)
+    mat = scene.material_index(material, key=f"{key}.material")
+    given = {"kind": kind, "orientation": orientation, "fill": fill, "seed": seed, "velocity": velocity}
+    given.update(velocity_jitter=velocity_jitter, spacing=spacing, jitter=jitter, scale_bins=scale_bins)
+    a = EMITTER.read(given, key, f)
+    kind_code = KINDS.index(a["kind"])
+    orientation, fill, seed, vel, vj = a["orientation"], a["fill"], a["seed"], a["velocity"], a["velocity_jitter"]
+    spacing, jitter = a["spacing"], a["jitter"]
+    sample_scales, scale_key = _scale_sampler(scale, scale_range, scale_lognormal, a["scale_bins"], key, f)
+    if kind_code == KIND_FIXED and (vj > 0.0 or np.any(vel != 0.0)):
+        raise scene.error(
+            "fixed bodies cannot move; remove velocity and velocity_jitter or use kind = 'kinematic'",
+            f"{key}.velocity",
         )
-        shapes = list(self.shapes.values())
-        combo_radius = np.array([shapes[s].radius for s in combo_shape])
-        return combo_shape[inverse], combo_radius[inverse]
+    _check_capacity(scene, count, lo, hi, base, frac, sample_scales, spacing, key)
 
-    def _check_capacity(self, count, lo, hi, base, frac, sample_scales, spacing, key):
-        """Reject a count the scene or the region cannot hold, by arithmetic before any per-body array.
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)]
+    rng_shape, rng_scale, rng_cells, rng_jitter, rng_orient, rng_vel = streams
+    rows, radius = _emitted_shapes(scene, base, frac, sample_scales, count, rng_shape, rng_scale, scale_key)
+    r_max = float(radius.max())
+    cell = spacing * 2.0 * r_max
+    centres = _emitter_cells(scene, lo, hi, cell, count, fill, rng_cells, key, r_max, spacing)
+    room = jitter * np.maximum(0.5 * cell - radius, 0.0)
+    centres = centres + rng_jitter.uniform(-1.0, 1.0, size=(count, 3)) * room[:, None]
+    q = _orientations(orientation, count, rng_orient)
+    v = np.broadcast_to(vel, (count, 3))
+    if vj > 0.0:
+        v = v + rng_vel.uniform(-vj, vj, size=(count, 3))
+    frames = scene.shape_input_frames()
+    t_in = np.array([frames[s][1] for s in range(len(frames))])[rows]
+    positions = centres - quat_rotate(q, t_in) if np.any(t_in) else centres
+    idx = append_bodies(scene, rows, mat, positions, q, v, np.zeros((count, 3)), kind_code, lambda i: key)
+    scene.emitters.append({"key": key, "count": count, "first": int(idx[0]), "last": int(idx[-1])})
+    return idx
 
-        Every cell is at least ``spacing`` times the largest bounding diameter among the shapes that
-        get bodies, each at its smallest size factor, so the region holds at most that many cells.
-        """
-        if self.num_bodies + count > scene_bodies.MAX_BODIES:
-            raise self.error(
-                f"count = {count} would make {self.num_bodies + count:.3g} bodies, more than a scene can hold "
-                f"({scene_bodies.MAX_BODIES:.0e}); lower count",
-                f"{key}.count",
+
+def _emitted_shapes(scene, base, frac, sample_scales, count, rng_shape, rng_scale, scale_key):
+    """(count,) shape index and bounding radius of each emitted body: the mix of ``base`` shapes in the
+    proportions ``frac``, each scaled by a factor drawn from ``sample_scales`` (given as ``scale_key``)."""
+    label = rng_shape.permutation(np.repeat(np.arange(len(base)), _largest_remainder(count, frac)))
+    bin_index, values = sample_scales(rng_scale, count)
+    combo, inverse = np.unique(label * len(values) + bin_index, return_inverse=True)
+    shapes = list(scene.shapes.values())
+    for cb in combo.tolist():
+        _check_scaled_radius(scene, shapes[base[cb // len(values)]], float(values[cb % len(values)]), scale_key)
+    combo_shape = np.array(
+        [_scaled_shape(scene, base[int(cb) // len(values)], float(values[int(cb) % len(values)])) for cb in combo],
+        dtype=np.int32,
+    )
+    shapes = list(scene.shapes.values())
+    combo_radius = np.array([shapes[s].radius for s in combo_shape])
+    return combo_shape[inverse], combo_radius[inverse]
+
+
+def _check_scaled_radius(scene, shape, factor: float, scale_key):
+    """Refuse a size factor that takes ``shape`` beyond the bounding radii a run resolves, before its
+    volume and inertia (factor^3, factor^5) leave float64: the float32 check of :meth:`validate` would only
+    name the scaled shape, which the scene file does not."""
+    radius = shape.radius * factor
+    if factor == 1.0 or RADIUS_LOW <= radius <= RADIUS_HIGH:
+        return
+    raise scene.error(
+        f"the size factor {factor:.3g} gives shape {shape.name!r} (bounding radius {shape.radius:.3g} m) a "
+        f"bounding radius of {radius:.3g} m: too {'small' if radius < RADIUS_LOW else 'large'} for the "
+        f"simulator's float32 arithmetic, which takes bounding radii from {RADIUS_LOW:.2g} to {RADIUS_HIGH:.2g} m; "
+        f"give size factors from {RADIUS_LOW / shape.radius:.3g} to {RADIUS_HIGH / shape.radius:.3g} for it",
+        scale_key,
+    )
+
+
+def _check_capacity(scene, count, lo, hi, base, frac, sample_scales, spacing, key):
+    """Reject a count the scene or the region cannot hold, by arithmetic before any per-body array.
+
+    Every cell is at least ``spacing`` times the largest bounding diameter among the shapes that
+    get bodies, each at its smallest size factor, so the region holds at most that many cells.
+    """
+    total = scene.num_bodies + count
+    if total > scene_bodies.MAX_BODIES:
+        many = f"{total:.3g}" if total < 1e300 else as_integer(total)  # :g takes an int only as a float
+        raise scene.error(
+            f"count = {as_integer(count)} would make {many} bodies, more than a scene can hold "
+            f"({scene_bodies.MAX_BODIES:.0e}); lower count",
+            f"{key}.count",
+        )
+    per_shape = _largest_remainder(count, frac)
+    _, factors = sample_scales(np.random.default_rng(0), 0)
+    shapes = list(scene.shapes.values())
+    r_low = max(shapes[b].radius for b, c in zip(base, per_shape, strict=True) if c > 0) * float(np.min(factors))
+    cell = spacing * 2.0 * r_low
+    cells = np.floor((hi - lo) / cell * (1.0 + 1e-12))
+    capacity = float(np.prod(cells))  # a float: a region of tiny cells holds more than an int64 counts
+    # The grid scan gives the exact number (walls and bodies block cells) and the better message;
+    # only counts whose per-body arrays would be large are cut here.
+    if count > capacity and count > _EMITTER_CHUNK and capacity > 0:
+        raise scene.error(
+            f"the region holds at most {int(capacity)} bodies, fewer than count = {count}: it fits at most "
+            f"{' x '.join(str(int(c)) for c in cells)} cells of {cell:.4g} m (spacing {spacing:g} x the largest "
+            f"bounding diameter at the smallest size, {2.0 * r_low:.4g} m); lower count or enlarge the region",
+            f"{key}.count",
+        )
+
+
+def _emitter_shapes(scene, shape, weights, key) -> tuple[list[int], np.ndarray]:
+    """Shape indices and normalised weights of an emitter's ``shape`` (and ``weights``)."""
+    f = scene.file
+    if isinstance(shape, dict):
+        if weights is not None:
+            raise scene.error("give the weights either in the shape table or as weights, not both", f"{key}.weights")
+        names = list(shape)
+        weights = [shape[n] for n in names]
+        wkey = [f"{key}.shape.{n}" for n in names]
+    elif isinstance(shape, list | tuple):
+        names = list(shape)
+        wkey = [f"{key}.weights[{i}]" for i in range(len(names))]
+    else:
+        if weights is not None:
+            raise scene.error(
+                "weights go with a list of shapes, e.g. shape = ['cube', 'rock'] and weights = [2, 1]",
+                f"{key}.weights",
             )
-        per_shape = _largest_remainder(count, frac)
-        _, factors = sample_scales(np.random.default_rng(0), 0)
-        shapes = list(self.shapes.values())
-        r_low = max(shapes[b].radius for b, c in zip(base, per_shape, strict=True) if c > 0) * float(np.min(factors))
-        cell = spacing * 2.0 * r_low
-        cells = np.floor((hi - lo) / cell * (1.0 + 1e-12))
-        capacity = math.prod(int(c) for c in cells)
-        # The grid scan gives the exact number (walls and bodies block cells) and the better message;
-        # only counts whose per-body arrays would be large are cut here.
-        if count > capacity and count > _EMITTER_CHUNK and capacity > 0:
-            raise self.error(
-                f"the region holds at most {capacity} bodies, fewer than count = {count}: it fits at most "
-                f"{' x '.join(str(int(c)) for c in cells)} cells of {cell:.4g} m (spacing {spacing:g} x the largest "
-                f"bounding diameter at the smallest size, {2.0 * r_low:.4g} m); lower count or enlarge the region",
-                f"{key}.count",
-            )
-
-    def _emitter_shapes(self, shape, weights, key) -> tuple[list[int], np.ndarray]:
-        """Shape indices and normalised weights of an emitter's ``shape`` (and ``weights``)."""
-        f = self.file
+        names, weights, wkey = [shape], None, [f"{key}.weights"]
+    if not names:
+        raise scene.error("the list of shapes is empty; give at least one shape name", f"{key}.shape")
+    index = []
+    for i, name in enumerate(names):
+        sub = f"{key}.shape" if len(names) == 1 else f"{key}.shape[{i}]"
         if isinstance(shape, dict):
-            if weights is not None:
-                raise self.error("give the weights either in the shape table or as weights, not both", f"{key}.weights")
-            names = list(shape)
-            weights = [shape[n] for n in names]
-            wkey = [f"{key}.shape.{n}" for n in names]
-        elif isinstance(shape, list | tuple):
-            names = list(shape)
-            wkey = [f"{key}.weights[{i}]" for i in range(len(names))]
-        else:
-            if weights is not None:
-                raise self.error(
-                    "weights go with a list of shapes, e.g. shape = ['cube', 'rock'] and weights = [2, 1]",
-                    f"{key}.weights",
-                )
-            names, weights, wkey = [shape], None, [f"{key}.weights"]
-        if not names:
-            raise self.error("the list of shapes is empty; give at least one shape name", f"{key}.shape")
-        index = []
-        for i, name in enumerate(names):
-            sub = f"{key}.shape" if len(names) == 1 else f"{key}.shape[{i}]"
-            if isinstance(shape, dict):
-                sub = f"{key}.shape.{name}"
-            s = self.resolve_shape(name, sub)
-            if s in index:
-                raise self.error(f"shape {self.shape_names[s]!r} is listed twice; list each shape once", sub)
-            index.append(s)
-        if weights is None:
-            frac = np.full(len(index), 1.0 / len(index))
-        else:
-            if not isinstance(weights, list | tuple | np.ndarray) or len(weights) != len(index):
-                raise self.error(
-                    f"expected {len(index)} weights, one per shape, got {typename(weights)}", f"{key}.weights"
-                )
-            frac = np.array([read_number(wt, wkey[i], f, nonneg=True) for i, wt in enumerate(weights)])
-            if frac.sum() <= 0.0:
-                raise self.error("the weights are all zero; give at least one positive weight", f"{key}.weights")
-            frac = frac / frac.sum()
-        return index, frac
-
-    def _scaled_shape(self, base: int, factor: float) -> int:
-        """Index of shape ``base`` scaled by ``factor`` (registered once as ``"{name}_x{factor}"``)."""
-        if factor == 1.0:
-            return base
-        cache = (base, factor)
-        if cache in self._scaled:
-            return self._scaled[cache]
-        src = self.shape_names[base]
-        name = stem = f"{src}_x{factor:.6g}"
-        k = 1
-        while name in self.shape_names:
-            k += 1
-            name = f"{stem}_{k}"
-        shape = list(self.shapes.values())[base].scaled(factor)
-        shape.name = name
-        self.add_shape(name, shape, spec=scaled_spec(self.shape_spec(src), factor))
-        self._scaled[cache] = self.shape_index(name)
-        return self._scaled[cache]
-
-    def _emitter_cells(self, lo, hi, cell, count, fill, rng, key, r_max, spacing) -> np.ndarray:
-        """(count, 3) centres of the free grid cells chosen for an emitter (see :meth:`emit`)."""
-        ext = hi - lo
-        n = np.floor(ext / cell * (1.0 + 1e-12)).astype(np.int64)
-        sizes = f"cells of {cell:.4g} m (spacing {spacing:g} x the largest bounding diameter {2.0 * r_max:.4g} m)"
-        if np.any(n < 1):
-            ax = int(np.flatnonzero(n < 1)[0])
-            raise self.error(
-                f"the region is {ext[ax]:.4g} m along {'xyz'[ax]}, too small for one body: bodies are placed in "
-                f"{sizes}; make the region at least {cell:.4g} m along {'xyz'[ax]}, or use smaller shapes or a "
-                "smaller spacing",
-                f"{key}.region",
+            sub = f"{key}.shape.{name}"
+        s = scene.resolve_shape(name, sub)
+        if s in index:
+            raise scene.error(f"shape {scene.shape_names[s]!r} is listed twice; list each shape once", sub)
+        index.append(s)
+    if weights is None:
+        frac = np.full(len(index), 1.0 / len(index))
+    else:
+        if not isinstance(weights, list | tuple | np.ndarray) or len(weights) != len(index):
+            raise scene.error(
+                f"expected {len(index)} weights, one per shape, got {typename(weights)}", f"{key}.weights"
             )
-        origin = lo + 0.5 * (ext - n * cell)
-        g = np.asarray(self.gravity, dtype=np.float64)
-        up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0.0 else np.array([0.0, 0.0, 1.0])
-        k = int(np.argmax(np.abs(up)))
-        ascending = bool(up[k] >= 0.0)
-        ax_a, ax_b = (i for i in range(3) if i != k)
-        nb_, nk = int(n[ax_b]), int(n[k])
-        per_layer = int(n[ax_a]) * nb_
-        total = per_layer * nk
-        if per_layer > _MAX_EMITTER_CELLS or (fill == "random" and total > _MAX_EMITTER_CELLS):
-            what = "one layer of" if per_layer > _MAX_EMITTER_CELLS else "the"
-            raise self.error(
-                f"{what} region holds {per_layer if what != 'the' else total:.3g} {sizes}, far more than "
-                f"{count} bodies need (the limit is {_MAX_EMITTER_CELLS:.0e} cells); make the region smaller"
-                + (' or use fill = "bottom"' if fill == "random" else ""),
-                f"{key}.region",
-            )
-        obstacles = _Obstacles(self, origin, origin + n * cell, cell)
-        chunk_layers = max(1, _EMITTER_CHUNK // per_layer)
-        found, got_layer, got_m = 0, [], []
-        for l0 in range(0, nk, chunk_layers):
-            l1 = min(nk, l0 + chunk_layers)
-            layer = np.repeat(np.arange(l0, l1, dtype=np.int64), per_layer)
-            m = np.tile(np.arange(per_layer, dtype=np.int64), l1 - l0)
-            gi = _cell_index(layer, m, k, ax_a, ax_b, nb_, nk, ascending)
-            krange = (l0, l1 - 1) if ascending else (nk - l1, nk - 1 - l0)
+        frac = np.array([read_number(wt, wkey[i], f, nonneg=True) for i, wt in enumerate(weights)])
+        if frac.sum() <= 0.0:
+            raise scene.error("the weights are all zero; give at least one positive weight", f"{key}.weights")
+        frac = frac / frac.sum()
+    return index, frac
 
-            def local_of(g, l0=l0):
-                lay = g[:, k] if ascending else nk - 1 - g[:, k]
-                return (lay - l0) * per_layer + g[:, ax_a] * nb_ + g[:, ax_b]
 
-            blocked = obstacles.blocked(origin + (gi + 0.5) * cell, krange, k, local_of)
-            keep = ~blocked
-            got_layer.append(layer[keep])
-            got_m.append(m[keep])
-            found += int(keep.sum())
-            if fill == "bottom" and found >= count:
-                break
-        if found < count:
-            per = found / nk if found else per_layer
-            need = math.ceil(count / max(per, 1e-300)) * cell
-            msg = (
-                f"the region holds at most {found} bodies, fewer than count = {count}: it is a grid of "
-                f"{n[0]} x {n[1]} x {n[2]} {sizes}"
-            )
-            if total > found:
-                msg += f", and {total - found} of its {total} cells cross walls or bodies already in the scene"
-            msg += (
-                f". Lower count to {found}, or enlarge the region (to about {need:.3g} m along {'xyz'[k]} at this "
-                "width, or wider), or lower spacing"
-            )
-            raise self.error(msg, f"{key}.count")
-        layer = np.concatenate(got_layer)
-        m = np.concatenate(got_m)
-        if fill == "bottom":
-            pick = np.lexsort((rng.random(found), layer))[:count]
-        else:
-            pick = rng.choice(found, size=count, replace=False)
-        pick.sort()
-        gi = _cell_index(layer[pick], m[pick], k, ax_a, ax_b, nb_, nk, ascending)
-        return origin + (gi + 0.5) * cell
+def _scaled_shape(scene, base: int, factor: float) -> int:
+    """Index of shape ``base`` scaled by ``factor`` (registered once as ``"{name}_x{factor}"``)."""
+    if factor == 1.0:
+        return base
+    cache = (base, factor)
+    if cache in scene.scaled_shapes:
+        return scene.scaled_shapes[cache]
+    src = scene.shape_names[base]
+    name = stem = f"{src}_x{factor:.6g}"
+    k = 1
+    while name in scene.shape_names:
+        k += 1
+        name = f"{stem}_{k}"
+    shape = list(scene.shapes.values())[base].scaled(factor)
+    shape.name = name
+    scene.add_shape(name, shape, spec=scaled_spec(scene.shape_spec(src), factor))
+    scene.scaled_shapes[cache] = scene.shape_index(name)
+    return scene.scaled_shapes[cache]
+
+
+def _emitter_cells(scene, lo, hi, cell, count, fill, rng, key, r_max, spacing) -> np.ndarray:
+    """(count, 3) centres of the free grid cells chosen for an emitter (see :meth:`emit`)."""
+    ext = hi - lo
+    # Counted in floats until they are known to fit the int64 grid indices.
+    n = np.floor(ext / cell * (1.0 + 1e-12))
+    sizes = f"cells of {cell:.4g} m (spacing {spacing:g} x the largest bounding diameter {2.0 * r_max:.4g} m)"
+    if np.any(n < 1):
+        ax = int(np.flatnonzero(n < 1)[0])
+        raise scene.error(
+            f"the region is {ext[ax]:.4g} m along {'xyz'[ax]}, too small for one body: bodies are placed in "
+            f"{sizes}; make the region at least {cell:.4g} m along {'xyz'[ax]}, or use smaller shapes or a "
+            "smaller spacing",
+            f"{key}.region",
+        )
+    origin = lo + 0.5 * (ext - n * cell)
+    g = np.asarray(scene.gravity, dtype=np.float64)
+    up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0.0 else np.array([0.0, 0.0, 1.0])
+    k = int(np.argmax(np.abs(up)))
+    ascending = bool(up[k] >= 0.0)
+    ax_a, ax_b = (i for i in range(3) if i != k)
+    per_layer = float(n[ax_a] * n[ax_b])
+    total = per_layer * float(n[k])
+    most = _MAX_EMITTER_CELLS if fill == "random" else _MAX_GRID_CELLS
+    if per_layer > _MAX_EMITTER_CELLS or total > most:
+        what = "one layer of" if per_layer > _MAX_EMITTER_CELLS else "the"
+        raise scene.error(
+            f"{what} region holds {per_layer if what != 'the' else total:.3g} {sizes}, far more than "
+            f"{count} bodies need (the limit is {_MAX_EMITTER_CELLS:.0e} cells); make the region smaller"
+            + (' or use fill = "bottom"' if fill == "random" else ""),
+            f"{key}.region",
+        )
+    n = n.astype(np.int64)
+    nb_, nk = int(n[ax_b]), int(n[k])
+    per_layer, total = int(n[ax_a]) * nb_, int(n[ax_a]) * nb_ * nk
+    obstacles = _Obstacles(scene, origin, origin + n * cell, cell)
+    chunk_layers = max(1, _EMITTER_CHUNK // per_layer)
+    found, got_layer, got_m = 0, [], []
+    for l0 in range(0, nk, chunk_layers):
+        l1 = min(nk, l0 + chunk_layers)
+        layer = np.repeat(np.arange(l0, l1, dtype=np.int64), per_layer)
+        m = np.tile(np.arange(per_layer, dtype=np.int64), l1 - l0)
+        gi = _cell_index(layer, m, k, ax_a, ax_b, nb_, nk, ascending)
+        krange = (l0, l1 - 1) if ascending else (nk - l1, nk - 1 - l0)
+
+        def local_of(g, l0=l0):
+            lay = g[:, k] if ascending else nk - 1 - g[:, k]
+            return (lay - l0) * per_layer + g[:, ax_a] * nb_ + g[:, ax_b]
+
+        blocked = obstacles.blocked(origin + (gi + 0.5) * cell, krange, k, local_of)
+        keep = ~blocked
+        got_layer.append(layer[keep])
+        got_m.append(m[keep])
+        found += int(keep.sum())
+        if fill == "bottom" and found >= count:
+            break
+    if found < count:
+        per = found / nk if found else per_layer
+        need = math.ceil(count / max(per, 1e-300)) * cell
+        msg = (
+            f"the region holds at most {found} bodies, fewer than count = {count}: it is a grid of "
+            f"{n[0]} x {n[1]} x {n[2]} {sizes}"
+        )
+        if total > found:
+            msg += f", and {total - found} of its {total} cells cross walls or bodies already in the scene"
+        msg += (
+            f". Lower count to {found}, or enlarge the region (to about {need:.3g} m along {'xyz'[k]} at this "
+            "width, or wider), or lower spacing"
+        )
+        raise scene.error(msg, f"{key}.count")
+    layer = np.concatenate(got_layer)
+    m = np.concatenate(got_m)
+    if fill == "bottom":
+        pick = np.lexsort((rng.random(found), layer))[:count]
+    else:
+        pick = rng.choice(found, size=count, replace=False)
+    pick.sort()
+    gi = _cell_index(layer[pick], m[pick], k, ax_a, ax_b, nb_, nk, ascending)
+    return origin + (gi + 0.5) * cell

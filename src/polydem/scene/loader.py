@@ -1,114 +1,34 @@
-"""Scene files: the TOML schema, reading a file into a Scene and writing a Scene back as a dict."""
+"""Scene files: reading a file into a Scene and writing a Scene back as a dict, table by table as each
+table's declaration says (:mod:`.schema`; the tables are declared beside the code that uses them)."""
 
 from __future__ import annotations
 
-import math
 import tomllib
 from os import PathLike
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from polydem.scene.bodies import KINDS, quat_from_axis_angle
+from polydem.scene.bodies import BODY, KINDS
+from polydem.scene.emitters import EMITTER
 from polydem.scene.errors import SceneError
+from polydem.scene.materials import MATERIAL
 from polydem.scene.output import Output
+from polydem.scene.schema import Key, Table
+from polydem.scene.settings import SIMULATION, write_settings
 from polydem.scene.shape_specs import build_shape
-from polydem.scene.values import (
-    check_keys,
-    read_boolean,
-    read_choice,
-    read_number,
-    read_rows,
-    read_string,
-    read_table,
-    read_vector,
-    typename,
-)
+from polydem.scene.values import read_choice, read_rows, read_table, typename
+from polydem.scene.walls import MESH, WALL_TYPES
 
-if TYPE_CHECKING:
-    from polydem.scene.description import Scene
-
-_SIM_KEYS = (
-    "name",
-    "description",
-    "dt",
-    "gravity",
-    "steps",
-    "duration",
-    "device",
-    "precision",
-    "until_settled",
-    "settle",
+SCENE = Table(
+    "a scene file",
+    tuple(Key(name, "any") for name in ("simulation", "materials", "shapes", "bodies", "walls", "emitters", "output")),
 )
-_TOP_KEYS = ("simulation", "materials", "shapes", "bodies", "walls", "emitters", "output")
-_BODY_KEYS = (
-    "shape",
-    "material",
-    "position",
-    "orientation",
-    "rotation",
-    "velocity",
-    "angular_velocity",
-    "kind",
-    "pivot",
-)
-_WALL_KEYS = {
-    "plane": ("type", "point", "normal", "material"),
-    "box": ("type", "center", "inner_size", "material", "wall_thickness", "open_top"),
-    "drum": ("type", "center", "axis", "radius", "length", "material", "omega", "rpm", "sides", "thickness", "caps"),
-    "mesh": (
-        "type",
-        "file",
-        "vertices",
-        "triangles",
-        "material",
-        "scale",
-        "rotation",
-        "orientation",
-        "position",
-        "flip_normals",
-        "thickness",
-        "velocity",
-        "angular_velocity",
-        "pivot",
-    ),
-}
-_WALL_REQUIRED = {
-    "plane": ("point", "normal", "material"),
-    "box": ("center", "inner_size", "material"),
-    "drum": ("center", "axis", "radius", "length", "material"),
-    "mesh": ("material",),
-}
-_EMITTER_KEYS = (
-    "shape",
-    "weights",
-    "material",
-    "count",
-    "region",
-    "orientation",
-    "seed",
-    "velocity",
-    "velocity_jitter",
-    "scale",
-    "scale_range",
-    "scale_lognormal",
-    "scale_bins",
-    "kind",
-    "spacing",
-    "jitter",
-    "fill",
-)
-_EMITTER_HINTS = {
-    "shape": "a shape name, a list of names, or a table of weights such as {cube = 2, rock = 1}",
-    "material": "a material name",
-    "count": "number of bodies, an integer >= 1",
-    "region": "the box to fill: region = {min = [x0, y0, z0], max = [x1, y1, z1]} in m",
-}
+"""The sections of a scene file."""
 
 
-def load_toml(cls: type[Scene], path: str | PathLike, validate: bool) -> Scene:
-    """:meth:`Scene.from_toml`: read the file, then :func:`load_dict`."""
+def load_toml(cls: type, path: str | PathLike, validate: bool):
+    """:meth:`Scene.from_toml`: read the file, then :func:`load_dict`; ``cls`` is the Scene class."""
     path = Path(path)
     if not path.exists():
         raise SceneError(f"scene file not found (looked for '{path.absolute()}'); check the path", None, path)
@@ -126,7 +46,7 @@ def load_toml(cls: type[Scene], path: str | PathLike, validate: bool) -> Scene:
     return load_dict(cls, data, path, path.parent, validate)
 
 
-def load_dict(cls: type[Scene], data: dict, file, base_dir, validate: bool) -> Scene:
+def load_dict(cls: type, data: dict, file, base_dir, validate: bool):
     """:meth:`Scene.from_dict`: a scene built section by section through the Scene's own methods."""
     try:
         return _build(cls, data, file, Path.cwd() if base_dir is None else Path(base_dir), validate)
@@ -136,9 +56,9 @@ def load_dict(cls: type[Scene], data: dict, file, base_dir, validate: bool) -> S
         raise
 
 
-def _build(cls, data, file, base_dir: Path, validate) -> Scene:
+def _build(cls, data, file, base_dir: Path, validate):
     read_table(data, None, file, what="a table of scene sections")
-    check_keys(data, _TOP_KEYS, "", file)
+    SCENE.check(data, "", file)
     scene = _read_simulation(cls, data, file)
     _read_materials(scene, data, file)
     _read_shapes(scene, data, file, base_dir)
@@ -152,12 +72,12 @@ def _build(cls, data, file, base_dir: Path, validate) -> Scene:
     return scene
 
 
-def _read_simulation(cls, data, file) -> Scene:
+def _read_simulation(cls, data, file):
     sim = read_table(data.get("simulation", {}), "simulation", file, what="a [simulation] table")
-    check_keys(sim, _SIM_KEYS, "simulation", file)
+    SIMULATION.check(sim, "simulation", file)
     settle = sim.get("settle")
     if "until_settled" in sim:
-        until = read_boolean(sim["until_settled"], "simulation.until_settled", file)
+        until = SIMULATION["until_settled"].read(sim["until_settled"], "simulation.until_settled", file)
         if not until and settle is not None:
             raise SceneError(
                 "until_settled = false with a [simulation.settle] table: set until_settled = true, or leave the "
@@ -176,18 +96,8 @@ def _read_simulation(cls, data, file) -> Scene:
             "simulation.name",
             file,
         )
-    return cls(
-        gravity=sim.get("gravity", (0.0, 0.0, -9.81)),
-        dt=sim.get("dt", "auto"),
-        name=name,
-        steps=sim.get("steps"),
-        duration=sim.get("duration"),
-        description=sim.get("description", ""),
-        file=file,
-        device=sim.get("device"),
-        precision=sim.get("precision", "mixed"),
-        settle=settle,
-    )
+    settings = SIMULATION.arguments(sim, "simulation", file, skip=("until_settled", "settle", "name"))
+    return cls(**settings, name=name, settle=settle, file=file)
 
 
 def _read_materials(scene, data, file):
@@ -199,7 +109,7 @@ def _read_materials(scene, data, file):
             props,
             f"materials.{name}",
             file,
-            what=f"a table [materials.{name}] with density, law, k, restitution, friction",
+            what=f"a table [materials.{name}] with {', '.join(MATERIAL.required)}",
         )
         scene.add_material(name, **props)
 
@@ -218,16 +128,8 @@ def _read_bodies(scene, data, file):
     for j, body in enumerate(bodies):
         key = f"bodies[{j}]"
         body = read_table(body, key, file, what="a [[bodies]] table")
-        check_keys(body, _BODY_KEYS, key, file, required=("shape", "material", "position"))
-        if "orientation" in body and "rotation" in body:
-            raise SceneError(
-                "give either orientation (quaternion) or rotation (axis and angle), not both",
-                f"{key}.rotation",
-                file,
-            )
-        orientation = body.get("orientation", (0.0, 0.0, 0.0, 1.0))
-        if "rotation" in body:
-            orientation = read_rotation(body["rotation"], f"{key}.rotation", file)
+        BODY.check(body, key, file)
+        _orientation_or_rotation(body, key, file)
         if "pivot" in body and "velocity" in body:
             raise SceneError(
                 "a body turning about a pivot gets its velocity from angular_velocity x (centroid - pivot); "
@@ -235,16 +137,13 @@ def _read_bodies(scene, data, file):
                 f"{key}.velocity",
                 file,
             )
-        scene.add_body(
-            body["shape"],
-            body["material"],
-            position=body["position"],
-            orientation=orientation,
-            velocity=body.get("velocity", (0.0, 0.0, 0.0)),
-            angular_velocity=body.get("angular_velocity", (0.0, 0.0, 0.0)),
-            kind=body.get("kind", "free"),
-            pivot=body.get("pivot"),
-            key=key,
+        scene.add_body(**BODY.arguments(body, key, file), key=key)
+
+
+def _orientation_or_rotation(table, key, file):
+    if "orientation" in table and "rotation" in table:
+        raise SceneError(
+            "give either orientation (quaternion) or rotation (axis and angle), not both", f"{key}.rotation", file
         )
 
 
@@ -257,38 +156,22 @@ def _read_walls(scene, data, file, base_dir=None):
         wall = read_table(wall, key, file, what="a [[walls]] table")
         if "type" not in wall:
             raise SceneError("missing required key 'type' ('plane', 'box', 'drum' or 'mesh')", f"{key}.type", file)
-        kind = read_choice(wall["type"], _WALL_KEYS, f"{key}.type", file, what="wall type")
-        check_keys(wall, _WALL_KEYS[kind], key, file, required=_WALL_REQUIRED[kind], context=f" for type = {kind!r}")
-        if kind == "plane":
-            scene.add_plane(wall["point"], wall["normal"], wall["material"], key=key)
-        elif kind == "mesh":
-            _read_mesh_wall(scene, wall, key, file, base_dir)
-        elif kind == "box":
-            scene.add_box_container(
-                wall["center"],
-                wall["inner_size"],
-                wall["material"],
-                wall_thickness=wall.get("wall_thickness"),
-                open_top=wall.get("open_top", True),
-                key=key,
-            )
-        else:
-            scene.add_drum(
-                wall["center"],
-                wall["axis"],
-                wall["radius"],
-                wall["length"],
-                wall["material"],
-                omega=wall.get("omega"),
-                rpm=wall.get("rpm"),
-                sides=wall.get("sides", 24),
-                thickness=wall.get("thickness"),
-                caps=wall.get("caps", True),
-                key=key,
-            )
+        kind = read_choice(wall["type"], WALL_TYPES, f"{key}.type", file, what="wall type")
+        table = WALL_TYPES[kind]
+        table.check(wall, key, file, context=f" for type = {kind!r}")
+        if kind == "mesh":
+            mesh = _mesh(wall, key, file)
+            _orientation_or_rotation(wall, key, file)
+            args = table.arguments(wall, key, file, skip=("type", "file", "vertices", "triangles"))
+            scene.add_mesh_wall(mesh, **args, key=key, base_dir=base_dir)
+            continue
+        args = table.arguments(wall, key, file, skip=("type",))
+        add = {"plane": scene.add_plane, "box": scene.add_box_container, "drum": scene.add_drum}[kind]
+        add(**args, key=key)
 
 
-def _read_mesh_wall(scene, wall, key, file, base_dir):
+def _mesh(wall, key, file):
+    """A mesh wall's mesh: its file's path, or its (vertices, triangles)."""
     if ("file" in wall) == ("vertices" in wall or "triangles" in wall):
         raise SceneError(
             "give the mesh either as file = 'wall.stl' or as vertices = [[x, y, z], ...] with "
@@ -297,36 +180,12 @@ def _read_mesh_wall(scene, wall, key, file, base_dir):
             file,
         )
     if "file" in wall:
-        mesh = read_string(wall["file"], f"{key}.file", file, what="a file path string")
-    else:
-        for name in ("vertices", "triangles"):
-            if name not in wall:
-                raise SceneError(f"missing required key {name!r} (the mesh's {name})", f"{key}.{name}", file)
-        mesh = (
-            read_rows(wall["vertices"], 3, f"{key}.vertices", file),
-            read_rows(wall["triangles"], 3, f"{key}.triangles", file),
-        )
-    if "orientation" in wall and "rotation" in wall:
-        raise SceneError(
-            "give either orientation (quaternion) or rotation (axis and angle), not both", f"{key}.rotation", file
-        )
-    orientation = wall.get("orientation")
-    if "rotation" in wall:
-        orientation = read_rotation(wall["rotation"], f"{key}.rotation", file)
-    scene.add_mesh_wall(
-        mesh,
-        wall["material"],
-        scale=wall.get("scale", 1.0),
-        orientation=orientation,
-        position=wall.get("position", (0.0, 0.0, 0.0)),
-        velocity=wall.get("velocity", (0.0, 0.0, 0.0)),
-        angular_velocity=wall.get("angular_velocity", (0.0, 0.0, 0.0)),
-        pivot=wall.get("pivot"),
-        thickness=wall.get("thickness"),
-        flip_normals=wall.get("flip_normals", False),
-        key=key,
-        base_dir=base_dir,
-    )
+        return MESH["file"].read(wall["file"], f"{key}.file", file)
+    for name in ("vertices", "triangles"):
+        if name not in wall:
+            raise SceneError(f"missing required key {name!r} (the mesh's {name})", f"{key}.{name}", file)
+    vertices = read_rows(wall["vertices"], 3, f"{key}.vertices", file)
+    return vertices, read_rows(wall["triangles"], 3, f"{key}.triangles", file)
 
 
 def _read_emitters(scene, data, file):
@@ -336,38 +195,13 @@ def _read_emitters(scene, data, file):
     for j, emitter in enumerate(emitters):
         key = f"emitters[{j}]"
         emitter = read_table(emitter, key, file, what="an [[emitters]] table")
-        check_keys(
-            emitter,
-            _EMITTER_KEYS,
-            key,
-            file,
-            required=("shape", "material", "count", "region"),
-            hints=_EMITTER_HINTS,
-        )
-        scene.emit(**emitter, key=key)
+        EMITTER.check(emitter, key, file)
+        scene.emit(**EMITTER.arguments(emitter, key, file), key=key)
 
 
-def scene_dict(scene: Scene) -> dict:
+def scene_dict(scene) -> dict:
     """:meth:`Scene.to_dict`: the scene as the nested dict of a scene file, from its public attributes."""
-    sim = {"name": scene.name, "dt": scene.dt, "gravity": list(scene.gravity), "precision": scene.precision}
-    if scene.description:
-        sim["description"] = scene.description
-    if scene.steps is not None:
-        sim["steps"] = scene.steps
-    if scene.duration is not None:
-        sim["duration"] = scene.duration
-    if scene.device is not None:
-        sim["device"] = scene.device
-    if scene.settle is not None:
-        c = scene.settle
-        table = {
-            "kinetic_fraction": c.kinetic_fraction if c.kinetic_fraction is not None else False,
-            "speed_fraction": c.speed_fraction if c.speed_fraction is not None else False,
-            "hold": c.hold,
-        }
-        if c.max_speed is not None:
-            table["max_speed"] = c.max_speed
-        sim["settle"] = table
+    sim = write_settings(scene)
     shapes = {}
     for name, shape in scene.shapes.items():
         spec = scene.shape_spec(name)
@@ -390,55 +224,21 @@ def scene_dict(scene: Scene) -> dict:
     }
 
 
-def _body_tables(scene: Scene) -> list[dict]:
+def _body_tables(scene) -> list[dict]:
+    """A ``[[bodies]]`` table per body, as :data:`BODY` writes it from the columns of the scene's arrays."""
     pos, q_user = scene.input_poses()
     pivots = scene.body_pivot
+    pivoted = (~np.isnan(pivots).any(axis=1)).tolist()
     shape_names, material_names = scene.shape_names, scene.material_names
-    has_pivot = ~np.isnan(pivots).any(axis=1)
-    bodies = []
-    for s, m, p, q, v, w, kind, pivoted, pivot in zip(
-        scene.body_shape.tolist(),
-        scene.body_material.tolist(),
-        pos.tolist(),
-        q_user.tolist(),
-        scene.body_velocity.tolist(),
-        scene.body_angular_velocity.tolist(),
-        scene.body_kind.tolist(),
-        has_pivot.tolist(),
-        pivots.tolist(),
-        strict=True,
-    ):
-        body = {
-            "shape": shape_names[s],
-            "material": material_names[m],
-            "position": p,
-            "orientation": q,
-            "velocity": v,
-            "angular_velocity": w,
-            "kind": KINDS[kind],
-        }
-        if pivoted:
-            del body["velocity"]
-            body["pivot"] = pivot
-        bodies.append(body)
-    return bodies
-
-
-def read_rotation(value, key, file) -> np.ndarray:
-    """Quaternion of a ``rotation = {axis = [..], degrees = a}`` (or ``radians = a``) table."""
-    value = read_table(value, key, file, what="a table {axis = [ax, ay, az], degrees = angle}")
-    check_keys(value, ("axis", "degrees", "radians"), key, file, required=("axis",))
-    if ("degrees" in value) == ("radians" in value):
-        raise SceneError(
-            "give the angle as exactly one of degrees or radians, e.g. rotation = {axis = [0, 1, 0], degrees = 20}",
-            f"{key}.degrees",
-            file,
-        )
-    axis = read_vector(value["axis"], 3, f"{key}.axis", file)
-    if np.linalg.norm(axis) == 0.0:
-        raise SceneError("rotation axis is zero; give a direction such as [0, 0, 1]", f"{key}.axis", file)
-    if "degrees" in value:
-        angle = math.radians(read_number(value["degrees"], f"{key}.degrees", file))
-    else:
-        angle = read_number(value["radians"], f"{key}.radians", file)
-    return quat_from_axis_angle(axis, angle)
+    # A body turning about a pivot has a derived velocity: it is written with the pivot instead.
+    columns = {
+        "shape": [shape_names[s] for s in scene.body_shape.tolist()],
+        "material": [material_names[m] for m in scene.body_material.tolist()],
+        "position": pos.tolist(),
+        "orientation": q_user.tolist(),
+        "velocity": [None if p else v for p, v in zip(pivoted, scene.body_velocity.tolist(), strict=True)],
+        "angular_velocity": scene.body_angular_velocity.tolist(),
+        "kind": [KINDS[k] for k in scene.body_kind.tolist()],
+        "pivot": [v if p else None for p, v in zip(pivoted, pivots.tolist(), strict=True)],
+    }
+    return BODY.write_rows(columns)

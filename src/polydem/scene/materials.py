@@ -2,28 +2,73 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
+# The contact laws are declared once, in polydem.kernels.laws (no Warp there); the scene package reads
+# LAWS and LAW_UNITS from here.
+from polydem.kernels.laws import FREE_EXPONENT_LAWS, LAW_SPECS, LAWS
+from polydem.kernels.laws import LAW_UNITS as LAW_UNITS
 from polydem.scene.errors import SceneError, unknown_name
-from polydem.scene.values import as_given, check_keys, read_choice, read_number, typename
+from polydem.scene.schema import REQUIRED, Key, Table
+from polydem.scene.values import read_number, typename
 
-LAWS = ("linear", "hertz", "power")
-"""Contact laws W(V): linear W = k V; hertz W = 2/3 k V^1.5; power W = k V^m / m."""
+# The laws whose m the material gives, as messages name them: "law = 'power'".
+_FREE_EXPONENT = " or ".join(f"law = {name!r}" for name in FREE_EXPONENT_LAWS)
 
-LAW_UNITS = {"linear": "Pa", "hertz": "J/m^4.5", "power": "J/m^(3m)"}
-"""Units of a law's stiffness k, for messages."""
+MATERIAL = Table(
+    "[materials.NAME]",
+    (
+        Key(
+            "density",
+            unit="kg/m^3",
+            range="> 0",
+            default=REQUIRED,
+            hint="density in kg/m^3, e.g. density = 7800.0 for steel",
+        ),
+        Key(
+            "law",
+            "choice",
+            choices=LAWS,
+            what="contact law",
+            default=REQUIRED,
+            hint="contact law: law = " + ", ".join(map(repr, LAWS[:-1])) + f" or {LAWS[-1]!r}",
+        ),
+        Key(
+            "k",
+            range="> 0",
+            default=REQUIRED,
+            hint="contact stiffness, e.g. k = 1.0e10 ("
+            + ", ".join(f"{unit} for {law}" for law, unit in LAW_UNITS.items())
+            + ")",
+        ),
+        Key(
+            "restitution",
+            range="(0, 1]",
+            default=REQUIRED,
+            hint="coefficient of restitution e in (0, 1], e.g. restitution = 0.5",
+        ),
+        Key(
+            "friction", range=">= 0", default=REQUIRED, hint="Coulomb friction coefficient mu >= 0, e.g. friction = 0.3"
+        ),
+        Key(
+            "m",
+            range=">= 1",
+            why=" (m < 1 gives an infinite force at first touch)",
+            hint="power-law exponent, m >= 1",
+        ),
+        Key(
+            "tangential_stiffness",
+            unit="N/m",
+            range="> 0",
+            hint="tangential spring stiffness in N/m, or leave it out to have the simulator derive it",
+        ),
+    ),
+)
+"""A ``[materials.NAME]`` table: the fields of :class:`Material` but its name."""
 
-MATERIAL_HINTS = {
-    "density": "density in kg/m^3, e.g. density = 7800.0 for steel",
-    "law": "contact law: law = 'linear', 'hertz' or 'power'",
-    "k": "contact stiffness, e.g. k = 1.0e10 (Pa for linear, J/m^4.5 for hertz, J/m^(3m) for power)",
-    "m": "power-law exponent, m >= 1",
-    "restitution": "coefficient of restitution e in (0, 1], e.g. restitution = 0.5",
-    "friction": "Coulomb friction coefficient mu >= 0, e.g. friction = 0.3",
-    "tangential_stiffness": "tangential spring stiffness in N/m, or leave it out to have the simulator derive it",
-}
+_LAW_KEYS = ("law", "k", "m")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -33,10 +78,11 @@ class Material:
     Attributes:
         name: label, referenced by bodies and walls.
         density: mass density [kg/m^3], > 0.
-        law: contact energy W(V) of the overlap volume V [m^3]: ``"linear"`` W = k V; ``"hertz"``
-            W = 2/3 k V^1.5; ``"power"`` W = k V^m / m.
-        k: contact stiffness, > 0; units depend on the law: linear Pa (= J/m^3), hertz J/m^4.5,
-            power J/m^(3m).
+        law: contact energy W(V) of the overlap volume V [m^3], a name of
+            :class:`polydem.kernels.laws.Law`: ``"linear"`` W = k V; ``"hertz"`` W = 2/3 k V^1.5;
+            ``"power"`` W = k V^m / m (:data:`polydem.kernels.laws.LAW_SPECS`).
+        k: contact stiffness, > 0; units depend on the law (``LAW_UNITS``): linear Pa (= J/m^3),
+            hertz J/m^4.5, power J/m^(3m).
         restitution: normal coefficient of restitution e in (0, 1] [-] (1 = elastic).
         friction: Coulomb friction coefficient mu >= 0 [-].
         m: exponent of the power law, >= 1 (m < 1 gives an infinite force at first touch); only for
@@ -51,56 +97,37 @@ class Material:
     k: float
     restitution: float
     friction: float
-    m: float | None = None
-    tangential_stiffness: float | None = None
+    m: float | None = MATERIAL.defaults["m"]
+    tangential_stiffness: float | None = MATERIAL.defaults["tangential_stiffness"]
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
             raise SceneError(f"material name must be a non-empty string, got {typename(self.name)}", "materials")
         key = f"materials.{self.name}"
-        h = MATERIAL_HINTS
-        law = read_choice(self.law, LAWS, f"{key}.law", what="contact law")
-        density = read_number(self.density, f"{key}.density", positive=True, hint=f" ({h['density']})")
+        # str(): a Law is stored by its name, as a scene file gives it.
+        law = str(MATERIAL["law"].read(self.law, f"{key}.law"))
+        # The law's own keys (k's unit, whether m is given) are read here; every other key as declared.
+        values = MATERIAL.read({name: getattr(self, name) for name in MATERIAL.names if name not in _LAW_KEYS}, key)
         k = read_number(self.k, f"{key}.k", positive=True, hint=f" (stiffness in {LAW_UNITS[law]} for law = {law!r})")
-        e = read_number(self.restitution, f"{key}.restitution", hint=f" ({h['restitution']})")
-        if not 0.0 < e <= 1.0:
-            raise SceneError(
-                f"must be in (0, 1], got {as_given(self.restitution)} ({h['restitution']})", f"{key}.restitution"
-            )
-        mu = read_number(self.friction, f"{key}.friction", nonneg=True, hint=f" ({h['friction']})")
         m = self.m
-        if law == "power":
+        spec = LAW_SPECS[law]
+        if spec.fixed_exponent is None:
             if m is None:
-                raise SceneError("law = 'power' needs the exponent m (W = k V^m / m), e.g. m = 2.0", f"{key}.m")
-            m = read_number(m, f"{key}.m", hint=f" ({h['m']})")
-            if m < 1.0:
-                raise SceneError(
-                    f"must be >= 1 (m < 1 gives an infinite force at first touch), got {as_given(self.m)}", f"{key}.m"
-                )
+                raise SceneError(f"law = {law!r} needs the exponent m ({spec.formula}), e.g. m = 2.0", f"{key}.m")
+            m = MATERIAL["m"].read(m, f"{key}.m")
         elif m is not None:
             raise SceneError(
-                f"m is only used by law = 'power'; law = {law!r} has the fixed exponent "
-                f"{1.0 if law == 'linear' else 1.5:g}: remove m or use law = 'power'",
+                f"m is only used by {_FREE_EXPONENT}; law = {law!r} has the fixed exponent "
+                f"{spec.fixed_exponent:g}: remove m or use {_FREE_EXPONENT}",
                 f"{key}.m",
             )
-        kt = self.tangential_stiffness
-        if kt is not None:
-            kt = read_number(kt, f"{key}.tangential_stiffness", positive=True, hint=f" ({h['tangential_stiffness']})")
-        for name, value in (
-            ("law", law),
-            ("density", density),
-            ("k", k),
-            ("restitution", e),
-            ("friction", mu),
-            ("m", m),
-            ("tangential_stiffness", kt),
-        ):
+        for name, value in {**values, "law": law, "k": k, "m": m}.items():
             object.__setattr__(self, name, value)
 
     @property
     def exponent(self) -> float:
         """Exponent m of W = k V^m / m: 1 for linear, 1.5 for hertz, ``m`` for power."""
-        return {"linear": 1.0, "hertz": 1.5}.get(self.law, self.m)
+        return LAW_SPECS[self.law].exponent(self.m)
 
     def contact_law(self):
         """This material's :class:`polydem.contact.ContactLaw` (for contacts with itself)."""
@@ -110,22 +137,7 @@ class Material:
 
     def to_dict(self) -> dict:
         """The ``[materials.NAME]`` table of a scene file (without the name)."""
-        d = {
-            "density": self.density,
-            "law": self.law,
-            "k": self.k,
-            "restitution": self.restitution,
-            "friction": self.friction,
-        }
-        if self.m is not None:
-            d["m"] = self.m
-        if self.tangential_stiffness is not None:
-            d["tangential_stiffness"] = self.tangential_stiffness
-        return d
-
-
-MATERIAL_FIELDS = tuple(f.name for f in fields(Material) if f.name != "name")
-MATERIAL_REQUIRED = ("density", "law", "k", "restitution", "friction")
+        return MATERIAL.write(self)
 
 
 @dataclass(frozen=True)
@@ -191,107 +203,95 @@ def pair_material(a: Material, b: Material) -> PairMaterial:
     )
 
 
-class MaterialMethods:
-    """The :class:`~polydem.scene.Scene` methods that register materials and mix material pairs."""
+@dataclass
+class MaterialTable:
+    """The materials of a scene: name -> :class:`Material` in insertion (= index) order, and each name's index."""
 
-    def __init__(self):
-        # The state of this group; Scene.__init__ reaches every group's __init__ through super().
-        self._materials: dict[str, Material] = {}
-        self._material_index: dict[str, int] = {}
-        super().__init__()
+    by_name: dict[str, Material] = field(default_factory=dict)
+    index: dict[str, int] = field(default_factory=dict)
 
-    @property
-    def materials(self) -> dict[str, Material]:
-        """Registered materials, name -> :class:`Material`, in insertion (= index) order (a copy)."""
-        return dict(self._materials)
 
-    @property
-    def material_names(self) -> list[str]:
-        return list(self._materials)
+def material_index(scene, name: str, *, key: str = "material") -> int:
+    """:meth:`Scene.material_index <polydem.scene.Scene.material_index>` of ``scene``."""
+    table = scene.material_table
+    if isinstance(name, Material):
+        if table.by_name.get(name.name) is not name:
+            raise scene.error(f"material {name.name!r} is not registered in this scene; use add_material()", key)
+        name = name.name
+    if not isinstance(name, str):
+        raise scene.error(f"expected a material name, got {typename(name)}", key)
+    if name not in table.index:
+        raise scene.error(
+            unknown_name(name, table.by_name, "material", "define one with [materials.NAME] or Scene.add_material()"),
+            key,
+        )
+    return table.index[name]
 
-    def material_index(self, name: str, *, key: str = "material") -> int:
-        """Index of a material in :attr:`materials` (the value stored in :attr:`body_material`).
 
-        ``name`` may also be a registered :class:`Material`; ``key`` is where the name came from, for
-        error messages.
-        """
-        if isinstance(name, Material):
-            if self._materials.get(name.name) is not name:
-                raise self.error(f"material {name.name!r} is not registered in this scene; use add_material()", key)
-            name = name.name
-        if not isinstance(name, str):
-            raise self.error(f"expected a material name, got {typename(name)}", key)
-        if name not in self._material_index:
-            raise self.error(
-                unknown_name(
-                    name, self._materials, "material", "define one with [materials.NAME] or Scene.add_material()"
-                ),
-                key,
+def add_material(scene, name: str, **props) -> Material:
+    """:meth:`Scene.add_material <polydem.scene.Scene.add_material>` of ``scene``."""
+    key = f"materials.{name}"
+    table = scene.material_table
+    MATERIAL.check(props, key, scene.file)
+    if name in table.by_name:
+        raise scene.error(f"material {name!r} is already defined; choose another name", key)
+    try:
+        mat = Material(name=name, **props)
+    except SceneError as err:
+        err.file = scene.file
+        raise
+    table.index[name] = len(table.by_name)
+    table.by_name[name] = mat
+    return mat
+
+
+def scene_pair_material(scene, a, b) -> PairMaterial:
+    """:meth:`Scene.pair_material <polydem.scene.Scene.pair_material>` of ``scene``."""
+    mats = list(scene.material_table.by_name.values())
+    ma = mats[material_index(scene, a, key="material")]
+    mb = mats[material_index(scene, b, key="material")]
+    try:
+        return pair_material(ma, mb)
+    except SceneError as err:
+        err.file = scene.file
+        raise
+
+
+def pair_table(scene) -> dict:
+    """:meth:`Scene.pair_table <polydem.scene.Scene.pair_table>` of ``scene``."""
+    mats = list(scene.material_table.by_name.values())
+    if not mats:
+        raise scene.error("the scene has no materials; add one with [materials.NAME] or add_material()", "materials")
+    check_laws(scene)
+    nm = len(mats)
+    out = {k: np.empty((nm, nm)) for k in ("k", "restitution", "friction", "tangential_stiffness")}
+    for i, a in enumerate(mats):
+        for j, b in enumerate(mats):
+            pm = pair_material(a, b)
+            out["k"][i, j] = pm.k
+            out["restitution"][i, j] = pm.restitution
+            out["friction"][i, j] = pm.friction
+            kt = pm.tangential_stiffness
+            out["tangential_stiffness"][i, j] = np.nan if kt is None else kt
+    out["law"] = mats[0].law
+    out["exponent"] = mats[0].exponent
+    return out
+
+
+def check_laws(scene):
+    """All materials of ``scene`` share one contact law (the simulator runs one)."""
+    mats = list(scene.material_table.by_name.values())
+    if not mats:
+        return
+    ref = mats[0]
+    for mat in mats[1:]:
+        if (mat.law, mat.exponent) != (ref.law, ref.exponent):
+            raise scene.error(
+                f"material {mat.name!r} uses law {mat.law!r} (exponent {mat.exponent:g}) but material {ref.name!r} "
+                f"uses law {ref.law!r} (exponent {ref.exponent:g}); all materials of a scene must share one "
+                f"contact law and exponent, since a contact between two of them needs a single W(V): use law = "
+                f"{ref.law!r}"
+                + (f" with m = {ref.exponent:g}" if ref.law in FREE_EXPONENT_LAWS else "")
+                + f" for {mat.name!r} (and convert its k)",
+                f"materials.{mat.name}.law",
             )
-        return self._material_index[name]
-
-    def add_material(self, name: str, **props) -> Material:
-        """Register a material; ``props`` are the :class:`Material` fields (density, law, k,
-        restitution, friction, and m / tangential_stiffness where needed)."""
-        key = f"materials.{name}"
-        check_keys(props, MATERIAL_FIELDS, key, self.file, required=MATERIAL_REQUIRED, hints=MATERIAL_HINTS)
-        if name in self._materials:
-            raise self.error(f"material {name!r} is already defined; choose another name", key)
-        try:
-            mat = Material(name=name, **props)
-        except SceneError as err:
-            err.file = self.file
-            raise
-        self._material_index[name] = len(self._materials)
-        self._materials[name] = mat
-        return mat
-
-    def pair_material(self, a, b) -> PairMaterial:
-        """Contact properties between two materials (names or :class:`Material`); see :func:`pair_material`."""
-        ma = self._materials[self.material_names[self.material_index(a, key="material")]]
-        mb = self._materials[self.material_names[self.material_index(b, key="material")]]
-        try:
-            return pair_material(ma, mb)
-        except SceneError as err:
-            err.file = self.file
-            raise
-
-    def pair_table(self) -> dict:
-        """Mixed contact properties of every material pair, as (M, M) float64 arrays indexed like
-        :attr:`materials`: ``k``, ``restitution``, ``friction``, ``tangential_stiffness`` (NaN where
-        the simulator derives it); plus ``law`` (str) and ``exponent`` (float) shared by all."""
-        mats = list(self._materials.values())
-        if not mats:
-            raise self.error("the scene has no materials; add one with [materials.NAME] or add_material()", "materials")
-        self.check_laws()
-        nm = len(mats)
-        out = {k: np.empty((nm, nm)) for k in ("k", "restitution", "friction", "tangential_stiffness")}
-        for i, a in enumerate(mats):
-            for j, b in enumerate(mats):
-                pm = pair_material(a, b)
-                out["k"][i, j] = pm.k
-                out["restitution"][i, j] = pm.restitution
-                out["friction"][i, j] = pm.friction
-                kt = pm.tangential_stiffness
-                out["tangential_stiffness"][i, j] = np.nan if kt is None else kt
-        out["law"] = mats[0].law
-        out["exponent"] = mats[0].exponent
-        return out
-
-    def check_laws(self):
-        """All materials share one contact law (the simulator runs one)."""
-        mats = list(self._materials.values())
-        if not mats:
-            return
-        ref = mats[0]
-        for mat in mats[1:]:
-            if (mat.law, mat.exponent) != (ref.law, ref.exponent):
-                raise self.error(
-                    f"material {mat.name!r} uses law {mat.law!r} (exponent {mat.exponent:g}) but material {ref.name!r} "
-                    f"uses law {ref.law!r} (exponent {ref.exponent:g}); all materials of a scene must share one "
-                    f"contact law and exponent, since a contact between two of them needs a single W(V): use law = "
-                    f"{ref.law!r}"
-                    + (f" with m = {ref.exponent:g}" if ref.law == "power" else "")
-                    + f" for {mat.name!r} (and convert its k)",
-                    f"materials.{mat.name}.law",
-                )

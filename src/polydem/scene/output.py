@@ -9,11 +9,65 @@ from pathlib import Path
 import numpy as np
 
 from polydem.scene.errors import SceneError
-from polydem.scene.values import check_keys, read_boolean, read_integer, read_number, read_string, read_table, typename
+from polydem.scene.schema import Key, Table
+from polydem.scene.values import read_integer, read_table, typename
 
 _USD_SUFFIXES = (".usd", ".usda", ".usdc")
-_OUTPUT_KEYS = ("usd", "fps", "summary", "pictures", "checkpoint", "vtk")
-_CHECKPOINT_KEYS = ("steps", "seconds", "path")
+_PICTURES_HINT = ' (frame numbers at fps, e.g. pictures = [0, 30, 60], or pictures = "last")'
+
+
+def _pictures(value, key, file):
+    if isinstance(value, str):
+        if value != "last":
+            raise SceneError(f'expected a list of frame numbers or "last", got {value!r}{_PICTURES_HINT}', key, file)
+        return value
+    if isinstance(value, list | tuple | np.ndarray):
+        frames = [read_integer(x, f"{key}[{i}]", file, minimum=0, hint=_PICTURES_HINT) for i, x in enumerate(value)]
+        return tuple(sorted(set(frames)))
+    raise SceneError(f'expected a list of frame numbers or "last", got {typename(value)}{_PICTURES_HINT}', key, file)
+
+
+OUTPUT = Table(
+    "[output]",
+    (
+        Key(
+            "usd",
+            "string",
+            what="a file path string such as 'trajectory.usd' (or true / false)",
+            on="trajectory.usd",
+            off=None,
+        ),
+        Key("fps", unit="1/s", range="> 0", default=60.0, hint="frames per simulated second, e.g. fps = 60"),
+        Key(
+            "summary",
+            "string",
+            what="a file path string (or true / false)",
+            default="summary.json",
+            on="summary.json",
+            off=None,
+        ),
+        Key("pictures", "any", default=(), on="last", off=(), write="changed", check=_pictures),
+        Key("checkpoint", "any", write="never"),
+        Key("vtk", "boolean", default=False, write="changed"),
+    ),
+)
+"""The ``[output]`` table: the fields of :class:`Output` but the checkpoint's, which :data:`CHECKPOINT` declares."""
+
+CHECKPOINT = Table(
+    "[output] checkpoint",
+    (
+        Key("steps", "integer", range=">= 1", attr="checkpoint_steps", hint="a checkpoint every so many steps"),
+        Key(
+            "seconds",
+            unit="s",
+            range="> 0",
+            attr="checkpoint_seconds",
+            hint="a checkpoint every so many simulated s",
+        ),
+        Key("path", "string", what="a folder path string", default="checkpoints", attr="checkpoint_path"),
+    ),
+)
+"""``checkpoint = {steps = N | seconds = T, path = ...}`` of the ``[output]`` table."""
 
 
 def _check_inside(value, key, example):
@@ -65,76 +119,38 @@ class Output:
             every frame; ``polydem run --vtk`` turns it on too.
     """
 
-    usd: str | None = None
-    fps: float = 60.0
-    summary: str | None = "summary.json"
-    pictures: tuple | str = ()
-    checkpoint_steps: int | None = None
-    checkpoint_seconds: float | None = None
-    checkpoint_path: str = "checkpoints"
-    vtk: bool = False
+    usd: str | None = OUTPUT.defaults["usd"]
+    fps: float = OUTPUT.defaults["fps"]
+    summary: str | None = OUTPUT.defaults["summary"]
+    pictures: tuple | str = OUTPUT.defaults["pictures"]
+    checkpoint_steps: int | None = CHECKPOINT.defaults["steps"]
+    checkpoint_seconds: float | None = CHECKPOINT.defaults["seconds"]
+    checkpoint_path: str = CHECKPOINT.defaults["path"]
+    vtk: bool = OUTPUT.defaults["vtk"]
 
     def __post_init__(self):
-        usd = self.usd
+        if self.checkpoint_steps is not None and self.checkpoint_seconds is not None:
+            raise SceneError(
+                "give the checkpoint interval in steps or in seconds, not both", "output.checkpoint.seconds"
+            )
+        values = OUTPUT.read({k.attr: getattr(self, k.attr) for k in OUTPUT.keys if k.name != "checkpoint"}, "output")
+        values |= CHECKPOINT.read({k.attr: getattr(self, k.attr) for k in CHECKPOINT.keys}, "output.checkpoint")
+        usd, summary = values["usd"], values["summary"]
         if usd is not None:
-            usd = read_string(usd, "output.usd", what="a file path string such as 'trajectory.usd' (or true / false)")
             if not usd.strip():
                 raise SceneError("the USD path is empty; give a file name such as 'trajectory.usd'", "output.usd")
             if Path(usd).suffix.lower() not in _USD_SUFFIXES:
                 raise SceneError(
                     f"the USD file {usd!r} must end in {', '.join(_USD_SUFFIXES)} (e.g. 'trajectory.usd')", "output.usd"
                 )
-        fps = read_number(self.fps, "output.fps", positive=True, hint=" (frames per simulated second, e.g. fps = 60)")
-        summary = self.summary
-        if summary is not None:
-            summary = read_string(summary, "output.summary", what="a file path string (or true / false)")
-            if not summary.strip():
-                raise SceneError("the summary path is empty; give a file name such as 'summary.json'", "output.summary")
-        pictures = self.pictures
-        hint = ' (frame numbers at fps, e.g. pictures = [0, 30, 60], or pictures = "last")'
-        if isinstance(pictures, str):
-            if pictures != "last":
-                raise SceneError(
-                    f'expected a list of frame numbers or "last", got {pictures!r}{hint}', "output.pictures"
-                )
-        elif isinstance(pictures, list | tuple | np.ndarray):
-            frames = [read_integer(x, f"output.pictures[{i}]", minimum=0, hint=hint) for i, x in enumerate(pictures)]
-            pictures = tuple(sorted(set(frames)))
-        else:
-            raise SceneError(
-                f'expected a list of frame numbers or "last", got {typename(pictures)}{hint}', "output.pictures"
-            )
-        steps, seconds = self.checkpoint_steps, self.checkpoint_seconds
-        if steps is not None and seconds is not None:
-            raise SceneError(
-                "give the checkpoint interval in steps or in seconds, not both", "output.checkpoint.seconds"
-            )
-        if steps is not None:
-            steps = read_integer(
-                steps, "output.checkpoint.steps", minimum=1, hint=" (a checkpoint every so many steps)"
-            )
-        if seconds is not None:
-            seconds = read_number(
-                seconds, "output.checkpoint.seconds", positive=True, hint=" (a checkpoint every so many simulated s)"
-            )
-        path = read_string(self.checkpoint_path, "output.checkpoint.path", what="a folder path string")
-        vtk = read_boolean(self.vtk, "output.vtk")
-
-        if usd is not None:
             _check_inside(usd, "output.usd", "usd = 'trajectory.usd'")
         if summary is not None:
+            if not summary.strip():
+                raise SceneError("the summary path is empty; give a file name such as 'summary.json'", "output.summary")
             _check_inside(summary, "output.summary", "summary = 'summary.json'")
+        path = values["checkpoint_path"]
         _check_inside(path, "output.checkpoint.path", "checkpoint = {steps = 10000, path = 'checkpoints'}")
-        for name, value in (
-            ("usd", usd),
-            ("fps", fps),
-            ("summary", summary),
-            ("pictures", pictures),
-            ("checkpoint_steps", steps),
-            ("checkpoint_seconds", seconds),
-            ("checkpoint_path", path),
-            ("vtk", vtk),
-        ):
+        for name, value in values.items():
             object.__setattr__(self, name, value)
 
     @classmethod
@@ -142,21 +158,8 @@ class Output:
         """Settings from an ``[output]`` table (errors name ``output.KEY`` and ``file``)."""
         try:
             table = read_table(table, "output", file, what="an [output] table")
-            check_keys(table, _OUTPUT_KEYS, "output", file)
-            kw = {}
-            if "usd" in table:
-                usd = table["usd"]
-                kw["usd"] = ("trajectory.usd" if usd else None) if isinstance(usd, bool) else usd
-            if "fps" in table:
-                kw["fps"] = table["fps"]
-            if "summary" in table:
-                summary = table["summary"]
-                kw["summary"] = ("summary.json" if summary else None) if isinstance(summary, bool) else summary
-            if "pictures" in table:
-                pictures = table["pictures"]
-                kw["pictures"] = ("last" if pictures else ()) if isinstance(pictures, bool) else pictures
-            if "vtk" in table:
-                kw["vtk"] = table["vtk"]
+            OUTPUT.check(table, "output", file)
+            kw = OUTPUT.arguments(table, "output", file, skip=("checkpoint",))
             if "checkpoint" in table:
                 cp = read_table(
                     table["checkpoint"],
@@ -164,16 +167,14 @@ class Output:
                     file,
                     what="a table such as checkpoint = {steps = 10000} or checkpoint = {seconds = 0.1}",
                 )
-                check_keys(cp, _CHECKPOINT_KEYS, "output.checkpoint", file)
+                CHECKPOINT.check(cp, "output.checkpoint", file)
                 if "steps" not in cp and "seconds" not in cp:
                     raise SceneError(
                         "give the checkpoint interval, e.g. checkpoint = {steps = 10000} or {seconds = 0.1}",
                         "output.checkpoint",
                         file,
                     )
-                kw.update(checkpoint_steps=cp.get("steps"), checkpoint_seconds=cp.get("seconds"))
-                if "path" in cp:
-                    kw["checkpoint_path"] = cp["path"]
+                kw.update(CHECKPOINT.arguments(cp, "output.checkpoint", file))
             return cls(**kw)
         except SceneError as err:
             if err.file is None:
@@ -182,17 +183,7 @@ class Output:
 
     def to_dict(self) -> dict:
         """The ``[output]`` table of a scene file."""
-        d = {"fps": self.fps, "summary": self.summary if self.summary is not None else False}
-        d["usd"] = self.usd if self.usd is not None else False
-        if self.pictures:
-            d["pictures"] = self.pictures if isinstance(self.pictures, str) else list(self.pictures)
+        d = OUTPUT.write(self)
         if self.checkpoint_steps is not None or self.checkpoint_seconds is not None:
-            cp = {"path": self.checkpoint_path}
-            if self.checkpoint_steps is not None:
-                cp["steps"] = self.checkpoint_steps
-            else:
-                cp["seconds"] = self.checkpoint_seconds
-            d["checkpoint"] = cp
-        if self.vtk:
-            d["vtk"] = True
+            d["checkpoint"] = CHECKPOINT.write(self)
         return d

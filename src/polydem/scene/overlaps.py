@@ -249,45 +249,44 @@ def _pair_overlaps(shapes, body_label, a) -> list[tuple]:
     return out
 
 
-class OverlapMethods:
-    """The :class:`~polydem.scene.Scene` check of initial overlaps (called by ``validate``)."""
+def check_initial_overlaps(scene, a) -> list[str]:
+    """Free bodies of ``scene`` that start behind a plane wall or inside another body (see :meth:`Scene.validate`);
+    ``a`` holds its body arrays.
 
-    def check_initial_overlaps(self, a) -> list[str]:
-        """Free bodies that start behind a plane wall or inside another body (see :meth:`validate`).
+    Plane walls: the exact depth of the body's lowest vertex behind the plane, over the body's
+    thickness along the normal. Body pairs: candidates from a k-d tree on the centres (bounding
+    spheres that meet, one body free), then the separating-axis test over both bodies' face
+    normals, the line of centres and, for bodies with few edge directions, the cross products
+    of their edges: the smallest overlap of the projections is the penetration depth (an upper
+    bound where edge axes are skipped), taken over the thinner body's thickness along that axis.
+    """
+    shapes = list(scene.shapes.values())
+    records = _plane_overlaps(scene.planes, scene.plane_keys, shapes, a) + _pair_overlaps(shapes, scene.body_label, a)
+    return report_overlaps(
+        scene,
+        records,
+        f"initial overlaps of more than {INITIAL_OVERLAP_WARNING:.0%} of a body's thickness, pushed apart at the start",
+        "move the bodies apart",
+    )
 
-        Plane walls: the exact depth of the body's lowest vertex behind the plane, over the body's
-        thickness along the normal. Body pairs: candidates from a k-d tree on the centres (bounding
-        spheres that meet, one body free), then the separating-axis test over both bodies' face
-        normals, the line of centres and, for bodies with few edge directions, the cross products
-        of their edges: the smallest overlap of the projections is the penetration depth (an upper
-        bound where edge axes are skipped), taken over the thinner body's thickness along that axis.
-        """
-        shapes = list(self.shapes.values())
-        records = _plane_overlaps(self.planes, self.plane_keys, shapes, a) + _pair_overlaps(shapes, self.body_label, a)
-        return self.report_overlaps(
-            records,
-            f"initial overlaps of more than {INITIAL_OVERLAP_WARNING:.0%} of a body's thickness, pushed apart at "
-            "the start",
-            "move the bodies apart",
+
+def report_overlaps(scene, records, head: str, fix: str) -> list[str]:
+    """Initial overlaps ``(share of the basis, depth [m], body, where, basis, fix)``: a SceneError for the
+    deepest beyond INITIAL_OVERLAP_ERROR, else one warning ``"<count> <head>: <the three deepest>; <fix>"``
+    (plane walls, pairs of bodies and mesh walls alike)."""
+    if not records:
+        return []
+    records.sort(key=lambda r: -r[0])
+    deep = [r for r in records if r[0] > INITIAL_OVERLAP_ERROR]
+    if deep:
+        rel, depth, i, what, basis, fix_deep = deep[0]
+        more = f" ({len(deep) - 1} more bodies start this deep)" if len(deep) > 1 else ""
+        share = "wholly" if rel >= 1.0 else f"{rel:.0%} of {basis}"
+        raise scene.error(
+            f"{scene.body_label(i)} starts {depth:.3g} m {what} ({share}): the contact would throw it out at a "
+            f"high speed{more}; {fix_deep}",
+            f"bodies[{i}].position",
         )
-
-    def report_overlaps(self, records, head: str, fix: str) -> list[str]:
-        """Initial overlaps ``(share of the basis, depth [m], body, where, basis, fix)``: a SceneError for the
-        deepest beyond INITIAL_OVERLAP_ERROR, else one warning ``"<count> <head>: <the three deepest>; <fix>"``
-        (plane walls, pairs of bodies and mesh walls alike)."""
-        if not records:
-            return []
-        records.sort(key=lambda r: -r[0])
-        deep = [r for r in records if r[0] > INITIAL_OVERLAP_ERROR]
-        if deep:
-            rel, depth, i, what, basis, fix_deep = deep[0]
-            more = f" ({len(deep) - 1} more bodies start this deep)" if len(deep) > 1 else ""
-            share = "wholly" if rel >= 1.0 else f"{rel:.0%} of {basis}"
-            raise self.error(
-                f"{self.body_label(i)} starts {depth:.3g} m {what} ({share}): the contact would throw it out at a "
-                f"high speed{more}; {fix_deep}",
-                f"bodies[{i}].position",
-            )
-        shown = "; ".join(f"{self.body_label(i)} {d:.3g} m {what} ({rel:.1%})" for rel, d, i, what, _, _ in records[:3])
-        more = f", and {len(records) - 3} more" if len(records) > 3 else ""
-        return [f"{len(records)} {head}: {shown}{more}; {fix}"]
+    shown = "; ".join(f"{scene.body_label(i)} {d:.3g} m {what} ({rel:.1%})" for rel, d, i, what, _, _ in records[:3])
+    more = f", and {len(records) - 3} more" if len(records) > 3 else ""
+    return [f"{len(records)} {head}: {shown}{more}; {fix}"]

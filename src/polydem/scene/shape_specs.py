@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from polydem.compound import MAX_PARTS
 from polydem.scene.errors import SceneError
+from polydem.scene.schema import LENGTH, LENGTH_WHY, REQUIRED, Key, Table, read_rotation
 from polydem.scene.values import (
-    check_keys,
+    F32_HIGH,
+    F32_LOW,
+    RADIUS_HIGH,
+    RADIUS_LOW,
     is_number,
-    read_choice,
-    read_integer,
-    read_number,
-    read_string,
     read_table,
     read_vector,
     typename,
@@ -36,51 +37,133 @@ SHAPE_TYPES = (
 )
 """Shape ``type`` values of a scene file's ``[shapes.NAME]`` tables."""
 
-
-_SHAPE_KEYS = {
-    "box": ("size",),
-    "tetrahedron": ("edge",),
-    "octahedron": ("edge",),
-    "dodecahedron": ("edge",),
-    "icosahedron": ("edge",),
-    "prism": ("n", "radius", "height"),
-    "rock": ("n_points", "size", "seed", "elongation", "roughness"),
-    "sphere": ("subdivisions", "radius"),
-    "mesh": ("file", "scale", "tol"),
-    "points": ("points", "tol"),
-    "compound": ("parts", "file", "decompose", "threshold", "max_parts", "seed", "scale"),
-}
-_PART_PLACEMENT = ("position", "orientation", "rotation")
-_SHAPE_REQUIRED = {
-    "box": ("size",),
-    "prism": ("n", "radius", "height"),
-    "rock": ("n_points", "size"),
-    "sphere": ("subdivisions", "radius"),
-    "mesh": ("file",),
-    "points": ("points",),
-}
-_SHAPE_HINTS = {
-    "size": "edge length(s) in m: size = 0.1 for a cube or size = [sx, sy, sz]; for rock the largest diameter in m",
-    "edge": "edge length in m, e.g. edge = 0.1",
-    "n": f"number of sides of the base polygon, an integer from 3 to {MAX_FACE_VERTICES}",
-    "radius": "circumscribed radius in m",
-    "height": "prism height in m",
-    "n_points": f"number of hull vertices, an integer from 4 to {MAX_FACES // 2 + 2}",
-    "subdivisions": "icosphere subdivision level, 0 to 5",
-    "file": "mesh file (OBJ, STL, PLY) relative to the scene file, e.g. file = 'meshes/rock.obj'",
-    "points": "array of [x, y, z] points in m",
-    "parts": "array of convex shape tables, each with a 'type', its keys, and position = [x, y, z] and "
-    "rotation = {axis = [ax, ay, az], degrees = angle} (or orientation = [x, y, z, w]) placing it in the grain",
-    "decompose": "how to cut the mesh file into convex parts: 'coacd' (CoACD) or 'components' (the hull of each "
-    "connected piece)",
-    "threshold": "CoACD's concavity threshold, in (0, 1], e.g. 0.05 (smaller: more, finer parts)",
-    "max_parts": "the most convex parts CoACD may make, e.g. 16",
-    "seed": "random seed, an integer >= 0",
-    "scale": "factor applied to the file's coordinates, e.g. 0.001 for mm",
-}
-
-
 _PLATONIC = ("tetrahedron", "octahedron", "dodecahedron", "icosahedron")
+
+# Keys that several types share. A key in metres ("m") is a length that scaled_spec scales.
+_TYPE = Key("type", "choice", choices=SHAPE_TYPES, what="shape type", default=REQUIRED)
+_SIZE_HINT = "edge length(s) in m: size = 0.1 for a cube or size = [sx, sy, sz]; for rock the largest diameter in m"
+_RADIUS = Key("radius", unit="m", range=LENGTH, why=LENGTH_WHY, default=REQUIRED, hint="circumscribed radius in m")
+_SEED = Key("seed", "integer", range=">= 0", hint="random seed, an integer >= 0", about="")
+_SCALE = Key("scale", range="> 0", hint="factor applied to the file's coordinates, e.g. 0.001 for mm")
+_FILE = Key(
+    "file",
+    "string",
+    what="a file path string",
+    default=REQUIRED,
+    hint="mesh file (OBJ, STL, PLY) relative to the scene file, e.g. file = 'meshes/rock.obj'",
+)
+_TOL = Key("tol", range="[0, 1e-3]", why=" (a relative tolerance; use ~1e-6 for STL files)")
+_POINTS_HINT = "array of [x, y, z] points in m"
+
+
+def _table(kind, *keys) -> Table:
+    return Table(f"[shapes.NAME] type = {kind!r}", (_TYPE, *keys))
+
+
+SHAPES = {
+    "box": _table("box", Key("size", unit="m", range=LENGTH, why=LENGTH_WHY, default=REQUIRED, hint=_SIZE_HINT)),
+    **{
+        kind: _table(
+            kind,
+            Key(
+                "edge",
+                unit="m",
+                range=LENGTH,
+                why=LENGTH_WHY,
+                default=REQUIRED,
+                hint="edge length in m, e.g. edge = 0.1",
+            ),
+        )
+        for kind in _PLATONIC
+    },
+    "prism": _table(
+        "prism",
+        Key(
+            "n",
+            "integer",
+            range=f"[3, {MAX_FACE_VERTICES}]",
+            default=REQUIRED,
+            hint=f"number of sides of the base polygon, an integer from 3 to {MAX_FACE_VERTICES}",
+            about=f"the contact kernels take faces of at most {MAX_FACE_VERTICES} vertices; use a smaller n",
+        ),
+        _RADIUS,
+        Key("height", unit="m", range=LENGTH, why=LENGTH_WHY, default=REQUIRED, hint="prism height in m"),
+    ),
+    "rock": _table(
+        "rock",
+        Key(
+            "n_points",
+            "integer",
+            range=f"[4, {MAX_FACES // 2 + 2}]",
+            default=REQUIRED,
+            hint=f"number of hull vertices, an integer from 4 to {MAX_FACES // 2 + 2}",
+            about=f"its hull has 2 n_points - 4 faces, and the contact kernels take at most {MAX_FACES}",
+        ),
+        Key("size", unit="m", range=LENGTH, why=LENGTH_WHY, default=REQUIRED, hint=_SIZE_HINT),
+        replace(_SEED, default=0),
+        Key("elongation", "vector", label="[ex, ey, ez]"),
+        Key("roughness", range="[0, 1)"),
+    ),
+    "sphere": _table(
+        "sphere",
+        Key(
+            "subdivisions",
+            "integer",
+            range="[0, 5]",
+            default=REQUIRED,
+            hint="icosphere subdivision level, 0 to 5",
+            about="",
+        ),
+        _RADIUS,
+    ),
+    "mesh": _table("mesh", _FILE, _SCALE, _TOL),
+    "points": _table("points", Key("points", "any", unit="m", default=REQUIRED, hint=_POINTS_HINT), _TOL),
+    "compound": _table(
+        "compound",
+        Key(
+            "parts",
+            "any",
+            hint="array of convex shape tables, each with a 'type', its keys, and position = [x, y, z] and "
+            "rotation = {axis = [ax, ay, az], degrees = angle} (or orientation = [x, y, z, w]) placing it in the grain",
+        ),
+        replace(_FILE, default=None),
+        Key(
+            "decompose",
+            "choice",
+            choices=("coacd", "components"),
+            what="decomposition",
+            default="coacd",
+            hint="how to cut the mesh file into convex parts: 'coacd' (CoACD) or 'components' (the hull of each "
+            "connected piece)",
+        ),
+        Key(
+            "threshold",
+            range="(0, 1]",
+            hint="CoACD's concavity threshold, in (0, 1], e.g. 0.05 (smaller: more, finer parts)",
+            about="",
+        ),
+        Key(
+            "max_parts",
+            "integer",
+            range=f"[1, {MAX_PARTS}]",
+            hint="the most convex parts CoACD may make, e.g. 16",
+            about="",
+        ),
+        _SEED,
+        _SCALE,
+    ),
+}
+"""Each shape type's ``[shapes.NAME]`` table: the parameters of its :class:`ConvexShape` constructor."""
+
+PLACEMENT = Table(
+    "a compound's part",
+    (
+        Key("position", "vector", unit="m", label="[x, y, z]"),
+        Key("orientation", "vector", size=4, label="[x, y, z, w]"),
+        Key("rotation", "rotation", attr="orientation"),
+    ),
+)
+"""What a part of a compound shape takes beyond its type's keys: its place in the grain."""
 
 
 def build_shape(
@@ -91,29 +174,22 @@ def build_shape(
     spec = read_table(spec, key, file, what=f"a table [shapes.{name}] with a 'type' key")
     if "type" not in spec:
         raise SceneError(f"missing required key 'type' (one of {', '.join(SHAPE_TYPES)})", f"{key}.type", file)
-    kind = read_choice(spec["type"], SHAPE_TYPES, f"{key}.type", file, what="shape type")
-    edge_required = ("edge",) if kind in _PLATONIC else ()
-    extra = _PART_PLACEMENT if part else ()
+    kind = _TYPE.read(spec["type"], f"{key}.type", file)
     if part and kind == "compound":
         raise SceneError(
             "a part of a compound shape must be convex: give a convex type, not 'compound'", f"{key}.type", file
         )
-    check_keys(
-        spec,
-        ("type", *_SHAPE_KEYS[kind], *extra),
-        key,
-        file,
-        required=_SHAPE_REQUIRED.get(kind, edge_required),
-        hints=_SHAPE_HINTS,
-        context=f" for type = {kind!r}",
-    )
+    SHAPES[kind].check(spec, key, file, context=f" for type = {kind!r}", extra=PLACEMENT.names if part else ())
     r = _Spec(spec, key, file, name, base_dir, {"type": kind})
     try:
         shape = _BUILDERS[kind](r)
     except SceneError:
         raise
-    except (ValueError, OSError) as exc:  # geometry rejected by ConvexShape (degenerate, unreadable file)
-        raise SceneError(f"cannot build the {kind} shape: {exc}", key, file) from exc
+    except (ValueError, OSError, ArithmeticError, RuntimeError) as exc:
+        # Geometry rejected by ConvexShape (degenerate, unreadable file) or whose hull qhull could not make;
+        # qhull's report goes on over many lines of its options, its first line says what failed.
+        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise SceneError(f"cannot build the {kind} shape: {why}", key, file) from exc
     if part:
         shape = _place_part(r, shape)
     return shape, r.out
@@ -121,7 +197,6 @@ def build_shape(
 
 def _place_part(r: _Spec, shape: ConvexShape) -> ConvexShape:
     from polydem.compound import place
-    from polydem.scene.loader import read_rotation
 
     spec, key, file = r.spec, r.key, r.file
     if "orientation" in spec and "rotation" in spec:
@@ -133,7 +208,7 @@ def _place_part(r: _Spec, shape: ConvexShape) -> ConvexShape:
         q = read_rotation(spec["rotation"], f"{key}.rotation", file)
         r.out["orientation"] = q.tolist()
     elif "orientation" in spec:
-        q = read_vector(spec["orientation"], 4, f"{key}.orientation", file, label="[x, y, z, w]")
+        q = PLACEMENT["orientation"].read(spec["orientation"], f"{key}.orientation", file)
         if abs(np.linalg.norm(q) - 1.0) > 1e-6:
             raise SceneError(
                 f"orientation {q.tolist()} is not a unit quaternion (norm {np.linalg.norm(q):.9g}); give "
@@ -144,13 +219,13 @@ def _place_part(r: _Spec, shape: ConvexShape) -> ConvexShape:
         r.out["orientation"] = q.tolist()
     p = np.zeros(3)
     if "position" in spec:
-        p = read_vector(spec["position"], 3, f"{key}.position", file, label="[x, y, z]")
+        p = PLACEMENT["position"].read(spec["position"], f"{key}.position", file)
         r.out["position"] = p.tolist()
     return place(shape, p, q)
 
 
 def _compound(r: _Spec):
-    from polydem.compound import MAX_PARTS, CompoundShape, CompoundShapeError
+    from polydem.compound import CompoundShape, CompoundShapeError
 
     spec, key, file = r.spec, r.key, r.file
     if ("parts" in spec) == ("file" in spec):
@@ -181,27 +256,17 @@ def _compound(r: _Spec):
             return CompoundShape(parts, name=r.name)
         path = _mesh_path(r)
         r.out["file"] = str(path.resolve())
-        method = read_choice(
-            spec.get("decompose", "coacd"), ("coacd", "components"), f"{key}.decompose", file, what="decomposition"
-        )
-        r.out["decompose"] = method
+        method = r.out["decompose"] = r.get("decompose")
         opts = {}
-        if "threshold" in spec:
-            t = read_number(spec["threshold"], f"{key}.threshold", file, positive=True)
-            if t > 1.0:
-                raise SceneError(f"threshold must be in (0, 1], got {t:g}", f"{key}.threshold", file)
-            opts["threshold"] = r.out["threshold"] = t
-        if "max_parts" in spec:
-            opts["max_parts"] = r.out["max_parts"] = r.count("max_parts", 1, MAX_PARTS)
-        if "seed" in spec:
-            opts["seed"] = r.out["seed"] = r.count("seed", 0)
+        for k in ("threshold", "max_parts", "seed"):
+            if k in spec:
+                opts[k] = r.out[k] = r.get(k)
         from polydem.shapes import load_mesh
 
         mesh = load_mesh(path)
         if "scale" in spec:
-            r.out["scale"] = read_number(
-                spec["scale"], f"{key}.scale", file, positive=True, hint=" (" + _SHAPE_HINTS["scale"] + ")"
-            )
+            r.out["scale"] = r.get("scale")
+            _check_scale(r, 0.5 * float(np.linalg.norm(np.ptp(mesh.vertices, axis=0))), r.out["scale"])
             mesh.apply_scale(r.out["scale"])
         return CompoundShape.from_mesh(mesh, name=r.name, decompose=method, **opts)
     except CompoundShapeError as exc:
@@ -210,7 +275,7 @@ def _compound(r: _Spec):
 
 def _mesh_path(r: _Spec) -> Path:
     spec, key, file, base_dir = r.spec, r.key, r.file, r.base_dir
-    rel = read_string(spec["file"], f"{key}.file", file, what="a file path string")
+    rel = _FILE.read(spec["file"], f"{key}.file", file)
     path = Path(rel).expanduser()
     if not path.is_absolute():
         path = base_dir / path
@@ -236,92 +301,86 @@ class _Spec:
     base_dir: Path
     out: dict
 
-    def pos(self, k):
-        return read_number(
-            self.spec[k], f"{self.key}.{k}", self.file, positive=True, hint=f" ({_SHAPE_HINTS.get(k, 'in m')})"
-        )
-
-    def count(self, k, minimum, maximum=None, why=""):
-        return read_integer(self.spec[k], f"{self.key}.{k}", self.file, minimum=minimum, maximum=maximum, hint=why)
+    def get(self, k):
+        """The checked value of key ``k`` as its type's table declares it (its default when not given)."""
+        key = SHAPES[self.out["type"]][k]
+        return key.read(self.spec[k], f"{self.key}.{k}", self.file) if k in self.spec else key.default
 
     def tol(self):
-        if "tol" not in self.spec:
-            return {}
-        t = read_number(self.spec["tol"], f"{self.key}.tol", self.file, nonneg=True)
-        if t > 1e-3:
-            raise SceneError(
-                f"relative tolerance must be in [0, 1e-3], got {t:g} (use ~1e-6 for STL files)",
-                f"{self.key}.tol",
-                self.file,
-            )
-        return {"tol": t}
+        return {"tol": self.get("tol")} if "tol" in self.spec else {}
 
 
 def _box(r: _Spec) -> ConvexShape:
     size = r.spec["size"]
     if is_number(size):
-        s = [r.pos("size")] * 3
+        s = [r.get("size")] * 3
     else:
         s = read_vector(size, 3, f"{r.key}.size", r.file, label="[sx, sy, sz]").tolist()
         if min(s) <= 0.0:
             raise SceneError(f"box edge lengths must be positive, got {s}", f"{r.key}.size", r.file)
+        for x in s:
+            SHAPES["box"]["size"].within(x, f"{r.key}.size", r.file, each=np.array(s))
     r.out["size"] = s
     return ConvexShape.box(*s, name=r.name)
 
 
 def _platonic(r: _Spec) -> ConvexShape:
-    r.out["edge"] = r.pos("edge")
+    r.out["edge"] = r.get("edge")
     return getattr(ConvexShape, r.out["type"])(r.out["edge"], name=r.name)
 
 
 def _prism(r: _Spec) -> ConvexShape:
-    why = f" (the contact kernels take faces of at most {MAX_FACE_VERTICES} vertices; use a smaller n)"
-    r.out.update(n=r.count("n", 3, MAX_FACE_VERTICES, why), radius=r.pos("radius"), height=r.pos("height"))
+    r.out.update(n=r.get("n"), radius=r.get("radius"), height=r.get("height"))
     return ConvexShape.prism(r.out["n"], r.out["radius"], r.out["height"], name=r.name)
 
 
 def _rock(r: _Spec) -> ConvexShape:
     spec, key, file, out = r.spec, r.key, r.file, r.out
-    why = f" (its hull has 2 n_points - 4 faces, and the contact kernels take at most {MAX_FACES})"
-    out.update(n_points=r.count("n_points", 4, MAX_FACES // 2 + 2, why), size=r.pos("size"))
-    out["seed"] = r.count("seed", 0) if "seed" in spec else 0
+    out.update(n_points=r.get("n_points"), size=r.get("size"), seed=r.get("seed"))
     extra = {}
     if "elongation" in spec:
-        el = read_vector(spec["elongation"], 3, f"{key}.elongation", file, label="[ex, ey, ez]")
+        el = r.get("elongation")
         if el.min() <= 0.0:
             raise SceneError(f"elongation factors must be positive, got {el.tolist()}", f"{key}.elongation", file)
         extra["elongation"] = el.tolist()
     if "roughness" in spec:
-        rough = read_number(spec["roughness"], f"{key}.roughness", file, nonneg=True)
-        if rough >= 1.0:
-            raise SceneError(f"roughness must be in [0, 1), got {rough:g}", f"{key}.roughness", file)
-        extra["roughness"] = rough
+        extra["roughness"] = r.get("roughness")
     out.update(extra)
     return ConvexShape.rock(out["n_points"], out["size"], out["seed"], name=r.name, **extra)
 
 
 def _sphere(r: _Spec) -> ConvexShape:
-    r.out.update(subdivisions=r.count("subdivisions", 0, 5), radius=r.pos("radius"))
+    r.out.update(subdivisions=r.get("subdivisions"), radius=r.get("radius"))
     return ConvexShape.sphere(r.out["subdivisions"], r.out["radius"], name=r.name)
 
 
 def _mesh(r: _Spec) -> ConvexShape:
-    spec, key, file = r.spec, r.key, r.file
     path = _mesh_path(r)
     r.out["file"] = str(path.resolve())
     t = r.tol()
     r.out.update(t)
     shape = ConvexShape.from_file(path, name=r.name, **t)
-    if "scale" in spec:
-        r.out["scale"] = read_number(
-            spec["scale"],
-            f"{key}.scale",
-            file,
-            positive=True,
-            hint=" (factor applied to the file's coordinates, e.g. 0.001 for mm)",
-        )
+    if "scale" in r.spec:
+        r.out["scale"] = r.get("scale")
+        _check_scale(r, shape.radius, r.out["scale"])
         shape = shape.scaled(r.out["scale"])
     return shape
+
+
+def _check_scale(r: _Spec, radius: float, scale: float):
+    """Refuse a mesh file's ``scale`` that takes the shape's bounding radius (``radius`` [m] unscaled) beyond
+    the lengths of a run, where its volume and inertia are not even float64 numbers; the float32 check of
+    the scene's validation names the narrower radii a run can resolve."""
+    if F32_LOW <= radius * scale <= F32_HIGH:
+        return
+    raise SceneError(
+        f"scale {scale:g} makes the shape's bounding radius {radius * scale:.3g} m, beyond the lengths a run holds "
+        f"({F32_LOW:.3g} to {F32_HIGH:.3g} m, float32's range less a margin); a shape needs a bounding radius from "
+        f"{RADIUS_LOW:.2g} to {RADIUS_HIGH:.2g} m: give a scale from {RADIUS_LOW / radius:.3g} to "
+        f"{RADIUS_HIGH / radius:.3g} (the mesh file's unit in m: 0.001 for mm)",
+        f"{r.key}.scale",
+        r.file,
+    )
 
 
 def _points(r: _Spec) -> ConvexShape:
@@ -349,19 +408,6 @@ _BUILDERS = {
 }
 
 
-_SCALED_KEYS = {
-    "box": ("size",),
-    "tetrahedron": ("edge",),
-    "octahedron": ("edge",),
-    "dodecahedron": ("edge",),
-    "icosahedron": ("edge",),
-    "prism": ("radius", "height"),
-    "rock": ("size",),
-    "sphere": ("radius",),
-    "mesh": ("scale",),
-}
-
-
 def scaled_spec(spec: dict | None, factor: float) -> dict | None:
     """The spec of a shape scaled by ``factor`` about its input origin, or None (then written as points)."""
     if spec is None:
@@ -371,18 +417,19 @@ def scaled_spec(spec: dict | None, factor: float) -> dict | None:
     if kind == "points":
         out["points"] = [[factor * x for x in p] for p in spec["points"]]
         return out
-    if kind == "compound":
-        if "parts" in spec:
-            out["parts"] = []
-            for p in spec["parts"]:
-                q = scaled_spec(p, factor)
-                if "position" in p:
-                    q["position"] = [factor * x for x in p["position"]]
-                out["parts"].append(q)
-        else:
-            out["scale"] = factor * spec.get("scale", 1.0)
+    if kind == "compound" and "parts" in spec:
+        out["parts"] = []
+        for p in spec["parts"]:
+            q = scaled_spec(p, factor)
+            if "position" in p:
+                q["position"] = [factor * x for x in p["position"]]
+            out["parts"].append(q)
         return out
-    for k in _SCALED_KEYS.get(kind, ()):
-        value = spec.get(k, 1.0)
-        out[k] = [factor * x for x in value] if isinstance(value, list) else factor * value
+    if kind in ("mesh", "compound"):  # a mesh file: its factor
+        out["scale"] = factor * spec.get("scale", 1.0)
+        return out
+    for k in SHAPES[kind].keys:
+        if k.unit == "m" and k.name in spec:
+            value = spec[k.name]
+            out[k.name] = [factor * x for x in value] if isinstance(value, list) else factor * value
     return out

@@ -16,6 +16,18 @@ from polydem.scene.errors import SceneError, did_you_mean
 QUAT_TOL = 1e-6
 """Largest accepted | |q| - 1 | of an orientation quaternion; accepted ones are normalised exactly."""
 
+# The simulator stores masses, inertias, stiffnesses and the contact integrals (overlap volumes and
+# their first moments, ~ size^4) in float32. Values must be normal float32 numbers, and products of
+# them (inertia times angular velocity squared, k times volume powers, ...) must stay normal too,
+# so they are kept this factor away from both ends of the range: 1.2e-32 to 3.4e32.
+F32_MARGIN = 1.0e6
+F32_LOW = float(np.finfo(np.float32).tiny) * F32_MARGIN
+F32_HIGH = float(np.finfo(np.float32).max) / F32_MARGIN
+# A shape's overlap volumes and their moments go as its bounding radius^4, so the radius needs r^4 in
+# [F32_LOW, F32_HIGH].
+RADIUS_LOW = F32_LOW**0.25
+RADIUS_HIGH = F32_HIGH**0.25
+
 
 def typename(v) -> str:
     """How a value reads in an error message, in TOML's words."""
@@ -24,7 +36,7 @@ def typename(v) -> str:
     if isinstance(v, str):
         return f"string {v!r}"
     if isinstance(v, numbers.Integral):
-        return f"integer {int(v)}"
+        return f"integer {as_integer(int(v))}"
     if isinstance(v, numbers.Real):
         return f"float {float(v)!r}"
     if isinstance(v, dict):
@@ -49,18 +61,36 @@ def as_given(value) -> str:
     return text[:-2] if text.endswith(".0") else text
 
 
+def _float(value) -> float:
+    """``float(value)``, infinite for an integer past the floats (a scene file may give one)."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf if value > 0 else -math.inf
+
+
 def read_number(value, key, file=None, *, positive=False, nonneg=False, hint="") -> float:
     """A finite float; ``positive`` requires > 0 and ``nonneg`` >= 0."""
     if not is_number(value):
         raise SceneError(f"expected a number, got {typename(value)}{hint}", key, file)
-    v = float(value)
+    v = _float(value)
     if not math.isfinite(v):
-        raise SceneError(f"expected a finite number, got {v}{hint}", key, file)
+        got = as_integer(int(value)) if isinstance(value, numbers.Integral) else v
+        raise SceneError(f"expected a finite number, got {got}{hint}", key, file)
     if positive and v <= 0.0:
         raise SceneError(f"must be positive (> 0), got {as_given(value)}{hint}", key, file)
     if nonneg and v < 0.0:
         raise SceneError(f"must not be negative, got {as_given(value)}{hint}", key, file)
     return v
+
+
+def as_integer(v: int) -> str:
+    """An integer for a message: its digits, or beyond 16 of them (1e300 read as an integer, or an integer past
+    the floats) as :g prints a float, ``1e+400``."""
+    if abs(v) < 10**16:
+        return str(v)
+    digits = str(abs(v))
+    return f"{'-' if v < 0 else ''}{int(digits[:3]) / 100:g}e+{len(digits) - 1}"
 
 
 def read_integer(value, key, file=None, *, minimum=None, maximum=None, hint="") -> int:
@@ -72,9 +102,9 @@ def read_integer(value, key, file=None, *, minimum=None, maximum=None, hint="") 
     else:
         raise SceneError(f"expected an integer, got {typename(value)}{hint}", key, file)
     if minimum is not None and v < minimum:
-        raise SceneError(f"must be an integer >= {minimum}, got {v}{hint}", key, file)
+        raise SceneError(f"must be an integer >= {minimum}, got {as_integer(v)}{hint}", key, file)
     if maximum is not None and v > maximum:
-        raise SceneError(f"must be an integer <= {maximum}, got {v}{hint}", key, file)
+        raise SceneError(f"must be an integer <= {maximum}, got {as_integer(v)}{hint}", key, file)
     return v
 
 
@@ -122,6 +152,8 @@ def read_vector(value, n, key, file=None, *, label=None) -> np.ndarray:
         for i, x in enumerate(value):
             if not is_number(x):
                 raise SceneError(f"expected a number at position {i} of {label}, got {typename(x)}", key, file)
+            if not math.isfinite(_float(x)) and isinstance(x, numbers.Integral):
+                raise SceneError(f"expected a finite number at position {i} of {label}, got {typename(x)}", key, file)
         arr = np.array(value, dtype=np.float64)
     else:
         raise SceneError(f"expected an array of {n} numbers {label}, got {typename(value)}", key, file)
@@ -134,7 +166,7 @@ def read_rows(value, width, key, file=None, *, n=None) -> np.ndarray:
     """An (n, width) float64 array; a single row of shape (width,) is broadcast to n rows."""
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise SceneError(
             f"expected an array of shape (N, {width}) of numbers, got {typename(value)}: {exc}", key, file
         ) from None
@@ -196,6 +228,16 @@ def check_quats(q: np.ndarray, rowkey, file) -> np.ndarray:
             file,
         )
     return q / norms[:, None]
+
+
+def quat_from_axis_angle(axis, angle: float) -> np.ndarray:
+    """Unit xyzw quaternion of a rotation by ``angle`` [rad] about ``axis`` (any non-zero length)."""
+    a = read_vector(list(axis) if not isinstance(axis, np.ndarray) else axis, 3, "axis")
+    n = float(np.linalg.norm(a))
+    if n == 0.0:
+        raise SceneError("rotation axis is zero; give a non-zero direction such as [0, 0, 1]", "axis")
+    angle = read_number(angle, "angle")
+    return np.concatenate([a / n * math.sin(0.5 * angle), [math.cos(0.5 * angle)]])
 
 
 def unit_normal(value, key, file) -> np.ndarray:

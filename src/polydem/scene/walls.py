@@ -4,24 +4,105 @@ from __future__ import annotations
 
 import math
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from polydem.meshwall import MeshWallError, check_winding, clean_triangles
+from polydem.meshwall import CELL_TOLERANCE, MAX_SIZE_RATIO, MeshWallError, check_winding, clean_triangles
 from polydem.quaternions import quat_from_matrix
-from polydem.scene.bodies import KIND_KINEMATIC
+from polydem.scene.bodies import KIND_KINEMATIC, append_bodies
 from polydem.scene.materials import Material
-from polydem.scene.values import (
-    as_tuple,
-    read_boolean,
-    read_integer,
-    read_number,
-    read_string,
-    read_vector,
-    unit_normal,
-)
+from polydem.scene.schema import LENGTH, LENGTH_WHY, REQUIRED, SPEED, SPEED_WHY, Key, Table
+from polydem.scene.values import as_tuple, read_number, read_string, read_vector, unit_normal
 from polydem.shapes import ConvexShape
+
+# Each wall type's table. "type" is read first (its own message lists the types), and written by to_dict.
+_TYPE = Key("type", "string", default=REQUIRED, write="never")
+_MATERIAL = Key("material", "any", default=REQUIRED)
+_CENTER = Key("center", "vector", unit="m", default=REQUIRED)
+
+PLANE = Table(
+    "[[walls]] type = 'plane'",
+    (
+        _TYPE,
+        Key("point", "vector", unit="m", default=REQUIRED),
+        Key("normal", "vector", default=REQUIRED, check=unit_normal),
+        _MATERIAL,
+    ),
+)
+"""An infinite plane wall: the arguments of :meth:`Scene.add_plane`."""
+
+BOX = Table(
+    "[[walls]] type = 'box'",
+    (
+        _TYPE,
+        _CENTER,
+        Key("inner_size", "vector", unit="m", label="[lx, ly, lz]", range=LENGTH, why=LENGTH_WHY, default=REQUIRED),
+        _MATERIAL,
+        Key("wall_thickness", unit="m", range=LENGTH, why=LENGTH_WHY, hint="in m"),
+        Key("open_top", "boolean", default=True),
+    ),
+)
+"""A box container of fixed slabs: the arguments of :meth:`Scene.add_box_container`."""
+
+DRUM = Table(
+    "[[walls]] type = 'drum'",
+    (
+        _TYPE,
+        _CENTER,
+        Key("axis", "vector", default=REQUIRED),
+        Key("radius", unit="m", range=LENGTH, why=LENGTH_WHY, default=REQUIRED, hint="inner radius in m"),
+        Key(
+            "length",
+            unit="m",
+            range=LENGTH,
+            why=LENGTH_WHY,
+            default=REQUIRED,
+            hint="inner length along the axis in m",
+        ),
+        _MATERIAL,
+        Key("omega", unit="rad/s", range=SPEED, why=SPEED_WHY, hint="angular speed in rad/s"),
+        Key("rpm", unit="1/min", range=SPEED, why=SPEED_WHY, hint="revolutions per minute"),
+        Key("sides", "integer", range="[3, 1000]", default=24, hint="number of slabs"),
+        Key("thickness", unit="m", range=LENGTH, why=LENGTH_WHY, hint="in m"),
+        Key("caps", "boolean", default=True),
+    ),
+)
+"""A rotating polygonal drum of kinematic slabs: the arguments of :meth:`Scene.add_drum`."""
+
+MESH = Table(
+    "[[walls]] type = 'mesh'",
+    (
+        _TYPE,
+        Key("file", "string", what="a file path string", write="never"),
+        Key("vertices", "any", unit="m"),
+        Key("triangles", "any"),
+        _MATERIAL,
+        Key("scale", "any", default=1.0, write="never", hint="a factor, e.g. 0.001 for mm"),
+        Key("rotation", "rotation", attr="orientation", write="never"),
+        Key("orientation", "vector", size=4, write="never"),
+        Key("position", "vector", unit="m", default=(0.0, 0.0, 0.0), write="never"),
+        Key("flip_normals", "boolean", default=False, write="never"),
+        Key("thickness", unit="m", range=LENGTH, why=LENGTH_WHY, hint="depth of the solid in m"),
+        Key("velocity", "vector", unit="m/s", range=SPEED, why=SPEED_WHY, default=(0.0, 0.0, 0.0), write="changed"),
+        Key(
+            "angular_velocity",
+            "vector",
+            unit="rad/s",
+            range=SPEED,
+            why=SPEED_WHY,
+            default=(0.0, 0.0, 0.0),
+            write="changed",
+        ),
+        Key("pivot", "vector", unit="m"),
+    ),
+)
+"""A triangle-mesh wall: the arguments of :meth:`Scene.add_mesh_wall`, the mesh given as ``file`` or as
+``vertices`` and ``triangles``; written back as its vertices in the world at t = 0 (scale, orientation and
+position applied) with its motion."""
+
+WALL_TYPES = {"plane": PLANE, "box": BOX, "drum": DRUM, "mesh": MESH}
+"""The ``type`` values of ``[[walls]]`` tables and their declarations."""
 
 
 @dataclass(frozen=True)
@@ -40,12 +121,13 @@ class PlaneWall:
     material: str
 
     def __post_init__(self):
-        object.__setattr__(self, "point", as_tuple(read_vector(self.point, 3, "plane.point")))
-        object.__setattr__(self, "normal", as_tuple(unit_normal(self.normal, "plane.normal", None)))
+        values = PLANE.read({"point": self.point, "normal": self.normal}, "plane")
+        object.__setattr__(self, "point", as_tuple(values["point"]))
+        object.__setattr__(self, "normal", as_tuple(values["normal"]))
         read_string(self.material, "plane.material", what="a material name")
 
     def to_dict(self) -> dict:
-        return {"type": "plane", "point": list(self.point), "normal": list(self.normal), "material": self.material}
+        return {"type": "plane", **PLANE.write(self)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,9 +153,9 @@ class MeshWall:
     triangles: np.ndarray
     material: str
     pivot: tuple
-    velocity: tuple = (0.0, 0.0, 0.0)
-    angular_velocity: tuple = (0.0, 0.0, 0.0)
-    thickness: float | None = None
+    velocity: tuple = MESH.defaults["velocity"]
+    angular_velocity: tuple = MESH.defaults["angular_velocity"]
+    thickness: float | None = MESH.defaults["thickness"]
     source: str = "vertices"
     scale: tuple = (1.0, 1.0, 1.0)
 
@@ -82,19 +164,7 @@ class MeshWall:
         return any(self.velocity) or any(self.angular_velocity)
 
     def to_dict(self) -> dict:
-        d = {
-            "type": "mesh",
-            "vertices": self.vertices.tolist(),
-            "triangles": self.triangles.tolist(),
-            "material": self.material,
-            "pivot": list(self.pivot),
-        }
-        if self.moving:
-            d["velocity"] = list(self.velocity)
-            d["angular_velocity"] = list(self.angular_velocity)
-        if self.thickness is not None:
-            d["thickness"] = self.thickness
-        return d
+        return {"type": "mesh", **MESH.write(self)}
 
 
 def mesh_input(mesh, key, file, base_dir):
@@ -136,6 +206,15 @@ def mesh_input(mesh, key, file, base_dir):
         f"{key}.file",
         file,
     )
+
+
+def _sound(vertices, triangles) -> bool:
+    """Whether a mesh wall's mesh as given (before its scale and placement) has triangles of consistent winding."""
+    try:
+        check_winding(*clean_triangles(vertices, triangles, label="mesh"), label="mesh")
+    except MeshWallError:
+        return False
+    return True
 
 
 # Each mesh wall's cells at its last thickness, and what the checks derived from them: a wall is
@@ -198,6 +277,23 @@ class Drum:
         return np.array(u), np.array(e)
 
 
+_SLAB_WHY = (
+    f"its slabs are shapes built to {CELL_TOLERANCE:g} of their longest side (as a mesh wall's cells), so its lengths "
+    f"may be at most {MAX_SIZE_RATIO:g} times apart"
+)
+
+
+def _apart(name: str, words: str, value: float, far: tuple[str, float], allowed: tuple[float, float], what: str) -> str:
+    """The message for a wall's length ``name`` (``words`` for it, ``value`` [m]) more than MAX_SIZE_RATIO from
+    ``far`` (its words and value) of ``what`` ("the drum"); ``allowed``: the range that fits its other lengths."""
+    low, high = allowed
+    fix = f"give a {name} from {low:.3g} to {high:.3g} m" if low <= high else "bring its lengths closer together"
+    return (
+        f"the {words} {value:.3g} m and {what}'s {far[0]} {far[1]:.3g} m are more than {MAX_SIZE_RATIO:g} times "
+        f"apart: {_SLAB_WHY}; {fix}"
+    )
+
+
 def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit vectors e1, e2 with (e1, e2, axis) right-handed; e1 = axis x z (x when axis ~ z)."""
     ref = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
@@ -213,367 +309,346 @@ def _drum_radial(axis: np.ndarray, sides: int) -> np.ndarray:
     return np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2
 
 
-class WallMethods:
-    """The :class:`~polydem.scene.Scene` methods that add plane walls, box containers and drums."""
+@dataclass
+class WallTable:
+    """The walls of a scene, each kind in the order they were added, with the keys they came from (``walls[0]``
+    of a scene file, ``planes[1]``, ...: for messages)."""
 
-    def __init__(self):
-        # The state of this group; Scene.__init__ reaches every group's __init__ through super().
-        self._planes: list[PlaneWall] = []
-        self._plane_keys: list[str] = []
-        self._mesh_walls: list[MeshWall] = []
-        self._mesh_wall_keys: list[str] = []
-        self.drums: list[Drum] = []
-        super().__init__()
+    planes: list[PlaneWall] = field(default_factory=list)
+    plane_keys: list[str] = field(default_factory=list)
+    mesh_walls: list[MeshWall] = field(default_factory=list)
+    mesh_wall_keys: list[str] = field(default_factory=list)
+    drums: list[Drum] = field(default_factory=list)
 
-    @property
-    def planes(self) -> list[PlaneWall]:
-        """Plane walls (a copy of the list)."""
-        return list(self._planes)
 
-    @property
-    def plane_keys(self) -> list[str]:
-        """Where each plane wall came from, e.g. ``walls[0]`` of a scene file or ``planes[1]`` (for messages)."""
-        return list(self._plane_keys)
+def add_plane(scene, point, normal, material, *, key: str | None = None) -> PlaneWall:
+    """:meth:`Scene.add_plane <polydem.scene.Scene.add_plane>` of ``scene``."""
+    key = key or f"planes[{len(scene.wall_table.planes)}]"
+    values = PLANE.read({"point": point, "normal": normal}, key, scene.file)
+    scene.material_index(material, key=f"{key}.material")
+    name = material.name if isinstance(material, Material) else material
+    plane = PlaneWall(point=as_tuple(values["point"]), normal=as_tuple(values["normal"]), material=name)
+    scene.wall_table.planes.append(plane)
+    scene.wall_table.plane_keys.append(key)
+    return plane
 
-    def add_plane(self, point, normal, material, *, key: str | None = None) -> PlaneWall:
-        """Add an infinite plane through ``point`` [m] facing ``normal`` (normalised; non-zero).
 
-        ``key`` is where the value came from, for error messages (default ``planes[N]``).
-        """
-        key = key or f"planes[{len(self._planes)}]"
-        p = read_vector(point, 3, f"{key}.point", self.file)
-        n = unit_normal(normal, f"{key}.normal", self.file)
-        self.material_index(material, key=f"{key}.material")
-        name = material.name if isinstance(material, Material) else material
-        plane = PlaneWall(point=as_tuple(p), normal=as_tuple(n), material=name)
-        self._planes.append(plane)
-        self._plane_keys.append(key)
-        return plane
+def add_mesh_wall(
+    scene,
+    mesh,
+    material,
+    *,
+    scale=MESH.defaults["scale"],
+    orientation=MESH.defaults["orientation"],
+    position=MESH.defaults["position"],
+    velocity=MESH.defaults["velocity"],
+    angular_velocity=MESH.defaults["angular_velocity"],
+    pivot=MESH.defaults["pivot"],
+    thickness=MESH.defaults["thickness"],
+    flip_normals: bool = MESH.defaults["flip_normals"],
+    key: str | None = None,
+    base_dir=None,
+) -> MeshWall:
+    """:meth:`Scene.add_mesh_wall <polydem.scene.Scene.add_mesh_wall>` of ``scene``."""
+    from polydem.quaternions import quat_to_matrix
 
-    @property
-    def mesh_walls(self) -> list[MeshWall]:
-        """Triangle-mesh walls (a copy of the list)."""
-        return list(self._mesh_walls)
-
-    @property
-    def mesh_wall_keys(self) -> list[str]:
-        """Where each mesh wall came from, e.g. ``walls[2]`` (for messages)."""
-        return list(self._mesh_wall_keys)
-
-    def add_mesh_wall(
-        self,
-        mesh,
-        material,
-        *,
-        scale=1.0,
-        orientation=None,
-        position=(0.0, 0.0, 0.0),
-        velocity=(0.0, 0.0, 0.0),
-        angular_velocity=(0.0, 0.0, 0.0),
-        pivot=None,
-        thickness=None,
-        flip_normals: bool = False,
-        key: str | None = None,
-        base_dir=None,
-    ) -> MeshWall:
-        """Add a wall made of a triangle mesh: open or closed, convex or not (see :mod:`polydem.meshwall`).
-
-        The wall is solid behind its triangles (against their normals, i.e. the bodies are on the
-        side a counter-clockwise triangle faces), ``thickness`` [m] deep (default: the largest
-        bounding diameter of the free bodies); ``flip_normals`` reverses every triangle. Keep the
-        thickness below half the thinnest part of a closed wall, or the cells behind one side
-        reach out of the other (:meth:`validate` warns where they do), and within a factor of
-        10^6 of the triangles' sizes (validation refuses others: the cells are built to 10^-9 of
-        their size). Validation also refuses free bodies that start deep in the solid (as for
-        plane walls) and warns of a wall moving faster than the bodies it hits can take.
-
-        Args:
-            mesh: a mesh file (STL, OBJ, PLY; relative paths from ``base_dir``), a trimesh.Trimesh,
-                or ``(vertices, triangles)`` arrays.
-            material: a material name registered in the scene.
-            scale: a factor or (sx, sy, sz) applied to the file's coordinates first.
-            orientation: unit quaternion xyzw applied after the scale (default: none).
-            position: translation applied last [m].
-            velocity: (3,) [m/s]; angular_velocity: (3,) [rad/s] about ``pivot`` (default
-                ``position``): a kinematic wall, e.g. a turning mixer.
-            key: where the values came from, for messages (default ``mesh_walls[N]``).
-        """
-        from polydem.quaternions import quat_to_matrix
-
-        key = key or f"mesh_walls[{len(self._mesh_walls)}]"
-        f = self.file
-        self.material_index(material, key=f"{key}.material")
-        name = material.name if isinstance(material, Material) else material
-        v, tri, source = mesh_input(mesh, key, f, base_dir)
-        if np.ndim(scale) == 0:
-            sc = np.full(3, read_number(scale, f"{key}.scale", f, hint=" (a factor, e.g. 0.001 for mm)"))
-        else:
-            sc = read_vector(scale, 3, f"{key}.scale", f)
-        if np.any(sc == 0.0) or not np.all(np.isfinite(sc)):
-            raise self.error(
-                f"scale {sc.tolist()} has a zero or non-finite factor; give factors such as 0.001", f"{key}.scale"
+    key = key or f"mesh_walls[{len(scene.wall_table.mesh_walls)}]"
+    f = scene.file
+    scene.material_index(material, key=f"{key}.material")
+    name = material.name if isinstance(material, Material) else material
+    v, tri, source = mesh_input(mesh, key, f, base_dir)
+    if np.ndim(scale) == 0:
+        sc = np.full(3, read_number(scale, f"{key}.scale", f, hint=MESH["scale"].hint_text()))
+    else:
+        sc = read_vector(scale, 3, f"{key}.scale", f)
+    if np.any(sc == 0.0) or not np.all(np.isfinite(sc)):
+        raise scene.error(
+            f"scale {sc.tolist()} has a zero or non-finite factor; give factors such as 0.001", f"{key}.scale"
+        )
+    given = {"orientation": orientation, "position": position, "flip_normals": flip_normals}
+    given.update(thickness=thickness, velocity=velocity, angular_velocity=angular_velocity, pivot=pivot)
+    a = MESH.read(given, key, f)
+    rot = np.eye(3)
+    if a["orientation"] is not None:
+        q = a["orientation"]
+        norm = float(np.linalg.norm(q))
+        if not abs(norm - 1.0) <= 1e-6:
+            raise scene.error(
+                f"orientation {q.tolist()} is not a unit quaternion xyzw (|q| = {norm:.6g})", f"{key}.orientation"
             )
-        rot = np.eye(3)
-        if orientation is not None:
-            q = read_vector(orientation, 4, f"{key}.orientation", f)
-            norm = float(np.linalg.norm(q))
-            if not abs(norm - 1.0) <= 1e-6:
-                raise self.error(
-                    f"orientation {q.tolist()} is not a unit quaternion xyzw (|q| = {norm:.6g})", f"{key}.orientation"
-                )
-            rot = quat_to_matrix(q / norm)
-        pos = read_vector(position, 3, f"{key}.position", f)
-        vel = read_vector(velocity, 3, f"{key}.velocity", f)
-        omega = read_vector(angular_velocity, 3, f"{key}.angular_velocity", f)
-        piv = pos if pivot is None else read_vector(pivot, 3, f"{key}.pivot", f)
-        if thickness is not None:
-            thickness = read_number(thickness, f"{key}.thickness", f, positive=True, hint=" (depth of the solid in m)")
-        flip = read_boolean(flip_normals, f"{key}.flip_normals", f)
-        if v.ndim == 2 and v.shape[1] == 3:
+        rot = quat_to_matrix(q / norm)
+    pos, vel, omega, thickness = a["position"], a["velocity"], a["angular_velocity"], a["thickness"]
+    piv = pos if a["pivot"] is None else a["pivot"]
+    flip = a["flip_normals"]
+    given = v, tri
+    if v.ndim == 2 and v.shape[1] == 3:
+        with np.errstate(over="ignore", invalid="ignore"):
             v = (v * sc) @ rot.T + pos
-        # A mirror (an odd number of negative factors) turns the triangles inside out: re-orient them.
-        if (np.prod(np.sign(sc)) < 0) != flip and tri.ndim == 2:
-            tri = tri[:, ::-1]
+    # A mirror (an odd number of negative factors) turns the triangles inside out: re-orient them.
+    if (np.prod(np.sign(sc)) < 0) != flip and tri.ndim == 2:
+        tri = tri[:, ::-1]
+    try:
+        v, tri = clean_triangles(v, tri, label=f"mesh {source}")
+        check_winding(v, tri, label=f"mesh {source}")
+    except MeshWallError as exc:
+        # A mesh that is sound as given was spoilt by its scale or by where it was placed: name that.
+        v0, tri0 = given
+        placed = v0.ndim == 2 and v0.shape[1] == 3 and _sound(v0, tri0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            if placed and np.any(sc != 1.0) and not _sound(v0 * sc, tri0):
+                raise scene.error(
+                    f"{exc} after scale {sc.tolist()} (the mesh as given is sound): the scale takes its "
+                    "triangles beyond what float64 resolves; give the mesh file's unit in m (0.001 for mm), with "
+                    f"factors within {MAX_SIZE_RATIO:g} of each other",
+                    f"{key}.scale",
+                ) from None
+            if placed and _sound((v0 * sc) @ rot.T, tri0):
+                far = float(np.abs(pos).max())
+                raise scene.error(
+                    f"{exc} at position {pos.tolist()} (at the origin it is sound): float64 numbers are "
+                    f"{np.spacing(far):.3g} m apart there, too coarse for its triangles; place the scene nearer "
+                    "the origin (only relative positions matter)",
+                    f"{key}.position",
+                ) from None
+        raise scene.error(str(exc), f"{key}.file" if source not in ("vertices", "trimesh") else key) from None
+    v.setflags(write=False)
+    tri.setflags(write=False)
+    wall = MeshWall(
+        vertices=v,
+        triangles=tri,
+        material=name,
+        pivot=as_tuple(piv),
+        velocity=as_tuple(vel),
+        angular_velocity=as_tuple(omega),
+        thickness=thickness,
+        source=source,
+        scale=as_tuple(sc),
+    )
+    scene.wall_table.mesh_walls.append(wall)
+    scene.wall_table.mesh_wall_keys.append(key)
+    return wall
+
+
+def mesh_wall_thickness(scene, wall: MeshWall) -> float:
+    """:meth:`Scene.mesh_wall_thickness <polydem.scene.Scene.mesh_wall_thickness>` of ``scene``."""
+    if wall.thickness is not None:
+        return float(wall.thickness)
+    shapes = list(scene.shapes.values())
+    kind = np.asarray(scene.body_kind)
+    used = np.unique(np.asarray(scene.body_shape)[kind == 0]) if (kind == 0).any() else range(len(shapes))
+    return 2.0 * max(shapes[int(k)].radius for k in used)
+
+
+def mesh_wall_cells(scene, wall: MeshWall, thickness: float):
+    """:meth:`Scene.mesh_wall_cells <polydem.scene.Scene.mesh_wall_cells>` of ``scene``."""
+    from polydem.meshwall import build_cells
+
+    key = scene.mesh_wall_keys[[id(w) for w in scene.wall_table.mesh_walls].index(id(wall))]
+    kept = _CELLS.get(wall)
+    if kept is None or kept[0] != thickness:
         try:
-            v, tri = clean_triangles(v, tri, label=f"mesh {source}")
-            check_winding(v, tri, label=f"mesh {source}")
+            pivot = np.asarray(wall.pivot, dtype=np.float64)
+            label = f"mesh wall {key} ({wall.source})"
+            cells = build_cells(wall.vertices - pivot, wall.triangles, thickness, label=label)
         except MeshWallError as exc:
-            raise self.error(str(exc), f"{key}.file" if source not in ("vertices", "trimesh") else key) from None
-        v.setflags(write=False)
-        tri.setflags(write=False)
-        wall = MeshWall(
-            vertices=v,
-            triangles=tri,
-            material=name,
-            pivot=as_tuple(piv),
-            velocity=as_tuple(vel),
-            angular_velocity=as_tuple(omega),
-            thickness=thickness,
-            source=source,
-            scale=as_tuple(sc),
+            if not _sound(wall.vertices - pivot, wall.triangles):
+                far = float(np.abs(wall.vertices - pivot).max())
+                raise scene.error(
+                    f"{exc} in the frame of its pivot {list(wall.pivot)}, where its cells are built: float64 "
+                    f"numbers {far:.3g} m from the pivot are {np.spacing(far):.3g} m apart, too coarse for its "
+                    "triangles; give a pivot nearer the wall",
+                    f"{key}.pivot",
+                ) from None
+            raise scene.error(str(exc), key) from None
+        kept = _CELLS[wall] = (thickness, cells, {})
+    return kept[1]
+
+
+def mesh_wall_memo(scene, wall: MeshWall, thickness: float) -> dict:
+    """A dict kept with the cells of ``wall`` at ``thickness`` (see :func:`mesh_wall_cells`), for the
+    checks' results that depend on nothing else."""
+    mesh_wall_cells(scene, wall, thickness)
+    return _CELLS[wall][2]
+
+
+def add_box_container(
+    scene,
+    center,
+    inner_size,
+    material,
+    wall_thickness=BOX.defaults["wall_thickness"],
+    open_top: bool = BOX.defaults["open_top"],
+    *,
+    key: str | None = None,
+) -> list[int]:
+    """:meth:`Scene.add_box_container <polydem.scene.Scene.add_box_container>` of ``scene``."""
+    key = key or "box_container"
+    a = BOX.read({"center": center, "inner_size": inner_size}, key, scene.file)
+    c, size = a["center"], a["inner_size"]
+    a = BOX.read({"wall_thickness": wall_thickness, "open_top": open_top}, key, scene.file)
+    t = 0.1 * float(size.min()) if a["wall_thickness"] is None else a["wall_thickness"]
+    if size.max() > MAX_SIZE_RATIO * size.min():
+        raise scene.error(
+            f"the inner sizes {size.tolist()} m are more than {MAX_SIZE_RATIO:g} times apart: {_SLAB_WHY}; give "
+            f"inner sizes within a factor of {MAX_SIZE_RATIO:g} of each other",
+            f"{key}.inner_size",
         )
-        self._mesh_walls.append(wall)
-        self._mesh_wall_keys.append(key)
-        return wall
+    if not size.max() / MAX_SIZE_RATIO <= t <= size.min() * MAX_SIZE_RATIO:
+        words = "wall_thickness"
+        if a["wall_thickness"] is None:
+            words = "default wall_thickness (a tenth of the smallest inner size)"
+        far = ("smallest inner size", size.min()) if t > size.min() else ("largest inner size", size.max())
+        allowed = (size.max() / MAX_SIZE_RATIO, size.min() * MAX_SIZE_RATIO)
+        raise scene.error(_apart("wall_thickness", words, t, far, allowed, "the container"), f"{key}.wall_thickness")
+    open_top = a["open_top"]
+    scene.material_index(material, key=f"{key}.material")
+    lx, ly, lz = size
+    walls = [
+        ((lx + 2 * t, ly + 2 * t, t), (0.0, 0.0, -0.5 * (lz + t))),  # floor
+        ((t, ly + 2 * t, lz), (-0.5 * (lx + t), 0.0, 0.0)),  # -x
+        ((t, ly + 2 * t, lz), (0.5 * (lx + t), 0.0, 0.0)),  # +x
+        ((lx, t, lz), (0.0, -0.5 * (ly + t), 0.0)),  # -y
+        ((lx, t, lz), (0.0, 0.5 * (ly + t), 0.0)),  # +y
+    ]
+    if not open_top:
+        walls.append(((lx + 2 * t, ly + 2 * t, t), (0.0, 0.0, 0.5 * (lz + t))))
+    indices = []
+    for dims, offset in walls:
+        name = _box_shape(scene, dims)
+        indices.append(scene.add_body(name, material, position=c + np.array(offset), kind="fixed"))
+    return indices
 
-    def mesh_wall_thickness(self, wall: MeshWall) -> float:
-        """The depth [m] of a mesh wall's solid: its ``thickness``, or by default the largest bounding
-        diameter of the free bodies' shapes (of all shapes where no body is free), as the Model takes it."""
-        if wall.thickness is not None:
-            return float(wall.thickness)
-        shapes = list(self.shapes.values())
-        kind = np.asarray(self.body_kind)
-        used = np.unique(np.asarray(self.body_shape)[kind == 0]) if (kind == 0).any() else range(len(shapes))
-        return 2.0 * max(shapes[int(k)].radius for k in used)
 
-    def mesh_wall_cells(self, wall: MeshWall, thickness: float):
-        """The :class:`~polydem.meshwall.MeshCells` of ``wall`` at ``thickness`` [m], in the wall's own frame
-        (world axes at t = 0, origin at its pivot: what the Model steps), kept for the next call (the checks
-        run at every validation and the Model reuses them; the cells only change with the thickness)."""
-        from polydem.meshwall import build_cells
+def _box_shape(scene, dims) -> str:
+    dims = [float(d) for d in dims]
+    name = "wall_box_" + "x".join(f"{d:.6g}" for d in dims)
+    return _shape_for_spec(scene, name, {"type": "box", "size": dims}, lambda nm: ConvexShape.box(*dims, name=nm))
 
-        key = self.mesh_wall_keys[[id(w) for w in self._mesh_walls].index(id(wall))]
-        kept = _CELLS.get(wall)
-        if kept is None or kept[0] != thickness:
-            try:
-                pivot = np.asarray(wall.pivot, dtype=np.float64)
-                label = f"mesh wall {key} ({wall.source})"
-                cells = build_cells(wall.vertices - pivot, wall.triangles, thickness, label=label)
-            except MeshWallError as exc:
-                raise self.error(str(exc), key) from None
-            kept = _CELLS[wall] = (thickness, cells, {})
-        return kept[1]
 
-    def mesh_wall_memo(self, wall: MeshWall, thickness: float) -> dict:
-        """A dict kept with the cells of ``wall`` at ``thickness`` (see :meth:`mesh_wall_cells`), for the
-        checks' results that depend on nothing else."""
-        self.mesh_wall_cells(wall, thickness)
-        return _CELLS[wall][2]
+def _shape_for_spec(scene, name, spec, build) -> str:
+    """Name of the registered shape of this spec: ``name``, or ``name_2``, ... where ``name`` is taken by
+    another spec; ``build(name)`` makes it when there is none yet."""
+    base, k = name, 1
+    while name in scene.shape_names and scene.shape_spec(name) != spec:
+        k += 1
+        name = f"{base}_{k}"
+    if name not in scene.shape_names:
+        scene.add_shape(name, build(name), spec=spec)
+    return name
 
-    def add_box_container(
-        self, center, inner_size, material, wall_thickness=None, open_top: bool = True, *, key: str | None = None
-    ) -> list[int]:
-        """Add an axis-aligned box container made of fixed box-shaped bodies; returns their indices.
 
-        The cavity is ``inner_size`` = (lx, ly, lz) [m] centred on ``center`` [m], z up. The walls,
-        ``wall_thickness`` [m] thick (default 10% of the smallest inner size), are: a floor plate
-        covering the whole outer footprint, two x walls spanning the outer y extent, two y walls
-        between them, and a lid like the floor unless ``open_top``. Walls touch but do not overlap.
-        The needed box shapes are registered as ``"wall_box_{sx}x{sy}x{sz}"``. ``key`` is where the
-        value came from, for error messages (default ``box_container``).
-        """
-        key = key or "box_container"
-        f = self.file
-        c = read_vector(center, 3, f"{key}.center", f)
-        size = read_vector(inner_size, 3, f"{key}.inner_size", f, label="[lx, ly, lz]")
-        if size.min() <= 0.0:
-            raise self.error(f"inner sizes must be positive, got {size.tolist()}", f"{key}.inner_size")
-        if wall_thickness is None:
-            t = 0.1 * float(size.min())
+# ------------------------------------------------------------------ drums
+
+
+def add_drum(
+    scene,
+    center,
+    axis,
+    radius,
+    length,
+    material,
+    *,
+    omega=DRUM.defaults["omega"],
+    rpm=DRUM.defaults["rpm"],
+    sides=DRUM.defaults["sides"],
+    thickness=DRUM.defaults["thickness"],
+    caps=DRUM.defaults["caps"],
+    key: str | None = None,
+) -> Drum:
+    """:meth:`Scene.add_drum <polydem.scene.Scene.add_drum>` of ``scene``."""
+    key = key or f"drums[{len(scene.wall_table.drums)}]"
+    v = DRUM.read({"center": center, "axis": axis}, key, scene.file)
+    c, a = v["center"], v["axis"]
+    if np.linalg.norm(a) < 1e-12:
+        raise scene.error(
+            f"axis {a.tolist()} is zero; give the direction of the drum axis, e.g. [0, 1, 0]", f"{key}.axis"
+        )
+    a = a / np.linalg.norm(a)
+    v = DRUM.read(
+        {"radius": radius, "length": length, "sides": sides, "thickness": thickness, "caps": caps}, key, scene.file
+    )
+    r, length, n, caps = v["radius"], v["length"], v["sides"], v["caps"]
+    t = 0.1 * r if v["thickness"] is None else v["thickness"]
+    lengths = {"radius": r, "length": length, "thickness": t}
+    small, large = min(lengths, key=lengths.get), max(lengths, key=lengths.get)
+    if lengths[large] > MAX_SIZE_RATIO * lengths[small]:
+        if v["thickness"] is None:
+            # The default thickness follows the radius: blame what was given.
+            name = large if small == "thickness" else small if large == "thickness" else "radius"
         else:
-            t = read_number(wall_thickness, f"{key}.wall_thickness", f, positive=True, hint=" (in m)")
-        open_top = read_boolean(open_top, f"{key}.open_top", f)
-        self.material_index(material, key=f"{key}.material")
-        lx, ly, lz = size
-        walls = [
-            ((lx + 2 * t, ly + 2 * t, t), (0.0, 0.0, -0.5 * (lz + t))),  # floor
-            ((t, ly + 2 * t, lz), (-0.5 * (lx + t), 0.0, 0.0)),  # -x
-            ((t, ly + 2 * t, lz), (0.5 * (lx + t), 0.0, 0.0)),  # +x
-            ((lx, t, lz), (0.0, -0.5 * (ly + t), 0.0)),  # -y
-            ((lx, t, lz), (0.0, 0.5 * (ly + t), 0.0)),  # +y
-        ]
-        if not open_top:
-            walls.append(((lx + 2 * t, ly + 2 * t, t), (0.0, 0.0, 0.5 * (lz + t))))
-        indices = []
-        for dims, offset in walls:
-            name = self._box_shape(dims)
-            indices.append(self.add_body(name, material, position=c + np.array(offset), kind="fixed"))
-        return indices
-
-    def _box_shape(self, dims) -> str:
-        dims = [float(d) for d in dims]
-        name = "wall_box_" + "x".join(f"{d:.6g}" for d in dims)
-        return self._shape_for_spec(name, {"type": "box", "size": dims}, lambda nm: ConvexShape.box(*dims, name=nm))
-
-    def _shape_for_spec(self, name, spec, build) -> str:
-        """Name of the registered shape of this spec: ``name``, or ``name_2``, ... where ``name`` is taken by
-        another spec; ``build(name)`` makes it when there is none yet."""
-        base, k = name, 1
-        while name in self.shape_names and self.shape_spec(name) != spec:
-            k += 1
-            name = f"{base}_{k}"
-        if name not in self.shape_names:
-            self.add_shape(name, build(name), spec=spec)
-        return name
-
-    # ------------------------------------------------------------------ drums
-
-    def add_drum(
-        self,
-        center,
-        axis,
-        radius,
-        length,
-        material,
-        *,
-        omega=None,
-        rpm=None,
-        sides=24,
-        thickness=None,
-        caps=True,
-        key: str | None = None,
-    ) -> Drum:
-        """Add a rotating polygonal drum made of kinematic bodies; returns its :class:`Drum` record.
-
-        A hollow drum is not convex, so it is built from ``sides`` box slabs, ``thickness`` thick
-        and ``length`` long, whose inner faces are the sides of a regular polygon of inradius
-        ``radius`` around the axis (adjacent slabs meet along the polygon's corners and open up
-        outwards, so the inside is closed). With ``caps`` two polygonal plates (prisms centred on
-        the axis, covering the slabs' outer corners) close the ends at ``+-length / 2``.
-
-        Every part is a kinematic body with angular velocity ``omega * axis`` and the drum centre
-        as its pivot (:attr:`body_pivot`); a slab's velocity is ``omega x r``, r from the axis to
-        the slab's centre, and the caps only spin. The registered shapes are
-        ``"wall_box_{w}x{length}x{thickness}"`` (w = 2 radius tan(pi / sides)) and
-        ``"drum_cap_{sides}_{r}x{thickness}"``.
-
-        Args:
-            center: (3,) middle of the drum on its axis [m].
-            axis: (3,) direction of the axis (any non-zero length) [-]; the drum turns by the
-                right-hand rule about it.
-            radius: inradius of the inner polygon [m], > 0.
-            length: inner length along the axis [m], > 0.
-            material: material name.
-            omega: angular speed [rad/s] (negative turns the other way); or give ``rpm``.
-            rpm: revolutions per minute (2 pi / 60 rad/s each); or give ``omega``.
-            sides: number of slabs, >= 3 (default 24).
-            thickness: slab and cap thickness [m], default a tenth of ``radius``.
-            caps: close the ends with rotating plates (default True).
-            key: where the value came from, for error messages (default ``drums[N]``).
-        """
-        key = key or f"drums[{len(self.drums)}]"
-        f = self.file
-        c = read_vector(center, 3, f"{key}.center", f)
-        a = read_vector(axis, 3, f"{key}.axis", f)
-        if np.linalg.norm(a) < 1e-12:
-            raise self.error(
-                f"axis {a.tolist()} is zero; give the direction of the drum axis, e.g. [0, 1, 0]", f"{key}.axis"
-            )
-        a = a / np.linalg.norm(a)
-        r = read_number(radius, f"{key}.radius", f, positive=True, hint=" (inner radius in m)")
-        length = read_number(length, f"{key}.length", f, positive=True, hint=" (inner length along the axis in m)")
-        n = read_integer(sides, f"{key}.sides", f, minimum=3, maximum=1000, hint=" (number of slabs)")
-        t = (
-            0.1 * r
-            if thickness is None
-            else read_number(thickness, f"{key}.thickness", f, positive=True, hint=" (in m)")
+            # The odd one out: the end of the pair farther from the third length.
+            (middle,) = (x for k, x in lengths.items() if k not in (small, large))
+            name = large if lengths[large] * lengths[small] >= middle * middle else small
+        others = {k: x for k, x in lengths.items() if k != name}
+        far = min(others.items(), key=lambda kx: kx[1] if lengths[name] > kx[1] else -kx[1])
+        allowed = (max(others.values()) / MAX_SIZE_RATIO, min(others.values()) * MAX_SIZE_RATIO)
+        raise scene.error(_apart(name, name, lengths[name], far, allowed, "the drum"), f"{key}.{name}")
+    if (omega is None) == (rpm is None):
+        raise scene.error(
+            "give the rotation speed as exactly one of omega (rad/s) or rpm (revolutions per minute)",
+            f"{key}.omega" if omega is None else f"{key}.rpm",
         )
-        caps = read_boolean(caps, f"{key}.caps", f)
-        if (omega is None) == (rpm is None):
-            raise self.error(
-                "give the rotation speed as exactly one of omega (rad/s) or rpm (revolutions per minute)",
-                f"{key}.omega" if omega is None else f"{key}.rpm",
-            )
-        if omega is not None:
-            w = read_number(omega, f"{key}.omega", f, hint=" (angular speed in rad/s)")
-        else:
-            w = read_number(rpm, f"{key}.rpm", f, hint=" (revolutions per minute)") * 2.0 * math.pi / 60.0
-        mat = self.material_index(material, key=f"{key}.material")
-        name = self.material_names[mat]
-        radial = _drum_radial(a, n)
-        tangent = np.cross(np.broadcast_to(a, radial.shape), radial)
-        slab = self._box_shape((2.0 * r * math.tan(math.pi / n), length, t))
-        quats = np.array([quat_from_matrix(np.column_stack([tangent[k], a, radial[k]])) for k in range(n)])
-        omega_vec = np.broadcast_to(w * a, (n, 3))
-        zeros = np.zeros((n, 3))
-        idx = [
-            self.append_bodies(
-                self.shape_index(slab),
-                mat,
-                c + (r + 0.5 * t) * radial,
-                quats,
-                zeros,
-                omega_vec,
-                KIND_KINEMATIC,
-                lambda i: key,
-                np.broadcast_to(c, (n, 3)),
-            )
-        ]
-        if caps:
-            idx.append(self._drum_caps(c, a, n, r, t, length, w, mat, key))
-        drum = Drum(
-            center=as_tuple(c),
-            axis=as_tuple(a),
-            radius=r,
-            length=length,
-            sides=n,
-            thickness=t,
-            omega=w,
-            material=name,
-            caps=caps,
-            bodies=tuple(int(i) for i in np.concatenate(idx)),
-        )
-        self.drums.append(drum)
-        return drum
-
-    def _drum_caps(self, c, a, n, r, t, length, w, mat, key) -> np.ndarray:
-        """Add the two end plates of a drum (see :meth:`add_drum`); returns their indices."""
-        rho = (r + t) / math.cos(math.pi / n) ** 2
-        spec = {"type": "prism", "n": n, "radius": rho, "height": t}
-        cap_name = self._shape_for_spec(
-            f"drum_cap_{n}_{rho:.6g}x{t:.6g}", spec, lambda nm: ConvexShape.prism(n, rho, t, name=nm)
-        )
-        e1, e2 = _perpendicular_basis(a)
-        q_cap = quat_from_matrix(np.column_stack([e1, e2, a]))
-        ends = np.array([c + (0.5 * length + 0.5 * t) * a, c - (0.5 * length + 0.5 * t) * a])
-        return self.append_bodies(
-            self.shape_index(cap_name),
+    v = DRUM.read({"omega": omega, "rpm": rpm}, key, scene.file)
+    w = v["omega"] if omega is not None else v["rpm"] * 2.0 * math.pi / 60.0
+    mat = scene.material_index(material, key=f"{key}.material")
+    name = scene.material_names[mat]
+    radial = _drum_radial(a, n)
+    tangent = np.cross(np.broadcast_to(a, radial.shape), radial)
+    slab = _box_shape(scene, (2.0 * r * math.tan(math.pi / n), length, t))
+    quats = np.array([quat_from_matrix(np.column_stack([tangent[k], a, radial[k]])) for k in range(n)])
+    omega_vec = np.broadcast_to(w * a, (n, 3))
+    zeros = np.zeros((n, 3))
+    idx = [
+        append_bodies(
+            scene,
+            scene.shape_index(slab),
             mat,
-            ends,
-            np.tile(q_cap, (2, 1)),
-            np.zeros((2, 3)),
-            np.tile(w * a, (2, 1)),
+            c + (r + 0.5 * t) * radial,
+            quats,
+            zeros,
+            omega_vec,
             KIND_KINEMATIC,
             lambda i: key,
-            np.tile(c, (2, 1)),
+            np.broadcast_to(c, (n, 3)),
         )
+    ]
+    if caps:
+        idx.append(_drum_caps(scene, c, a, n, r, t, length, w, mat, key))
+    drum = Drum(
+        center=as_tuple(c),
+        axis=as_tuple(a),
+        radius=r,
+        length=length,
+        sides=n,
+        thickness=t,
+        omega=w,
+        material=name,
+        caps=caps,
+        bodies=tuple(int(i) for i in np.concatenate(idx)),
+    )
+    scene.wall_table.drums.append(drum)
+    return drum
+
+
+def _drum_caps(scene, c, a, n, r, t, length, w, mat, key) -> np.ndarray:
+    """Add the two end plates of a drum (see :meth:`Scene.add_drum`); returns their indices."""
+    rho = (r + t) / math.cos(math.pi / n) ** 2
+    spec = {"type": "prism", "n": n, "radius": rho, "height": t}
+    cap_name = _shape_for_spec(
+        scene, f"drum_cap_{n}_{rho:.6g}x{t:.6g}", spec, lambda nm: ConvexShape.prism(n, rho, t, name=nm)
+    )
+    e1, e2 = _perpendicular_basis(a)
+    q_cap = quat_from_matrix(np.column_stack([e1, e2, a]))
+    ends = np.array([c + (0.5 * length + 0.5 * t) * a, c - (0.5 * length + 0.5 * t) * a])
+    return append_bodies(
+        scene,
+        scene.shape_index(cap_name),
+        mat,
+        ends,
+        np.tile(q_cap, (2, 1)),
+        np.zeros((2, 3)),
+        np.tile(w * a, (2, 1)),
+        KIND_KINEMATIC,
+        lambda i: key,
+        np.tile(c, (2, 1)),
+    )

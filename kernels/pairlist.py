@@ -1,0 +1,306 @@
+"""The pair list after a broad-phase rebuild: what each pair carries, found again by its key, and
+the order the gather walks.
+
+A rebuild (:class:`polydem.contacts.Contacts`) replaces the candidate pairs. Each pair's history
+(turning volume, friction spring) and, while an interval of contact forces is averaged, its sums
+(:class:`~polydem.kernels.forces.ContactSums`) go with its key ``a * N + b``: a pair found again
+keeps them, a new pair starts from zero, and the sums of a pair that left the list after it was in
+contact are appended to a list of retired pairs. The gather (:mod:`polydem.kernels.forces`) then
+needs each body's range in the pairs sorted by A (the keys) and by B (sorted here).
+
+No floating-point arithmetic: every kernel is deterministic by construction.
+"""
+
+import functools
+from typing import Protocol
+
+import warp as wp
+from polydem.kernels.forces import ContactSums
+
+
+class PairHistoryArrays(Protocol):
+    """A pair list's history by key (:class:`polydem.contacts.PairHistory`): ``key`` (C,) int64, increasing
+    over the first ``count[0]`` entries; ``xi`` (C,) vec3 springs ((1,) without friction); ``turn`` (C,)."""
+
+    key: wp.array
+    count: wp.array
+    xi: wp.array
+    turn: wp.array
+
+
+@wp.func
+def lower_bound(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
+    lo = int(0)
+    hi = count
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
+def copy_sums(src: ContactSums, j: int, dst: ContactSums, k: int):
+    # Contact j's sums of src into slot k of dst (a rebuild moves or retires them).
+    dst.force[k] = src.force[j]
+    dst.tangential[k] = src.tangential[j]
+    dst.normal[k] = src.normal[j]
+    dst.point[k] = src.point[j]
+    dst.steps[k] = src.steps[j]
+
+
+@wp.kernel(enable_backward=False)
+def b_keys_kernel(
+    # Model
+    num_bodies: int,
+    sentinel: wp.int64,
+    # State in
+    pair_a: wp.array(dtype=int),
+    pair_b: wp.array(dtype=int),
+    pair_count: wp.array(dtype=int),
+    # Out
+    keys_b: wp.array(dtype=wp.int64),
+    pair_by_b: wp.array(dtype=int),
+):
+    """Keys ``b * N + a`` (sentinel past the count) with the pair index, to sort by the B body."""
+    p = wp.tid()
+    if p < pair_count[0]:
+        keys_b[p] = wp.int64(pair_b[p]) * wp.int64(num_bodies) + wp.int64(pair_a[p])
+    else:
+        keys_b[p] = sentinel
+    pair_by_b[p] = p
+
+
+@wp.kernel(enable_backward=False)
+def body_ranges_kernel(
+    # Model
+    num_bodies: int,
+    # State in
+    pair_key: wp.array(dtype=wp.int64),
+    keys_b: wp.array(dtype=wp.int64),
+    pair_count: wp.array(dtype=int),
+    # Out
+    body_pairs_a: wp.array(dtype=wp.vec2i),
+    body_pairs_b: wp.array(dtype=wp.vec2i),
+):
+    """Each body's ranges in the pairs sorted by (a, b) and in those sorted by (b, a)."""
+    i = wp.tid()
+    count = pair_count[0]
+    n = wp.int64(num_bodies)
+    lo = wp.int64(i) * n
+    hi = lo + n
+    body_pairs_a[i] = wp.vec2i(lower_bound(pair_key, count, lo), lower_bound(pair_key, count, hi))
+    body_pairs_b[i] = wp.vec2i(lower_bound(keys_b, count, lo), lower_bound(keys_b, count, hi))
+
+
+@functools.cache
+def make_remap_history_kernel(scalar):
+    """The kernel that carries the pair history (in ``scalar``) over a rebuild."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def remap_history_kernel(
+        # State in
+        old_key: wp.array(dtype=wp.int64),
+        old_count: wp.array(dtype=int),
+        old_xi: wp.array(dtype=vec3),
+        old_turn: wp.array(dtype=scalar),
+        new_key: wp.array(dtype=wp.int64),
+        new_count: wp.array(dtype=int),
+        friction: int,
+        # Out
+        new_xi: wp.array(dtype=vec3),
+        new_turn: wp.array(dtype=scalar),
+    ):
+        """Carries each pair's history (turning volume; friction spring, with ``friction``) over a
+        rebuild, matched by the pair's key."""
+        p = wp.tid()
+        xi = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        turn = scalar(0.0)
+        if p < new_count[0]:
+            key = new_key[p]
+            count = old_count[0]
+            j = lower_bound(old_key, count, key)
+            if j < count and old_key[j] == key:
+                turn = old_turn[j]
+                if friction != 0:
+                    xi = old_xi[j]
+        new_turn[p] = turn
+        if friction != 0:
+            new_xi[p] = xi
+
+    return remap_history_kernel
+
+
+@wp.kernel(enable_backward=False)
+def remap_sums_kernel(
+    # State in
+    old_key: wp.array(dtype=wp.int64),
+    old_count: wp.array(dtype=int),
+    old_sums: ContactSums,
+    new_key: wp.array(dtype=wp.int64),
+    new_count: wp.array(dtype=int),
+    # Out
+    new_sums: ContactSums,
+):
+    """Carries each pair's sums of an averaging interval over a rebuild, matched by the pair's key
+    (zero for a new pair and past the count)."""
+    p = wp.tid()
+    if p < new_count[0]:
+        key = new_key[p]
+        count = old_count[0]
+        j = lower_bound(old_key, count, key)
+        if j < count and old_key[j] == key:
+            copy_sums(old_sums, j, new_sums, p)
+            return
+    zero3 = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    new_sums.force[p] = zero3
+    new_sums.tangential[p] = zero3
+    new_sums.normal[p] = wp.float64(0.0)
+    new_sums.point[p] = zero3
+    new_sums.steps[p] = 0
+
+
+@wp.kernel(enable_backward=False)
+def retire_sums_kernel(
+    # State in
+    old_key: wp.array(dtype=wp.int64),
+    old_count: wp.array(dtype=int),
+    old_sums: ContactSums,
+    new_key: wp.array(dtype=wp.int64),
+    new_count: wp.array(dtype=int),
+    # In/out
+    retired_key: wp.array(dtype=wp.int64),
+    retired: ContactSums,
+    retired_count: wp.array(dtype=int),
+    overflow: wp.array(dtype=int),
+):
+    """Appends the sums of each pair that a rebuild drops from the list after it was in contact in
+    the interval, so that they count in the average. The slots are taken atomically: entries of
+    different keys may come in any order, but those of one key are in the order of the rebuilds
+    (one launch each); past the capacity, ``overflow`` is set (the chunk is redone with more room)."""
+    p = wp.tid()
+    if p >= old_count[0]:
+        return
+    if old_sums.steps[p] == 0:
+        return
+    key = old_key[p]
+    count = new_count[0]
+    j = lower_bound(new_key, count, key)
+    if j < count and new_key[j] == key:
+        return
+    slot = wp.atomic_add(retired_count, 0, 1)
+    if slot >= retired_key.shape[0]:
+        wp.atomic_max(overflow, 0, 1)
+        return
+    retired_key[slot] = key
+    copy_sums(old_sums, p, retired, slot)
+
+
+# ---------------------------------------------------------------------------------------------
+# Launch functions
+# ---------------------------------------------------------------------------------------------
+
+
+def launch_remap_history(
+    *,
+    old: PairHistoryArrays,
+    new_key: wp.array,
+    new_count: wp.array,
+    friction: bool,
+    new_xi: wp.array,
+    new_turn: wp.array,
+) -> None:
+    """Give each pair of the list ``new_key`` (its first ``new_count[0]`` entries) the history of
+    ``old`` under the same key, into ``new_xi`` (with ``friction``) and ``new_turn``; zero for a new
+    pair and past the count. The kernel is in the scalar of ``new_turn``."""
+    wp.launch(
+        make_remap_history_kernel(new_turn.dtype),
+        dim=new_turn.shape[0],
+        inputs=[old.key, old.count, old.xi, old.turn, new_key, new_count, int(friction)],
+        outputs=[new_xi, new_turn],
+        device=new_turn.device,
+    )
+
+
+def launch_retire_sums(
+    *,
+    old_key: wp.array,
+    old_count: wp.array,
+    old_sums: ContactSums,
+    new_key: wp.array,
+    new_count: wp.array,
+    retired_key: wp.array,
+    retired: ContactSums,
+    retired_count: wp.array,
+    overflow: wp.array,
+) -> None:
+    """Append to ``retired`` the sums of each pair of ``old_key`` that is not in ``new_key`` and was in
+    contact in the interval (``overflow`` set where ``retired_key`` has no room left)."""
+    wp.launch(
+        retire_sums_kernel,
+        dim=old_sums.steps.shape[0],
+        inputs=[old_key, old_count, old_sums, new_key, new_count],
+        outputs=[retired_key, retired, retired_count, overflow],
+        device=old_key.device,
+    )
+
+
+def launch_remap_sums(
+    *,
+    old_key: wp.array,
+    old_count: wp.array,
+    old_sums: ContactSums,
+    new_key: wp.array,
+    new_count: wp.array,
+    new_sums: ContactSums,
+) -> None:
+    """Give each pair of ``new_key`` the sums of ``old_sums`` under the same key (zero for a new pair)."""
+    wp.launch(
+        remap_sums_kernel,
+        dim=new_sums.steps.shape[0],
+        inputs=[old_key, old_count, old_sums, new_key, new_count],
+        outputs=[new_sums],
+        device=new_key.device,
+    )
+
+
+def launch_body_ranges(
+    *,
+    num_bodies: int,
+    sentinel: int,
+    key_bits: int,
+    pair_a: wp.array,
+    pair_b: wp.array,
+    pair_key: wp.array,
+    pair_count: wp.array,
+    keys_b: wp.array,
+    by_b: wp.array,
+    body_pairs_a: wp.array,
+    body_pairs_b: wp.array,
+) -> None:
+    """Order the pairs (C of ``pair_a``'s length) by their B body and find each body's ranges.
+
+    ``keys_b``, ``by_b``: (2C,) int64 and int32, the radix sort's keys and values (the upper half is its
+    scratch); ``by_b[:C]`` ends as the pair indices ordered by B. ``sentinel``, ``key_bits``: the key
+    past the last pair and the bits of the keys (as the broad phase's). ``body_pairs_a``,
+    ``body_pairs_b``: (N,) vec2i, each body's range in the pairs by A (``pair_key``) and by B."""
+    capacity = pair_a.shape[0]
+    device = pair_a.device
+    wp.launch(
+        b_keys_kernel,
+        dim=capacity,
+        inputs=[num_bodies, sentinel, pair_a, pair_b, pair_count],
+        outputs=[keys_b, by_b],
+        device=device,
+    )
+    wp.utils.radix_sort_pairs(keys_b, by_b, capacity, 0, key_bits)
+    wp.launch(
+        body_ranges_kernel,
+        dim=num_bodies,
+        inputs=[num_bodies, pair_key, keys_b, pair_count],
+        outputs=[body_pairs_a, body_pairs_b],
+        device=device,
+    )
