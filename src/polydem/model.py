@@ -180,6 +180,7 @@ class Model:
         self.plane_material = arr(np.array([mat_index[p.material] for p in planes], dtype=np.int32), int)
         # The initial state's rows (state()): views of the scene's arrays, or the copies of the slice.
         self._initial = {k: rows[k] for k in ("position", "orientation", "velocity", "angular_velocity")}
+        self._motions(scene, dev)
         self.bytes = sum(
             a.capacity
             for a in (
@@ -235,6 +236,33 @@ class Model:
         self.mesh_w = arr(np.array([w.angular_velocity for w in walls], dtype=s_np), vec3s)
         self.mesh_moves = any(w.moving for w in walls)
         self.mesh_q0 = np.array([[*w.pivot, 0.0, 0.0, 0.0, 1.0] for w in walls], dtype=np.float64)
+
+    def _motions(self, scene, dev):
+        """The container motions (:mod:`polydem.scene.motions`, kernels/motion.py): per motion its axis,
+        amplitude [m], angular frequency [rad/s], start [s], period [s] and count; per body of the model the
+        index of the motion it follows (-1: none) and its position at rest [m], as the state's poses hold it."""
+        names = list(scene.motions)
+        which = {name: k for k, name in enumerate(names)}
+        motion = np.array([which.get(scene.body_motion.get(int(i)), -1) for i in self.body_index], dtype=np.int32)
+        self.has_motions = bool((motion >= 0).any())
+        if not self.has_motions:
+            return
+        ms = [scene.motions[name] for name in names]
+
+        def f64(values):
+            return wp.array(np.array(values, dtype=np.float64), dtype=wp.float64, device=dev)
+
+        self.motion_arrays = (
+            wp.array(np.array([m.axis for m in ms], dtype=np.float64), dtype=wp.vec3d, device=dev),
+            f64([m.amplitude_in(scene.gravity) for m in ms]),
+            f64([m.omega for m in ms]),
+            f64([m.start for m in ms]),
+            f64([m.cycle_period() for m in ms]),
+            wp.array(np.array([m.count for m in ms], dtype=np.int32), dtype=int, device=dev),
+        )
+        self.body_motion = wp.array(motion, dtype=int, device=dev)
+        rest = np.asarray(self._initial["position"], dtype=np.float64)
+        self.body_rest = wp.array(rest, dtype=wp.vec3d, device=dev)
 
     def state(self):
         """The initial :class:`~polydem.state.State` of the model's bodies: their poses and velocities in the

@@ -60,6 +60,7 @@ from polydem.kernels.integrate import (
     launch_settle_measures,
 )
 from polydem.kernels.meshwall import MeshWallState, launch_advance_meshes, launch_mesh_contacts, make_mesh_kernels
+from polydem.kernels.motion import launch_drive_bodies
 from polydem.model import Model
 from polydem.run_settings import RunSettings, run_settings
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
@@ -266,6 +267,10 @@ class Stepper:
         if self.mesh_kernels is not None and m.mesh_moves:
             launch_advance_meshes(self.mesh_kernels[1], mesh_v=m.mesh_v, mesh_w=m.mesh_w, dt=dt, mesh_q=state.mesh_q)
         launch_count_step(state.step_count)
+        if m.has_motions:
+            # The driven containers' poses at the end of this step, from the counter just advanced.
+            launch_drive_bodies(m.motion_arrays, m.body_motion, m.body_rest, state.step_count, 0, dt, state.body_q,
+                                state.body_v, device=self.device)  # fmt: skip
         launch_check_state(
             model=m,
             state=state,

@@ -41,6 +41,7 @@ BODY = Table(
         Key("angular_velocity", "vector", unit="rad/s", range=SPEED, why=SPEED_WHY, default=(0.0, 0.0, 0.0)),
         Key("kind", "choice", choices=KINDS, what="body kind", default="free"),
         Key("pivot", "vector", unit="m"),
+        Key("motion", "string", what="a motion name", hint="the [motions.NAME] a kinematic body follows"),
     ),
 )
 """A ``[[bodies]]`` table: the arguments of :meth:`Scene.add_body` (``rotation`` is read into ``orientation``)."""

@@ -27,10 +27,11 @@ from polydem.scene import checks, loader, overlaps
 from polydem.scene import emitters as scene_emitters
 from polydem.scene import materials as scene_materials
 from polydem.scene import walls as scene_walls
-from polydem.scene.bodies import BODY, Body, BodyTable
+from polydem.scene.bodies import BODY, KINDS, Body, BodyTable
 from polydem.scene.emitters import EMITTER
 from polydem.scene.errors import SceneError, SceneWarning, unknown_name
 from polydem.scene.materials import LAW_UNITS, Material, MaterialTable, PairMaterial
+from polydem.scene.motions import MOTION, Motion
 from polydem.scene.output import Output
 from polydem.scene.settings import SETTING_NAMES, SIMULATION, read_settings
 from polydem.scene.values import typename
@@ -106,6 +107,8 @@ class Scene:
         self.body_table = BodyTable()
         self.material_table = MaterialTable()
         self.wall_table = WallTable()
+        self.motions: dict[str, Motion] = {}  # name -> Motion ([motions.NAME])
+        self.body_motion: dict[int, str] = {}  # driven body index -> the name of its motion
         self.emitters: list[dict] = []
         self.scaled_shapes: dict[tuple[int, float], int] = {}
 
@@ -330,6 +333,7 @@ class Scene:
         kind: str = BODY.defaults["kind"],
         *,
         pivot=BODY.defaults["pivot"],
+        motion: str | None = BODY.defaults["motion"],
         key: str | None = None,
     ) -> int:
         """Add one body; returns its index.
@@ -346,11 +350,22 @@ class Scene:
             pivot: (3,) for a kinematic body only: a fixed point [m] the body turns about at
                 ``angular_velocity``; its velocity is then derived, ``angular_velocity x (centroid -
                 pivot)``, so leave ``velocity`` at zero.
+            motion: for a kinematic body only: the name of a registered motion (:meth:`add_motion`) it
+                follows from its position at t = 0 (:meth:`drive`).
             key: where the value came from, for error messages (default ``bodies[N]``).
         """
-        return scene_bodies.add_body(
+        key = key or f"bodies[{self.num_bodies}]"
+        if motion is not None:
+            self.motion_named(motion, f"{key}.motion")
+            if kind != "kinematic":
+                raise self.error(f"only a kinematic body follows a motion, this one is {kind!r}: give kind = "
+                                 "'kinematic' or leave motion out", f"{key}.motion")  # fmt: skip
+        index = scene_bodies.add_body(
             self, shape, material, position, orientation, velocity, angular_velocity, kind, pivot=pivot, key=key
         )
+        if motion is not None:
+            self.drive([index], motion, key=f"{key}.motion")
+        return index
 
     def add_bodies(
         self,
@@ -537,6 +552,38 @@ class Scene:
         run at every validation and the Model reuses them; the cells only change with the thickness)."""
         return scene_walls.mesh_wall_cells(self, wall, thickness)
 
+    def add_motion(self, name: str, frequency, **props) -> Motion:
+        """Register a prescribed motion (vibration or taps, :class:`~polydem.scene.motions.Motion`) that box
+        containers (``add_box_container(..., motion=name)``) and kinematic bodies (:meth:`drive`) follow;
+        ``props`` are its other fields (amplitude or gamma, axis, start, period, count)."""
+        if name in self.motions:
+            raise self.error(f"motion {name!r} is already defined; give each motion its own name", f"motions.{name}")
+        try:
+            motion = Motion(name=name, frequency=frequency, **props)
+        except TypeError as exc:
+            raise self.error(f"{exc}; a motion takes {', '.join(MOTION.names)}", f"motions.{name}") from None
+        motion.amplitude_in(self.gravity)  # gamma needs gravity: refuse it now, not at the run
+        self.motions[name] = motion
+        return motion
+
+    def motion_named(self, name, key: str) -> Motion:
+        """The registered motion ``name``; a SceneError about ``key`` where there is none."""
+        if not isinstance(name, str) or name not in self.motions:
+            how = "define one with [motions.NAME] or Scene.add_motion()"
+            raise self.error(unknown_name(str(name), self.motions, "motion", how), key)
+        return self.motions[name]
+
+    def drive(self, bodies, motion: str, *, key: str | None = None) -> None:
+        """Move the kinematic ``bodies`` (indices) by the registered ``motion`` from their positions at t = 0."""
+        key = key or "motion"
+        self.motion_named(motion, key)
+        kind = np.asarray(self.body_kind)
+        for i in np.atleast_1d(np.asarray(bodies, dtype=np.int64)).tolist():
+            if not 0 <= i < self.num_bodies or kind[i] != KINDS.index("kinematic"):
+                raise self.error(f"body {i} is not a kinematic body of this scene: only kinematic bodies follow a "
+                                 "motion (kind = 'kinematic')", key)  # fmt: skip
+            self.body_motion[int(i)] = motion
+
     def add_box_container(
         self,
         center,
@@ -545,6 +592,7 @@ class Scene:
         wall_thickness=BOX.defaults["wall_thickness"],
         open_top: bool = BOX.defaults["open_top"],
         *,
+        motion: str | None = None,
         key: str | None = None,
     ) -> list[int]:
         """Add an axis-aligned box container made of fixed box-shaped bodies; returns their indices.
@@ -556,7 +604,9 @@ class Scene:
         The needed box shapes are registered as ``"wall_box_{sx}x{sy}x{sz}"``. ``key`` is where the
         value came from, for error messages (default ``box_container``).
         """
-        return scene_walls.add_box_container(self, center, inner_size, material, wall_thickness, open_top, key=key)
+        return scene_walls.add_box_container(
+            self, center, inner_size, material, wall_thickness, open_top, motion=motion, key=key
+        )
 
     def add_drum(
         self,

@@ -13,6 +13,7 @@ from polydem.scene.bodies import BODY, KINDS
 from polydem.scene.emitters import EMITTER
 from polydem.scene.errors import SceneError
 from polydem.scene.materials import MATERIAL
+from polydem.scene.motions import MOTION
 from polydem.scene.output import Output
 from polydem.scene.schema import Key, Table
 from polydem.scene.settings import SIMULATION, write_settings
@@ -22,7 +23,10 @@ from polydem.scene.walls import MESH, WALL_TYPES
 
 SCENE = Table(
     "a scene file",
-    tuple(Key(name, "any") for name in ("simulation", "materials", "shapes", "bodies", "walls", "emitters", "output")),
+    tuple(
+        Key(name, "any")
+        for name in ("simulation", "materials", "motions", "shapes", "bodies", "walls", "emitters", "output")
+    ),
 )
 """The sections of a scene file."""
 
@@ -61,6 +65,7 @@ def _build(cls, data, file, base_dir: Path, validate):
     SCENE.check(data, "", file)
     scene = _read_simulation(cls, data, file)
     _read_materials(scene, data, file)
+    _read_motions(scene, data, file)
     _read_shapes(scene, data, file, base_dir)
     _read_bodies(scene, data, file)
     _read_walls(scene, data, file, base_dir)
@@ -112,6 +117,18 @@ def _read_materials(scene, data, file):
             what=f"a table [materials.{name}] with {', '.join(MATERIAL.required)}",
         )
         scene.add_material(name, **props)
+
+
+def _read_motions(scene, data, file):
+    motions = read_table(data.get("motions", {}), "motions", file, what="tables [motions.NAME], one per motion")
+    for name, props in motions.items():
+        props = read_table(props, f"motions.{name}", file, what=f"a table [motions.{name}] with {MOTION.required[0]}")
+        MOTION.check(props, f"motions.{name}", file)
+        try:
+            scene.add_motion(name, **props)
+        except SceneError as err:
+            err.file = file
+            raise
 
 
 def _read_shapes(scene, data, file, base_dir: Path):
@@ -217,6 +234,7 @@ def scene_dict(scene) -> dict:
     return {
         "simulation": sim,
         "materials": {name: m.to_dict() for name, m in scene.materials.items()},
+        **({"motions": {name: m.to_dict() for name, m in scene.motions.items()}} if scene.motions else {}),
         "shapes": shapes,
         "bodies": _body_tables(scene),
         "walls": [p.to_dict() for p in scene.planes] + [w.to_dict() for w in scene.mesh_walls],
@@ -240,5 +258,6 @@ def _body_tables(scene) -> list[dict]:
         "angular_velocity": scene.body_angular_velocity.tolist(),
         "kind": [KINDS[k] for k in scene.body_kind.tolist()],
         "pivot": [v if p else None for p, v in zip(pivoted, pivots.tolist(), strict=True)],
+        "motion": [scene.body_motion.get(i) for i in range(scene.num_bodies)],
     }
     return BODY.write_rows(columns)

@@ -41,9 +41,11 @@ BOX = Table(
         _MATERIAL,
         Key("wall_thickness", unit="m", range=LENGTH, why=LENGTH_WHY, hint="in m"),
         Key("open_top", "boolean", default=True),
+        Key("motion", "string", what="a motion name", hint="the [motions.NAME] its slabs follow"),
     ),
 )
-"""A box container of fixed slabs: the arguments of :meth:`Scene.add_box_container`."""
+"""A box container of fixed slabs (kinematic ones that follow ``motion``): the arguments of
+:meth:`Scene.add_box_container`."""
 
 DRUM = Table(
     "[[walls]] type = 'drum'",
@@ -479,6 +481,7 @@ def add_box_container(
     wall_thickness=BOX.defaults["wall_thickness"],
     open_top: bool = BOX.defaults["open_top"],
     *,
+    motion: str | None = None,
     key: str | None = None,
 ) -> list[int]:
     """:meth:`Scene.add_box_container <polydem.scene.Scene.add_box_container>` of ``scene``."""
@@ -512,10 +515,15 @@ def add_box_container(
     ]
     if not open_top:
         walls.append(((lx + 2 * t, ly + 2 * t, t), (0.0, 0.0, 0.5 * (lz + t))))
+    if motion is not None:
+        scene.motion_named(motion, f"{key}.motion")
     indices = []
     for dims, offset in walls:
         name = _box_shape(scene, dims)
-        indices.append(scene.add_body(name, material, position=c + np.array(offset), kind="fixed"))
+        kind = "fixed" if motion is None else "kinematic"
+        indices.append(scene.add_body(name, material, position=c + np.array(offset), kind=kind))
+    if motion is not None:
+        scene.drive(indices, motion, key=f"{key}.motion")
     return indices
 
 

@@ -1,0 +1,218 @@
+"""Janssen's saturation of the pressure in a silo with wall friction (VALIDATION.md, section 1).
+
+A square silo of inner width W is filled with cubes poured at rest from above and left to settle. In
+Janssen's model (1895) the vertical stress at a depth h below the free surface of a column whose walls
+carry weight by friction is
+
+    sigma_zz(h) = rho_b g lambda (1 - exp(-h / lambda)),   lambda = (A / P) / (mu_w K) = W / (4 mu_w K),
+
+rho_b the bulk density, mu_w the grain-wall friction coefficient and K the ratio of the horizontal to the
+vertical stress. The run measures sigma_zz(h) (Love-Weber, horizontal slabs over the whole cross-section,
+wall contacts included) and rho_b (the exact packing fraction of the same slabs), fits lambda (one
+parameter: rho_b is measured), and reports K = W / (4 mu_w lambda) beside Jaky's K0 = 1 - sin(phi) for
+the internal friction angle phi = atan(mu) and Rankine's active K_a = (1 - sin phi) / (1 + sin phi),
+the usual bounds. The floor's load is also reported as the apparent mass M_app = F_floor / g against the
+mass of the grains (Janssen's own measurement): the walls carry the rest.
+
+Material parameters are set, not fitted: mu = 0.5 between grains, mu_w = 0.3 with the walls, e = 0.3,
+glass-like density 2500 kg/m^3 and the Hertz-type law at the stiffness the scene's default rule gives.
+
+    python benchmarks/validation/janssen.py --size small            # CPU, about 300 grains (CI)
+    python benchmarks/validation/janssen.py --device cuda:0 --size full   # W = 10 d, H ~ 60 d
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE.parent / "results" / "validation"
+
+SIZES = {  # the silo's width in grain sizes, and the grains to pour
+    "small": {"width": 6, "grains": 300},
+    "medium": {"width": 8, "grains": 1200},
+    "full": {"width": 12, "grains": 5000},
+}
+
+
+def build(width_d: int, grains: int, *, d: float, mu: float, mu_w: float, k: float, seed: int, precision: str):
+    import polydem
+
+    # The pour region: the silo's section, a grid of cells 1.1 bounding diameters wide (the emitter's), as
+    # many layers as the grains need; they fall from rest and settle in the bottom of the silo.
+    w = width_d * d
+    margin = 0.02 * d
+    cell = 1.1 * math.sqrt(3.0) * d
+    across = int((w - 2.0 * margin) // cell)
+    layers = math.ceil(grains / across**2)
+    fill = 0.6 * d + 1.02 * layers * cell
+    sc = polydem.Scene(gravity=(0.0, 0.0, -9.81), dt="auto", name="janssen", precision=precision)
+    sc.add_material("grain", density=2500.0, k=k, restitution=0.3, friction=mu, law="hertz")
+    sc.add_material("wall", density=2500.0, k=k, restitution=0.3, friction=mu_w, law="hertz")
+    sc.add_shape("cube", polydem.ConvexShape.box(d))
+    sc.add_box_container((0.0, 0.0, 0.5 * (fill + d)), (w, w, fill + d), "wall")
+    lo = (-0.5 * w + margin, -0.5 * w + margin, 0.6 * d)
+    hi = (0.5 * w - margin, 0.5 * w - margin, fill)
+    sc.emit("cube", "grain", grains, (lo, hi), seed=seed)
+    return sc
+
+
+def janssen_fit(depth, sigma, rho_g):
+    """lambda [m] of sigma = rho_g lambda (1 - exp(-h / lambda)) by least squares (a scan, then a refinement),
+    and the residual's rms [Pa]."""
+
+    def rms(lam):
+        return float(np.sqrt(np.mean((rho_g * lam * (1.0 - np.exp(-depth / lam)) - sigma) ** 2)))
+
+    grid = np.geomspace(1e-3 * depth.max() + 1e-12, 1e3 * depth.max(), 2001)
+    best = grid[int(np.argmin([rms(x) for x in grid]))]
+    fine = np.geomspace(best / 1.01, best * 1.01, 2001)
+    best = fine[int(np.argmin([rms(x) for x in fine]))]
+    return float(best), rms(best)
+
+
+def run(args) -> dict:
+    import warp as wp
+
+    wp.config.quiet = True
+    from polydem import Simulation, measures
+    from polydem.settle import SettleCriterion
+
+    size = SIZES[args.size]
+    d = args.grain
+    sc = build(size["width"], size["grains"], d=d, mu=args.mu, mu_w=args.mu_w, k=args.k, seed=args.seed,
+               precision=args.precision)  # fmt: skip
+    sim = Simulation(sc, device=args.device)
+    t0 = time.perf_counter()
+    settled = sim.run_until_settled(args.max_time, SettleCriterion())
+    wall = time.perf_counter() - t0
+
+    g = measures.Grains.from_simulation(sim)
+    contacts = sim.contacts()
+    free = g.free
+    pos = g.position[free]
+    top = float(np.percentile(pos[:, 2], 95.0))  # the free surface: the top 5% are a loose layer
+    w = size["width"] * d
+    floor = 0.0
+    section = measures.Box((-0.5 * w, -0.5 * w, floor), (0.5 * w, 0.5 * w, top))
+    bin_width = 2.0 * d
+    packing = measures.packing_profile(g, axis=2, bin_width=bin_width, box=section)
+    stress = measures.stress_profile(g, axis=2, bin_width=bin_width, box=section, contacts=contacts)
+    sigma_zz = stress.stress[:, 2, 2]
+    depth = top - stress.centres
+    rho_s = 2500.0
+    # The bulk density of the column below its top layer (the top slab is partly empty).
+    inner = depth > bin_width
+    phi = float(np.sum(packing.solid_volume[inner]) / np.sum(packing.slab_volume[inner]))
+    rho_g = phi * rho_s * 9.81
+    lam, res = janssen_fit(depth[inner], sigma_zz[inner], rho_g)
+    k_fit = w / (4.0 * args.mu_w * lam)
+    phi_int = math.atan(args.mu)
+    k_jaky = 1.0 - math.sin(phi_int)
+    k_rankine = (1.0 - math.sin(phi_int)) / (1.0 + math.sin(phi_int))
+
+    # The floor's load: the normal force of the contacts with the floor slab (the container's first body).
+    kinds = np.asarray(sc.body_kind)
+    floor_body = int(np.flatnonzero(kinds != 0)[0])
+    a, b = contacts["body_a"], contacts["body_b"]
+    on_floor = (a == floor_body) | (b == floor_body)
+    on_a = -contacts["normal_force"][:, None] * contacts["normal"] + contacts["tangential_force"]
+    sign = np.where(a[on_floor] == floor_body, -1.0, 1.0)  # the grain is B where the floor is A
+    f_floor = float(np.sum(sign * on_a[on_floor, 2]))  # the floor's upward push on the grains
+    mass = float(np.sum(g.volumes()[free]) * rho_s)
+    height = top - floor
+    m_janssen = phi * rho_s * w * w * lam * (1.0 - math.exp(-height / lam))
+    # The force balance of the free grains: the floor, the side walls and gravity (at rest: sum 0).
+    grain_of = np.where(a < 0, a, np.where(np.isin(a, np.flatnonzero(kinds != 0)), b, a))
+    walls_z = 0.0
+    for row in range(len(a)):
+        if row in np.flatnonzero(on_floor):
+            continue
+        other = b[row] if grain_of[row] == a[row] else a[row]
+        if other < 0 or kinds[other] != 0:
+            walls_z += on_a[row, 2] if grain_of[row] == a[row] else -on_a[row, 2]
+    if args.checkpoint:
+        from polydem.checkpoint import save_checkpoint
+
+        save_checkpoint(sim, args.checkpoint)
+    out = {
+        "size": args.size,
+        "grains": int(free.sum()),
+        "grain": d,
+        "width": w,
+        "fill_height": height,
+        "mu": args.mu,
+        "mu_w": args.mu_w,
+        "k": sim.model.material_k.numpy().tolist() if hasattr(sim.model, "material_k") else args.k,
+        "settled": bool(settled.settled),
+        "settle_time": settled.time,
+        "wall_s": wall,
+        "packing_fraction": phi,
+        "depth": depth.tolist(),
+        "sigma_zz": sigma_zz.tolist(),
+        "sigma_xx_yy": (0.5 * (stress.stress[:, 0, 0] + stress.stress[:, 1, 1])).tolist(),
+        "hydrostatic_sigma_zz": (rho_g * depth).tolist(),
+        "lambda": lam,
+        "fit_rms": res,
+        "K_fit": k_fit,
+        "K_ratio_measured": float(
+            np.median(0.5 * (stress.stress[inner, 0, 0] + stress.stress[inner, 1, 1]) / sigma_zz[inner])
+        ),  # fmt: skip
+        "K_jaky": k_jaky,
+        "K_rankine_active": k_rankine,
+        "floor_apparent_mass": f_floor / 9.81,
+        "side_walls_apparent_mass": walls_z / 9.81,
+        "grain_mass": mass,
+        "janssen_apparent_mass": m_janssen,
+    }
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--size", default="small", choices=sorted(SIZES))
+    ap.add_argument("--grain", type=float, default=0.01, help="cube edge d [m]")
+    ap.add_argument("--mu", type=float, default=0.5, help="friction between grains")
+    ap.add_argument("--mu-w", type=float, default=0.3, help="friction between grains and walls")
+    ap.add_argument("--k", type=float, default=1e9, help="Hertz-type stiffness [J/m^4.5]")
+    ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
+    ap.add_argument("--max-time", type=float, default=4.0, help="simulated seconds at most")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--checkpoint", default=None, help="save the settled state here (.npz)")
+    args = ap.parse_args()
+    out = run(args)
+    print(
+        f"{out['grains']} cubes of {out['grain']:g} m in a silo {out['width']:.3g} m wide, filled to "
+        f"{out['fill_height']:.3g} m; settled {out['settled']} at {out['settle_time']:.3f} s ({out['wall_s']:.1f} s)"
+    )
+    print(
+        f"  packing fraction {out['packing_fraction']:.3f}; Janssen length {out['lambda']:.4g} m "
+        f"(fit rms {out['fit_rms']:.3g} Pa)"
+    )
+    print(
+        f"  K fitted {out['K_fit']:.3f}; sigma_h / sigma_v measured {out['K_ratio_measured']:.3f}; Jaky "
+        f"{out['K_jaky']:.3f}, Rankine active {out['K_rankine_active']:.3f}"
+    )
+    print(f"  side walls carry {out['side_walls_apparent_mass']:.4g} kg")
+    print(
+        f"  floor carries {out['floor_apparent_mass']:.4g} kg of {out['grain_mass']:.4g} kg "
+        f"(Janssen with the fitted length: {out['janssen_apparent_mass']:.4g} kg)"
+    )
+    path = Path(args.out) if args.out else RESULTS / f"janssen_{args.size}_{args.device.replace(':', '')}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1) + "\n")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
