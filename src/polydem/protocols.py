@@ -44,8 +44,10 @@ def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1) -
         sim: a :class:`polydem.Simulation` whose scene has ``motion`` driving its container; at the time
             of the call, before the first tap or between two.
         motion: the name of a motion with a ``count`` of taps and a ``period`` longer than a cycle.
-        box: the :class:`polydem.measures.Box` to measure in; default the box around the free grains at
-            each measurement, moved in by ``margin`` grain sizes (away from the walls and the loose top).
+        box: the :class:`polydem.measures.Box` to measure in, or a function of the
+            :class:`polydem.measures.Grains` at each measurement that returns it; default the box around the
+            free grains at each measurement, moved in by ``margin`` grain sizes (away from the walls and the
+            loose top).
         lead: how long before the next tap (as a fraction of the rest between taps) to measure.
 
     Returns:
@@ -73,9 +75,10 @@ def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1) -
         if steps:
             sim.step(steps)
         grains = measures.Grains.from_simulation(sim)
-        where = box
-        if where is None:
+        if box is None:
             where = measures.Box.around(grains).shrunk(margin * grains.grain_size())
+        else:
+            where = box(grains) if callable(box) else box
         state = sim.state()
         free = grains.free
         v = np.linalg.norm(np.asarray(state["body_velocity"], dtype=np.float64)[free], axis=1)
