@@ -1,6 +1,6 @@
 """Prescribed motions of containers: vibration and taps (issue 26).
 
-A motion moves a set of kinematic bodies and mesh walls together along a unit ``axis`` by a
+A motion moves a set of kinematic bodies (a container's slabs) together along a unit ``axis`` by a
 displacement ``d(t)`` taken from the step counter on the device, so that a captured CUDA graph
 replays it without the host. Each cycle of the motion is one period of
 
@@ -20,7 +20,7 @@ import math
 
 import warp as wp
 
-__all__ = ["cycle_displacement", "launch_drive_bodies", "launch_drive_meshes", "make_motion_kernels"]
+__all__ = ["cycle_displacement", "launch_drive_bodies", "make_motion_kernels"]
 
 
 @wp.func
@@ -43,7 +43,7 @@ def cycle_displacement(
 
 
 def make_motion_kernels(scalar):
-    """The drive kernel for poses in ``scalar`` (wp.float32 or wp.float64): bodies and mesh walls alike, each
+    """The drive kernel for poses in ``scalar`` (wp.float32 or wp.float64): each driven
     row with the index of its motion (-1: not driven) and its position at rest."""
     vec3 = wp.types.vector(3, scalar)
     transform = wp.types.transformation(scalar)
@@ -104,10 +104,3 @@ def launch_drive_bodies(motions, body_motion, body_rest, step_count, step_offset
     kernel = _kernels(_scalar_of(body_q))
     wp.launch(kernel, dim=len(body_motion), inputs=[body_motion, body_rest, *motions, step_count, int(step_offset),
               float(dt)], outputs=[body_q, body_v], device=device)  # fmt: skip
-
-
-def launch_drive_meshes(motions, mesh_motion, mesh_rest, step_count, step_offset, dt, mesh_q, mesh_v, device=None):
-    """As :func:`launch_drive_bodies` for mesh walls: ``mesh_q`` (M,) wall poses, ``mesh_v`` (M,) velocities."""
-    kernel = _kernels(_scalar_of(mesh_q))
-    wp.launch(kernel, dim=len(mesh_motion), inputs=[mesh_motion, mesh_rest, *motions, step_count, int(step_offset),
-              float(dt)], outputs=[mesh_q, mesh_v], device=device)  # fmt: skip

@@ -102,19 +102,6 @@ class Motion:
         """Time between the starts of two cycles [s]."""
         return 1.0 / self.frequency if self.period is None else float(self.period)
 
-    def displacement(self, t) -> tuple[np.ndarray, np.ndarray]:
-        """(d, v) along the axis at the times ``t`` [s], for an amplitude given in m (float64, numpy): the
-        closed form the kernel evaluates, for checks and plots."""
-        t = np.asarray(t, dtype=np.float64)
-        if self.amplitude is None:
-            raise ValueError("the displacement of a motion given by gamma needs the scene's gravity: amplitude_in()")
-        a, w, period = float(self.amplitude), self.omega, self.cycle_period()
-        tau = t - self.start
-        k = np.floor(tau / period)
-        s = tau - k * period
-        on = (tau >= 0.0) & ((self.count == 0) | (k < self.count)) & (w * s < 2.0 * math.pi)
-        return np.where(on, a * (1.0 - np.cos(w * s)), 0.0), np.where(on, a * w * np.sin(w * s), 0.0)
-
     def to_dict(self) -> dict:
         """The ``[motions.NAME]`` table of a scene file (without the name)."""
         return MOTION.write(self)
