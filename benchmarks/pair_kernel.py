@@ -3,16 +3,20 @@
 For cube, tetrahedron, 20-vertex rock and 64-vertex hull pairs at overlap depths of 0.1%, 1% and
 10% of the size, with half of the candidates not touching (separated along the line of centres
 by up to 20% of the size, so that their bounding spheres still overlap as broad-phase candidates'
-do), in float32 and float64. Prints a table and writes JSON.
+do), in float32 and float64; a depth ``flat`` gives flat contacts instead (every pair touching: a
+face of one body 1e-7 to 1e-3 of the size deep in a face of the other). Prints a table and writes JSON, with a
+SHA-256 of each case's outputs (two trees that agree there gave the same bits).
 
     python benchmarks/pair_kernel.py --device cuda:0            # GPU: 2^20 pairs per case
     python benchmarks/pair_kernel.py --device cpu --pairs 4096  # one CPU core
 
 The other ways of holding the kernel's working set that BENCHMARKS.md section 7c compares live at
-the git tag ``pair-variants-7c``, where this script takes ``--variants``.
+the git tag ``pair-variants-7c``, where this script takes ``--variants``; the clip layouts of issue 27
+(BENCHMARKS.md section 14) at the tag ``clip-layouts-27``, where ``pair_layouts.py`` times them.
 """
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -84,31 +88,76 @@ def make_pairs(shape, n, depth, rng, device):
     return pa, np.hstack([u * (hi + gap)[:, None], qb])
 
 
-def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64):
+def flat_pairs(shape, n, rng):
+    """Poses of n pairs of `shape` with a face of B lying in a face of A, 1e-7 to 1e-3 of the size deep
+    (log-uniform), turned about the normal and shifted along the face by up to a tenth of the size."""
+    verts = np.asarray(shape.vertices, dtype=np.float64)
+    normals = np.asarray(shape.face_normals, dtype=np.float64)
+    offsets = np.array([normals[f] @ verts[loop[0]] for f, loop in enumerate(shape.faces)])
+    centroids = np.array([verts[loop].mean(axis=0) for loop in shape.faces])
+    size = 2.0 * shape.radius
+    qa = random_rotations(rng, n)
+    fa = rng.integers(0, len(shape.faces), n)
+    gb = rng.integers(0, len(shape.faces), n)
+    n_world = rotate(qa, normals[fa])
+    qb = np.empty((n, 4))
+    for i in range(n):
+        # B's face normal m onto -n, then a turn about n
+        m, t = normals[gb[i]], -n_world[i]
+        axis = np.cross(m, t)
+        s, c = np.linalg.norm(axis), float(m @ t)
+        if s < 1e-12:
+            axis, s = (np.array([1.0, 0.0, 0.0]) if abs(m[0]) < 0.9 else np.array([0.0, 1.0, 0.0])), 0.0
+            axis = np.cross(m, axis)
+            axis /= np.linalg.norm(axis)
+            q1 = np.array([*axis, 0.0]) if c < 0 else np.array([0.0, 0.0, 0.0, 1.0])
+        else:
+            half = 0.5 * np.arctan2(s, c)
+            q1 = np.array([*(axis / s * np.sin(half)), np.cos(half)])
+        spin = rng.uniform(0, 2 * np.pi)
+        q2 = np.array([*(t * np.sin(spin / 2)), np.cos(spin / 2)])
+        # q2 * q1 (xyzw)
+        v1, w1, v2, w2 = q1[:3], q1[3], q2[:3], q2[3]
+        qb[i] = [*(w2 * v1 + w1 * v2 + np.cross(v2, v1)), w2 * w1 - v2 @ v1]
+    depth = size * 10.0 ** rng.uniform(-7, -3, n)
+    shift = rng.normal(size=(n, 3)) * 0.1 * size
+    shift -= (shift * n_world).sum(axis=1, keepdims=True) * n_world
+    p = rotate(qa, centroids[fa]) - rotate(qb, centroids[gb]) + shift
+    # n . p = d_f - depth + e_g: B's face plane `depth` inside A's
+    along = offsets[fa] - depth + offsets[gb]
+    p += (along - (p * n_world).sum(axis=1))[:, None] * n_world
+    return np.hstack([np.zeros((n, 3)), qa]), np.hstack([p, qb])
+
+
+def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None):
+    """Median seconds of a launch of the engine's overlap kernel over the pairs, and the outputs.
+    ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode)."""
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
-    np_scalar = np.float32 if scalar == wp.float32 else np.float64
+    pose_scalar = pose_scalar or scalar
+    np_pose = np.float32 if pose_scalar == wp.float32 else np.float64
     vec3 = wp.types.vector(3, scalar)
-    tf = wp.types.transformation(scalar)
-    ns = make_narrowphase(scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=max_registers)
+    tf = wp.types.transformation(pose_scalar)
+    cap, faces = shapes.default_poly_capacity, shapes.max_faces
+    kernel = make_narrowphase(scalar, cap, faces, max_registers=max_registers, pose_scalar=pose_scalar).overlap_kernel
     args = [
         *shapes.kernel_args(),
         wp.zeros(n, dtype=int, device=dev),
         wp.zeros(n, dtype=int, device=dev),
-        wp.array(poses_a.astype(np_scalar), dtype=tf, device=dev),
-        wp.array(poses_b.astype(np_scalar), dtype=tf, device=dev),
+        wp.array(poses_a.astype(np_pose), dtype=tf, device=dev),
+        wp.array(poses_b.astype(np_pose), dtype=tf, device=dev),
     ]
     outs = [wp.zeros(n, dtype=scalar, device=dev)]
     outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
     overflow = wp.zeros(1, dtype=int, device=dev)
     launch = {"dim": n, "inputs": args, "outputs": [*outs, overflow], "device": dev, "block_dim": block_dim}
-    wp.launch(ns.overlap_kernel, **launch)  # compile, warm
+    wp.launch(kernel, **launch)  # compile, warm
     wp.synchronize_device(dev)
     times = [0.0]
     for _ in range(repeats):
         t0 = time.perf_counter()
-        wp.launch(ns.overlap_kernel, **launch)
+        wp.launch(kernel, **launch)
         wp.synchronize_device(dev)
         times.append(time.perf_counter() - t0)
     if int(overflow.numpy()[0]):
@@ -144,7 +193,7 @@ def main():
     ap.add_argument("--sample", type=int, default=64, help="pairs per case checked against the reference")
     ap.add_argument("--precisions", default="float32,float64")
     ap.add_argument("--shapes", default="cube,tetrahedron,rock20,hull64")
-    ap.add_argument("--depths", default="0.001,0.01,0.1")
+    ap.add_argument("--depths", default="0.001,0.01,0.1", help="depths of the touching half; 'flat': flat contacts")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "pair_kernel.json"))
     args = ap.parse_args()
 
@@ -165,8 +214,10 @@ def main():
         for name in args.shapes.split(","):
             shape = lib[name]
             shapes = ShapeSet([shape], device=dev, precision=prec)
-            for depth in (float(d) for d in args.depths.split(",")):
-                if (name, depth) not in cases:
+            for depth in (d if d == "flat" else float(d) for d in args.depths.split(",")):
+                if (name, depth) not in cases and depth == "flat":
+                    cases[name, depth] = flat_pairs(shape, n, np.random.default_rng(6789))
+                elif (name, depth) not in cases:
                     cases[name, depth] = make_pairs(shape, n, depth, np.random.default_rng(12345), dev)
                 pa, pb = cases[name, depth]
                 t, outs = time_kernel(shapes, pa, pb, repeats)
@@ -184,10 +235,13 @@ def main():
                     "pairs_per_second": n / t,
                     "error_volume": ev,
                     "error_area_vector": es,
+                    # SHA-256 of all outputs: two trees that agree here gave the same bits.
+                    "outputs_sha256": hashlib.sha256(b"".join(o.tobytes() for o in outs)).hexdigest(),
                 }
                 rows.append(row)
+                label = depth if depth == "flat" else f"{depth:.3g}"
                 print(
-                    f"{name:<12}{shape.num_faces:>6}{depth:>8.3g}{prec:>9}{touching / (n // 2):>7.0%}"
+                    f"{name:<12}{shape.num_faces:>6}{label:>8}{prec:>9}{touching / (n // 2):>7.0%}"
                     f"{n / t / 1e6:>11.1f}{t / n * 1e9:>10.1f}{ev:>10.1e}{es:>10.1e}",
                     flush=True,
                 )

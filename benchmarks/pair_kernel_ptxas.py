@@ -10,7 +10,8 @@ what each thread holds, not how often it is touched (ncu on a GPU measures the t
 Needs ptxas on the PATH (the CUDA toolkit). When ptxas is older than Warp's NVRTC, the PTX's
 .version line is lowered to --ptx-version (the kernels use no newer PTX feature). The pair-kernel
 variants of BENCHMARKS.md section 7c live at the git tag ``pair-variants-7c``, where this script
-takes ``--variants``.
+takes ``--variants``; the clip layouts of issue 27 (section 14) at the tag ``clip-layouts-27``, where
+it takes ``--layouts``.
 """
 
 import argparse
@@ -74,10 +75,10 @@ def main():
         shapes = ShapeSet([SHAPES[name]()], device="cpu", precision="float32")
         cap, faces = shapes.default_poly_capacity, shapes.max_faces
         for prec in args.precisions.split(","):
-            kernels = []
-            if prec != "mixed":
-                scalar = wp.float32 if prec == "float32" else wp.float64
-                kernels.append(("overlap", make_narrowphase(scalar, cap, faces).overlap_kernel))
+            # The batch overlap kernel (float64 poses with float32 clipping in mixed) and the step's.
+            scalar = wp.float64 if prec == "float64" else wp.float32
+            pose_scalar = wp.float64 if prec == "mixed" else scalar
+            kernels = [("overlap", make_narrowphase(scalar, cap, faces, pose_scalar=pose_scalar).overlap_kernel)]
             contact = make_contact_kernels("hertz", True, cap, faces, precision=prec)
             kernels.append(("pair_contact", contact.pair_contact_kernel))
             for label, kernel in kernels:

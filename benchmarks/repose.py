@@ -72,7 +72,7 @@ def run_one(shape, grains, seed, args):
     # The grains' state and their pair history carry over; the wall springs start afresh (one wall less).
     snap = filled.snapshot()
     saved = {k: getattr(snap.state, k).numpy() for k in ("body_q", "body_v", "body_w", "body_dissipated", "step_count")}
-    saved.update({k: getattr(sim.current_state, k).numpy() for k in ("plane_xi", "plane_turn")})
+    saved.update({k: getattr(sim.current_state, k).numpy() for k in ("wall_xi", "wall_turn")})
     count = int(snap.pairs.count.numpy()[0])
     saved.update(
         pair_key=snap.pairs.key.numpy()[:count],

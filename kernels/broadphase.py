@@ -70,6 +70,7 @@ reference :func:`all_pairs` and the host class :class:`BroadPhase`.
 
 import numpy as np
 import warp as wp
+from polydem.kernels.structs import arrays, filled, make_struct
 
 FLAG_FREE = wp.constant(0)
 FLAG_FIXED = wp.constant(1)
@@ -99,6 +100,37 @@ TREE_REBUILD_RATIO = None
 # 6 to 8 candidate pairs per body).
 DEFAULT_PAIRS_PER_BODY = 8
 MIN_CAPACITY = 1024
+
+
+# ---------------------------------------------------------------------------------------------
+# What the kernels share, in structs (one instance each per BroadPhase, made with its arrays)
+
+Boxes = make_struct("Boxes", **arrays(lower=wp.vec3, upper=wp.vec3))
+"""Boxes (lower and upper corners) [m]: the BVH items', the bodies' in their own frames, a tree level's blocks."""
+
+_BUILD = arrays(q_build=wp.transform, radius_build=float, flags_build=int, body_group=int, body_order=int)
+_BUILD |= arrays(group_root=int, class_max=int, radius_min=float, box_lower=wp.vec3, box_upper=wp.vec3)
+Build = make_struct("Build", **_BUILD, **arrays(body_box_lower=wp.vec3, body_box_upper=wp.vec3))
+"""The state of the last (re)build, as the :class:`BroadPhase` names its arrays (N,): the poses, radii and
+flags of the build (the groups of the tree follow the flags of the last host build), each body's BVH group
+(its size class, ``NONFREE_GROUP`` for the others) and the query order (a permutation); per group its
+subtree's root (``group_root``, NUM_GROUPS, -1: empty); the largest size class of a free body (``class_max``,
+(1,)) and the smallest positive free radius (``radius_min``, (1,)) [m]; the BVH items' boxes
+(``box_lower``, ``box_upper``) and the boxes around the bodies' shapes in their own frames
+(``body_box_lower``, ``body_box_upper``: a pair with a fixed or kinematic body must also have the free body's
+sphere, grown by the skin, reach that box, so that a container wall, whose bounding sphere covers the whole
+pile, is a candidate only of the grains near it)."""
+
+PairList = make_struct("PairList", **arrays(pair_key=wp.int64, pair_a=int, pair_b=int, pair_count=int))
+"""The pair list, as the :class:`BroadPhase` names its arrays: the keys, the bodies of each pair and their
+count (see the :class:`BroadPhase`); made again with the arrays when the capacity grows."""
+
+_COUNTS = arrays(pair_counter=int, pair_count=int, pair_count_peak=int, host_build_needed=int, device_rebuilds=int)
+Counts = make_struct("Counts", **_COUNTS)
+"""The counters (1,) of a query, as the :class:`BroadPhase` names them: the pairs found (may exceed the
+capacity), their count (at most the capacity), the largest found since the last host build, the sticky
+``host_build_needed`` (a device rebuild overflowed or saw changed flags) and the device rebuilds since the
+last host build."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -140,6 +172,12 @@ def rotation_angle(q: wp.quat, q0: wp.quat):
 
 
 @wp.func
+def empty_box():
+    # (lower, upper) of a box that holds nothing (lower above upper), to grow by wp.min and wp.max.
+    return wp.vec3(3.0e38, 3.0e38, 3.0e38), wp.vec3(-3.0e38, -3.0e38, -3.0e38)
+
+
+@wp.func
 def box_area(lower: wp.vec3, upper: wp.vec3):
     # Surface area [m^2] of a box, 0 for an empty one (lower above upper).
     e = upper - lower
@@ -149,18 +187,10 @@ def box_area(lower: wp.vec3, upper: wp.vec3):
 
 
 @wp.func
-def store_block(
-    b: int,
-    lo: wp.vec3,
-    hi: wp.vec3,
-    slot: int,
-    block_lower: wp.array(dtype=wp.vec3),
-    block_upper: wp.array(dtype=wp.vec3),
-    tree_cost: wp.array(dtype=wp.float64),
-):
+def store_block(b: int, lo: wp.vec3, hi: wp.vec3, slot: int, blocks: Boxes, tree_cost: wp.array(dtype=wp.float64)):
     # Block b of a level of the implicit tree: its box, and its area added to the tree's cost.
-    block_lower[b] = lo
-    block_upper[b] = hi
+    blocks.lower[b] = lo
+    blocks.upper[b] = hi
     wp.atomic_add(tree_cost, slot, wp.float64(box_area(lo, hi)))
 
 
@@ -169,85 +199,57 @@ def store_block(
 
 
 @wp.kernel(enable_backward=False)
-def reset_classes_kernel(
-    # Out
-    radius_min: wp.array(dtype=float),
-    class_max: wp.array(dtype=int),
-):
-    radius_min[0] = 3.0e38
-    class_max[0] = 0
+def reset_classes_kernel(build: Build):
+    build.radius_min[0] = 3.0e38
+    build.class_max[0] = 0
 
 
 @wp.kernel(enable_backward=False)
-def radius_min_kernel(
-    # State in
-    body_radius: wp.array(dtype=float),
-    body_flags: wp.array(dtype=int),
-    # Out
-    radius_min: wp.array(dtype=float),
-):
-    """Smallest positive radius [m] of the free bodies, into ``radius_min[0]``. Launch dim: bodies."""
+def radius_min_kernel(body_radius: wp.array(dtype=float), body_flags: wp.array(dtype=int), build: Build):
+    """Smallest positive radius [m] of the free bodies, into ``build.radius_min[0]``. Launch dim: bodies."""
     i = wp.tid()
     r = body_radius[i]
     if body_flags[i] == FLAG_FREE and r > 0.0:
-        wp.atomic_min(radius_min, 0, r)
+        wp.atomic_min(build.radius_min, 0, r)
 
 
 @wp.kernel(enable_backward=False)
 def classes_kernel(
-    # Model
-    inv_log_class_ratio: float,
-    # State in
-    body_radius: wp.array(dtype=float),
-    body_flags: wp.array(dtype=int),
-    radius_min: wp.array(dtype=float),
-    # Out
-    body_group: wp.array(dtype=int),
-    class_max: wp.array(dtype=int),
-    flags_build: wp.array(dtype=int),
+    inv_log_class_ratio: float, body_radius: wp.array(dtype=float), body_flags: wp.array(dtype=int), build: Build
 ):
-    """BVH group of every body; remembers the flags of the build. Launch dim: bodies.
+    """BVH group of every body into ``build.body_group`` (its size class, ``NONFREE_GROUP`` for the others;
+    the largest class into ``class_max``, atomic max); remembers the flags of the build. Launch dim: bodies.
 
     Args:
         inv_log_class_ratio: 1 / ln(class_ratio) [-].
         body_radius: (N,) bounding-sphere radii about the body centres [m].
         body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
-        radius_min: (1,) smallest positive free radius [m].
-        body_group: (N,) out: size class of a free body, ``NONFREE_GROUP`` otherwise.
-        class_max: (1,) out: largest size class of a free body (atomic max).
-        flags_build: (N,) out: copy of ``body_flags``.
+        build: :data:`Build`, with the smallest positive free radius in ``radius_min``.
     """
     i = wp.tid()
     r = body_radius[i]
     f = body_flags[i]
-    flags_build[i] = f
+    build.flags_build[i] = f
     if f == FLAG_FREE:
         c = int(0)
-        r0 = radius_min[0]
+        r0 = build.radius_min[0]
         if r > r0:
             c = wp.min(int(wp.floor(wp.log(r / r0) * inv_log_class_ratio)), MAX_CLASSES - 1)
             c = wp.max(c, 0)
-        body_group[i] = c
-        wp.atomic_max(class_max, 0, c)
+        build.body_group[i] = c
+        wp.atomic_max(build.class_max, 0, c)
     else:
-        body_group[i] = NONFREE_GROUP
+        build.body_group[i] = NONFREE_GROUP
 
 
 @wp.kernel(enable_backward=False)
 def bounds_kernel(
-    # Model
     half_skin: float,
-    # State in
     body_q: wp.array(dtype=wp.transform),
     body_radius: wp.array(dtype=float),
     body_flags: wp.array(dtype=int),
-    flags_build: wp.array(dtype=int),
-    # Out
-    box_lower: wp.array(dtype=wp.vec3),
-    box_upper: wp.array(dtype=wp.vec3),
-    q_build: wp.array(dtype=wp.transform),
-    radius_build: wp.array(dtype=float),
-    host_build_needed: wp.array(dtype=int),
+    build: Build,
+    counts: Counts,
 ):
     """Boxes of the BVH items; remembers the poses and radii of the build. Launch dim: bodies.
 
@@ -256,10 +258,9 @@ def bounds_kernel(
         body_q: (N,) body poses, position [m] and unit quaternion xyzw.
         body_radius: (N,) bounding-sphere radii about the body centres [m].
         body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
-        flags_build: (N,) flags of the last host build (the groups of the tree follow them).
-        box_lower, box_upper: (N,) out: corners of the sphere boxes inflated by skin/2 [m].
-        q_build, radius_build: (N,) out: copies of the inputs.
-        host_build_needed: (1,) out: set to 1 (sticky) when a flag differs from ``flags_build``.
+        build: :data:`Build`: out, ``box_lower``, ``box_upper`` (the sphere boxes inflated by skin/2 [m]),
+            ``q_build`` and ``radius_build`` (copies of the inputs); in, ``flags_build``.
+        counts: :data:`Counts`: ``host_build_needed`` set to 1 (sticky) when a flag differs from the build's.
     """
     i = wp.tid()
     q = body_q[i]
@@ -267,12 +268,12 @@ def bounds_kernel(
     x = wp.transform_get_translation(q)
     e = padded_extent(r, half_skin, x)
     ev = wp.vec3(e, e, e)
-    box_lower[i] = x - ev
-    box_upper[i] = x + ev
-    q_build[i] = q
-    radius_build[i] = r
-    if body_flags[i] != flags_build[i]:
-        wp.atomic_max(host_build_needed, 0, 1)
+    build.box_lower[i] = x - ev
+    build.box_upper[i] = x + ev
+    build.q_build[i] = q
+    build.radius_build[i] = r
+    if body_flags[i] != build.flags_build[i]:
+        wp.atomic_max(counts.host_build_needed, 0, 1)
 
 
 # Relative rounding of a float32 coordinate, 2^-24, and how many such roundings the radius of a
@@ -320,15 +321,9 @@ def reset_extent_kernel(
 
 
 @wp.kernel(enable_backward=False)
-def extent_kernel(
-    # State in
-    body_q: wp.array(dtype=wp.transform),
-    # Out
-    scene_lower: wp.array(dtype=float),
-    scene_upper: wp.array(dtype=float),
-):
-    """Box (3,) + (3,) [m] around all body centres (atomic min / max). Launch dim: bodies."""
-    x = wp.transform_get_translation(body_q[wp.tid()])
+def extent_kernel(build: Build, scene_lower: wp.array(dtype=float), scene_upper: wp.array(dtype=float)):
+    """Box (3,) + (3,) [m] around all body centres of the build (atomic min / max). Launch dim: bodies."""
+    x = wp.transform_get_translation(build.q_build[wp.tid()])
     for k in range(3):
         wp.atomic_min(scene_lower, k, x[k])
         wp.atomic_max(scene_upper, k, x[k])
@@ -336,22 +331,16 @@ def extent_kernel(
 
 @wp.kernel(enable_backward=False)
 def morton_kernel(
-    # State in
-    body_q: wp.array(dtype=wp.transform),
-    body_flags: wp.array(dtype=int),
-    scene_lower: wp.array(dtype=float),
-    scene_upper: wp.array(dtype=float),
-    # Out
-    morton: wp.array(dtype=int),
-    order: wp.array(dtype=int),
+    build: Build, scene_lower: wp.array(dtype=float), scene_upper: wp.array(dtype=float), morton: wp.array(dtype=int)
 ):
-    """30-bit Morton code of each free body's centre in the scene box (2^30 for the others, which so
-    sort after the free bodies: they do not query), and the identity order. Launch dim: bodies.
+    """30-bit Morton code of each free body's centre in the scene box at the build (2^30 for the others,
+    which so sort after the free bodies: they do not query), and the identity order into ``body_order``.
+    Launch dim: bodies.
     """
     i = wp.tid()
-    x = wp.transform_get_translation(body_q[i])
+    x = wp.transform_get_translation(build.q_build[i])
     code = int(1 << 30)
-    if body_flags[i] == FLAG_FREE:
+    if build.flags_build[i] == FLAG_FREE:
         code = int(0)
         for k in range(3):
             lo = scene_lower[k]
@@ -359,76 +348,57 @@ def morton_kernel(
             c = wp.clamp(int((x[k] - lo) / w * 1024.0), 0, 1023)
             code = code | (spread_bits(c) << k)
     morton[i] = code
-    order[i] = i
+    build.body_order[i] = i
 
 
 @wp.kernel(enable_backward=False)
-def group_root_kernel(
-    # Model
-    bvh_id: wp.uint64,
-    # Out
-    group_root: wp.array(dtype=int),
-):
+def group_root_kernel(bvh_id: wp.uint64, build: Build):
     """Root node of each group's subtree, -1 for an empty group. Launch dim: ``NUM_GROUPS``."""
     g = wp.tid()
-    group_root[g] = wp.bvh_get_group_root(bvh_id, g)
+    build.group_root[g] = wp.bvh_get_group_root(bvh_id, g)
 
 
 @wp.kernel(enable_backward=False)
 def query_pairs_kernel(
-    # Model
     bvh_id: wp.uint64,
     num_bodies: int,
     capacity: int,
     half_skin: float,
     skin: float,
-    # State in
-    body_order: wp.array(dtype=int),
     body_q: wp.array(dtype=wp.transform),
     body_radius: wp.array(dtype=float),
-    body_flags: wp.array(dtype=int),
-    body_group: wp.array(dtype=int),
-    group_root: wp.array(dtype=int),
-    class_max: wp.array(dtype=int),
-    body_box_lower: wp.array(dtype=wp.vec3),
-    body_box_upper: wp.array(dtype=wp.vec3),
-    # Out
-    pair_key: wp.array(dtype=wp.int64),
-    pair_counter: wp.array(dtype=int),
+    build: Build,
+    counts: Counts,
+    pairs: PairList,
 ):
     """Appends the key of every candidate pair, each exactly once (see the module docstring).
 
-    Launch dim: bodies; thread t handles body ``body_order[t]`` (a spatial order, so that the
+    Launch dim: bodies; thread t handles body ``build.body_order[t]`` (a spatial order, so that the
     threads of a warp walk the same part of the tree).
 
     Args:
         num_bodies: N.
         capacity: length of ``pair_key`` that may be written.
         half_skin, skin: skin / 2 and skin [m].
-        body_order: (N,) permutation of the bodies.
-        body_group: (N,) group of each body as written by ``classes_kernel``.
-        group_root: (NUM_GROUPS,) subtree roots, -1 for an empty group.
-        class_max: (1,) largest size class of a free body.
-        body_box_lower, body_box_upper: (N,) box around each body's shape in its own frame [m]: a
-            pair with a fixed or kinematic body must also have the free body's sphere (grown by the
-            skin) reach that box, so that a large container wall, whose bounding sphere covers the
-            whole pile, is a candidate only of the grains near it.
-        pair_key: (capacity,) out: keys ``a * N + b`` in arbitrary order.
-        pair_counter: (1,) in/out: number of pairs found (may exceed ``capacity``).
+        body_q, body_radius: (N,) the poses and radii now.
+        build: :data:`Build`: the query order, the groups, their roots and the largest size class, the flags
+            of the last host build, the bodies' boxes in their own frames.
+        counts: :data:`Counts`: ``pair_counter``, in/out, the number of pairs found (may exceed ``capacity``).
+        pairs: :data:`PairList`: out, ``pair_key`` (capacity,), the keys ``a * N + b`` in arbitrary order.
     """
-    i = body_order[wp.tid()]
-    if body_flags[i] != FLAG_FREE:
+    i = build.body_order[wp.tid()]
+    if build.flags_build[i] != FLAG_FREE:
         return
     xi = wp.transform_get_translation(body_q[i])
     ri = body_radius[i]
-    ci = body_group[i]
+    ci = build.body_group[i]
     query_radius = padded_extent(ri, half_skin, xi)
-    last = class_max[0] + 1
+    last = build.class_max[0] + 1
     for k in range(ci, last + 1):
         g = k
         if k == last:
             g = NONFREE_GROUP
-        root = group_root[g]
+        root = build.group_root[g]
         if root >= 0:
             query = wp.bvh_query_sphere(bvh_id, xi, query_radius, root)
             j = int(0)
@@ -439,175 +409,132 @@ def query_pairs_kernel(
                 d = wp.transform_get_translation(body_q[j]) - xi
                 cut = ri + body_radius[j] + skin
                 near = wp.dot(d, d) < cut * cut
-                if near and body_flags[j] != FLAG_FREE:
+                if near and build.flags_build[j] != FLAG_FREE:
                     local = wp.quat_rotate_inv(wp.transform_get_rotation(body_q[j]), -d)
-                    gap = local - wp.min(wp.max(local, body_box_lower[j]), body_box_upper[j])
+                    gap = local - wp.min(wp.max(local, build.body_box_lower[j]), build.body_box_upper[j])
                     near = wp.dot(gap, gap) < (ri + skin) * (ri + skin)
                 if near:
                     # One atomic per pair: no slower than batching a thread's keys in local memory,
                     # since the tree walk dominates (BENCHMARKS.md, "Design measurements").
-                    slot = wp.atomic_add(pair_counter, 0, 1)
+                    slot = wp.atomic_add(counts.pair_counter, 0, 1)
                     if slot < capacity:
-                        pair_key[slot] = make_pair_key(i, j, num_bodies)
+                        pairs.pair_key[slot] = make_pair_key(i, j, num_bodies)
 
 
 @wp.kernel(enable_backward=False)
-def finish_count_kernel(
-    # Model
-    capacity: int,
-    # State in
-    pair_counter: wp.array(dtype=int),
-    # Out
-    pair_count: wp.array(dtype=int),
-    host_build_needed: wp.array(dtype=int),
-    device_rebuilds: wp.array(dtype=int),
-    pair_count_peak: wp.array(dtype=int),
-):
-    """``pair_count = min(counter, capacity)``; an overflow sets the sticky ``host_build_needed``.
+def finish_count_kernel(capacity: int, counts: Counts):
+    """``pair_count = min(pair_counter, capacity)`` (:data:`Counts`); an overflow sets the sticky
+    ``host_build_needed``.
 
-    Also counts the builds in ``device_rebuilds`` and keeps the largest true count in
-    ``pair_count_peak``. Launch dim: 1.
+    Also counts the builds in ``device_rebuilds`` and keeps the largest true count in ``pair_count_peak``.
+    Launch dim: 1.
     """
-    n = pair_counter[0]
-    pair_count_peak[0] = wp.max(pair_count_peak[0], n)
+    n = counts.pair_counter[0]
+    counts.pair_count_peak[0] = wp.max(counts.pair_count_peak[0], n)
     if n > capacity:
-        host_build_needed[0] = 1
+        counts.host_build_needed[0] = 1
         n = capacity
-    pair_count[0] = n
-    device_rebuilds[0] = device_rebuilds[0] + 1
+    counts.pair_count[0] = n
+    counts.device_rebuilds[0] = counts.device_rebuilds[0] + 1
 
 
 @wp.kernel(enable_backward=False)
-def pad_keys_kernel(
-    # Model
-    sentinel: wp.int64,
-    # State in
-    pair_count: wp.array(dtype=int),
-    # Out
-    pair_key: wp.array(dtype=wp.int64),
-):
+def pad_keys_kernel(sentinel: wp.int64, pairs: PairList):
     """Unused slots get a key above every real key so a sort over the capacity leaves them last.
 
     Launch dim: capacity.
     """
     k = wp.tid()
-    if k >= pair_count[0]:
-        pair_key[k] = sentinel
+    if k >= pairs.pair_count[0]:
+        pairs.pair_key[k] = sentinel
 
 
 @wp.kernel(enable_backward=False)
-def unpack_pairs_kernel(
-    # Model
-    num_bodies: int,
-    # State in
-    pair_key: wp.array(dtype=wp.int64),
-    pair_count: wp.array(dtype=int),
-    # Out
-    pair_a: wp.array(dtype=int),
-    pair_b: wp.array(dtype=int),
-):
-    """Body indices from the sorted keys; -1 past the count. Launch dim: count or capacity."""
+def unpack_pairs_kernel(num_bodies: int, pairs: PairList):
+    """Body indices (``pair_a``, ``pair_b``) from the sorted keys; -1 past the count. Launch dim: count or
+    capacity."""
     k = wp.tid()
-    if k < pair_count[0]:
-        key = pair_key[k]
+    if k < pairs.pair_count[0]:
+        key = pairs.pair_key[k]
         n = wp.int64(num_bodies)
         a = key / n
-        pair_a[k] = int(a)
-        pair_b[k] = int(key - a * n)
+        pairs.pair_a[k] = int(a)
+        pairs.pair_b[k] = int(key - a * n)
     else:
-        pair_a[k] = -1
-        pair_b[k] = -1
+        pairs.pair_a[k] = -1
+        pairs.pair_b[k] = -1
 
 
 @wp.kernel(enable_backward=False)
 def needs_rebuild_kernel(
-    # Model
     half_skin: float,
     rotation_term: int,
-    # State in
     body_q: wp.array(dtype=wp.transform),
     body_radius: wp.array(dtype=float),
     body_flags: wp.array(dtype=int),
-    q_build: wp.array(dtype=wp.transform),
-    radius_build: wp.array(dtype=float),
-    flags_build: wp.array(dtype=int),
-    # Out
+    build: Build,
     rebuild_flag: wp.array(dtype=int),
 ):
-    """Raises ``rebuild_flag[0]`` (atomic max) when a body may have left its skin. Launch dim: bodies.
+    """Raises ``rebuild_flag[0]`` (atomic max) when a body may have left its skin since the ``build``.
+    Launch dim: bodies.
 
     A body's motion since the build is ``|x - x_0| + r * angle(q q_0^-1) + max(r - r_0, 0)`` [m]; past
     skin / 2 a pair could be missed. A change of flags also asks for a rebuild.
     """
     i = wp.tid()
     q = body_q[i]
-    q0 = q_build[i]
+    q0 = build.q_build[i]
     r = body_radius[i]
     move = wp.length(wp.transform_get_translation(q) - wp.transform_get_translation(q0))
-    move += wp.max(r - radius_build[i], 0.0)
+    move += wp.max(r - build.radius_build[i], 0.0)
     # A fixed or kinematic body is tested by its box, which turns with it.
     if rotation_term != 0 or body_flags[i] != FLAG_FREE:
         move += r * rotation_angle(wp.transform_get_rotation(q), wp.transform_get_rotation(q0))
-    if move > half_skin or body_flags[i] != flags_build[i]:
+    if move > half_skin or body_flags[i] != build.flags_build[i]:
         wp.atomic_max(rebuild_flag, 0, 1)
 
 
 @wp.kernel(enable_backward=False)
 def leaf_blocks_kernel(
-    # Model
     num_bodies: int,
     slot: int,
-    # State in
     order: wp.array(dtype=int),
-    body_flags: wp.array(dtype=int),
-    box_lower: wp.array(dtype=wp.vec3),
-    box_upper: wp.array(dtype=wp.vec3),
-    # Out
-    block_lower: wp.array(dtype=wp.vec3),
-    block_upper: wp.array(dtype=wp.vec3),
+    build: Build,
+    blocks: Boxes,
     tree_cost: wp.array(dtype=wp.float64),
 ):
-    """Box around the free bodies ``order[4 b .. 4 b + 3]`` (empty: lower above upper), its surface
-    area added to ``tree_cost[slot]`` [m^2]. Launch dim: ceil(N / 4)."""
+    """Box around the free bodies ``order[4 b .. 4 b + 3]`` (their BVH items' boxes at the build; empty:
+    lower above upper) into ``blocks``, its surface area added to ``tree_cost[slot]`` [m^2]. Launch dim:
+    ceil(N / 4)."""
     b = wp.tid()
-    lo = wp.vec3(3.0e38, 3.0e38, 3.0e38)
-    hi = wp.vec3(-3.0e38, -3.0e38, -3.0e38)
+    lo, hi = empty_box()
     for k in range(TREE_BRANCHING):
         t = TREE_BRANCHING * b + k
         if t < num_bodies:
             i = order[t]
-            if body_flags[i] == FLAG_FREE:
-                lo = wp.min(lo, box_lower[i])
-                hi = wp.max(hi, box_upper[i])
-    store_block(b, lo, hi, slot, block_lower, block_upper, tree_cost)
+            if build.flags_build[i] == FLAG_FREE:
+                lo = wp.min(lo, build.box_lower[i])
+                hi = wp.max(hi, build.box_upper[i])
+    store_block(b, lo, hi, slot, blocks, tree_cost)
 
 
 @wp.kernel(enable_backward=False)
 def merge_blocks_kernel(
-    # Model
-    num_children: int,
-    slot: int,
-    # State in
-    child_lower: wp.array(dtype=wp.vec3),
-    child_upper: wp.array(dtype=wp.vec3),
-    # Out
-    block_lower: wp.array(dtype=wp.vec3),
-    block_upper: wp.array(dtype=wp.vec3),
-    tree_cost: wp.array(dtype=wp.float64),
+    num_children: int, slot: int, children: Boxes, blocks: Boxes, tree_cost: wp.array(dtype=wp.float64)
 ):
-    """One level up: box of the blocks ``4 b .. 4 b + 3``, its area added to ``tree_cost[slot]``.
+    """One level up: box of the ``children`` blocks ``4 b .. 4 b + 3`` into ``blocks``, its area added to
+    ``tree_cost[slot]``.
 
     Launch dim: ceil(num_children / 4).
     """
     b = wp.tid()
-    lo = wp.vec3(3.0e38, 3.0e38, 3.0e38)
-    hi = wp.vec3(-3.0e38, -3.0e38, -3.0e38)
+    lo, hi = empty_box()
     for k in range(TREE_BRANCHING):
         c = TREE_BRANCHING * b + k
         if c < num_children:
-            lo = wp.min(lo, child_lower[c])
-            hi = wp.max(hi, child_upper[c])
-    store_block(b, lo, hi, slot, block_lower, block_upper, tree_cost)
+            lo = wp.min(lo, children.lower[c])
+            hi = wp.max(hi, children.upper[c])
+    store_block(b, lo, hi, slot, blocks, tree_cost)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -770,6 +697,9 @@ class BroadPhase:
         self._refits_checked = 0
         self.num_tree_rebuilds = 0
         self.tree_ratio = None
+        # The structs the kernels take, of the arrays above (never replaced; the pair arrays, which are, go alone).
+        self._build = filled(Build, **{name: getattr(self, name) for name in Build.vars})
+        self._counts = filled(Counts, **{name: getattr(self, name) for name in Counts.vars})
         if capacity is None:
             capacity = max(MIN_CAPACITY, DEFAULT_PAIRS_PER_BODY * self.num_bodies)
         self._allocate(int(capacity))
@@ -786,6 +716,7 @@ class BroadPhase:
         self.pair_key = self._key_buffer[:capacity]
         self.pair_a = wp.full(capacity, -1, dtype=int, device=dev)
         self.pair_b = wp.full(capacity, -1, dtype=int, device=dev)
+        self._pairs = filled(PairList, **{name: getattr(self, name) for name in PairList.vars})
 
     def _check_inputs(self, body_q, body_radius, body_flags=None):
         for name, arr in (("body_q", body_q), ("body_radius", body_radius), ("body_flags", body_flags)):
@@ -802,41 +733,30 @@ class BroadPhase:
         n = self.num_bodies
         dev = self.device
         inv_log = 0.0 if np.isinf(self.class_ratio) else 1.0 / float(np.log(self.class_ratio))
-        wp.launch(reset_classes_kernel, dim=1, outputs=[self.radius_min, self.class_max], device=dev)
+        wp.launch(reset_classes_kernel, dim=1, inputs=[self._build], device=dev)
         if self.radius_ref is None:
-            wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags], outputs=[self.radius_min], device=dev)
+            wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags, self._build], device=dev)
         else:
             self.radius_min.fill_(float(self.radius_ref))
-        wp.launch(
-            classes_kernel,
-            dim=n,
-            inputs=[inv_log, body_radius, body_flags, self.radius_min],
-            outputs=[self.body_group, self.class_max, self.flags_build],
-            device=dev,
-        )
+        wp.launch(classes_kernel, dim=n, inputs=[inv_log, body_radius, body_flags, self._build], device=dev)
 
     def _spatial_order(self):
         # Query order (body_order): the Morton order of the free bodies at the last (re)build
         # (q_build, flags_build), the others after them.
         n = self.num_bodies
         dev = self.device
-        wp.launch(reset_extent_kernel, dim=1, outputs=[self.scene_lower, self.scene_upper], device=dev)
-        wp.launch(extent_kernel, dim=n, inputs=[self.q_build], outputs=[self.scene_lower, self.scene_upper], device=dev)
-        wp.launch(
-            morton_kernel,
-            dim=n,
-            inputs=[self.q_build, self.flags_build, self.scene_lower, self.scene_upper],
-            outputs=[self._morton, self._order_buffer],
-            device=dev,
-        )
+        scene = [self.scene_lower, self.scene_upper]
+        wp.launch(reset_extent_kernel, dim=1, outputs=scene, device=dev)
+        wp.launch(extent_kernel, dim=n, inputs=[self._build], outputs=scene, device=dev)
+        wp.launch(morton_kernel, dim=n, inputs=[self._build, *scene], outputs=[self._morton], device=dev)
         wp.utils.radix_sort_pairs(self._morton, self._order_buffer, n, 0, 31)
 
     def _bounds(self, body_q, body_radius, body_flags):
         wp.launch(
             bounds_kernel,
             dim=self.num_bodies,
-            inputs=[0.5 * self.skin, body_q, body_radius, body_flags, self.flags_build],
-            outputs=[self.box_lower, self.box_upper, self.q_build, self.radius_build, self.host_build_needed],
+            inputs=[0.5 * self.skin, body_q, body_radius, body_flags],
+            outputs=[self._build, self._counts],
             device=self.device,
         )
 
@@ -852,37 +772,22 @@ class BroadPhase:
                 self.capacity,
                 0.5 * self.skin,
                 self.skin,
-                self.body_order,
                 body_q,
                 body_radius,
-                self.flags_build,
-                self.body_group,
-                self.group_root,
-                self.class_max,
-                self.body_box_lower,
-                self.body_box_upper,
+                self._build,
             ],
-            outputs=[self.pair_key, self.pair_counter],
+            outputs=[self._counts, self._pairs],
             device=self.device,
         )
+
+    def _group_roots(self):
+        wp.launch(group_root_kernel, dim=NUM_GROUPS, inputs=[self.bvh.id, self._build], device=self.device)
 
     def _finish_count(self):
-        wp.launch(
-            finish_count_kernel,
-            dim=1,
-            inputs=[self.capacity, self.pair_counter],
-            outputs=[self.pair_count, self.host_build_needed, self.device_rebuilds, self.pair_count_peak],
-            device=self.device,
-        )
+        wp.launch(finish_count_kernel, dim=1, inputs=[self.capacity], outputs=[self._counts], device=self.device)
 
     def _unpack(self):
-        wp.launch(
-            unpack_pairs_kernel,
-            dim=self.capacity,
-            inputs=[self.num_bodies, self.pair_key, self.pair_count],
-            outputs=[self.pair_a, self.pair_b],
-            device=self.device,
-        )
+        wp.launch(unpack_pairs_kernel, dim=self.capacity, inputs=[self.num_bodies, self._pairs], device=self.device)
 
     # -- build -------------------------------------------------------------------------------
 
@@ -927,9 +832,7 @@ class BroadPhase:
             self.bvh = wp.Bvh(self.box_lower, self.box_upper, groups=self.body_group)
         else:
             self.bvh.rebuild()
-        wp.launch(
-            group_root_kernel, dim=NUM_GROUPS, inputs=[self.bvh.id], outputs=[self.group_root], device=self.device
-        )
+        self._group_roots()
         while True:
             self._query(body_q, body_radius)
             count = int(self.pair_counter.numpy()[0])
@@ -963,13 +866,7 @@ class BroadPhase:
         self.bvh.refit()
         self._query(body_q, body_radius)
         self._finish_count()
-        wp.launch(
-            pad_keys_kernel,
-            dim=self.capacity,
-            inputs=[self.sentinel, self.pair_count],
-            outputs=[self.pair_key],
-            device=self.device,
-        )
+        wp.launch(pad_keys_kernel, dim=self.capacity, inputs=[self.sentinel, self._pairs], device=self.device)
         wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, self.capacity, 0, self.key_bits)
         self._unpack()
 
@@ -983,7 +880,8 @@ class BroadPhase:
         parents = -(-leaves // TREE_BRANCHING)
         self._tree_order = wp.clone(self.body_order)
         self._tree_blocks = tuple(
-            (wp.empty(m, dtype=wp.vec3, device=dev), wp.empty(m, dtype=wp.vec3, device=dev)) for m in (leaves, parents)
+            filled(Boxes, lower=wp.empty(m, dtype=wp.vec3, device=dev), upper=wp.empty(m, dtype=wp.vec3, device=dev))
+            for m in (leaves, parents)
         )
         self._tree_cost = wp.zeros(2, dtype=wp.float64, device=dev)
 
@@ -993,22 +891,10 @@ class BroadPhase:
         dev = self.device
         m = -(-n // TREE_BRANCHING)
         src, dst = self._tree_blocks
-        wp.launch(
-            leaf_blocks_kernel,
-            dim=m,
-            inputs=[n, slot, order, self.flags_build, self.box_lower, self.box_upper],
-            outputs=[src[0], src[1], self._tree_cost],
-            device=dev,
-        )
+        wp.launch(leaf_blocks_kernel, dim=m, inputs=[n, slot, order, self._build, src, self._tree_cost], device=dev)
         while m > 1:
             parents = -(-m // TREE_BRANCHING)
-            wp.launch(
-                merge_blocks_kernel,
-                dim=parents,
-                inputs=[m, slot, src[0], src[1]],
-                outputs=[dst[0], dst[1], self._tree_cost],
-                device=dev,
-            )
+            wp.launch(merge_blocks_kernel, dim=parents, inputs=[m, slot, src, dst, self._tree_cost], device=dev)
             src, dst = dst, src
             m = parents
 
@@ -1036,9 +922,7 @@ class BroadPhase:
         # From the boxes of the last (re)build, in place: a captured graph that refits and queries
         # this tree stays valid (Warp's LBVH rebuild reuses its buffers); the group roots move.
         self.bvh.rebuild()
-        wp.launch(
-            group_root_kernel, dim=NUM_GROUPS, inputs=[self.bvh.id], outputs=[self.group_root], device=self.device
-        )
+        self._group_roots()
         wp.copy(self._tree_order, self.body_order)
         self.num_tree_rebuilds += 1
 
@@ -1099,16 +983,7 @@ class BroadPhase:
         wp.launch(
             needs_rebuild_kernel,
             dim=self.num_bodies,
-            inputs=[
-                0.5 * self.skin,
-                int(self.rotation_term),
-                body_q,
-                body_radius,
-                flags,
-                self.q_build,
-                self.radius_build,
-                self.flags_build,
-            ],
+            inputs=[0.5 * self.skin, int(self.rotation_term), body_q, body_radius, flags, self._build],
             outputs=[self.rebuild_flag],
             device=self.device,
         )

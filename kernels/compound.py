@@ -45,25 +45,20 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
     vec3p = wp.types.vector(3, P)
     quat_p = wp.types.quaternion(P)
     transform_p = wp.types.transformation(P)
-    convex_pair = geom.pair_geometry
-    convex_plane = prim.plane_geometry
-    convex_pair_depth = geom.pair_depth
-    convex_plane_depth = prim.plane_depth
-    pose_to_f64 = prim.pose_to_f64
-    to_scalar3 = prim.to_scalar3
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
+    # The convex functions are called through ``geom`` (pair geometry and depth) and ``prim`` (the rest).
 
     @wp.func
     def part_pose(shapes: Shapes, x: transform_p, k: int):
         """Part k's pose in world (pose scalar), and its centre's offset from the body's centre
         (world axes, contact scalar)."""
         pq = shapes.part_q[k]
-        x64, q64 = pose_to_f64(x)
+        x64, q64 = prim.pose_to_f64(x)
         d64 = wp.quat_rotate(q64, wp.transform_get_translation(pq))
         p64 = x64 + d64
         q = q64 * wp.transform_get_rotation(pq)
         pose = transform_p(vec3p(P(p64[0]), P(p64[1]), P(p64[2])), quat_p(P(q[0]), P(q[1]), P(q[2]), P(q[3])))
-        return pose, to_scalar3(d64)
+        return pose, prim.to_scalar3(d64)
 
     @wp.func
     def add_part(
@@ -75,20 +70,21 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
         return vol + v, first_moment + (fm + v * d), s_a + sa_k, m_a + (ma_k + wp.cross(d, sa_k)), fb_a + fb_k
 
     @wp.func
+    def no_overlap():
+        # The sums before the first part that overlaps: V, its first moment, S_A, M_A, the fallback.
+        return C(0.0), zero3, zero3, zero3, zero3
+
+    @wp.func
     def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform_p, xb: transform_p):
-        vol = C(0.0)
-        first_moment = zero3
-        s_a = zero3
-        m_a = zero3
+        vol, first_moment, s_a, m_a, fb_a = no_overlap()
         s_b = zero3
         m_b = zero3
-        fb_a = zero3
         overflow = int(0)
         for i in range(shapes.shape_part_start[sa], shapes.shape_part_start[sa + 1]):
             xpa, da = part_pose(shapes, xa, i)
             for j in range(shapes.shape_part_start[sb], shapes.shape_part_start[sb + 1]):
                 xpb, db = part_pose(shapes, xb, j)
-                v, fm, sa_k, ma_k, sb_k, mb_k, fb_k, of = convex_pair(
+                v, fm, sa_k, ma_k, sb_k, mb_k, fb_k, of = geom.pair_geometry(
                     shapes, shapes.part_shape[i], shapes.part_shape[j], xpa, xpb
                 )
                 overflow = wp.max(overflow, of)
@@ -103,14 +99,10 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
 
     @wp.func
     def plane_geometry(shapes: Shapes, s: int, xa: transform_p, normal: vec3p, offset: P):
-        vol = C(0.0)
-        first_moment = zero3
-        s_a = zero3
-        m_a = zero3
-        fb_a = zero3
+        vol, first_moment, s_a, m_a, fb_a = no_overlap()
         for i in range(shapes.shape_part_start[s], shapes.shape_part_start[s + 1]):
             xp, d = part_pose(shapes, xa, i)
-            v, fm, sa_k, ma_k, fb_k = convex_plane(shapes, shapes.part_shape[i], xp, normal, offset)
+            v, fm, sa_k, ma_k, fb_k = prim.plane_geometry(shapes, shapes.part_shape[i], xp, normal, offset)
             if v > C(0.0):
                 vol, first_moment, s_a, m_a, fb_a = add_part(
                     vol, first_moment, s_a, m_a, fb_a, v, fm, sa_k, ma_k, fb_k, d
@@ -125,7 +117,7 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
             xpa, da = part_pose(shapes, xa, i)
             for j in range(shapes.shape_part_start[sb], shapes.shape_part_start[sb + 1]):
                 xpb, db = part_pose(shapes, xb, j)
-                depth = wp.max(depth, convex_pair_depth(shapes, shapes.part_shape[i], shapes.part_shape[j], xpa, xpb))
+                depth = wp.max(depth, geom.pair_depth(shapes, shapes.part_shape[i], shapes.part_shape[j], xpa, xpb))
         return depth
 
     @wp.func
@@ -133,7 +125,7 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
         depth = C(0.0)
         for i in range(shapes.shape_part_start[s], shapes.shape_part_start[s + 1]):
             xp, d = part_pose(shapes, xa, i)
-            depth = wp.max(depth, convex_plane_depth(shapes, shapes.part_shape[i], xp, normal, offset))
+            depth = wp.max(depth, prim.plane_depth(shapes, shapes.part_shape[i], xp, normal, offset))
         return depth
 
     return BodyGeometry(True, pair_geometry, plane_geometry, pair_depth, plane_depth)

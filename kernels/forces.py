@@ -66,6 +66,7 @@ from polydem.kernels.geometry import make_geometry
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import make_response
+from polydem.kernels.structs import output_dtypes, outputs_struct, struct_types
 
 # What the report variant of the step kernels (``report=True``) does besides the step, by bits of
 # its ``report`` argument: write each contact's geometry and force into the diagnostics outputs (what
@@ -103,17 +104,21 @@ def add_to_sums(sums: ContactSums, k: int, force: wp.vec3d, ft: wp.vec3d, fn: wp
     sums.steps[k] = sums.steps[k] + 1
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ContactKernels:
-    """The contact kernels of one law, friction setting and polygon capacity."""
+    """The contact kernels of one law, friction setting and polygon capacity (one object per variant:
+    :func:`make_contact_kernels` is cached), with the functions they are made of."""
 
     law: str
     friction: bool
     diagnostics: bool
     precision: str
     report: bool
+    compound: bool
     geometry: Any  # polydem.kernels.geometry.Geometry
+    body_geometry: Any  # polydem.kernels.compound.BodyGeometry
     respond: Any
+    wall_contact: Any
     pair_contact_kernel: Any
     gather_kernel: Any
 
@@ -129,69 +134,41 @@ class ShapeArgs(Protocol):
 
 
 class ContactModel(Protocol):
-    """The static arrays the contact kernels read (:class:`polydem.model.Model`): shapes, bodies,
-    the material table (M x M, row-major by A's and B's material) and the plane walls."""
+    """What the contact kernels read of a model (:class:`polydem.model.Model`): the shapes, and the
+    structs (:mod:`polydem.kernels.structs`) of the bodies' static arrays (``bodies``), the material
+    table (``materials``) and the plane walls (``planes``)."""
 
     num_bodies: int
     shapes: ShapeArgs
-    body_shape: wp.array
-    body_material: wp.array
-    body_flags: wp.array
-    body_inv_mass: wp.array
-    num_materials: int
-    material_k: wp.array
-    material_e: wp.array
-    material_mu: wp.array
-    material_kt: wp.array
-    law_m: float
-    plane_normal: wp.array
-    plane_offset: wp.array
-    plane_material: wp.array
+    bodies: Any  # body_model_struct(S)
+    materials: Any  # materials_struct(C)
+    planes: Any  # planes_struct(S)
 
 
 class BodyState(Protocol):
-    """The bodies' arrays a step's force stage reads and writes (:class:`polydem.state.State`)."""
+    """What a step's force stage reads and writes of a state (:class:`polydem.state.State`): the structs
+    of the bodies' arrays (``bodies``) and of the wall contacts' history (``walls``)."""
 
-    body_q: wp.array
-    body_v: wp.array
-    body_w: wp.array
-    plane_xi: wp.array
-    plane_turn: wp.array
-    body_dissipated: wp.array
-    body_f: wp.array
-    body_t: wp.array
+    bodies: Any  # bodies_struct(S)
+    walls: Any  # wall_history_struct(C)
 
 
 class PairArrays(Protocol):
-    """The candidate pairs and their per-pair arrays (:class:`polydem.contacts.Contacts`): ``capacity``
-    entries each (``pair_xi``: 1 without friction), the first ``pair_count[0]`` of them pairs."""
+    """The candidate pairs and their per-pair arrays (:class:`polydem.contacts.Contacts`), in the struct
+    ``pairs`` (:func:`polydem.kernels.structs.pairs_struct`): ``capacity`` entries each (``xi``: 1 without
+    friction), the first ``count[0]`` of them pairs."""
 
     capacity: int
-
-    # Read-only: the Contacts forward them from their broad phase.
-    @property
-    def pair_a(self) -> wp.array: ...
-    @property
-    def pair_b(self) -> wp.array: ...
-    @property
-    def pair_count(self) -> wp.array: ...
-
-    pair_xi: wp.array
-    pair_turn: wp.array
-    pair_force: wp.array
-    pair_torque_a: wp.array
-    pair_dissipated: wp.array
-    pair_by_b: wp.array
-    body_pairs_a: wp.array
-    body_pairs_b: wp.array
+    pairs: Any  # pairs_struct(C)
 
 
 @dataclass
 class ContactOutputs:
     """What the diagnostics and report variants write per contact: ``pair_*`` per candidate pair,
-    ``plane_*`` per (body, wall column). The contact points are in the state's scalar (world
-    positions), the rest in the contact scalar; ``plane_normal`` is written for the mesh walls only
-    (a plane's normal is the plane's). The step variant takes them and writes none."""
+    ``wall_*`` per (body, wall column). The contact points are in the state's scalar (world
+    positions), the rest in the contact scalar; ``wall_normal`` is written for the mesh walls only
+    (a plane's normal is the plane's). The step variant takes them and writes none. ``pairs`` and
+    ``walls`` hold the ``pair_*`` and ``wall_*`` arrays as the kernels take them (:func:`outputs_struct`)."""
 
     pair_volume: wp.array
     pair_energy: wp.array
@@ -200,26 +177,34 @@ class ContactOutputs:
     pair_fn: wp.array
     pair_ft: wp.array
     pair_depth: wp.array
-    plane_volume: wp.array
-    plane_energy: wp.array
-    plane_point: wp.array
-    plane_fn: wp.array
-    plane_ft: wp.array
-    plane_depth: wp.array
-    plane_normal: wp.array
+    wall_volume: wp.array
+    wall_energy: wp.array
+    wall_point: wp.array
+    wall_fn: wp.array
+    wall_ft: wp.array
+    wall_depth: wp.array
+    wall_normal: wp.array
 
     @classmethod
     def zeros(cls, pairs: int, bodies: int, walls: int, precision: str, device: Any) -> Self:
         """Zero arrays for ``pairs`` candidate pairs and ``bodies`` x ``walls`` wall columns."""
-        S, C = scalars(precision)
-        vec3s, vec3c = wp.types.vector(3, S), wp.types.vector(3, C)
-        dtypes = {"volume": C, "energy": C, "normal": vec3c, "point": vec3s, "fn": C, "ft": vec3c, "depth": C}
+        dtypes = output_dtypes(*scalars(precision))
         arrays = {}
         for f in fields(cls):
             prefix, quantity = f.name.split("_", 1)
             shape = pairs if prefix == "pair" else (bodies, walls)
             arrays[f.name] = wp.zeros(shape, dtype=dtypes[quantity], device=device)
         return cls(**arrays)
+
+    def __post_init__(self):
+        # The state scalar from the points' vectors, the contact scalar from the volumes.
+        S = wp.float64 if wp.types.types_equal(self.wall_point.dtype, wp.vec3d) else wp.float32
+        C = self.wall_volume.dtype
+        for prefix, walls in (("pair", False), ("wall", True)):
+            columns = outputs_struct(S, C, walls)()
+            for quantity in output_dtypes(S, C):
+                setattr(columns, quantity, getattr(self, f"{prefix}_{quantity}"))
+            setattr(self, f"{prefix}s", columns)
 
     def arrays(self) -> dict[str, wp.array]:
         """The arrays by name."""
@@ -236,10 +221,8 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
     vec3c = wp.types.vector(3, C)
+    T = struct_types(precision)
     resp = make_response(C, law, friction, diagnostics)
-    law_energy = resp.law_energy
-    toe_volume = resp.toe_volume
-    respond = resp.respond
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.func
@@ -266,22 +249,12 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
         face_area: C,
         inv_mass: C,
         # Model
-        material_k: wp.array(dtype=C),
-        material_e: wp.array(dtype=C),
-        material_mu: wp.array(dtype=C),
-        material_kt: wp.array(dtype=C),
-        law_m: C,
+        materials: T.Materials,
         dt: C,
         # State in/out
-        plane_xi: wp.array2d(dtype=vec3c),
-        plane_turn: wp.array2d(dtype=C),
-        # Out (diagnostics)
-        plane_volume: wp.array2d(dtype=C),
-        plane_energy: wp.array2d(dtype=C),
-        plane_fn: wp.array2d(dtype=C),
-        plane_point: wp.array2d(dtype=vec3s),
-        plane_ft: wp.array2d(dtype=vec3c),
-        plane_depth: wp.array2d(dtype=C),
+        walls: T.WallHistory,
+        # Out (diagnostics; no normal)
+        out: T.WallOutputs,
         # Report (the report variant only)
         report_bits: int,
         wall_sums: ContactSums,
@@ -292,59 +265,58 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
     ):
         # Returns the body's sums with this contact and the contact's normal (zero when open).
         if vol <= C(0.0):
-            # What the last impact never gave back (see the pair kernel) is dissipated as it opens.
-            e_mat = material_e[mat]
-            vc = toe_volume(material_k[mat], law_m, e_mat, dt, face_area, radius, inv_mass)
-            kept = (C(1.0) - e_mat * e_mat) * law_energy(plane_turn[i, j], material_k[mat], law_m, vc)
+            kept = resp.kept_energy(
+                walls.turn[i, j], materials.k[mat], materials.law_m, materials.e[mat], dt, face_area, radius, inv_mass
+            )
             if wp.static(diagnostics):
-                plane_volume[i, j] = C(0.0)
-                plane_energy[i, j] = kept
-                plane_fn[i, j] = C(0.0)
-                plane_ft[i, j] = zero3
-                plane_depth[i, j] = C(0.0)
+                out.volume[i, j] = C(0.0)
+                out.energy[i, j] = kept
+                out.fn[i, j] = C(0.0)
+                out.ft[i, j] = zero3
+                out.depth[i, j] = C(0.0)
             else:
                 lost += S(kept)
-                plane_turn[i, j] = C(0.0)
+                walls.turn[i, j] = C(0.0)
                 if wp.static(friction):
-                    xi = plane_xi[i, j]
-                    lost += S(C(0.5) * material_kt[mat] * wp.dot(xi, xi))
-                    plane_xi[i, j] = zero3
+                    xi = walls.xi[i, j]
+                    lost += S(C(0.5) * materials.kt[mat] * wp.dot(xi, xi))
+                    walls.xi[i, j] = zero3
                 if wp.static(report):
                     if (report_bits & REPORT_CONTACTS) != 0:
-                        plane_volume[i, j] = C(0.0)
+                        out.volume[i, j] = C(0.0)
             return f, t, lost, zero3
         xi_in = zero3
         if wp.static(friction):
-            xi_in = plane_xi[i, j]
-        force, torque, xi, turn, energy, dl, n, point, fn, ft = respond(
+            xi_in = walls.xi[i, j]
+        force, torque, xi, turn, energy, dl, n, point, fn, ft = resp.respond(
             vol, first_moment, s_a, m_a, fb_a, r_ab, v_a, w_a, v_b, w_b,
-            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in,
-            plane_turn[i, j], dt, radius, face_area, inv_mass,
+            materials.k[mat], materials.law_m, materials.e[mat], materials.mu[mat], materials.kt[mat], xi_in,
+            walls.turn[i, j], dt, radius, face_area, inv_mass,
         )  # fmt: skip
         if wp.static(diagnostics):
-            plane_volume[i, j] = vol
-            plane_energy[i, j] = energy
-            plane_fn[i, j] = fn
-            plane_point[i, j] = vec3s(point) + origin
-            plane_ft[i, j] = ft
-            plane_depth[i, j] = depth
+            out.volume[i, j] = vol
+            out.energy[i, j] = energy
+            out.fn[i, j] = fn
+            out.point[i, j] = vec3s(point) + origin
+            out.ft[i, j] = ft
+            out.depth[i, j] = depth
         else:
             if wp.static(friction):
-                plane_xi[i, j] = xi
-            plane_turn[i, j] = turn
+                walls.xi[i, j] = xi
+            walls.turn[i, j] = turn
             f += vec3s(force)
             t += vec3s(torque)
             lost += S(dl)
             if wp.static(report):
                 world_point = vec3s(point) + origin
                 if (report_bits & REPORT_CONTACTS) != 0:
-                    plane_volume[i, j] = vol
-                    plane_fn[i, j] = fn
-                    plane_point[i, j] = world_point
-                    plane_ft[i, j] = ft
-                    plane_depth[i, j] = depth
+                    out.volume[i, j] = vol
+                    out.fn[i, j] = fn
+                    out.point[i, j] = world_point
+                    out.ft[i, j] = ft
+                    out.depth[i, j] = depth
                 if (report_bits & REPORT_SUMS) != 0:
-                    k = i * plane_turn.shape[1] + j
+                    k = i * walls.turn.shape[1] + j
                     add_to_sums(wall_sums, k, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
         return f, t, lost, n
 
@@ -385,58 +357,26 @@ def make_contact_kernels(
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
     vec3c = wp.types.vector(3, C)
-    transform_s = wp.types.transformation(S)
+    T = struct_types(precision)
     resp = make_response(C, law, friction, diagnostics)
-    law_energy = resp.law_energy
-    toe_volume = resp.toe_volume
-    respond = resp.respond
     wall_contact = make_wall_contact(law, friction, diagnostics, precision, report)
     geom = make_geometry(C, max_poly, max_faces, pose_scalar=S)
     body_geom = make_body_geometry(geom, compound)
-    Shapes = geom.shapes
-    pair_geometry = body_geom.pair_geometry
-    plane_geometry = body_geom.plane_geometry
-    pair_depth_of = body_geom.pair_depth
-    plane_depth_of = body_geom.plane_depth
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def pair_contact_kernel(
         # Model
-        shapes: Shapes,
-        body_shape: wp.array(dtype=int),
-        body_material: wp.array(dtype=int),
-        body_inv_mass: wp.array(dtype=S),
-        num_materials: int,
-        material_k: wp.array(dtype=C),
-        material_e: wp.array(dtype=C),
-        material_mu: wp.array(dtype=C),
-        material_kt: wp.array(dtype=C),
-        law_m: C,
+        shapes: geom.shapes,
+        model: T.BodyModel,
+        materials: T.Materials,
         dt: C,
-        # State in
-        body_q: wp.array(dtype=transform_s),
-        body_v: wp.array(dtype=vec3s),
-        body_w: wp.array(dtype=vec3s),
-        pair_a: wp.array(dtype=int),
-        pair_b: wp.array(dtype=int),
-        pair_count: wp.array(dtype=int),
-        # State in/out
-        pair_xi: wp.array(dtype=vec3c),
-        pair_turn: wp.array(dtype=C),
-        # Out (step)
-        pair_force: wp.array(dtype=vec3c),
-        pair_torque_a: wp.array(dtype=vec3c),
-        pair_dissipated: wp.array(dtype=C),
+        # State in: the bodies; in/out: the pairs' history; out (step): their wrench and energy lost
+        bodies: T.Bodies,
+        pairs: T.Pairs,
         overflow: wp.array(dtype=int),
         # Out (diagnostics)
-        pair_volume: wp.array(dtype=C),
-        pair_energy: wp.array(dtype=C),
-        pair_normal: wp.array(dtype=vec3c),
-        pair_point: wp.array(dtype=vec3s),
-        pair_fn: wp.array(dtype=C),
-        pair_ft: wp.array(dtype=vec3c),
-        pair_depth: wp.array(dtype=C),
+        out: T.PairOutputs,
         # Report (the report variant only)
         report_bits: int,
         pair_sums: ContactSums,
@@ -445,128 +385,98 @@ def make_contact_kernels(
         diagnostics variant (run on request only) writes what energy() reports, at the current
         state, and changes nothing; the report variant steps and reports (see the factory)."""
         p = wp.tid()
-        if p >= pair_count[0]:
+        if p >= pairs.count[0]:
             return
-        a = pair_a[p]
-        b = pair_b[p]
-        xa = body_q[a]
-        xb = body_q[b]
-        vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(shapes, body_shape[a], body_shape[b], xa, xb)
+        a = pairs.a[p]
+        b = pairs.b[p]
+        xa = bodies.q[a]
+        xb = bodies.q[b]
+        vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = body_geom.pair_geometry(
+            shapes, model.shape[a], model.shape[b], xa, xb
+        )
         if of != 0:
             wp.atomic_max(overflow, 0, 1)
-        mat = body_material[a] * num_materials + body_material[b]
+        mat = model.material[a] * materials.count + model.material[b]
+        r_min = wp.min(shapes.shape_radius[model.shape[a]], shapes.shape_radius[model.shape[b]])
+        area = wp.min(shapes.shape_face_area[model.shape[a]], shapes.shape_face_area[model.shape[b]])
+        inv_mass = C(model.inv_mass[a] + model.inv_mass[b])
         if vol <= C(0.0):
-            # What the last impact never gave back, (1 - e^2) W(turn), is dissipated when the
-            # contact opens (its force may have ended before, at u = 0); until the step books it,
-            # it is still part of the contact's energy.
-            e_mat = material_e[mat]
-            r_min = wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]])
-            area = wp.min(shapes.shape_face_area[body_shape[a]], shapes.shape_face_area[body_shape[b]])
-            vc = toe_volume(material_k[mat], law_m, e_mat, dt, area, r_min, C(body_inv_mass[a] + body_inv_mass[b]))
-            kept = (C(1.0) - e_mat * e_mat) * law_energy(pair_turn[p], material_k[mat], law_m, vc)
+            # Until the step books what an opening contact kept, it is still part of its energy.
+            kept = resp.kept_energy(
+                pairs.turn[p], materials.k[mat], materials.law_m, materials.e[mat], dt, area, r_min, inv_mass
+            )
             if wp.static(diagnostics):
-                pair_volume[p] = C(0.0)
-                pair_energy[p] = kept
-                pair_fn[p] = C(0.0)
-                pair_ft[p] = zero3
-                pair_depth[p] = C(0.0)
+                out.volume[p] = C(0.0)
+                out.energy[p] = kept
+                out.fn[p] = C(0.0)
+                out.ft[p] = zero3
+                out.depth[p] = C(0.0)
             else:
                 lost = kept
-                pair_turn[p] = C(0.0)
+                pairs.turn[p] = C(0.0)
                 if wp.static(friction):
-                    xi = pair_xi[p]
-                    lost += C(0.5) * material_kt[mat] * wp.dot(xi, xi)  # the spring lets go
-                    pair_xi[p] = zero3
-                pair_force[p] = zero3
-                pair_torque_a[p] = zero3
-                pair_dissipated[p] = lost
+                    xi = pairs.xi[p]
+                    lost += C(0.5) * materials.kt[mat] * wp.dot(xi, xi)  # the spring lets go
+                    pairs.xi[p] = zero3
+                pairs.force[p] = zero3
+                pairs.torque_a[p] = zero3
+                pairs.dissipated[p] = lost
                 if wp.static(report):
                     if (report_bits & REPORT_CONTACTS) != 0:
-                        pair_volume[p] = C(0.0)
+                        out.volume[p] = C(0.0)
             return
         r_ab = vec3c(wp.transform_get_translation(xb) - wp.transform_get_translation(xa))
         xi_in = zero3
         if wp.static(friction):
-            xi_in = pair_xi[p]
-        force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
+            xi_in = pairs.xi[p]
+        force, torque, xi, turn, energy, lost, n, point, fn, ft = resp.respond(
             vol, first_moment, s_a, m_a, fb_a, r_ab,
-            vec3c(body_v[a]), vec3c(body_w[a]), vec3c(body_v[b]), vec3c(body_w[b]),
-            material_k[mat], law_m, material_e[mat], material_mu[mat], material_kt[mat], xi_in, pair_turn[p], dt,
-            wp.min(shapes.shape_radius[body_shape[a]], shapes.shape_radius[body_shape[b]]),
-            wp.min(shapes.shape_face_area[body_shape[a]], shapes.shape_face_area[body_shape[b]]),
-            C(body_inv_mass[a] + body_inv_mass[b]),
+            vec3c(bodies.v[a]), vec3c(bodies.w[a]), vec3c(bodies.v[b]), vec3c(bodies.w[b]),
+            materials.k[mat], materials.law_m, materials.e[mat], materials.mu[mat], materials.kt[mat], xi_in,
+            pairs.turn[p], dt, r_min, area, inv_mass,
         )  # fmt: skip
         if wp.static(diagnostics):
-            pair_volume[p] = vol
-            pair_energy[p] = energy
-            pair_normal[p] = n
-            pair_point[p] = vec3s(point) + wp.transform_get_translation(xa)
-            pair_fn[p] = fn
-            pair_ft[p] = ft
-            pair_depth[p] = C(pair_depth_of(shapes, body_shape[a], body_shape[b], xa, xb))
+            out.volume[p] = vol
+            out.energy[p] = energy
+            out.normal[p] = n
+            out.point[p] = vec3s(point) + wp.transform_get_translation(xa)
+            out.fn[p] = fn
+            out.ft[p] = ft
+            out.depth[p] = C(body_geom.pair_depth(shapes, model.shape[a], model.shape[b], xa, xb))
         else:
             if wp.static(friction):
-                pair_xi[p] = xi
-            pair_turn[p] = turn
-            pair_force[p] = force
-            pair_torque_a[p] = torque
-            pair_dissipated[p] = lost
+                pairs.xi[p] = xi
+            pairs.turn[p] = turn
+            pairs.force[p] = force
+            pairs.torque_a[p] = torque
+            pairs.dissipated[p] = lost
             if wp.static(report):
                 world_point = vec3s(point) + wp.transform_get_translation(xa)
                 if (report_bits & REPORT_CONTACTS) != 0:
-                    pair_volume[p] = vol
-                    pair_normal[p] = n
-                    pair_point[p] = world_point
-                    pair_fn[p] = fn
-                    pair_ft[p] = ft
-                    pair_depth[p] = C(pair_depth_of(shapes, body_shape[a], body_shape[b], xa, xb))
+                    out.volume[p] = vol
+                    out.normal[p] = n
+                    out.point[p] = world_point
+                    out.fn[p] = fn
+                    out.ft[p] = ft
+                    out.depth[p] = C(body_geom.pair_depth(shapes, model.shape[a], model.shape[b], xa, xb))
                 if (report_bits & REPORT_SUMS) != 0:
                     add_to_sums(pair_sums, p, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
 
     @wp.kernel(enable_backward=False, module="unique")
     def gather_kernel(
         # Model
-        shapes: Shapes,
-        body_shape: wp.array(dtype=int),
-        body_material: wp.array(dtype=int),
-        body_flags: wp.array(dtype=int),
-        body_inv_mass: wp.array(dtype=S),
-        num_materials: int,
-        material_k: wp.array(dtype=C),
-        material_e: wp.array(dtype=C),
-        material_mu: wp.array(dtype=C),
-        material_kt: wp.array(dtype=C),
-        law_m: C,
+        shapes: geom.shapes,
+        model: T.BodyModel,
+        materials: T.Materials,
         dt: C,
-        plane_normal: wp.array(dtype=vec3s),
-        plane_offset: wp.array(dtype=S),
-        plane_material: wp.array(dtype=int),
-        # State in
-        body_q: wp.array(dtype=transform_s),
-        body_v: wp.array(dtype=vec3s),
-        body_w: wp.array(dtype=vec3s),
-        pair_a: wp.array(dtype=int),
-        pair_b: wp.array(dtype=int),
-        body_pairs_a: wp.array(dtype=wp.vec2i),
-        body_pairs_b: wp.array(dtype=wp.vec2i),
-        pair_by_b: wp.array(dtype=int),
-        pair_force: wp.array(dtype=vec3c),
-        pair_torque_a: wp.array(dtype=vec3c),
-        pair_dissipated: wp.array(dtype=C),
-        # State in/out
-        plane_xi: wp.array2d(dtype=vec3c),
-        plane_turn: wp.array2d(dtype=C),
-        body_dissipated: wp.array(dtype=S),
-        # Out (step)
-        body_f: wp.array(dtype=vec3s),
-        body_t: wp.array(dtype=vec3s),
+        planes: T.Planes,
+        # State in/out: the bodies (out (step): force, torque, energy lost), the wall contacts' history
+        bodies: T.Bodies,
+        walls: T.WallHistory,
+        # In: the pairs' wrenches and energy lost, and the per-body ranges
+        pairs: T.Pairs,
         # Out (diagnostics)
-        plane_volume: wp.array2d(dtype=C),
-        plane_energy: wp.array2d(dtype=C),
-        plane_fn: wp.array2d(dtype=C),
-        plane_point: wp.array2d(dtype=vec3s),
-        plane_ft: wp.array2d(dtype=vec3c),
-        plane_depth: wp.array2d(dtype=C),
+        wall_out: T.WallOutputs,
         # Report (the report variant only)
         report_bits: int,
         wall_sums: ContactSums,
@@ -578,59 +488,56 @@ def make_contact_kernels(
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
         lost = S(0.0)
-        xi_pos = wp.transform_get_translation(body_q[i])
+        xi_pos = wp.transform_get_translation(bodies.q[i])
         # A fixed or kinematic body needs no force, and a container wall may touch a whole pile:
         # it skips its pairs (one thread would walk them all), and its free partners book the
         # energy lost in full.
-        if wp.static(not diagnostics) and body_flags[i] == 0:
-            ra = body_pairs_a[i]
+        if wp.static(not diagnostics) and model.flags[i] == 0:
+            ra = pairs.ranges_a[i]
             for p in range(ra[0], ra[1]):
-                f += vec3s(pair_force[p])
-                t += vec3s(pair_torque_a[p])
+                f += vec3s(pairs.force[p])
+                t += vec3s(pairs.torque_a[p])
                 share = S(0.5)
-                if body_flags[pair_b[p]] != 0:
+                if model.flags[pairs.b[p]] != 0:
                     share = S(1.0)
-                lost += share * S(pair_dissipated[p])
-            rb = body_pairs_b[i]
+                lost += share * S(pairs.dissipated[p])
+            rb = pairs.ranges_b[i]
             for k in range(rb[0], rb[1]):
-                p = pair_by_b[k]
-                fa = vec3s(pair_force[p])
-                a = pair_a[p]
-                r_ab = xi_pos - wp.transform_get_translation(body_q[a])
+                p = pairs.by_b[k]
+                fa = vec3s(pairs.force[p])
+                a = pairs.a[p]
+                r_ab = xi_pos - wp.transform_get_translation(bodies.q[a])
                 f -= fa
-                t += wp.cross(r_ab, fa) - vec3s(pair_torque_a[p])
+                t += wp.cross(r_ab, fa) - vec3s(pairs.torque_a[p])
                 share = S(0.5)
-                if body_flags[a] != 0:
+                if model.flags[a] != 0:
                     share = S(1.0)
-                lost += share * S(pair_dissipated[p])
-        if body_flags[i] == 0:
-            xa = body_q[i]
-            s = body_shape[i]
+                lost += share * S(pairs.dissipated[p])
+        if model.flags[i] == 0:
+            xa = bodies.q[i]
+            s = model.shape[i]
             # The depth only for the diagnostics and a report of the contacts (not for the sums).
             want_depth = wp.static(diagnostics)
             if wp.static(report):
                 want_depth = (report_bits & REPORT_CONTACTS) != 0
-            for j in range(plane_normal.shape[0]):
-                pn = plane_normal[j]
-                vol, first_moment, s_a, m_a, fb_a = plane_geometry(shapes, s, xa, pn, plane_offset[j])
-                mat = body_material[i] * num_materials + plane_material[j]
+            for j in range(planes.normal.shape[0]):
+                pn = planes.normal[j]
+                vol, first_moment, s_a, m_a, fb_a = body_geom.plane_geometry(shapes, s, xa, pn, planes.offset[j])
+                mat = model.material[i] * materials.count + planes.material[j]
                 depth = C(0.0)
                 if wp.static(diagnostics or report):
                     if want_depth and vol > C(0.0):
-                        depth = C(plane_depth_of(shapes, s, xa, pn, plane_offset[j]))
+                        depth = C(body_geom.plane_depth(shapes, s, xa, pn, planes.offset[j]))
                 f, t, lost, _ = wall_contact(
                     i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
-                    -vec3c(pn), vec3c(body_v[i]), vec3c(body_w[i]), zero3, zero3, xi_pos,
-                    shapes.shape_radius[s], shapes.shape_face_area[s], C(body_inv_mass[i]),
-                    material_k, material_e, material_mu, material_kt, law_m, dt,
-                    plane_xi, plane_turn,
-                    plane_volume, plane_energy, plane_fn, plane_point, plane_ft, plane_depth,
-                    report_bits, wall_sums, f, t, lost,
+                    -vec3c(pn), vec3c(bodies.v[i]), vec3c(bodies.w[i]), zero3, zero3, xi_pos,
+                    shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]),
+                    materials, dt, walls, wall_out, report_bits, wall_sums, f, t, lost,
                 )  # fmt: skip
         if wp.static(not diagnostics):
-            body_f[i] = f
-            body_t[i] = t
-            body_dissipated[i] = body_dissipated[i] + lost
+            bodies.f[i] = f
+            bodies.t[i] = t
+            bodies.dissipated[i] = bodies.dissipated[i] + lost
 
     return ContactKernels(
         law=law,
@@ -638,8 +545,11 @@ def make_contact_kernels(
         diagnostics=diagnostics,
         precision=precision,
         report=report,
+        compound=compound,
         geometry=geom,
-        respond=respond,
+        body_geometry=body_geom,
+        respond=resp.respond,
+        wall_contact=wall_contact,
         pair_contact_kernel=pair_contact_kernel,
         gather_kernel=gather_kernel,
     )
@@ -648,12 +558,6 @@ def make_contact_kernels(
 # ---------------------------------------------------------------------------------------------
 # Launch functions
 # ---------------------------------------------------------------------------------------------
-
-
-def material_args(model: ContactModel, dt: float) -> list[Any]:
-    """The material table, the law's exponent and the step, in the order every contact kernel takes them."""
-    m = model
-    return [m.num_materials, m.material_k, m.material_e, m.material_mu, m.material_kt, m.law_m, dt]
 
 
 def launch_pair_contacts(
@@ -678,43 +582,9 @@ def launch_pair_contacts(
     wp.launch(
         kernels.pair_contact_kernel,
         dim=pairs.capacity,
-        inputs=[
-            # Model
-            *m.shapes.kernel_args(),
-            m.body_shape,
-            m.body_material,
-            m.body_inv_mass,
-            *material_args(m, dt),
-            # State in
-            state.body_q,
-            state.body_v,
-            state.body_w,
-            pairs.pair_a,
-            pairs.pair_b,
-            pairs.pair_count,
-            # State in/out
-            pairs.pair_xi,
-            pairs.pair_turn,
-        ],
-        outputs=[
-            # Out (step)
-            pairs.pair_force,
-            pairs.pair_torque_a,
-            pairs.pair_dissipated,
-            overflow,
-            # Out (diagnostics)
-            out.pair_volume,
-            out.pair_energy,
-            out.pair_normal,
-            out.pair_point,
-            out.pair_fn,
-            out.pair_ft,
-            out.pair_depth,
-            # Report
-            int(report_bits),
-            pair_sums,
-        ],
-        device=state.body_q.device,
+        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, state.bodies, pairs.pairs, overflow],
+        outputs=[out.pairs, int(report_bits), pair_sums],
+        device=state.bodies.q.device,
         block_dim=NARROWPHASE_BLOCK_DIM,
     )
 
@@ -738,48 +608,7 @@ def launch_gather(
     wp.launch(
         kernels.gather_kernel,
         dim=m.num_bodies,
-        inputs=[
-            # Model
-            *m.shapes.kernel_args(),
-            m.body_shape,
-            m.body_material,
-            m.body_flags,
-            m.body_inv_mass,
-            *material_args(m, dt),
-            m.plane_normal,
-            m.plane_offset,
-            m.plane_material,
-            # State in
-            state.body_q,
-            state.body_v,
-            state.body_w,
-            pairs.pair_a,
-            pairs.pair_b,
-            pairs.body_pairs_a,
-            pairs.body_pairs_b,
-            pairs.pair_by_b,
-            pairs.pair_force,
-            pairs.pair_torque_a,
-            pairs.pair_dissipated,
-            # State in/out
-            state.plane_xi,
-            state.plane_turn,
-            state.body_dissipated,
-        ],
-        outputs=[
-            # Out (step)
-            state.body_f,
-            state.body_t,
-            # Out (diagnostics)
-            out.plane_volume,
-            out.plane_energy,
-            out.plane_fn,
-            out.plane_point,
-            out.plane_ft,
-            out.plane_depth,
-            # Report
-            int(report_bits),
-            wall_sums,
-        ],
-        device=state.body_q.device,
+        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, m.planes, state.bodies, state.walls, pairs.pairs],
+        outputs=[out.walls, int(report_bits), wall_sums],
+        device=state.bodies.q.device,
     )

@@ -436,8 +436,16 @@ def make_geometry(
     quat = wp.types.quaternion(pose_scalar)
     transform = wp.types.transformation(pose_scalar)
     Shapes = prim.shapes
-    poly_t = wp.types.matrix(shape=(2 * max_poly, 3), dtype=scalar)
-    ids_t = wp.types.vector(length=max_faces, dtype=int)
+    # The per-thread buffers of pair_pieces: one polygon (the Sutherland-Hodgman passes clip it in
+    # place), and each body's list of active faces, a face's offset from its shape's first face in a
+    # lane of 8 bits, four to an int word (where a shape has more than 256 faces: 16 bits, two to a
+    # word; more than 65536: one): a quarter of the stack, and of its zero-fill, of a list of ints.
+    ids_log = 2 if max_faces <= 256 else (1 if max_faces <= 65536 else 0)
+    ids_bits = 32 >> ids_log
+    ids_lane = (1 << ids_log) - 1
+    ids_mask = (1 << ids_bits) - 1 if ids_bits < 32 else -1
+    poly_t = wp.types.matrix(shape=(max_poly, 3), dtype=scalar)
+    ids_t = wp.types.vector(length=(max_faces + ids_lane) >> ids_log, dtype=int)
     tol_rel = float(COINCIDENT_TOL[scalar] if coincident_tol is None else coincident_tol)
     noise_rel = float(COORDINATE_NOISE[scalar])
     cull_margin = CULL_MARGIN
@@ -456,6 +464,25 @@ def make_geometry(
     pose_to_f64 = prim.pose_to_f64
     projected_area = prim.projected_area
     zero3d = wp.constant(vec3d(0.0, 0.0, 0.0))
+
+    # The entries of the face lists, written and read through these (an entry is a value, the lists stay
+    # where they are declared): entry n is lane n & ids_lane of word n >> ids_log.
+
+    @wp.func
+    def slot(n: int):
+        return n >> ids_log
+
+    @wp.func
+    def with_face(word: int, n: int, f: int, first: int):
+        # The word of entry n once face f is entered there (the entries before it kept).
+        lane = n & ids_lane
+        if lane == 0:
+            return f - first
+        return word | ((f - first) << (lane * ids_bits))
+
+    @wp.func
+    def face_of(word: int, n: int, first: int):
+        return ((word >> ((n & ids_lane) * ids_bits)) & ids_mask) + first
 
     @wp.func
     def plane64(shapes: Shapes, f: int):
@@ -587,16 +614,402 @@ def make_geometry(
     def axes_onto(n: vec3d):
         # A rotation (a quaternion: it stays live through the clipping loop, in fewer registers than a
         # matrix) taking the unit vector n onto the coordinate axis nearest it.
-        k = int(0)
-        if wp.abs(n[1]) > wp.abs(n[k]):
-            k = 1
-        if wp.abs(n[2]) > wp.abs(n[k]):
-            k = 2
-        e = vec3d()
-        e[k] = wp.sign(n[k])
+        # e = sign(n_k) along the axis k of the largest |n_k| (the first of equals), chosen without
+        # indexing by k: a runtime index puts a vector in local memory.
+        zero = wp.float64(0.0)
+        e = vec3d(wp.sign(n[0]), zero, zero)
+        big = wp.abs(n[0])
+        if wp.abs(n[1]) > big:
+            e = vec3d(zero, wp.sign(n[1]), zero)
+            big = wp.abs(n[1])
+        if wp.abs(n[2]) > big:
+            e = vec3d(zero, zero, wp.sign(n[2]))
         # Half-way between n and e: c = n . e >= 1/sqrt(3) here, so 1 + c is far from 0.
         v = wp.cross(n, e)
         return wp.normalize(quatd(v[0], v[1], v[2], wp.float64(1.0) + wp.dot(n, e)))
+
+    @wp.func
+    def finish_pass(
+        poly: poly_t, out: wp.ref[poly_t], count: int, k0: int, n_out: int,
+        prev: vec3, s_prev: scalar, v: vec3, ncut: vec3, dcut: scalar,
+    ):  # fmt: skip
+        # Steps k0.. of an in-place Sutherland-Hodgman pass whose output would overrun input not yet
+        # read: the rest out of place, into a buffer of its own, then back into `out` (the same polygon
+        # buffer, by reference; `poly`, its copy, is what is read). Rows [0, n_out) hold the output so
+        # far, rows > k0 the input not yet read, v the input at k0. Rare: its buffer is declared (and
+        # zero-filled) only when it runs.
+        spare = poly_t()
+        for i in range(n_out):
+            spare[i] = poly[i]
+        full = int(0)
+        for k in range(k0, count):
+            if k > k0:
+                v = poly[k]
+            sk = plane_distance(ncut, dcut, v)
+            if crosses(s_prev, sk):
+                if n_out >= max_poly:
+                    full = 1
+                    break
+                spare[n_out] = edge_cut(prev, s_prev, v, sk)
+                n_out += 1
+            if sk <= scalar(0.0):
+                if n_out >= max_poly:
+                    full = 1
+                    break
+                spare[n_out] = v
+                n_out += 1
+            prev = v
+            s_prev = sk
+        for i in range(n_out):
+            out[i] = spare[i]
+        return n_out, full
+
+    @wp.func
+    def pair_pieces(
+        shapes: Shapes, s1: int, s2: int, in_a: bool, xa64: vec3d, xb64: vec3d, q1: quatd, r2: wp.float64,
+        pos: vec3d, rot: mat33d, pos_c: vec3, rot_c: mat33, r1_c: scalar, r2_c: scalar, slack: scalar,
+        uc: vec3, lo_c: scalar, hi_c: scalar, f10: int, f11: int, f20: int, f21: int,
+        v10: int, v11: int, v20: int, v21: int,
+    ):  # fmt: skip
+        # pair_geometry past its bounding-sphere and slab tests: the culling of faces and planes, the
+        # pair-local frame, the clipping, and the results in world axes.
+        # The per-thread buffers first: Warp zero-fills each where the function starts, and an
+        # assignment next to that is the same fill (a later one was a second).
+        ids_1 = ids_t()
+        ids_2 = ids_t()
+        poly = poly_t()
+        zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        rot_ct = wp.transpose(rot_c)
+        # Separating face planes, by bounding spheres first and exactly (all of the other body's
+        # vertices outside, by more than the slack) only for planes the other body's centre lies
+        # outside of. Meanwhile find where the line of centres leaves body 1 (tau_1, as a
+        # fraction of the way from its centre to body 2's) and enters body 2 (tau_2): the cones
+        # that integrate V start from the middle of that stretch, inside the overlap whenever the
+        # line crosses it, so the cone volumes do not cancel and V and its centroid keep their
+        # precision for shallow overlaps. The tau are only an apex: the clipping precision will do.
+        tau_1c = scalar(1.0)
+        tau_2c = scalar(0.0)
+        # The active faces of each body, a list in per-thread memory (packed: slot, with_face, face_of),
+        # in increasing index order.
+        num_1 = int(0)
+        word = int(0)  # the list's last word, as written
+        for f in range(f10, f11):
+            plc = shapes.face_plane[f]
+            nc = vec3(plc[0], plc[1], plc[2])
+            dc = plc[3]
+            sigma_c = wp.dot(nc, pos_c)
+            if sigma_c * tau_1c > dc:  # d / sigma < tau_1: the line leaves body 1 earlier here
+                tau_1c = dc / sigma_c
+            sc = sigma_c - dc
+            if sc > r2_c + slack:
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            if sc > scalar(0.0):
+                # The other body's centre lies outside: is the plane separating?
+                if all_outside_c(shapes, v20, v21, rot_ct * nc, dc - sigma_c + slack):
+                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            if sc <= -(r2_c + slack):
+                continue  # body 2 lies wholly inside this plane: the face cannot reach it
+            sph_c = shapes.face_sphere[f]
+            if sphere_misses_c(vec3(sph_c[0], sph_c[1], sph_c[2]), sph_c[3] + slack, uc, lo_c, hi_c, pos_c, r2_c):
+                continue
+            word = with_face(word, num_1, f, f10)
+            ids_1[slot(num_1)] = word
+            num_1 += 1
+        num_2 = int(0)
+        word = int(0)
+        pos_2c = -(rot_ct * pos_c)  # body 1's centre in body 2's frame
+        for g in range(f20, f21):
+            plc = shapes.face_plane[g]
+            nc = vec3(plc[0], plc[1], plc[2])
+            dc = plc[3]
+            sigma_c = wp.dot(nc, pos_2c)
+            if sigma_c * (scalar(1.0) - tau_2c) > dc:  # 1 - d / sigma > tau_2: it enters body 2 later
+                tau_2c = scalar(1.0) - dc / sigma_c
+            sc = sigma_c - dc
+            if sc > r1_c + slack:
+                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            n1c = rot_c * nc
+            if sc > scalar(0.0):
+                if all_outside_c(shapes, v10, v11, n1c, dc + wp.dot(n1c, pos_c) + slack):
+                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
+            if sc <= -(r1_c + slack):
+                continue
+            sph_c = shapes.face_sphere[g]
+            cc = rot_c * vec3(sph_c[0], sph_c[1], sph_c[2]) + pos_c
+            if sphere_misses_c(cc, sph_c[3] + slack, uc, lo_c, hi_c, zero3, r1_c):
+                continue
+            word = with_face(word, num_2, g, f20)
+            ids_2[slot(num_2)] = word
+            num_2 += 1
+        tau_1 = wp.float64(tau_1c)
+        tau_2 = wp.float64(tau_2c)
+
+        # A flat contact: of the active faces with opposite outward normals (within PARALLEL_COS),
+        # the pair whose planes lie nearest each other. The pair-local frame then turns body 1's
+        # face onto a coordinate plane through the apex: the coordinates across the thin overlap
+        # are small numbers, exact to their own size, so both faces' pieces agree on it. In body
+        # 1's axes an oblique face (a rock's, a tetrahedron's, a cell of a tilted mesh wall) had
+        # vertices rounded off its own plane by units of the body's size, as far as the depth of a
+        # resting contact: the facets of the two bodies disagreed and V came out 1e9 times off.
+        frame = quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+        turned = bool(False)  # frame is not the identity: body 1's planes and vertices are rotated
+        flat = int(-1)
+        gap = scalar(1.0e30)
+        for j in range(num_1):
+            f = face_of(ids_1[slot(j)], j, f10)
+            pf = shapes.face_plane[f]
+            # n_f in body 2's frame, where body 2's planes are read as stored
+            nf2 = rot_ct * vec3(pf[0], pf[1], pf[2])
+            for jj in range(num_2):
+                g = face_of(ids_2[slot(jj)], jj, f20)
+                pg = shapes.face_plane[g]
+                ng = vec3(pg[0], pg[1], pg[2])
+                if wp.dot(nf2, ng) < -scalar(parallel_cos):
+                    # the slab between the two planes along n_f: d_f + d_g - n_g . (body 1's centre in 2's frame)
+                    slab = wp.abs(pf[3] + pg[3] - wp.dot(ng, pos_2c))
+                    if slab < gap:
+                        gap = slab
+                        flat = f
+        apex = pos * (wp.float64(0.5) * (tau_1 + tau_2))
+        if tau_2 > tau_1:
+            # The line of centres misses the overlap (it leaves body 1 before it enters body 2: a
+            # body lying on a big face of the other, away from its centre). An apex there would lie
+            # outside the overlap, up to metres from it (in float32 the facets close only to ~1e-3
+            # of their area: that gap times the apex's distance came out as V errors of 10-100x
+            # for shallow face contacts of a cube on a floor box). Take instead the foot of body 2's
+            # centre on body 1: projected onto the active plane of body 1 it lies farthest above, then
+            # again while it lies above another (a box's closest point in at most three rounds). On
+            # the contact face, whose cones then vanish exactly, and next to the overlap where body 2
+            # overhangs an edge or a corner of body 1: the foot on one side plane alone lay up to a
+            # body's size above the overlap, and float32 coordinates of that size round a shallow
+            # overlap's facets apart (V off by 1e7 times at 1e-8 m deep).
+            apex = pos
+            for _round in range(3):
+                s_top = wp.float64(0.0)
+                n_top = vec3d()
+                for j in range(num_1):
+                    n, d = plane64(shapes, face_of(ids_1[slot(j)], j, f10))
+                    sj = wp.dot(n, apex) - d
+                    if sj > s_top:
+                        s_top = sj
+                        n_top = n
+                if s_top <= wp.float64(0.0):
+                    break
+                apex = apex - s_top * n_top
+        if flat >= 0:
+            n_flat, d_flat = plane64(shapes, flat)
+            apex = apex - (wp.dot(n_flat, apex) - d_flat) * n_flat
+            # An axis-aligned face (a box's) keeps body 1's axes: no rotation to pay per plane and vertex.
+            turned = n_flat[0] * n_flat[1] != wp.float64(0.0) or n_flat[1] * n_flat[2] != wp.float64(0.0)
+            turned = turned or n_flat[0] * n_flat[2] != wp.float64(0.0)
+            if turned:
+                frame = axes_onto(n_flat)
+        # The pair-local frame: `frame` times body 1's axes, origin at the apex. Planes and vertices
+        # are moved there in float64 and only then rounded to the clipping precision (plane_row_1,
+        # plane_row_2, face_vertex) wherever they are read: recomputed, not kept in per-thread tables
+        # (BENCHMARKS.md section 7c). `rot_l` and `off_2` place body 2 there; `rot` and `pos` still
+        # place it in body 1's frame.
+        rot_l = wp.quat_to_matrix(frame) * rot
+        off_2 = wp.quat_rotate(frame, pos - apex)  # body 2's centre, pair-local
+        tol_c = scalar(tol_rel) * scalar(r2)  # coincident-face tolerance, before the rounding
+
+        vol = scalar(0.0)
+        vol_c = zero3
+        s_1 = zero3
+        m_1 = zero3
+        s_2 = zero3
+        m_2 = zero3
+        overflow = int(0)
+        # Clip each active face polygon by the other body's active planes and integrate the
+        # surviving piece. This loop is written out here rather than in a helper called per face: a
+        # @wp.func takes its arguments by value (a wp.ref[T] argument is read whole wherever one
+        # element of it is), and the per-thread buffers (polygon, ids) live in local memory, so a
+        # call per face copied them again each time. One polygon buffer (declared above) serves
+        # every face, and each Sutherland-Hodgman pass clips it in place.
+        for j in range(num_1 + num_2):
+            face_is_1 = j < num_1
+            face = int(0)
+            num_planes = int(0)
+            plane = vec4()
+            if face_is_1:
+                face = face_of(ids_1[slot(j)], j, f10)
+                num_planes = num_2
+                plane = plane_row_1(shapes, face, turned, frame, apex)
+            else:
+                face = face_of(ids_2[slot(j - num_1)], j - num_1, f20)
+                num_planes = num_1
+                plane = plane_row_2(shapes, face, rot_l, off_2)
+            nf = vec3(plane[0], plane[1], plane[2])
+            begin = shapes.face_loop_start[face]
+            count = shapes.face_loop_start[face + 1] - begin
+            sph = shapes.face_sphere[face]
+            c64 = vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2]))
+            centre = zero3
+            if face_is_1:
+                if turned:
+                    centre = to_scalar3(wp.quat_rotate(frame, c64 - apex))
+                else:
+                    centre = to_scalar3(c64 - apex)
+            else:
+                centre = to_scalar3(rot_l * c64 + off_2)
+            for k in range(count):
+                poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
+            weight = scalar(1.0)
+            alive = bool(True)
+            for t in range(num_planes):
+                other = int(0)
+                if face_is_1:
+                    other = face_of(ids_2[slot(t)], t, f20)
+                else:
+                    other = face_of(ids_1[slot(t)], t, f10)
+                pl = vec4()
+                if face_is_1:
+                    pl = plane_row_2(shapes, other, rot_l, off_2)
+                else:
+                    pl = plane_row_1(shapes, other, turned, frame, apex)
+                nc = vec3(pl[0], pl[1], pl[2])
+                dc = pl[3]
+                dist_c = plane_distance(nc, dc, centre)
+                if dist_c <= -sph[3]:
+                    continue  # the whole face lies inside this plane
+                if dist_c > sph[3]:
+                    alive = False
+                    break
+                if wp.dot(nf, nc) >= scalar(parallel_cos):
+                    # Coincident faces with the same outward normal: shared half and half, decided
+                    # by one function evaluated the same way from both sides (body 1's plane, body
+                    # 2's face), so both sides agree bit for bit. Opposite normals are no special
+                    # case: a flat contact of any thickness is clipped like any other.
+                    same = bool(False)
+                    if face_is_1:
+                        same = coincident(shapes, plane, other, rot_l, off_2, tol_c)
+                    else:
+                        same = coincident(shapes, pl, face, rot_l, off_2, tol_c)
+                    if same:
+                        # Half to each body; but where one of the two faces lies inside its grain (a
+                        # compound's cut plane), the other is the boundary of the union there and
+                        # takes it all. The same rule read from both sides: the weights sum to 1.
+                        inside_face = shapes.face_internal[face]
+                        inside_other = shapes.face_internal[other]
+                        weight = scalar(0.5)
+                        if inside_face != inside_other:
+                            weight = scalar(1.0)
+                            if inside_face != 0:
+                                weight = scalar(0.0)
+                        continue
+                # Sutherland-Hodgman against ncut.x <= dcut (the plane nc, dc, read again: with nc and
+                # dc themselves the kernel compiles otherwise than the one timed in BENCHMARKS.md 7c),
+                # in place: the output overwrites the input behind the reading, which runs one vertex
+                # ahead (v_k+1 is read before step k writes): a convex polygon's output stays within
+                # rows <= k+1 at step k. A vertex already in its row is not written again, so a plane
+                # that cuts nothing writes nothing. A polygon rounded off convex can cross the plane
+                # more than twice: before its output would overrun input not yet read, finish_pass
+                # does the rest of the pass out of place.
+                ncut = vec3(pl[0], pl[1], pl[2])
+                dcut = pl[3]
+                n_out = int(0)
+                full = int(0)
+                prev = poly[count - 1]
+                s_prev = plane_distance(ncut, dcut, prev)
+                v = poly[0]
+                for k in range(count):
+                    ahead = v
+                    if k + 1 < count:
+                        ahead = poly[k + 1]
+                    sk = plane_distance(ncut, dcut, v)
+                    cut = crosses(s_prev, sk)
+                    keep = sk <= scalar(0.0)
+                    if n_out < count and k + 2 < count and n_out + int(cut) + int(keep) > k + 2:
+                        n_out, full = finish_pass(poly, poly, count, k, n_out, prev, s_prev, v, ncut, dcut)
+                        break
+                    if cut:
+                        if n_out >= max_poly:
+                            full = 1
+                            break
+                        poly[n_out] = edge_cut(prev, s_prev, v, sk)
+                        n_out += 1
+                    if keep:
+                        if n_out >= max_poly:
+                            full = 1
+                            break
+                        if n_out != k:
+                            poly[n_out] = v
+                        n_out += 1
+                    prev = v
+                    s_prev = sk
+                    v = ahead
+                if full != 0:
+                    overflow = 1
+                if n_out < 3 or full != 0:
+                    alive = False
+                    break
+                count = n_out
+            if not alive:
+                continue
+            # Fan triangulation: facet area and area-weighted centroid, each vertex read once (a
+            # triangle's second vertex is the previous one's third).
+            sum_a2 = scalar(0.0)
+            sum_c = zero3
+            p0 = poly[0]
+            p1 = poly[1]
+            for k in range(1, count - 1):
+                p2 = poly[k + 1]
+                sum_a2, sum_c = fan_add(p0, p1, p2, nf, sum_a2, sum_c)
+                p1 = p2
+            area, area_c = fan_close(sum_a2, sum_c, weight)
+            dv, dv_c = cone(area, area_c, plane, zero3)
+            vol += dv
+            vol_c += dv_c
+            if face_is_1:
+                s_1 += area * nf
+                m_1 += wp.cross(area_c, nf)
+            else:
+                s_2 += area * nf
+                m_2 += wp.cross(area_c, nf)
+
+        # Enclosed: the fallback area vector of body 1 (module docstring), body 1's frame.
+        fb_1 = zero3d
+        if vol > scalar(0.0):
+            if wp.length(s_1) < scalar(enclosed_ratio) * wp.pow(vol, scalar(2.0) / scalar(3.0)):
+                # Body 2's pose in body 1's frame again, from the pair-local one: keeping the originals
+                # live through the clipping loop cost registers, and spills, in every pair.
+                rot_b = wp.quat_to_matrix(wp.quat_inverse(frame)) * rot_l
+                pos_b = wp.quat_rotate_inv(frame, off_2) + apex
+                u_best, sep = least_penetration(shapes, s1, s2, rot_b, pos_b)
+                fb_1 = projected_area(shapes, s2, wp.transpose(rot_b) * u_best) * u_best
+        # Back to body 1's axes and centre (float64), then to world axes and A's centre.
+        vol64 = wp.float64(vol)
+        s1_64 = wp.quat_rotate_inv(frame, to_f64(s_1))
+        s2_64 = wp.quat_rotate_inv(frame, to_f64(s_2))
+        vol_c64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(vol_c)) + vol64 * apex)
+        m1_64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(m_1)) + wp.cross(apex, s1_64))
+        m2_64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(m_2)) + wp.cross(apex, s2_64))
+        s1_64 = wp.quat_rotate(q1, s1_64)
+        s2_64 = wp.quat_rotate(q1, s2_64)
+        fb_1 = wp.quat_rotate(q1, fb_1)
+        if in_a:
+            return (
+                vol,
+                to_scalar3(vol_c64),
+                to_scalar3(s1_64),
+                to_scalar3(m1_64),
+                to_scalar3(s2_64),
+                to_scalar3(m2_64),
+                to_scalar3(fb_1),
+                overflow,
+            )
+        # Positions came relative to B's centre: move them to A's.
+        r = xb64 - xa64
+        return (
+            vol,
+            to_scalar3(vol_c64 + vol64 * r),
+            to_scalar3(s2_64),
+            to_scalar3(m2_64 + wp.cross(r, s2_64)),
+            to_scalar3(s1_64),
+            to_scalar3(m1_64 + wp.cross(r, s1_64)),
+            to_scalar3(-fb_1),
+            overflow,
+        )
 
     @wp.func
     def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
@@ -682,319 +1095,28 @@ def make_geometry(
             if lo_c > hi_c:
                 return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
 
-        # Separating face planes, by bounding spheres first and exactly (all of the other body's
-        # vertices outside, by more than the slack) only for planes the other body's centre lies
-        # outside of. Meanwhile find where the line of centres leaves body 1 (tau_1, as a
-        # fraction of the way from its centre to body 2's) and enters body 2 (tau_2): the cones
-        # that integrate V start from the middle of that stretch, inside the overlap whenever the
-        # line crosses it, so the cone volumes do not cancel and V and its centroid keep their
-        # precision for shallow overlaps. The tau are only an apex: the clipping precision will do.
-        tau_1c = scalar(1.0)
-        tau_2c = scalar(0.0)
-        # The active faces of each body, a list of their indices in per-thread memory, in increasing
-        # index order.
-        ids_1 = ids_t()
-        ids_2 = ids_t()
-        num_1 = int(0)
-        for f in range(f10, f11):
-            plc = shapes.face_plane[f]
-            nc = vec3(plc[0], plc[1], plc[2])
-            dc = plc[3]
-            sigma_c = wp.dot(nc, pos_c)
-            if sigma_c * tau_1c > dc:  # d / sigma < tau_1: the line leaves body 1 earlier here
-                tau_1c = dc / sigma_c
-            sc = sigma_c - dc
-            if sc > r2_c + slack:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            if sc > scalar(0.0):
-                # The other body's centre lies outside: is the plane separating?
-                if all_outside_c(shapes, v20, v21, rot_ct * nc, dc - sigma_c + slack):
-                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            if sc <= -(r2_c + slack):
-                continue  # body 2 lies wholly inside this plane: the face cannot reach it
-            sph_c = shapes.face_sphere[f]
-            if sphere_misses_c(vec3(sph_c[0], sph_c[1], sph_c[2]), sph_c[3] + slack, uc, lo_c, hi_c, pos_c, r2_c):
-                continue
-            ids_1[num_1] = f
-            num_1 += 1
-        num_2 = int(0)
-        pos_2c = -(rot_ct * pos_c)  # body 1's centre in body 2's frame
-        for g in range(f20, f21):
-            plc = shapes.face_plane[g]
-            nc = vec3(plc[0], plc[1], plc[2])
-            dc = plc[3]
-            sigma_c = wp.dot(nc, pos_2c)
-            if sigma_c * (scalar(1.0) - tau_2c) > dc:  # 1 - d / sigma > tau_2: it enters body 2 later
-                tau_2c = scalar(1.0) - dc / sigma_c
-            sc = sigma_c - dc
-            if sc > r1_c + slack:
-                return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            n1c = rot_c * nc
-            if sc > scalar(0.0):
-                if all_outside_c(shapes, v10, v11, n1c, dc + wp.dot(n1c, pos_c) + slack):
-                    return scalar(0.0), zero3, zero3, zero3, zero3, zero3, zero3, 0
-            if sc <= -(r1_c + slack):
-                continue
-            sph_c = shapes.face_sphere[g]
-            cc = rot_c * vec3(sph_c[0], sph_c[1], sph_c[2]) + pos_c
-            if sphere_misses_c(cc, sph_c[3] + slack, uc, lo_c, hi_c, zero3, r1_c):
-                continue
-            ids_2[num_2] = g
-            num_2 += 1
-        tau_1 = wp.float64(tau_1c)
-        tau_2 = wp.float64(tau_2c)
+        # The rest, with the per-thread buffers, in a function of its own: Warp declares (and zero-fills)
+        # a function's local buffers where it starts, and most separated candidates have left by now.
+        return pair_pieces(
+            shapes, s1, s2, in_a, xa64, xb64, q1, r2, pos, rot,
+            pos_c, rot_c, r1_c, r2_c, slack, uc, lo_c, hi_c,
+            f10, f11, f20, f21, v10, v11, v20, v21,
+        )  # fmt: skip
 
-        # A flat contact: of the active faces with opposite outward normals (within PARALLEL_COS),
-        # the pair whose planes lie nearest each other. The pair-local frame then turns body 1's
-        # face onto a coordinate plane through the apex: the coordinates across the thin overlap
-        # are small numbers, exact to their own size, so both faces' pieces agree on it. In body
-        # 1's axes an oblique face (a rock's, a tetrahedron's, a cell of a tilted mesh wall) had
-        # vertices rounded off its own plane by units of the body's size, as far as the depth of a
-        # resting contact: the facets of the two bodies disagreed and V came out 1e9 times off.
-        frame = quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
-        turned = bool(False)  # frame is not the identity: body 1's planes and vertices are rotated
-        flat = int(-1)
-        gap = scalar(1.0e30)
-        for j in range(num_1):
-            f = ids_1[j]
-            pf = shapes.face_plane[f]
-            # n_f in body 2's frame, where body 2's planes are read as stored
-            nf2 = rot_ct * vec3(pf[0], pf[1], pf[2])
-            for jj in range(num_2):
-                g = ids_2[jj]
-                pg = shapes.face_plane[g]
-                ng = vec3(pg[0], pg[1], pg[2])
-                if wp.dot(nf2, ng) < -scalar(parallel_cos):
-                    # the slab between the two planes along n_f: d_f + d_g - n_g . (body 1's centre in 2's frame)
-                    slab = wp.abs(pf[3] + pg[3] - wp.dot(ng, pos_2c))
-                    if slab < gap:
-                        gap = slab
-                        flat = f
-        apex = pos * (wp.float64(0.5) * (tau_1 + tau_2))
-        if tau_2 > tau_1:
-            # The line of centres misses the overlap (it leaves body 1 before it enters body 2: a
-            # body lying on a big face of the other, away from its centre). An apex there would lie
-            # outside the overlap, up to metres from it (in float32 the facets close only to ~1e-3
-            # of their area: that gap times the apex's distance came out as V errors of 10-100x
-            # for shallow face contacts of a cube on a floor box). Take instead the foot of body 2's
-            # centre on body 1: projected onto the active plane of body 1 it lies farthest above, then
-            # again while it lies above another (a box's closest point in at most three rounds). On
-            # the contact face, whose cones then vanish exactly, and next to the overlap where body 2
-            # overhangs an edge or a corner of body 1: the foot on one side plane alone lay up to a
-            # body's size above the overlap, and float32 coordinates of that size round a shallow
-            # overlap's facets apart (V off by 1e7 times at 1e-8 m deep).
-            apex = pos
-            for _round in range(3):
-                s_top = wp.float64(0.0)
-                n_top = vec3d()
-                for j in range(num_1):
-                    n, d = plane64(shapes, ids_1[j])
-                    sj = wp.dot(n, apex) - d
-                    if sj > s_top:
-                        s_top = sj
-                        n_top = n
-                if s_top <= wp.float64(0.0):
-                    break
-                apex = apex - s_top * n_top
-        if flat >= 0:
-            n_flat, d_flat = plane64(shapes, flat)
-            apex = apex - (wp.dot(n_flat, apex) - d_flat) * n_flat
-            # An axis-aligned face (a box's) keeps body 1's axes: no rotation to pay per plane and vertex.
-            turned = n_flat[0] * n_flat[1] != wp.float64(0.0) or n_flat[1] * n_flat[2] != wp.float64(0.0)
-            turned = turned or n_flat[0] * n_flat[2] != wp.float64(0.0)
-            if turned:
-                frame = axes_onto(n_flat)
-        # The pair-local frame: `frame` times body 1's axes, origin at the apex. Planes and vertices
-        # are moved there in float64 and only then rounded to the clipping precision (plane_row_1,
-        # plane_row_2, face_vertex) wherever they are read: recomputed, not kept in per-thread tables
-        # (BENCHMARKS.md section 7c). `rot_l` and `off_2` place body 2 there; `rot` and `pos` still
-        # place it in body 1's frame.
-        rot_l = wp.quat_to_matrix(frame) * rot
-        off_2 = wp.quat_rotate(frame, pos - apex)  # body 2's centre, pair-local
-        tol_c = scalar(tol_rel) * scalar(r2)  # coincident-face tolerance, before the rounding
-
-        vol = scalar(0.0)
-        vol_c = zero3
-        s_1 = zero3
-        m_1 = zero3
-        s_2 = zero3
-        m_2 = zero3
-        overflow = int(0)
-        # Clip each active face polygon by the other body's active planes and integrate the
-        # surviving piece. This loop is written out here rather than in a helper called per face:
-        # a @wp.func takes its arguments by value, and the per-thread buffers (polygon, ids) live
-        # in local memory, so a call per face copied and zero-filled them again each time.
-        # One polygon buffer serves every face; its halves [0, max_poly) and [max_poly, 2 max_poly)
-        # take turns as input and output of the Sutherland-Hodgman passes.
-        poly = poly_t()
-        for j in range(num_1 + num_2):
-            face_is_1 = j < num_1
-            face = int(0)
-            num_planes = int(0)
-            plane = vec4()
-            if face_is_1:
-                face = ids_1[j]
-                num_planes = num_2
-                plane = plane_row_1(shapes, face, turned, frame, apex)
-            else:
-                face = ids_2[j - num_1]
-                num_planes = num_1
-                plane = plane_row_2(shapes, face, rot_l, off_2)
-            nf = vec3(plane[0], plane[1], plane[2])
-            begin = shapes.face_loop_start[face]
-            count = shapes.face_loop_start[face + 1] - begin
-            sph = shapes.face_sphere[face]
-            c64 = vec3d(wp.float64(sph[0]), wp.float64(sph[1]), wp.float64(sph[2]))
-            centre = zero3
-            if face_is_1:
-                if turned:
-                    centre = to_scalar3(wp.quat_rotate(frame, c64 - apex))
-                else:
-                    centre = to_scalar3(c64 - apex)
-            else:
-                centre = to_scalar3(rot_l * c64 + off_2)
-            for k in range(count):
-                poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
-            weight = scalar(1.0)
-            alive = bool(True)
-            cur = int(0)  # row offset of the live polygon in `poly`: 0 or max_poly
-            for t in range(num_planes):
-                other = int(0)
-                if face_is_1:
-                    other = ids_2[t]
-                else:
-                    other = ids_1[t]
-                pl = vec4()
-                if face_is_1:
-                    pl = plane_row_2(shapes, other, rot_l, off_2)
-                else:
-                    pl = plane_row_1(shapes, other, turned, frame, apex)
-                nc = vec3(pl[0], pl[1], pl[2])
-                dc = pl[3]
-                dist_c = plane_distance(nc, dc, centre)
-                if dist_c <= -sph[3]:
-                    continue  # the whole face lies inside this plane
-                if dist_c > sph[3]:
-                    alive = False
-                    break
-                if wp.dot(nf, nc) >= scalar(parallel_cos):
-                    # Coincident faces with the same outward normal: shared half and half, decided
-                    # by one function evaluated the same way from both sides (body 1's plane, body
-                    # 2's face), so both sides agree bit for bit. Opposite normals are no special
-                    # case: a flat contact of any thickness is clipped like any other.
-                    same = bool(False)
-                    if face_is_1:
-                        same = coincident(shapes, plane, other, rot_l, off_2, tol_c)
-                    else:
-                        same = coincident(shapes, pl, face, rot_l, off_2, tol_c)
-                    if same:
-                        # Half to each body; but where one of the two faces lies inside its grain (a
-                        # compound's cut plane), the other is the boundary of the union there and
-                        # takes it all. The same rule read from both sides: the weights sum to 1.
-                        inside_face = shapes.face_internal[face]
-                        inside_other = shapes.face_internal[other]
-                        weight = scalar(0.5)
-                        if inside_face != inside_other:
-                            weight = scalar(1.0)
-                            if inside_face != 0:
-                                weight = scalar(0.0)
-                        continue
-                # Sutherland-Hodgman against ncut.x <= dcut (the plane nc, dc, read again: with nc and
-                # dc themselves the kernel compiles otherwise than the one timed in BENCHMARKS.md 7c),
-                # from rows [cur, cur+count) into the other half.
-                ncut = vec3(pl[0], pl[1], pl[2])
-                dcut = pl[3]
-                out = max_poly - cur
-                n_out = int(0)
-                full = int(0)
-                prev = poly[cur + count - 1]
-                s_prev = plane_distance(ncut, dcut, prev)
-                for k in range(count):
-                    v = poly[cur + k]
-                    sk = plane_distance(ncut, dcut, v)
-                    if crosses(s_prev, sk):
-                        if n_out >= max_poly:
-                            full = 1
-                            break
-                        poly[out + n_out] = edge_cut(prev, s_prev, v, sk)
-                        n_out += 1
-                    if sk <= scalar(0.0):
-                        if n_out >= max_poly:
-                            full = 1
-                            break
-                        poly[out + n_out] = v
-                        n_out += 1
-                    prev = v
-                    s_prev = sk
-                if full != 0:
-                    overflow = 1
-                if n_out < 3 or full != 0:
-                    alive = False
-                    break
-                cur = out
-                count = n_out
-            if not alive:
-                continue
-            # Fan triangulation: facet area and area-weighted centroid.
-            sum_a2 = scalar(0.0)
-            sum_c = zero3
-            p0 = poly[cur]
-            for k in range(1, count - 1):
-                sum_a2, sum_c = fan_add(p0, poly[cur + k], poly[cur + k + 1], nf, sum_a2, sum_c)
-            area, area_c = fan_close(sum_a2, sum_c, weight)
-            dv, dv_c = cone(area, area_c, plane, zero3)
-            vol += dv
-            vol_c += dv_c
-            if face_is_1:
-                s_1 += area * nf
-                m_1 += wp.cross(area_c, nf)
-            else:
-                s_2 += area * nf
-                m_2 += wp.cross(area_c, nf)
-
-        # Enclosed: the fallback area vector of body 1 (module docstring), body 1's frame.
-        fb_1 = zero3d
-        if vol > scalar(0.0):
-            if wp.length(s_1) < scalar(enclosed_ratio) * wp.pow(vol, scalar(2.0) / scalar(3.0)):
-                # Body 2's pose in body 1's frame again, from the pair-local one: keeping the originals
-                # live through the clipping loop cost registers, and spills, in every pair.
-                rot_b = wp.quat_to_matrix(wp.quat_inverse(frame)) * rot_l
-                pos_b = wp.quat_rotate_inv(frame, off_2) + apex
-                u_best, sep = least_penetration(shapes, s1, s2, rot_b, pos_b)
-                fb_1 = projected_area(shapes, s2, wp.transpose(rot_b) * u_best) * u_best
-        # Back to body 1's axes and centre (float64), then to world axes and A's centre.
-        vol64 = wp.float64(vol)
-        s1_64 = wp.quat_rotate_inv(frame, to_f64(s_1))
-        s2_64 = wp.quat_rotate_inv(frame, to_f64(s_2))
-        vol_c64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(vol_c)) + vol64 * apex)
-        m1_64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(m_1)) + wp.cross(apex, s1_64))
-        m2_64 = wp.quat_rotate(q1, wp.quat_rotate_inv(frame, to_f64(m_2)) + wp.cross(apex, s2_64))
-        s1_64 = wp.quat_rotate(q1, s1_64)
-        s2_64 = wp.quat_rotate(q1, s2_64)
-        fb_1 = wp.quat_rotate(q1, fb_1)
-        if in_a:
-            return (
-                vol,
-                to_scalar3(vol_c64),
-                to_scalar3(s1_64),
-                to_scalar3(m1_64),
-                to_scalar3(s2_64),
-                to_scalar3(m2_64),
-                to_scalar3(fb_1),
-                overflow,
-            )
-        # Positions came relative to B's centre: move them to A's.
-        r = xb64 - xa64
-        return (
-            vol,
-            to_scalar3(vol_c64 + vol64 * r),
-            to_scalar3(s2_64),
-            to_scalar3(m2_64 + wp.cross(r, s2_64)),
-            to_scalar3(s1_64),
-            to_scalar3(m1_64 + wp.cross(r, s1_64)),
-            to_scalar3(-fb_1),
-            overflow,
-        )
+    @wp.func
+    def loop_edge(shapes: Shapes, f: int, e: int):
+        # The edge from face_loop[e] to the next vertex of its face's loop, where f is the face of
+        # entry e - 1 (the entries of a shape's loops follow each other, face after face): the face of
+        # e, whether the edge runs from the lower vertex index to the higher (each edge is taken from
+        # the one face where it does), and its vector (body frame, float64).
+        if e == shapes.face_loop_start[f + 1]:
+            f += 1
+        nxt = e + 1
+        if nxt == shapes.face_loop_start[f + 1]:
+            nxt = shapes.face_loop_start[f]
+        i0 = shapes.face_loop[e]
+        i1 = shapes.face_loop[nxt]
+        return f, i0 < i1, shapes.vert64[i1] - shapes.vert64[i0]
 
     @wp.func
     def edge_pair_overlap(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d, best: wp.float64):
@@ -1002,28 +1124,21 @@ def make_geometry(
         # an edge of body 2: with the face normals, the axes that hold the least separating
         # translation of two convex polyhedra. Each edge is taken once (from the face where it runs
         # from the lower vertex index to the higher).
-        for f in range(shapes.shape_face_start[s1], shapes.shape_face_start[s1 + 1]):
-            b0 = shapes.face_loop_start[f]
-            n1 = shapes.face_loop_start[f + 1] - b0
-            for k in range(n1):
-                i0 = shapes.face_loop[b0 + k]
-                i1 = shapes.face_loop[b0 + (k + 1) % n1]
-                if i0 < i1:
-                    e1 = shapes.vert64[i1] - shapes.vert64[i0]
-                    for g in range(shapes.shape_face_start[s2], shapes.shape_face_start[s2 + 1]):
-                        c0 = shapes.face_loop_start[g]
-                        n2 = shapes.face_loop_start[g + 1] - c0
-                        for kk in range(n2):
-                            j0 = shapes.face_loop[c0 + kk]
-                            j1 = shapes.face_loop[c0 + (kk + 1) % n2]
-                            if j0 < j1:
-                                e2 = rot * (shapes.vert64[j1] - shapes.vert64[j0])
-                                axis = wp.cross(e1, e2)
-                                norm = wp.length(axis)
-                                # Parallel edges give no new axis (their cross product is noise).
-                                if norm > wp.float64(1.0e-9) * wp.length(e1) * wp.length(e2):
-                                    o1, o2 = extent_overlaps(shapes, s1, s2, rot, pos, axis / norm)
-                                    best = wp.min(best, wp.min(o1, o2))
+        f = shapes.shape_face_start[s1]
+        for e in range(shapes.face_loop_start[f], shapes.face_loop_start[shapes.shape_face_start[s1 + 1]]):
+            f, first_1, e1 = loop_edge(shapes, f, e)
+            if first_1:
+                g = shapes.shape_face_start[s2]
+                for ee in range(shapes.face_loop_start[g], shapes.face_loop_start[shapes.shape_face_start[s2 + 1]]):
+                    g, first_2, e2 = loop_edge(shapes, g, ee)
+                    if first_2:
+                        e2 = rot * e2
+                        axis = wp.cross(e1, e2)
+                        norm = wp.length(axis)
+                        # Parallel edges give no new axis (their cross product is noise).
+                        if norm > wp.float64(1.0e-9) * wp.length(e1) * wp.length(e2):
+                            o1, o2 = extent_overlaps(shapes, s1, s2, rot, pos, axis / norm)
+                            best = wp.min(best, wp.min(o1, o2))
         return best
 
     @wp.func

@@ -12,41 +12,33 @@ from typing import Any
 import warp as wp
 
 
+@wp.func
+def copy_value(state: wp.array2d(dtype=Any), i: int, c: int, rows: wp.array2d(dtype=Any), k: int, r: int, unpack: int):
+    # One value between the state's row i, column c, and the message row k, column r.
+    if unpack != 0:
+        state[i, c] = rows[k, r]
+    else:
+        rows[k, r] = state[i, c]
+
+
 @wp.kernel(enable_backward=False)
-def pack_kernel(
-    # State in (scalar views: (n, 7), (n, 3), (n, 3))
+def rows_kernel(
+    # The state (scalar views: (n, 7), (n, 3), (n, 3)): in when packing, out when unpacking
     q: wp.array2d(dtype=Any),
     v: wp.array2d(dtype=Any),
     w: wp.array2d(dtype=Any),
     index: wp.array(dtype=int),
-    # Out: (len(index), 13) rows to send
+    # (len(index), 13) rows: out when packing, in when unpacking
     rows: wp.array2d(dtype=Any),
+    unpack: int,
 ):
     k = wp.tid()
     i = index[k]
     for c in range(7):
-        rows[k, c] = q[i, c]
+        copy_value(q, i, c, rows, k, c, unpack)
     for c in range(3):
-        rows[k, 7 + c] = v[i, c]
-        rows[k, 10 + c] = w[i, c]
-
-
-@wp.kernel(enable_backward=False)
-def unpack_kernel(
-    rows: wp.array2d(dtype=Any),
-    index: wp.array(dtype=int),
-    # Out: the ghosts' rows of the state (scalar views)
-    q: wp.array2d(dtype=Any),
-    v: wp.array2d(dtype=Any),
-    w: wp.array2d(dtype=Any),
-):
-    k = wp.tid()
-    i = index[k]
-    for c in range(7):
-        q[i, c] = rows[k, c]
-    for c in range(3):
-        v[i, c] = rows[k, 7 + c]
-        w[i, c] = rows[k, 10 + c]
+        copy_value(v, i, c, rows, k, 7 + c, unpack)
+        copy_value(w, i, c, rows, k, 10 + c, unpack)
 
 
 @wp.kernel(enable_backward=False)
@@ -70,13 +62,13 @@ def moved_kernel(
 
 def launch_pack_rows(*, q: wp.array, v: wp.array, w: wp.array, index: wp.array, rows: wp.array) -> None:
     """The rows (len(index), 13) of the bodies ``index`` of the state's scalar views ``q``, ``v``, ``w``."""
-    wp.launch(pack_kernel, dim=index.shape[0], inputs=[q, v, w, index], outputs=[rows], device=rows.device)
+    wp.launch(rows_kernel, dim=index.shape[0], inputs=[q, v, w, index, rows, 0], device=rows.device)
 
 
 def launch_unpack_rows(*, rows: wp.array, index: wp.array, q: wp.array, v: wp.array, w: wp.array) -> None:
     """Write the received ``rows`` (len(index), 13) into the bodies ``index`` of the scalar views ``q``, ``v``,
     ``w``."""
-    wp.launch(unpack_kernel, dim=index.shape[0], inputs=[rows, index], outputs=[q, v, w], device=rows.device)
+    wp.launch(rows_kernel, dim=index.shape[0], inputs=[q, v, w, index, rows, 1], device=rows.device)
 
 
 def launch_largest_move(*, q: wp.array, axis: int, x0: wp.array, mine: wp.array, moved: wp.array) -> None:

@@ -80,6 +80,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import warp as wp
+from polydem.kernels.structs import bodies_struct, body_model_struct, filled
 
 BODY_FREE = wp.constant(0)
 BODY_FIXED = wp.constant(1)
@@ -87,22 +88,20 @@ BODY_KINEMATIC = wp.constant(2)
 
 
 class BodyModel(Protocol):
-    """The bodies' static arrays that the check and the settle measures read (:class:`polydem.model.Model`):
-    flags, inverse masses, principal inertias, bounding radii [m], and the gravity (three numbers [m/s^2])."""
+    """What the integration, the check and the settle measures read of a model (:class:`polydem.model.Model`):
+    the bodies' static arrays in their struct (``bodies``, :func:`polydem.kernels.structs.body_model_struct`:
+    flags, inverse masses, principal inertias, bounding radii [m], pivots), and the gravity (three numbers
+    [m/s^2])."""
 
-    body_flags: wp.array
-    body_inv_mass: wp.array
-    body_inertia: wp.array
-    body_radius: wp.array
+    bodies: Any
     gravity: Iterable[float]
 
 
 class BodyMotion(Protocol):
-    """The bodies' poses and velocities (:class:`polydem.state.State`)."""
+    """The bodies' arrays in their struct (``bodies``, :func:`polydem.kernels.structs.bodies_struct`: poses,
+    velocities, forces and torques; :class:`polydem.state.State`)."""
 
-    body_q: wp.array
-    body_v: wp.array
-    body_w: wp.array
+    bodies: Any
 
 
 @dataclass(frozen=True)
@@ -113,6 +112,8 @@ class Integrator:
     vec3: Any
     quat: Any
     transform: Any
+    BodyModel: Any
+    Bodies: Any
     body_momentum: Any
     angular_velocity: Any
     body_kinetic_energy: Any
@@ -126,6 +127,8 @@ def make_integrator(scalar) -> Integrator:
     vec3 = wp.types.vector(3, scalar)
     quat = wp.types.quaternion(scalar)
     transform = wp.types.transformation(scalar)
+    BodyModel = body_model_struct(scalar)
+    Bodies = bodies_struct(scalar)
 
     # -----------------------------------------------------------------------------------------
     # Helpers
@@ -204,71 +207,48 @@ def make_integrator(scalar) -> Integrator:
     # Kernels
 
     @wp.kernel(enable_backward=False, module="unique")
-    def integrate_bodies_kernel(
-        # Model
-        body_inv_mass: wp.array(dtype=scalar),
-        body_inertia: wp.array(dtype=vec3),
-        body_flags: wp.array(dtype=int),
-        body_pivot: wp.array(dtype=vec3),
-        has_pivot: int,
-        gravity: vec3,
-        dt: scalar,
-        # State in
-        body_q_in: wp.array(dtype=transform),
-        body_v_in: wp.array(dtype=vec3),
-        body_w_in: wp.array(dtype=vec3),
-        body_f: wp.array(dtype=vec3),
-        body_t: wp.array(dtype=vec3),
-        # Out (may alias the state in: each thread reads its body before writing it)
-        body_q_out: wp.array(dtype=transform),
-        body_v_out: wp.array(dtype=vec3),
-        body_w_out: wp.array(dtype=vec3),
-    ):
+    def integrate_bodies_kernel(model: BodyModel, gravity: vec3, dt: scalar, bodies: Bodies):
+        # In place: the pose and velocities of each body (from its force and torque); one thread a body.
         i = wp.tid()
-        flag = body_flags[i]
-        tf = body_q_in[i]
+        flag = model.flags[i]
+        if flag == BODY_FIXED:
+            return
+        tf = bodies.q[i]
         x = wp.transform_get_translation(tf)
         q = wp.transform_get_rotation(tf)
-        v = body_v_in[i]
-        w = body_w_in[i]
-
-        if flag == BODY_FIXED:
-            body_q_out[i] = tf
-            body_v_out[i] = v
-            body_w_out[i] = w
-            return
+        v = bodies.v[i]
+        w = bodies.w[i]
 
         if flag == BODY_KINEMATIC:
             dq = quat_exp(w * dt)
             q_new = wp.normalize(dq * q)
             x_new = x + v * dt
             v_new = v
-            if has_pivot != 0:
-                p = body_pivot[i]
+            if model.has_pivot != 0:
+                p = model.pivot[i]
                 if wp.isfinite(p[0] + p[1] + p[2]):
                     # A part of a drum turns about its pivot: its centre goes round, not along a tangent.
                     x_new = p + wp.quat_rotate(dq, x - p)
                     v_new = wp.cross(w, x_new - p)
-            body_q_out[i] = transform(x_new, q_new)
-            body_v_out[i] = v_new
-            body_w_out[i] = w
+            bodies.q[i] = transform(x_new, q_new)
+            bodies.v[i] = v_new
             return
 
         # Translation: symplectic Euler.
-        v_new = v + (body_f[i] * body_inv_mass[i] + gravity) * dt
+        v_new = v + (bodies.f[i] * model.inv_mass[i] + gravity) * dt
         x_new = x + v_new * dt
+        bodies.v[i] = v_new
 
         # Rotation: kick the body-frame momentum, then drift the free rotor.
-        inertia = body_inertia[i]
+        inertia = model.inertia[i]
         inv_inertia = vec3(safe_inv(inertia[0]), safe_inv(inertia[1]), safe_inv(inertia[2]))
-        pi = body_momentum(q, inertia, w) + wp.quat_rotate_inv(q, body_t[i] * dt)
+        pi = body_momentum(q, inertia, w) + wp.quat_rotate_inv(q, bodies.t[i] * dt)
         pi, dq = free_rotor_drift(pi, inv_inertia, dt)
         q_new = wp.normalize(q * dq)
         w_new = angular_velocity(q_new, inertia, inv_inertia, pi)
 
-        body_q_out[i] = transform(x_new, q_new)
-        body_v_out[i] = v_new
-        body_w_out[i] = w_new
+        bodies.q[i] = transform(x_new, q_new)
+        bodies.w[i] = w_new
 
     @wp.func
     def body_kinetic_energy(inv_mass: scalar, inertia: vec3, q: transform, v: vec3, w: vec3):
@@ -279,24 +259,14 @@ def make_integrator(scalar) -> Integrator:
 
     @wp.kernel(enable_backward=False, module="unique")
     def kinetic_energy_kernel(
-        # Model
-        body_inv_mass: wp.array(dtype=scalar),
-        body_inertia: wp.array(dtype=vec3),
-        body_flags: wp.array(dtype=int),
-        # State in
-        body_q: wp.array(dtype=transform),
-        body_v: wp.array(dtype=vec3),
-        body_w: wp.array(dtype=vec3),
-        # Out
-        energy_lin: wp.array(dtype=scalar),
-        energy_ang: wp.array(dtype=scalar),
+        model: BodyModel, bodies: Bodies, energy_lin: wp.array(dtype=scalar), energy_ang: wp.array(dtype=scalar)
     ):
         i = wp.tid()
         e_lin = scalar(0.0)
         e_ang = scalar(0.0)
-        inv_mass = body_inv_mass[i]
-        if body_flags[i] == BODY_FREE and inv_mass > scalar(0.0):
-            e_lin, e_ang = body_kinetic_energy(inv_mass, body_inertia[i], body_q[i], body_v[i], body_w[i])
+        inv_mass = model.inv_mass[i]
+        if model.flags[i] == BODY_FREE and inv_mass > scalar(0.0):
+            e_lin, e_ang = body_kinetic_energy(inv_mass, model.inertia[i], bodies.q[i], bodies.v[i], bodies.w[i])
         energy_lin[i] = e_lin
         energy_ang[i] = e_ang
 
@@ -305,6 +275,8 @@ def make_integrator(scalar) -> Integrator:
         vec3=vec3,
         quat=quat,
         transform=transform,
+        BodyModel=BodyModel,
+        Bodies=Bodies,
         body_momentum=body_momentum,
         angular_velocity=angular_velocity,
         body_kinetic_energy=body_kinetic_energy,
@@ -324,19 +296,15 @@ body_momentum = make_integrator(wp.float32).body_momentum
 @functools.cache
 def make_check_state_kernel(scalar):
     """The check of a state in ``scalar``: finiteness, and each body's peak speed against its limit."""
-    vec3 = wp.types.vector(3, scalar)
 
     @wp.kernel(enable_backward=False, module="unique")
     def check_state_kernel(
         # Model
-        body_flags: wp.array(dtype=int),
-        body_radius: wp.array(dtype=float),
+        model: body_model_struct(scalar),
         body_speed_limit: wp.array(dtype=float),
         # State in
         step: wp.array(dtype=int),
-        body_q: wp.array(dtype=wp.types.transformation(scalar)),
-        body_v: wp.array(dtype=vec3),
-        body_w: wp.array(dtype=vec3),
+        bodies: bodies_struct(scalar),
         # Out
         bad_step: wp.array(dtype=int),
         body_peak_speed: wp.array(dtype=float),
@@ -345,17 +313,17 @@ def make_check_state_kernel(scalar):
         """Records (atomic min) the first step at which a body's state is not finite, each body's
         largest speed of its fastest point (|v| + |w| r), and whether one went above its speed limit."""
         i = wp.tid()
-        speed = float(wp.length(body_v[i]) + wp.length(body_w[i]) * scalar(body_radius[i]))
+        speed = float(wp.length(bodies.v[i]) + wp.length(bodies.w[i]) * scalar(model.radius[i]))
         # One thread per body: a plain running maximum, no atomics.
         if speed > body_peak_speed[i]:
             body_peak_speed[i] = speed
         if speed > body_speed_limit[i]:
             wp.atomic_max(too_fast, 0, 1)
-        q = body_q[i]
+        q = bodies.q[i]
         p = wp.transform_get_translation(q)
         r = wp.transform_get_rotation(q)
-        v = body_v[i]
-        w = body_w[i]
+        v = bodies.v[i]
+        w = bodies.w[i]
         total = p[0] + p[1] + p[2] + r[0] + r[1] + r[2] + r[3] + v[0] + v[1] + v[2] + w[0] + w[1] + w[2]
         if not wp.isfinite(total):
             wp.atomic_min(bad_step, 0, step[0])
@@ -366,21 +334,15 @@ def make_check_state_kernel(scalar):
 @functools.cache
 def make_settle_measures_kernel(scalar):
     """Per free body, in float64: kinetic and gravitational energy; the largest speed of a fastest point."""
-    vec3 = wp.types.vector(3, scalar)
-    body_kinetic_energy = make_integrator(scalar).body_kinetic_energy
+    ig = make_integrator(scalar)
 
     @wp.kernel(enable_backward=False, module="unique")
     def settle_measures_kernel(
         # Model
-        body_flags: wp.array(dtype=int),
-        body_inv_mass: wp.array(dtype=scalar),
-        body_inertia: wp.array(dtype=vec3),
-        body_radius: wp.array(dtype=float),
+        model: ig.BodyModel,
         gravity: wp.vec3d,
         # State in
-        body_q: wp.array(dtype=wp.types.transformation(scalar)),
-        body_v: wp.array(dtype=vec3),
-        body_w: wp.array(dtype=vec3),
+        bodies: ig.Bodies,
         # Out
         body_kinetic: wp.array(dtype=wp.float64),
         body_gravity: wp.array(dtype=wp.float64),
@@ -389,21 +351,21 @@ def make_settle_measures_kernel(scalar):
         """Zero for fixed, kinematic and infinite-mass bodies (driven from outside the pile); the
         speeds go into one running maximum (atomic: a maximum does not depend on the order)."""
         i = wp.tid()
-        inv_mass = body_inv_mass[i]
+        inv_mass = model.inv_mass[i]
         body_kinetic[i] = wp.float64(0.0)
         body_gravity[i] = wp.float64(0.0)
-        if body_flags[i] == 0 and inv_mass > scalar(0.0):
-            v = body_v[i]
-            w = body_w[i]
-            q = body_q[i]
-            e_lin, e_ang = body_kinetic_energy(inv_mass, body_inertia[i], q, v, w)
+        if model.flags[i] == 0 and inv_mass > scalar(0.0):
+            v = bodies.v[i]
+            w = bodies.w[i]
+            speed = wp.float64(wp.length(v)) + wp.float64(wp.length(w)) * wp.float64(model.radius[i])
+            wp.atomic_max(largest_speed, 0, speed)
+            q = bodies.q[i]
+            e_lin, e_ang = ig.body_kinetic_energy(inv_mass, model.inertia[i], q, v, w)
             body_kinetic[i] = wp.float64(e_lin + e_ang)
             x = wp.transform_get_translation(q)
             mass = wp.float64(1.0) / wp.float64(inv_mass)
             h = wp.float64(x[0]) * gravity[0] + wp.float64(x[1]) * gravity[1] + wp.float64(x[2]) * gravity[2]
             body_gravity[i] = -mass * h
-            speed = wp.float64(wp.length(v)) + wp.float64(wp.length(w)) * wp.float64(body_radius[i])
-            wp.atomic_max(largest_speed, 0, speed)
 
     return settle_measures_kernel
 
@@ -431,6 +393,37 @@ def _integrator(body_q):
     return make_integrator(_pose_scalar(body_q))
 
 
+def body_structs(
+    body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w, body_f=None, body_t=None, body_pivot=None
+):
+    """The structs (:func:`polydem.kernels.structs.body_model_struct`, :func:`~polydem.kernels.structs.bodies_struct`)
+    of loose arrays, for the functions below that take them so (a Model and a State have theirs)."""
+    scalar = _pose_scalar(body_q)
+    has_pivot = int(body_pivot is not None)
+    masses = {"inv_mass": body_inv_mass, "inertia": body_inertia, "flags": body_flags}
+    model = filled(body_model_struct(scalar), **masses, pivot=body_pivot, has_pivot=has_pivot)
+    return model, filled(bodies_struct(scalar), q=body_q, v=body_v, w=body_w, f=body_f, t=body_t)
+
+
+def launch_integrate(*, model: BodyModel, state: BodyMotion, dt: float) -> None:
+    """Advance every body of ``state`` by one step of length ``dt`` under its force and torque and the
+    model's gravity, in place (the scheme: the module docstring). Capturable in a CUDA graph: a kinematic
+    body with a pivot (``has_pivot``) turns about it; without pivots the null array is never read, so a
+    step allocates nothing."""
+    _integrate(model.bodies, model.gravity, dt, state.bodies, state.bodies.q.device)
+
+
+def _integrate(model, gravity, dt, bodies, device):
+    ig = _integrator(bodies.q)
+    gravity = ig.vec3(*[ig.scalar(float(g)) for g in gravity])
+    wp.launch(
+        ig.integrate_bodies_kernel,
+        dim=bodies.q.shape[0],
+        inputs=[model, gravity, ig.scalar(float(dt)), bodies],
+        device=device,
+    )
+
+
 def integrate_bodies(
     body_inv_mass,
     body_inertia,
@@ -445,7 +438,8 @@ def integrate_bodies(
     device=None,
     body_pivot=None,
 ):
-    """Advance every body by one step of length ``dt``, updating the state in place.
+    """Advance every body by one step of length ``dt``, updating the state in place (:func:`launch_integrate`
+    on loose arrays).
 
     Args:
         body_inv_mass: ``(n,)`` inverse masses [1/kg] (0 for fixed and kinematic bodies).
@@ -463,35 +457,13 @@ def integrate_bodies(
             (x <- p + R(w dt)(x - p), v = w x (x - p)) instead of moving along its velocity.
 
     The scheme (symplectic Euler for translation; momentum kick and Strang-split free-rotor
-    drift for rotation) is described in the module docstring. Capturable in a CUDA graph. Every float
-    array is in the scalar of ``body_q`` (float32 or float64 transforms).
+    drift for rotation) is described in the module docstring. Every float array is in the scalar of
+    ``body_q`` (float32 or float64 transforms).
     """
-    device = _device(device, body_q)
-    ig = _integrator(body_q)
-    scalar = ig.scalar
-    has_pivot = int(body_pivot is not None)
-    if body_pivot is None:
-        body_pivot = wp.zeros(1, dtype=ig.vec3, device=device)
-    wp.launch(
-        ig.integrate_bodies_kernel,
-        dim=body_q.shape[0],
-        inputs=[
-            body_inv_mass,
-            body_inertia,
-            body_flags,
-            body_pivot,
-            has_pivot,
-            ig.vec3(*[scalar(float(g)) for g in gravity]),
-            scalar(float(dt)),
-            body_q,
-            body_v,
-            body_w,
-            body_f,
-            body_t,
-        ],
-        outputs=[body_q, body_v, body_w],
-        device=device,
+    model, bodies = body_structs(
+        body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w, body_f, body_t, body_pivot
     )
+    _integrate(model, gravity, dt, bodies, _device(device, body_q))
 
 
 def kinetic_energy(
@@ -521,13 +493,8 @@ def kinetic_energy(
         energy_lin = wp.empty(n, dtype=ig.scalar, device=device)
     if energy_ang is None:
         energy_ang = wp.empty(n, dtype=ig.scalar, device=device)
-    wp.launch(
-        ig.kinetic_energy_kernel,
-        dim=n,
-        inputs=[body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w],
-        outputs=[energy_lin, energy_ang],
-        device=device,
-    )
+    model, bodies = body_structs(body_inv_mass, body_inertia, body_flags, body_q, body_v, body_w)
+    wp.launch(ig.kinetic_energy_kernel, dim=n, inputs=[model, bodies], outputs=[energy_lin, energy_ang], device=device)
     return energy_lin, energy_ang
 
 
@@ -550,13 +517,13 @@ def launch_check_state(
     not finite; ``body_peak_speed`` (N,) float32 raised to the speed of each body's fastest point
     (``|v| + |w| r``, r its bounding radius) [m/s]; ``too_fast`` (1,) set where one is above
     ``body_speed_limit``. The kernel is in the scalar of ``state.body_q``."""
-    m = model
+    bodies = state.bodies
     wp.launch(
-        make_check_state_kernel(_pose_scalar(state.body_q)),
-        dim=state.body_q.shape[0],
-        inputs=[m.body_flags, m.body_radius, body_speed_limit, step_count, state.body_q, state.body_v, state.body_w],
+        make_check_state_kernel(_pose_scalar(bodies.q)),
+        dim=bodies.q.shape[0],
+        inputs=[model.bodies, body_speed_limit, step_count, bodies],
         outputs=[bad_step, body_peak_speed, too_fast],
-        device=state.body_q.device,
+        device=bodies.q.device,
     )
 
 
@@ -572,22 +539,11 @@ def launch_settle_measures(
     energy ``-m g.x`` into ``body_gravity`` (N,) [J] (zero for the other bodies); ``largest_speed``
     (1,) raised to the speed of the fastest point of a free body [m/s]. The kernel is in the scalar of
     ``state.body_q``."""
-    m = model
+    bodies = state.bodies
     wp.launch(
-        make_settle_measures_kernel(_pose_scalar(state.body_q)),
-        dim=state.body_q.shape[0],
-        inputs=[
-            # Model
-            m.body_flags,
-            m.body_inv_mass,
-            m.body_inertia,
-            m.body_radius,
-            wp.vec3d(*(float(g) for g in m.gravity)),
-            # State in
-            state.body_q,
-            state.body_v,
-            state.body_w,
-        ],
+        make_settle_measures_kernel(_pose_scalar(bodies.q)),
+        dim=bodies.q.shape[0],
+        inputs=[model.bodies, wp.vec3d(*(float(g) for g in model.gravity)), bodies],
         outputs=[body_kinetic, body_gravity, largest_speed],
-        device=state.body_q.device,
+        device=bodies.q.device,
     )

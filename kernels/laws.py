@@ -7,7 +7,7 @@ the stiffness of a face resting under a load (the time step's resting rule). The
 (:func:`polydem.kernels.response.make_response`) keys each law's pair of ``@wp.func`` (W' and W) by
 :class:`Law` and takes the toe from here; the scene package (:mod:`polydem.scene.materials`,
 :mod:`~polydem.scene.checks`, :mod:`~polydem.scene.depth`) and the batch API
-(:class:`polydem.contact.ContactLaw`) read the rest.
+(:class:`polydem.batch.ContactLaw`) read the rest.
 
 Pure Python and numpy, no Warp: it lives with the kernels (shipped as ``polydem.kernels.laws``) so
 that the kernels import nothing from the host package, and the scene package, which must not import
@@ -17,7 +17,7 @@ Every law is of the family W = k V^m / m, with its own m (linear 1, hertz 1.5) o
 given one; each writes it with its own operations (hertz with a square root, as the kernel does), and
 the resolved toe, the float32 checks and the closed forms of the resting depth use the exponent m.
 
-To add a law: a member of :class:`Law` and its :class:`LawSpec` in :data:`LAW_SPECS` here, and its W'
+To add a law: a member of :class:`Law` and its row (its :class:`LawSpec`) in ``_LAW_ROWS`` here, and its W'
 and W as ``@wp.func`` in the table of :func:`polydem.kernels.response.make_law_funcs`;
 ``tests/test_laws.py`` then checks W' against W and the kernel against the host.
 """
@@ -130,38 +130,14 @@ def _power_resting_stiffness(k, m, area, weight):
     return _no_resting_face(k, m, area, weight)
 
 
-LAW_SPECS: dict[Law, LawSpec] = {
-    Law.LINEAR: LawSpec(
-        law=Law.LINEAR,
-        formula="W = k V",
-        unit="Pa",
-        fixed_exponent=1.0,
-        toe=False,
-        energy=_linear_energy,
-        derivative=_linear_derivative,
-        resting_stiffness=_no_resting_face,
-    ),
-    Law.HERTZ: LawSpec(
-        law=Law.HERTZ,
-        formula="W = 2/3 k V^1.5",
-        unit="J/m^4.5",
-        fixed_exponent=1.5,
-        toe=True,
-        energy=_hertz_energy,
-        derivative=_hertz_derivative,
-        resting_stiffness=_hertz_resting_stiffness,
-    ),
-    Law.POWER: LawSpec(
-        law=Law.POWER,
-        formula="W = k V^m / m",
-        unit="J/m^(3m)",
-        fixed_exponent=None,
-        toe=True,
-        energy=_power_energy,
-        derivative=_power_derivative,
-        resting_stiffness=_power_resting_stiffness,
-    ),
-}
+# One row per law, the fields of LawSpec in order: law, formula, unit of k, fixed exponent, toe, W, W', and
+# the stiffness of a face resting under a load.
+_LAW_ROWS = (
+    (Law.LINEAR, "W = k V", "Pa", 1.0, False, _linear_energy, _linear_derivative, _no_resting_face),
+    (Law.HERTZ, "W = 2/3 k V^1.5", "J/m^4.5", 1.5, True, _hertz_energy, _hertz_derivative, _hertz_resting_stiffness),
+    (Law.POWER, "W = k V^m / m", "J/m^(3m)", None, True, _power_energy, _power_derivative, _power_resting_stiffness),
+)
+LAW_SPECS: dict[Law, LawSpec] = {row[0]: LawSpec(*row) for row in _LAW_ROWS}
 """Every :class:`Law`'s :class:`LawSpec`; a plain name indexes it too (``LAW_SPECS["hertz"]``)."""
 
 LAWS = tuple(law.value for law in Law)

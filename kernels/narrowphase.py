@@ -8,16 +8,19 @@ grows the per-thread polygon buffer when a facet overflowed it.
 
 import functools
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import warp as wp
 from polydem.kernels.compound import make_body_geometry
 from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, make_geometry
+from polydem.kernels.structs import arrays, filled, make_struct
 
 __all__ = [
     "COINCIDENT_TOL",
     "COORDINATE_NOISE",
     "NARROWPHASE_BLOCK_DIM",
+    "BatchPairs",
+    "BatchShapes",
     "Narrowphase",
     "launch_depth",
     "launch_overlap",
@@ -28,6 +31,49 @@ __all__ = [
 # Threads per block of the pair kernels: small blocks suit their large per-thread stack
 # (BENCHMARKS.md, "Design measurements").
 NARROWPHASE_BLOCK_DIM = 64
+
+
+class BatchShapes(Protocol):
+    """What the batch launches read of a shape set (:class:`polydem.shapeset.ShapeSet`; kernels/ does not
+    import the host package): the geometry kernels' ``shapes`` struct, its precision and device, and
+    the polygon capacities."""
+
+    scalar: Any
+    device: Any
+    max_faces: int
+    compound: bool
+    default_poly_capacity: int
+    max_poly_bound: int
+
+    def kernel_args(self) -> list[Any]: ...
+
+
+@dataclass(frozen=True)
+class BatchPairs:
+    """N pairs for the batch kernels: the shapes (indices into the shape set) and poses (transforms) of A
+    and B, ``wp.array`` each, in the kernels' order."""
+
+    shape_a: wp.array
+    shape_b: wp.array
+    pose_a: wp.array
+    pose_b: wp.array
+
+    def kernel_args(self) -> list[wp.array]:
+        return [self.shape_a, self.shape_b, self.pose_a, self.pose_b]
+
+    def struct(self) -> Any:
+        """The arrays in a :func:`batch_pairs_struct` (for the depth kernel)."""
+        pose_scalar = wp.float64 if wp.types.types_equal(self.pose_a.dtype, wp.transformd) else wp.float32
+        pairs = batch_pairs_struct(pose_scalar)
+        return filled(pairs, shape_a=self.shape_a, shape_b=self.shape_b, pose_a=self.pose_a, pose_b=self.pose_b)
+
+
+@functools.cache
+def batch_pairs_struct(pose_scalar: Any) -> Any:
+    """The ``wp.struct`` of N pairs' shapes (``shape_a``, ``shape_b``) and poses (``pose_a``, ``pose_b``, transforms
+    in ``pose_scalar``)."""
+    transform = wp.types.transformation(pose_scalar)
+    return make_struct("BatchPairs", **arrays(shape_a=int, shape_b=int, pose_a=transform, pose_b=transform))
 
 
 @dataclass(frozen=True)
@@ -72,6 +118,7 @@ def make_narrowphase(
     # With ``compound`` the shapes may be compound grains (summed over their part pairs).
     pair_geometry = make_body_geometry(geom, compound).pair_geometry
 
+    # Arrays, one per quantity (no struct): benchmarks/pair_kernel.py launches this kernel of older trees too.
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def overlap_kernel(
         # Model
@@ -123,35 +170,24 @@ def make_narrowphase(
 def make_depth_kernel(scalar, max_faces: int, pose_scalar=None, compound: bool = False):
     """Kernel: penetration depth (:func:`polydem.kernels.geometry.make_geometry`'s ``pair_depth``) of N pairs."""
     geom = make_geometry(scalar, 1, max_faces, None, pose_scalar)
-    transform = geom.transform
-    pair_depth = make_body_geometry(geom, compound).pair_depth
+    body_geom = make_body_geometry(geom, compound)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def depth_kernel(
-        # Model
-        shapes: geom.shapes,
-        # State in
-        pair_shape_a: wp.array(dtype=int),
-        pair_shape_b: wp.array(dtype=int),
-        pair_pose_a: wp.array(dtype=transform),
-        pair_pose_b: wp.array(dtype=transform),
-        # Out
-        pair_depth_out: wp.array(dtype=scalar),
-    ):
+    def depth_kernel(shapes: geom.shapes, pairs: batch_pairs_struct(geom.pose_scalar), depth: wp.array(dtype=scalar)):
         i = wp.tid()
-        pair_depth_out[i] = pair_depth(shapes, pair_shape_a[i], pair_shape_b[i], pair_pose_a[i], pair_pose_b[i])
+        depth[i] = body_geom.pair_depth(shapes, pairs.shape_a[i], pairs.shape_b[i], pairs.pose_a[i], pairs.pose_b[i])
 
     return depth_kernel
 
 
-def launch_depth(shapes, pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b, pose_scalar=None):
+def launch_depth(shapes: BatchShapes, pairs: BatchPairs, *, pose_scalar: Any = None) -> wp.array:
     """Penetration depth [m] of each pair, a ``wp.array`` of the shape set's precision."""
-    n = len(pair_shape_a)
+    n = len(pairs.shape_a)
     depth = wp.zeros(n, dtype=shapes.scalar, device=shapes.device)
     wp.launch(
         make_depth_kernel(shapes.scalar, shapes.max_faces, pose_scalar, shapes.compound),
         dim=n,
-        inputs=[*shapes.kernel_args(), pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b],
+        inputs=[*shapes.kernel_args(), pairs.struct()],
         outputs=[depth],
         device=shapes.device,
     )
@@ -170,15 +206,13 @@ OVERLAP_OUTPUTS = (
 
 
 def launch_overlap(
-    shapes,
-    pair_shape_a,
-    pair_shape_b,
-    pair_pose_a,
-    pair_pose_b,
-    out,
-    max_poly=None,
-    pose_scalar=None,
-):
+    shapes: BatchShapes,
+    pairs: BatchPairs,
+    *,
+    out: dict[str, wp.array],
+    max_poly: int | None = None,
+    pose_scalar: Any = None,
+) -> Narrowphase:
     """Run the overlap kernel over all pairs; grow the polygon buffer and redo on overflow.
 
     ``shapes`` is a :class:`polydem.shapeset.ShapeSet`; ``out`` a dict of output arrays named as
@@ -186,7 +220,7 @@ def launch_overlap(
     transforms of ``pose_scalar`` (default the shape set's precision). Returns the
     :class:`Narrowphase` that ran.
     """
-    n = len(pair_shape_a)
+    n = len(pairs.shape_a)
     capacity = shapes.default_poly_capacity if max_poly is None else max_poly
     if "pair_fallback_a" not in out:
         out = dict(out)
@@ -203,7 +237,7 @@ def launch_overlap(
         wp.launch(
             nphase.overlap_kernel,
             dim=n,
-            inputs=[*shapes.kernel_args(), pair_shape_a, pair_shape_b, pair_pose_a, pair_pose_b],
+            inputs=[*shapes.kernel_args(), *pairs.kernel_args()],
             outputs=[*(out[name] for name in OVERLAP_OUTPUTS), overflow],
             device=shapes.device,
             block_dim=NARROWPHASE_BLOCK_DIM,

@@ -42,6 +42,15 @@ def lower_bound(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
 
 
 @wp.func
+def find_key(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
+    # The index of key among the first count (increasing) keys, -1 where it is not there.
+    j = lower_bound(keys, count, key)
+    if j < count and keys[j] == key:
+        return j
+    return -1
+
+
+@wp.func
 def copy_sums(src: ContactSums, j: int, dst: ContactSums, k: int):
     # Contact j's sums of src into slot k of dst (a rebuild moves or retires them).
     dst.force[k] = src.force[j]
@@ -120,10 +129,8 @@ def make_remap_history_kernel(scalar):
         xi = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         turn = scalar(0.0)
         if p < new_count[0]:
-            key = new_key[p]
-            count = old_count[0]
-            j = lower_bound(old_key, count, key)
-            if j < count and old_key[j] == key:
+            j = find_key(old_key, old_count[0], new_key[p])
+            if j >= 0:
                 turn = old_turn[j]
                 if friction != 0:
                     xi = old_xi[j]
@@ -135,24 +142,42 @@ def make_remap_history_kernel(scalar):
 
 
 @wp.kernel(enable_backward=False)
-def remap_sums_kernel(
-    # State in
+def carry_sums_kernel(
+    # State in: the list before the rebuild, with its sums, and the list after it
     old_key: wp.array(dtype=wp.int64),
     old_count: wp.array(dtype=int),
     old_sums: ContactSums,
     new_key: wp.array(dtype=wp.int64),
     new_count: wp.array(dtype=int),
-    # Out
+    # Out: the sums of the list after the rebuild
     new_sums: ContactSums,
+    # In/out: the retired pairs
+    retired_key: wp.array(dtype=wp.int64),
+    retired: ContactSums,
+    retired_count: wp.array(dtype=int),
+    overflow: wp.array(dtype=int),
 ):
-    """Carries each pair's sums of an averaging interval over a rebuild, matched by the pair's key
-    (zero for a new pair and past the count)."""
+    """Carries the pairs' sums of an averaging interval over a rebuild, one thread per slot p. The old
+    list's pair p, if the rebuild drops it after it was in contact in the interval, is appended to the
+    retired pairs, so that it counts in the average: the slots are taken atomically, so entries of
+    different keys may come in any order, but those of one key are in the order of the rebuilds (one
+    launch each); past the capacity, ``overflow`` is set (the chunk is redone with more room). The new
+    list's pair p gets the sums of the old list's pair of its key (zero for a new pair and past the count)."""
     p = wp.tid()
+    if p < old_count[0] and old_sums.steps[p] != 0:
+        key = old_key[p]
+        if find_key(new_key, new_count[0], key) < 0:
+            slot = wp.atomic_add(retired_count, 0, 1)
+            if slot >= retired_key.shape[0]:
+                wp.atomic_max(overflow, 0, 1)
+            else:
+                retired_key[slot] = key
+                copy_sums(old_sums, p, retired, slot)
+    if p >= new_sums.steps.shape[0]:
+        return
     if p < new_count[0]:
-        key = new_key[p]
-        count = old_count[0]
-        j = lower_bound(old_key, count, key)
-        if j < count and old_key[j] == key:
+        j = find_key(old_key, old_count[0], new_key[p])
+        if j >= 0:
             copy_sums(old_sums, j, new_sums, p)
             return
     zero3 = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
@@ -161,42 +186,6 @@ def remap_sums_kernel(
     new_sums.normal[p] = wp.float64(0.0)
     new_sums.point[p] = zero3
     new_sums.steps[p] = 0
-
-
-@wp.kernel(enable_backward=False)
-def retire_sums_kernel(
-    # State in
-    old_key: wp.array(dtype=wp.int64),
-    old_count: wp.array(dtype=int),
-    old_sums: ContactSums,
-    new_key: wp.array(dtype=wp.int64),
-    new_count: wp.array(dtype=int),
-    # In/out
-    retired_key: wp.array(dtype=wp.int64),
-    retired: ContactSums,
-    retired_count: wp.array(dtype=int),
-    overflow: wp.array(dtype=int),
-):
-    """Appends the sums of each pair that a rebuild drops from the list after it was in contact in
-    the interval, so that they count in the average. The slots are taken atomically: entries of
-    different keys may come in any order, but those of one key are in the order of the rebuilds
-    (one launch each); past the capacity, ``overflow`` is set (the chunk is redone with more room)."""
-    p = wp.tid()
-    if p >= old_count[0]:
-        return
-    if old_sums.steps[p] == 0:
-        return
-    key = old_key[p]
-    count = new_count[0]
-    j = lower_bound(new_key, count, key)
-    if j < count and new_key[j] == key:
-        return
-    slot = wp.atomic_add(retired_count, 0, 1)
-    if slot >= retired_key.shape[0]:
-        wp.atomic_max(overflow, 0, 1)
-        return
-    retired_key[slot] = key
-    copy_sums(old_sums, p, retired, slot)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -225,30 +214,7 @@ def launch_remap_history(
     )
 
 
-def launch_retire_sums(
-    *,
-    old_key: wp.array,
-    old_count: wp.array,
-    old_sums: ContactSums,
-    new_key: wp.array,
-    new_count: wp.array,
-    retired_key: wp.array,
-    retired: ContactSums,
-    retired_count: wp.array,
-    overflow: wp.array,
-) -> None:
-    """Append to ``retired`` the sums of each pair of ``old_key`` that is not in ``new_key`` and was in
-    contact in the interval (``overflow`` set where ``retired_key`` has no room left)."""
-    wp.launch(
-        retire_sums_kernel,
-        dim=old_sums.steps.shape[0],
-        inputs=[old_key, old_count, old_sums, new_key, new_count],
-        outputs=[retired_key, retired, retired_count, overflow],
-        device=old_key.device,
-    )
-
-
-def launch_remap_sums(
+def launch_carry_sums(
     *,
     old_key: wp.array,
     old_count: wp.array,
@@ -256,13 +222,19 @@ def launch_remap_sums(
     new_key: wp.array,
     new_count: wp.array,
     new_sums: ContactSums,
+    retired_key: wp.array,
+    retired: ContactSums,
+    retired_count: wp.array,
+    overflow: wp.array,
 ) -> None:
-    """Give each pair of ``new_key`` the sums of ``old_sums`` under the same key (zero for a new pair)."""
+    """Give each pair of ``new_key`` the sums of ``old_sums`` under the same key (zero for a new pair), and
+    append to ``retired`` the sums of each pair of ``old_key`` that is not in ``new_key`` and was in contact
+    in the interval (``overflow`` set where ``retired_key`` has no room left)."""
     wp.launch(
-        remap_sums_kernel,
-        dim=new_sums.steps.shape[0],
+        carry_sums_kernel,
+        dim=max(old_sums.steps.shape[0], new_sums.steps.shape[0]),
         inputs=[old_key, old_count, old_sums, new_key, new_count],
-        outputs=[new_sums],
+        outputs=[new_sums, retired_key, retired, retired_count, overflow],
         device=new_key.device,
     )
 

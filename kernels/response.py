@@ -35,6 +35,7 @@ import numpy as np
 import warp as wp
 from polydem.kernels.geometry import ENCLOSED_RATIO
 from polydem.kernels.laws import LAW_SPECS, LAWS, TOE_MIN_RESTITUTION, TOE_OMEGA_DT, Law
+from polydem.kernels.structs import arrays, filled, make_struct
 
 # A pair whose |S_A| falls below ENCLOSED_RATIO V^(2/3) is "enclosed": one body (nearly) inside
 # the other, or two identical bodies on top of each other. The gradient of V vanishes there.
@@ -62,25 +63,22 @@ class Frame:
 
     scalar: Any
     vec3: Any
-    centre_line: Any
-    contact_frame: Any
+    centre_line: Any  # (r_ab) -> the unit vector from A's centre to B's
+    contact_frame: Any  # (V, V centroid, S_A, M_A, fallback, r_ab, r_min) -> (kind, normal, point, S, M, |S|)
 
 
 @dataclass(frozen=True)
 class Response:
-    """The contact law and :func:`respond` of one precision, law, friction setting and purpose."""
+    """The contact law's :func:`kept_energy` and :func:`respond` of one precision, law, friction setting
+    and purpose (the law's other functions are theirs alone)."""
 
     scalar: Any
     law: str
     friction: bool
     diagnostics: bool
     frame: Frame
-    law_derivative: Any
-    law_energy: Any
-    toe_volume: Any
-    branch_pressure: Any
-    branch_energy: Any
-    respond: Any
+    kept_energy: Any  # (turn, k, m, e, dt, area, r_min, inv_mass) -> what an opening contact kept [J]
+    respond: Any  # (overlap, motion, material, history, step) -> (force, torque, xi, turn, energy, lost, n, ...)
 
 
 @functools.cache
@@ -229,15 +227,13 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
 
     @wp.func
     def law_derivative(volume: scalar, k: scalar, m: scalar, vc: scalar):
-        # W'(V) [Pa]
-        if wp.static(not toe_law):
-            return own_derivative(volume, k, m)
-        else:
+        # W'(V) [Pa]: the law's, or below V_c (a law with the toe) a V + b V^2 with
+        # a = (3 - m) k V_c^(m - 2), b = (m - 2) k V_c^(m - 3)
+        if wp.static(toe_law):
             if volume < vc:
-                # a V + b V^2 with a = (3 - m) k V_c^(m - 2), b = (m - 2) k V_c^(m - 3)
                 x = volume / vc
                 return k * wp.pow(vc, m - scalar(1.0)) * x * ((scalar(3.0) - m) + (m - scalar(2.0)) * x)
-            return own_derivative(volume, k, m)
+        return own_derivative(volume, k, m)
 
     @wp.func
     def law_energy(volume: scalar, k: scalar, m: scalar, vc: scalar):
@@ -257,6 +253,15 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             return own_energy(volume, k, m) + offset
 
     @wp.func
+    def kept_energy(
+        turn: scalar, k: scalar, m: scalar, e: scalar, dt: scalar, area: scalar, r_min: scalar, inv_mass: scalar
+    ):
+        # (1 - e^2) W(turn) [J]: what the last impact of a contact that opens never gave back, dissipated
+        # as it opens (its force may have ended before, at u = 0). Arguments as for toe_volume.
+        vc = toe_volume(k, m, e, dt, area, r_min, inv_mass)
+        return (scalar(1.0) - e * e) * law_energy(turn, k, m, vc)
+
+    @wp.func
     def elastic_volume(volume: scalar, turn: scalar, e2: scalar):
         # u on the unloading branch from the turning volume: du = dV / e^2, u(turn) = turn.
         return turn - (turn - volume) / e2
@@ -264,14 +269,12 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
     @wp.func
     def branch_pressure(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar, vc: scalar):
         # dE/dV on the branch of (V, turn) [Pa]: W'(V) loading, W'(u) unloading, 0 once u <= 0.
-        p = scalar(0.0)
         if volume >= turn:
-            p = law_derivative(volume, k, m, vc)
-        else:
-            u = elastic_volume(volume, turn, e2)
-            if u > scalar(0.0):
-                p = law_derivative(u, k, m, vc)
-        return p
+            return law_derivative(volume, k, m, vc)
+        u = elastic_volume(volume, turn, e2)
+        if u > scalar(0.0):
+            return law_derivative(u, k, m, vc)
+        return scalar(0.0)
 
     @wp.func
     def branch_energy(volume: scalar, turn: scalar, k: scalar, m: scalar, e2: scalar, vc: scalar):
@@ -433,19 +436,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             lost -= wp.dot(tr, w_t) * dt
         return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
 
-    return Response(
-        scalar=scalar,
-        law=law,
-        friction=friction,
-        diagnostics=diagnostics,
-        frame=frame,
-        law_derivative=law_derivative,
-        law_energy=law_energy,
-        toe_volume=toe_volume,
-        branch_pressure=branch_pressure,
-        branch_energy=branch_energy,
-        respond=respond,
-    )
+    return Response(scalar, law, friction, diagnostics, frame, kept_energy, respond)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -458,37 +449,30 @@ def batch_struct(scalar):
     """The ``wp.struct`` of N overlaps that both batch kernels read: V, V times the centroid, S_A, M_A and
     the fallback area vector (about and relative to x_A), and r_ab = x_B - x_A; one precision."""
     vec3 = wp.types.vector(3, scalar)
+    members = arrays(volume=scalar, volume_moment=vec3, area_a=vec3, moment_a=vec3, fallback_a=vec3, r_ab=vec3)
+    return make_struct("BatchOverlaps", **members)
 
-    class BatchOverlaps:
-        volume: wp.array(dtype=scalar)
-        volume_moment: wp.array(dtype=vec3)
-        area_a: wp.array(dtype=vec3)
-        moment_a: wp.array(dtype=vec3)
-        fallback_a: wp.array(dtype=vec3)
-        r_ab: wp.array(dtype=vec3)
 
-    return wp.struct(BatchOverlaps)
+@functools.cache
+def batch_out_struct(scalar):
+    """The ``wp.struct`` of what the batch kernels write per overlap, in one precision: the ``kind``
+    (-1 without overlap, REGULAR, ENCLOSED, SLIVER), unit ``normal`` and contact ``point`` of
+    :func:`make_frame_kernel`; the ``force`` and ``torque_a`` on A and the ``energy`` of
+    :func:`make_force_kernel` (each kernel writes its own; the others may be left empty)."""
+    vec3 = wp.types.vector(3, scalar)
+    return make_struct(
+        "BatchContacts", **arrays(kind=int, normal=vec3, point=vec3, force=vec3, torque_a=vec3, energy=scalar)
+    )
 
 
 @functools.cache
 def make_frame_kernel(scalar):
     """Kernel: normal, contact point and kind of N overlaps (kind -1 where V <= 0)."""
     frame = make_frame(scalar)
-    vec3 = frame.vec3
-    centre_line = frame.centre_line
-    contact_frame = frame.contact_frame
 
     @wp.kernel(enable_backward=False, module="unique")
     def contact_frame_kernel(
-        # Model
-        r_min: scalar,
-        share_a: scalar,
-        # State in
-        pairs: batch_struct(scalar),
-        # Out
-        pair_kind: wp.array(dtype=int),
-        pair_normal: wp.array(dtype=vec3),
-        pair_point: wp.array(dtype=vec3),
+        r_min: scalar, share_a: scalar, pairs: batch_struct(scalar), out: batch_out_struct(scalar)
     ):
         i = wp.tid()
         vol = pairs.volume[i]
@@ -496,16 +480,16 @@ def make_frame_kernel(scalar):
         if vol <= scalar(0.0):
             # No overlap: the normal along the line of centres, the point on it where the
             # bounding spheres would meet in proportion to their radii.
-            pair_kind[i] = -1
-            pair_normal[i] = centre_line(r_ab)
-            pair_point[i] = share_a * r_ab
+            out.kind[i] = -1
+            out.normal[i] = frame.centre_line(r_ab)
+            out.point[i] = share_a * r_ab
             return
-        kind, n, point, s, mom, s_norm = contact_frame(
+        kind, n, point, s, mom, s_norm = frame.contact_frame(
             vol, pairs.volume_moment[i], pairs.area_a[i], pairs.moment_a[i], pairs.fallback_a[i], r_ab, r_min
         )
-        pair_kind[i] = kind
-        pair_normal[i] = n
-        pair_point[i] = point
+        out.kind[i] = kind
+        out.normal[i] = n
+        out.point[i] = point
 
     return contact_frame_kernel
 
@@ -513,49 +497,53 @@ def make_frame_kernel(scalar):
 @functools.cache
 def make_force_kernel(scalar, law: str):
     """Kernel: elastic wrench on A and energy of N overlaps under one contact law (no damping,
-    no friction)."""
+    no friction), with the smaller bounding radius of each pair (``pair_r_min``)."""
     resp = make_response(scalar, law, friction=False, diagnostics=True)
-    vec3 = resp.frame.vec3
-    respond = resp.respond
-    zero3 = wp.constant(vec3(scalar(0.0), scalar(0.0), scalar(0.0)))
+    zero3 = wp.constant(resp.frame.vec3(scalar(0.0), scalar(0.0), scalar(0.0)))
 
     @wp.kernel(enable_backward=False, module="unique")
     def contact_force_kernel(
-        # Model
         k: scalar,
         m: scalar,
-        # State in
         pairs: batch_struct(scalar),
         pair_r_min: wp.array(dtype=scalar),
-        # Out
-        pair_force: wp.array(dtype=vec3),
-        pair_torque_a: wp.array(dtype=vec3),
-        pair_energy: wp.array(dtype=scalar),
+        out: batch_out_struct(scalar),
     ):
         i = wp.tid()
         vol = pairs.volume[i]
         if vol <= scalar(0.0):
-            pair_force[i] = zero3
-            pair_torque_a[i] = zero3
-            pair_energy[i] = scalar(0.0)
+            out.force[i] = zero3
+            out.torque_a[i] = zero3
+            out.energy[i] = scalar(0.0)
             return
         zero = scalar(0.0)
-        force, torque, xi, turn, energy, lost, n, point, fn, ft = respond(
+        force, torque, xi, turn, energy, lost, n, point, fn, ft = resp.respond(
             vol, pairs.volume_moment[i], pairs.area_a[i], pairs.moment_a[i], pairs.fallback_a[i], pairs.r_ab[i],
             zero3, zero3, zero3, zero3,
             k, m, scalar(1.0), zero, zero,
             zero3, zero,
             zero, pair_r_min[i], zero, zero,
         )  # fmt: skip
-        pair_force[i] = force
-        pair_torque_a[i] = torque
-        pair_energy[i] = energy
+        out.force[i] = force
+        out.torque_a[i] = torque
+        out.energy[i] = energy
 
     return contact_force_kernel
 
 
-def _batch(scalar, device, volume, first_moment, area, moment, fallback, r_ab):
-    """The :func:`batch_struct` of N overlaps given as numpy arrays, on ``device``."""
+def batch_overlaps(
+    scalar: Any,
+    device: Any,
+    *,
+    volume: np.ndarray,
+    first_moment: np.ndarray,
+    area: np.ndarray,
+    moment: np.ndarray,
+    fallback: np.ndarray,
+    r_ab: np.ndarray,
+) -> Any:
+    """The :func:`batch_struct` of N overlaps in ``scalar`` on ``device``, from numpy arrays relative to x_A:
+    V (N,), V times the centroid, S_A, M_A, the fallback area vector and x_B - x_A (N, 3)."""
     vec3 = wp.types.vector(3, scalar)
     np_scalar = np.float32 if scalar == wp.float32 else np.float64
     pairs = batch_struct(scalar)()
@@ -568,41 +556,34 @@ def _batch(scalar, device, volume, first_moment, area, moment, fallback, r_ab):
     return pairs
 
 
-def launch_contact_frame(scalar, device, volume, first_moment, area, moment, fallback, r_ab, r_min, share_a):
-    """Kind (-1 no overlap, REGULAR, ENCLOSED, SLIVER), normal and contact point (relative to x_A)
-    of N overlaps given as numpy arrays relative to x_A; runs in ``scalar`` precision."""
-    n = len(volume)
+def launch_contact_frame(pairs: Any, *, r_min: float, share_a: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kind (-1 no overlap, REGULAR, ENCLOSED, SLIVER), normal and contact point (relative to x_A) of the
+    overlaps ``pairs`` (:func:`batch_overlaps`), in their precision, as numpy arrays."""
+    scalar = pairs.volume.dtype
+    device = pairs.volume.device
+    n = pairs.volume.shape[0]
     vec3 = wp.types.vector(3, scalar)
-    pairs = _batch(scalar, device, volume, first_moment, area, moment, fallback, r_ab)
     kind = wp.zeros(n, dtype=int, device=device)
     normal = wp.zeros(n, dtype=vec3, device=device)
     point = wp.zeros(n, dtype=vec3, device=device)
-    wp.launch(
-        make_frame_kernel(scalar),
-        dim=n,
-        inputs=[scalar(r_min), scalar(share_a), pairs],
-        outputs=[kind, normal, point],
-        device=device,
-    )
+    out = filled(batch_out_struct(scalar), kind=kind, normal=normal, point=point)
+    wp.launch(make_frame_kernel(scalar), dim=n, inputs=[scalar(r_min), scalar(share_a), pairs, out], device=device)
     return kind.numpy(), normal.numpy().astype(np.float64), point.numpy().astype(np.float64)
 
 
-def launch_contact_force(law, k, m, device, volume, first_moment, area, moment, fallback, r_ab, r_min):
-    """Force on A, torque on A about x_A and energy of N overlaps (numpy arrays relative to x_A;
-    ``r_min`` per pair) under a contact law, in float64."""
-    n = len(volume)
+def launch_contact_force(
+    pairs: Any, *, law: str, k: float, m: float, r_min: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Force on A, torque on A about x_A and energy of the float64 overlaps ``pairs`` (:func:`batch_overlaps`)
+    under a contact law (``r_min`` per pair), as numpy arrays."""
     scalar = wp.float64
+    device = pairs.volume.device
+    n = pairs.volume.shape[0]
     vec3 = wp.types.vector(3, scalar)
-    pairs = _batch(scalar, device, volume, first_moment, area, moment, fallback, r_ab)
     r_min = wp.array(np.ascontiguousarray(r_min, dtype=np.float64), dtype=scalar, device=device)
     force = wp.zeros(n, dtype=vec3, device=device)
     torque = wp.zeros(n, dtype=vec3, device=device)
     energy = wp.zeros(n, dtype=scalar, device=device)
-    wp.launch(
-        make_force_kernel(scalar, law),
-        dim=n,
-        inputs=[scalar(k), scalar(m), pairs, r_min],
-        outputs=[force, torque, energy],
-        device=device,
-    )
+    out = filled(batch_out_struct(scalar), force=force, torque_a=torque, energy=energy)
+    wp.launch(make_force_kernel(scalar, law), dim=n, inputs=[scalar(k), scalar(m), pairs, r_min, out], device=device)
     return force.numpy(), torque.numpy(), energy.numpy()

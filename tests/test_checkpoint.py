@@ -145,7 +145,7 @@ EDITS = {
     "NaN position": ({"body_q": _set("body_q", (1, 2), np.nan)}, ["body_q[1, 2] is nan", "finite"]),
     "inf velocity": ({"body_v": _set("body_v", (0, 0), np.inf)}, ["body_v[0, 0] is inf"]),
     "NaN dissipated": ({"body_dissipated": _set("body_dissipated", 3, np.nan)}, ["body_dissipated[3] is nan"]),
-    "NaN wall spring": ({"plane_xi": _set("plane_xi", (0, 0, 1), np.nan)}, ["plane_xi[0, 0, 1] is nan"]),
+    "NaN wall spring": ({"wall_xi": _set("wall_xi", (0, 0, 1), np.nan)}, ["wall_xi[0, 0, 1] is nan"]),
     "NaN turning volume": ({"pair_turn": _set("pair_turn", 0, np.nan)}, ["pair_turn[0] is nan"]),
     # float32: a float64 value beyond the float32 body state; mixed: beyond the float32 contact history.
     "float64 overflow": ({"body_w": lambda d: d["body_w"].astype(np.float64) + 1e300}, ["body_w[0, 0] is 1e+300"]),
@@ -311,6 +311,25 @@ def test_old_format_loads_with_a_warning(saved, tmp_path):
     assert sim.steps_done == 300
 
 
+def test_checkpoint_with_the_old_wall_names_loads(saved, tmp_path):
+    """Checkpoints written before issue 25 name the wall contacts' springs and turning volumes
+    ``plane_xi`` and ``plane_turn``: they load into the same state as today's ``wall_*``."""
+    with np.load(saved) as f:
+        data = dict(f)
+    assert np.any(data["wall_turn"] != 0.0)  # the floor's contacts carry a history to compare
+    data["plane_xi"] = data.pop("wall_xi")
+    data["plane_turn"] = data.pop("wall_turn")
+    np.savez(tmp_path / "old_names.npz", **data)
+    old = polydem.Simulation(stack(), device=HOST)
+    load_checkpoint(old, tmp_path / "old_names.npz")
+    today = polydem.Simulation(stack(), device=HOST)
+    load_checkpoint(today, saved)
+    for name in ("wall_xi", "wall_turn", "body_q"):
+        np.testing.assert_array_equal(
+            getattr(old.current_state, name).numpy(), getattr(today.current_state, name).numpy(), err_msg=name
+        )
+
+
 @pytest.mark.skipif(HOST != "cpu", reason="the stored checkpoint was written on the CPU: bit for bit only there")
 def test_checkpoint_of_the_format_before_the_state_redesign_resumes(tmp_path):
     """tests/data/stack_base_format.npz was written by polydem before State and Contacts existed
@@ -364,7 +383,7 @@ def test_resume_equals_unbroken_run_in_float64_precisions(device, tmp_path, prec
     with np.load(tmp_path / "run.npz") as data:
         assert data["body_q"].dtype == np.float64 and data["body_dissipated"].dtype == np.float64
         history = np.float64 if precision == "float64" else np.float32
-        assert data["pair_turn"].dtype == history and data["plane_turn"].dtype == history
+        assert data["pair_turn"].dtype == history and data["wall_turn"].dtype == history
         assert len(data["pair_key"]) >= 3 and np.any(data["pair_xi"] != 0.0)
     assert read_checkpoint(tmp_path / "run.npz").arrays["body_q"].dtype == np.float64
     resumed = polydem.Simulation(scene, device=device)

@@ -74,7 +74,7 @@ checkpoint = { steps = 150 }
 pictures = [1]
 """
 
-STATE_KEYS = ("steps_done", "body_q", "body_v", "body_w", "body_dissipated", "plane_xi", "plane_turn", "step_count")
+STATE_KEYS = ("steps_done", "body_q", "body_v", "body_w", "body_dissipated", "wall_xi", "wall_turn", "step_count")
 
 
 def write_scene(folder, text=TINY, name="tiny.toml", replace=()):

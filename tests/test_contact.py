@@ -421,7 +421,7 @@ def test_polygon_buffer_overflow_grows_and_redoes(device):
     pa = pose([0, 0, 0])
     pb = pose([0.3, 0.2, 0.1], Rotation.from_rotvec([0.4, 0.1, 0.2]))
     import warp as wp
-    from polydem.kernels.narrowphase import launch_overlap
+    from polydem.kernels.narrowphase import BatchPairs, launch_overlap
 
     vec3 = wp.types.vector(3, wp.float64)
     out = {
@@ -432,11 +432,13 @@ def test_polygon_buffer_overflow_grows_and_redoes(device):
     tf = wp.types.transformation(wp.float64)
     ns = launch_overlap(
         shapes,
-        wp.zeros(1, dtype=int, device=device),
-        wp.ones(1, dtype=int, device=device),
-        wp.array(pa[None], dtype=tf, device=device),
-        wp.array(pb[None], dtype=tf, device=device),
-        out,
+        BatchPairs(
+            wp.zeros(1, dtype=int, device=device),
+            wp.ones(1, dtype=int, device=device),
+            wp.array(pa[None], dtype=tf, device=device),
+            wp.array(pb[None], dtype=tf, device=device),
+        ),
+        out=out,
     )
     assert ns.max_poly > 3
     ref = reference_overlap(world_vertices(s, pa), world_vertices(s, pb))
@@ -601,7 +603,7 @@ def test_float32_world_poses_small_body_on_a_huge_one(device):
     cube resting, tilted 0.5 degrees, on a 6 m floor 2.6 m from its centre: the clipping runs in
     the floor's frame, where its big face is exact, so V and S keep float32 position accuracy."""
     import warp as wp
-    from polydem.kernels.narrowphase import launch_overlap
+    from polydem.kernels.narrowphase import BatchPairs, launch_overlap
 
     cube = ConvexShape.box(0.01)
     floor = ConvexShape.box(5.69, 5.67, 0.0188)
@@ -623,11 +625,13 @@ def test_float32_world_poses_small_body_on_a_huge_one(device):
             pb = np.array([0.0, 0.0, -0.0094, 0.0, 0.0, 0.0, 1.0])
             launch_overlap(
                 shapes,
-                wp.zeros(1, dtype=int, device=device),
-                wp.ones(1, dtype=int, device=device),
-                wp.array(pa[None].astype(np_scalar), dtype=tf, device=device),
-                wp.array(pb[None].astype(np_scalar), dtype=tf, device=device),
-                out,
+                BatchPairs(
+                    wp.zeros(1, dtype=int, device=device),
+                    wp.ones(1, dtype=int, device=device),
+                    wp.array(pa[None].astype(np_scalar), dtype=tf, device=device),
+                    wp.array(pb[None].astype(np_scalar), dtype=tf, device=device),
+                ),
+                out=out,
             )
             rows.append((out["pair_volume"].numpy()[0], out["pair_area_a"].numpy()[0]))
         results[precision] = rows

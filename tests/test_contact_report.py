@@ -62,9 +62,9 @@ def forces_at_current_state(sim):
     force = -d["pair_fn"][on, None] * d["pair_normal"][on] + d["pair_ft"][on]
     a, b = bp.pair_a.numpy()[:count][on], bp.pair_b.numpy()[:count][on]
     out = forces_per_body(a, b, force, sim.num_bodies)
-    body, wall = np.nonzero(d["plane_volume"] > 0.0)
+    body, wall = np.nonzero(d["wall_volume"] > 0.0)
     normal = -sim.model.plane_normal.numpy()[wall]
-    np.add.at(out, body, -d["plane_fn"][body, wall, None] * normal + d["plane_ft"][body, wall])
+    np.add.at(out, body, -d["wall_fn"][body, wall, None] * normal + d["wall_ft"][body, wall])
     return out
 
 

@@ -162,7 +162,7 @@ def test_command_on_two_ranks_writes_the_undivided_run(tmp_path):
 
     # The time too between one and two ranks, not after resuming: Simulation adds up dt per chunk of its
     # own, and a resumed run's chunks differ from the unbroken run's (the last bits of the sum).
-    fields = ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn", "plane_xi", "steps_done")
+    fields = ("body_q", "body_v", "body_w", "body_dissipated", "wall_turn", "wall_xi", "steps_done")
     fields += ("pair_key", "pair_xi", "pair_turn")
     _, one = run(1, tmp_path / "one", 0.02)
     text, two = run(2, tmp_path / "two", 0.02)

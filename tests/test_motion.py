@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 import warp as wp
-from polydem.kernels.motion import launch_drive_bodies
+from polydem.kernels.motion import Motions, launch_drive_bodies
+from polydem.kernels.structs import filled
 
 
 def closed_form(t, amplitude, omega, start, period, count):
@@ -34,22 +35,24 @@ def test_driven_bodies_follow_the_cycles(device, precision):
     start = np.array([m[2] for m in MOTIONS])
     period = np.array([m[3] if m[3] is not None else 1.0 / m[1] for m in MOTIONS])
     count = np.array([m[4] for m in MOTIONS], dtype=np.int32)
-    motions = [
-        wp.array(axis, dtype=wp.vec3d, device=device),
-        *(wp.array(a, dtype=wp.float64, device=device) for a in (amp, omega, start, period)),
-        wp.array(count, dtype=int, device=device),
-    ]
     rest = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0], [5.0, 5.0, 5.0]])
-    body_motion = wp.array([0, 1, -1], dtype=int, device=device)
-    body_rest = wp.array(rest, dtype=wp.vec3d, device=device)
+    cycles = {"amplitude": amp, "omega": omega, "start": start, "period": period}
+    cycles = {k: wp.array(a, dtype=wp.float64, device=device) for k, a in cycles.items()}
+    motions = filled(
+        Motions,
+        axis=wp.array(axis, dtype=wp.vec3d, device=device),
+        **cycles,
+        count=wp.array(count, dtype=int, device=device),
+        body_motion=wp.array([0, 1, -1], dtype=int, device=device),
+        body_rest=wp.array(rest, dtype=wp.vec3d, device=device),
+    )
     pose = np.hstack([rest, np.tile([0.0, 0.0, 0.6, 0.8], (3, 1))])
     body_q = wp.array(pose, dtype=transform, device=device)
     body_v = wp.array(np.full((3, 3), 7.0), dtype=vec3, device=device)
     dt = 1e-4
     tol = 1e-15 if precision == "float64" else 4e-7
     for step in [0, 1, 99, 100, 333, 1666, 2101, 2500, 4100, 6100, 6200, 12345, 10**6 + 7]:
-        launch_drive_bodies(motions, body_motion, body_rest, wp.array([step], dtype=int, device=device), 1, dt,
-                            body_q, body_v, device=device)  # fmt: skip
+        launch_drive_bodies(motions, wp.array([step], dtype=int, device=device), 1, dt, body_q, body_v, device=device)
         t = (step + 1) * dt
         q, v = body_q.numpy().astype(np.float64), body_v.numpy().astype(np.float64)
         for b, m in ((0, 0), (1, 1)):

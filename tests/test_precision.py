@@ -118,7 +118,7 @@ def test_dtypes_per_precision(device):
         sim = polydem.Simulation(drop_scene(0.0, precision, "slab"), device=device)
         st, m, pairs = sim.current_state, sim.model, sim.current_contacts
         assert st.body_q.dtype == wp.types.transformation(s) and st.body_v.dtype == wp.types.vector(3, s)
-        assert st.body_dissipated.dtype == s and st.plane_turn.dtype == c
+        assert st.body_dissipated.dtype == s and st.wall_turn.dtype == c
         assert m.body_inv_mass.dtype == s and m.plane_offset.dtype == s and m.material_k.dtype == c
         assert pairs.pair_turn.dtype == c and pairs.pair_force.dtype == wp.types.vector(3, c)
         assert sim.state()["body_position"].dtype == np.float64

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import warp as wp
 from polydem.kernels.geometry import make_geometry, make_primitives
-from polydem.kernels.narrowphase import launch_overlap
+from polydem.kernels.narrowphase import BatchPairs, launch_overlap
 from reference_geometry import halfspaces_from_points
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
@@ -316,11 +316,13 @@ def test_mixed_precision_far_from_the_origin(device):
         out["pair_volume"] = wp.zeros(1, dtype=wp.float32, device=device)
         launch_overlap(
             shapes,
-            wp.zeros(1, dtype=int, device=device),
-            wp.ones(1, dtype=int, device=device),
-            wp.array(pa[None], dtype=TRANSFORM64, device=device),
-            wp.array(pb[None], dtype=TRANSFORM64, device=device),
-            out,
+            BatchPairs(
+                wp.zeros(1, dtype=int, device=device),
+                wp.ones(1, dtype=int, device=device),
+                wp.array(pa[None], dtype=TRANSFORM64, device=device),
+                wp.array(pb[None], dtype=TRANSFORM64, device=device),
+            ),
+            out=out,
             pose_scalar=wp.float64,
         )
         rows[far] = (out["pair_volume"].numpy()[0], out["pair_area_a"].numpy()[0])

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from polydem import ConvexShape, Scene, SettleCriterion, Simulation
+from polydem.run_settings import run_settings
 from polydem.settle import SPEED_FRACTION, SettleCheck, grain_radius
 from polydem.simulation import CHUNK_STEPS
 
@@ -116,7 +117,7 @@ def test_default_speed_limit_comes_from_the_grains_and_gravity():
     not count); a given max_speed replaces it; without gravity only max_speed can set it."""
     assert SPEED_FRACTION == 3e-4
     scene = drop_scene()
-    assert grain_radius(scene) == pytest.approx(CUBE_RADIUS, rel=1e-12)
+    assert grain_radius(run_settings(scene)) == pytest.approx(CUBE_RADIUS, rel=1e-12)
     assert SettleCriterion().speed_limit_of(scene) == pytest.approx(DROP_LIMIT, rel=1e-12)
     # A grain 4x smaller (r / 4) under 9x the gravity: the limit is 3/2 of the drop scene's.
     s = Scene(gravity=(0.0, 9.0 * 9.81, 0.0))
@@ -127,7 +128,7 @@ def test_default_speed_limit_comes_from_the_grains_and_gravity():
     s.add_body("cube", "m", position=(0.0, 0.0, 0.0))
     s.add_body("small", "m", position=(0.2, 0.0, 0.0))
     s.add_body("pebble", "m", position=(0.4, 0.0, 0.0), kind="fixed")
-    assert grain_radius(s) == pytest.approx(CUBE_RADIUS / 4.0, rel=1e-12)
+    assert grain_radius(run_settings(s)) == pytest.approx(CUBE_RADIUS / 4.0, rel=1e-12)
     assert SettleCriterion().speed_limit_of(s) == pytest.approx(1.5 * DROP_LIMIT, rel=1e-12)
     assert SettleCriterion(speed_fraction=1e-2).speed_limit_of(s) == pytest.approx(1.5 * DROP_LIMIT / 0.03, rel=1e-12)
     assert SettleCriterion(max_speed=0.5).speed_limit_of(s) == 0.5

@@ -31,7 +31,7 @@ The setup is Beverloo's: a square bin with a flat floor, a circular orifice in i
   the pile is at rest (the project's settle measure, ``polydem.settle.SettleCriterion``: kinetic energy
   below ``--settle-kinetic`` (1e-5) of the potential energy released and no grain faster than
   ``--settle-speed`` (5 cm/s), for 0.02 s), at the latest after ``--fill-time``. The grain count is
-  derived from the bin and the fill height ``head * D + extra * d`` at a packing fraction of 0.62 (a
+  derived from the bin and the fill height ``head * D + extra * d`` at a packing fraction of 0.70 (a
   sizing guess only), and printed.
 * Bulk density: rho_b = phi * 2500 kg/m^3, phi the exact packing fraction (``polydem.measures``) of the
   bed just before the gate opens, two grain sizes in from the walls, the floor and the top.
@@ -71,7 +71,7 @@ ROOT = HERE.parents[1]
 RESULTS = HERE.parent / "results" / "validation"
 SCENE = ROOT / "scenes" / "hopper.toml"  # the project's grain and wall materials
 G = 9.81
-PHI_GUESS = 0.62  # the poured cubes of VALIDATION.md section 1: only to size the fill (rho_b is measured)
+PHI_GUESS = 0.70  # the poured cubes of the first full run (0.67-0.70): only to size the fill (rho_b is measured)
 
 # Per size: orifices D/d, seeds, bin width L = max(wall_factor D, D + wall_extra d), the least head
 # (head D) kept during the counting, the extra fill above it (extra d), the fill cap, the longest
@@ -82,7 +82,7 @@ SIZES = {
     "tiny": {"orifices": "6,7", "seeds": 1, "wall_factor": 1.0, "wall_extra": 2.0, "head": 1.0, "extra": 1.5,
              "fill_time": 0.3, "discharge_time": 0.2, "sample": 0.005},
     "full": {"orifices": "6,7,8,10,12", "seeds": 3, "wall_factor": 2.5, "wall_extra": 30.0, "head": 2.5,
-             "extra": 3.0, "fill_time": 1.2, "discharge_time": 0.6, "sample": 0.01},
+             "extra": 4.0, "fill_time": 1.2, "discharge_time": 0.6, "sample": 0.01},
 }  # fmt: skip
 
 PUBLISHED = {

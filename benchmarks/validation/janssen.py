@@ -42,7 +42,8 @@ SIZES = {  # the silo's width in grain sizes, and the grains to pour
 }
 
 
-def build(width_d: int, grains: int, *, d: float, mu: float, mu_w: float, k: float, seed: int, precision: str):
+def build(width_d: int, grains: int, *, d: float, mu: float, mu_w: float, k: float, seed: int, precision: str,
+          lower: float = 0.0, lower_at: float = 0.0, lower_speed: float = 0.01):  # fmt: skip
     import polydem
 
     # The pour region: the silo's section, a grid of cells 1.1 bounding diameters wide (the emitter's), as
@@ -57,7 +58,17 @@ def build(width_d: int, grains: int, *, d: float, mu: float, mu_w: float, k: flo
     sc.add_material("grain", density=2500.0, k=k, restitution=0.3, friction=mu, law="hertz")
     sc.add_material("wall", density=2500.0, k=k, restitution=0.3, friction=mu_w, law="hertz")
     sc.add_shape("cube", polydem.ConvexShape.box(d))
-    sc.add_box_container((0.0, 0.0, 0.5 * (fill + d)), (w, w, fill + d), "wall")
+    if lower > 0.0:
+        # Side walls as four planes and the floor a slab that moves down by ``lower`` [m] at ``lower_speed``
+        # from ``lower_at`` [s] (a ramp motion): the grains follow it and slide down the walls, so that the
+        # wall friction turns upwards, as in experiments that lower the floor after a gentle fill.
+        for n in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)):
+            sc.add_plane(point=tuple(-0.5 * w * c for c in n), normal=n, material="wall")
+        sc.add_motion("lower", kind="ramp", speed=lower_speed, distance=lower, start=lower_at, axis=(0.0, 0.0, -1.0))
+        sc.add_shape("floor", polydem.ConvexShape.box(w + 2.0 * d, w + 2.0 * d, d))
+        sc.add_body("floor", "wall", position=(0.0, 0.0, -0.5 * d), kind="kinematic", motion="lower")
+    else:
+        sc.add_box_container((0.0, 0.0, 0.5 * (fill + d)), (w, w, fill + d), "wall")
     lo = (-0.5 * w + margin, -0.5 * w + margin, 0.6 * d)
     hi = (0.5 * w - margin, 0.5 * w - margin, fill)
     sc.emit("cube", "grain", grains, (lo, hi), seed=seed)
@@ -82,17 +93,37 @@ def run(args) -> dict:
     import warp as wp
 
     wp.config.quiet = True
-    from polydem import Simulation, measures
+    from polydem import Simulation
     from polydem.settle import SettleCriterion
 
     size = SIZES[args.size]
     d = args.grain
+    lower = args.lower * d
     sc = build(size["width"], size["grains"], d=d, mu=args.mu, mu_w=args.mu_w, k=args.k, seed=args.seed,
-               precision=args.precision)  # fmt: skip
+               precision=args.precision, lower=lower, lower_at=args.fill_time)  # fmt: skip
     sim = Simulation(sc, device=args.device)
     t0 = time.perf_counter()
+    if lower > 0.0:
+        sim.step(max(1, math.ceil(args.fill_time / sim.dt)))
+        filled = measure(sim, sc, args, size, d, floor=0.0)
+        sim.step(max(1, math.ceil((lower / 0.01 + 0.02) / sim.dt)))  # the ramp, then a little more
     settled = sim.run_until_settled(args.max_time, SettleCriterion())
     wall = time.perf_counter() - t0
+    out = measure(sim, sc, args, size, d, floor=-lower)
+    out.update(settled=bool(settled.settled), settle_time=settled.time, wall_s=wall, lowered=lower)
+    if lower > 0.0:
+        out["before_lowering"] = {k: filled[k] for k in ("floor_apparent_mass", "side_walls_apparent_mass",
+                                                         "packing_fraction", "lambda", "K_fit")}  # fmt: skip
+    if args.checkpoint:
+        from polydem.checkpoint import save_checkpoint
+
+        save_checkpoint(sim, args.checkpoint)
+    return out
+
+
+def measure(sim, sc, args, size, d, floor: float) -> dict:
+    """The silo's profiles, Janssen fit and wall loads of the state now; ``floor``: the floor's top [m]."""
+    from polydem import measures
 
     g = measures.Grains.from_simulation(sim)
     contacts = sim.contacts()
@@ -100,7 +131,6 @@ def run(args) -> dict:
     pos = g.position[free]
     top = float(np.percentile(pos[:, 2], 95.0))  # the free surface: the top 5% are a loose layer
     w = size["width"] * d
-    floor = 0.0
     section = measures.Box((-0.5 * w, -0.5 * w, floor), (0.5 * w, 0.5 * w, top))
     bin_width = 2.0 * d
     packing = measures.packing_profile(g, axis=2, bin_width=bin_width, box=section)
@@ -118,7 +148,7 @@ def run(args) -> dict:
     k_jaky = 1.0 - math.sin(phi_int)
     k_rankine = (1.0 - math.sin(phi_int)) / (1.0 + math.sin(phi_int))
 
-    # The floor's load: the normal force of the contacts with the floor slab (the container's first body).
+    # The floor's load: the normal force of the contacts with the floor slab (the first non-free body).
     kinds = np.asarray(sc.body_kind)
     floor_body = int(np.flatnonzero(kinds != 0)[0])
     a, b = contacts["body_a"], contacts["body_b"]
@@ -138,10 +168,6 @@ def run(args) -> dict:
         other = b[row] if grain_of[row] == a[row] else a[row]
         if other < 0 or kinds[other] != 0:
             walls_z += on_a[row, 2] if grain_of[row] == a[row] else -on_a[row, 2]
-    if args.checkpoint:
-        from polydem.checkpoint import save_checkpoint
-
-        save_checkpoint(sim, args.checkpoint)
     out = {
         "size": args.size,
         "grains": int(free.sum()),
@@ -151,9 +177,6 @@ def run(args) -> dict:
         "mu": args.mu,
         "mu_w": args.mu_w,
         "k": sim.model.material_k.numpy().tolist() if hasattr(sim.model, "material_k") else args.k,
-        "settled": bool(settled.settled),
-        "settle_time": settled.time,
-        "wall_s": wall,
         "packing_fraction": phi,
         "depth": depth.tolist(),
         "sigma_zz": sigma_zz.tolist(),
@@ -186,6 +209,8 @@ def main() -> int:
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--max-time", type=float, default=4.0, help="simulated seconds at most")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--lower", type=float, default=0.2, help="lower the floor by this many d after the fill (0: not)")
+    ap.add_argument("--fill-time", type=float, default=1.5, help="when the floor is lowered [s]")
     ap.add_argument("--out", default=None)
     ap.add_argument("--checkpoint", default=None, help="save the settled state here (.npz)")
     args = ap.parse_args()
@@ -202,6 +227,10 @@ def main() -> int:
         f"  K fitted {out['K_fit']:.3f}; sigma_h / sigma_v measured {out['K_ratio_measured']:.3f}; Jaky "
         f"{out['K_jaky']:.3f}, Rankine active {out['K_rankine_active']:.3f}"
     )
+    if "before_lowering" in out:
+        b = out["before_lowering"]
+        print(f"  before the floor was lowered {out['lowered'] * 1e3:.2g} mm: floor {b['floor_apparent_mass']:.4g} kg, "
+              f"side walls {b['side_walls_apparent_mass']:.4g} kg")  # fmt: skip
     print(f"  side walls carry {out['side_walls_apparent_mass']:.4g} kg")
     print(
         f"  floor carries {out['floor_apparent_mass']:.4g} kg of {out['grain_mass']:.4g} kg "

@@ -213,7 +213,7 @@ def smoothness(cube, counts, depth) -> list[dict]:
         sat = np.array([sat_normal(a, b) for a, b in zip(pa, pb, strict=True)])
         both = touching[1:] & touching[:-1]
 
-        def turn(u):
+        def turn(u, both=both):
             cosang = np.clip(np.sum(u[1:] * u[:-1], axis=1), -1.0, 1.0)
             return np.degrees(np.arccos(cosang))[both]
 
@@ -311,7 +311,8 @@ def main(argv=None) -> dict:
         **{k: float(np.max(np.array(v)[keep])) for k, v in rnd.items() if k not in ("volume", "normal")},
     }
     print("Claims 1-3: relative errors (largest over the cases)")
-    print(f"{'case':28s} {'dV/dx':>9s} {'dV/dtheta':>9s} {'S_A+S_B':>9s} {'M_A+M_B':>9s} {'off axis':>9s} {'off plane':>9s}")
+    heads = ("dV/dx", "dV/dtheta", "S_A+S_B", "M_A+M_B", "off axis", "off plane")
+    print(f"{'case':28s} " + " ".join(f"{h:>9s}" for h in heads))
     for name, r in list(fig.items()) + [("random (" + str(result["random"]["poses"]) + ")", None)]:
         r = r or {k: [v] for k, v in result["random"].items()}
         print(

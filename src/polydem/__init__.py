@@ -10,11 +10,11 @@ import importlib
 # Names are imported on first use, so that `polydem --help`, `polydem validate` and `polydem info`
 # start without importing Warp (a third of a second) or trimesh.
 _EXPORTS = {
-    "ContactForces": "polydem.contact",
-    "ContactLaw": "polydem.contact",
-    "OverlapResult": "polydem.contact",
-    "contact_forces": "polydem.contact",
-    "overlap": "polydem.contact",
+    "ContactForces": "polydem.batch",
+    "ContactLaw": "polydem.batch",
+    "OverlapResult": "polydem.batch",
+    "contact_forces": "polydem.batch",
+    "overlap": "polydem.batch",
     "Body": "polydem.scene",
     "Material": "polydem.scene",
     "PlaneWall": "polydem.scene",

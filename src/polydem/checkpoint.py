@@ -34,6 +34,9 @@ import weakref
 
 import numpy as np
 
+from polydem.kernels.precision import Precision
+from polydem.scene.bodies import KINDS
+
 __all__ = [
     "FORMAT",
     "CheckpointError",
@@ -65,7 +68,6 @@ _PHYSICS_ARRAYS = (
     "bodies.nonfree.angular_velocity",
     "bodies.nonfree.pivot",
 )
-_KINDS = ("free", "fixed", "kinematic")
 _FIX_OTHER = "give a checkpoint written by polydem (checkpoints/*.npz of a run), or rerun the scene"
 
 
@@ -259,7 +261,7 @@ def physics_differences(stored, stored_arrays, desc, arrays) -> list[str]:
     names = {
         "bodies.shape": (stored.get("shapes", []), desc.get("shapes", [])),
         "bodies.material": (stored.get("materials", []), desc.get("materials", [])),
-        "bodies.kind": (_KINDS, _KINDS),
+        "bodies.kind": (KINDS, KINDS),
     }
     for key, (old_names, new_names) in names.items():
         a, b = np.asarray(stored_arrays[key]), np.asarray(arrays[key])
@@ -284,7 +286,7 @@ def physics_differences(stored, stored_arrays, desc, arrays) -> list[str]:
             body = int(index[j])
             x, y = _pair(a[j], b[j])
             field = key.rsplit(".", 1)[1]
-            out.append(f"bodies[{body}].{field} of a {_KINDS[int(kind[body])]} body differs: checkpoint {x}, scene {y}")
+            out.append(f"bodies[{body}].{field} of a {KINDS[int(kind[body])]} body differs: checkpoint {x}, scene {y}")
     return out
 
 
@@ -320,6 +322,11 @@ def pairs_with_history(history: dict) -> dict:
     }
 
 
+def _has_travel(sim) -> bool:
+    # A decomposed run's gathered state has no motion arrays (it refuses servos).
+    return getattr(sim.model, "has_measured_motions", False) and hasattr(sim.current_state, "motion_travel")
+
+
 def save_checkpoint(sim, path, run=None):
     """Write the state of ``sim`` to ``path`` (a ``.npz`` file), atomically.
 
@@ -338,6 +345,8 @@ def save_checkpoint(sim, path, run=None):
         "dt": np.array(sim.dt),
         **sim.current_state.numpy(_STATE),
         **({"mesh_q": sim.current_state.mesh_q.numpy()} if sim.model.num_mesh_walls else {}),
+        # A servo's displacement is summed step by step: a resumed run needs it (and the ramps' record).
+        **({"motion_travel": sim.current_state.motion_travel.numpy()} if _has_travel(sim) else {}),
         **pairs_with_history(sim.current_contacts.history_numpy()),
         "physics_fingerprint": np.array(fingerprint),
         "physics_json": np.array(text),
@@ -365,7 +374,7 @@ class Checkpoint:
     Attributes: ``path``, ``format``, ``num_bodies``, ``steps_done``, ``time`` [s], ``dt`` [s],
     ``arrays`` (the state, in the dtypes of the recorded precision (float32 for the older format):
     ``body_q`` (N, 7), ``body_v``, ``body_w``, ``body_dissipated``,
-    ``plane_xi``, ``plane_turn``, ``step_count``, ``pair_key``, ``pair_xi``, ``pair_turn``),
+    ``wall_xi``, ``wall_turn``, ``step_count``, ``pair_key``, ``pair_xi``, ``pair_turn``),
     ``physics`` (the description, None for the old format), ``physics_arrays``, ``fingerprint``
     and ``run`` (the run record, or None).
     """
@@ -374,8 +383,10 @@ class Checkpoint:
         self.__dict__.update(kw)
 
 
-_STATE = ("body_q", "body_v", "body_w", "body_dissipated", "plane_xi", "plane_turn", "step_count")
+_STATE = ("body_q", "body_v", "body_w", "body_dissipated", "wall_xi", "wall_turn", "step_count")
 _PAIRS = ("pair_key", "pair_xi", "pair_turn")
+# Names that checkpoints written before the wall arrays were renamed use (they hold mesh walls too).
+_OLD_NAMES = {"plane_xi": "wall_xi", "plane_turn": "wall_turn"}
 _SCALARS = ("format", "num_bodies", "steps_done", "time", "dt")
 
 
@@ -436,9 +447,9 @@ def _dtypes(data):
     try:
         precision = json.loads(str(data["physics_json"]))["simulation.precision"]
     except Exception:
-        precision = "float32"
-    body = np.float64 if precision in ("mixed", "float64") else np.float32
-    return body, np.float64 if precision == "float64" else np.float32
+        precision = Precision.FLOAT32
+    body = np.float64 if precision in (Precision.MIXED, Precision.FLOAT64) else np.float32
+    return body, np.float64 if precision == Precision.FLOAT64 else np.float32
 
 
 def _real(path, data, name, shape, dtype=np.float32):
@@ -469,6 +480,9 @@ def read_checkpoint(path) -> Checkpoint:
     if not os.path.exists(path):
         raise FileNotFoundError(f"checkpoint {path!r} does not exist")
     data = _open(path)
+    for old, new in _OLD_NAMES.items():
+        if old in data and new not in data:
+            data[new] = data.pop(old)
     if "format" not in data:
         raise CheckpointError(f"not a polydem checkpoint (it has no 'format' entry); {_FIX_OTHER}", path)
     fmt = _scalar(path, data, "format", "str")
@@ -515,14 +529,17 @@ def read_checkpoint(path) -> Checkpoint:
     for name in ("body_v", "body_w"):
         arrays[name] = _real(path, data, name, (n, 3), body)
     arrays["body_dissipated"] = _real(path, data, "body_dissipated", (n,), body)
-    plane_turn = arrays["plane_turn"] = _real(path, data, "plane_turn", (n, None), history)
-    xi = data["plane_xi"]
-    arrays["plane_xi"] = _real(path, data, "plane_xi", (1, 1, 3) if xi.shape[:2] == (1, 1) else (n, None, 3), history)
-    if arrays["plane_xi"].shape[:2] not in ((1, 1), plane_turn.shape):
-        raise _damaged(path, f"plane_xi has shape {xi.shape}, plane_turn {plane_turn.shape}: they do not fit")
+    wall_turn = arrays["wall_turn"] = _real(path, data, "wall_turn", (n, None), history)
+    xi = data["wall_xi"]
+    arrays["wall_xi"] = _real(path, data, "wall_xi", (1, 1, 3) if xi.shape[:2] == (1, 1) else (n, None, 3), history)
+    if arrays["wall_xi"].shape[:2] not in ((1, 1), wall_turn.shape):
+        raise _damaged(path, f"wall_xi has shape {xi.shape}, wall_turn {wall_turn.shape}: they do not fit")
     if "mesh_q" in data:
         # The poses of the mesh walls (only in checkpoints of scenes that have them).
         arrays["mesh_q"] = _real(path, data, "mesh_q", (None, 7), body)
+    if "motion_travel" in data:
+        # The ramps' and servos' (d, v, F) (only in checkpoints of scenes that have them).
+        arrays["motion_travel"] = _real(path, data, "motion_travel", (None, 3), np.float64)
     step_count = data["step_count"]
     if step_count.shape != (1,) or step_count.dtype.kind not in "iu" or int(step_count[0]) != steps:
         raise _damaged(path, f"step_count = {step_count.tolist()} does not match steps_done = {steps}")
@@ -620,11 +637,11 @@ def check_scene(ck, sim, fix="use the scene the checkpoint was written from") ->
         )
     arrays = ck.arrays
     state = sim.current_state
-    if arrays["plane_turn"].shape != tuple(state.plane_turn.shape) or (
-        arrays["plane_xi"].shape[:2] != tuple(state.plane_xi.shape)
+    if arrays["wall_turn"].shape != tuple(state.wall_turn.shape) or (
+        arrays["wall_xi"].shape[:2] != tuple(state.wall_xi.shape)
     ):
         raise CheckpointError(
-            f"wall contacts of shape {arrays['plane_turn'].shape} do not fit this scene's walls; {fix}", ck.path
+            f"wall contacts of shape {arrays['wall_turn'].shape} do not fit this scene's walls; {fix}", ck.path
         )
     meshes = sim.model.num_mesh_walls
     if meshes and arrays.get("mesh_q", np.zeros((0, 7))).shape != (meshes, 7):

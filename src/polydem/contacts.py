@@ -19,13 +19,21 @@ gets float32 copies of the centres and radii grown by the rounding of the cast
 (``kernels/broadphase.py`` ``launch_float32_inputs``), so no candidate pair is missed.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
 import warp as wp
 
 from polydem.kernels.broadphase import BroadPhase, launch_float32_inputs
 from polydem.kernels.forces import ContactSums
-from polydem.kernels.pairlist import launch_body_ranges, launch_remap_history, launch_remap_sums, launch_retire_sums
+from polydem.kernels.pairlist import launch_body_ranges, launch_carry_sums, launch_remap_history
 from polydem.kernels.precision import numpy_dtype
+from polydem.kernels.structs import filled, pairs_struct
+
+if TYPE_CHECKING:
+    from polydem.model import Model
 
 __all__ = ["ContactAverage", "Contacts", "PairHistory", "contact_sums"]
 
@@ -43,14 +51,14 @@ class PairHistory:
 
     FIELDS = ("key", "xi", "turn", "count")
 
-    def __init__(self, key, xi, turn, count):
+    def __init__(self, key: wp.array, xi: wp.array, turn: wp.array, count: wp.array) -> None:
         self.key = key
         self.xi = xi
         self.turn = turn
         self.count = count
 
     @classmethod
-    def zeros(cls, capacity, friction, device, scalar=wp.float32):
+    def zeros(cls, capacity: int, friction: bool, device: wp.DeviceLike, scalar: type = wp.float32) -> PairHistory:
         return cls(
             wp.zeros(capacity, dtype=wp.int64, device=device),
             wp.zeros(capacity if friction else 1, dtype=wp.types.vector(3, scalar), device=device),
@@ -59,7 +67,15 @@ class PairHistory:
         )
 
     @classmethod
-    def from_numpy(cls, key, xi, turn, friction, device, scalar=wp.float32):
+    def from_numpy(
+        cls,
+        key: np.ndarray,
+        xi: np.ndarray,
+        turn: np.ndarray,
+        friction: bool,
+        device: wp.DeviceLike,
+        scalar: type = wp.float32,
+    ) -> PairHistory:
         """The history of ``len(key)`` pairs from host arrays (``xi`` is ignored without ``friction``),
         in ``scalar``."""
         count = len(key)
@@ -78,14 +94,14 @@ class PairHistory:
             wp.array(np.array([count], dtype=np.int32), dtype=int, device=device),
         )
 
-    def copy(self):
+    def copy(self) -> PairHistory:
         return PairHistory(*(wp.clone(getattr(self, k)) for k in self.FIELDS))
 
-    def assign(self, other):
+    def assign(self, other: PairHistory) -> None:
         for k in self.FIELDS:
             wp.copy(getattr(self, k), getattr(other, k))
 
-    def same_shapes(self, other):
+    def same_shapes(self, other: PairHistory) -> bool:
         return all(getattr(self, k).shape == getattr(other, k).shape for k in self.FIELDS)
 
 
@@ -113,6 +129,8 @@ class Contacts:
         pair_by_b: (C,) int32 pair indices ordered by body B.
         body_pairs_a, body_pairs_b: (N,) ``wp.vec2i`` each body's range in the pairs ordered by
             A (``pair_key``) and by B (``pair_by_b``).
+        pairs: all of the above in the ``wp.struct`` the kernels take (:func:`polydem.kernels.structs.pairs_struct`),
+            built again with the buffers.
         previous: :class:`PairHistory` of the list before the last rebuild.
         average: the :class:`ContactAverage` whose pair sums follow the list (None: no interval).
         capacity: host int.
@@ -120,7 +138,14 @@ class Contacts:
             graph holds the old ones).
     """
 
-    def __init__(self, model, skin, body_box, capacity, radius_ref: float | None = None):
+    def __init__(
+        self,
+        model: Model,
+        skin: float,
+        body_box: tuple[np.ndarray, np.ndarray],
+        capacity: int,
+        radius_ref: float | None = None,
+    ) -> None:
         self.model = model
         self.device = model.device
         self.num_bodies = model.num_bodies
@@ -137,14 +162,14 @@ class Contacts:
         )
         self.capacity = 0
         self.generation = 0
-        self.average = None
+        self.average: ContactAverage | None = None
         # Float64 poses reach the broad phase through float32 copies (module docstring).
         self._cast = model.scalar != wp.float32
         if self._cast:
             self._q32 = wp.zeros(self.num_bodies, dtype=wp.transform, device=self.device)
             self._radius32 = wp.zeros(self.num_bodies, dtype=float, device=self.device)
 
-    def _inputs(self, body_q):
+    def _inputs(self, body_q: wp.array) -> tuple[wp.array, wp.array]:
         """The poses and radii for the broad phase: float32 copies when the poses are float64."""
         m = self.model
         if not self._cast:
@@ -157,28 +182,28 @@ class Contacts:
     # -- the pair list (the broad phase replaces its arrays when it grows) ------------------------
 
     @property
-    def pair_a(self):
+    def pair_a(self) -> wp.array:
         return self.broadphase.pair_a
 
     @property
-    def pair_b(self):
+    def pair_b(self) -> wp.array:
         return self.broadphase.pair_b
 
     @property
-    def pair_key(self):
+    def pair_key(self) -> wp.array:
         return self.broadphase.pair_key
 
     @property
-    def pair_count(self):
+    def pair_count(self) -> wp.array:
         return self.broadphase.pair_count
 
-    def count(self):
+    def count(self) -> int:
         """Number of candidate pairs (synchronises)."""
         return int(self.broadphase.pair_count.numpy()[0])
 
     # -- buffers -----------------------------------------------------------------------------
 
-    def _allocate(self, capacity):
+    def _allocate(self, capacity: int) -> None:
         dev = self.device
         self.capacity = capacity
         self.generation += 1
@@ -197,10 +222,25 @@ class Contacts:
         self.pair_by_b = self._by_b[:capacity]
         self.body_pairs_a = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
         self.body_pairs_b = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
+        bp = self.broadphase
+        self.pairs = filled(
+            pairs_struct(scalar),
+            a=bp.pair_a,
+            b=bp.pair_b,
+            count=bp.pair_count,
+            xi=self.pair_xi,
+            turn=self.pair_turn,
+            force=self.pair_force,
+            torque_a=self.pair_torque_a,
+            dissipated=self.pair_dissipated,
+            by_b=self.pair_by_b,
+            ranges_a=self.body_pairs_a,
+            ranges_b=self.body_pairs_b,
+        )
         if self.average is not None:
             self.average.resize(capacity)
 
-    def _keep_previous(self):
+    def _keep_previous(self) -> None:
         bp = self.broadphase
         prev = self.previous
         wp.copy(prev.key, bp.pair_key, count=self.capacity)
@@ -225,7 +265,7 @@ class Contacts:
             new_turn=turn,
         )
 
-    def _after_rebuild(self):
+    def _after_rebuild(self) -> None:
         """Turning volumes and friction springs carried over by pair key; per-body ranges for the gather."""
         bp = self.broadphase
         prev = self.previous
@@ -248,7 +288,7 @@ class Contacts:
 
     # -- rebuilds (the broad phase of a step) -------------------------------------------------
 
-    def build(self, body_q, keep_history=True):
+    def build(self, body_q: wp.array, keep_history: bool = True) -> None:
         """Find the candidate pairs at the poses ``body_q`` on the host (grows the buffers as needed).
 
         With ``keep_history`` every pair that was already in the list keeps its history.
@@ -273,7 +313,7 @@ class Contacts:
                 wp.copy(prev.count, old.count)
         self._after_rebuild()
 
-    def rebuild_on_device(self, body_q):
+    def rebuild_on_device(self, body_q: wp.array) -> None:
         """Rebuild without host synchronisation or allocation (a conditional node of a CUDA graph).
 
         When the pairs overflow the capacity, :meth:`host_build_needed` turns true: the steps since
@@ -284,27 +324,27 @@ class Contacts:
         self.broadphase.rebuild_on_device(*self._inputs(body_q), m.body_flags)
         self._after_rebuild()
 
-    def update(self, body_q):
+    def update(self, body_q: wp.array) -> None:
         """Host: :meth:`build` when some body may have left its skin since the last build."""
         m = self.model
         flag = self.broadphase.needs_rebuild(*self._inputs(body_q), m.body_flags)
         if int(flag.numpy()[0]):
             self.build(body_q)
 
-    def update_on_device(self, body_q):
+    def update_on_device(self, body_q: wp.array) -> None:
         """:meth:`update` without host synchronisation: the test and a conditional :meth:`rebuild_on_device`."""
         bp = self.broadphase
         m = self.model
         bp.needs_rebuild(*self._inputs(body_q), m.body_flags)
         wp.capture_if(bp.rebuild_flag, on_true=self.rebuild_on_device, body_q=body_q)
 
-    def host_build_needed(self):
+    def host_build_needed(self) -> bool:
         """Host: True when a device rebuild overflowed or saw changed flags since the last host build."""
         return self.broadphase.check_host_build_needed()
 
     # -- history: redo, snapshots, checkpoints ------------------------------------------------
 
-    def history(self, into=None):
+    def history(self, into: PairHistory | None = None) -> PairHistory:
         """A copy of the current pairs' history; into ``into`` (a :class:`PairHistory`) when its shapes fit."""
         bp = self.broadphase
         live = PairHistory(bp.pair_key, self.pair_xi, self.pair_turn, bp.pair_count)
@@ -313,7 +353,7 @@ class Contacts:
         into.assign(live)
         return into
 
-    def restore(self, history, body_q, pair_sums=None):
+    def restore(self, history: PairHistory, body_q: wp.array, pair_sums: ContactSums | None = None) -> None:
         """Find the pairs at ``body_q`` afresh (host build) and give each pair of ``history`` its history back.
 
         ``pair_sums``: the sums of the averaging interval (:class:`ContactAverage`) of ``history``'s pairs
@@ -335,7 +375,7 @@ class Contacts:
             self.average.load_previous(pair_sums, n_old)
         self._after_rebuild()
 
-    def history_numpy(self):
+    def history_numpy(self) -> dict[str, np.ndarray]:
         """Host copies of the current pairs' history: ``pair_key`` (C,) int64, ``pair_xi`` (C, 3) [m]
         ((0, 3) without friction), ``pair_turn`` (C,) [m^3]."""
         count = self.count()
@@ -346,7 +386,7 @@ class Contacts:
         }
 
 
-def contact_sums(size, device):
+def contact_sums(size: int, device: wp.DeviceLike) -> ContactSums:
     """A :class:`~polydem.kernels.forces.ContactSums` of ``size`` zero entries."""
     s = ContactSums()
     s.force = wp.zeros(size, dtype=wp.vec3d, device=device)
@@ -360,7 +400,7 @@ def contact_sums(size, device):
 _SUM_FIELDS = ("force", "tangential", "normal", "point", "steps")
 
 
-def _copy_sums(dst, src, count=None):
+def _copy_sums(dst: ContactSums, src: ContactSums, count: int | None = None) -> None:
     for k in _SUM_FIELDS:
         if count is None:
             wp.copy(getattr(dst, k), getattr(src, k))
@@ -368,19 +408,19 @@ def _copy_sums(dst, src, count=None):
             wp.copy(getattr(dst, k), getattr(src, k), count=count)
 
 
-def _zero_sums(s):
+def _zero_sums(s: ContactSums) -> None:
     for k in _SUM_FIELDS:
         getattr(s, k).zero_()
 
 
-def _sums_numpy(s, count):
+def _sums_numpy(s: ContactSums, count: int) -> dict[str, np.ndarray]:
     return {k: getattr(s, k).numpy()[:count] for k in _SUM_FIELDS}
 
 
 class AverageSnapshot:
     """A copy of a :class:`ContactAverage` at one step (see :meth:`ContactAverage.snapshot`)."""
 
-    def __init__(self, interval, pairs, walls, retired_count):
+    def __init__(self, interval: int, pairs: ContactSums, walls: ContactSums, retired_count: wp.array) -> None:
         self.interval = interval
         self.pairs = pairs
         self.walls = walls
@@ -409,7 +449,7 @@ class ContactAverage:
     generation: host int, counts the times the arrays were replaced (a captured graph holds them).
     """
 
-    def __init__(self, contacts, num_walls, interval, start_step, start_time):
+    def __init__(self, contacts: Contacts, num_walls: int, interval: int, start_step: int, start_time: float) -> None:
         self.device = contacts.device
         self.contacts = contacts
         self.num_bodies = contacts.num_bodies
@@ -426,12 +466,12 @@ class ContactAverage:
         self.reset(interval, start_step, start_time)
         contacts.average = self
 
-    def _allocate_retired(self, size):
+    def _allocate_retired(self, size: int) -> None:
         self.retired_key = wp.zeros(size, dtype=wp.int64, device=self.device)
         self.retired = contact_sums(size, self.device)
         self.generation += 1
 
-    def reset(self, interval, start_step, start_time):
+    def reset(self, interval: int, start_step: int, start_time: float) -> None:
         """Start the interval ``interval`` at ``start_step`` / ``start_time`` [s] with every sum zero."""
         self.interval = interval
         self.start_step = int(start_step)
@@ -442,14 +482,14 @@ class ContactAverage:
         self.retired_count.zero_()
         self.overflow.zero_()
 
-    def detach(self):
+    def detach(self) -> None:
         """Stop following the pair list."""
         if self.contacts.average is self:
             self.contacts.average = None
 
     # -- following the pair list (called by Contacts) ------------------------------------------
 
-    def resize(self, capacity):
+    def resize(self, capacity: int) -> None:
         """New pair arrays of ``capacity``; the previous list's sums are carried into the new ones."""
         old = self.previous if self.capacity else None
         self.pairs = contact_sums(capacity, self.device)
@@ -459,44 +499,37 @@ class ContactAverage:
         self.capacity = capacity
         self.generation += 1
 
-    def keep_previous(self):
+    def keep_previous(self) -> None:
         _copy_sums(self.previous, self.pairs)
 
-    def load_previous(self, pair_sums, count):
+    def load_previous(self, pair_sums: ContactSums | None, count: int) -> None:
         """The previous list's sums from a snapshot's (``pair_sums``; None: zero), ``count`` pairs."""
         if pair_sums is None:
             _zero_sums(self.previous)
         else:
             _copy_sums(self.previous, pair_sums, count=min(count, len(pair_sums.steps), self.capacity))
 
-    def after_rebuild(self, old_key, old_count, new_key, new_count):
-        launch_retire_sums(
-            old_key=old_key,
-            old_count=old_count,
-            old_sums=self.previous,
-            new_key=new_key,
-            new_count=new_count,
-            retired_key=self.retired_key,
-            retired=self.retired,
-            retired_count=self.retired_count,
-            overflow=self.overflow,
-        )
-        launch_remap_sums(
+    def after_rebuild(self, old_key: wp.array, old_count: wp.array, new_key: wp.array, new_count: wp.array) -> None:
+        launch_carry_sums(
             old_key=old_key,
             old_count=old_count,
             old_sums=self.previous,
             new_key=new_key,
             new_count=new_count,
             new_sums=self.pairs,
+            retired_key=self.retired_key,
+            retired=self.retired,
+            retired_count=self.retired_count,
+            overflow=self.overflow,
         )
 
     # -- redo and snapshots ----------------------------------------------------------------------
 
-    def overflowed(self):
+    def overflowed(self) -> bool:
         """Host: whether the retired list ran out of room (the steps since must be redone after :meth:`grow`)."""
         return bool(int(self.overflow.numpy()[0]))
 
-    def grow(self):
+    def grow(self) -> None:
         """Double the retired list (keeping its entries); new arrays, so recapture a graph."""
         old_key, old = self.retired_key, self.retired
         self._allocate_retired(2 * len(old_key))
@@ -504,7 +537,7 @@ class ContactAverage:
         _copy_sums(self.retired, old, count=len(old_key))
         self.overflow.zero_()
 
-    def snapshot(self, into=None):
+    def snapshot(self, into: AverageSnapshot | None = None) -> AverageSnapshot:
         """An :class:`AverageSnapshot` (device copies of the pairs' and walls' sums and of the number
         of retired pairs: the retired entries before it stay as they are); reuses ``into`` where it fits."""
         if into is not None and len(into.pairs.steps) == self.capacity:
@@ -519,7 +552,7 @@ class ContactAverage:
         _copy_sums(walls, self.walls)
         return AverageSnapshot(self.interval, pairs, walls, wp.clone(self.retired_count))
 
-    def restore(self, snap):
+    def restore(self, snap: AverageSnapshot) -> None:
         """The walls' sums and the retired count of ``snap`` (the pairs' go through :meth:`load_previous`)."""
         _copy_sums(self.walls, snap.walls)
         wp.copy(self.retired_count, snap.retired_count)
@@ -527,7 +560,7 @@ class ContactAverage:
 
     # -- reading -----------------------------------------------------------------------------------
 
-    def numpy(self, pair_key, pair_count):
+    def numpy(self, pair_key: wp.array, pair_count: wp.array) -> dict[str, np.ndarray]:
         """Host float64 sums per contact that was in contact in the interval: pairs (the current list's
         and the retired ones, added up by key in the order they were summed), then wall contacts.
 

@@ -60,6 +60,7 @@ import numpy as np
 
 from polydem.compound import convex_parts, is_compound
 from polydem.quaternions import quat_to_matrix
+from polydem.scene.bodies import BodyKind
 
 __all__ = [
     "ALIGN_ANGLE",
@@ -202,7 +203,7 @@ class Grains:
             position, orientation = scene.body_position, scene.body_orientation
         else:
             position, orientation = state["body_position"], state["body_orientation"]
-        free = np.asarray(scene.body_kind) == 0
+        free = np.asarray(scene.body_kind) == BodyKind.FREE
         counted = free if bodies is None else _mask("bodies", bodies, scene.num_bodies)
         planes = scene.planes
         normal = np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3)
@@ -942,7 +943,7 @@ def classify_contacts(
             :data:`VERTEX_RATIO`, :data:`ALIGN_ANGLE` [degrees]).
         device: Warp device of the pair geometry; default the simulation's (else Warp's default).
     """
-    from polydem.contact import overlap
+    from polydem.batch import overlap
 
     if method not in ("overlap", "features"):
         raise ValueError(f"method must be 'overlap' or 'features', got {method!r}")

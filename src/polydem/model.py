@@ -11,7 +11,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
-from polydem.kernels.precision import numpy_dtype, scalars
+from polydem.kernels.motion import Motions
+from polydem.kernels.precision import Precision, numpy_dtype, scalars
+from polydem.kernels.structs import (
+    body_model_struct,
+    filled,
+    materials_struct,
+    mesh_walls_struct,
+    planes_struct,
+)
+from polydem.quaternions import quat_to_matrix
 from polydem.run_settings import RunSettings, run_settings
 from polydem.scene import (  # noqa: F401  (re-exported: the time step is computed host-side in polydem.scene)
     MAX_DT_FRACTION,
@@ -20,11 +29,14 @@ from polydem.scene import (  # noqa: F401  (re-exported: the time step is comput
     SceneError,
     reference_stiffness,
 )
+from polydem.scene.bodies import BodyKind
+from polydem.scene.motions import KINDS
 from polydem.shapeset import ShapeSet
 from polydem.state import State
 
 if TYPE_CHECKING:
     from polydem.scene import Scene
+    from polydem.shapes import ConvexShape
 
 
 class Model:
@@ -49,12 +61,13 @@ class Model:
     Attributes:
         settings: the :class:`~polydem.run_settings.RunSettings` (time step, friction springs, skin, ...).
         body_index: (N,) int64 index in the scene of each body of the model.
-        precision: "float32", "mixed" or "float64"; scalar, contact_scalar: the Warp scalars S, C.
+        precision: the :class:`~polydem.kernels.precision.Precision`; scalar, contact_scalar: the Warp
+            scalars S, C.
         shapes: :class:`~polydem.shapeset.ShapeSet` of the scene's shapes (``shape_*``, ``face_*``).
         body_shape: (N,) int32 shape index.
         body_material: (N,) int32 material index.
-        body_flags: (N,) int32: 0 free, 1 fixed, 2 kinematic; body_flags_np, body_shape_np: the flags and
-            shape indices on the host.
+        body_flags: (N,) int32 :class:`~polydem.scene.bodies.BodyKind` (0 free, 1 fixed, 2 kinematic);
+            body_flags_np, body_shape_np: the flags and shape indices on the host.
         body_mass: (N,) mass [kg] (numpy, host; float32 in "float32", else float64).
         body_inv_mass: (N,) S inverse mass [1/kg], 0 for fixed and kinematic bodies.
         body_inertia: (N,) S vec3 principal moments of inertia [kg m^2].
@@ -80,6 +93,10 @@ class Model:
             mesh_w: (M,) S vec3 angular velocity [rad/s]; mesh_q0: (M, 7) initial poses (pivot and
             identity rotation).
         grain_shapes: the ShapeSet of the scene's shapes alone (``shapes`` without the cells).
+        bodies, materials, planes, meshes: the ``body_*`` arrays (with ``has_pivot``), the material table
+            (with ``num_materials`` and ``law_m``), the ``plane_*`` arrays and the mesh walls' arrays (with
+            ``num_planes``, the first mesh column; None without mesh walls) in the ``wp.struct`` the kernels
+            take (:mod:`polydem.kernels.structs`), built once here.
         gravity: (3,) [m/s^2]; dt: time step [s]; dt_recommended, dt_limit: the recommended and the
             largest accurate step [s] (from ``settings``).
     """
@@ -87,12 +104,12 @@ class Model:
     def __init__(
         self,
         scene: Scene,
-        device=None,
+        device: wp.DeviceLike = None,
         validate: bool = True,
         *,
         settings: RunSettings | None = None,
         bodies: np.ndarray | None = None,
-    ):
+    ) -> None:
         if validate:
             scene.validate()
         self.settings = run_settings(scene) if settings is None else settings
@@ -100,7 +117,7 @@ class Model:
         dev = self.device
         names = scene.shape_names
         shape_list = [scene.shapes[n] for n in names]
-        self.precision = scene.precision
+        self.precision = Precision(scene.precision)
         self.scalar, self.contact_scalar = scalars(self.precision)
         s_np, c_np = numpy_dtype(self.scalar), numpy_dtype(self.contact_scalar)
         vec3s = wp.types.vector(3, self.scalar)
@@ -134,7 +151,7 @@ class Model:
         mass = np.asarray(density[body_material] * volume[body_shape], dtype=np.float64)
         inertia = np.asarray(density[body_material][:, None] * shape_inertia[body_shape], dtype=np.float64)
         radius = np.array([s.radius for s in shape_list])[body_shape]
-        free = kind == 0
+        free = kind == BodyKind.FREE
         self.body_mass = mass.astype(s_np)
         self.body_flags_np = kind
         self.body_shape_np = body_shape
@@ -152,7 +169,7 @@ class Model:
         self.gravity = np.asarray(scene.gravity, dtype=np.float64)
         self.friction = bool(np.any(np.asarray(table["friction"]) > 0.0))
 
-        def arr(a, dtype):
+        def arr(a: np.ndarray, dtype: type) -> wp.array:
             return wp.array(a, dtype=dtype, device=dev)
 
         self.body_shape = arr(body_shape, int)
@@ -169,6 +186,26 @@ class Model:
         self.material_e = arr(np.asarray(table["restitution"], dtype=c_np).ravel(), c)
         self.material_mu = arr(np.asarray(table["friction"], dtype=c_np).ravel(), c)
         self.material_kt = arr(kt.astype(c_np).ravel(), c)
+        self.materials = filled(
+            materials_struct(c),
+            count=self.num_materials,
+            law_m=self.law_m,
+            k=self.material_k,
+            e=self.material_e,
+            mu=self.material_mu,
+            kt=self.material_kt,
+        )
+        self.bodies = filled(
+            body_model_struct(self.scalar),
+            shape=self.body_shape,
+            material=self.body_material,
+            flags=self.body_flags,
+            inv_mass=self.body_inv_mass,
+            inertia=self.body_inertia,
+            radius=self.body_radius,
+            pivot=self.body_pivot,
+            has_pivot=int(self.body_pivot is not None),
+        )
 
         planes = scene.planes
         mat_index = {name: i for i, name in enumerate(scene.material_names)}
@@ -178,6 +215,8 @@ class Model:
         self.plane_normal = arr(normals.astype(s_np), vec3s)
         self.plane_offset = arr(offsets.astype(s_np), self.scalar)
         self.plane_material = arr(np.array([mat_index[p.material] for p in planes], dtype=np.int32), int)
+        plane_arrays = {"normal": self.plane_normal, "offset": self.plane_offset, "material": self.plane_material}
+        self.planes = filled(planes_struct(self.scalar), **plane_arrays)
         # The initial state's rows (state()): views of the scene's arrays, or the copies of the slice.
         self._initial = {k: rows[k] for k in ("position", "orientation", "velocity", "angular_velocity")}
         self._motions(scene, dev)
@@ -195,13 +234,14 @@ class Model:
         if n == 0:
             raise SceneError("the scene has no bodies", key="bodies")
 
-    def _mesh_walls(self, scene, shape_list, dev, s_np):
+    def _mesh_walls(self, scene: Scene, shape_list: list[ConvexShape], dev: wp.Device, s_np: type) -> None:
         walls = scene.mesh_walls
         self.num_mesh_walls = len(walls)
         self.num_walls = len(scene.planes) + len(walls)
         self.mesh_cells = []
         vec3s = wp.types.vector(3, self.scalar)
         self.mesh_moves = False
+        self.meshes = None
         if not walls:
             self.mesh_bvhs = []
             return
@@ -219,7 +259,7 @@ class Model:
             lowers.append(mc.lower - 1e-6 * size)
             uppers.append(mc.upper + 1e-6 * size)
 
-        def arr(a, dtype):
+        def arr(a: np.ndarray, dtype: type) -> wp.array:
             return wp.array(a, dtype=dtype, device=dev)
 
         self.mesh_bvhs = [
@@ -235,42 +275,114 @@ class Model:
         self.mesh_v = arr(np.array([w.velocity for w in walls], dtype=s_np), vec3s)
         self.mesh_w = arr(np.array([w.angular_velocity for w in walls], dtype=s_np), vec3s)
         self.mesh_moves = any(w.moving for w in walls)
+        self.meshes = filled(
+            mesh_walls_struct(self.scalar),
+            bvh=self.mesh_bvh,
+            cell_start=self.mesh_cell_start,
+            material=self.mesh_material,
+            v=self.mesh_v,
+            w=self.mesh_w,
+            cell_shape=self.cell_shape,
+            cell_center=self.cell_center,
+            cell_front=self.cell_front,
+            first_column=len(scene.planes),
+        )
         self.mesh_q0 = np.array([[*w.pivot, 0.0, 0.0, 0.0, 1.0] for w in walls], dtype=np.float64)
 
-    def _motions(self, scene, dev):
-        """The container motions (:mod:`polydem.scene.motions`, kernels/motion.py): per motion its axis,
-        amplitude [m], angular frequency [rad/s], start [s], period [s] and count; per body of the model the
-        index of the motion it follows (-1: none) and its position at rest [m], as the state's poses hold it."""
+    def _motions(self, scene: Scene, dev: wp.Device) -> None:
+        """The container motions (:mod:`polydem.scene.motions`, kernels/motion.py), in ``motions`` (a
+        :data:`~polydem.kernels.motion.Motions`, None without motions): per motion its axis, amplitude [m],
+        angular frequency [rad/s], start [s], period [s] and count; per body of the model the index of the
+        motion it follows (-1: none, also in ``body_motion``) and its position at rest [m], as the state's poses
+        hold it (``body_rest``)."""
         names = list(scene.motions)
+        self.motions = None
         which = {name: k for k, name in enumerate(names)}
         motion = np.array([which.get(scene.body_motion.get(int(i)), -1) for i in self.body_index], dtype=np.int32)
         self.has_motions = bool((motion >= 0).any())
+        self.motion_names = names
+        self.has_measured_motions = False
+        servo = any(scene.motions[name].kind == "servo" for name in scene.body_motion.values())
+        if servo and len(self.body_index) != scene.num_bodies:
+            # Refused by every rank alike, whether it holds the servo's wall or not.
+            raise SceneError(
+                "a servo motion needs the force of every grain on its wall in one process: run the scene undivided "
+                "(a decomposed run holds each rank's share of the grains)",
+                "motions",
+            )
         if not self.has_motions:
             return
         ms = [scene.motions[name] for name in names]
 
-        def f64(values):
+        def f64(values: list[float]) -> wp.array:
             return wp.array(np.array(values, dtype=np.float64), dtype=wp.float64, device=dev)
 
-        self.motion_arrays = (
-            wp.array(np.array([m.axis for m in ms], dtype=np.float64), dtype=wp.vec3d, device=dev),
-            f64([m.amplitude_in(scene.gravity) for m in ms]),
-            f64([m.omega for m in ms]),
-            f64([m.start for m in ms]),
-            f64([m.cycle_period() for m in ms]),
-            wp.array(np.array([m.count for m in ms], dtype=np.int32), dtype=int, device=dev),
-        )
         self.body_motion = wp.array(motion, dtype=int, device=dev)
         rest = np.asarray(self._initial["position"], dtype=np.float64)
         self.body_rest = wp.array(rest, dtype=wp.vec3d, device=dev)
+        self.motions = filled(
+            Motions,
+            axis=wp.array(np.array([m.axis for m in ms], dtype=np.float64), dtype=wp.vec3d, device=dev),
+            amplitude=f64([m.amplitude_in(scene.gravity) for m in ms]),
+            omega=f64([m.omega for m in ms]),
+            start=f64([m.start for m in ms]),
+            period=f64([m.cycle_period() for m in ms]),
+            count=wp.array(np.array([m.count for m in ms], dtype=np.int32), dtype=int, device=dev),
+            body_motion=self.body_motion,
+            body_rest=self.body_rest,
+        )
+        self._measured_motions(scene, ms, motion, dev)
 
-    def state(self):
+    def _measured_motions(self, scene: Scene, ms: list, motion: np.ndarray, dev: wp.Device) -> None:
+        """The ramps and servos (kernels/motion.py, ``launch_measure_motions``), in ``motions``: per motion its
+        kind, speed (a ramp's, a servo's largest) [m/s], duration [s], target force [N] and gain [m/(N s)]; the
+        driven bodies of each (``rows``, also in ``measured_rows``), in ``row_start`` ranges; ``motion_area``
+        (K,) host [m^2] each motion's bodies' area across its axis (what a servo's stress acts on, where it
+        gives none)."""
+        kinds = np.array([KINDS.index(m.kind) for m in ms], dtype=np.int32)
+        measured = np.flatnonzero(kinds[np.maximum(motion, 0)] * (motion >= 0))
+        self.motion_kind_np = kinds
+        self.has_measured_motions = bool(len(measured))
+        if not self.has_measured_motions:
+            return
+        # Rows ordered by motion, then body: the force sums run in this fixed order.
+        order = measured[np.lexsort((measured, motion[measured]))]
+        starts = np.searchsorted(motion[order], np.arange(len(ms) + 1)).astype(np.int32)
+        orientation = np.asarray(self._initial["orientation"], dtype=np.float64)
+        shapes = [scene.shapes[name] for name in scene.shape_names]
+        area = np.zeros(len(ms))
+        for k, m in enumerate(ms):
+            for i in order[starts[k] : starts[k + 1]]:
+                area[k] += _area_across(shapes[self.body_shape_np[i]], orientation[i], np.asarray(m.axis))
+        self.motion_area = area
+        target = [m.target_force(area[k]) if m.kind == "servo" else 0.0 for k, m in enumerate(ms)]
+        speed = [m.speed if m.kind == "ramp" else (m.max_speed if m.kind == "servo" else 0.0) for m in ms]
+
+        def f64(values: list[float]) -> wp.array:
+            return wp.array(np.array(values, dtype=np.float64), dtype=wp.float64, device=dev)
+
+        self.measured_rows = wp.array(order.astype(np.int32), dtype=int, device=dev)
+        measured = {
+            "kind": wp.array(kinds, dtype=int, device=dev),
+            "speed": f64(speed),
+            "duration": f64([m.ramp_duration() for m in ms]),
+            "target": f64(target),
+            "gain": f64([m.gain or 0.0 for m in ms]),
+            "rows": self.measured_rows,
+            "row_start": wp.array(starts, dtype=int, device=dev),
+        }
+        for name, value in measured.items():
+            setattr(self.motions, name, value)
+
+    def state(self) -> State:
         """The initial :class:`~polydem.state.State` of the model's bodies: their poses and velocities in the
         scene, no contact history."""
         initial = self._initial
         state = State(
             self.num_bodies, self.num_walls, self.friction, self.device, self.precision, num_meshes=self.num_mesh_walls
         )
+        if self.has_measured_motions:
+            state.motion_travel = wp.zeros(len(self.motion_names), dtype=wp.vec3d, device=self.device)
         s_np = numpy_dtype(self.scalar)
         state.body_q.assign(np.hstack([initial["position"], initial["orientation"]]).astype(s_np))
         state.body_v.assign(np.asarray(initial["velocity"], dtype=s_np))
@@ -278,3 +390,14 @@ class Model:
         if self.num_mesh_walls:
             state.mesh_q.assign(self.mesh_q0.astype(s_np))
         return state
+
+
+def _area_across(shape: ConvexShape, orientation: np.ndarray, axis: np.ndarray) -> float:
+    """The area [m^2] of a convex body's shadow along the unit ``axis`` (world), at ``orientation`` (xyzw, of
+    its principal frame): half the sum of |n . axis| A over its faces (0 for a shape without faces)."""
+    normals = getattr(shape, "face_normals", None)
+    if normals is None:
+        return 0.0
+    # R^T axis: the axis in the body frame, where the face normals are.
+    local = quat_to_matrix(orientation).T @ axis
+    return 0.5 * float(np.sum(np.abs(np.asarray(normals) @ local) * np.asarray(shape.face_areas)))

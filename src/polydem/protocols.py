@@ -6,6 +6,16 @@ experiments of Knight et al. (1995) and Philippe and Bideau (2002). :func:`tap` 
 and measures the exact packing fraction (:func:`polydem.measures.packing_fraction`) at the end of each
 relaxation, just before the next tap lifts the container, with the grains' kinetic energy at that time
 (a tap whose grains have not come to rest says so).
+
+Compression: a piston (a kinematic body) that follows a ramp (a set speed) or a servo (a set stress)
+motion presses the grains in a container. :func:`compress` steps the run and records, at a set interval,
+the piston's displacement, the force the grains push it back with and that force over its area, and the
+packing fraction: a stress-strain curve. Several servo walls (six around a sample: isotropic compression)
+are recorded together.
+
+Friction annealing: grains poured with low friction pack denser; :func:`anneal` fills (runs until
+settled) at ``mu_fill``, then gives the grains their final friction and lets them settle again
+(:meth:`polydem.Simulation.set_friction`).
 """
 
 from __future__ import annotations
@@ -15,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TapRecord", "tap"]
+__all__ = ["AnnealRecord", "CompressionRecord", "TapRecord", "anneal", "compress", "tap"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +67,8 @@ def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1) -
 
     scene = sim.scene
     m = scene.motion_named(motion, "motion")
+    if m.kind != "cycle":
+        raise ValueError(f"motion {motion!r} is a {m.kind}: taps are cycles (kind = 'cycle', the default)")
     if m.count < 1:
         raise ValueError(f"motion {motion!r} has no end (count = 0): taps need a count")
     period, cycle = m.cycle_period(), 1.0 / m.frequency
@@ -84,4 +96,173 @@ def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1) -
         v = np.linalg.norm(np.asarray(state["body_velocity"], dtype=np.float64)[free], axis=1)
         kinetic = float(sim.energy()["kinetic"])
         records.append(TapRecord(k, float(sim.time), measures.packing_fraction(grains, where), kinetic, float(v.max())))
+    return records
+
+
+@dataclass(frozen=True)
+class CompressionRecord:
+    """The state of a compression at one time.
+
+    Attributes:
+        time: simulated time [s].
+        displacement: how far the piston has moved along its axis since t = 0 [m].
+        velocity: its velocity along the axis [m/s].
+        force: the force the grains push it back with along -axis in the last step [N].
+        stress: ``force`` over the area (the servo's ``area``, else the piston's area across the axis) [Pa].
+        strain: ``displacement`` since the first record over the sample's height along the axis then [-].
+        packing_fraction: exact solid fraction of the measuring box [-].
+        kinetic: kinetic energy of the free grains [J].
+
+    With several motions (isotropic compression), ``displacement``, ``velocity``, ``force``, ``stress`` and
+    ``strain`` are (K,) arrays, one value per motion in the order given.
+    """
+
+    time: float
+    displacement: float | np.ndarray
+    velocity: float | np.ndarray
+    force: float | np.ndarray
+    stress: float | np.ndarray
+    strain: float | np.ndarray
+    packing_fraction: float
+    kinetic: float
+
+
+def _piston_motions(sim, motion) -> list[str]:
+    # Motion names, from names or driven body indices.
+    many = isinstance(motion, list | tuple)
+    names = []
+    for item in motion if many else [motion]:
+        if isinstance(item, int | np.integer):
+            name = sim.scene.body_motion.get(int(item))
+            if name is None:
+                raise ValueError(f"body {int(item)} follows no motion: give a piston driven by a ramp or a servo")
+            item = name
+        m = sim.scene.motion_named(item, "motion")
+        if m.kind == "cycle":
+            raise ValueError(f"motion {item!r} is a cycle (vibration, taps): a compression needs a ramp or a servo")
+        if item not in sim.scene.body_motion.values():
+            raise ValueError(f"motion {item!r} drives no body: give a kinematic body motion = {item!r}")
+        names.append(item)
+    return names
+
+
+def compress(sim, motion, duration: float, interval: float, box=None) -> list[CompressionRecord]:
+    """Run a compression for ``duration`` more seconds and record it every ``interval`` seconds.
+
+    Args:
+        sim: a :class:`polydem.Simulation` whose scene drives a piston by a ramp or servo motion.
+        motion: the motion's name, or the index of a body it drives; or a list of them (several walls).
+        duration: simulated time to run [s].
+        interval: time between records [s] (rounded to whole steps); a record is also taken at the start.
+        box: the :class:`polydem.measures.Box` of the packing fraction, or a function of the
+            :class:`polydem.measures.Grains` at each record that returns it; default the box around the
+            free grains (in a container closed by the piston: the sample).
+
+    Returns:
+        The :class:`CompressionRecord` at the start and after each interval.
+    """
+    from polydem import measures
+
+    names = _piston_motions(sim, motion)
+    duration, interval = float(duration), float(interval)
+    if not (math.isfinite(duration) and duration >= 0.0):
+        raise ValueError(f"duration must be a time >= 0 [s], got {duration!r}")
+    if not (math.isfinite(interval) and interval > 0.0):
+        raise ValueError(f"interval must be a time > 0 [s], got {interval!r}")
+    model = sim.model
+    rows = [model.motion_names.index(name) for name in names]
+    axes = np.array([sim.scene.motions[name].axis for name in names], dtype=np.float64)
+    area = np.array([sim.scene.motions[name].area or model.motion_area[k] for name, k in zip(names, rows, strict=True)])
+    every = max(1, round(interval / sim.dt))
+    end = sim.steps_done + max(0, round(duration / sim.dt))
+    records, height = [], None
+    while True:
+        grains = measures.Grains.from_simulation(sim)
+        around = measures.Box.around(grains)
+        where = around if box is None else (box(grains) if callable(box) else box)
+        travel = sim.current_state.motion_travel.numpy()[rows].astype(np.float64)
+        if height is None:
+            d0 = travel[:, 0].copy()
+            height = np.abs(axes) @ (around.upper - around.lower)
+        force = travel[:, 2]
+        values = {
+            "displacement": travel[:, 0],
+            "velocity": travel[:, 1],
+            "force": force,
+            "stress": np.divide(force, area, out=np.full_like(force, np.nan), where=area > 0.0),
+            "strain": (travel[:, 0] - d0) / height,
+        }
+        if len(names) == 1 and not isinstance(motion, list | tuple):
+            values = {k: float(v[0]) for k, v in values.items()}
+        kinetic = float(sim.energy()["kinetic"])
+        fraction = measures.packing_fraction(grains, where)
+        records.append(CompressionRecord(float(sim.time), **values, packing_fraction=fraction, kinetic=kinetic))
+        if sim.steps_done >= end:
+            return records
+        sim.step(min(every, end - sim.steps_done))
+
+
+@dataclass(frozen=True)
+class AnnealRecord:
+    """The packing at the end of one stage of :func:`anneal`.
+
+    Attributes:
+        stage: "fill" (at the reduced friction) or "final" (after the friction was restored).
+        friction: the friction coefficient of the stage [-].
+        time: simulated time at its end [s].
+        settled: whether the grains came to rest in the time allowed.
+        packing_fraction: exact solid fraction of the measuring box [-].
+        kinetic: kinetic energy of the free grains [J].
+    """
+
+    stage: str
+    friction: float
+    time: float
+    settled: bool
+    packing_fraction: float
+    kinetic: float
+
+
+def anneal(
+    sim, mu_fill: float, mu_final: float, fill_time: float, settle_time: float, *, material=None, box=None,
+    margin: float = 2.0, criterion=None,
+) -> list[AnnealRecord]:  # fmt: skip
+    """Fill at a reduced friction, then restore it: a denser packing than a fill at the final friction.
+
+    Sets the friction of ``material`` (default every material) to ``mu_fill``, runs until the grains
+    have settled (at most ``fill_time`` seconds; :meth:`polydem.Simulation.run_until_settled` with
+    ``criterion``), then sets ``mu_final`` and runs until they have settled again (at most
+    ``settle_time``; the kinetic energy compared with the energy released since the fill began). The
+    simulation must be built with friction where either value is > 0 (:meth:`polydem.Simulation.set_friction`).
+
+    Args:
+        box: as for :func:`tap`: a :class:`polydem.measures.Box`, or a function of the grains; default
+            the box around the free grains moved in by ``margin`` grain sizes.
+
+    Returns:
+        Two :class:`AnnealRecord`: the end of the fill and the end of the final settling.
+    """
+    from polydem import measures
+    from polydem.settle import SettleCheck
+
+    records = []
+    first = None
+    for stage, mu, limit in (("fill", mu_fill, fill_time), ("final", mu_final, settle_time)):
+        sim.set_friction(mu, material)
+        check = sim.settle_check(criterion)
+        if first is None:
+            first = check
+        else:
+            # A fresh hold, against the energy released since the fill began: the grains at rest release
+            # none after it, and the criterion compares the kinetic energy with the energy released.
+            check = SettleCheck(first.criterion, first.gravity_at_start, speed_limit=first.speed_limit)
+        result = sim.run_until_settled(limit, check=check)
+        grains = measures.Grains.from_simulation(sim)
+        if box is None:
+            where = measures.Box.around(grains).shrunk(margin * grains.grain_size())
+        else:
+            where = box(grains) if callable(box) else box
+        fraction = measures.packing_fraction(grains, where)
+        kinetic = float(sim.energy()["kinetic"])
+        records.append(AnnealRecord(stage, float(mu), float(sim.time), bool(result.settled), fraction, kinetic))
     return records

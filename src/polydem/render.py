@@ -29,6 +29,7 @@ from polydem.compound import expand_bodies
 from polydem.kernels.raycast import launch_raycast
 from polydem.picture_memory import PictureSizeError, check_picture_size
 from polydem.quaternions import quat_to_matrix
+from polydem.scene.bodies import BodyKind
 from polydem.shapeset import ShapeSet
 
 __all__ = [
@@ -648,7 +649,7 @@ def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool 
     if "up" not in kw and np.linalg.norm(g) > 0.0:
         kw["up"] = -g / np.linalg.norm(g)
     body_shape = np.asarray(scene.body_shape)
-    container = np.asarray(sim.model.body_flags_np) != 0
+    container = np.asarray(sim.model.body_flags_np) != BodyKind.FREE
     if "body_colors" not in kw and "shape_colors" not in kw:
         num_shapes = len(scene.shape_names)
         colors = _colors(body_shape, num_shapes, None, None)

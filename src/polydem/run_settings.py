@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from polydem.scene import KIND_FREE
+from polydem.scene import BodyKind
 
 if TYPE_CHECKING:
     from polydem.scene import Scene
@@ -46,6 +46,8 @@ class RunSettings:
             smallest float32 bounding radius of a free body (of any body where none is free).
         mesh_wall_thickness: (W,) depth of each mesh wall's solid [m]: its ``thickness``, else the
             largest bounding diameter of a free shape.
+        radius_min: the smallest bounding radius of a free body [m], the grain size of the settling
+            criterion's speed limit (:func:`polydem.settle.grain_radius`); None where no body is free.
         radius_ref: the smallest positive float32 bounding radius of a free body [m], the unit of the
             broad phase's size classes; None where no free body has one (the broad phase then takes
             the smallest of its own bodies).
@@ -62,6 +64,7 @@ class RunSettings:
     tangential_stiffness: np.ndarray
     skin: float
     mesh_wall_thickness: tuple[float, ...]
+    radius_min: float | None
     radius_ref: float | None
     radius_max: float
     tunnel: TunnelLimits
@@ -83,7 +86,7 @@ def run_settings(scene: Scene, skin: float | None = None) -> RunSettings:
     arrays = scene.body_arrays()
     shape_radius = np.array([scene.shapes[name].radius for name in scene.shape_names], dtype=np.float64)
     radius = shape_radius[arrays["shape"]]
-    free = arrays["kind"] == KIND_FREE
+    free = arrays["kind"] == BodyKind.FREE
     pool = radius[free] if free.any() else radius
     # float32, as the broad phase holds the radii: the undivided run has always taken the skin so.
     r32 = radius.astype(np.float32)
@@ -102,6 +105,7 @@ def run_settings(scene: Scene, skin: float | None = None) -> RunSettings:
         tangential_stiffness=kt,
         skin=skin,
         mesh_wall_thickness=tuple(float(scene.mesh_wall_thickness(w)) for w in scene.mesh_walls),
+        radius_min=float(radius[free].min()) if free.any() else None,
         radius_ref=float(r32[positive].min()) if positive.any() else None,
         radius_max=float(pool.max()),
         tunnel=scene.tunnelling_limits(arrays, ts.dt),

@@ -9,7 +9,8 @@ held at every check for ``hold`` seconds of simulated time. The checks come ever
 at the steps of the unbroken one.
 
 The speed limit is ``max_speed`` where given, else ``speed_fraction * sqrt(|g| r_min)``, r_min the
-smallest bounding radius of a free body (:func:`grain_radius`). The kinetic part alone is a sum
+smallest bounding radius of a free body (:func:`grain_radius`, decided with the run's other settings
+by :func:`polydem.run_settings.run_settings`). The kinetic part alone is a sum
 over the pile, so one grain in N may move sqrt(N) times faster than the mean it allows: a pile of
 27 cubes of 1 cm passed it with a grain at 3.5 cm/s and, in the next steps, a grain's net force at
 18% of its weight (a wall's push swung by 30% on an older main). The speed limit takes its scale
@@ -31,8 +32,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:
+    from polydem.run_settings import RunSettings
 
 __all__ = ["SPEED_FRACTION", "SettleCheck", "SettleCriterion", "SettleResult", "grain_radius"]
 
@@ -40,17 +43,16 @@ __all__ = ["SPEED_FRACTION", "SettleCheck", "SettleCriterion", "SettleResult", "
 SPEED_FRACTION = 3e-4
 
 
-def grain_radius(scene) -> float:
-    """The smallest bounding radius of a free body of ``scene`` [m] (the size in the default speed limit).
+def grain_radius(settings: RunSettings) -> float:
+    """The smallest bounding radius of a free body [m] (the size in the default speed limit), of the
+    scene whose :class:`~polydem.run_settings.RunSettings` are ``settings``.
 
     Raises:
         ValueError: the scene has no free bodies.
     """
-    kind = np.asarray(scene.body_kind)
-    if not np.any(kind == 0):
+    if settings.radius_min is None:
         raise ValueError("the scene has no free bodies: there is nothing to settle")
-    radius = np.array([scene.shapes[name].radius for name in scene.shape_names], dtype=np.float64)
-    return float(radius[np.asarray(scene.body_shape)[kind == 0]].min())
+    return settings.radius_min
 
 
 def _number(value, name, *, positive=False, nonneg=False, below=None):
@@ -121,11 +123,18 @@ class SettleCriterion:
         g = math.sqrt(sum(float(c) ** 2 for c in gravity))
         return self.speed_fraction * math.sqrt(g * float(radius))
 
-    def speed_limit_of(self, scene) -> float | None:
-        """:meth:`speed_limit` for the gravity and the free bodies of ``scene`` (a polydem.Scene)."""
+    def speed_limit_of(self, scene, settings: RunSettings | None = None) -> float | None:
+        """:meth:`speed_limit` for the gravity and the free bodies of ``scene`` (a polydem.Scene), whose
+        ``settings`` (a :class:`~polydem.run_settings.RunSettings`; default: decided from ``scene``) give
+        the grain size."""
         if not self.scaled_speed:
             return self.max_speed
-        return self.speed_limit(scene.gravity, grain_radius(scene))
+        self.check_gravity(scene.gravity)
+        if settings is None:
+            from polydem.run_settings import run_settings  # it imports the scene package, which imports this
+
+            settings = run_settings(scene)
+        return self.speed_limit(scene.gravity, grain_radius(settings))
 
     def to_dict(self) -> dict:
         """The criterion as a table (None for a part left unchecked)."""

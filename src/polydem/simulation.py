@@ -29,16 +29,19 @@ applied. An average of the contact forces over an interval (:meth:`Simulation.st
 is summed on the device by the steps themselves (:class:`~polydem.contacts.ContactAverage`).
 """
 
+from __future__ import annotations
+
 import math
 import time as _time
 import warnings
 from collections.abc import Callable
 from types import SimpleNamespace
+from typing import TYPE_CHECKING, Literal, NoReturn
 
 import numpy as np
 import warp as wp
 
-from polydem.contacts import ContactAverage, Contacts, PairHistory, contact_sums
+from polydem.contacts import AverageSnapshot, ContactAverage, Contacts, PairHistory, contact_sums
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 from polydem.kernels.forces import (
     PAIR_MAX_REGISTERS,
@@ -53,18 +56,24 @@ from polydem.kernels.forces import (
     make_contact_kernels,
 )
 from polydem.kernels.integrate import (
-    integrate_bodies,
     kinetic_energy,
     launch_check_state,
     launch_count_step,
+    launch_integrate,
     launch_settle_measures,
 )
 from polydem.kernels.meshwall import MeshWallState, launch_advance_meshes, launch_mesh_contacts, make_mesh_kernels
-from polydem.kernels.motion import launch_drive_bodies
+from polydem.kernels.motion import LANES, launch_drive_bodies, launch_measure_motions
+from polydem.kernels.precision import numpy_dtype
+from polydem.kernels.structs import bodies_struct, filled, pairs_struct, wall_history_struct
 from polydem.model import Model
 from polydem.run_settings import RunSettings, run_settings
+from polydem.scene.bodies import BodyKind
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
 from polydem.state import State
+
+if TYPE_CHECKING:
+    from polydem.scene import Scene
 
 __all__ = ["Simulation", "SimulationError", "SimulationWarning", "Snapshot", "StepInputs", "Stepper"]
 
@@ -109,7 +118,9 @@ class Stepper:
             force to, or None.
     """
 
-    def __init__(self, model, device_rebuild=False, pair_max_registers=PAIR_MAX_REGISTERS):
+    def __init__(
+        self, model: Model, device_rebuild: bool = False, pair_max_registers: int | None = PAIR_MAX_REGISTERS
+    ) -> None:
         self.model = model
         self.device = model.device
         self.device_rebuild = bool(device_rebuild)
@@ -123,23 +134,26 @@ class Stepper:
         self.body_peak_speed = wp.zeros(n, dtype=float, device=self.device)
         self.too_fast = wp.zeros(1, dtype=int, device=self.device)
         self.pair_max_registers = pair_max_registers
+        # The partial force sums of the ramps' and servos' bodies (kernels/motion.py), made before any capture.
+        rows = len(model.measured_rows) if model.has_measured_motions else 0
+        self._motion_parts = wp.zeros((max(rows, 1), LANES), dtype=wp.vec3d, device=self.device)
         self._kernels()
-        self._diag = None
-        self._diag_generation = None
+        self._diag: ContactOutputs | None = None
+        self._diag_generation: int | None = None
         # What the kernels take where they write nothing: made here, not on the first (captured) step.
         self._no_outputs = ContactOutputs.zeros(1, 1, 1, model.precision, self.device)
         self._no_sums = contact_sums(1, self.device)
-        self.keep_inputs = None
-        self.average = None
-        self._report = None  # the outputs and scratch arrays of report()
-        self._report_generation = None
-        self._history_on = None  # the pair history of history_on()
+        self.keep_inputs: StepInputs | None = None
+        self.average: ContactAverage | None = None
+        self._report: tuple[ContactOutputs, dict[str, wp.array]] | None = None  # the outputs and scratch arrays
+        self._report_generation: int | None = None
+        self._history_on: tuple[int, wp.array, wp.array] | None = None  # the pair history of history_on()
 
-    def _kernels(self):
+    def _kernels(self) -> None:
         self.kernels = self._contact_kernels()
         self.mesh_kernels = self._mesh_kernels(False)
 
-    def _contact_kernels(self, diagnostics=False, report=False):
+    def _contact_kernels(self, diagnostics: bool = False, report: bool = False) -> ContactKernels:
         """The pair and gather kernels of the model at the current polygon capacity: the step's, the
         diagnostics variant or the report variant."""
         m = self.model
@@ -155,56 +169,46 @@ class Stepper:
             report=report,
         )
 
-    def _mesh_kernels(self, diagnostics, report=False):
-        m = self.model
-        if not m.num_mesh_walls:
+    def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> tuple[wp.Kernel, wp.Kernel] | None:
+        if not self.model.num_mesh_walls:
             return None
-        return make_mesh_kernels(
-            m.law,
-            m.friction,
-            self.poly_capacity,
-            m.shapes.max_faces,
-            diagnostics=diagnostics,
-            precision=m.precision,
-            compound=m.shapes.compound,
-            report=report,
-        )
+        return make_mesh_kernels(self._contact_kernels(diagnostics, report))
 
-    def _report_kernels(self):
+    def _report_kernels(self) -> tuple[ContactKernels, wp.Kernel | None]:
         """The report variant of the step's kernels (built on first use: a run that never asks for
         its contacts or an average never compiles it): (contact kernels, mesh kernel or None)."""
         kernels = self._contact_kernels(report=True)
         mesh = self._mesh_kernels(False, report=True)
         return kernels, None if mesh is None else mesh[0]
 
-    def grow_polygons(self):
+    def grow_polygons(self) -> None:
         """Double the room for clipped polygons (after an overflow); new kernels, so recapture a graph."""
         self.poly_overflow.zero_()
         self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
         self._kernels()
 
-    def clear_checks(self):
+    def clear_checks(self) -> None:
         """Forget the non-finite steps and the speeds recorded so far (their states were discarded by a restore)."""
         self.bad_step.fill_(NO_STEP)
         self.body_peak_speed.zero_()
         self.too_fast.zero_()
 
-    def went_too_fast(self):
+    def went_too_fast(self) -> bool:
         """Host: whether a body went above its ``body_speed_limit`` since :meth:`clear_checks`."""
         return bool(int(self.too_fast.numpy()[0]))
 
-    def polygons_overflowed(self):
+    def polygons_overflowed(self) -> bool:
         """Host: whether a clipped polygon did not fit since :meth:`grow_polygons`."""
         return bool(int(self.poly_overflow.numpy()[0]))
 
-    def first_bad_step(self):
+    def first_bad_step(self) -> int | None:
         """Host: the first step whose state was not finite, or None."""
         bad = int(self.bad_step.numpy()[0])
         return None if bad == NO_STEP else bad
 
     # -- one step ------------------------------------------------------------------------------
 
-    def step(self, state_in, state_out, contacts, dt):
+    def step(self, state_in: State, state_out: State, contacts: Contacts, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` into ``state_out`` (which may be ``state_in``); updates ``contacts``.
 
         With :attr:`keep_inputs` set, the step copies what its force stage reads into it; with
@@ -216,16 +220,20 @@ class Stepper:
         if self.keep_inputs is not None:
             self.keep_inputs.save(state_out, contacts)
         self.forces(state_out, contacts, dt)
+        if self.model.has_measured_motions:
+            # The ramps' and servos' force from this force stage, and where they go at the end of the step.
+            launch_measure_motions(self.model, contacts, self._motion_parts, state_out.step_count, 1, dt,
+                                   state_out.motion_travel, device=self.device)  # fmt: skip
         self.integrate(state_out, dt)
 
-    def collide(self, state, contacts):
+    def collide(self, state: State, contacts: Contacts) -> None:
         """The broad phase: rebuild the pair list when some body may have left its skin."""
         if self.device_rebuild:
             contacts.update_on_device(state.body_q)
         else:
             contacts.update(state.body_q)
 
-    def forces(self, state, contacts, dt):
+    def forces(self, state: State, contacts: Contacts, dt: float) -> None:
         """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``;
         with :attr:`average` set, each contact's force is also added to its sums (the report variant
         of the kernels)."""
@@ -247,30 +255,19 @@ class Stepper:
             wall_sums=average.walls,
         )
 
-    def integrate(self, state, dt):
+    def integrate(self, state: State, dt: float) -> None:
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
         m = self.model
-        integrate_bodies(
-            body_inv_mass=m.body_inv_mass,
-            body_inertia=m.body_inertia,
-            body_flags=m.body_flags,
-            gravity=m.gravity,
-            body_q=state.body_q,
-            body_v=state.body_v,
-            body_w=state.body_w,
-            body_f=state.body_f,
-            body_t=state.body_t,
-            dt=dt,
-            device=self.device,
-            body_pivot=m.body_pivot,
-        )
+        launch_integrate(model=m, state=state, dt=dt)
         if self.mesh_kernels is not None and m.mesh_moves:
-            launch_advance_meshes(self.mesh_kernels[1], mesh_v=m.mesh_v, mesh_w=m.mesh_w, dt=dt, mesh_q=state.mesh_q)
+            launch_advance_meshes(self.mesh_kernels[1], meshes=m.meshes, dt=dt, mesh_q=state.mesh_q)
         launch_count_step(state.step_count)
         if m.has_motions:
             # The driven containers' poses at the end of this step, from the counter just advanced.
-            launch_drive_bodies(m.motion_arrays, m.body_motion, m.body_rest, state.step_count, 0, dt, state.body_q,
-                                state.body_v, device=self.device)  # fmt: skip
+            travel = state.motion_travel if m.has_measured_motions else None
+            launch_drive_bodies(
+                m.motions, state.step_count, 0, dt, state.body_q, state.body_v, self.device, travel=travel
+            )
         launch_check_state(
             model=m,
             state=state,
@@ -292,9 +289,8 @@ class Stepper:
         overflow: wp.array,
         out: ContactOutputs | None = None,
         report_bits: int = 0,
-        # A wp.struct is not a type that `|` takes: quoted.
-        pair_sums: "ContactSums | None" = None,
-        wall_sums: "ContactSums | None" = None,
+        pair_sums: ContactSums | None = None,
+        wall_sums: ContactSums | None = None,
     ) -> None:
         """The pair, gather and mesh-wall kernels (``kernels``; ``mesh_kernel``, None without mesh walls):
         the step variant, or the diagnostics one into ``out``, or the report variant (``report_bits``,
@@ -346,13 +342,13 @@ class Stepper:
             self.poly_capacity = min(2 * self.poly_capacity, bound)
             self._kernels()
 
-    def diagnose(self, state, contacts, dt):
+    def diagnose(self, state: State, contacts: Contacts, dt: float) -> dict[str, np.ndarray]:
         """Runs the diagnostics variant of the contact kernels at ``state``; returns its host arrays.
 
         Per pair (the first ``count`` candidates): ``pair_volume`` [m^3], ``pair_energy`` [J],
         ``pair_normal``, ``pair_point`` [m], ``pair_fn`` [N], ``pair_ft`` [N], ``pair_depth`` [m]; per
-        (body, wall): ``plane_volume``, ``plane_energy``, ``plane_fn``, ``plane_point``, ``plane_ft``,
-        ``plane_depth``.
+        (body, wall): ``wall_volume``, ``wall_energy``, ``wall_fn``, ``wall_point``, ``wall_ft``,
+        ``wall_depth``.
         """
         if self._diag is None or self._diag_generation != contacts.generation:
             self._diag_generation = contacts.generation
@@ -373,13 +369,13 @@ class Stepper:
             out[k] = out[k][:count]
         return out
 
-    def release_diagnostics(self):
+    def release_diagnostics(self) -> None:
         """Let the buffers of :meth:`diagnose` and :meth:`report` go (they are allocated again when needed)."""
         self._diag = None
         self._report = None
         self._history_on = None
 
-    def history_on(self, history, contacts):
+    def history_on(self, history: PairHistory, contacts: Contacts) -> tuple[wp.array, wp.array]:
         """(xi, turn): the pair history ``history`` (a :class:`~polydem.contacts.PairHistory`, by key)
         carried onto the current pair list of ``contacts``, in arrays of :meth:`report`'s."""
         r = self._history_on
@@ -392,7 +388,7 @@ class Stepper:
         contacts.carry_history(history, r[1], r[2])
         return r[1], r[2]
 
-    def report(self, inputs, contacts, dt):
+    def report(self, inputs: dict[str, wp.array], contacts: Contacts, dt: float) -> dict[str, np.ndarray]:
         """Runs the force stage of a step again on ``inputs`` (device arrays by name, as
         :class:`StepInputs`' ``arrays``: what the force stage of a step read, after its broad phase,
         the pair history on the current pair list), with the report variant of the kernels, into
@@ -410,7 +406,7 @@ class Stepper:
             self._report_generation = contacts.generation
             out = self._diag_arrays(cap)
             # What the step writes besides the report: scratch arrays, so that nothing of the run changes.
-            scratch = {k: wp.empty_like(inputs[k]) for k in ("plane_xi", "plane_turn", "pair_xi", "pair_turn")}
+            scratch = {k: wp.empty_like(inputs[k]) for k in ("wall_xi", "wall_turn", "pair_xi", "pair_turn")}
             scratch["body_f"] = wp.zeros_like(inputs["body_v"])
             scratch["body_t"] = wp.zeros_like(inputs["body_v"])
             scratch["body_dissipated"] = wp.zeros(n, dtype=m.scalar, device=self.device)
@@ -419,34 +415,18 @@ class Stepper:
             self._report = (out, scratch)
         out, scratch = self._report
         a = inputs
-        state = SimpleNamespace(
-            body_q=a["body_q"],
-            body_v=a["body_v"],
-            body_w=a["body_w"],
-            mesh_q=a["mesh_q"],
-            plane_xi=scratch["plane_xi"],
-            plane_turn=scratch["plane_turn"],
-            body_dissipated=scratch["body_dissipated"],
-            body_f=scratch["body_f"],
-            body_t=scratch["body_t"],
-        )
-        pairs = SimpleNamespace(
-            capacity=cap,
-            pair_a=contacts.pair_a,
-            pair_b=contacts.pair_b,
-            pair_count=contacts.pair_count,
-            pair_xi=scratch["pair_xi"],
-            pair_turn=scratch["pair_turn"],
-            pair_force=scratch["pair_force"],
-            pair_torque_a=scratch["pair_torque_a"],
-            pair_dissipated=scratch["pair_dissipated"],
-            body_pairs_a=contacts.body_pairs_a,
-            body_pairs_b=contacts.body_pairs_b,
-            pair_by_b=contacts.pair_by_b,
-        )
+        # The force stage's structs of these arrays (kernels/structs.py): the inputs and the scratch.
+        bodies = {k: a[f"body_{k}"] for k in ("q", "v", "w")} | {k: scratch[f"body_{k}"] for k in ("f", "t")}
+        bodies = filled(bodies_struct(m.scalar), **bodies, dissipated=scratch["body_dissipated"])
+        walls = filled(wall_history_struct(m.contact_scalar), xi=scratch["wall_xi"], turn=scratch["wall_turn"])
+        state = SimpleNamespace(bodies=bodies, walls=walls, mesh_q=a["mesh_q"])
+        Pairs = pairs_struct(m.contact_scalar)
+        live = {k: getattr(contacts.pairs, k) for k in Pairs.vars}
+        steps = {k: scratch[f"pair_{k}"] for k in ("xi", "turn", "force", "torque_a", "dissipated")}
+        pairs = SimpleNamespace(capacity=cap, pairs=filled(Pairs, **(live | steps)))
 
         def run_pass() -> None:
-            for name in ("plane_xi", "plane_turn", "pair_xi", "pair_turn"):
+            for name in ("wall_xi", "wall_turn", "pair_xi", "pair_turn"):
                 wp.copy(scratch[name], a[name])
             kernels, mesh = self._report_kernels()
             overflow = self._diag_overflow
@@ -476,7 +456,7 @@ class Stepper:
             device=self.device,
         )
 
-    def kinetic_energy(self, state):
+    def kinetic_energy(self, state: State) -> tuple[float, float]:
         """Host float64 (translational, rotational) kinetic energy of the free bodies [J]."""
         lin, ang = self.kinetic_energies(state)
         return np.sum(lin.numpy(), dtype=np.float64), np.sum(ang.numpy(), dtype=np.float64)
@@ -490,28 +470,28 @@ class StepInputs:
     of its last step (:meth:`Simulation.step` needs none: its copy for a redo serves).
 
     Attributes:
-        arrays: device arrays by name: ``body_q``, ``body_v``, ``body_w``, ``mesh_q``, ``plane_xi``,
-            ``plane_turn`` (as the :class:`~polydem.state.State`'s), ``pair_xi``, ``pair_turn`` (as the
+        arrays: device arrays by name: ``body_q``, ``body_v``, ``body_w``, ``mesh_q``, ``wall_xi``,
+            ``wall_turn`` (as the :class:`~polydem.state.State`'s), ``pair_xi``, ``pair_turn`` (as the
             :class:`~polydem.contacts.Contacts`').
     """
 
-    STATE = ("body_q", "body_v", "body_w", "mesh_q", "plane_xi", "plane_turn")
+    STATE = ("body_q", "body_v", "body_w", "mesh_q", "wall_xi", "wall_turn")
     PAIRS = ("pair_xi", "pair_turn")
 
-    def __init__(self):
-        self.arrays = {}
+    def __init__(self) -> None:
+        self.arrays: dict[str, wp.array] = {}
 
-    def _sources(self, state, contacts):
+    def _sources(self, state: State, contacts: Contacts) -> list[tuple[str, wp.array]]:
         return [(k, getattr(state, k)) for k in self.STATE] + [(k, getattr(contacts, k)) for k in self.PAIRS]
 
-    def ensure(self, state, contacts):
+    def ensure(self, state: State, contacts: Contacts) -> None:
         """Arrays of the shapes of ``state`` and ``contacts`` (before a graph capture: none is made in it)."""
         for name, src in self._sources(state, contacts):
             dst = self.arrays.get(name)
             if dst is None or dst.shape != src.shape or dst.dtype != src.dtype:
                 self.arrays[name] = wp.empty_like(src)
 
-    def save(self, state, contacts):
+    def save(self, state: State, contacts: Contacts) -> None:
         """Copy what the force stage will read from ``state`` and ``contacts``."""
         self.ensure(state, contacts)
         for name, src in self._sources(state, contacts):
@@ -525,7 +505,9 @@ class Snapshot:
     From :meth:`Simulation.snapshot`; give it to :meth:`Simulation.restore` to go back to that step.
     """
 
-    def __init__(self, state, pairs, steps_done, time, average=None):
+    def __init__(
+        self, state: State, pairs: PairHistory, steps_done: int, time: float, average: AverageSnapshot | None = None
+    ) -> None:
         self.state = state
         self.pairs = pairs
         self.steps_done = int(steps_done)
@@ -566,19 +548,31 @@ class Simulation:
         steps_done: steps taken; time: ``steps_done * dt`` [s]; dt: time step [s].
     """
 
+    scene: Scene
+    settings: RunSettings
+    model: Model
+    device: wp.Device
+    dt: float
+    num_bodies: int
+    current_state: State
+    current_contacts: Contacts
+    stepper: Stepper
+    steps_done: int
+    time: float
+
     def __init__(
         self,
-        scene,
-        device=None,
-        skin=None,
-        use_graph=None,
-        tree_rebuild=TREE_REBUILD_RATIO,
+        scene: Scene,
+        device: wp.DeviceLike = None,
+        skin: float | None = None,
+        use_graph: bool | None = None,
+        tree_rebuild: float | None = TREE_REBUILD_RATIO,
         *,
-        validate=True,
-        pair_max_registers=PAIR_MAX_REGISTERS,
+        validate: bool = True,
+        pair_max_registers: int | None = PAIR_MAX_REGISTERS,
         settings: RunSettings | None = None,
         bodies: np.ndarray | None = None,
-    ):
+    ) -> None:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
         self.tree_rebuild = None if tree_rebuild is None else float(tree_rebuild)
@@ -615,25 +609,25 @@ class Simulation:
         self.stepper.body_speed_limit.assign(self._speed_limit.astype(np.float32))
         # Warned once a run: already by the scene's validation where the initial speeds are too high.
         self._tunnel_warned = settings.starts_too_fast
-        self._graphs = {}
-        self._graph_key = None
-        self._last_good = None
-        self._diag_cache = None
+        self._graphs: dict[bool, wp.Graph] = {}
+        self._graph_key: tuple | None = None
+        self._last_good: Snapshot | None = None
+        self._diag_cache: dict[str, np.ndarray] | None = None
         # contacts() runs the last step's force stage again on what it read: where that is kept
         # (_last_step: "snapshot", the copy step() takes before its last step, which runs alone in its
         # chunk; "inputs", the copies advance() keeps of its last step; None: no step since the state
         # was set), and the host arrays of its report.
-        self._last_step = None
-        self._inputs = None
-        self._report_cache = None
+        self._last_step: Literal["snapshot", "inputs"] | None = None
+        self._inputs: StepInputs | None = None
+        self._report_cache: dict[str, np.ndarray] | None = None
         # The contact-force average (start_contact_average): its device sums, and the intervals begun.
-        self._average = None
+        self._average: ContactAverage | None = None
         self._intervals = 0
         self.current_contacts.build(self.current_state.body_q, keep_history=False)
 
     # -- snapshots -----------------------------------------------------------------------------
 
-    def snapshot(self, into=None):
+    def snapshot(self, into: Snapshot | None = None) -> Snapshot:
         """A :class:`Snapshot` (device copies) of the current step; reuses the arrays of ``into`` where they fit."""
         st = self.current_state
         if into is not None and into.state.same_shapes(st):
@@ -651,7 +645,7 @@ class Simulation:
         into.average = average
         return into
 
-    def restore(self, snapshot):
+    def restore(self, snapshot: Snapshot) -> None:
         """Go back to the step of ``snapshot`` (from :meth:`snapshot`, or a checkpoint's).
 
         The candidate pairs are found afresh at the restored poses; each pair gets its history back by key.
@@ -682,13 +676,16 @@ class Simulation:
         self.steps_done = snapshot.steps_done
         self.time = snapshot.time
 
-    def restore_from_arrays(self, arrays, steps_done, time):
+    def restore_from_arrays(self, arrays: dict[str, np.ndarray], steps_done: int, time: float) -> None:
         """:meth:`restore` from host arrays named as a checkpoint's: ``State.SAVED``, ``pair_key``, ``pair_xi``,
         ``pair_turn``."""
         m = self.model
         saved = {k: arrays[k] for k in State.SAVED if k in arrays}
         if "mesh_q" not in saved:
             saved["mesh_q"] = self.current_state.mesh_q.numpy()
+        # The ramps' and servos' travel, kept apart from State.SAVED (a decomposed run gathers those).
+        travel = arrays.get("motion_travel")
+        saved["motion_travel"] = self.current_state.motion_travel.numpy() if travel is None else travel
         state = State.from_numpy(saved, self.device, m.precision)
         pairs = PairHistory.from_numpy(
             arrays["pair_key"], arrays["pair_xi"], arrays["pair_turn"], m.friction, self.device, m.contact_scalar
@@ -696,16 +693,16 @@ class Simulation:
         self.restore(Snapshot(state, pairs, steps_done, time))
 
     @property
-    def last_good(self):
+    def last_good(self) -> Snapshot | None:
         """The :class:`Snapshot` taken at the start of the last chunk of :meth:`step` (None before the first)."""
         return self._last_good
 
-    def is_consistent(self):
+    def is_consistent(self) -> bool:
         """Whether the device state is that of step ``steps_done`` and finite (synchronises)."""
         st = self.current_state
         return int(st.step_count.numpy()[0]) == self.steps_done and bool(np.all(np.isfinite(st.body_q.numpy())))
 
-    def restore_last_good(self):
+    def restore_last_good(self) -> bool:
         """Bring the simulation back to step ``steps_done`` after an exception inside :meth:`step`.
 
         A step interrupted part-way through a chunk (Ctrl-C) has moved the state beyond
@@ -722,7 +719,7 @@ class Simulation:
 
     # -- stepping ------------------------------------------------------------------------------
 
-    def _graph(self, keep_inputs):
+    def _graph(self, keep_inputs: bool) -> wp.Graph:
         """The captured step (``keep_inputs``: the one that also keeps its inputs, for advance()), for
         the current buffers, polygon room and average."""
         state, contacts, avg = self.current_state, self.current_contacts, self._average
@@ -741,7 +738,7 @@ class Simulation:
             graph = self._graphs[keep_inputs] = capture.graph
         return graph
 
-    def _run_chunk(self, steps, keep_inputs=False):
+    def _run_chunk(self, steps: int, keep_inputs: bool = False) -> None:
         """``steps`` steps; ``keep_inputs``: the last one keeps what its force stage read (StepInputs)."""
         if steps <= 0:
             return
@@ -772,7 +769,7 @@ class Simulation:
         if keep_inputs:
             self._last_step = "inputs"
 
-    def step(self, n=1):
+    def step(self, n: int = 1) -> None:
         """Advance ``n`` steps of length ``dt``."""
         n = int(n)
         if n < 0:
@@ -811,7 +808,7 @@ class Simulation:
             if done == n:
                 self._last_step = "snapshot"
 
-    def _warn_too_fast(self, chunk):
+    def _warn_too_fast(self, chunk: int) -> None:
         # Once a run: the body the furthest above its limit, at its largest speed so far.
         self._tunnel_warned = True
         peak = self.stepper.body_peak_speed.numpy().astype(np.float64)
@@ -824,7 +821,7 @@ class Simulation:
             stacklevel=3,
         )
 
-    def advance(self, steps):
+    def advance(self, steps: int) -> None:
         """Run ``steps`` steps with no host check or redo (one CUDA graph launch each on a GPU).
 
         For callers that check for themselves what :meth:`step` checks after each chunk (the overflow
@@ -835,7 +832,7 @@ class Simulation:
         """
         self._run_chunk(int(steps), keep_inputs=True)
 
-    def forget_diagnostics(self):
+    def forget_diagnostics(self) -> None:
         """Drop the contact diagnostics computed at this step (after the state was changed from outside).
 
         :meth:`contacts` still reports the last step as it ran (from copies of what it read); before
@@ -845,13 +842,13 @@ class Simulation:
         if self._last_step is None:
             self._report_cache = None
 
-    def diagnostics(self):
+    def diagnostics(self) -> dict[str, np.ndarray]:
         """The per-pair and per-wall diagnostics of the current step (what :meth:`energy` and
         :meth:`contacts` read): host arrays by name, ``pair_*`` (candidate pairs, in pair-list order)
-        and ``plane_*`` (bodies x walls)."""
+        and ``wall_*`` (bodies x walls)."""
         return self._diagnostics()
 
-    def _report_nonfinite(self, bad):
+    def _report_nonfinite(self, bad: int) -> NoReturn:
         st = self.state()
         rows = ~np.isfinite(
             np.hstack([st["body_position"], st["body_orientation"], st["body_velocity"], st["body_angular_velocity"]])
@@ -865,7 +862,7 @@ class Simulation:
 
     # -- running until settled -----------------------------------------------------------------
 
-    def settle_measures(self):
+    def settle_measures(self) -> tuple[float, float, float]:
         """Host float64 (kinetic energy [J], gravitational energy [J], largest speed [m/s]) of the free
         bodies at the current step: the measurements of a :class:`~polydem.settle.SettleCriterion`.
 
@@ -893,7 +890,7 @@ class Simulation:
         kinetic, gravity, speed = out.numpy().tolist()
         return kinetic, gravity, speed
 
-    def settle_check(self, criterion=None, check=None):
+    def settle_check(self, criterion: SettleCriterion | None = None, check: SettleCheck | None = None) -> SettleCheck:
         """A :class:`~polydem.settle.SettleCheck` of ``criterion`` (default :class:`SettleCriterion()`)
         from the current step, with the criterion's speed limit in this scene (``speed_fraction`` of
         ``sqrt(|g| r_min)``, or ``max_speed``); ``check``: one to continue instead. Raises ValueError
@@ -904,13 +901,15 @@ class Simulation:
         criterion = SettleCriterion() if criterion is None else criterion
         if not isinstance(criterion, SettleCriterion):
             raise TypeError(f"criterion must be a polydem.SettleCriterion, got {type(criterion).__name__}")
-        if not np.any(self.model.body_flags_np == 0):
+        if not np.any(self.model.body_flags_np == BodyKind.FREE):
             raise ValueError("the scene has no free bodies: there is nothing to settle")
         criterion.check_gravity(self.model.gravity)
-        limit = criterion.speed_limit_of(self.scene)
+        limit = criterion.speed_limit_of(self.scene, self.settings)
         return SettleCheck(criterion, self.settle_measures()[1], speed_limit=limit)
 
-    def run_until_settled(self, max_time, criterion=None, *, check=None):
+    def run_until_settled(
+        self, max_time: float, criterion: SettleCriterion | None = None, *, check: SettleCheck | None = None
+    ) -> SettleResult:
         """Step until the free bodies have settled (``criterion``, default :class:`SettleCriterion()`:
         the kinetic energy below 1e-4 of the gravitational energy released and no free body's fastest
         point at 1e-3 sqrt(|g| r_min) or faster, for 0.02 s), for at most ``max_time`` more simulated
@@ -956,13 +955,13 @@ class Simulation:
 
     # -- reading the current step --------------------------------------------------------------
 
-    def _diagnostics(self):
+    def _diagnostics(self) -> dict[str, np.ndarray]:
         # energy() and contacts() at the same step share one run (dropped by a step and a restore).
         if self._diag_cache is None:
             self._diag_cache = self.stepper.diagnose(self.current_state, self.current_contacts, self.dt)
         return self._diag_cache
 
-    def state(self):
+    def state(self) -> dict[str, np.ndarray]:
         """Current state as numpy arrays (world frame, body frame = centroid and principal axes).
 
         Returns a dict: ``body_position`` (N,3) [m], ``body_orientation`` (N,4) quaternion xyzw,
@@ -977,7 +976,7 @@ class Simulation:
             "body_angular_velocity": st.body_w.numpy().astype(np.float64),
         }
 
-    def energy(self, bodies=None, pairs=None):
+    def energy(self, bodies: np.ndarray | None = None, pairs: np.ndarray | None = None) -> dict[str, float]:
         """Energies [J]: ``kinetic``, ``contact`` (W(V) summed over contacts, plus the friction
         springs), ``gravity`` (-sum m g.x over free bodies), ``dissipated`` (by damping and friction
         so far), and ``total`` (their sum, constant up to the integrator's error).
@@ -993,8 +992,8 @@ class Simulation:
         pair_energy = d["pair_energy"] if pairs is None else d["pair_energy"][np.asarray(pairs, dtype=bool)]
         contact = float(np.sum(pair_energy, dtype=np.float64))
         if m.num_walls:
-            contact += float(np.sum(d["plane_energy"][keep], dtype=np.float64))
-        free = (m.body_flags_np == 0) & keep
+            contact += float(np.sum(d["wall_energy"][keep], dtype=np.float64))
+        free = (m.body_flags_np == BodyKind.FREE) & keep
         x = st.body_q.numpy()[:, :3].astype(np.float64)
         grav = -float(np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity)))
         if bodies is None:
@@ -1012,7 +1011,7 @@ class Simulation:
             "total": kin + contact + grav + diss,
         }
 
-    def _reported(self):
+    def _reported(self) -> dict[str, np.ndarray]:
         # The host arrays of contacts(): the last step's force stage run again (Stepper.report) on
         # its kept inputs, or, with no step since the state was set (the start, a restore), on the
         # current state: the forces the next step will apply. Kept until a step or a restore.
@@ -1020,7 +1019,7 @@ class Simulation:
             self._report_cache = self.stepper.report(self._last_step_inputs(), self.current_contacts, self.dt)
         return self._report_cache
 
-    def _last_step_inputs(self):
+    def _last_step_inputs(self) -> dict[str, wp.array]:
         """What the force stage of the last step read, by name (as :class:`StepInputs`' arrays), or
         the current state and pair history where no step ran since the state was set."""
         contacts = self.current_contacts
@@ -1040,7 +1039,7 @@ class Simulation:
         arrays.update(pair_xi=contacts.pair_xi, pair_turn=contacts.pair_turn)
         return arrays
 
-    def contacts(self):
+    def contacts(self) -> dict[str, np.ndarray]:
         """The contacts of the last step and the forces it applied, as numpy arrays, one row per contact.
 
         ``body_a``, ``body_b`` (int; ``body_b = -1 - p`` for wall p: the planes, then the mesh
@@ -1076,28 +1075,28 @@ class Simulation:
             "depth": d["pair_depth"][on].astype(np.float64),
         }
         if self.model.num_walls:
-            pv = d["plane_volume"]
-            body, plane = np.nonzero(pv > 0.0)
+            pv = d["wall_volume"]
+            body, wall = np.nonzero(pv > 0.0)
             normals = -self.model.plane_normal.numpy().astype(np.float64).reshape(-1, 3)
-            mesh_normals = d["plane_normal"][body, plane].astype(np.float64)
-            is_plane = plane < self.model.num_planes
+            mesh_normals = d["wall_normal"][body, wall].astype(np.float64)
+            is_plane = wall < self.model.num_planes
             normal = mesh_normals.copy()
-            normal[is_plane] = normals[plane[is_plane]]
+            normal[is_plane] = normals[wall[is_plane]]
             out["body_a"] = np.concatenate([out["body_a"], body])
-            out["body_b"] = np.concatenate([out["body_b"], -1 - plane])
+            out["body_b"] = np.concatenate([out["body_b"], -1 - wall])
             out["normal"] = np.concatenate([out["normal"], normal])
-            out["point"] = np.concatenate([out["point"], d["plane_point"][body, plane].astype(np.float64)])
-            out["normal_force"] = np.concatenate([out["normal_force"], d["plane_fn"][body, plane].astype(np.float64)])
+            out["point"] = np.concatenate([out["point"], d["wall_point"][body, wall].astype(np.float64)])
+            out["normal_force"] = np.concatenate([out["normal_force"], d["wall_fn"][body, wall].astype(np.float64)])
             out["tangential_force"] = np.concatenate(
-                [out["tangential_force"], d["plane_ft"][body, plane].astype(np.float64)]
+                [out["tangential_force"], d["wall_ft"][body, wall].astype(np.float64)]
             )
-            out["volume"] = np.concatenate([out["volume"], pv[body, plane].astype(np.float64)])
-            out["depth"] = np.concatenate([out["depth"], d["plane_depth"][body, plane].astype(np.float64)])
+            out["volume"] = np.concatenate([out["volume"], pv[body, wall].astype(np.float64)])
+            out["depth"] = np.concatenate([out["depth"], d["wall_depth"][body, wall].astype(np.float64)])
         return out
 
     # -- contact forces averaged over an interval ------------------------------------------------
 
-    def start_contact_average(self):
+    def start_contact_average(self) -> None:
         """Start (or start again) averaging the contact forces over the steps from now on.
 
         Every later :meth:`step` adds each contact's force, as the step applied it, to sums on the
@@ -1117,11 +1116,11 @@ class Simulation:
             self._average.reset(self._intervals, self.steps_done, self.time)
 
     @property
-    def contact_average_steps(self):
+    def contact_average_steps(self) -> int | None:
         """Steps in the running contact-force average so far (None: none is running)."""
         return None if self._average is None else self.steps_done - self._average.start_step
 
-    def contact_average(self):
+    def contact_average(self) -> dict[str, np.ndarray | float | int]:
         """The contact forces averaged over the interval from :meth:`start_contact_average` to now.
 
         One row per contact that had an overlap in some step of the interval (pairs by key, then
@@ -1180,7 +1179,7 @@ class Simulation:
             "steps": steps,
         }
 
-    def stop_contact_average(self):
+    def stop_contact_average(self) -> dict[str, np.ndarray | float | int] | None:
         """Stop the contact-force average (the steps go back to the plain kernels); returns its
         :meth:`contact_average`, or None where it had no step (or none was running)."""
         avg = self._average
@@ -1190,3 +1189,48 @@ class Simulation:
         avg.detach()
         self._average = None
         return result
+
+    # -- changing the friction during a run ------------------------------------------------------
+
+    def material_friction(self) -> dict[str, float]:
+        """The friction coefficient of each material now, by name (the scene's, or :meth:`set_friction`'s)."""
+        current = getattr(self, "_friction", None)
+        return dict(current) if current is not None else {n: m.friction for n, m in self.scene.materials.items()}
+
+    def set_friction(self, mu: float, material: str | None = None) -> None:
+        """Give ``material`` (default: every material) the friction coefficient ``mu`` from the next step on.
+
+        The pairs mix as the scene's do (:meth:`polydem.Scene.pair_table`: the smaller coefficient of the
+        two). Only the coefficient changes: the friction springs keep their stiffness and state (a
+        stretched spring is capped at the new Coulomb limit by the next step). The step reads the
+        coefficients from the device, so a captured CUDA graph runs on with the new ones. The scene is
+        not changed: a checkpoint records its friction, and a run resumed from it starts with that.
+
+        Raises:
+            ValueError: ``mu`` is not a number >= 0; an unknown material; ``mu`` > 0 where the scene was
+                built without friction (every material's friction 0: its kernels have no friction springs).
+        """
+        from dataclasses import replace
+
+        from polydem.scene.materials import pair_material
+
+        mu = float(mu)
+        if not (math.isfinite(mu) and mu >= 0.0):
+            raise ValueError(f"friction must be a number >= 0, got {mu!r}")
+        current = self.material_friction()
+        if material is not None and material not in current:
+            raise ValueError(f"unknown material {material!r}; the scene's materials are {', '.join(current)}")
+        for name in current if material is None else [material]:
+            current[name] = mu
+        mats = [replace(self.scene.materials[name], friction=current[name]) for name in self.scene.material_names]
+        table = np.array([[pair_material(a, b).friction for b in mats] for a in mats], dtype=np.float64)
+        m = self.model
+        if (table > 0.0).any() and not m.friction:
+            raise ValueError(
+                f"friction {mu:g} cannot be set: this simulation was built without friction (every material of the "
+                "scene has friction 0), so its contact kernels have no friction springs. Build it with the friction "
+                "the run needs at its end (e.g. friction = 0.5 in the material), then set_friction(0) for the part "
+                "without"
+            )
+        m.material_mu.assign(table.ravel().astype(numpy_dtype(m.contact_scalar)))
+        self._friction = current

@@ -6,10 +6,15 @@ A :class:`State` holds no contact pairs (those, with their history, are in
 dt)`` writes the next one.
 """
 
+from __future__ import annotations
+
+from collections.abc import Iterable
+
 import numpy as np
 import warp as wp
 
-from polydem.kernels.precision import numpy_dtype, scalars
+from polydem.kernels.precision import Precision, numpy_dtype, scalars
+from polydem.kernels.structs import bodies_struct, filled, wall_history_struct
 
 __all__ = ["State"]
 
@@ -22,7 +27,7 @@ class State:
 
     Dtypes by ``precision`` (:mod:`polydem.kernels.precision`): the body arrays (``body_*``) are
     float32 in "float32" and float64 in "mixed" and "float64" (``wp.transformd``, ``wp.vec3d``);
-    the wall-contact history (``plane_*``) is float32 in "float32" and "mixed", float64 in
+    the wall-contact history (``wall_*``) is float32 in "float32" and "mixed", float64 in
     "float64".
 
     Attributes:
@@ -35,24 +40,71 @@ class State:
         body_t: (N,) ``wp.vec3`` torque of those forces about the centroid, world axes [N m].
         body_dissipated: (N,) energy dissipated so far by damping and friction at the
             body's contacts [J].
-        plane_xi: (N, P) ``wp.vec3`` friction springs of the wall contacts [m]; (1, 1) when the
+        wall_xi: (N, P) ``wp.vec3`` friction springs of the wall contacts [m]; (1, 1) when the
             scene has no friction.
-        plane_turn: (N, P) turning volumes of the wall contacts (the normal hysteresis,
+        wall_turn: (N, P) turning volumes of the wall contacts (the normal hysteresis,
             kernels/forces.py) [m^3].
         mesh_q: (max(M, 1),) ``wp.transform`` pose of each mesh wall's frame (origin at its pivot) [m].
         step_count: (1,) int32 steps done; counted on the device so that a captured step counts.
-        precision: "float32", "mixed" or "float64".
+        motion_travel: (max(K, 1),) ``wp.vec3d`` of the K motions: each ramp's and servo's displacement [m],
+            velocity [m/s] and the force the grains push back with [N] at the last step (kernels/motion.py;
+            a servo's displacement is summed here, so a snapshot must carry it).
+        precision: the :class:`~polydem.kernels.precision.Precision`.
+        bodies, walls: the ``body_*`` arrays and ``wall_xi``, ``wall_turn`` in the ``wp.struct`` the kernels
+            take (:mod:`polydem.kernels.structs`); built on first use and again after one of their arrays is
+            replaced by another.
     """
 
-    FIELDS = ("body_q", "body_v", "body_w", "body_f", "body_t", "body_dissipated", "plane_xi", "plane_turn")
-    FIELDS += ("mesh_q", "step_count")
+    body_q: wp.array
+    body_v: wp.array
+    body_w: wp.array
+    body_f: wp.array
+    body_t: wp.array
+    body_dissipated: wp.array
+    wall_xi: wp.array
+    wall_turn: wp.array
+    mesh_q: wp.array
+    step_count: wp.array
+    motion_travel: wp.array
+    device: wp.Device
+    precision: Precision
+
+    FIELDS: tuple[str, ...] = ("body_q", "body_v", "body_w", "body_f", "body_t", "body_dissipated", "wall_xi")
+    FIELDS += ("wall_turn", "mesh_q", "step_count")
+    FIELDS += ("motion_travel",)
     """Every array of a state, in the order :meth:`assign` copies them."""
 
-    SAVED = ("body_q", "body_v", "body_w", "body_dissipated", "plane_xi", "plane_turn", "mesh_q", "step_count")
+    SAVED = ("body_q", "body_v", "body_w", "body_dissipated", "wall_xi", "wall_turn", "mesh_q", "step_count")
     """What a checkpoint keeps: ``body_f`` and ``body_t`` are written by every step before they are read."""
 
+    # The arrays of each struct (bodies_struct, wall_history_struct), by the struct's member names.
+    _BODIES = {"q": "body_q", "v": "body_v", "w": "body_w", "f": "body_f", "t": "body_t"}
+    _BODIES |= {"dissipated": "body_dissipated"}
+    _WALLS = {"xi": "wall_xi", "turn": "wall_turn"}
+    _STRUCT_OF = dict.fromkeys(_BODIES.values(), "_bodies") | dict.fromkeys(_WALLS.values(), "_walls")
+
+    def __setattr__(self, name: str, value: object) -> None:
+        super().__setattr__(name, value)
+        if name in self._STRUCT_OF:
+            # A struct holds its arrays' pointers: one built with the array replaced is built again.
+            self.__dict__.pop(self._STRUCT_OF[name], None)
+
+    @property
+    def bodies(self):
+        if "_bodies" not in self.__dict__:
+            arrays = {member: getattr(self, name) for member, name in self._BODIES.items()}
+            self._bodies = filled(bodies_struct(scalars(self.precision)[0]), **arrays)
+        return self._bodies
+
+    @property
+    def walls(self):
+        if "_walls" not in self.__dict__:
+            arrays = {member: getattr(self, name) for member, name in self._WALLS.items()}
+            self._walls = filled(wall_history_struct(scalars(self.precision)[1]), **arrays)
+        return self._walls
+
     @staticmethod
-    def dtypes(precision="float32"):
+    def dtypes(precision: str = Precision.FLOAT32) -> dict[str, type]:
         """The Warp dtype of every field in ``precision``, by name."""
         s, c = scalars(precision)
         vec3s, vec3c = wp.types.vector(3, s), wp.types.vector(3, c)
@@ -63,37 +115,49 @@ class State:
             "body_f": vec3s,
             "body_t": vec3s,
             "body_dissipated": s,
-            "plane_xi": vec3c,
-            "plane_turn": c,
+            "wall_xi": vec3c,
+            "wall_turn": c,
             "mesh_q": wp.types.transformation(s),
             "step_count": int,
+            "motion_travel": wp.vec3d,
         }
 
-    def __init__(self, num_bodies, num_planes, friction, device=None, precision="float32", num_meshes=0):
+    def __init__(
+        self,
+        num_bodies: int,
+        num_planes: int,
+        friction: bool,
+        device: wp.DeviceLike = None,
+        precision: str = Precision.FLOAT32,
+        num_meshes: int = 0,
+        num_motions: int = 0,
+    ) -> None:
         """A state of ``num_bodies`` bodies at rest at the origin, with no contact history."""
         dev = wp.get_device(device)
         n = int(num_bodies)
         planes = max(int(num_planes), 1)
         self.device = dev
-        self.precision = precision
-        shapes = {name: n for name in self.FIELDS}
-        shapes.update(plane_xi=(n, planes) if friction else (1, 1), plane_turn=(n, planes), step_count=1)
-        shapes.update(mesh_q=max(int(num_meshes), 1))
+        self.precision = Precision(precision)
+        shapes: dict[str, int | tuple[int, int]] = {name: n for name in self.FIELDS}
+        shapes.update(wall_xi=(n, planes) if friction else (1, 1), wall_turn=(n, planes), step_count=1)
+        shapes.update(mesh_q=max(int(num_meshes), 1), motion_travel=max(int(num_motions), 1))
         for name, dtype in self.dtypes(precision).items():
             setattr(self, name, wp.zeros(shapes[name], dtype=dtype, device=dev))
 
     @property
-    def num_bodies(self):
+    def num_bodies(self) -> int:
         return len(self.body_q)
 
     @classmethod
-    def from_numpy(cls, arrays, device=None, precision="float32"):
+    def from_numpy(
+        cls, arrays: dict[str, np.ndarray], device: wp.DeviceLike = None, precision: str = Precision.FLOAT32
+    ) -> State:
         """A state in ``precision`` from host arrays named as :attr:`FIELDS` (``body_f`` and
         ``body_t`` may be left out: zeros); the arrays are converted to the precision's dtypes."""
         dev = wp.get_device(device)
         state = cls.__new__(cls)
         state.device = dev
-        state.precision = precision
+        state.precision = Precision(precision)
         n = len(arrays["body_q"])
         body, history = (numpy_dtype(x) for x in scalars(precision))
         for name, dtype in cls.dtypes(precision).items():
@@ -101,24 +165,26 @@ class State:
                 a = np.asarray(arrays[name])
                 if name == "mesh_q":
                     a = a.astype(body)
+                elif name == "motion_travel":
+                    a = a.astype(np.float64)
                 elif name != "step_count":
                     a = a.astype(body if name.startswith("body_") else history)
                 a = wp.array(a, dtype=dtype, device=dev)
             else:
-                a = wp.zeros(1 if name == "mesh_q" else n, dtype=dtype, device=dev)
+                a = wp.zeros(1 if name in ("mesh_q", "motion_travel") else n, dtype=dtype, device=dev)
             setattr(state, name, a)
         return state
 
-    def numpy(self, fields=SAVED):
+    def numpy(self, fields: Iterable[str] = SAVED) -> dict[str, np.ndarray]:
         """Host copies of ``fields`` (default: what a checkpoint keeps), by name."""
         return {name: getattr(self, name).numpy() for name in fields}
 
-    def assign(self, other):
+    def assign(self, other: State) -> None:
         """Copy every array of ``other`` (a state of the same shapes) into this one."""
         for name in self.FIELDS:
             wp.copy(getattr(self, name), getattr(other, name))
 
-    def copy(self):
+    def copy(self) -> State:
         """A new state with copies of every array."""
         state = State.__new__(State)
         state.device = self.device
@@ -127,6 +193,6 @@ class State:
             setattr(state, name, wp.clone(getattr(self, name)))
         return state
 
-    def same_shapes(self, other):
+    def same_shapes(self, other: State) -> bool:
         """Whether :meth:`assign` can copy ``other`` into this state."""
         return all(getattr(self, k).shape == getattr(other, k).shape for k in self.FIELDS)

@@ -8,6 +8,8 @@ import math
 
 import numpy as np
 
+from polydem.scene.bodies import BodyKind
+
 __all__ = [
     "SETTLED_MARGIN",
     "SETTLED_PERCENTILE",
@@ -79,7 +81,7 @@ def settled_region(scene, state, contacts) -> dict:
     from polydem.quaternions import quat_to_matrix
 
     kind = np.asarray(scene.body_kind)
-    free = kind == 0
+    free = kind == BodyKind.FREE
     out = {
         "bodies": 0,
         "packing_fraction": None,

@@ -84,7 +84,7 @@ class Outputs:
 
     def frame_average(self, sim) -> dict | None:
         """The contact-force average over the interval since the last frame ({} at the first one),
-        and a new interval from this step; None without VTK output (nothing is averaged)."""
+        and a new interval from this step; None without VTK output or where ``sim`` keeps no average."""
         if self.vtk_dir is None:
             return None
         steps = sim.contact_average_steps
@@ -92,6 +92,8 @@ class Outputs:
         if average:
             self.last_average = average
         sim.start_contact_average()
+        if sim.contact_average_steps is None:
+            return None  # a front that keeps no average (a decomposed run): no averaged fields, not zeros
         return average
 
     def average_summary(self, sim) -> dict | None:

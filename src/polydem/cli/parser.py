@@ -13,6 +13,7 @@ import textwrap
 
 from polydem.cli.errors import CliError
 from polydem.cli.settings import DEFAULT_STEPS
+from polydem.kernels.precision import PRECISIONS
 
 __all__ = ["RUN_EPILOG", "build_parser"]
 
@@ -331,7 +332,7 @@ def _add_run(sub, fmt) -> None:
     )
     run.add_argument(
         "--precision",
-        choices=("float32", "mixed", "float64"),  # polydem.scene.PRECISIONS (no numpy here)
+        choices=PRECISIONS,
         default=None,
         help="floating-point precision of the simulation (overrides the scene's): mixed, float64 positions, "
         "velocities and force sums with float32 contact geometry local to each contact; float32 everywhere (less "

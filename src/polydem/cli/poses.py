@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from polydem.cli.errors import CliError
+from polydem.scene.bodies import BodyKind
 
 __all__ = ["Poses", "check_poses", "read_checkpoint", "read_checkpoint_poses"]
 
@@ -18,7 +19,7 @@ def _fixed_pose_mismatch(scene, positions) -> int | None:
     Fixed bodies never move, so every state of this scene holds their initial positions exactly
     (as float32, which checkpoints and USD files keep).
     """
-    fixed = np.flatnonzero(np.asarray(scene.body_kind) == 1)
+    fixed = np.flatnonzero(np.asarray(scene.body_kind) == BodyKind.FIXED)
     if not len(fixed):
         return None
     expect = np.asarray(scene.body_position, dtype=np.float64)[fixed].astype(np.float32)

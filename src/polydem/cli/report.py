@@ -11,6 +11,7 @@ from polydem.cli.common import listing, plural, relative, shorten
 from polydem.cli.diagnostics import relative_depths, relative_overlaps, settled_region
 from polydem.cli.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
 from polydem.cli.outputs import scene_metadata
+from polydem.scene.bodies import BodyKind
 
 __all__ = ["Report"]
 
@@ -117,12 +118,7 @@ class Report:
             "wall_time_this_run": wall,
             "steps_per_second": run_steps / wall if wall > 0 else None,
             "body_steps_per_second": run_steps * sim.num_bodies / wall if wall > 0 else None,
-            "bodies": {
-                "total": int(sim.num_bodies),
-                "free": int(np.sum(kind == 0)),
-                "fixed": int(np.sum(kind == 1)),
-                "kinematic": int(np.sum(kind == 2)),
-            },
+            "bodies": {"total": int(sim.num_bodies), **{k.label: int(np.sum(kind == k)) for k in BodyKind}},
             "fps": self.schedule.fps,
             "frames": len(frames),
             "contacts": {
@@ -151,7 +147,30 @@ class Report:
         notes = self._notes(notes)
         if notes:
             summary["notes"] = notes
+        motions = self._motions(sim) if consistent else None
+        if motions:
+            summary["motions"] = motions
         return summary
+
+    @staticmethod
+    def _motions(sim) -> dict | None:
+        """The ramps' and servos' last step by name (kernels/motion.py): displacement [m], velocity [m/s],
+        the force the grains push back with [N] and that force over the area [Pa]; None without any."""
+        model = sim.model
+        travel = getattr(sim.current_state, "motion_travel", None)
+        if not getattr(model, "has_measured_motions", False) or travel is None:
+            return None
+        rows = travel.numpy().astype(np.float64)
+        out = {}
+        for k, name in enumerate(model.motion_names):
+            motion = sim.scene.motions[name]
+            if motion.kind == "cycle":
+                continue
+            area = motion.area or float(model.motion_area[k])
+            d, v, f = rows[k]
+            out[name] = {"kind": motion.kind, "displacement": d, "velocity": v, "force": f,
+                         "stress": f / area if area > 0.0 else None}  # fmt: skip
+        return out
 
     def _region(self, scene, sim, contacts) -> dict:
         """:func:`settled_region` of the final state, with ``at_rest``: whether the free bodies are at rest by
@@ -167,7 +186,7 @@ class Report:
             criterion.check_gravity(scene.gravity)
             kinetic, gravity, speed = sim.settle_measures()
             if start is not None and start - gravity > 0.0:
-                check = SettleCheck(criterion, start, speed_limit=criterion.speed_limit_of(scene))
+                check = SettleCheck(criterion, start, speed_limit=criterion.speed_limit_of(scene, sim.model.settings))
                 at_rest = bool(check.holds(kinetic, gravity, speed))
         except ValueError:  # no gravity or no free bodies: nothing to judge
             pass

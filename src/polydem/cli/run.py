@@ -14,6 +14,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn, TextIO
 
 import numpy as np
 
@@ -28,11 +29,23 @@ from polydem.cli.record import RunLog, finite, run_record_problem
 from polydem.cli.report import Report
 from polydem.cli.schedule import Schedule
 from polydem.cli.settings import DEFAULT_STEPS, check_outputs, load_scene, pictures_setting
+from polydem.scene.bodies import BodyKind
+
+if TYPE_CHECKING:
+    import argparse
+
+    import warp as wp
+
+    from polydem.checkpoint import Checkpoint
+    from polydem.distributed.comm import Comm
+    from polydem.fronts import RunFront
+    from polydem.scene import Scene
+    from polydem.settle import SettleCheck, SettleCriterion
 
 __all__ = ["Run", "cmd_run", "roll_back"]
 
 
-def roll_back(sim) -> bool:
+def roll_back(sim: RunFront) -> bool:
     """Bring ``sim`` back to a consistent state after an exception inside ``Simulation.step``.
 
     A step interrupted part-way through a chunk has advanced the device state beyond
@@ -46,9 +59,19 @@ def roll_back(sim) -> bool:
 
 
 class Run:
-    """One ``polydem run`` of ``sim`` to step ``target``, writing into ``out_dir``."""
+    """One ``polydem run`` of ``sim`` (a :class:`~polydem.Simulation`, or rank 0's view of a decomposed run)
+    to step ``target``, writing into ``out_dir``."""
 
-    def __init__(self, args, scene, sim, out_dir: Path, target: int, resumed_from, settle=None):
+    def __init__(
+        self,
+        args: argparse.Namespace,
+        scene: Scene,
+        sim: RunFront,
+        out_dir: Path,
+        target: int,
+        resumed_from: Path | None,
+        settle: SettleCheck | None = None,
+    ) -> None:
         from polydem.simulation import CHUNK_STEPS
 
         self.args = args
@@ -76,11 +99,11 @@ class Run:
     def fps(self) -> float:
         return self.schedule.fps
 
-    def continue_record(self, checkpoint) -> None:
+    def continue_record(self, checkpoint: Checkpoint) -> None:
         """Continue the record of the run that wrote ``checkpoint`` (see :meth:`RunLog.continue_from`)."""
         self.log.continue_from(checkpoint)
 
-    def run_record(self, writing=None) -> dict:
+    def run_record(self, writing: Path | None = None) -> dict:
         """The record of the run up to now, kept in its checkpoints (``writing``: the checkpoint
         being written). Paths are absolute, so a run resumed into another folder still finds them."""
         o = self.outputs
@@ -167,7 +190,7 @@ class Run:
 
     # -- the run
 
-    def execute(self, out, err) -> int:
+    def execute(self, out: TextIO, err: TextIO) -> int:
         """Run to the target step; whatever stops the run, write the outputs. Returns the exit code."""
         self.outputs.out_dir.mkdir(parents=True, exist_ok=True)
         self.progress = Progress(err, self.start, self.schedule.target, self.sim.dt, enabled=not self.args.quiet)
@@ -203,7 +226,7 @@ class Run:
             if signals.received():
                 raise KeyboardInterrupt
 
-    def _execute(self, out, err) -> int:
+    def _execute(self, out: TextIO, err: TextIO) -> int:
         from polydem.simulation import SimulationError
 
         reason = failure = internal = None
@@ -248,7 +271,7 @@ class Run:
                 status = EXIT_FAILED
         return status
 
-    def _finish(self, out, err, reason, status) -> None:
+    def _finish(self, out: TextIO, err: TextIO, reason: str | None, status: int) -> None:
         """Final checkpoint and picture, plots, the summary, and the closing lines (also after an interruption)."""
         sim, o = self.sim, self.outputs
         wall = time.perf_counter() - self.t0
@@ -277,7 +300,7 @@ class Run:
         self.report.report(out, err, summary, cp_path, reason, status)
 
 
-def _target_steps(args, scene, dt: float) -> tuple[int, str]:
+def _target_steps(args: argparse.Namespace, scene: Scene, dt: float) -> tuple[int, str]:
     """Total steps from t = 0 and where they come from."""
     if args.steps is not None:
         return args.steps, "--steps"
@@ -290,7 +313,7 @@ def _target_steps(args, scene, dt: float) -> tuple[int, str]:
     return DEFAULT_STEPS, "the default"
 
 
-def _checkpoint_to_resume(args):
+def _checkpoint_to_resume(args: argparse.Namespace) -> tuple[Path | None, Checkpoint | None]:
     """The path and the checked checkpoint of ``--resume`` (None, None without it)."""
     if args.resume is None:
         return None, None
@@ -305,7 +328,7 @@ def _checkpoint_to_resume(args):
     return resume, read_checkpoint(resume, "--resume")
 
 
-def _output_folder(args, scene) -> Path:
+def _output_folder(args: argparse.Namespace, scene: Scene) -> Path:
     """The output folder (``--out``, default ``polydem_out/<scene name>/``), made if missing."""
     if args.out is not None:
         out_dir = Path(args.out)
@@ -343,7 +366,7 @@ def _output_folder(args, scene) -> Path:
     return out_dir
 
 
-def cmd_run(args) -> int:
+def cmd_run(args: argparse.Namespace) -> int:
     from polydem.distributed.comm import launched_size
 
     if launched_size() > 1:
@@ -358,11 +381,11 @@ def cmd_run(args) -> int:
 
     from polydem.simulation import Simulation
 
-    sim = Simulation(scene, device=dev)
+    sim: RunFront = Simulation(scene, device=dev)
     return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
 
 
-def _load(args):
+def _load(args: argparse.Namespace) -> tuple[Path | None, Checkpoint | None, Scene, wp.DeviceLike]:
     """The checkpoint to resume (path and contents, or None), the scene with the options applied, and the device."""
     resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
     scene = load_scene(args.scene)
@@ -374,7 +397,7 @@ def _load(args):
     return resume, checkpoint, scene, dev
 
 
-def _cmd_run_decomposed(args) -> int:
+def _cmd_run_decomposed(args: argparse.Namespace) -> int:
     """``mpiexec -n R polydem run``: rank 0 runs the command on a RootSimulation, the others follow it
     (:mod:`polydem.distributed.root`).
 
@@ -464,11 +487,11 @@ def _cmd_run_decomposed(args) -> int:
         sim.stop(code)  # the others exit with rank 0's code
 
 
-def _user_error(exc) -> bool:
+def _user_error(exc: BaseException) -> bool:
     return isinstance(exc, CliError) or type(exc).__name__ == "SceneError"
 
 
-def _agree(comm, failure) -> int | None:
+def _agree(comm: Comm, failure: Exception | None) -> int | None:
     """Whether some rank failed (``failure``: this rank's exception, or None), agreed by all (collective).
 
     None where none did. Else rank 0 raises its own exception (printed as a run of one process prints it)
@@ -504,7 +527,7 @@ def _agree(comm, failure) -> int | None:
     return code
 
 
-def _abort(comm, exc):
+def _abort(comm: Comm, exc: BaseException) -> NoReturn:
     """Print ``exc`` as this rank's error and abort every rank (MPI_Abort, exit code 2): during the run,
     where the others may be waiting for this rank inside a collective call and cannot agree."""
     message = str(exc) if _user_error(exc) else f"{type(exc).__name__}: {exc}"
@@ -516,7 +539,15 @@ def _abort(comm, exc):
     os._exit(2)
 
 
-def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
+def _run(
+    args: argparse.Namespace,
+    scene: Scene,
+    sim: RunFront,
+    out_dir: Path,
+    resume: Path | None,
+    checkpoint: Checkpoint | None,
+    criterion: SettleCriterion | None,
+) -> int:
     out, err = sys.stdout, sys.stderr
     signals.check()
     target, source = _target_steps(args, scene, sim.dt)
@@ -540,8 +571,8 @@ def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
     if criterion is not None:
         what += f"until settled ({criterion.describe(scene)}), at most "
     out.write(
-        f"{scene.name}: {plural(sim.num_bodies, 'body', 'bodies')} ({int(np.sum(kind == 0))} free) on {sim.device}, "
-        f"dt {sim.dt:.4g} s; "
+        f"{scene.name}: {plural(sim.num_bodies, 'body', 'bodies')} ({int(np.sum(kind == BodyKind.FREE))} free) on "
+        f"{sim.device}, dt {sim.dt:.4g} s; "
         f"{what}to step {target} (t = {target * sim.dt:.6g} s, {source}); frames at {run.fps:g} per simulated s; "
         f"output in {out_dir}{os.sep}\n"
     )
@@ -549,7 +580,7 @@ def _run(args, scene, sim, out_dir, resume, checkpoint, criterion) -> int:
     return run.execute(out, err)
 
 
-def _warn_run_span(scene, dt, target, source) -> None:
+def _warn_run_span(scene: Scene, dt: float, target: int, source: str) -> None:
     """A warning where the run would change nothing or, of the default length, covers next to no time
     (:meth:`Scene.check_run_span`): the scene is sound, but the run is most likely not what was meant."""
     import warnings
@@ -568,7 +599,7 @@ _SETTLE_OPTIONS = (
 )
 
 
-def _settle_criterion(args, scene):
+def _settle_criterion(args: argparse.Namespace, scene: Scene) -> SettleCriterion | None:
     """The SettleCriterion of a run until settled (``--until-settled`` or the scene's), None for a run
     of fixed length; a setting that cannot work is a CliError naming the option."""
     from dataclasses import replace
@@ -603,7 +634,7 @@ def _settle_criterion(args, scene):
             "--settle-speed V (the largest speed in m/s) or a --settle-speed-fraction",
             key="--settle-kinetic" if args.settle_kinetic is None else "--settle-speed-fraction",
         ) from None
-    if not np.any(np.asarray(scene.body_kind) == 0):
+    if not np.any(np.asarray(scene.body_kind) == BodyKind.FREE):
         raise CliError("the scene has no free bodies: there is nothing to settle; leave --until-settled out", key=None)
     try:
         criterion.check_gravity(scene.gravity)
@@ -616,12 +647,12 @@ def _settle_criterion(args, scene):
     return criterion
 
 
-def _settle_check(sim, criterion, ck, path):
+def _settle_check(sim: RunFront, criterion: SettleCriterion, ck: Checkpoint | None, path: Path | None) -> SettleCheck:
     """The SettleCheck of a run until settled: from t = 0, or continued from the checkpoint ``ck``."""
     from polydem.settle import SettleCheck
 
     rec = (ck.run or {}).get("settle") if ck is not None else None
-    limit = criterion.speed_limit_of(sim.scene)
+    limit = criterion.speed_limit_of(sim.scene, sim.model.settings)
     if rec is None:
         # A run from t = 0, or one resumed from a run of fixed length: the energy released counts from t = 0
         # where the checkpoint's record knows it.
@@ -649,7 +680,7 @@ def _settle_check(sim, criterion, ck, path):
     return SettleCheck(criterion, float(start), held if same else None, speed_limit=limit)
 
 
-def _resume(sim, scene, path: Path, ck, args) -> None:
+def _resume(sim: RunFront, scene: Scene, path: Path, ck: Checkpoint, args: argparse.Namespace) -> None:
     """Put the checkpoint ``ck`` (read from ``path``) into ``sim`` after checking it against ``scene``."""
     from polydem.checkpoint import CheckpointError, check_scene, restore_checkpoint
 

@@ -123,10 +123,13 @@ def float32_rest_warnings(scene, rows) -> list[str]:
     depths instead of resting."""
     import numpy as np
 
-    if scene.precision != "float32" or not rows:
+    from polydem.kernels.precision import Precision
+    from polydem.scene.bodies import BodyKind
+
+    if scene.precision != Precision.FLOAT32 or not rows:
         return []
     a = scene.body_arrays()
-    free = a["kind"] == 0
+    free = a["kind"] == BodyKind.FREE
     radius = np.array([s.radius for s in scene.shapes.values()])[a["shape"][free]]
     reach = float(np.max(np.maximum(np.abs(a["position"][free]).max(axis=1), radius)))
     spacing = float(np.spacing(np.float32(reach)))

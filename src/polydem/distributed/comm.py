@@ -7,6 +7,13 @@ it is imported only here, and only when the environment says an MPI launcher sta
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, NoReturn, TypeAlias, TypeVar
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+T = TypeVar("T")
 
 # What MPICH (PMI), Open MPI, Intel MPI, Slurm's srun and Cray set for each rank they start.
 _SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMIX_SIZE", "SLURM_NTASKS", "ALPS_APP_PE")
@@ -45,35 +52,40 @@ class SerialComm:
     rank = 0
     size = 1
 
-    def Get_rank(self):
+    def Get_rank(self) -> int:
         return 0
 
-    def Get_size(self):
+    def Get_size(self) -> int:
         return 1
 
-    def bcast(self, obj, root=0):
+    def bcast(self, obj: T, root: int = 0) -> T:
         return obj
 
-    def gather(self, obj, root=0):
+    def gather(self, obj: T, root: int = 0) -> list[T]:
         return [obj]
 
-    def allgather(self, obj):
+    def allgather(self, obj: T) -> list[T]:
         return [obj]
 
-    def alltoall(self, objs):
+    def alltoall(self, objs: Sequence[T]) -> list[T]:
         return list(objs)
 
-    def allreduce(self, obj, op=None):
+    def allreduce(self, obj: T, op: Any = None) -> T:
         return obj
 
-    def Barrier(self):
+    def Barrier(self) -> None:
         pass
 
-    def Abort(self, code=1):
+    def Abort(self, code: int = 1) -> NoReturn:
         raise SystemExit(code)
 
 
-def world():
+if TYPE_CHECKING:
+    Comm: TypeAlias = SerialComm | MPI.Intracomm
+    """What the distributed classes take as a communicator: mpi4py's, or one rank alone."""
+
+
+def world() -> Comm:
     """``MPI.COMM_WORLD`` when launched by an MPI launcher with more than one rank, else a :class:`SerialComm`.
 
     Raises:
@@ -92,7 +104,7 @@ def world():
     return MPI.COMM_WORLD
 
 
-def op(name: str):
+def op(name: str) -> MPI.Op | None:
     """mpi4py's reduction ``name`` ("max", "min", "sum"), or None for a :class:`SerialComm`."""
     try:
         from mpi4py import MPI

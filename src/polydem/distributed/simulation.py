@@ -27,6 +27,7 @@ so they agree with the undivided run to rounding, not to the bit.
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import warp as wp
@@ -36,7 +37,12 @@ from polydem.distributed.comm import SerialComm, world
 from polydem.kernels.ghosts import launch_largest_move, launch_pack_rows, launch_unpack_rows
 from polydem.kernels.integrate import kinetic_energy
 from polydem.run_settings import run_settings
-from polydem.simulation import CHUNK_STEPS, Simulation, SimulationError
+from polydem.scene.bodies import BodyKind
+from polydem.simulation import CHUNK_STEPS, Simulation, SimulationError, Snapshot
+
+if TYPE_CHECKING:
+    from polydem.distributed.comm import Comm
+    from polydem.scene import Scene
 
 CHUNK = 50
 """Steps between two agreements of the ranks (errors, overflows, moves): each costs a synchronisation and an
@@ -104,7 +110,25 @@ class DistributedSimulation:
             the step's kernels, unless ``sync_timers`` is set (a synchronisation after each step's kernels).
     """
 
-    def __init__(self, scene, device=None, comm=None, *, margin=None, skin=None, use_graph=None, root=0, chunk=CHUNK):
+    scene: Scene
+    device: wp.Device
+    num_bodies: int
+    dt: float
+    steps_done: int
+    time: float
+
+    def __init__(
+        self,
+        scene: Scene,
+        device: wp.DeviceLike = None,
+        comm: Comm | None = None,
+        *,
+        margin: float | None = None,
+        skin: float | None = None,
+        use_graph: bool | None = None,
+        root: int = 0,
+        chunk: int = CHUNK,
+    ) -> None:
         self.comm = comm if comm is not None else world()
         self.rank = int(self.comm.Get_rank())
         self.size = int(self.comm.Get_size())
@@ -119,7 +143,7 @@ class DistributedSimulation:
         self.skin = self.settings.skin
         # Fixed and kinematic bodies (container slabs, drums) move as prescribed, the same on every rank,
         # and may be large: every rank holds them all and none is exchanged.
-        self._free = np.asarray(scene.body_kind) == 0
+        self._free = np.asarray(scene.body_kind) == BodyKind.FREE
         self.r_max = self.settings.radius_max
         self.margin = self.r_max if margin is None else float(margin)
         if not self.margin > 0.0:
@@ -134,16 +158,16 @@ class DistributedSimulation:
         self.chunk = int(chunk)
         if self.chunk < 1:
             raise ValueError(f"chunk must be >= 1 step, got {chunk!r}")
-        self._good = None
+        self._good: Snapshot | None = None
         self.redone = 0
         self._repartition_due = False  # half the margin used by the last step() call's last chunk
         self.sync_timers = False
-        self.sim = None
+        self.sim: Simulation | None = None
         self._initial_partition(pos[:, self.axis])
 
     # -- the rank's simulation ------------------------------------------------------------------
 
-    def _local_simulation(self, index):
+    def _local_simulation(self, index: np.ndarray) -> Simulation:
         """A Simulation of the bodies ``index`` (global, ascending) with the whole scene's settings."""
         return Simulation(
             self.scene, self.device, use_graph=self.use_graph, validate=False, settings=self.settings, bodies=index
@@ -151,7 +175,7 @@ class DistributedSimulation:
 
     # -- partitions -----------------------------------------------------------------------------
 
-    def _histogram(self, x):
+    def _histogram(self, x: np.ndarray) -> np.ndarray:
         """Cuts balanced by body count from the coordinates ``x`` of this rank's bodies (collective)."""
         lo = self._allreduce(float(x.min()) if len(x) else np.inf, "min")
         hi = self._allreduce(float(x.max()) if len(x) else -np.inf, "max")
@@ -161,14 +185,14 @@ class DistributedSimulation:
         counts = self._allreduce(counts, "sum")
         return partition.cuts_from_histogram(counts, lo, hi, self.size)
 
-    def _initial_partition(self, x_all):
+    def _initial_partition(self, x_all: np.ndarray) -> None:
         """At the start every rank has every body's position: the partition needs no messages
         beyond the histogram's sums (each rank histograms the bodies it would own by index)."""
         index, owner = self._partition_all(x_all)
         self._set_local(index, owner[index] == self.rank, owner[index], x_all[index])
         self.partitions += 1
 
-    def _partition_all(self, x_all):
+    def _partition_all(self, x_all: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cut the slabs from every body's coordinate ``x_all`` (known to every rank; each histograms an
         equal share of the bodies, collective); returns this rank's local bodies (global, ascending) and
         every body's owner."""
@@ -179,7 +203,16 @@ class DistributedSimulation:
         index = np.flatnonzero(self._holders(x_all, np.arange(n))[:, self.rank])
         return index, owner
 
-    def _set_local(self, index, owned, owner, x, rows=None, history=None, mesh_q=None):
+    def _set_local(
+        self,
+        index: np.ndarray,
+        owned: np.ndarray,
+        owner: np.ndarray,
+        x: np.ndarray,
+        rows: dict[str, np.ndarray] | None = None,
+        history: dict[str, np.ndarray] | None = None,
+        mesh_q: np.ndarray | None = None,
+    ) -> None:
         """Make ``index`` (global, ascending) this rank's local bodies and plan the ghost exchange."""
         self.local_index = np.asarray(index, dtype=np.int64)
         self.owned = np.asarray(owned, dtype=bool)
@@ -195,7 +228,7 @@ class DistributedSimulation:
                 saved = dict(rows)
                 st = self.sim.current_state
                 if not self.sim.model.friction:
-                    saved["plane_xi"] = st.plane_xi.numpy()
+                    saved["wall_xi"] = st.wall_xi.numpy()
                 if mesh_q is not None:
                     saved["mesh_q"] = mesh_q
                 saved["step_count"] = np.array([self.steps_done], dtype=st.step_count.numpy().dtype)
@@ -225,7 +258,7 @@ class DistributedSimulation:
             self._x0 = wp.array(self._x_partition, dtype=wp.float64, device=dev)
             self._moved = wp.zeros(1, dtype=wp.float64, device=dev)
 
-    def _buffers(self, index):
+    def _buffers(self, index: np.ndarray) -> tuple[wp.array, wp.array, wp.array]:
         """(device index, device rows, host rows) for the ghost rows of ``index`` (local) that go to or
         come from one rank; the host rows are pinned memory on a GPU, the device rows themselves on the CPU."""
         dev = self.device
@@ -234,7 +267,7 @@ class DistributedSimulation:
         host = rows if dev.is_cpu else wp.empty((len(index), ROW), dtype=scalar, device="cpu", pinned=True)
         return wp.array(np.asarray(index, dtype=np.int32), dtype=int, device=dev), rows, host
 
-    def _local_history(self, history):
+    def _local_history(self, history: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
         """Pair history with global keys (``key`` = a * N + b) as this rank's keys, for its pairs."""
         n_all = self.num_bodies
         n = len(self.local_index)
@@ -246,7 +279,7 @@ class DistributedSimulation:
         ok[ok] &= (self.local_index[ia[ok]] == a[ok]) & (self.local_index[ib[ok]] == b[ok])
         order = np.argsort(ia[ok].astype(np.int64) * n + ib[ok], kind="stable")
         st = self.sim.current_state
-        xi_dtype = st.plane_xi.numpy().dtype
+        xi_dtype = st.wall_xi.numpy().dtype
         return {
             "pair_key": (ia[ok].astype(np.int64) * n + ib[ok])[order],
             "pair_xi": history["pair_xi"][ok][order]
@@ -255,7 +288,7 @@ class DistributedSimulation:
             "pair_turn": history["pair_turn"][ok][order] if history else np.zeros(0, xi_dtype),
         }
 
-    def _repartition(self):
+    def _repartition(self) -> None:
         """Cut the slabs again and move bodies, ghosts and pair histories to their new ranks (collective)."""
         sim = self.sim
         x_local = self._coordinates()
@@ -265,9 +298,9 @@ class DistributedSimulation:
         if sim is not None:
             st = sim.current_state.numpy()
             holders = self._holders(x_local, self.local_index)
-            rows = {k: st[k] for k in ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn")}
+            rows = {k: st[k] for k in ("body_q", "body_v", "body_w", "body_dissipated", "wall_turn")}
             if sim.model.friction:
-                rows["plane_xi"] = st["plane_xi"]
+                rows["wall_xi"] = st["wall_xi"]
             hist = sim.current_contacts.history_numpy()
             n = len(self.local_index)
             la, lb = np.divmod(hist["pair_key"], n)
@@ -309,14 +342,14 @@ class DistributedSimulation:
         self._set_local(index, owner == self.rank, owner, x, rows=rows, history=history, mesh_q=mesh_q)
         self.partitions += 1
 
-    def _holders(self, x, index):
+    def _holders(self, x: np.ndarray, index: np.ndarray) -> np.ndarray:
         """(n, size) bool: the ranks that hold the bodies ``index`` (global) at coordinates ``x``: every
         rank for a body that is not free, else the owner and the ranks within the halo."""
         held = partition.holders(x, self.cuts, self.halo)
         held[~self._free[index]] = True
         return held
 
-    def restore_global(self, arrays, steps_done, time):
+    def restore_global(self, arrays: dict[str, np.ndarray] | None, steps_done: int, time: float) -> None:
         """Put the whole scene's state ``arrays`` (named as a checkpoint's, given on ``root``) into the ranks
         and partition afresh (collective): resuming a checkpoint, whoever wrote it."""
         arrays = self.comm.bcast(arrays if self.rank == self.root else None, root=self.root)
@@ -324,25 +357,25 @@ class DistributedSimulation:
         n = self.num_bodies
         x_all = np.asarray(arrays["body_q"])[:, self.axis].astype(np.float64)
         index, owner = self._partition_all(x_all)
-        fields = ["body_q", "body_v", "body_w", "body_dissipated", "plane_turn"]
-        if np.asarray(arrays["plane_xi"]).shape[0] == n and np.asarray(arrays["plane_turn"]).shape[0] == n:
-            fields.append("plane_xi")
+        fields = ["body_q", "body_v", "body_w", "body_dissipated", "wall_turn"]
+        if np.asarray(arrays["wall_xi"]).shape[0] == n and np.asarray(arrays["wall_turn"]).shape[0] == n:
+            fields.append("wall_xi")
         rows = {k: np.asarray(arrays[k])[index] for k in fields}
         history = {k: np.asarray(arrays[k]) for k in ("pair_key", "pair_xi", "pair_turn")}
         mesh_q = arrays.get("mesh_q")
         self._set_local(index, owner[index] == self.rank, owner[index], x_all[index], rows, history, mesh_q)
         self.partitions += 1
 
-    def saved_arrays(self):
+    def saved_arrays(self) -> dict[str, np.ndarray] | None:
         """The whole scene's state as a checkpoint keeps it (``State.SAVED`` and the pair history, global
         keys ``a * N + b``) on ``root``, None elsewhere (collective)."""
         mine = None
         if self.sim is not None:
             st = self.sim.current_state.numpy()
             own = self.owned
-            mine = {k: st[k][own] for k in ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn")}
+            mine = {k: st[k][own] for k in ("body_q", "body_v", "body_w", "body_dissipated", "wall_turn")}
             if self.sim.model.friction:
-                mine["plane_xi"] = st["plane_xi"][own]
+                mine["wall_xi"] = st["wall_xi"][own]
             mine["index"] = self.local_index[own]
             mine["mesh_q"] = st["mesh_q"]
             hist = self.sim.current_contacts.history_numpy()
@@ -357,15 +390,15 @@ class DistributedSimulation:
         parts = [p for p in parts if p is not None]
         n = self.num_bodies
         out = {}
-        for k in ("body_q", "body_v", "body_w", "body_dissipated", "plane_turn", "plane_xi"):
+        for k in ("body_q", "body_v", "body_w", "body_dissipated", "wall_turn", "wall_xi"):
             if k not in parts[0]:
                 continue
             a = np.zeros((n, *parts[0][k].shape[1:]), dtype=parts[0][k].dtype)
             for p in parts:
                 a[p["index"]] = p[k]
             out[k] = a
-        if "plane_xi" not in out:
-            out["plane_xi"] = self.sim.current_state.plane_xi.numpy() if self.sim is not None else np.zeros((1, 1, 3))
+        if "wall_xi" not in out:
+            out["wall_xi"] = self.sim.current_state.wall_xi.numpy() if self.sim is not None else np.zeros((1, 1, 3))
         out["mesh_q"] = parts[0]["mesh_q"]
         out["step_count"] = np.array([self.steps_done], dtype=np.int32)
         key = np.concatenate([p["pair_key"] for p in parts])
@@ -376,14 +409,14 @@ class DistributedSimulation:
         out["pair_turn"] = np.concatenate([p["pair_turn"] for p in parts])[order]
         return out
 
-    def _coordinates(self):
+    def _coordinates(self) -> np.ndarray:
         if self.sim is None:
             return np.zeros(0)
         return self.sim.current_state.body_q.numpy()[:, self.axis].astype(np.float64)
 
     # -- stepping -------------------------------------------------------------------------------
 
-    def step(self, n=1):
+    def step(self, n: int = 1) -> None:
         """Advance every rank ``n`` steps (collective).
 
         The ranks step in chunks of at most ``chunk`` steps, exchanging ghosts after every step and
@@ -461,12 +494,12 @@ class DistributedSimulation:
                     self._repartition_due = True
             self.timers["total"] += time.perf_counter() - t0
 
-    def _timed_repartition(self):
+    def _timed_repartition(self) -> None:
         t0 = time.perf_counter()
         self._repartition()
         self.timers["partition"] += time.perf_counter() - t0
 
-    def _chunk_flags(self):
+    def _chunk_flags(self) -> tuple[float, float, float, float]:
         """(polygon overflow, pair list overflow, non-finite state, largest move [m]) of this rank's chunk."""
         sim = self.sim
         if sim is None:
@@ -476,7 +509,7 @@ class DistributedSimulation:
         bad = sim.stepper.first_bad_step() is not None
         return (float(overflow), float(host_build), float(bad), float(self._moved.numpy()[0]))
 
-    def _bad_message(self):
+    def _bad_message(self) -> str:
         sim = self.sim
         if sim is None or sim.stepper.first_bad_step() is None:
             return ""
@@ -490,7 +523,7 @@ class DistributedSimulation:
             "the stiffness and the initial overlaps."
         )
 
-    def _exchange(self):
+    def _exchange(self) -> None:
         """Send the new poses and velocities of my bodies that are ghosts elsewhere; take my ghosts' from
         their owners."""
         comm = self.comm
@@ -518,14 +551,14 @@ class DistributedSimulation:
             launch_unpack_rows(rows=rows, index=index, q=q, v=v, w=w)
         self.sim.forget_diagnostics()
 
-    def _track_move(self):
+    def _track_move(self) -> None:
         """Raise ``_moved`` (device) to the largest move along the axis of a free body of mine since the
         partition [m]; no host synchronisation."""
         if self.sim is None:
             return
         launch_largest_move(q=self._views[0], axis=self.axis, x0=self._x0, mine=self._mine, moved=self._moved)
 
-    def _allreduce(self, value, how):
+    def _allreduce(self, value: float | np.ndarray | tuple[float, ...], how: str) -> Any:
         comm = self.comm
         if isinstance(comm, SerialComm):
             return value
@@ -540,7 +573,7 @@ class DistributedSimulation:
 
     # -- reading the state (collective) -----------------------------------------------------------
 
-    def _pair_is_mine(self, a, b):
+    def _pair_is_mine(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether this rank books the contacts of local bodies ``a`` and ``b`` (``b < 0``: a wall): the owner
         of A does, or of B where A is a fixed or kinematic body (held by every rank, so the grain's owner
         has the pair, and the body's own owner may not)."""
@@ -550,13 +583,13 @@ class DistributedSimulation:
         by_b = (b >= 0) & ~free[a]
         return np.where(by_b, self.owned[np.maximum(b, 0)], self.owned[a])
 
-    def _owned_rows(self):
+    def _owned_rows(self) -> dict[str, np.ndarray] | None:
         if self.sim is None:
             return None
         st = self.sim.state()
         return {"index": self.local_index[self.owned], **{k: v[self.owned] for k, v in st.items()}}
 
-    def state(self):
+    def state(self) -> dict[str, np.ndarray] | None:
         """The whole scene's state on ``root`` (as :meth:`Simulation.state`, in global body order), None elsewhere."""
         parts = self.comm.gather(self._owned_rows(), root=self.root)
         if self.rank != self.root:
@@ -572,7 +605,7 @@ class DistributedSimulation:
             out[k] = a
         return out
 
-    def contacts(self):
+    def contacts(self) -> dict[str, np.ndarray] | None:
         """The whole scene's contacts on ``root`` (as :meth:`Simulation.contacts`, body indices global:
         pairs in key order, then wall contacts by body and wall), None elsewhere. Each contact comes
         from the rank owning its body A (B where A is not free): none is missed or counted twice."""
@@ -595,7 +628,7 @@ class DistributedSimulation:
         order = np.lexsort((np.where(wall, -1 - b, b), a, wall))
         return {k: v[order] for k, v in out.items()}
 
-    def energy(self):
+    def energy(self) -> dict[str, float]:
         """The energies of :meth:`Simulation.energy`, summed over the ranks (on every rank): each rank
         books its own bodies and the pairs it owns."""
         keys = ("kinetic", "contact", "gravity", "dissipated")
@@ -611,7 +644,7 @@ class DistributedSimulation:
         out["total"] = sum(total)
         return out
 
-    def settle_measures(self):
+    def settle_measures(self) -> tuple[float, float, float]:
         """(kinetic energy [J], gravitational energy [J], largest speed [m/s]) of the free bodies, as
         :meth:`Simulation.settle_measures`, over all ranks (on every rank)."""
         kin = grav = speed = 0.0
@@ -621,7 +654,7 @@ class DistributedSimulation:
             lin, ang = kinetic_energy(
                 m.body_inv_mass, m.body_inertia, m.body_flags, st.body_q, st.body_v, st.body_w, device=sim.device
             )
-            free = self.owned & (m.body_flags_np == 0)
+            free = self.owned & (m.body_flags_np == BodyKind.FREE)
             kin = float(np.sum(lin.numpy()[free], dtype=np.float64) + np.sum(ang.numpy()[free], dtype=np.float64))
             x = st.body_q.numpy()[:, :3].astype(np.float64)
             grav = -float(np.sum(m.body_mass[free].astype(np.float64) * (x[free] @ m.gravity)))
@@ -633,7 +666,7 @@ class DistributedSimulation:
         speed = self._allreduce(speed, "max")
         return kin, grav, speed
 
-    def balance(self):
+    def balance(self) -> tuple[np.ndarray, np.ndarray]:
         """Owned and local (owned + ghost) body counts of every rank, on every rank: two (size,) arrays."""
         counts = self.comm.allgather((int(self.owned.sum()), len(self.local_index)))
         return np.array([c[0] for c in counts]), np.array([c[1] for c in counts])

@@ -68,7 +68,7 @@ the messages and ``Scene.to_dict`` come from the declaration); quaternion maths 
 """
 
 from polydem.quaternions import quat_to_matrix
-from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS, MAX_BODIES, Body
+from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS, MAX_BODIES, Body, BodyKind
 from polydem.scene.checks import (
     F32_HIGH,
     F32_LOW,
@@ -94,6 +94,7 @@ from polydem.scene.walls import Drum, PlaneWall
 
 __all__ = [
     "Body",
+    "BodyKind",
     "Drum",
     "F32_HIGH",
     "F32_LOW",

@@ -3,6 +3,7 @@ that add bodies to a scene and read them back."""
 
 from __future__ import annotations
 
+import enum
 import numbers
 from dataclasses import dataclass, field
 
@@ -20,9 +21,25 @@ from polydem.scene.values import (
     read_vector,
 )
 
-KINDS = ("free", "fixed", "kinematic")
-"""Body kinds; the integer code stored in :attr:`Scene.body_kind` is the index in this tuple."""
-KIND_FREE, KIND_FIXED, KIND_KINEMATIC = 0, 1, 2
+
+class BodyKind(enum.IntEnum):
+    """The kinds of body, by the code that :attr:`Scene.body_kind` and the model's ``body_flags`` hold (an
+    ``int`` enum: ``BodyKind.FIXED == 1``, so the arrays, the kernels and the checkpoints keep their codes);
+    a scene file names a kind by its :attr:`label`."""
+
+    FREE = 0
+    FIXED = 1
+    KINEMATIC = 2
+
+    @property
+    def label(self) -> str:
+        """The name a scene file gives the kind: "free", "fixed" or "kinematic"."""
+        return self.name.lower()
+
+
+KINDS = tuple(kind.label for kind in BodyKind)
+"""Body kinds by label; the code of a :class:`BodyKind` is its index in this tuple."""
+KIND_FREE, KIND_FIXED, KIND_KINEMATIC = BodyKind.FREE, BodyKind.FIXED, BodyKind.KINEMATIC
 
 MAX_BODIES = 10**8
 """Most bodies of one scene: 100 times the largest scenes the simulator is meant for (10^6), low

@@ -68,6 +68,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from polydem.kernels.laws import LAW_SPECS, LAWS, TOE_MIN_RESTITUTION, TOE_OMEGA_DT
+from polydem.scene.bodies import BodyKind
 from polydem.shapes import largest_face_area
 
 __all__ = [
@@ -570,7 +571,7 @@ def pile_depths(scene, ts=None, allowed: float = ALLOWED_CORNER_DEPTH) -> list[P
     toe); and the k for a corner ``allowed`` of the size deep under the column (under dt = "auto" the step,
     and with it the toe, follows k: :func:`auto_dt`). Empty without gravity or free bodies."""
     a = scene.body_arrays()
-    free = a["kind"] == 0
+    free = a["kind"] == BodyKind.FREE
     g = float(np.linalg.norm(scene.gravity))
     if not free.any() or g <= 0.0:
         return []

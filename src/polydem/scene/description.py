@@ -27,7 +27,7 @@ from polydem.scene import checks, loader, overlaps
 from polydem.scene import emitters as scene_emitters
 from polydem.scene import materials as scene_materials
 from polydem.scene import walls as scene_walls
-from polydem.scene.bodies import BODY, KINDS, Body, BodyTable
+from polydem.scene.bodies import BODY, Body, BodyKind, BodyTable
 from polydem.scene.emitters import EMITTER
 from polydem.scene.errors import SceneError, SceneWarning, unknown_name
 from polydem.scene.materials import LAW_UNITS, Material, MaterialTable, PairMaterial
@@ -309,7 +309,7 @@ class Scene:
 
     @property
     def body_kind(self) -> np.ndarray:
-        """(N,) int32 kind code: 0 free, 1 fixed, 2 kinematic (see :data:`KINDS`)."""
+        """(N,) int32 kind code: a :class:`~polydem.scene.bodies.BodyKind` (0 free, 1 fixed, 2 kinematic)."""
         return self.body_table.view("kind")
 
     @property
@@ -552,10 +552,10 @@ class Scene:
         run at every validation and the Model reuses them; the cells only change with the thickness)."""
         return scene_walls.mesh_wall_cells(self, wall, thickness)
 
-    def add_motion(self, name: str, frequency, **props) -> Motion:
-        """Register a prescribed motion (vibration or taps, :class:`~polydem.scene.motions.Motion`) that box
-        containers (``add_box_container(..., motion=name)``) and kinematic bodies (:meth:`drive`) follow;
-        ``props`` are its other fields (amplitude or gamma, axis, start, period, count)."""
+    def add_motion(self, name: str, frequency=None, **props) -> Motion:
+        """Register a prescribed motion (vibration, taps, a ramp or a servo: :class:`~polydem.scene.motions.Motion`)
+        that box containers (``add_box_container(..., motion=name)``) and kinematic bodies (:meth:`drive`) follow;
+        ``frequency`` and ``props`` are its fields (kind, amplitude or gamma, axis, start, period, count, ...)."""
         if name in self.motions:
             raise self.error(f"motion {name!r} is already defined; give each motion its own name", f"motions.{name}")
         try:
@@ -579,7 +579,7 @@ class Scene:
         self.motion_named(motion, key)
         kind = np.asarray(self.body_kind)
         for i in np.atleast_1d(np.asarray(bodies, dtype=np.int64)).tolist():
-            if not 0 <= i < self.num_bodies or kind[i] != KINDS.index("kinematic"):
+            if not 0 <= i < self.num_bodies or kind[i] != BodyKind.KINEMATIC:
                 raise self.error(f"body {i} is not a kinematic body of this scene: only kinematic bodies follow a "
                                  "motion (kind = 'kinematic')", key)  # fmt: skip
             self.body_motion[int(i)] = motion

@@ -122,7 +122,7 @@ def _read_materials(scene, data, file):
 def _read_motions(scene, data, file):
     motions = read_table(data.get("motions", {}), "motions", file, what="tables [motions.NAME], one per motion")
     for name, props in motions.items():
-        props = read_table(props, f"motions.{name}", file, what=f"a table [motions.{name}] with {MOTION.required[0]}")
+        props = read_table(props, f"motions.{name}", file, what=f"a table [motions.{name}]")
         MOTION.check(props, f"motions.{name}", file)
         try:
             scene.add_motion(name, **props)

@@ -130,8 +130,8 @@ class Material:
         return LAW_SPECS[self.law].exponent(self.m)
 
     def contact_law(self):
-        """This material's :class:`polydem.contact.ContactLaw` (for contacts with itself)."""
-        from polydem.contact import ContactLaw  # imports Warp; keep the scene package host-only
+        """This material's :class:`polydem.batch.ContactLaw` (for contacts with itself)."""
+        from polydem.batch import ContactLaw  # imports Warp; keep the scene package host-only
 
         return ContactLaw(kind=self.law, k=self.k, m=self.exponent)
 
@@ -161,8 +161,8 @@ class PairMaterial:
     tangential_stiffness: float | None
 
     def contact_law(self):
-        """The pair's :class:`polydem.contact.ContactLaw`."""
-        from polydem.contact import ContactLaw
+        """The pair's :class:`polydem.batch.ContactLaw`."""
+        from polydem.batch import ContactLaw
 
         return ContactLaw(kind=self.law, k=self.k, m=self.exponent)
 

@@ -12,15 +12,11 @@ from dataclasses import fields
 
 import numpy as np
 
+from polydem.kernels.precision import PRECISIONS
 from polydem.scene.errors import SceneError, did_you_mean
 from polydem.scene.schema import Key, Table
 from polydem.scene.values import F32_HIGH, F32_MARGIN, read_number, read_string, read_vector, typename
 from polydem.settle import SPEED_FRACTION, SettleCriterion
-
-PRECISIONS = ("float32", "mixed", "float64")
-"""Values of ``[simulation] precision`` (:mod:`polydem.kernels.precision`): everything in float32;
-"mixed" (the default), float64 positions, velocities and force sums with float32 contact geometry in
-a frame local to each contact; everything in float64."""
 
 MAX_STEPS = 2**31 - 1
 """Most steps of one run: the simulator counts steps in a 32-bit integer."""

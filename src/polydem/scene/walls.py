@@ -10,7 +10,7 @@ import numpy as np
 
 from polydem.meshwall import CELL_TOLERANCE, MAX_SIZE_RATIO, MeshWallError, check_winding, clean_triangles
 from polydem.quaternions import quat_from_matrix
-from polydem.scene.bodies import KIND_KINEMATIC, append_bodies
+from polydem.scene.bodies import KIND_KINEMATIC, BodyKind, append_bodies
 from polydem.scene.materials import Material
 from polydem.scene.schema import LENGTH, LENGTH_WHY, REQUIRED, SPEED, SPEED_WHY, Key, Table
 from polydem.scene.values import as_tuple, read_number, read_string, read_vector, unit_normal
@@ -437,7 +437,8 @@ def mesh_wall_thickness(scene, wall: MeshWall) -> float:
         return float(wall.thickness)
     shapes = list(scene.shapes.values())
     kind = np.asarray(scene.body_kind)
-    used = np.unique(np.asarray(scene.body_shape)[kind == 0]) if (kind == 0).any() else range(len(shapes))
+    free = kind == BodyKind.FREE
+    used = np.unique(np.asarray(scene.body_shape)[free]) if free.any() else range(len(shapes))
     return 2.0 * max(shapes[int(k)].radius for k in used)
 
 

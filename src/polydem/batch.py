@@ -35,8 +35,8 @@ import warp as wp
 
 from polydem.compound import CompoundShape
 from polydem.kernels.laws import LAW_SPECS, LAWS
-from polydem.kernels.narrowphase import launch_depth, launch_overlap
-from polydem.kernels.response import ENCLOSED, launch_contact_force, launch_contact_frame
+from polydem.kernels.narrowphase import BatchPairs, launch_depth, launch_overlap
+from polydem.kernels.response import ENCLOSED, batch_overlaps, launch_contact_force, launch_contact_frame
 from polydem.quaternions import quat_from_matrix, quat_multiply, quat_rotate
 from polydem.shapes import ConvexShape
 from polydem.shapeset import ShapeSet, scalar_type
@@ -287,9 +287,10 @@ def overlap(shape_a, poses_a, shape_b, poses_b, *, frame="input", device=None, p
     ids_b = wp.ones(n, dtype=int, device=dev)
     poses_a64 = wp.array(local_a, dtype=transform, device=dev)
     poses_b64 = wp.array(local_b, dtype=transform, device=dev)
-    launch_overlap(shapes, ids_a, ids_b, poses_a64, poses_b64, out, pose_scalar=pose_scalar)
+    pairs = BatchPairs(ids_a, ids_b, poses_a64, poses_b64)
+    launch_overlap(shapes, pairs, out=out, pose_scalar=pose_scalar)
     res = {k: v.numpy().astype(np.float64) for k, v in out.items()}
-    depth = launch_depth(shapes, ids_a, ids_b, poses_a64, poses_b64, pose_scalar).numpy().astype(np.float64)
+    depth = launch_depth(shapes, pairs, pose_scalar=pose_scalar).numpy().astype(np.float64)
     # Bodies separated only along an edge-edge direction overlap along every face normal: no depth.
     res["pair_depth"] = np.where(res["pair_volume"] > 0.0, depth, 0.0)
     return _finish(res, origin, pb[:, :3], local_b[:, :3], shape_a.radius, shape_b.radius, dev)
@@ -301,10 +302,19 @@ def _finish(res, origin, position_b, rel_b, radius_a, radius_b, device):
     m_local = res["pair_moment_a"]  # about A's centre
     # Normal, enclosed push and contact point: the Warp function of the simulator's contacts, in
     # float64 whatever the precision of the overlap.
+    pairs = batch_overlaps(
+        wp.float64,
+        device,
+        volume=volume,
+        first_moment=res["pair_volume_moment"],
+        area=s_a,
+        moment=m_local,
+        fallback=res["pair_fallback_a"],
+        r_ab=rel_b,
+    )
     kind, normal, point_local = launch_contact_frame(
-        wp.float64, device, volume, res["pair_volume_moment"], s_a, m_local, res["pair_fallback_a"], rel_b,
-        min(radius_a, radius_b), radius_a / (radius_a + radius_b),
-    )  # fmt: skip
+        pairs, r_min=min(radius_a, radius_b), share_a=radius_a / (radius_a + radius_b)
+    )
     touching = volume > 0.0
     centroid_local = point_local.copy()  # between the bounding spheres where nothing overlaps
     centroid_local[touching] = res["pair_volume_moment"][touching] / volume[touching, None]
@@ -346,10 +356,17 @@ def contact_forces(result, law, *, device=None):
     # radius leaves any other pair with a vanishing S_A without force (a sliver).
     fallback = np.where(result.enclosed[:, None], result.enclosed_area_vector, 0.0)
     r_min = np.where(result.enclosed, 0.0, np.inf)
-    force_a, torque_a, energy = launch_contact_force(
-        law.kind, law.k, law.exponent, wp.get_device(device), volume, volume[:, None] * (result.centroid - xa),
-        result.area_vector, result.moment - np.cross(xa, result.area_vector), fallback, xb - xa, r_min,
-    )  # fmt: skip
+    pairs = batch_overlaps(
+        wp.float64,
+        wp.get_device(device),
+        volume=volume,
+        first_moment=volume[:, None] * (result.centroid - xa),
+        area=result.area_vector,
+        moment=result.moment - np.cross(xa, result.area_vector),
+        fallback=fallback,
+        r_ab=xb - xa,
+    )
+    force_a, torque_a, energy = launch_contact_force(pairs, law=law.kind, k=law.k, m=law.exponent, r_min=r_min)
     force_b = -force_a
     # Moment of the pair's wrench about B's centre: balance with A's about a common point.
     torque_b = -torque_a - np.cross(xa - xb, force_a)
