@@ -581,7 +581,7 @@ def test_momentum_conserved_without_walls(device, precision):
 
 def test_pour_settles_in_box(device):
     """512 mixed polyhedra dropped from an 8 x 8 x 8 grid into an open box settle: finite, inside,
-    small overlaps, kinetic energy gone. 75 s on one CPU thread (a 6 x 6 x 5 grid takes 25 s)."""
+    small overlaps, kinetic energy gone. About 5 min on one CPU thread (a 6 x 6 x 5 grid takes 100 s)."""
     pour(device, 8, 8)
 
 
