@@ -59,8 +59,8 @@ FAULTS = (
     Fault(
         "gravity 1e-4 strong",
         "kernels/integrate.py",
-        "        v_new = v + (body_f[i] * body_inv_mass[i] + gravity) * dt\n",
-        "        v_new = v + (body_f[i] * body_inv_mass[i] + gravity * scalar(1.0 + 1.0e-4)) * dt\n",
+        "        v_new = v + (bodies.f[i] * model.inv_mass[i] + gravity) * dt\n",
+        "        v_new = v + (bodies.f[i] * model.inv_mass[i] + gravity * scalar(1.0 + 1.0e-4)) * dt\n",
         ("tests/test_simulation.py::test_free_fall_and_projectile_closed_form[cpu-mixed]",),
     ),
     Fault(

@@ -53,10 +53,10 @@ def io_bytes(shapes):
     tf = wp.types.transformation(scalar)
     dev = "cpu"  # only the dtypes matter
     inputs = {
-        "pair_shape_a": wp.zeros(1, dtype=int, device=dev),
-        "pair_shape_b": wp.zeros(1, dtype=int, device=dev),
-        "pair_pose_a": wp.zeros(1, dtype=tf, device=dev),
-        "pair_pose_b": wp.zeros(1, dtype=tf, device=dev),
+        "pairs.shape_a": wp.zeros(1, dtype=int, device=dev),
+        "pairs.shape_b": wp.zeros(1, dtype=int, device=dev),
+        "pairs.pose_a": wp.zeros(1, dtype=tf, device=dev),
+        "pairs.pose_b": wp.zeros(1, dtype=tf, device=dev),
     }
     outputs = {"pair_volume": wp.zeros(1, dtype=scalar, device=dev)}
     for k in pk.OVERLAP_OUTPUTS[1:]:

@@ -129,6 +129,16 @@ def flat_pairs(shape, n, rng):
     return np.hstack([np.zeros((n, 3)), qa]), np.hstack([p, qb])
 
 
+def pair_inputs(kernel, arrays):
+    """The pairs' arguments of an overlap kernel: one ``pairs`` struct (since issue 25) or, in older trees, the
+    four arrays shape_a, shape_b, pose_a, pose_b themselves."""
+    if "pairs" not in [arg.label for arg in kernel.adj.args]:
+        return arrays
+    from polydem.kernels.narrowphase import BatchPairs
+
+    return [BatchPairs(*arrays).struct()]
+
+
 def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None):
     """Median seconds of a launch of the engine's overlap kernel over the pairs, and the outputs.
     ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode)."""
@@ -141,13 +151,13 @@ def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=
     tf = wp.types.transformation(pose_scalar)
     cap, faces = shapes.default_poly_capacity, shapes.max_faces
     kernel = make_narrowphase(scalar, cap, faces, max_registers=max_registers, pose_scalar=pose_scalar).overlap_kernel
-    args = [
-        *shapes.kernel_args(),
+    pair_arrays = [
         wp.zeros(n, dtype=int, device=dev),
         wp.zeros(n, dtype=int, device=dev),
         wp.array(poses_a.astype(np_pose), dtype=tf, device=dev),
         wp.array(poses_b.astype(np_pose), dtype=tf, device=dev),
     ]
+    args = [*shapes.kernel_args(), *pair_inputs(kernel, pair_arrays)]
     outs = [wp.zeros(n, dtype=scalar, device=dev)]
     outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
     overflow = wp.zeros(1, dtype=int, device=dev)

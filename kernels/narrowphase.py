@@ -58,9 +58,6 @@ class BatchPairs:
     pose_a: wp.array
     pose_b: wp.array
 
-    def kernel_args(self) -> list[wp.array]:
-        return [self.shape_a, self.shape_b, self.pose_a, self.pose_b]
-
     def struct(self) -> Any:
         """The arrays in a :func:`batch_pairs_struct` (for the depth kernel)."""
         pose_scalar = wp.float64 if wp.types.types_equal(self.pose_a.dtype, wp.transformd) else wp.float32
@@ -118,16 +115,16 @@ def make_narrowphase(
     # With ``compound`` the shapes may be compound grains (summed over their part pairs).
     pair_geometry = make_body_geometry(geom, compound).pair_geometry
 
-    # Arrays, one per quantity (no struct): benchmarks/pair_kernel.py launches this kernel of older trees too.
+    Pairs = batch_pairs_struct(geom.pose_scalar)
+
+    # The outputs stay one array per quantity: benchmarks/pair_kernel.py launches this kernel of older trees
+    # too, and reads the outputs by OVERLAP_OUTPUTS.
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def overlap_kernel(
         # Model
         shapes: Shapes,
         # State in
-        pair_shape_a: wp.array(dtype=int),
-        pair_shape_b: wp.array(dtype=int),
-        pair_pose_a: wp.array(dtype=transform),
-        pair_pose_b: wp.array(dtype=transform),
+        pairs: Pairs,
         # Out
         pair_volume: wp.array(dtype=scalar),
         pair_volume_moment: wp.array(dtype=vec3),
@@ -140,7 +137,7 @@ def make_narrowphase(
     ):
         i = wp.tid()
         vol, vol_c, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(
-            shapes, pair_shape_a[i], pair_shape_b[i], pair_pose_a[i], pair_pose_b[i]
+            shapes, pairs.shape_a[i], pairs.shape_b[i], pairs.pose_a[i], pairs.pose_b[i]
         )
         if of != 0:
             wp.atomic_add(overflow, 0, 1)
@@ -237,7 +234,7 @@ def launch_overlap(
         wp.launch(
             nphase.overlap_kernel,
             dim=n,
-            inputs=[*shapes.kernel_args(), *pairs.kernel_args()],
+            inputs=[*shapes.kernel_args(), pairs.struct()],
             outputs=[*(out[name] for name in OVERLAP_OUTPUTS), overflow],
             device=shapes.device,
             block_dim=NARROWPHASE_BLOCK_DIM,

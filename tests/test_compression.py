@@ -65,7 +65,8 @@ def test_servo_lid_comes_to_rest_at_its_target_force(device):
     assert abs(v) < 1e-4 and sim.energy()["kinetic"] < 1e-9
     # The grains settle to 0.1 mm below the lid and deflect by a few micrometres under 20 N.
     assert 5e-5 < d < 3e-4
-    assert lid_force(sim, lid) == pytest.approx(f, rel=2e-5)  # up, against the axis: the same pair forces summed in another order
+    # Up, against the axis: the same pair forces summed in another order.
+    assert lid_force(sim, lid) == pytest.approx(f, rel=2e-5)
     z = sim.state()["body_position"][lid, 2]
     assert z == pytest.approx(0.0226 - d, abs=1e-12)
 

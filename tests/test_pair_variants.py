@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import warp as wp
 from polydem.kernels.forces import PAIR_MAX_REGISTERS
-from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM, OVERLAP_OUTPUTS, make_narrowphase
+from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM, OVERLAP_OUTPUTS, BatchPairs, make_narrowphase
 from scipy.spatial.transform import Rotation
 
 from polydem import ConvexShape, Scene, Simulation
@@ -80,10 +80,12 @@ def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device):
         dim=n,
         inputs=[
             *shapes.kernel_args(),
-            wp.array(sa.astype(np.int32), dtype=int, device=device),
-            wp.array(sb.astype(np.int32), dtype=int, device=device),
-            wp.array(pa.astype(np_pose), dtype=tf, device=device),
-            wp.array(pb.astype(np_pose), dtype=tf, device=device),
+            BatchPairs(
+                wp.array(sa.astype(np.int32), dtype=int, device=device),
+                wp.array(sb.astype(np.int32), dtype=int, device=device),
+                wp.array(pa.astype(np_pose), dtype=tf, device=device),
+                wp.array(pb.astype(np_pose), dtype=tf, device=device),
+            ).struct(),
         ],
         outputs=[*out, overflow],
         device=device,
