@@ -139,7 +139,7 @@ def test_module_help_subprocess():
         [sys.executable, "-m", "polydem", "--help"], capture_output=True, text=True, timeout=60, cwd=REPO
     )
     assert proc.returncode == 0, proc.stderr
-    for command in ("run", "validate", "render", "info"):
+    for command in ("run", "validate", "render", "tap", "compress", "anneal", "info"):
         assert command in proc.stdout
     assert "Traceback" not in proc.stderr
 
@@ -147,7 +147,7 @@ def test_module_help_subprocess():
 def test_every_option_is_described(capsys):
     parser = cli.build_parser()
     sub = next(a for a in parser._actions if hasattr(a, "choices") and isinstance(a.choices, dict))
-    assert set(sub.choices) == {"run", "validate", "render", "info"}
+    assert set(sub.choices) == {"run", "validate", "render", "tap", "compress", "anneal", "info"}
     for name, command in sub.choices.items():
         code, out, _ = run([name, "--help"], capsys)
         assert code == 0

@@ -28,6 +28,26 @@ import numpy as np
 __all__ = ["AnnealRecord", "CompressionRecord", "TapRecord", "anneal", "compress", "tap"]
 
 
+def _measuring_box(grains, box, margin: float):
+    """``box`` (a Box, or a function of the grains that returns one), or the box around the free grains moved in
+    by ``margin`` grain sizes."""
+    from polydem import measures
+
+    if box is not None:
+        return box(grains) if callable(box) else box
+    around = measures.Box.around(grains)
+    d = margin * grains.grain_size()
+    try:
+        return around.shrunk(d)
+    except ValueError:
+        size = around.upper - around.lower
+        raise ValueError(
+            f"a margin of {margin:g} grain sizes ({d:.3g} m) leaves nothing of the box around the grains "
+            f"({size[0]:.3g} x {size[1]:.3g} x {size[2]:.3g} m) to measure the packing fraction in; give a smaller "
+            "margin (or a box)"
+        ) from None
+
+
 @dataclass(frozen=True)
 class TapRecord:
     """The packing after one tap.
@@ -47,7 +67,7 @@ class TapRecord:
     fastest: float
 
 
-def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1) -> list[TapRecord]:
+def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1, on_record=None) -> list[TapRecord]:
     """Step ``sim`` through the taps of its scene's ``motion`` and measure the packing after each.
 
     Args:
@@ -59,6 +79,8 @@ def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1) -
             free grains at each measurement, moved in by ``margin`` grain sizes (away from the walls and the
             loose top).
         lead: how long before the next tap (as a fraction of the rest between taps) to measure.
+        on_record: called with each :class:`TapRecord` as soon as it is measured (``polydem tap`` prints and
+            keeps them, so that a run stopped part-way loses none).
 
     Returns:
         One :class:`TapRecord` before the first tap (where the call starts before it) and one per tap.
@@ -87,15 +109,15 @@ def tap(sim, motion: str, box=None, *, margin: float = 2.0, lead: float = 0.1) -
         if steps:
             sim.step(steps)
         grains = measures.Grains.from_simulation(sim)
-        if box is None:
-            where = measures.Box.around(grains).shrunk(margin * grains.grain_size())
-        else:
-            where = box(grains) if callable(box) else box
+        where = _measuring_box(grains, box, margin)
         state = sim.state()
         free = grains.free
         v = np.linalg.norm(np.asarray(state["body_velocity"], dtype=np.float64)[free], axis=1)
         kinetic = float(sim.energy()["kinetic"])
-        records.append(TapRecord(k, float(sim.time), measures.packing_fraction(grains, where), kinetic, float(v.max())))
+        record = TapRecord(k, float(sim.time), measures.packing_fraction(grains, where), kinetic, float(v.max()))
+        records.append(record)
+        if on_record is not None:
+            on_record(record)
     return records
 
 
@@ -146,7 +168,7 @@ def _piston_motions(sim, motion) -> list[str]:
     return names
 
 
-def compress(sim, motion, duration: float, interval: float, box=None) -> list[CompressionRecord]:
+def compress(sim, motion, duration: float, interval: float, box=None, *, on_record=None) -> list[CompressionRecord]:
     """Run a compression for ``duration`` more seconds and record it every ``interval`` seconds.
 
     Args:
@@ -157,6 +179,7 @@ def compress(sim, motion, duration: float, interval: float, box=None) -> list[Co
         box: the :class:`polydem.measures.Box` of the packing fraction, or a function of the
             :class:`polydem.measures.Grains` at each record that returns it; default the box around the
             free grains (in a container closed by the piston: the sample).
+        on_record: called with each :class:`CompressionRecord` as soon as it is taken.
 
     Returns:
         The :class:`CompressionRecord` at the start and after each interval.
@@ -196,7 +219,10 @@ def compress(sim, motion, duration: float, interval: float, box=None) -> list[Co
             values = {k: float(v[0]) for k, v in values.items()}
         kinetic = float(sim.energy()["kinetic"])
         fraction = measures.packing_fraction(grains, where)
-        records.append(CompressionRecord(float(sim.time), **values, packing_fraction=fraction, kinetic=kinetic))
+        record = CompressionRecord(float(sim.time), **values, packing_fraction=fraction, kinetic=kinetic)
+        records.append(record)
+        if on_record is not None:
+            on_record(record)
         if sim.steps_done >= end:
             return records
         sim.step(min(every, end - sim.steps_done))
@@ -224,31 +250,45 @@ class AnnealRecord:
 
 
 def anneal(
-    sim, mu_fill: float, mu_final: float, fill_time: float, settle_time: float, *, material=None, box=None,
-    margin: float = 2.0, criterion=None,
+    sim, mu_fill: float, mu_final: float | None, fill_time: float, settle_time: float, *, material=None,
+    box=None, margin: float = 2.0, criterion=None, on_record=None,
 ) -> list[AnnealRecord]:  # fmt: skip
-    """Fill at a reduced friction, then restore it: a denser packing than a fill at the final friction.
+    """Fill at one friction, then restore the final one: below it a denser packing than a fill at the final
+    friction, above it a looser one.
 
     Sets the friction of ``material`` (default every material) to ``mu_fill``, runs until the grains
     have settled (at most ``fill_time`` seconds; :meth:`polydem.Simulation.run_until_settled` with
-    ``criterion``), then sets ``mu_final`` and runs until they have settled again (at most
-    ``settle_time``; the kinetic energy compared with the energy released since the fill began). The
-    simulation must be built with friction where either value is > 0 (:meth:`polydem.Simulation.set_friction`).
+    ``criterion``), then sets ``mu_final`` (None: each material's friction in the scene) and runs until
+    they have settled again (at most ``settle_time``; the kinetic energy compared with the energy released
+    since the fill began). The simulation must be built with friction where either value is > 0
+    (:meth:`polydem.Simulation.set_friction`).
 
     Args:
         box: as for :func:`tap`: a :class:`polydem.measures.Box`, or a function of the grains; default
             the box around the free grains moved in by ``margin`` grain sizes.
+        on_record: called with each :class:`AnnealRecord` as soon as its stage has ended.
 
     Returns:
-        Two :class:`AnnealRecord`: the end of the fill and the end of the final settling.
+        Two :class:`AnnealRecord`: the end of the fill and the end of the final settling. With
+        ``mu_final`` None the final record's ``friction`` is the scene's where the materials set to it share
+        one coefficient, else nan.
     """
     from polydem import measures
     from polydem.settle import SettleCheck
 
+    names = sim.scene.material_names if material is None else [material]
+    if material is not None and material not in names:
+        raise ValueError(f"unknown material {material!r}; the scene's materials are {', '.join(names)}")
+    scene_mu = {name: float(sim.scene.materials[name].friction) for name in names}
     records = []
     first = None
     for stage, mu, limit in (("fill", mu_fill, fill_time), ("final", mu_final, settle_time)):
-        sim.set_friction(mu, material)
+        if mu is None:
+            for name, value in scene_mu.items():
+                sim.set_friction(value, name)
+            mu = scene_mu[names[0]] if len(set(scene_mu.values())) == 1 else math.nan
+        else:
+            sim.set_friction(mu, material)
         check = sim.settle_check(criterion)
         if first is None:
             first = check
@@ -258,11 +298,11 @@ def anneal(
             check = SettleCheck(first.criterion, first.gravity_at_start, speed_limit=first.speed_limit)
         result = sim.run_until_settled(limit, check=check)
         grains = measures.Grains.from_simulation(sim)
-        if box is None:
-            where = measures.Box.around(grains).shrunk(margin * grains.grain_size())
-        else:
-            where = box(grains) if callable(box) else box
+        where = _measuring_box(grains, box, margin)
         fraction = measures.packing_fraction(grains, where)
         kinetic = float(sim.energy()["kinetic"])
-        records.append(AnnealRecord(stage, float(mu), float(sim.time), bool(result.settled), fraction, kinetic))
+        record = AnnealRecord(stage, float(mu), float(sim.time), bool(result.settled), fraction, kinetic)
+        records.append(record)
+        if on_record is not None:
+            on_record(record)
     return records

@@ -6,10 +6,14 @@
                 [--precision P] [--resume CHECKPOINT] [--picture-size WxH] [--vtk] [--quiet]
     polydem validate SCENE [SCENE ...] [--quiet]
     polydem render SOURCE --out IMAGE.png [--scene SCENE] [--frame K] [--width W] [--height H] [--device DEV]
+    polydem tap SCENE [--motion NAME] [--margin M] [--lead F] [--device DEV] [--precision P] [--out DIR]
+    polydem compress SCENE [--motion NAME ...] [--duration T] [--interval S] [--device DEV] [--out DIR]
+    polydem anneal SCENE --mu-fill MU [--mu-final MU] --fill-time T --settle-time T [--material NAME]
     polydem info
 
 One module per command (:mod:`~polydem.cli.run`, :mod:`~polydem.cli.validate`,
-:mod:`~polydem.cli.render`, :mod:`~polydem.cli.info`), imported only when the command runs, so
+:mod:`~polydem.cli.render`, :mod:`~polydem.cli.info`; the packing protocols tap, compress and anneal
+in :mod:`~polydem.cli.protocol`), imported only when the command runs, so
 that ``polydem --help`` needs neither numpy nor Warp; :mod:`~polydem.cli.parser` holds the options.
 
 ``polydem run`` without a scene runs the built-in default scene (:func:`polydem.default_scene.default_scene`).
@@ -102,6 +106,9 @@ _COMMANDS = {
     "run": ("polydem.cli.run", "cmd_run"),
     "validate": ("polydem.cli.validate", "cmd_validate"),
     "render": ("polydem.cli.render", "cmd_render"),
+    "tap": ("polydem.cli.protocol", "cmd_tap"),
+    "compress": ("polydem.cli.protocol", "cmd_compress"),
+    "anneal": ("polydem.cli.protocol", "cmd_anneal"),
     "info": ("polydem.cli.info", "cmd_info"),
 }
 

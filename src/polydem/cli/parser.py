@@ -236,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
-    for add in (_add_run, _add_validate, _add_render, _add_info):
+    for add in (_add_run, _add_validate, _add_render, _add_tap, _add_compress, _add_anneal, _add_info):
         add(sub, fmt)
     return parser
 
@@ -454,6 +454,167 @@ def _add_render(sub, fmt) -> None:
         metavar="DEV",
         help='Warp device that renders: "cpu", "cuda" or "cuda:N" (default: the GPU when there is one)',
     )
+
+
+def _between_0_and_1(what: str, example: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and 0.0 < value < 1.0):
+            raise argparse.ArgumentTypeError(
+                f"expected {what} between 0 and 1 (exclusive), got {text!r}; e.g. {example}"
+            )
+        return value
+
+    return parse
+
+
+PROTOCOL_EPILOG = (
+    "Writes COMMAND.json (the options and the records, SI units), COMMAND.csv and checkpoints/final.npz (the "
+    "packing; interrupted.npz when stopped early) into the output folder. The first Ctrl-C or SIGTERM stops after "
+    "the record under way, a second at once; the records so far are written either way. Exit codes as for "
+    "'polydem run'."
+)
+
+
+def _add_protocol_common(p) -> None:
+    p.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
+    p.add_argument(
+        "--device", default=None, metavar="DEV", help='Warp device: "cpu", "cuda" or "cuda:N"; default as for run'
+    )
+    p.add_argument("--precision", choices=PRECISIONS, default=None, help="as for run (default: the scene's)")
+    p.add_argument(
+        "--out", default=None, metavar="DIR", help="output folder (made if missing); default: polydem_out/<scene name>/"
+    )
+    p.add_argument("-q", "--quiet", action="store_true", help="no table of the records on stdout")
+
+
+def _add_margin(p) -> None:
+    p.add_argument(
+        "--margin",
+        type=_nonnegative("a number of grain sizes", "--margin 2"),
+        default=2.0,
+        metavar="M",
+        help="the packing fraction is measured in the box around the free grains moved in by M grain sizes, away "
+        "from the walls and the loose top (default 2)",
+    )
+
+
+def _add_tap(sub, fmt) -> None:
+    tap = sub.add_parser(
+        "tap",
+        help="tap a container and record the packing fraction after each tap",
+        description=_para(
+            'Run a scene whose container follows a train of taps ([motions.NAME] of kind "cycle" with a count and '
+            "a period longer than one cycle) and measure the exact packing fraction just before each tap and after "
+            "the last (polydem.protocols.tap)."
+        ),
+        epilog="examples:\n  polydem tap scenes/tapping.toml\n  polydem tap scenes/tapping.toml --motion taps "
+        "--margin 3 --out taps/\n\n" + textwrap.fill(PROTOCOL_EPILOG, 100),
+        formatter_class=fmt,
+    )
+    _add_protocol_common(tap)
+    tap.add_argument(
+        "--motion", default=None, metavar="NAME", help="the motion of taps (default: the scene's only one)"
+    )
+    _add_margin(tap)
+    tap.add_argument(
+        "--lead",
+        type=_between_0_and_1("a fraction of the rest between taps", "--lead 0.1"),
+        default=0.1,
+        metavar="F",
+        help="measure this fraction of the rest between taps before the next tap (default 0.1)",
+    )
+
+
+def _add_compress(sub, fmt) -> None:
+    compress = sub.add_parser(
+        "compress",
+        help="press grains with a piston (ramp or servo) and record the stress-strain curve",
+        description=_para(
+            "Run a scene whose piston (a kinematic body or box wall) follows a ramp (set speed) or servo (set "
+            "stress) motion and record, every interval, its displacement, the force the grains push it back with, "
+            "that force over its area, the strain and the packing fraction (polydem.protocols.compress). Several "
+            "motions (six servo walls: isotropic compression) are recorded side by side."
+        ),
+        epilog="examples:\n  polydem compress scenes/compression.toml\n  polydem compress scenes/compression.toml "
+        "--duration 0.8 --interval 0.01\n\n" + textwrap.fill(PROTOCOL_EPILOG, 100),
+        formatter_class=fmt,
+    )
+    _add_protocol_common(compress)
+    compress.add_argument(
+        "--motion",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help="a ramp or servo motion to record; repeat for several (default: every ramp and servo that drives a body)",
+    )
+    compress.add_argument(
+        "--duration",
+        type=_positive("a simulated time in seconds", "--duration 1.2"),
+        default=None,
+        metavar="T",
+        help="how long to run [s] (default: the scene's duration)",
+    )
+    compress.add_argument(
+        "--interval",
+        type=_positive("a simulated time in seconds", "--interval 0.01"),
+        default=None,
+        metavar="S",
+        help="time between records [s], rounded to whole steps (default: the duration / 50)",
+    )
+
+
+def _add_anneal(sub, fmt) -> None:
+    anneal = sub.add_parser(
+        "anneal",
+        help="fill at one friction, then restore the final one, and record the packing fraction",
+        description=_para(
+            "Friction annealing (polydem.protocols.anneal): give the grains the friction --mu-fill and run until "
+            "they have settled, then give them the final friction and run until they have settled again; the "
+            "packing fraction at the end of each stage. A fill below the final friction packs denser than a fill "
+            "at it, one above it looser."
+        ),
+        epilog="examples:\n  polydem anneal scenes/anneal.toml --mu-fill 0 --fill-time 1.5 --settle-time 0.5\n"
+        "  polydem anneal scenes/anneal.toml --mu-fill 1.0 --mu-final 0.5 --fill-time 1.5 --settle-time 0.5\n\n"
+        + textwrap.fill(PROTOCOL_EPILOG, 100),
+        formatter_class=fmt,
+    )
+    _add_protocol_common(anneal)
+    anneal.add_argument(
+        "--mu-fill",
+        type=_nonnegative("a friction coefficient", "--mu-fill 0.1"),
+        required=True,
+        metavar="MU",
+        help="friction coefficient of the fill",
+    )
+    anneal.add_argument(
+        "--mu-final",
+        type=_nonnegative("a friction coefficient", "--mu-final 0.5"),
+        default=None,
+        metavar="MU",
+        help="friction coefficient after the fill (default: each material's in the scene)",
+    )
+    anneal.add_argument(
+        "--fill-time",
+        type=_positive("a simulated time in seconds", "--fill-time 1.5"),
+        required=True,
+        metavar="T",
+        help="the longest the fill may take to settle [s]",
+    )
+    anneal.add_argument(
+        "--settle-time",
+        type=_positive("a simulated time in seconds", "--settle-time 0.5"),
+        required=True,
+        metavar="T",
+        help="the longest the grains may take to settle again at the final friction [s]",
+    )
+    anneal.add_argument(
+        "--material", default=None, metavar="NAME", help="anneal only this material (default: every material)"
+    )
+    _add_margin(anneal)
 
 
 def _add_info(sub, fmt) -> None:

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from polydem.scene import Scene
     from polydem.settle import SettleCheck, SettleCriterion
 
-__all__ = ["Run", "cmd_run", "roll_back"]
+__all__ = ["Run", "cmd_run", "output_folder", "roll_back", "scene_and_device"]
 
 
 def roll_back(sim: RunFront) -> bool:
@@ -328,7 +328,7 @@ def _checkpoint_to_resume(args: argparse.Namespace) -> tuple[Path | None, Checkp
     return resume, read_checkpoint(resume, "--resume")
 
 
-def _output_folder(args: argparse.Namespace, scene: Scene) -> Path:
+def output_folder(args: argparse.Namespace, scene: Scene) -> Path:
     """The output folder (``--out``, default ``polydem_out/<scene name>/``), made if missing."""
     if args.out is not None:
         out_dir = Path(args.out)
@@ -374,7 +374,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     warp()
     signals.check()
     resume, checkpoint, scene, dev = _load(args)
-    out_dir = _output_folder(args, scene)
+    out_dir = output_folder(args, scene)
     check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
     criterion = _settle_criterion(args, scene)
     signals.check()
@@ -388,13 +388,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 def _load(args: argparse.Namespace) -> tuple[Path | None, Checkpoint | None, Scene, wp.DeviceLike]:
     """The checkpoint to resume (path and contents, or None), the scene with the options applied, and the device."""
     resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
+    scene, dev = scene_and_device(args)
+    return resume, checkpoint, scene, dev
+
+
+def scene_and_device(args: argparse.Namespace) -> tuple[Scene, wp.DeviceLike]:
+    """The scene of ``args.scene`` with ``--precision`` applied, and the device: ``--device``, else the scene's
+    (None: Warp's default)."""
     scene = load_scene(args.scene)
     if args.precision is not None:
         scene.precision = args.precision
     dev = device(args.device) if args.device is not None else None
     if dev is None and scene.device is not None:
         dev = device(scene.device, file=scene.file, key="simulation.device")
-    return resume, checkpoint, scene, dev
+    return scene, dev
 
 
 def _cmd_run_decomposed(args: argparse.Namespace) -> int:
@@ -429,7 +436,7 @@ def _cmd_run_decomposed(args: argparse.Namespace) -> int:
     try:
         resume, checkpoint, scene, dev = _load(args)
         if root:
-            out_dir = _output_folder(args, scene)
+            out_dir = output_folder(args, scene)
             check_outputs(args, scene, out_dir)
         criterion = _settle_criterion(args, scene)
     except Exception as exc:
