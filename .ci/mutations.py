@@ -134,6 +134,13 @@ FAULTS = (
         ("tests/test_measures.py::test_column_stress_is_the_weight_above[cpu]",),
     ),
     Fault(
+        "a driven plane's velocity left out of its contacts",
+        "kernels/forces.py",
+        "vec3c(planes.v[j]), zero3, xi_pos,",
+        "zero3, zero3, xi_pos,",
+        ("tests/test_wall_motion.py::test_a_sideways_vibration_drags_the_cube_by_friction[cpu]",),
+    ),
+    Fault(
         "spin scale not restored",
         "kernels/integrate.py",
         "            pi = pi + pi * ((norm - n) / n)\n",

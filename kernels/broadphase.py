@@ -704,6 +704,13 @@ class BroadPhase:
             capacity = max(MIN_CAPACITY, DEFAULT_PAIRS_PER_BODY * self.num_bodies)
         self._allocate(int(capacity))
 
+    @property
+    def sort_scratch(self) -> wp.array:
+        """(2 C,) int32 scratch, free from the end of a rebuild to the start of the next (the values of the
+        rebuild's radix sort, which nothing reads): the by-B sort of the pair list's owner borrows it. It is
+        replaced (a new array) when the capacity grows."""
+        return self._sort_values
+
     # -- buffers -----------------------------------------------------------------------------
 
     def _allocate(self, capacity: int):
@@ -712,6 +719,8 @@ class BroadPhase:
         self.capacity = capacity
         # radix_sort_pairs needs 2 * count of keys and values (the upper half is scratch).
         self._key_buffer = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
+        # The sort's values are never read after it, and every rebuild writes them before it sorts: between
+        # rebuilds they are scratch that polydem.contacts.Contacts orders its pairs by B in (sort_scratch).
         self._sort_values = wp.zeros(2 * capacity, dtype=int, device=dev)
         self.pair_key = self._key_buffer[:capacity]
         self.pair_a = wp.full(capacity, -1, dtype=int, device=dev)

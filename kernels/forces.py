@@ -530,7 +530,7 @@ def make_contact_kernels(
                         depth = C(body_geom.plane_depth(shapes, s, xa, pn, planes.offset[j]))
                 f, t, lost, _ = wall_contact(
                     i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
-                    -vec3c(pn), vec3c(bodies.v[i]), vec3c(bodies.w[i]), zero3, zero3, xi_pos,
+                    -vec3c(pn), vec3c(bodies.v[i]), vec3c(bodies.w[i]), vec3c(planes.v[j]), zero3, xi_pos,
                     shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]),
                     materials, dt, walls, wall_out, report_bits, wall_sums, f, t, lost,
                 )  # fmt: skip
@@ -599,16 +599,18 @@ def launch_gather(
     out: ContactOutputs,
     report_bits: int,
     wall_sums: ContactSums,
+    planes: Any = None,
 ) -> None:
     """The gather kernel of ``kernels``, one thread per body, after :func:`launch_pair_contacts`: each
     body's pair wrenches in key order plus its plane-wall contacts into ``state.body_f`` and
     ``body_t`` (the step and report variants), its wall contacts into ``out`` and ``wall_sums`` as
-    the pair kernel does."""
+    the pair kernel does. ``planes``: the plane walls where they are now (default the model's, at rest)."""
     m = model
+    planes = m.planes if planes is None else planes
     wp.launch(
         kernels.gather_kernel,
         dim=m.num_bodies,
-        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, m.planes, state.bodies, state.walls, pairs.pairs],
+        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, planes, state.bodies, state.walls, pairs.pairs],
         outputs=[out.walls, int(report_bits), wall_sums],
         device=state.bodies.q.device,
     )

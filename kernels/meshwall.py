@@ -190,16 +190,19 @@ def launch_mesh_contacts(
     out: ContactOutputs,
     report_bits: int,
     wall_sums: ContactSums,
+    meshes: Any = None,
 ) -> None:
     """The mesh-wall contact kernel (``make_mesh_kernels(...)[0]``), one thread per body, after the
     gather: adds each free body's mesh-wall contacts to ``state.body_f`` and ``body_t`` (the step and
     report variants) or writes them into the wall columns of ``out`` (diagnostics; the report variant
-    by ``report_bits``), as :func:`polydem.kernels.forces.launch_gather` does for the planes."""
+    by ``report_bits``), as :func:`polydem.kernels.forces.launch_gather` does for the planes. ``meshes``:
+    the mesh walls with their velocities now (default the model's)."""
     m = model
+    meshes = m.meshes if meshes is None else meshes
     wp.launch(
         kernel,
         dim=m.num_bodies,
-        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, m.meshes, state.mesh_q, state.bodies, state.walls],
+        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, meshes, state.mesh_q, state.bodies, state.walls],
         outputs=[overflow, out.walls, int(report_bits), wall_sums],
         device=state.mesh_q.device,
     )

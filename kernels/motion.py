@@ -40,8 +40,10 @@ __all__ = [
     "Motions",
     "cycle_displacement",
     "launch_drive_bodies",
+    "launch_drive_walls",
     "launch_measure_motions",
     "make_motion_kernels",
+    "make_wall_motion_kernel",
     "ramp_displacement",
 ]
 
@@ -53,16 +55,24 @@ LANES = 32
 
 _CYCLES = arrays(axis=wp.vec3d, amplitude=wp.float64, omega=wp.float64, start=wp.float64, period=wp.float64, count=int)
 _MEASURED = arrays(kind=int, speed=wp.float64, duration=wp.float64, target=wp.float64, gain=wp.float64)
+_WALLS = arrays(plane_motion=int, plane_rest=wp.float64, mesh_motion=int, mesh_rest=wp.vec3d)
 Motions = make_struct(
-    "Motions", **_CYCLES, **_MEASURED, **arrays(body_motion=int, body_rest=wp.vec3d, rows=int, row_start=int)
+    "Motions",
+    **_CYCLES,
+    **_MEASURED,
+    **arrays(body_motion=int, body_rest=wp.vec3d, rows=int, row_start=int),
+    **_WALLS,
 )
 """The motions of a Model (``polydem.model.Model.motions``), per motion (K,): the unit ``axis``; a cycle's
 ``amplitude`` [m], angular frequency ``omega`` [rad/s], ``start`` [s], ``period`` [s] and ``count``; each
-one's ``kind`` (``MOTION_*``), and a ramp's and servo's ``speed`` (a servo's largest) [m/s], ``duration``
-[s], ``target`` force [N] and ``gain`` [m/(N s)] (these five only where ramps or servos are: the kernels'
-``travel`` variant reads them); per body (N,) the motion it follows (``body_motion``, -1: none) and its
-position at rest (``body_rest``) [m]; the driven bodies of the ramps and servos by motion (``rows``, (R,)),
-in ``row_start`` (K+1,) ranges."""
+one's ``kind`` (``MOTION_*``), a ramp's and servo's ``speed`` (a servo's largest) [m/s] and a ramp's
+``duration`` [s], and a servo's ``target`` force [N] and ``gain`` [m/(N s)] (these two only where ramps or
+servos drive bodies: the kernels' ``travel`` variant reads them); per body (N,) the motion it follows
+(``body_motion``, -1: none) and its position at rest (``body_rest``) [m]; the driven bodies of the ramps and
+servos by motion (``rows``, (R,)), in ``row_start`` (K+1,) ranges; per plane wall (P,) the motion it follows
+(``plane_motion``, -1: none) and its offset at rest (``plane_rest``, n . x [m]); per mesh wall (M,) the motion
+it follows (``mesh_motion``) and the translation of its pose at rest (``mesh_rest``) [m]. Plane and mesh
+walls follow cycles and ramps only (a servo needs the force on what it drives)."""
 
 
 @wp.func
@@ -146,6 +156,71 @@ def make_motion_kernels(scalar, travel=False):
         body_v[i] = vec3(scalar(v[0]), scalar(v[1]), scalar(v[2]))
 
     return drive_kernel
+
+
+@functools.cache
+def make_wall_motion_kernel(scalar):
+    """The kernel of :func:`launch_drive_walls` for walls in ``scalar`` (the poses' precision)."""
+    vec3 = wp.types.vector(3, scalar)
+    transform = wp.types.transformation(scalar)
+
+    @wp.kernel(enable_backward=False)
+    def drive_walls_kernel(
+        # The time: the end of step step_count[0] + step_offset, of length dt
+        step_count: wp.array(dtype=int),
+        step_offset: int,
+        dt: wp.float64,
+        motions: Motions,
+        plane_normal: wp.array(dtype=vec3),
+        # Out: the driven planes' offsets and velocities, the driven mesh walls' poses and velocities
+        plane_offset: wp.array(dtype=scalar),
+        plane_v: wp.array(dtype=vec3),
+        mesh_q: wp.array(dtype=transform),
+        mesh_v: wp.array(dtype=vec3),
+    ):
+        j = wp.tid()
+        num_planes = motions.plane_motion.shape[0]
+        m = int(-1)
+        if j < num_planes:
+            m = motions.plane_motion[j]
+        else:
+            m = motions.mesh_motion[j - num_planes]
+        if m < 0:
+            return
+        t = wp.float64(step_count[0] + step_offset) * dt
+        dv = wp.vec2d()
+        if motions.kind[m] == MOTION_RAMP:
+            dv = ramp_displacement(t, motions.speed[m], motions.start[m], motions.duration[m])
+        else:
+            dv = cycle_displacement(
+                t, motions.amplitude[m], motions.omega[m], motions.start[m], motions.period[m], motions.count[m]
+            )
+        u = motions.axis[m]
+        v = u * dv[1]
+        if j < num_planes:
+            n = plane_normal[j]
+            shift = wp.float64(n[0]) * u[0] + wp.float64(n[1]) * u[1] + wp.float64(n[2]) * u[2]
+            plane_offset[j] = scalar(motions.plane_rest[j] + shift * dv[0])
+            plane_v[j] = vec3(scalar(v[0]), scalar(v[1]), scalar(v[2]))
+        else:
+            k = j - num_planes
+            x = motions.mesh_rest[k] + u * dv[0]
+            mesh_q[k] = transform(vec3(scalar(x[0]), scalar(x[1]), scalar(x[2])), wp.transform_get_rotation(mesh_q[k]))
+            mesh_v[k] = vec3(scalar(v[0]), scalar(v[1]), scalar(v[2]))
+
+    return drive_walls_kernel
+
+
+def launch_drive_walls(motions, step_count, step_offset, dt, planes, mesh_q, mesh_v, device=None):
+    """Set the offset and velocity of each driven plane wall (``motions.plane_motion`` >= 0, into ``planes``, a
+    Planes struct of the Stepper's own offsets and velocities) and the pose and velocity of each driven mesh
+    wall (``motions.mesh_motion`` >= 0, into ``mesh_q`` and ``mesh_v``, placeholders of one entry where there
+    are none) from its motion at time ``(step_count[0] + step_offset) * dt``: d(t) from the step counter, as
+    for the bodies."""
+    num = motions.plane_motion.shape[0] + motions.mesh_motion.shape[0]
+    kernel = make_wall_motion_kernel(_scalar_of(mesh_q))
+    inputs = [step_count, int(step_offset), float(dt), motions, planes.normal]
+    wp.launch(kernel, dim=num, inputs=inputs, outputs=[planes.offset, planes.v, mesh_q, mesh_v], device=device)
 
 
 _KERNELS = {}

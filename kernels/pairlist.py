@@ -6,7 +6,9 @@ A rebuild (:class:`polydem.contacts.Contacts`) replaces the candidate pairs. Eac
 (:class:`~polydem.kernels.forces.ContactSums`) go with its key ``a * N + b``: a pair found again
 keeps them, a new pair starts from zero, and the sums of a pair that left the list after it was in
 contact are appended to a list of retired pairs. The gather (:mod:`polydem.kernels.forces`) then
-needs each body's range in the pairs sorted by A (the keys) and by B (sorted here).
+needs each body's range in the pairs sorted by A (the keys) and by B (sorted here, stably on int32 keys
+``b``: the slots are in increasing ``a * N + b``, so the pairs of one B stay in increasing A, the order the
+gather sums them in).
 
 No floating-point arithmetic: every kernel is deterministic by construction.
 """
@@ -51,6 +53,20 @@ def find_key(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
 
 
 @wp.func
+def lower_bound_int(keys: wp.array(dtype=int), count: int, key: int):
+    lo = int(0)
+    hi = count
+    while lo < hi:
+        # Not (lo + hi) // 2: that overflows int32 past 2^30 pairs.
+        mid = lo + (hi - lo) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
 def copy_sums(src: ContactSums, j: int, dst: ContactSums, k: int):
     # Contact j's sums of src into slot k of dst (a rebuild moves or retires them).
     dst.force[k] = src.force[j]
@@ -63,20 +79,18 @@ def copy_sums(src: ContactSums, j: int, dst: ContactSums, k: int):
 @wp.kernel(enable_backward=False)
 def b_keys_kernel(
     # Model
-    num_bodies: int,
-    sentinel: wp.int64,
+    sentinel: int,
     # State in
-    pair_a: wp.array(dtype=int),
     pair_b: wp.array(dtype=int),
     pair_count: wp.array(dtype=int),
     # Out
-    keys_b: wp.array(dtype=wp.int64),
+    keys_b: wp.array(dtype=int),
     pair_by_b: wp.array(dtype=int),
 ):
-    """Keys ``b * N + a`` (sentinel past the count) with the pair index, to sort by the B body."""
+    """Keys ``b`` (sentinel past the count) with the pair index, to sort stably by the B body."""
     p = wp.tid()
     if p < pair_count[0]:
-        keys_b[p] = wp.int64(pair_b[p]) * wp.int64(num_bodies) + wp.int64(pair_a[p])
+        keys_b[p] = pair_b[p]
     else:
         keys_b[p] = sentinel
     pair_by_b[p] = p
@@ -88,20 +102,21 @@ def body_ranges_kernel(
     num_bodies: int,
     # State in
     pair_key: wp.array(dtype=wp.int64),
-    keys_b: wp.array(dtype=wp.int64),
+    keys_b: wp.array(dtype=int),
     pair_count: wp.array(dtype=int),
     # Out
     body_pairs_a: wp.array(dtype=wp.vec2i),
     body_pairs_b: wp.array(dtype=wp.vec2i),
 ):
-    """Each body's ranges in the pairs sorted by (a, b) and in those sorted by (b, a)."""
+    """Each body's ranges in the pairs sorted by (a, b) and in those sorted by b (then by a)."""
     i = wp.tid()
     count = pair_count[0]
     n = wp.int64(num_bodies)
     lo = wp.int64(i) * n
     hi = lo + n
     body_pairs_a[i] = wp.vec2i(lower_bound(pair_key, count, lo), lower_bound(pair_key, count, hi))
-    body_pairs_b[i] = wp.vec2i(lower_bound(keys_b, count, lo), lower_bound(keys_b, count, hi))
+    # i + 1 <= num_bodies < 2^31 (launch_body_ranges checks).
+    body_pairs_b[i] = wp.vec2i(lower_bound_int(keys_b, count, i), lower_bound_int(keys_b, count, i + 1))
 
 
 @functools.cache
@@ -242,9 +257,6 @@ def launch_carry_sums(
 def launch_body_ranges(
     *,
     num_bodies: int,
-    sentinel: int,
-    key_bits: int,
-    pair_a: wp.array,
     pair_b: wp.array,
     pair_key: wp.array,
     pair_count: wp.array,
@@ -253,22 +265,30 @@ def launch_body_ranges(
     body_pairs_a: wp.array,
     body_pairs_b: wp.array,
 ) -> None:
-    """Order the pairs (C of ``pair_a``'s length) by their B body and find each body's ranges.
+    """Order the pairs (C of ``pair_b``'s length) by their B body and find each body's ranges.
 
-    ``keys_b``, ``by_b``: (2C,) int64 and int32, the radix sort's keys and values (the upper half is its
-    scratch); ``by_b[:C]`` ends as the pair indices ordered by B. ``sentinel``, ``key_bits``: the key
-    past the last pair and the bits of the keys (as the broad phase's). ``body_pairs_a``,
-    ``body_pairs_b``: (N,) vec2i, each body's range in the pairs by A (``pair_key``) and by B."""
-    capacity = pair_a.shape[0]
-    device = pair_a.device
+    ``keys_b``, ``by_b``: (2C,) int32 each, the radix sort's keys and values (the upper halves are its
+    scratch); ``by_b[:C]`` ends as the pair indices ordered by B, and within one B in increasing slot, so
+    by A as the keys ``a * N + b`` of ``pair_key`` are increasing. ``keys_b`` holds nothing between calls.
+    ``body_pairs_a``, ``body_pairs_b``: (N,) vec2i, each body's range in the pairs by A (``pair_key``) and
+    by B."""
+    capacity = pair_b.shape[0]
+    device = pair_b.device
+    # The sentinel N must exceed every body index and fit an int32 key.
+    if num_bodies > 2**31 - 1:
+        raise ValueError(f"{num_bodies} bodies: the pair list takes at most 2^31 - 1")
+    if keys_b.dtype != wp.int32 or keys_b.size < 2 * capacity or by_b.size < 2 * capacity:
+        raise ValueError(f"keys_b and by_b must be int32 arrays of at least {2 * capacity} entries")
     wp.launch(
         b_keys_kernel,
         dim=capacity,
-        inputs=[num_bodies, sentinel, pair_a, pair_b, pair_count],
+        inputs=[num_bodies, pair_b, pair_count],
         outputs=[keys_b, by_b],
         device=device,
     )
-    wp.utils.radix_sort_pairs(keys_b, by_b, capacity, 0, key_bits)
+    # Stable (Warp's radix sort: LSD counting passes on the CPU, CUB on CUDA): equal keys b keep the
+    # increasing slot order the values start in. Bits up to the sentinel only.
+    wp.utils.radix_sort_pairs(keys_b, by_b, capacity, 0, max(1, int(num_bodies).bit_length()))
     wp.launch(
         body_ranges_kernel,
         dim=num_bodies,

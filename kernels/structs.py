@@ -74,8 +74,11 @@ def materials_struct(C: Any) -> Any:
 
 @functools.cache
 def planes_struct(S: Any) -> Any:
-    """The plane walls (P,): outward unit ``normal`` and ``offset`` in S, ``material`` int32."""
-    return make_struct("Planes", **arrays(normal=wp.types.vector(3, S), offset=S, material=int))
+    """The plane walls (P,): outward unit ``normal``, ``offset`` [m] (n . x of its points) and velocity ``v``
+    [m/s] in S, ``material`` int32. The Model's planes are where they are at t = 0, at rest; a Stepper whose
+    planes follow motions keeps its own offsets and velocities (kernels/motion.py, ``launch_drive_walls``)."""
+    vec3 = wp.types.vector(3, S)
+    return make_struct("Planes", **arrays(normal=vec3, offset=S, material=int, v=vec3))
 
 
 @functools.cache

@@ -14,7 +14,7 @@ from cli_helpers import run  # noqa: E402
 
 import polydem  # noqa: E402
 from polydem.scene import quat_from_axis_angle, quat_to_matrix  # noqa: E402
-from polydem.vtk import SERIES, VtkWriter, read_pvd  # noqa: E402
+from polydem.vtk import CONTACT_TYPES, SERIES, VtkWriter, read_pvd  # noqa: E402
 
 STEPS = 7  # simulation steps between frames
 FRAMES = 4
@@ -167,6 +167,7 @@ def test_contacts_are_the_force_network(written):
             continue
         assert [b.type for b in mesh.cells] == ["line"] and len(mesh.cells[0].data) == m
         cd = {key: np.concatenate(v) for key, v in mesh.cell_data.items()}
+        assert "contact_type" not in cd  # off by default (VtkWriter(contact_types=True))
         a, b = c["body_a"], c["body_b"]
         wall = b < 0
         np.testing.assert_array_equal(cd["body_a"], a)
@@ -195,6 +196,118 @@ def test_contacts_are_the_force_network(written):
         )
         checked += 1
     assert checked >= 1
+
+
+# ----------------------------------------------------------------------------- contact types
+
+# The cases worked by hand in tests/test_measures.py: cubes of 1 cm sunk 1e-6 m into a floor by a
+# face, an edge and a corner, and into each other face on face, edge on face, corner on face and
+# edge across edge (the overlap a slab, a wedge, a pyramid, and a pyramid whose normal is 45 degrees
+# from every face).
+EDGE = 0.01  # [m]
+SINK = 1e-6  # [m]
+FACE_DOWN = np.array([0.0, 0.0, 0.0, 1.0])
+EDGE_DOWN = quat_from_axis_angle((1, 0, 0), math.pi / 4)  # an edge along x lowest
+EDGE_DOWN_Y = quat_from_axis_angle((0, 1, 0), math.pi / 4)  # an edge along y lowest
+CORNER_DOWN = quat_from_axis_angle((-1, 1, 0), math.acos(-1.0 / math.sqrt(3.0)))  # the corner (1, 1, 1) lowest
+CODE = {name: code for code, name in CONTACT_TYPES.items()}
+
+
+def highest(shape, q):
+    """Highest z of the shape's vertices turned by q, relative to its centre."""
+    return float((shape.vertices @ quat_to_matrix(q).T)[:, 2].max())
+
+
+def contact_type_scene(wall):
+    """Bodies 0-2 on the floor (a plane or a flat mesh wall) by a face, an edge and a corner; pairs
+    (3, 4), (5, 6), (7, 8), (9, 10) half a metre up, B sunk onto A. Returns (scene, {(body_a, body_b
+    or -1 for the floor): expected code})."""
+    scene = polydem.Scene(gravity=(0.0, 0.0, -9.81), dt="auto", precision="mixed")
+    scene.add_material("grain", density=2500.0, law="hertz", k=4.9e8, restitution=0.3, friction=0.5)
+    cube = polydem.ConvexShape.box(EDGE)
+    scene.add_shape("cube", cube)
+    expected = {}
+    for k, (q, name) in enumerate(((FACE_DOWN, "face-face"), (EDGE_DOWN, "edge-face"), (CORNER_DOWN, "vertex-face"))):
+        scene.add_body("cube", "grain", position=(0.05 * k, 0.0, -lowest(cube, q) - SINK), orientation=q)
+        expected[(k, -1)] = CODE[name]
+    pairs = [
+        (FACE_DOWN, FACE_DOWN, "face-face"),
+        (FACE_DOWN, EDGE_DOWN, "edge-face"),
+        (FACE_DOWN, CORNER_DOWN, "vertex-face"),
+        (EDGE_DOWN, EDGE_DOWN_Y, "edge-edge"),
+    ]
+    for k, (qa, qb, name) in enumerate(pairs):
+        a = scene.add_body("cube", "grain", position=(0.05 * k, 0.0, 0.5), orientation=qa)
+        z = 0.5 + highest(cube, qa) - lowest(cube, qb) - SINK
+        b = scene.add_body("cube", "grain", position=(0.05 * k, 0.0, z), orientation=qb)
+        expected[(int(a), int(b))] = CODE[name]
+    if wall == "plane":
+        scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "grain")
+    else:
+        square = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]]) * 0.2
+        scene.add_mesh_wall((square, np.array([[0, 1, 2], [0, 2, 3]])), "grain")
+    return scene, expected
+
+
+def read_types(path):
+    """{(body_a, body_b, or -1 for a wall): contact_type} of a contacts file."""
+    mesh = meshio.read(path)
+    cd = {key: np.concatenate(v) for key, v in mesh.cell_data.items()}
+    keys = zip(cd["body_a"].tolist(), cd["body_b"].tolist(), strict=True)
+    return dict(zip(keys, cd["contact_type"].tolist(), strict=True)), cd
+
+
+@pytest.mark.parametrize("wall", ["plane", "mesh"])
+@pytest.mark.parametrize("method", [True, "overlap"])
+def test_contact_types_of_cubes_by_face_edge_corner_and_crossed_edges(tmp_path, wall, method):
+    """Each line carries the code of its contact's kind, for pairs and wall contacts, by either method."""
+    scene, expected = contact_type_scene(wall)
+    sim = polydem.Simulation(scene, device="cpu")
+    folder = tmp_path / "vtk"
+    with VtkWriter(folder, sim, contact_types=method) as writer:
+        assert writer.contact_types == ("features" if method is True else method)
+        writer.record_simulation(sim)
+        c = sim.contacts()
+        st = sim.state()
+        # Without the contacts' depth a mesh wall's contacts are not classified; the rest are.
+        shallow = {key: v for key, v in c.items() if key != "depth"}
+        writer.record(1.0, st, shallow)
+        # A contact that only the average has (it ended before the frame) is not classified.
+        ended = {"body_a": np.array([1]), "body_b": np.array([2]), "point": np.zeros((1, 3)),
+                 "force": np.ones((1, 3)), "tangential_force": np.zeros((1, 3)), "normal_force": np.ones(1),
+                 "contact_time": np.ones(1)}  # fmt: skip
+        writer.record(2.0, st, c, average=ended)
+    assert sorted(zip(c["body_a"].tolist(), np.maximum(c["body_b"], -1).tolist(), strict=True)) == sorted(expected)
+    got, cd = read_types(frame_file(folder, "contacts", 0))
+    assert got == expected
+    assert cd["contact_type"].dtype == np.int32
+    assert sorted(got.values()) == [0, 0, 1, 1, 2, 2, 3]  # every kind: not a constant
+    got, _ = read_types(frame_file(folder, "contacts", 1))
+    assert got == {k: (-1 if wall == "mesh" and k[1] == -1 else v) for k, v in expected.items()}
+    got, cd = read_types(frame_file(folder, "contacts", 2))
+    assert got == {**expected, (1, 2): -1}
+    assert cd["current"].tolist() == [1] * len(expected) + [0]
+
+
+def test_contact_types_codes_and_empty_frames(tmp_path):
+    assert CONTACT_TYPES == {-1: "unclassified", 0: "face-face", 1: "edge-face", 2: "vertex-face", 3: "edge-edge"}
+    scene, _ = contact_type_scene("plane")
+    state = {
+        "body_position": scene.body_position,
+        "body_orientation": scene.body_orientation,
+        "body_velocity": scene.body_velocity,
+        "body_angular_velocity": scene.body_angular_velocity,
+    }
+    keys = ("body_a", "body_b", "normal", "point", "normal_force", "tangential_force", "volume")
+    none = {key: np.zeros((0, 3) if key in ("normal", "point", "tangential_force") else 0) for key in keys}
+    with VtkWriter(tmp_path / "vtk", scene, contact_types="features") as writer:
+        writer.record(0.0, state, none)
+    mesh = meshio.read(frame_file(tmp_path / "vtk", "contacts", 0))
+    assert [b.type for b in mesh.cells] == ["vertex"]
+    assert np.concatenate(mesh.cell_data["contact_type"]).tolist() == [-1]
+    for bad in ("faces", 1, ""):
+        with pytest.raises(ValueError, match="contact_types must be True, False, 'features' or 'overlap'"):
+            VtkWriter(tmp_path / "bad", scene, contact_types=bad)
 
 
 def test_walls_file(written):
@@ -389,6 +502,20 @@ def test_run_vtk_option_writes_the_series(tmp_path, capsys):
     code, out, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "--vtk", "-q"], capsys)
     assert code == 0, err
     check_run_vtk(out_dir, out)
+
+
+def test_run_vtk_contact_types_option_writes_the_types(tmp_path, capsys):
+    """--vtk-contact-types turns the VTK files on with the contacts' contact_type (features by default)."""
+    scene = write_scene(tmp_path)
+    out_dir = tmp_path / "out"
+    code, out, err = run(["run", scene, "--device", "cpu", "--out", out_dir, "--vtk-contact-types", "-q"], capsys)
+    assert code == 0, err
+    check_run_vtk(out_dir, out)
+    kinds = [meshio.read(f).cell_data["contact_type"][0] for _, f in read_pvd(out_dir / "vtk" / "contacts.pvd")]
+    seen = np.concatenate(kinds)
+    assert set(seen.tolist()) <= set(CONTACT_TYPES) and (seen >= 0).any()
+    code, _, err = run(["run", scene, "--out", tmp_path / "x", "--vtk-contact-types", "faces"], capsys)
+    assert code == 2 and "invalid choice: 'faces'" in err
 
 
 def test_output_vtk_in_the_scene_turns_it_on_and_it_is_off_by_default(tmp_path, capsys):

@@ -1,4 +1,5 @@
-"""Writes the triangle meshes of the mesh-wall scenes (hopper.toml, heap.toml, mixer.toml) into this folder.
+"""Writes the triangle meshes of the mesh-wall scenes (hopper.toml, heap.toml, mixer.toml, tapped_cup.toml) into
+this folder.
 
 heap.toml uses the hopper with the 7 cm orifice as its funnel.
 
@@ -12,7 +13,9 @@ a mesh wall lies behind it. Lengths in metres. Deterministic: running it again w
   z = 0, for the orifice sizes of ``ORIFICES`` (in mm);
 * ``drum.stl``: a closed cylinder of radius 0.15 m and length 0.15 m around the y axis, its normals
   pointing inwards (a container); ``baffles.stl``: four bars 3 cm high and 1.5 cm thick along its
-  wall, closed boxes facing out (mixer.toml turns both).
+  wall, closed boxes facing out (mixer.toml turns both);
+* ``cup.stl``: a cylindrical cup of inner radius 0.06 m and height 0.2 m, its flat bottom at z = 0, open at the
+  top, facing inwards (tapped_cup.toml taps it).
 """
 
 from pathlib import Path
@@ -76,6 +79,31 @@ def baffles(radius=0.15, length=0.15, count=4, height=0.03, width=0.015):
     return trimesh.util.concatenate(bars)
 
 
+def cup(radius=0.06, height=0.2, step=0.01):
+    """A cylindrical cup about the z axis, bottom at z = 0, open at the top, facing inwards; triangles about
+    ``step`` in size (a long thin triangle has a large bounding sphere, which the emitters and the broad
+    phase see)."""
+    rings = np.arange(step, radius + 0.5 * step, step)
+    profile = [(r, 0.0) for r in rings] + [(radius, z) for z in np.arange(step, height + 0.5 * step, step)]
+    side = surface_of_revolution(profile)
+    # The bottom's centre: a fan out to the first ring, wound as the annuli next to it.
+    th = np.linspace(0.0, 2.0 * np.pi, SEGMENTS, endpoint=False)
+    ring = np.column_stack([rings[0] * np.cos(th), rings[0] * np.sin(th), np.zeros(SEGMENTS)])
+    k = np.arange(SEGMENTS)
+    fan = trimesh.Trimesh(
+        np.vstack([ring, [0.0, 0.0, 0.0]]),
+        np.column_stack([np.full(SEGMENTS, SEGMENTS), k, (k + 1) % SEGMENTS]),
+        process=False,
+    )
+    if np.sign(fan.face_normals[0, 2]) != np.sign(side.face_normals[side.triangles_center[:, 2] < 1e-12][0, 2]):
+        fan.invert()
+    mesh = trimesh.util.concatenate([side, fan])
+    mesh.merge_vertices()
+    if mesh.face_normals[mesh.triangles_center[:, 2] < 1e-12][:, 2].mean() < 0.0:
+        mesh.invert()  # the bottom faces up, into the cup
+    return trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+
+
 def main():
     for d_mm in ORIFICES:
         m = hopper(d_mm / 1000.0)
@@ -87,6 +115,9 @@ def main():
     m = baffles()
     m.export(HERE / "baffles.stl")
     print(f"baffles.stl: {len(m.faces)} triangles")
+    m = cup()
+    m.export(HERE / "cup.stl")
+    print(f"cup.stl: {len(m.faces)} triangles")
 
 
 if __name__ == "__main__":

@@ -216,8 +216,17 @@ class Contacts:
         self.pair_torque_a = wp.zeros(capacity, dtype=vec3, device=dev)
         self.pair_dissipated = wp.zeros(capacity, dtype=scalar, device=dev)
         self.previous = PairHistory.zeros(capacity, self.friction, dev, scalar)
-        # Pairs ordered by their B body (radix sort needs twice the room).
-        self._keys_b = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
+        # Pairs ordered by their B body (radix sort needs twice the room). Its int32 keys borrow the broad
+        # phase's sort values (2C int32), which nothing reads after its own sort and which it rewrites
+        # before it sorts again, so they are free from here to the next rebuild (a buffer of their own
+        # would take 8 B a pair slot).
+        # (The broad phase has just allocated for this capacity; the reference keeps its buffer alive
+        # for as long as a graph captured with this generation may use it.)
+        borrowed = self.broadphase.sort_scratch
+        if borrowed.dtype == wp.int32 and borrowed.size >= 2 * capacity:
+            self._keys_b = borrowed
+        else:
+            self._keys_b = wp.zeros(2 * capacity, dtype=int, device=dev)
         self._by_b = wp.zeros(2 * capacity, dtype=int, device=dev)
         self.pair_by_b = self._by_b[:capacity]
         self.body_pairs_a = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
@@ -274,9 +283,6 @@ class Contacts:
             self.average.after_rebuild(prev.key, prev.count, bp.pair_key, bp.pair_count)
         launch_body_ranges(
             num_bodies=self.num_bodies,
-            sentinel=bp.sentinel,
-            key_bits=bp.key_bits,
-            pair_a=bp.pair_a,
             pair_b=bp.pair_b,
             pair_key=bp.pair_key,
             pair_count=bp.pair_count,

@@ -215,8 +215,9 @@ class Model:
         self.plane_normal = arr(normals.astype(s_np), vec3s)
         self.plane_offset = arr(offsets.astype(s_np), self.scalar)
         self.plane_material = arr(np.array([mat_index[p.material] for p in planes], dtype=np.int32), int)
+        self.plane_v = wp.zeros(len(planes), dtype=vec3s, device=dev)
         plane_arrays = {"normal": self.plane_normal, "offset": self.plane_offset, "material": self.plane_material}
-        self.planes = filled(planes_struct(self.scalar), **plane_arrays)
+        self.planes = filled(planes_struct(self.scalar), **plane_arrays, v=self.plane_v)
         # The initial state's rows (state()): views of the scene's arrays, or the copies of the slice.
         self._initial = {k: rows[k] for k in ("position", "orientation", "velocity", "angular_velocity")}
         self._motions(scene, dev)
@@ -294,12 +295,16 @@ class Model:
         :data:`~polydem.kernels.motion.Motions`, None without motions): per motion its axis, amplitude [m],
         angular frequency [rad/s], start [s], period [s] and count; per body of the model the index of the
         motion it follows (-1: none, also in ``body_motion``) and its position at rest [m], as the state's poses
-        hold it (``body_rest``)."""
+        hold it (``body_rest``); the same for the plane walls (offset at rest) and mesh walls (translation at
+        rest). ``has_motions``: some body follows a motion; ``has_wall_motions``: some plane or mesh wall does."""
         names = list(scene.motions)
         self.motions = None
         which = {name: k for k, name in enumerate(names)}
         motion = np.array([which.get(scene.body_motion.get(int(i)), -1) for i in self.body_index], dtype=np.int32)
         self.has_motions = bool((motion >= 0).any())
+        plane_motion = np.array([which.get(p.motion, -1) for p in scene.planes], dtype=np.int32)
+        mesh_motion = np.array([which.get(w.motion, -1) for w in scene.mesh_walls], dtype=np.int32)
+        self.has_wall_motions = bool((plane_motion >= 0).any() or (mesh_motion >= 0).any())
         self.motion_names = names
         self.has_measured_motions = False
         servo = any(scene.motions[name].kind == "servo" for name in scene.body_motion.values())
@@ -310,7 +315,7 @@ class Model:
                 "(a decomposed run holds each rank's share of the grains)",
                 "motions",
             )
-        if not self.has_motions:
+        if not (self.has_motions or self.has_wall_motions):
             return
         ms = [scene.motions[name] for name in names]
 
@@ -328,14 +333,23 @@ class Model:
             start=f64([m.start for m in ms]),
             period=f64([m.cycle_period() for m in ms]),
             count=wp.array(np.array([m.count for m in ms], dtype=np.int32), dtype=int, device=dev),
+            kind=wp.array(np.array([KINDS.index(m.kind) for m in ms], dtype=np.int32), dtype=int, device=dev),
+            speed=f64([m.speed if m.kind == "ramp" else (m.max_speed if m.kind == "servo" else 0.0) for m in ms]),
+            duration=f64([m.ramp_duration() for m in ms]),
             body_motion=self.body_motion,
             body_rest=self.body_rest,
-        )
+            plane_motion=wp.array(plane_motion, dtype=int, device=dev),
+            plane_rest=wp.array(np.array([np.dot(p.normal, p.point) for p in scene.planes]), dtype=wp.float64,
+                                device=dev),
+            mesh_motion=wp.array(mesh_motion, dtype=int, device=dev),
+            mesh_rest=wp.array(np.array([w.pivot for w in scene.mesh_walls]).reshape(-1, 3), dtype=wp.vec3d,
+                               device=dev),
+        )  # fmt: skip
         self._measured_motions(scene, ms, motion, dev)
 
     def _measured_motions(self, scene: Scene, ms: list, motion: np.ndarray, dev: wp.Device) -> None:
         """The ramps and servos (kernels/motion.py, ``launch_measure_motions``), in ``motions``: per motion its
-        kind, speed (a ramp's, a servo's largest) [m/s], duration [s], target force [N] and gain [m/(N s)]; the
+        target force [N] and gain [m/(N s)]; the
         driven bodies of each (``rows``, also in ``measured_rows``), in ``row_start`` ranges; ``motion_area``
         (K,) host [m^2] each motion's bodies' area across its axis (what a servo's stress acts on, where it
         gives none)."""
@@ -356,16 +370,12 @@ class Model:
                 area[k] += _area_across(shapes[self.body_shape_np[i]], orientation[i], np.asarray(m.axis))
         self.motion_area = area
         target = [m.target_force(area[k]) if m.kind == "servo" else 0.0 for k, m in enumerate(ms)]
-        speed = [m.speed if m.kind == "ramp" else (m.max_speed if m.kind == "servo" else 0.0) for m in ms]
 
         def f64(values: list[float]) -> wp.array:
             return wp.array(np.array(values, dtype=np.float64), dtype=wp.float64, device=dev)
 
         self.measured_rows = wp.array(order.astype(np.int32), dtype=int, device=dev)
         measured = {
-            "kind": wp.array(kinds, dtype=int, device=dev),
-            "speed": f64(speed),
-            "duration": f64([m.ramp_duration() for m in ms]),
             "target": f64(target),
             "gain": f64([m.gain or 0.0 for m in ms]),
             "rows": self.measured_rows,

@@ -639,7 +639,8 @@ def render_simulation(sim, path: str | PathLike | None = None, *, cutaway: bool 
     scene = sim.scene
     state = sim.state()
     kw.setdefault("device", sim.device)
-    kw.setdefault("planes", scene.planes)
+    current_planes = getattr(sim, "current_planes", None)  # where they are now (a decomposed run's: at rest)
+    kw.setdefault("planes", current_planes() if current_planes is not None else scene.planes)
     if "mesh_walls" not in kw and getattr(scene, "mesh_walls", None):
         current = getattr(sim, "current_state", None)
         mesh_q = current.mesh_q.numpy() if current is not None else getattr(sim, "mesh_q", None)

@@ -63,9 +63,16 @@ from polydem.kernels.integrate import (
     launch_settle_measures,
 )
 from polydem.kernels.meshwall import MeshWallState, launch_advance_meshes, launch_mesh_contacts, make_mesh_kernels
-from polydem.kernels.motion import LANES, launch_drive_bodies, launch_measure_motions
+from polydem.kernels.motion import LANES, launch_drive_bodies, launch_drive_walls, launch_measure_motions
 from polydem.kernels.precision import numpy_dtype
-from polydem.kernels.structs import bodies_struct, filled, pairs_struct, wall_history_struct
+from polydem.kernels.structs import (
+    bodies_struct,
+    filled,
+    mesh_walls_struct,
+    pairs_struct,
+    planes_struct,
+    wall_history_struct,
+)
 from polydem.model import Model
 from polydem.run_settings import RunSettings, run_settings
 from polydem.scene.bodies import BodyKind
@@ -137,6 +144,7 @@ class Stepper:
         # The partial force sums of the ramps' and servos' bodies (kernels/motion.py), made before any capture.
         rows = len(model.measured_rows) if model.has_measured_motions else 0
         self._motion_parts = wp.zeros((max(rows, 1), LANES), dtype=wp.vec3d, device=self.device)
+        self._wall_arrays()
         self._kernels()
         self._diag: ContactOutputs | None = None
         self._diag_generation: int | None = None
@@ -148,6 +156,43 @@ class Stepper:
         self._report: tuple[ContactOutputs, dict[str, wp.array]] | None = None  # the outputs and scratch arrays
         self._report_generation: int | None = None
         self._history_on: tuple[int, wp.array, wp.array] | None = None  # the pair history of history_on()
+
+    def _wall_arrays(self) -> None:
+        """The plane and mesh walls the contact kernels take: the model's, or where walls follow motions, copies
+        with the Stepper's own offsets and velocities, set from the step counter before each force stage
+        (``drive_walls``) and so never carried by a snapshot or checkpoint."""
+        m = self.model
+        self.planes, self.meshes = m.planes, m.meshes
+        self._mesh_v = None
+        if not m.has_wall_motions:
+            return
+        self.planes = filled(
+            planes_struct(m.scalar),
+            normal=m.plane_normal,
+            offset=wp.clone(m.plane_offset),
+            material=m.plane_material,
+            v=wp.clone(m.plane_v),
+        )
+        if m.meshes is None:
+            self._mesh_v = wp.zeros(1, dtype=wp.types.vector(3, m.scalar), device=self.device)
+            return
+        self._mesh_v = wp.clone(m.mesh_v)
+        self.meshes = filled(
+            mesh_walls_struct(m.scalar),
+            **{k: getattr(m.meshes, k) for k in ("bvh", "cell_start", "material", "w", "cell_shape", "cell_center")},
+            cell_front=m.meshes.cell_front,
+            first_column=m.meshes.first_column,
+            v=self._mesh_v,
+        )
+
+    def drive_walls(self, state: State, dt: float, step_offset: int = 0) -> None:
+        """The driven plane and mesh walls where their motions put them at the end of step
+        ``state.step_count[0] + step_offset``."""
+        m = self.model
+        if m.has_wall_motions:
+            launch_drive_walls(
+                m.motions, state.step_count, step_offset, dt, self.planes, state.mesh_q, self._mesh_v, self.device
+            )
 
     def _kernels(self) -> None:
         self.kernels = self._contact_kernels()
@@ -268,6 +313,8 @@ class Stepper:
             launch_drive_bodies(
                 m.motions, state.step_count, 0, dt, state.body_q, state.body_v, self.device, travel=travel
             )
+        # The walls' poses at the end of this step too, for what reads the state between steps (pictures, USD).
+        self.drive_walls(state, dt, 0)
         launch_check_state(
             model=m,
             state=state,
@@ -297,6 +344,7 @@ class Stepper:
         into ``out`` and the sums); a clipped polygon that did not fit sets ``overflow``."""
         m = self.model
         out = self._no_outputs if out is None else out
+        self.drive_walls(state, dt, 0)
         launch_pair_contacts(
             kernels,
             model=m,
@@ -310,8 +358,9 @@ class Stepper:
         )
         wall_sums = self._no_sums if wall_sums is None else wall_sums
         launch_gather(
-            kernels, model=m, state=state, pairs=pairs, dt=dt, out=out, report_bits=report_bits, wall_sums=wall_sums
-        )
+            kernels, model=m, state=state, pairs=pairs, dt=dt, out=out, report_bits=report_bits, wall_sums=wall_sums,
+            planes=self.planes,
+        )  # fmt: skip
         if mesh_kernel is not None:
             launch_mesh_contacts(
                 mesh_kernel,
@@ -322,6 +371,7 @@ class Stepper:
                 out=out,
                 report_bits=report_bits,
                 wall_sums=wall_sums,
+                meshes=self.meshes,
             )
 
     def _diag_arrays(self, pairs: int) -> ContactOutputs:
@@ -419,7 +469,7 @@ class Stepper:
         bodies = {k: a[f"body_{k}"] for k in ("q", "v", "w")} | {k: scratch[f"body_{k}"] for k in ("f", "t")}
         bodies = filled(bodies_struct(m.scalar), **bodies, dissipated=scratch["body_dissipated"])
         walls = filled(wall_history_struct(m.contact_scalar), xi=scratch["wall_xi"], turn=scratch["wall_turn"])
-        state = SimpleNamespace(bodies=bodies, walls=walls, mesh_q=a["mesh_q"])
+        state = SimpleNamespace(bodies=bodies, walls=walls, mesh_q=a["mesh_q"], step_count=a["step_count"])
         Pairs = pairs_struct(m.contact_scalar)
         live = {k: getattr(contacts.pairs, k) for k in Pairs.vars}
         steps = {k: scratch[f"pair_{k}"] for k in ("xi", "turn", "force", "torque_a", "dissipated")}
@@ -471,11 +521,12 @@ class StepInputs:
 
     Attributes:
         arrays: device arrays by name: ``body_q``, ``body_v``, ``body_w``, ``mesh_q``, ``wall_xi``,
-            ``wall_turn`` (as the :class:`~polydem.state.State`'s), ``pair_xi``, ``pair_turn`` (as the
+            ``wall_turn``, ``step_count`` (as the :class:`~polydem.state.State`'s), ``pair_xi``, ``pair_turn`` (as the
             :class:`~polydem.contacts.Contacts`').
     """
 
-    STATE = ("body_q", "body_v", "body_w", "mesh_q", "wall_xi", "wall_turn")
+    # The step counter too: the walls that follow motions are put where they were at that step.
+    STATE = ("body_q", "body_v", "body_w", "mesh_q", "wall_xi", "wall_turn", "step_count")
     PAIRS = ("pair_xi", "pair_turn")
 
     def __init__(self) -> None:
@@ -960,6 +1011,20 @@ class Simulation:
         if self._diag_cache is None:
             self._diag_cache = self.stepper.diagnose(self.current_state, self.current_contacts, self.dt)
         return self._diag_cache
+
+    def current_planes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each plane wall as (a point [m], its unit normal) where it is now: moved by its motion, if any."""
+        planes = self.scene.planes
+        if not planes:
+            return []
+        self.stepper.drive_walls(self.current_state, self.dt)  # a report pass may have put them at its step
+        normal = np.array([p.normal for p in planes], dtype=np.float64)
+        point = np.array([p.point for p in planes], dtype=np.float64)
+        rest = np.einsum("ij,ij->i", normal, point)
+        shift = self.stepper.planes.offset.numpy().astype(np.float64) - rest
+        if not self.model.has_wall_motions:
+            shift[:] = 0.0  # the model's float32 offsets would move them by their rounding
+        return [(x + d * n, n) for x, n, d in zip(point, normal, shift, strict=True)]
 
     def state(self) -> dict[str, np.ndarray]:
         """Current state as numpy arrays (world frame, body frame = centroid and principal axes).

@@ -37,7 +37,9 @@ def scene_metadata(scene_arg) -> dict:
 class Outputs:
     """The output files of the part of a run that starts at step ``start`` in ``out_dir``."""
 
-    def __init__(self, scene, out_dir: Path, start: int, resumed_from, *, vtk: bool, picture_size):
+    def __init__(
+        self, scene, out_dir: Path, start: int, resumed_from, *, vtk: bool, picture_size, vtk_contact_types=False
+    ):
         self.scene = scene
         self.out_dir = out_dir
         self.start = start
@@ -51,6 +53,7 @@ class Outputs:
             p = self.usd_path
             self.usd_path = p.with_name(f"{p.stem}.from_step_{start}{p.suffix}")
         self.vtk_dir = out_dir / "vtk" if vtk else None
+        self.vtk_contact_types = vtk_contact_types  # the VtkWriter's contact_types: False, or a method
         self.usd = None  # the UsdRecorder, made by open()
         self.vtk = None  # the VtkWriter, made by open() when VTK output is on (--vtk or output.vtk)
         self.usd_failed = False
@@ -80,7 +83,9 @@ class Outputs:
         if self.vtk_dir is not None:
             from polydem.vtk import VtkWriter
 
-            self.vtk = VtkWriter(self.vtk_dir, self.scene, resume=self.resumed_from is not None)
+            self.vtk = VtkWriter(
+                self.vtk_dir, self.scene, resume=self.resumed_from is not None, contact_types=self.vtk_contact_types
+            )
 
     def frame_average(self, sim) -> dict | None:
         """The contact-force average over the interval since the last frame ({} at the first one),

@@ -89,10 +89,12 @@ def _tap_plan(args: argparse.Namespace, scene: Scene) -> Plan:
             scene.file,
             "--motion",
         )
-    if name not in scene.body_motion.values():
+    walls = [w.motion for w in (*scene.planes, *scene.mesh_walls)]
+    if name not in (*scene.body_motion.values(), *walls):
         raise CliError(
-            f"motion {name!r} drives no container: give a box wall motion = {name!r}", scene.file, "--motion"
-        )
+            f"motion {name!r} drives no container: give a box, plane or mesh wall motion = {name!r}", scene.file,
+            "--motion",
+        )  # fmt: skip
     options = {"motion": name, "margin": args.margin, "lead": args.lead, "taps": m.count}
     return Plan(
         "tap",

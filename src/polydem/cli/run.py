@@ -87,7 +87,13 @@ class Run:
             sim.dt, fps, target, self.start, o.checkpoint_steps, o.checkpoint_seconds, check_every=every
         )
         self.outputs = Outputs(
-            scene, out_dir, self.start, resumed_from, vtk=bool(args.vtk or o.vtk), picture_size=args.picture_size
+            scene,
+            out_dir,
+            self.start,
+            resumed_from,
+            vtk=bool(args.vtk or o.vtk or args.vtk_contact_types),
+            picture_size=args.picture_size,
+            vtk_contact_types=args.vtk_contact_types or False,
         )
         self.log = RunLog(scene, fps)
         self.pictures = pictures_setting(scene)

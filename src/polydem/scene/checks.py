@@ -717,6 +717,41 @@ def check_tunnelling(scene, a, dt: float) -> list[str]:
     ]
 
 
+def check_motion_speeds(scene, a, dt: float) -> list[str]:
+    """A warning per motion that moves what follows it (box walls, kinematic bodies, plane and mesh walls) faster
+    than the slowest :func:`tunnelling_limits` of the free bodies: they may pass through it, or be thrown out."""
+    free = a["kind"] == KIND_FREE
+    followers: dict[str, list[str]] = {}
+    for i, name in sorted(scene.body_motion.items()):
+        followers.setdefault(name, []).append(f"body {i}")
+    walls = [
+        *zip(scene.planes, scene.plane_keys, strict=True),
+        *zip(scene.mesh_walls, scene.mesh_wall_keys, strict=True),
+    ]
+    for wall, key in walls:
+        if wall.motion is not None:
+            followers.setdefault(wall.motion, []).append(key)
+    if not followers or not free.any():
+        return []
+    limits = tunnelling_limits(scene, a, dt)
+    i = int(np.flatnonzero(free)[np.argmin(limits.body_speed_limit[free])])
+    limit = float(limits.body_speed_limit[i])
+    out = []
+    for name, what in followers.items():
+        motion = scene.motions[name]
+        speed = motion.peak_speed(scene.gravity)
+        if not speed > limit:
+            continue
+        fix = {"cycle": "its amplitude or gamma, or its frequency", "ramp": "its speed", "servo": "its max_speed"}
+        names = ", ".join(what[:3]) + (f" and {len(what) - 3} more" if len(what) > 3 else "")
+        out.append(
+            f"motion {name!r} moves {names} at up to {speed:.3g} m/s, above the {limit:.3g} m/s at which "
+            f"{scene.body_label(i)}, hit at that speed, may pass through what it hits or be thrown out: lower "
+            f"{fix[motion.kind]} (motions.{name}) or raise k"
+        )
+    return out
+
+
 def check_steps(scene, ts: TimeStep):
     """The steps of the run (``duration / dt``) at most MAX_STEPS."""
     if scene.duration is not None:

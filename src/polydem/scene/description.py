@@ -35,7 +35,7 @@ from polydem.scene.motions import MOTION, Motion
 from polydem.scene.output import Output
 from polydem.scene.settings import SETTING_NAMES, SIMULATION, read_settings
 from polydem.scene.values import typename
-from polydem.scene.walls import BOX, DRUM, MESH, Drum, MeshWall, PlaneWall, WallTable
+from polydem.scene.walls import BOX, DRUM, MESH, PLANE, Drum, MeshWall, PlaneWall, WallTable
 from polydem.shapes import ConvexShape
 
 
@@ -258,6 +258,7 @@ class Scene:
         found = checks.check_loads(self, a, ts)
         found += overlaps.check_initial_overlaps(self, a)
         found += checks.check_tunnelling(self, a, ts.dt)
+        found += checks.check_motion_speeds(self, a, ts.dt)
         found += self._check_compound_parts(a)
         # A run validates twice (loading the file, building the Model): say each thing once.
         if found != self._warned:
@@ -480,12 +481,16 @@ class Scene:
         """The :class:`Drum` records of :meth:`add_drum`."""
         return self.wall_table.drums
 
-    def add_plane(self, point, normal, material, *, key: str | None = None) -> PlaneWall:
+    def add_plane(
+        self, point, normal, material, *, motion: str | None = PLANE.defaults["motion"], key: str | None = None
+    ) -> PlaneWall:
         """Add an infinite plane through ``point`` [m] facing ``normal`` (normalised; non-zero).
 
-        ``key`` is where the value came from, for error messages (default ``planes[N]``).
+        ``motion``: the name of a registered cycle or ramp motion (:meth:`add_motion`) that moves the plane from
+        where it is at t = 0 (a shaken floor, a piston at a set speed); default fixed. ``key`` is where the
+        value came from, for error messages (default ``planes[N]``).
         """
-        return scene_walls.add_plane(self, point, normal, material, key=key)
+        return scene_walls.add_plane(self, point, normal, material, motion=motion, key=key)
 
     def add_mesh_wall(
         self,
@@ -500,6 +505,7 @@ class Scene:
         pivot=MESH.defaults["pivot"],
         thickness=MESH.defaults["thickness"],
         flip_normals: bool = MESH.defaults["flip_normals"],
+        motion: str | None = MESH.defaults["motion"],
         key: str | None = None,
         base_dir=None,
     ) -> MeshWall:
@@ -523,6 +529,8 @@ class Scene:
             position: translation applied last [m].
             velocity: (3,) [m/s]; angular_velocity: (3,) [rad/s] about ``pivot`` (default
                 ``position``): a kinematic wall, e.g. a turning mixer.
+            motion: the name of a registered cycle or ramp motion (:meth:`add_motion`) that moves the whole wall
+                from where it is at t = 0, e.g. a tapped mesh container (then no velocity or angular_velocity).
             key: where the values came from, for messages (default ``mesh_walls[N]``).
         """
         return scene_walls.add_mesh_wall(
@@ -537,6 +545,7 @@ class Scene:
             pivot=pivot,
             thickness=thickness,
             flip_normals=flip_normals,
+            motion=motion,
             key=key,
             base_dir=base_dir,
         )
@@ -851,6 +860,7 @@ class Scene:
             lines.append(
                 f"    point [{', '.join(f'{x:g}' for x in p.point)}], normal "
                 f"[{', '.join(f'{x:.4g}' for x in p.normal)}], material {p.material}"
+                + (f", follows motion {p.motion}" if p.motion is not None else "")
             )
         for w, key in zip(self.mesh_walls, self.mesh_wall_keys, strict=True):
             lo, hi = w.vertices.min(axis=0), w.vertices.max(axis=0)
@@ -861,6 +871,8 @@ class Scene:
                     f"[{', '.join(f'{x:g}' for x in w.angular_velocity)}] rad/s about "
                     f"[{', '.join(f'{x:g}' for x in w.pivot)}]"
                 )
+            if w.motion is not None:
+                moving = f", follows motion {w.motion}"
             lines.append(
                 f"  mesh wall {key} ({w.source}): {len(w.triangles)} triangles, bounds "
                 f"[{', '.join(f'{x:.4g}' for x in lo)}] to [{', '.join(f'{x:.4g}' for x in hi)}] m, "

@@ -1,7 +1,8 @@
 """Prescribed motions of containers and pistons: vibration, taps and compression (``[motions.NAME]``; issue 26).
 
-A :class:`Motion` moves the bodies that name it (a box container's slabs, kinematic bodies) together
-along its ``axis`` by a displacement d(t), by one of three kinds:
+A :class:`Motion` moves the bodies and walls that name it (a box container's slabs, kinematic bodies, plane
+and mesh walls) together along its ``axis`` by a displacement d(t), by one of three kinds (plane and mesh
+walls follow cycles and ramps):
 
 * ``kind = "cycle"`` (the default): cycle after cycle, each one period of ``d(s) = A (1 - cos(2 pi f s))``:
   from rest in place, up by 2 A and back to rest (kernels/motion.py). Its peak acceleration is
@@ -202,6 +203,12 @@ class Motion:
                 f"motions.{self.name}.gamma",
             )
         return self.gamma * g / self.omega**2
+
+    def peak_speed(self, gravity) -> float:
+        """The fastest it moves what follows it [m/s]: a cycle's A w, a ramp's speed, a servo's max_speed."""
+        if self.kind == "cycle":
+            return self.amplitude_in(gravity) * self.omega
+        return float(self.speed if self.kind == "ramp" else self.max_speed)
 
     def cycle_period(self) -> float:
         """Time between the starts of two cycles [s] (1 for the kinds other than cycles)."""

@@ -28,6 +28,7 @@ PLANE = Table(
         Key("point", "vector", unit="m", default=REQUIRED),
         Key("normal", "vector", default=REQUIRED, check=unit_normal),
         _MATERIAL,
+        Key("motion", "string", what="a motion name", hint="the [motions.NAME] (a cycle or a ramp) it follows"),
     ),
 )
 """An infinite plane wall: the arguments of :meth:`Scene.add_plane`."""
@@ -97,6 +98,7 @@ MESH = Table(
             write="changed",
         ),
         Key("pivot", "vector", unit="m"),
+        Key("motion", "string", what="a motion name", hint="the [motions.NAME] (a cycle or a ramp) it follows"),
     ),
 )
 """A triangle-mesh wall: the arguments of :meth:`Scene.add_mesh_wall`, the mesh given as ``file`` or as
@@ -116,11 +118,14 @@ class PlaneWall:
         normal: (3,) unit normal [-] pointing into the simulated half-space; normalised on
             construction (any non-zero length is accepted).
         material: name of a material registered in the scene.
+        motion: the name of the motion (a cycle or a ramp, :mod:`polydem.scene.motions`) that moves the plane
+            along its axis from where it is at t = 0, or None: fixed.
     """
 
     point: tuple
     normal: tuple
     material: str
+    motion: str | None = None
 
     def __post_init__(self):
         values = PLANE.read({"point": self.point, "normal": self.normal}, "plane")
@@ -149,6 +154,8 @@ class MeshWall:
             diameter of the scene's free bodies.
         source: where the mesh came from (a file path, or "vertices" for arrays), for messages.
         scale: (3,) the factors applied to the given coordinates (for messages; ``vertices`` has them).
+        motion: the name of the motion (a cycle or a ramp, :mod:`polydem.scene.motions`) that moves the whole
+            wall along its axis from where it is at t = 0 (then velocity and angular_velocity are 0), or None.
     """
 
     vertices: np.ndarray
@@ -160,6 +167,7 @@ class MeshWall:
     thickness: float | None = MESH.defaults["thickness"]
     source: str = "vertices"
     scale: tuple = (1.0, 1.0, 1.0)
+    motion: str | None = None
 
     @property
     def moving(self) -> bool:
@@ -323,13 +331,30 @@ class WallTable:
     drums: list[Drum] = field(default_factory=list)
 
 
-def add_plane(scene, point, normal, material, *, key: str | None = None) -> PlaneWall:
+def wall_motion(scene, motion, key: str) -> str | None:
+    """The name of the motion a plane or mesh wall follows (None: none), checked: a cycle or a ramp. A servo is
+    refused: it is driven by the force on the bodies it moves, summed from their pair contacts."""
+    if motion is None:
+        return None
+    m = scene.motion_named(motion, key)
+    if m.kind == "servo":
+        raise scene.error(
+            f"motion {motion!r} is a servo, which a plane or mesh wall cannot follow (a servo is driven by the force "
+            "the grains push its bodies back with): press with a kinematic body or a box wall that follows it, or "
+            "give this wall a cycle or a ramp",
+            key,
+        )
+    return motion
+
+
+def add_plane(scene, point, normal, material, *, motion: str | None = None, key: str | None = None) -> PlaneWall:
     """:meth:`Scene.add_plane <polydem.scene.Scene.add_plane>` of ``scene``."""
     key = key or f"planes[{len(scene.wall_table.planes)}]"
     values = PLANE.read({"point": point, "normal": normal}, key, scene.file)
     scene.material_index(material, key=f"{key}.material")
     name = material.name if isinstance(material, Material) else material
-    plane = PlaneWall(point=as_tuple(values["point"]), normal=as_tuple(values["normal"]), material=name)
+    motion = wall_motion(scene, motion, f"{key}.motion")
+    plane = PlaneWall(point=as_tuple(values["point"]), normal=as_tuple(values["normal"]), material=name, motion=motion)
     scene.wall_table.planes.append(plane)
     scene.wall_table.plane_keys.append(key)
     return plane
@@ -348,6 +373,7 @@ def add_mesh_wall(
     pivot=MESH.defaults["pivot"],
     thickness=MESH.defaults["thickness"],
     flip_normals: bool = MESH.defaults["flip_normals"],
+    motion: str | None = MESH.defaults["motion"],
     key: str | None = None,
     base_dir=None,
 ) -> MeshWall:
@@ -380,6 +406,14 @@ def add_mesh_wall(
             )
         rot = quat_to_matrix(q / norm)
     pos, vel, omega, thickness = a["position"], a["velocity"], a["angular_velocity"], a["thickness"]
+    motion = wall_motion(scene, motion, f"{key}.motion")
+    if motion is not None and (np.any(vel != 0.0) or np.any(omega != 0.0)):
+        which = "velocity" if np.any(vel != 0.0) else "angular_velocity"
+        raise scene.error(
+            f"a mesh wall follows either its motion ({motion!r}) or its velocity and angular_velocity, not both: "
+            f"leave out {which} or motion",
+            f"{key}.{which}",
+        )
     piv = pos if a["pivot"] is None else a["pivot"]
     flip = a["flip_normals"]
     given = v, tri
@@ -425,6 +459,7 @@ def add_mesh_wall(
         thickness=thickness,
         source=source,
         scale=as_tuple(sc),
+        motion=motion,
     )
     scene.wall_table.mesh_walls.append(wall)
     scene.wall_table.mesh_wall_keys.append(key)

@@ -1,0 +1,137 @@
+"""The order of the pairs by body B (kernels/pairlist.py ``launch_body_ranges``) and each body's ranges.
+
+The gather sums a body's B pairs in that order, so it must stay the order of the keys ``b * N + a``: by B,
+then by A. The sort is on int32 keys ``b`` alone and relies on being stable over slots in increasing
+``a * N + b``; these tests would see an unstable sort, a key that loses a bit, or a misplaced sentinel.
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+from polydem.kernels.pairlist import launch_body_ranges
+
+from polydem import Simulation
+from polydem.default_scene import default_scene
+
+
+def pair_list(n, count, rng, hub=True):
+    """``count`` distinct pairs a < b of ``n`` bodies in increasing key ``a * n + b`` (as the broad phase
+    leaves them); with ``hub`` the last body pairs with every other, so that many pairs share that B."""
+    keys = set()
+    if hub:
+        keys |= {a * n + (n - 1) for a in range(n - 1)}
+    while len(keys) < count:
+        a, b = sorted(rng.choice(n, 2, replace=False))
+        keys.add(int(a) * n + int(b))
+    key = np.array(sorted(keys), dtype=np.int64)
+    return key // n, key % n, key
+
+
+def ranges(sorted_bodies, n):
+    i = np.arange(n)
+    return np.stack([np.searchsorted(sorted_bodies, i, "left"), np.searchsorted(sorted_bodies, i + 1, "left")], 1)
+
+
+def check_order(n, a, b, by_b, ranges_a, ranges_b):
+    """``by_b`` (the first ``len(b)`` entries) and the ranges against numpy; a, b in slot order."""
+    count = len(b)
+    # The former int64 keys b * n + a, sorted: the order the gather has always summed in.
+    expected = np.lexsort((a, b))
+    np.testing.assert_array_equal(expected, np.argsort(b, kind="stable"))
+    np.testing.assert_array_equal(by_b[:count], expected)
+    np.testing.assert_array_equal(ranges_a, ranges(a, n))
+    np.testing.assert_array_equal(ranges_b, ranges(b[expected], n))
+    for i in range(n):
+        lo, hi = ranges_b[i]
+        assert np.all(b[by_b[lo:hi]] == i)
+        assert np.all(np.diff(a[by_b[lo:hi]]) > 0)
+
+
+# n = 64 and 1024 are powers of two: the sentinel n needs one bit more than the largest body index.
+@pytest.mark.parametrize("n,count,capacity", [(64, 900, 1200), (1024, 20000, 20000), (1000, 3000, 7000), (2, 1, 3)])
+def test_by_b_is_the_order_of_b_then_a(device, n, count, capacity):
+    rng = np.random.default_rng(n + count)
+    a, b, key = pair_list(n, count, rng, hub=n > 2)
+    pad = capacity - count
+
+    def padded(x, fill, dtype):
+        return wp.array(np.concatenate([x, np.full(pad, fill)]).astype(dtype), device=device)
+
+    # The keys' buffer is scratch lent by the broad phase: whatever it held must not matter.
+    keys_b = wp.array(rng.integers(-(2**31), 2**31 - 1, 2 * capacity, dtype=np.int32), device=device)
+    by_b = wp.array(rng.integers(-(2**31), 2**31 - 1, 2 * capacity, dtype=np.int32), device=device)
+    ra = wp.zeros(n, dtype=wp.vec2i, device=device)
+    rb = wp.zeros(n, dtype=wp.vec2i, device=device)
+    launch_body_ranges(
+        num_bodies=n,
+        pair_b=padded(b, -1, np.int32),
+        pair_key=padded(key, n * n, np.int64),
+        pair_count=wp.array([count], dtype=int, device=device),
+        keys_b=keys_b,
+        by_b=by_b,
+        body_pairs_a=ra,
+        body_pairs_b=rb,
+    )
+    out = by_b.numpy()
+    check_order(n, a, b, out, ra.numpy(), rb.numpy())
+    # The empty slots (sentinel keys) come last, in their slot order.
+    np.testing.assert_array_equal(out[count:capacity], np.arange(count, capacity))
+
+
+def test_no_pairs(device):
+    n, capacity = 5, 4
+    rb = wp.full(n, wp.vec2i(7, 7), dtype=wp.vec2i, device=device)
+    by_b = wp.zeros(2 * capacity, dtype=int, device=device)
+    launch_body_ranges(
+        num_bodies=n,
+        pair_b=wp.full(capacity, -1, dtype=int, device=device),
+        pair_key=wp.full(capacity, n * n, dtype=wp.int64, device=device),
+        pair_count=wp.zeros(1, dtype=int, device=device),
+        keys_b=wp.zeros(2 * capacity, dtype=int, device=device),
+        by_b=by_b,
+        body_pairs_a=wp.zeros(n, dtype=wp.vec2i, device=device),
+        body_pairs_b=rb,
+    )
+    np.testing.assert_array_equal(rb.numpy(), 0)
+    np.testing.assert_array_equal(by_b.numpy()[:capacity], np.arange(capacity))
+
+
+def test_bad_buffers_are_refused():
+    kw = dict(
+        pair_b=wp.zeros(4, dtype=int, device="cpu"),
+        pair_key=wp.zeros(4, dtype=wp.int64, device="cpu"),
+        pair_count=wp.zeros(1, dtype=int, device="cpu"),
+        by_b=wp.zeros(8, dtype=int, device="cpu"),
+        body_pairs_a=wp.zeros(3, dtype=wp.vec2i, device="cpu"),
+        body_pairs_b=wp.zeros(3, dtype=wp.vec2i, device="cpu"),
+    )
+    with pytest.raises(ValueError, match="int32"):
+        launch_body_ranges(num_bodies=3, keys_b=wp.zeros(8, dtype=wp.int64, device="cpu"), **kw)
+    with pytest.raises(ValueError, match="int32"):
+        launch_body_ranges(num_bodies=3, keys_b=wp.zeros(7, dtype=int, device="cpu"), **kw)
+    # The sentinel N would not fit an int32 key (checked before anything is launched).
+    with pytest.raises(ValueError, match="2\\^31"):
+        launch_body_ranges(num_bodies=2**31, keys_b=wp.zeros(8, dtype=int, device="cpu"), **kw)
+
+
+def contacts_order(contacts):
+    bp = contacts.broadphase
+    count = contacts.count()
+    a, b = bp.pair_a.numpy()[:count], bp.pair_b.numpy()[:count]
+    return a, b, contacts.pair_by_b.numpy(), contacts.body_pairs_a.numpy(), contacts.body_pairs_b.numpy()
+
+
+def test_simulation_pairs_by_b_after_host_and_device_rebuilds(device):
+    sim = Simulation(default_scene(), device)
+    contacts = sim.current_contacts
+    n = contacts.num_bodies
+    check_order(n, *contacts_order(contacts))
+    # The sort's keys borrow the broad phase's sort values: no buffer of their own.
+    assert contacts._keys_b.ptr == contacts.broadphase.sort_scratch.ptr
+    sim.step(300)
+    check_order(n, *contacts_order(contacts))
+    # A device rebuild sorts the whole capacity with padded keys, then sorts by B in the same buffers.
+    contacts.rebuild_on_device(sim.current_state.body_q)
+    a, b, by_b, ra, rb = contacts_order(contacts)
+    assert len(b) > 0 and np.bincount(b).max() > 1
+    check_order(n, a, b, by_b, ra, rb)
