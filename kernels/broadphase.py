@@ -68,6 +68,10 @@ Layout of this file: constants, ``@wp.func`` helpers, the kernels, then the plai
 reference :func:`all_pairs` and the host class :class:`BroadPhase`.
 """
 
+import functools
+import weakref
+from typing import Any
+
 import numpy as np
 import warp as wp
 from polydem.kernels.structs import arrays, filled, make_struct
@@ -110,16 +114,18 @@ Boxes = make_struct("Boxes", **arrays(lower=wp.vec3, upper=wp.vec3))
 
 _BUILD = arrays(q_build=wp.transform, radius_build=float, flags_build=int, body_group=int, body_order=int)
 _BUILD |= arrays(group_root=int, class_max=int, radius_min=float, box_lower=wp.vec3, box_upper=wp.vec3)
-Build = make_struct("Build", **_BUILD, **arrays(body_box_lower=wp.vec3, body_box_upper=wp.vec3))
+_BUILD |= arrays(body_box=int, body_box_lower=wp.vec3, body_box_upper=wp.vec3)
+Build = make_struct("Build", **_BUILD)
 """The state of the last (re)build, as the :class:`BroadPhase` names its arrays (N,): the poses, radii and
 flags of the build (the groups of the tree follow the flags of the last host build), each body's BVH group
 (its size class, ``NONFREE_GROUP`` for the others) and the query order (a permutation); per group its
 subtree's root (``group_root``, NUM_GROUPS, -1: empty); the largest size class of a free body (``class_max``,
 (1,)) and the smallest positive free radius (``radius_min``, (1,)) [m]; the BVH items' boxes
-(``box_lower``, ``box_upper``) and the boxes around the bodies' shapes in their own frames
-(``body_box_lower``, ``body_box_upper``: a pair with a fixed or kinematic body must also have the free body's
-sphere, grown by the skin, reach that box, so that a container wall, whose bounding sphere covers the whole
-pile, is a candidate only of the grains near it)."""
+(``box_lower``, ``box_upper``) and the boxes around the bodies' shapes in their own frames (body i's is
+``body_box_lower[body_box[i]]``, ``body_box_upper[body_box[i]]``: each distinct box is stored once, so bodies of
+one shape share theirs; a pair with a fixed or kinematic body must also have the free body's sphere, grown by
+the skin, reach that box, so that a container wall, whose bounding sphere covers the whole pile, is a candidate
+only of the grains near it)."""
 
 PairList = make_struct("PairList", **arrays(pair_key=wp.int64, pair_a=int, pair_b=int, pair_count=int))
 """The pair list, as the :class:`BroadPhase` names its arrays: the keys, the bodies of each pair and their
@@ -194,8 +200,38 @@ def store_block(b: int, lo: wp.vec3, hi: wp.vec3, slot: int, blocks: Boxes, tree
     wp.atomic_add(tree_cost, slot, wp.float64(box_area(lo, hi)))
 
 
+# Relative rounding of a float32 coordinate, 2^-24, and how many such roundings the radius of a
+# body fed to the broad phase from float64 poses covers: its centre is rounded at the build and now
+# (the skin test), its partner's too, each by up to sqrt(3) 2^-24 |x|_max; 8 leaves room for the
+# arithmetic of the tests and for |x| growing by the skin between the two.
+CAST_ROUNDINGS = 8.0
+
+
+@wp.func
+def body_input(body_q: wp.array(dtype=wp.transform), body_radius: wp.array(dtype=float), i: int):
+    # Body i's pose and bounding radius [m] as the broad phase works with them: float32 poses as they are.
+    return body_q[i], body_radius[i]
+
+
+@wp.func
+def body_input(body_q: wp.array(dtype=wp.transformd), body_radius: wp.array(dtype=float), i: int):  # noqa: F811 (overload)
+    # From float64 poses: the pose cast to float32 and the radius grown by the rounding of the cast
+    # (CAST_ROUNDINGS times 2^-24 of the largest coordinate and the radius), so that a pair whose float64
+    # bounding spheres overlap is never missed; extra candidates are harmless.
+    q = body_q[i]
+    x = wp.transform_get_translation(q)
+    r = wp.float64(body_radius[i])
+    m = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
+    pad = wp.float64(CAST_ROUNDINGS) * wp.float64(5.960464477539063e-08) * (m + r)
+    return wp.transform(wp.vec3(x), wp.quat(wp.transform_get_rotation(q))), float(r + pad)
+
+
 # ---------------------------------------------------------------------------------------------
 # Kernels
+#
+# The kernels that read poses take ``body_q`` as (N,) ``wp.transform`` or ``wp.transformd`` (``Any``: one
+# overload each) with float32 radii, through :func:`body_input`: float64 poses are cast where they are read,
+# with no float32 copy of them in memory.
 
 
 @wp.kernel(enable_backward=False)
@@ -205,29 +241,36 @@ def reset_classes_kernel(build: Build):
 
 
 @wp.kernel(enable_backward=False)
-def radius_min_kernel(body_radius: wp.array(dtype=float), body_flags: wp.array(dtype=int), build: Build):
+def radius_min_kernel(
+    body_q: wp.array(dtype=Any), body_radius: wp.array(dtype=float), body_flags: wp.array(dtype=int), build: Build
+):
     """Smallest positive radius [m] of the free bodies, into ``build.radius_min[0]``. Launch dim: bodies."""
     i = wp.tid()
-    r = body_radius[i]
+    _q, r = body_input(body_q, body_radius, i)
     if body_flags[i] == FLAG_FREE and r > 0.0:
         wp.atomic_min(build.radius_min, 0, r)
 
 
 @wp.kernel(enable_backward=False)
 def classes_kernel(
-    inv_log_class_ratio: float, body_radius: wp.array(dtype=float), body_flags: wp.array(dtype=int), build: Build
+    inv_log_class_ratio: float,
+    body_q: wp.array(dtype=Any),
+    body_radius: wp.array(dtype=float),
+    body_flags: wp.array(dtype=int),
+    build: Build,
 ):
     """BVH group of every body into ``build.body_group`` (its size class, ``NONFREE_GROUP`` for the others;
     the largest class into ``class_max``, atomic max); remembers the flags of the build. Launch dim: bodies.
 
     Args:
         inv_log_class_ratio: 1 / ln(class_ratio) [-].
+        body_q: (N,) body poses (for the radii grown by the cast of float64 poses: :func:`body_input`).
         body_radius: (N,) bounding-sphere radii about the body centres [m].
         body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
         build: :data:`Build`, with the smallest positive free radius in ``radius_min``.
     """
     i = wp.tid()
-    r = body_radius[i]
+    _q, r = body_input(body_q, body_radius, i)
     f = body_flags[i]
     build.flags_build[i] = f
     if f == FLAG_FREE:
@@ -245,7 +288,7 @@ def classes_kernel(
 @wp.kernel(enable_backward=False)
 def bounds_kernel(
     half_skin: float,
-    body_q: wp.array(dtype=wp.transform),
+    body_q: wp.array(dtype=Any),
     body_radius: wp.array(dtype=float),
     body_flags: wp.array(dtype=int),
     build: Build,
@@ -259,12 +302,11 @@ def bounds_kernel(
         body_radius: (N,) bounding-sphere radii about the body centres [m].
         body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
         build: :data:`Build`: out, ``box_lower``, ``box_upper`` (the sphere boxes inflated by skin/2 [m]),
-            ``q_build`` and ``radius_build`` (copies of the inputs); in, ``flags_build``.
+            ``q_build`` and ``radius_build`` (copies of the inputs, float32: :func:`body_input`); in, ``flags_build``.
         counts: :data:`Counts`: ``host_build_needed`` set to 1 (sticky) when a flag differs from the build's.
     """
     i = wp.tid()
-    q = body_q[i]
-    r = body_radius[i]
+    q, r = body_input(body_q, body_radius, i)
     x = wp.transform_get_translation(q)
     e = padded_extent(r, half_skin, x)
     ev = wp.vec3(e, e, e)
@@ -274,13 +316,6 @@ def bounds_kernel(
     build.radius_build[i] = r
     if body_flags[i] != build.flags_build[i]:
         wp.atomic_max(counts.host_build_needed, 0, 1)
-
-
-# Relative rounding of a float32 coordinate, 2^-24, and how many such roundings the radius of a
-# body fed to the broad phase from float64 poses covers: its centre is rounded at the build and now
-# (the skin test), its partner's too, each by up to sqrt(3) 2^-24 |x|_max; 8 leaves room for the
-# arithmetic of the tests and for |x| growing by the skin between the two.
-CAST_ROUNDINGS = 8.0
 
 
 @wp.kernel(enable_backward=False)
@@ -293,20 +328,17 @@ def float32_input_kernel(
     body_q32: wp.array(dtype=wp.transform),
     body_radius32: wp.array(dtype=float),
 ):
-    """Float32 poses and radii for the broad phase from float64 poses. Launch dim: bodies.
+    """Float32 poses and radii from float64 poses, as the broad phase's kernels see them
+    (:func:`body_input`; they cast where they read, so the broad phase needs no copy). Launch dim: bodies.
 
     The radii grow by the rounding of the cast (``CAST_ROUNDINGS`` times 2^-24 of the largest
     coordinate and the radius), so that a pair whose float64 bounding spheres overlap is never
     missed; extra candidates are harmless.
     """
     i = wp.tid()
-    q = body_q[i]
-    x = wp.transform_get_translation(q)
-    r = wp.float64(body_radius[i])
-    m = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
-    pad = wp.float64(CAST_ROUNDINGS) * wp.float64(5.960464477539063e-08) * (m + r)
-    body_q32[i] = wp.transform(wp.vec3(x), wp.quat(wp.transform_get_rotation(q)))
-    body_radius32[i] = float(r + pad)
+    q, r = body_input(body_q, body_radius, i)
+    body_q32[i] = q
+    body_radius32[i] = r
 
 
 @wp.kernel(enable_backward=False)
@@ -331,11 +363,15 @@ def extent_kernel(build: Build, scene_lower: wp.array(dtype=float), scene_upper:
 
 @wp.kernel(enable_backward=False)
 def morton_kernel(
-    build: Build, scene_lower: wp.array(dtype=float), scene_upper: wp.array(dtype=float), morton: wp.array(dtype=int)
+    build: Build,
+    scene_lower: wp.array(dtype=float),
+    scene_upper: wp.array(dtype=float),
+    morton: wp.array(dtype=int),
+    order: wp.array(dtype=int),
 ):
     """30-bit Morton code of each free body's centre in the scene box at the build (2^30 for the others,
-    which so sort after the free bodies: they do not query), and the identity order into ``body_order``.
-    Launch dim: bodies.
+    which so sort after the free bodies: they do not query), and the identity order into ``order`` (the
+    values the codes are sorted with). Launch dim: bodies.
     """
     i = wp.tid()
     x = wp.transform_get_translation(build.q_build[i])
@@ -348,7 +384,7 @@ def morton_kernel(
             c = wp.clamp(int((x[k] - lo) / w * 1024.0), 0, 1023)
             code = code | (spread_bits(c) << k)
     morton[i] = code
-    build.body_order[i] = i
+    order[i] = i
 
 
 @wp.kernel(enable_backward=False)
@@ -365,7 +401,7 @@ def query_pairs_kernel(
     capacity: int,
     half_skin: float,
     skin: float,
-    body_q: wp.array(dtype=wp.transform),
+    body_q: wp.array(dtype=Any),
     body_radius: wp.array(dtype=float),
     build: Build,
     counts: Counts,
@@ -389,8 +425,8 @@ def query_pairs_kernel(
     i = build.body_order[wp.tid()]
     if build.flags_build[i] != FLAG_FREE:
         return
-    xi = wp.transform_get_translation(body_q[i])
-    ri = body_radius[i]
+    qi, ri = body_input(body_q, body_radius, i)
+    xi = wp.transform_get_translation(qi)
     ci = build.body_group[i]
     query_radius = padded_extent(ri, half_skin, xi)
     last = build.class_max[0] + 1
@@ -406,12 +442,14 @@ def query_pairs_kernel(
                 # Within the own class both bodies meet each other: the lower index emits.
                 if g == ci and j <= i:
                     continue
-                d = wp.transform_get_translation(body_q[j]) - xi
-                cut = ri + body_radius[j] + skin
+                qj, rj = body_input(body_q, body_radius, j)
+                d = wp.transform_get_translation(qj) - xi
+                cut = ri + rj + skin
                 near = wp.dot(d, d) < cut * cut
                 if near and build.flags_build[j] != FLAG_FREE:
-                    local = wp.quat_rotate_inv(wp.transform_get_rotation(body_q[j]), -d)
-                    gap = local - wp.min(wp.max(local, build.body_box_lower[j]), build.body_box_upper[j])
+                    local = wp.quat_rotate_inv(wp.transform_get_rotation(qj), -d)
+                    kb = build.body_box[j]
+                    gap = local - wp.min(wp.max(local, build.body_box_lower[kb]), build.body_box_upper[kb])
                     near = wp.dot(gap, gap) < (ri + skin) * (ri + skin)
                 if near:
                     # One atomic per pair: no slower than batching a thread's keys in local memory,
@@ -469,7 +507,7 @@ def unpack_pairs_kernel(num_bodies: int, pairs: PairList):
 def needs_rebuild_kernel(
     half_skin: float,
     rotation_term: int,
-    body_q: wp.array(dtype=wp.transform),
+    body_q: wp.array(dtype=Any),
     body_radius: wp.array(dtype=float),
     body_flags: wp.array(dtype=int),
     build: Build,
@@ -482,9 +520,8 @@ def needs_rebuild_kernel(
     skin / 2 a pair could be missed. A change of flags also asks for a rebuild.
     """
     i = wp.tid()
-    q = body_q[i]
+    q, r = body_input(body_q, body_radius, i)
     q0 = build.q_build[i]
-    r = body_radius[i]
     move = wp.length(wp.transform_get_translation(q) - wp.transform_get_translation(q0))
     move += wp.max(r - build.radius_build[i], 0.0)
     # A fixed or kinematic body is tested by its box, which turns with it.
@@ -555,6 +592,43 @@ def launch_float32_inputs(
     )
 
 
+def for_poses(kernel: wp.Kernel, body_q: wp.array) -> wp.Kernel:
+    """The overload of ``kernel`` (one of this module's kernels generic over ``body_q``) for the poses ``body_q``,
+    to launch as it is: a generic kernel would infer its argument types at every launch (20 us on the CPU)."""
+    return _overload(kernel, body_q.dtype)
+
+
+@functools.cache
+def _overload(kernel: wp.Kernel, pose_dtype: type) -> wp.Kernel:
+    types = [wp.array(dtype=pose_dtype) if name == "body_q" else t for name, t in kernel.adj.arg_types.items()]
+    return kernel.add_overload(types)
+
+
+# Both overloads of each, made here: the module is then complete before its first load, so that no overload
+# is added (and the module loaded again) in a CUDA graph capture.
+for _kernel in (radius_min_kernel, classes_kernel, bounds_kernel, query_pairs_kernel, needs_rebuild_kernel):
+    for _pose in (wp.transform, wp.transformd):
+        _overload(_kernel, _pose)
+del _kernel, _pose
+
+
+def byte_view(base: wp.array, offset: int, dtype, length: int) -> wp.array:
+    """A (length,) array of ``dtype`` over the bytes of the contiguous array ``base`` from ``offset`` [bytes]
+    on: the same memory seen as another type (scratch shared by uses that never overlap in time). The view
+    keeps ``base`` alive."""
+    size = wp.types.type_size_in_bytes(dtype)
+    if offset % 8 or offset < 0 or offset + length * size > base.capacity:
+        raise ValueError(f"a view of {length} x {size} bytes at {offset} does not fit {base.capacity} bytes")
+    view = wp.array(ptr=base.ptr + offset, dtype=dtype, shape=(length,), capacity=length * size, device=base.device)
+    # A finalizer holds its arguments until the view is collected: base lives as long as the view.
+    weakref.finalize(view, _keep, base).atexit = False
+    return view
+
+
+def _keep(base: wp.array) -> None:
+    pass
+
+
 # ---------------------------------------------------------------------------------------------
 # Reference and host code
 
@@ -588,15 +662,35 @@ def all_pairs(positions, radii, flags, skin):
     return np.concatenate(out_a), np.concatenate(out_b)
 
 
+def _distinct_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``rows`` (N, K) uint32 and each row's index among them. One 64-bit hash a row and a
+    sort of N numbers (a sort of the rows themselves, ``np.unique(axis=0)``, took 1.9 s at 1e6 bodies); a hash
+    that joined two different rows is caught by the check and falls back to that sort."""
+    if not len(rows):
+        return rows, np.zeros(0, dtype=np.int64)
+    h = np.zeros(len(rows), dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        for k in range(rows.shape[1]):
+            h = (h ^ rows[:, k].astype(np.uint64)) * np.uint64(0x9E3779B97F4A7C15)
+            h ^= h >> np.uint64(29)
+    _, first, index = np.unique(h, return_index=True, return_inverse=True)
+    distinct = rows[first]
+    if np.array_equal(distinct[index], rows):
+        return distinct, index
+    distinct, index = np.unique(rows, axis=0, return_inverse=True)
+    return distinct, index.reshape(-1)
+
+
 class BroadPhase:
     """Candidate pairs of bounding spheres with a Verlet skin (see the module docstring).
 
     Attributes (device arrays; the pair arrays are replaced by new ones when the capacity grows):
         pair_a, pair_b: (capacity,) int32 body indices, a < b, of the first ``pair_count[0]``
-            entries; -1 after them.
+            entries; -1 after them (the two halves of one buffer, which a rebuild's key sort takes for its
+            values: unspecified during a rebuild, until the keys are unpacked).
         pair_key: (capacity,) int64 keys ``a * num_bodies + b``, strictly increasing over the first
             ``pair_count[0]`` entries (a view of the sort buffer; entries past the count are
-            unspecified).
+            unspecified; the upper half of that buffer is the sort's scratch, and the Morton sort's).
         pair_count: (1,) int32 number of pairs.
         rebuild_flag: (1,) int32, written by :meth:`needs_rebuild`.
         host_build_needed: (1,) int32, sticky: 1 once a device rebuild overflowed or saw changed
@@ -653,14 +747,20 @@ class BroadPhase:
         self.key_bits = max(1, int(self.sentinel).bit_length())
 
         dev = self.device
-        if body_box is None:
+        if body_box is None or not self.num_bodies:
             far = np.full((n, 3), 1.0e30, dtype=np.float32)
             body_box = (-far, far)
         lo, hi = (np.asarray(b, dtype=np.float32).reshape(-1, 3) for b in body_box)
         if lo.shape != (self.num_bodies, 3) and self.num_bodies:
             raise ValueError(f"body_box arrays must have shape ({self.num_bodies}, 3), got {lo.shape}")
-        self.body_box_lower = wp.array(lo, dtype=wp.vec3, device=dev)
-        self.body_box_upper = wp.array(hi, dtype=wp.vec3, device=dev)
+        # Each distinct box once (by its bits; the bodies of one shape share theirs) and each body's row of it:
+        # 4 bytes a body instead of 24.
+        rows = np.ascontiguousarray(np.hstack([lo, hi])).view(np.uint32)
+        boxes, box_of = _distinct_rows(rows)
+        boxes = np.ascontiguousarray(boxes).view(np.float32)
+        self.body_box_lower = wp.array(boxes[:, :3], dtype=wp.vec3, device=dev)
+        self.body_box_upper = wp.array(boxes[:, 3:], dtype=wp.vec3, device=dev)
+        self.body_box = wp.array(np.asarray(box_of, dtype=np.int32).reshape(-1), dtype=int, device=dev)
         self.box_lower = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.box_upper = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.body_group = wp.zeros(n, dtype=int, device=dev)
@@ -682,10 +782,9 @@ class BroadPhase:
         # Largest true pair count since the last host build (a device rebuild may overflow with
         # more pairs than the host build that follows finds at the restored poses).
         self.pair_count_peak = wp.zeros(1, dtype=int, device=dev)
-        # Spatial order of the query threads; radix_sort_pairs needs twice the length.
-        self._morton = wp.zeros(2 * n, dtype=int, device=dev)
-        self._order_buffer = wp.array(np.arange(2 * n, dtype=np.int32) % n, dtype=int, device=dev)
-        self.body_order = self._order_buffer[:n]
+        # Spatial order of the query threads (sorted in scratch: _order_scratch).
+        self.body_order = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=dev)
+        self._own_order_scratch = None
         self.scene_lower = wp.zeros(3, dtype=float, device=dev)
         self.scene_upper = wp.zeros(3, dtype=float, device=dev)
         self.bvh = None
@@ -704,13 +803,6 @@ class BroadPhase:
             capacity = max(MIN_CAPACITY, DEFAULT_PAIRS_PER_BODY * self.num_bodies)
         self._allocate(int(capacity))
 
-    @property
-    def sort_scratch(self) -> wp.array:
-        """(2 C,) int32 scratch, free from the end of a rebuild to the start of the next (the values of the
-        rebuild's radix sort, which nothing reads): the by-B sort of the pair list's owner borrows it. It is
-        replaced (a new array) when the capacity grows."""
-        return self._sort_values
-
     # -- buffers -----------------------------------------------------------------------------
 
     def _allocate(self, capacity: int):
@@ -719,12 +811,13 @@ class BroadPhase:
         self.capacity = capacity
         # radix_sort_pairs needs 2 * count of keys and values (the upper half is scratch).
         self._key_buffer = wp.zeros(2 * capacity, dtype=wp.int64, device=dev)
-        # The sort's values are never read after it, and every rebuild writes them before it sorts: between
-        # rebuilds they are scratch that polydem.contacts.Contacts orders its pairs by B in (sort_scratch).
-        self._sort_values = wp.zeros(2 * capacity, dtype=int, device=dev)
         self.pair_key = self._key_buffer[:capacity]
-        self.pair_a = wp.full(capacity, -1, dtype=int, device=dev)
-        self.pair_b = wp.full(capacity, -1, dtype=int, device=dev)
+        # The sort's values are never read: it sorts them in pair_a and pair_b (2C int32, one buffer), which
+        # nothing reads during a rebuild before the unpack writes them from the sorted keys (8 bytes a pair
+        # slot less than values of their own).
+        self._pair_ab = wp.full(2 * capacity, -1, dtype=int, device=dev)
+        self.pair_a = self._pair_ab[:capacity]
+        self.pair_b = self._pair_ab[capacity:]
         self._pairs = filled(PairList, **{name: getattr(self, name) for name in PairList.vars})
 
     def _check_inputs(self, body_q, body_radius, body_flags=None):
@@ -738,16 +831,18 @@ class BroadPhase:
 
     # -- stages ------------------------------------------------------------------------------
 
-    def _classes(self, body_radius, body_flags):
+    def _classes(self, body_q, body_radius, body_flags):
         n = self.num_bodies
         dev = self.device
         inv_log = 0.0 if np.isinf(self.class_ratio) else 1.0 / float(np.log(self.class_ratio))
         wp.launch(reset_classes_kernel, dim=1, inputs=[self._build], device=dev)
         if self.radius_ref is None:
-            wp.launch(radius_min_kernel, dim=n, inputs=[body_radius, body_flags, self._build], device=dev)
+            kernel = for_poses(radius_min_kernel, body_q)
+            wp.launch(kernel, dim=n, inputs=[body_q, body_radius, body_flags, self._build], device=dev)
         else:
             self.radius_min.fill_(float(self.radius_ref))
-        wp.launch(classes_kernel, dim=n, inputs=[inv_log, body_radius, body_flags, self._build], device=dev)
+        kernel = for_poses(classes_kernel, body_q)
+        wp.launch(kernel, dim=n, inputs=[inv_log, body_q, body_radius, body_flags, self._build], device=dev)
 
     def _spatial_order(self):
         # Query order (body_order): the Morton order of the free bodies at the last (re)build
@@ -757,12 +852,32 @@ class BroadPhase:
         scene = [self.scene_lower, self.scene_upper]
         wp.launch(reset_extent_kernel, dim=1, outputs=scene, device=dev)
         wp.launch(extent_kernel, dim=n, inputs=[self._build], outputs=scene, device=dev)
-        wp.launch(morton_kernel, dim=n, inputs=[self._build, *scene], outputs=[self._morton], device=dev)
-        wp.utils.radix_sort_pairs(self._morton, self._order_buffer, n, 0, 31)
+        morton, order = self._order_scratch()
+        wp.launch(morton_kernel, dim=n, inputs=[self._build, *scene], outputs=[morton, order], device=dev)
+        wp.utils.radix_sort_pairs(morton, order, n, 0, 31)
+        wp.copy(self.body_order, order, count=n)
+
+    def _order_scratch(self):
+        # The keys and values (2N int32 each) of the Morton sort: in the upper half of the key buffer, the
+        # pair sort's scratch (free from one rebuild's sort to the next one's query, and the Morton order is
+        # sorted outside that: at a host build before its query, between steps for the tree), where it has
+        # room (capacity >= 2N); else in buffers of their own.
+        n = self.num_bodies
+        if 2 * n <= self.capacity:
+            self._own_order_scratch = None
+            half = 8 * self.capacity
+            return (
+                byte_view(self._key_buffer, half, wp.int32, 2 * n),
+                byte_view(self._key_buffer, half + 8 * n, wp.int32, 2 * n),
+            )
+        if self._own_order_scratch is None:
+            dev = self.device
+            self._own_order_scratch = (wp.zeros(2 * n, dtype=int, device=dev), wp.zeros(2 * n, dtype=int, device=dev))
+        return self._own_order_scratch
 
     def _bounds(self, body_q, body_radius, body_flags):
         wp.launch(
-            bounds_kernel,
+            for_poses(bounds_kernel, body_q),
             dim=self.num_bodies,
             inputs=[0.5 * self.skin, body_q, body_radius, body_flags],
             outputs=[self._build, self._counts],
@@ -773,7 +888,7 @@ class BroadPhase:
         # Who queries and which group a body sits in follow the flags of the last host build.
         self.pair_counter.zero_()
         wp.launch(
-            query_pairs_kernel,
+            for_poses(query_pairs_kernel, body_q),
             dim=self.num_bodies,
             inputs=[
                 self.bvh.id,
@@ -807,7 +922,10 @@ class BroadPhase:
         the device once per query pass (to read the pair count).
 
         Args:
-            body_q: (N,) wp.transform body poses: position [m], unit quaternion xyzw.
+            body_q: (N,) wp.transform body poses: position [m], unit quaternion xyzw; or wp.transformd
+                (float64: cast in the kernels, the radii grown by the cast's rounding, :func:`body_input`;
+                the same poses and radii as :func:`launch_float32_inputs` gives). Every call takes the same
+                dtype.
             body_radius: (N,) float32 bounding-sphere radii about the body centres [m].
             body_flags: (N,) int32 flags: 0 free, 1 fixed, 2 kinematic.
 
@@ -831,7 +949,7 @@ class BroadPhase:
             self.num_pairs = 0
             self.built = True
             return 0
-        self._classes(body_radius, body_flags)
+        self._classes(body_q, body_radius, body_flags)
         self._bounds(body_q, body_radius, body_flags)
         self._spatial_order()
         self._refits_checked = 0
@@ -852,7 +970,7 @@ class BroadPhase:
         self._finish_count()
         self.device_rebuilds.zero_()
         if count > 0:
-            wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, count, 0, self.key_bits)
+            wp.utils.radix_sort_pairs(self._key_buffer, self._pair_ab, count, 0, self.key_bits)
         self._unpack()
         self.num_pairs = count
         self.built = True
@@ -876,7 +994,7 @@ class BroadPhase:
         self._query(body_q, body_radius)
         self._finish_count()
         wp.launch(pad_keys_kernel, dim=self.capacity, inputs=[self.sentinel, self._pairs], device=self.device)
-        wp.utils.radix_sort_pairs(self._key_buffer, self._sort_values, self.capacity, 0, self.key_bits)
+        wp.utils.radix_sort_pairs(self._key_buffer, self._pair_ab, self.capacity, 0, self.key_bits)
         self._unpack()
 
     # -- tree renewal (host, between steps) -----------------------------------------------------
@@ -990,7 +1108,7 @@ class BroadPhase:
             return self.rebuild_flag
         flags = self.flags_build if body_flags is None else body_flags
         wp.launch(
-            needs_rebuild_kernel,
+            for_poses(needs_rebuild_kernel, body_q),
             dim=self.num_bodies,
             inputs=[0.5 * self.skin, int(self.rotation_term), body_q, body_radius, flags, self._build],
             outputs=[self.rebuild_flag],

@@ -264,6 +264,7 @@ def launch_body_ranges(
     by_b: wp.array,
     body_pairs_a: wp.array,
     body_pairs_b: wp.array,
+    pair_by_b: wp.array | None = None,
 ) -> None:
     """Order the pairs (C of ``pair_b``'s length) by their B body and find each body's ranges.
 
@@ -271,7 +272,8 @@ def launch_body_ranges(
     scratch); ``by_b[:C]`` ends as the pair indices ordered by B, and within one B in increasing slot, so
     by A as the keys ``a * N + b`` of ``pair_key`` are increasing. ``keys_b`` holds nothing between calls.
     ``body_pairs_a``, ``body_pairs_b``: (N,) vec2i, each body's range in the pairs by A (``pair_key``) and
-    by B."""
+    by B. ``pair_by_b``: (C,) int32, where given, gets a copy of ``by_b[:C]`` (then ``by_b`` holds nothing
+    between calls either: both may be scratch shared with other uses)."""
     capacity = pair_b.shape[0]
     device = pair_b.device
     # The sentinel N must exceed every body index and fit an int32 key.
@@ -296,3 +298,5 @@ def launch_body_ranges(
         outputs=[body_pairs_a, body_pairs_b],
         device=device,
     )
+    if pair_by_b is not None:
+        wp.copy(pair_by_b, by_b, count=capacity)

@@ -126,8 +126,11 @@ def test_simulation_pairs_by_b_after_host_and_device_rebuilds(device):
     contacts = sim.current_contacts
     n = contacts.num_bodies
     check_order(n, *contacts_order(contacts))
-    # The sort's keys borrow the broad phase's sort values: no buffer of their own.
-    assert contacts._keys_b.ptr == contacts.broadphase.sort_scratch.ptr
+    # The sort's keys and values live in the scratch the force stage's outputs and the rebuild's previous
+    # history share: no buffers of their own.
+    lo, hi = contacts._scratch.ptr, contacts._scratch.ptr + contacts._scratch.capacity
+    for arr in (contacts._keys_b, contacts._by_b, contacts.pair_force, contacts.previous.key):
+        assert lo <= arr.ptr and arr.ptr + arr.capacity <= hi
     sim.step(300)
     check_order(n, *contacts_order(contacts))
     # A device rebuild sorts the whole capacity with padded keys, then sorts by B in the same buffers.

@@ -14,7 +14,7 @@ from PIL import Image
 from test_cli import TINY
 
 from polydem import ConvexShape, Scene, Simulation
-from polydem.plots import write_plots
+from polydem.plots import write_measure_plots, write_plots
 
 # No display on CI; set before anything imports pyplot (plots.py asks for Agg too).
 matplotlib.use("Agg")
@@ -88,3 +88,70 @@ def test_write_plots_of_a_simulation(tmp_path, devices):
     # Fewer than two frames: a note, no files.
     assert "fewer than two" in write_plots({k: v[:1] for k, v in history.items()}, tmp_path / "none")
     assert not (tmp_path / "none").exists()
+
+
+# Three layers of 10 x 10 cubes stacked face on face in a box that fits them: settled from the first step.
+STACK = """\
+[simulation]
+name = "stack"
+dt = "auto"
+gravity = [0.0, 0.0, -9.81]
+steps = 300
+
+[materials.m]
+density = 2500.0
+law = "hertz"
+k = 1.0e8
+restitution = 0.3
+friction = 0.5
+
+[shapes.cube]
+type = "box"
+size = 0.02
+
+[[walls]]
+type = "box"
+center = [0.0, 0.0, 0.04]
+inner_size = [0.2011, 0.2011, 0.08]
+material = "m"
+
+[output]
+fps = 2000
+pictures = false
+""" + "".join(
+    f'\n[[bodies]]\nshape = "cube"\nmaterial = "m"\nposition = [{x}, {y}, {z}]\n'
+    for z in (0.01, 0.03, 0.05)
+    for y in (0.0201 * (k - 4.5) for k in range(10))
+    for x in (0.0201 * (k - 4.5) for k in range(10))
+)
+
+
+def test_a_settled_run_plots_its_measures(tmp_path, capsys, devices):
+    """measures.png: P(f/<f>), the normals' rose, the packing profile and the contact types of the settled
+    region, written beside the other plots and named in the summary and the closing lines."""
+    scene = write_scene(tmp_path, STACK, "stack.toml")
+    out = tmp_path / "out"
+    code, stdout, err = run(["run", scene, "--device", devices[0], "--out", out, "-q"], capsys)
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["measures"]["contact_features"]["face-face"] > 0
+    assert summary["outputs"]["plots"] == ["energy.png", "packing.png", "measures.png"]
+    assert_drawn(out / "measures.png")
+    assert "measures.png" in stdout
+
+
+def test_write_measure_plots_says_why_it_draws_nothing(tmp_path, devices):
+    from polydem import measures
+
+    scene = Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("m", density=1000.0, law="hertz", k=1.0e8, restitution=0.5, friction=0.3)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("cube", "m", position=(0.0, 0.0, 0.05))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    sim = Simulation(scene, devices[0])
+    sim.step(10)
+    grains = measures.Grains.from_simulation(sim)
+    box = measures.Box.around(grains)
+    note = write_measure_plots(grains, sim.contacts(), box, {}, tmp_path / "m")
+    assert note == "no measure plots: no pair contact in the settled region"
+    assert not (tmp_path / "m").exists()

@@ -23,21 +23,37 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent / "results" / "validation"
 
 
-def build(grains: int, width_d: int, *, d: float, gamma: float, frequency: float, start: float, period: float,
-          taps: int, mu: float, seed: int):  # fmt: skip
+SHAPES = ("cube", "tetrahedron")
+
+
+def grain_shape(name: str, d: float):
+    """The grain of edge ``d`` [m]: a cube or a regular tetrahedron (Baker and Kudrolli's two Platonic solids
+    with published loosest and densest packings)."""
     import polydem
 
+    if name == "cube":
+        return polydem.ConvexShape.box(d)
+    if name == "tetrahedron":
+        return polydem.ConvexShape.tetrahedron(d)
+    raise SystemExit(f"--shape must be one of {', '.join(SHAPES)}, got {name!r}")
+
+
+def build(grains: int, width_d: int, *, d: float, gamma: float, frequency: float, start: float, period: float,
+          taps: int, mu: float, seed: int, shape: str = "cube"):  # fmt: skip
+    import polydem
+
+    grain = grain_shape(shape, d)
     w = width_d * d
-    cell = 1.1 * math.sqrt(3.0) * d
+    cell = 1.1 * 2.0 * grain.radius
     across = int((w - 0.04 * d) // cell)
     height = 1.02 * math.ceil(grains / across**2) * cell + d
     sc = polydem.Scene(gravity=(0.0, 0.0, -9.81), name="tapping")
     sc.add_material("grain", density=2500.0, k=1e9, restitution=0.3, friction=mu, law="hertz")
     sc.add_motion("taps", frequency, gamma=gamma, start=start, period=period, count=taps)
-    sc.add_shape("cube", polydem.ConvexShape.box(d))
+    sc.add_shape(shape, grain)
     sc.add_box_container((0.0, 0.0, 0.5 * height), (w, w, height), "grain", motion="taps")
     lo, hi = (-0.5 * w + 0.02 * d,) * 2 + (0.5 * d,), (0.5 * w - 0.02 * d,) * 2 + (height - 0.5 * d,)
-    sc.emit("cube", "grain", grains, (lo, hi), seed=seed)
+    sc.emit(shape, "grain", grains, (lo, hi), seed=seed)
     return sc
 
 
@@ -46,7 +62,8 @@ def main() -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--grains", type=int, default=160)
     ap.add_argument("--width", type=int, default=8, help="box width in grain sizes")
-    ap.add_argument("--grain", type=float, default=0.01, help="cube edge [m]")
+    ap.add_argument("--grain", type=float, default=0.01, help="the grain's edge [m]")
+    ap.add_argument("--shape", default="cube", choices=SHAPES)
     ap.add_argument("--taps", type=int, default=3)
     ap.add_argument("--gamma", type=float, default=3.0)
     ap.add_argument("--frequency", type=float, default=30.0)
@@ -66,7 +83,7 @@ def main() -> int:
 
     d = args.grain
     sc = build(args.grains, args.width, d=d, gamma=args.gamma, frequency=args.frequency, start=args.start,
-               period=args.period, taps=args.taps, mu=args.mu, seed=args.seed)  # fmt: skip
+               period=args.period, taps=args.taps, mu=args.mu, seed=args.seed, shape=args.shape)  # fmt: skip
     sim = Simulation(sc, device=args.device)
     t0 = time.perf_counter()
     w = args.width * d
@@ -82,7 +99,8 @@ def main() -> int:
         print(f"tap {r.tap:3d}  t {r.time:7.3f} s  packing fraction {r.packing_fraction:.4f}  fastest grain "
               f"{r.fastest:.2e} m/s")  # fmt: skip
     out = {"args": vars(args), "dt": sim.dt, "wall_s": time.perf_counter() - t0, "records": records}
-    path = Path(args.out) if args.out else RESULTS / f"tapping_{args.grains}_{args.device.replace(':', '')}.json"
+    tag = "" if args.shape == "cube" else f"{args.shape}_"
+    path = Path(args.out) if args.out else RESULTS / f"tapping_{tag}{args.grains}_{args.device.replace(':', '')}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {path} ({out['wall_s']:.1f} s)")

@@ -27,7 +27,7 @@ from os import PathLike
 
 import numpy as np
 
-from polydem.quaternions import quat_from_matrix
+from polydem.quaternions import quat_from_matrices, quat_from_matrix
 from polydem.shapes import ConvexShape, load_mesh, principal_frame
 
 # Parts whose interiors overlap by more than this fraction of the smaller part's size overlap.
@@ -270,7 +270,7 @@ def expand_bodies(shapes, body_shape, position, orientation):
     quat = orientation[owner].copy()
     moved = np.flatnonzero(~np.all(np.isclose(rot_p, np.eye(3), rtol=0.0, atol=0.0), axis=(1, 2)))
     if moved.size:
-        quat[moved] = [quat_from_matrix(m) for m in rot_b[moved] @ rot_p[moved]]
+        quat[moved] = quat_from_matrices(rot_b[moved] @ rot_p[moved])
     return convex, part, pos, quat, owner
 
 

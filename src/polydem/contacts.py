@@ -14,9 +14,20 @@ history; a pair that a rebuild drops after it was in contact leaves its sums in 
 pairs, so that a contact that ended still counts in the average.
 
 The history is in the contact scalar of the model's precision (float32 in "float32" and "mixed",
-float64 in "float64"). The broad phase runs in float32 in every precision: with float64 poses it
-gets float32 copies of the centres and radii grown by the rounding of the cast
-(``kernels/broadphase.py`` ``launch_float32_inputs``), so no candidate pair is missed.
+float64 in "float64"). The broad phase runs in float32 in every precision: with float64 poses its kernels
+cast the centres where they read them and grow the radii by the rounding of the cast
+(``kernels/broadphase.py`` ``body_input``), so no candidate pair is missed; no float32 copy of the poses is
+kept.
+
+Memory: a pair slot costs 72 bytes in "float32" and "mixed". 36 hold the list from one step to the next: its
+bodies (``pair_a``, ``pair_b``) and key, its history and its place in the order by B; 8 are the broad phase's
+key-sort scratch; 28 are a scratch buffer (:attr:`Contacts.scratch_bytes`) that three sets of per-slot arrays
+share, each needed only for a moment: the force stage's wrench and energy per pair (``pair_force``,
+``pair_torque_a``, ``pair_dissipated``: written by the pair kernel, read by the gather and the motions' force
+sums of the same step, dead once the step ends), the history of the list before a rebuild (``previous``: kept
+at the start of the rebuild, read when the history is carried onto the new list, dead after it), and the keys
+and values of the sort by B that ends the rebuild (after the carry). A rebuild runs between two force stages,
+so the three never meet.
 """
 
 from __future__ import annotations
@@ -26,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
-from polydem.kernels.broadphase import BroadPhase, launch_float32_inputs
+from polydem.kernels.broadphase import BroadPhase, byte_view
 from polydem.kernels.forces import ContactSums
 from polydem.kernels.pairlist import launch_body_ranges, launch_carry_sums, launch_remap_history
 from polydem.kernels.precision import numpy_dtype
@@ -42,7 +53,8 @@ class PairHistory:
     """The history of a pair list, by key (device arrays): what a rebuild, a redo and a checkpoint carry.
 
     Attributes:
-        key: (C,) int64 pair keys ``a * N + b`` (a < b), increasing over the first ``count[0]`` entries.
+        key: (C,) int64 pair keys ``a * N + b`` (a < b), increasing over the first ``count[0]`` entries
+            (C >= count: the capacity of a :class:`Contacts`, or the room of a snapshot's copy).
         xi: (C,) vec3 friction springs [m]; (1,) when the scene has no friction.
         turn: (C,) turning volumes [m^3].
         (``xi`` and ``turn`` in float32, or float64 in the "float64" precision.)
@@ -121,17 +133,20 @@ class Contacts:
             ``pair_a``, ``pair_b`` (C,) int32, ``pair_key`` (C,) int64, ``pair_count`` (1,) int32.
         pair_xi: (C,) vec3 friction springs [m] ((1,) without friction).
         pair_turn: (C,) turning volumes [m^3].
-        pair_force: (C,) vec3 contact force of the pair in the last step [N] (kernels/forces.py).
+        pair_force: (C,) vec3 contact force of the pair in the step's force stage [N] (kernels/forces.py).
         pair_torque_a: (C,) vec3 torque of the pair on body A about its centroid [N m].
-        pair_dissipated: (C,) energy the pair dissipated in the last step [J].
+        pair_dissipated: (C,) energy the pair dissipated in that stage [J].
         (These five in the model's contact scalar: float32 in "float32" and "mixed", float64 in
-        "float64".)
+        "float64". The last three live in the scratch buffer (module docstring): valid from the pair
+        kernel of a step to its end, overwritten by the next rebuild.)
         pair_by_b: (C,) int32 pair indices ordered by body B.
         body_pairs_a, body_pairs_b: (N,) ``wp.vec2i`` each body's range in the pairs ordered by
             A (``pair_key``) and by B (``pair_by_b``).
         pairs: all of the above in the ``wp.struct`` the kernels take (:func:`polydem.kernels.structs.pairs_struct`),
             built again with the buffers.
-        previous: :class:`PairHistory` of the list before the last rebuild.
+        previous: :class:`PairHistory` of the list before a rebuild, during the rebuild (in the scratch
+            buffer: overwritten by the next force stage; its ``count`` is its own).
+        scratch_bytes: host int, the bytes of the scratch buffer.
         average: the :class:`ContactAverage` whose pair sums follow the list (None: no interval).
         capacity: host int.
         generation: host int, counts the times the per-pair buffers were replaced (a captured CUDA
@@ -163,21 +178,10 @@ class Contacts:
         self.capacity = 0
         self.generation = 0
         self.average: ContactAverage | None = None
-        # Float64 poses reach the broad phase through float32 copies (module docstring).
-        self._cast = model.scalar != wp.float32
-        if self._cast:
-            self._q32 = wp.zeros(self.num_bodies, dtype=wp.transform, device=self.device)
-            self._radius32 = wp.zeros(self.num_bodies, dtype=float, device=self.device)
 
     def _inputs(self, body_q: wp.array) -> tuple[wp.array, wp.array]:
-        """The poses and radii for the broad phase: float32 copies when the poses are float64."""
-        m = self.model
-        if not self._cast:
-            return body_q, m.body_radius
-        launch_float32_inputs(
-            body_radius=m.body_radius, body_q=body_q, body_q32=self._q32, body_radius32=self._radius32
-        )
-        return self._q32, self._radius32
+        """The poses and radii for the broad phase: as they are (float64 poses are cast in its kernels)."""
+        return body_q, self.model.body_radius
 
     # -- the pair list (the broad phase replaces its arrays when it grows) ------------------------
 
@@ -212,23 +216,25 @@ class Contacts:
         vec3 = wp.types.vector(3, scalar)
         self.pair_xi = wp.zeros(springs, dtype=vec3, device=dev)
         self.pair_turn = wp.zeros(capacity, dtype=scalar, device=dev)
-        self.pair_force = wp.zeros(capacity, dtype=vec3, device=dev)
-        self.pair_torque_a = wp.zeros(capacity, dtype=vec3, device=dev)
-        self.pair_dissipated = wp.zeros(capacity, dtype=scalar, device=dev)
-        self.previous = PairHistory.zeros(capacity, self.friction, dev, scalar)
-        # Pairs ordered by their B body (radix sort needs twice the room). Its int32 keys borrow the broad
-        # phase's sort values (2C int32), which nothing reads after its own sort and which it rewrites
-        # before it sorts again, so they are free from here to the next rebuild (a buffer of their own
-        # would take 8 B a pair slot).
-        # (The broad phase has just allocated for this capacity; the reference keeps its buffer alive
-        # for as long as a graph captured with this generation may use it.)
-        borrowed = self.broadphase.sort_scratch
-        if borrowed.dtype == wp.int32 and borrowed.size >= 2 * capacity:
-            self._keys_b = borrowed
-        else:
-            self._keys_b = wp.zeros(2 * capacity, dtype=int, device=dev)
-        self._by_b = wp.zeros(2 * capacity, dtype=int, device=dev)
-        self.pair_by_b = self._by_b[:capacity]
+        # One scratch buffer for three uses that never overlap in time (module docstring): the force stage's
+        # outputs, the history before a rebuild, and the keys and values of the sort by B (radix sort: twice
+        # the room; its values end up in pair_by_b).
+        uses = (
+            (("pair_force", vec3, capacity), ("pair_torque_a", vec3, capacity), ("pair_dissipated", scalar, capacity)),
+            (("key", wp.int64, capacity), ("xi", vec3, springs), ("turn", scalar, capacity)),
+            (("keys_b", wp.int32, 2 * capacity), ("by_b", wp.int32, 2 * capacity)),
+        )
+        layouts = [_layout(use) for use in uses]
+        self.scratch_bytes = max(end for _, end in layouts)
+        # int64 elements: 8-byte aligned for every view.
+        self._scratch = wp.zeros(self.scratch_bytes // 8, dtype=wp.int64, device=dev)
+        step, history, order = ({k: byte_view(self._scratch, *at) for k, at in views.items()} for views, _ in layouts)
+        self.pair_force = step["pair_force"]
+        self.pair_torque_a = step["pair_torque_a"]
+        self.pair_dissipated = step["pair_dissipated"]
+        self.previous = PairHistory(history["key"], history["xi"], history["turn"], wp.zeros(1, dtype=int, device=dev))
+        self._keys_b, self._by_b = order["keys_b"], order["by_b"]
+        self.pair_by_b = wp.zeros(capacity, dtype=int, device=dev)
         self.body_pairs_a = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
         self.body_pairs_b = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
         bp = self.broadphase
@@ -290,6 +296,7 @@ class Contacts:
             by_b=self._by_b,
             body_pairs_a=self.body_pairs_a,
             body_pairs_b=self.body_pairs_b,
+            pair_by_b=self.pair_by_b,
         )
 
     # -- rebuilds (the broad phase of a step) -------------------------------------------------
@@ -351,12 +358,23 @@ class Contacts:
     # -- history: redo, snapshots, checkpoints ------------------------------------------------
 
     def history(self, into: PairHistory | None = None) -> PairHistory:
-        """A copy of the current pairs' history; into ``into`` (a :class:`PairHistory`) when its shapes fit."""
+        """A copy of the current pairs' history (synchronises, to read the count): the first ``count`` entries,
+        in arrays with room for ``count + count // 8 + 64`` (at most the capacity), not the whole capacity;
+        into ``into`` (a :class:`PairHistory`) when it has room for them."""
         bp = self.broadphase
-        live = PairHistory(bp.pair_key, self.pair_xi, self.pair_turn, bp.pair_count)
-        if into is None or not into.same_shapes(live):
-            return live.copy()
-        into.assign(live)
+        count = self.count()
+        xi_len = (lambda n: n) if self.friction else (lambda n: 1)
+        fits = into is not None and len(into.key) >= count and len(into.turn) >= count
+        if fits:
+            fits = len(into.xi) >= xi_len(count) and into.turn.dtype == self.pair_turn.dtype
+        if not fits:
+            room = min(count + count // 8 + 64, self.capacity)
+            into = PairHistory.zeros(room, self.friction, self.device, self.scalar)
+        wp.copy(into.count, bp.pair_count)
+        if count:
+            wp.copy(into.key, bp.pair_key, count=count)
+            wp.copy(into.turn, self.pair_turn, count=count)
+            wp.copy(into.xi, self.pair_xi, count=xi_len(count))
         return into
 
     def restore(self, history: PairHistory, body_q: wp.array, pair_sums: ContactSums | None = None) -> None:
@@ -372,10 +390,11 @@ class Contacts:
             self._allocate(bp.capacity)
         prev = self.previous
         n_old = min(int(history.count.numpy()[0]), len(history.key), self.capacity)
-        wp.copy(prev.key, history.key, count=n_old)
-        wp.copy(prev.turn, history.turn, count=n_old)
-        if self.friction:
-            wp.copy(prev.xi, history.xi, count=n_old)
+        if n_old:  # (a count of 0 would copy whole arrays)
+            wp.copy(prev.key, history.key, count=n_old)
+            wp.copy(prev.turn, history.turn, count=n_old)
+            if self.friction:
+                wp.copy(prev.xi, history.xi, count=n_old)
         prev.count.fill_(n_old)
         if self.average is not None:
             self.average.load_previous(pair_sums, n_old)
@@ -390,6 +409,16 @@ class Contacts:
             "pair_xi": self.pair_xi.numpy()[:count] if self.friction else np.zeros((0, 3), numpy_dtype(self.scalar)),
             "pair_turn": self.pair_turn.numpy()[:count],
         }
+
+
+def _layout(parts: tuple[tuple[str, type, int], ...]) -> tuple[dict[str, tuple[int, type, int]], int]:
+    """Byte offsets of (name, dtype, length) arrays laid one after the other, each at a multiple of 64 bytes:
+    ({name: (offset, dtype, length)}, end)."""
+    views, end = {}, 0
+    for name, dtype, length in parts:
+        views[name] = (end, dtype, length)
+        end += -(-length * wp.types.type_size_in_bytes(dtype) // 64) * 64
+    return views, end
 
 
 def contact_sums(size: int, device: wp.DeviceLike) -> ContactSums:

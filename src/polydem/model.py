@@ -300,14 +300,15 @@ class Model:
         names = list(scene.motions)
         self.motions = None
         which = {name: k for k, name in enumerate(names)}
-        motion = np.array([which.get(scene.body_motion.get(int(i)), -1) for i in self.body_index], dtype=np.int32)
+        motion = _body_motions(scene.body_motion, which, self.body_index)
         self.has_motions = bool((motion >= 0).any())
         plane_motion = np.array([which.get(p.motion, -1) for p in scene.planes], dtype=np.int32)
         mesh_motion = np.array([which.get(w.motion, -1) for w in scene.mesh_walls], dtype=np.int32)
         self.has_wall_motions = bool((plane_motion >= 0).any() or (mesh_motion >= 0).any())
         self.motion_names = names
         self.has_measured_motions = False
-        servo = any(scene.motions[name].kind == "servo" for name in scene.body_motion.values())
+        # The motions the driven bodies follow, each once, in the order of their first body.
+        servo = any(scene.motions[name].kind == "servo" for name in dict.fromkeys(scene.body_motion.values()))
         if servo and len(self.body_index) != scene.num_bodies:
             # Refused by every rank alike, whether it holds the servo's wall or not.
             raise SceneError(
@@ -400,6 +401,23 @@ class Model:
         if self.num_mesh_walls:
             state.mesh_q.assign(self.mesh_q0.astype(s_np))
         return state
+
+
+def _body_motions(body_motion: dict, which: dict, body_index: np.ndarray) -> np.ndarray:
+    """(N,) int32 index in ``which`` (motion name -> index) of the motion each body of ``body_index`` follows
+    (``body_motion``: scene body index -> motion name, the driven bodies alone), -1 where none: a lookup of
+    the driven bodies among the model's, without a pass in Python over the model's bodies."""
+    motion = np.full(len(body_index), -1, dtype=np.int32)
+    if not body_motion:
+        return motion
+    driven = np.fromiter(body_motion.keys(), dtype=np.int64, count=len(body_motion))
+    code = np.fromiter((which.get(name, -1) for name in body_motion.values()), dtype=np.int32, count=len(body_motion))
+    order = np.argsort(driven, kind="stable")
+    driven, code = driven[order], code[order]
+    at = np.minimum(np.searchsorted(driven, body_index), len(driven) - 1)
+    hit = driven[at] == body_index
+    motion[hit] = code[at[hit]]
+    return motion
 
 
 def _area_across(shape: ConvexShape, orientation: np.ndarray, axis: np.ndarray) -> float:

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-__all__ = ["quat_conjugate", "quat_from_matrix", "quat_multiply", "quat_rotate", "quat_to_matrix"]
+__all__ = ["quat_conjugate", "quat_from_matrices", "quat_from_matrix", "quat_multiply", "quat_rotate", "quat_to_matrix"]
 
 
 def quat_multiply(a, b):
@@ -62,6 +62,47 @@ def quat_from_matrix(r) -> np.ndarray:
         q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
     q = np.array(q)
     return q / np.linalg.norm(q)
+
+
+def quat_from_matrices(r) -> np.ndarray:
+    """(..., 4) unit xyzw quaternions of (..., 3, 3) rotation matrices: :func:`quat_from_matrix` of each, the
+    same bits (its branches as masks, the same operations in the same order, and its norm from the same dot
+    product: ``np.vecdot`` runs numpy's dot of each row, which ``np.linalg.norm`` of one quaternion runs)."""
+    r = np.asarray(r, dtype=np.float64)
+    shape = r.shape[:-2]
+    r = r.reshape(-1, 3, 3)
+    r00, r01, r02 = r[:, 0, 0], r[:, 0, 1], r[:, 0, 2]
+    r10, r11, r12 = r[:, 1, 0], r[:, 1, 1], r[:, 1, 2]
+    r20, r21, r22 = r[:, 2, 0], r[:, 2, 1], r[:, 2, 2]
+    tr = r00 + r11 + r22
+    case = np.full(len(r), 3)
+    case[r11 > r22] = 2
+    case[(r00 > r11) & (r00 > r22)] = 1
+    case[tr > 0.0] = 0
+    q = np.empty((len(r), 4))
+
+    def root(x):  # 2 sqrt(x), refused as math.sqrt and the float division refuse it (not a rotation)
+        if np.any(x < 0.0):
+            raise ValueError("math domain error")
+        s = 2.0 * np.sqrt(x)
+        if np.any(s == 0.0):
+            raise ZeroDivisionError("float division by zero")
+        return s
+
+    k = np.flatnonzero(case == 0)
+    s = root(tr[k] + 1.0)
+    q[k] = np.column_stack([(r21[k] - r12[k]) / s, (r02[k] - r20[k]) / s, (r10[k] - r01[k]) / s, 0.25 * s])
+    k = np.flatnonzero(case == 1)
+    s = root(1.0 + r00[k] - r11[k] - r22[k])
+    q[k] = np.column_stack([0.25 * s, (r01[k] + r10[k]) / s, (r02[k] + r20[k]) / s, (r21[k] - r12[k]) / s])
+    k = np.flatnonzero(case == 2)
+    s = root(1.0 + r11[k] - r00[k] - r22[k])
+    q[k] = np.column_stack([(r01[k] + r10[k]) / s, 0.25 * s, (r12[k] + r21[k]) / s, (r02[k] - r20[k]) / s])
+    k = np.flatnonzero(case == 3)
+    s = root(1.0 + r22[k] - r00[k] - r11[k])
+    q[k] = np.column_stack([(r02[k] + r20[k]) / s, (r12[k] + r21[k]) / s, 0.25 * s, (r10[k] - r01[k]) / s])
+    q /= np.sqrt(np.vecdot(q, q))[:, None]
+    return q.reshape(*shape, 4)
 
 
 def quat_to_matrix(q) -> np.ndarray:

@@ -98,6 +98,7 @@ def run_settings(scene: Scene, skin: float | None = None) -> RunSettings:
     positive = free & (r32 > 0.0)
     kt = np.array(ts.tangential_stiffness, dtype=np.float64)
     kt.setflags(write=False)
+    tunnel = scene.tunnelling_limits(arrays, ts.dt)
     return RunSettings(
         dt=float(ts.dt),
         dt_recommended=float(ts.recommended),
@@ -108,6 +109,6 @@ def run_settings(scene: Scene, skin: float | None = None) -> RunSettings:
         radius_min=float(radius[free].min()) if free.any() else None,
         radius_ref=float(r32[positive].min()) if positive.any() else None,
         radius_max=float(pool.max()),
-        tunnel=scene.tunnelling_limits(arrays, ts.dt),
-        starts_too_fast=bool(scene.check_tunnelling(arrays, ts.dt)),
+        tunnel=tunnel,
+        starts_too_fast=bool(scene.check_tunnelling(arrays, ts.dt, tunnel)),
     )

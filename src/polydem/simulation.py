@@ -553,7 +553,10 @@ class Snapshot:
     """A copy of a simulation at one step: :class:`~polydem.state.State`, pair history, step count and time,
     and the sums of the contact-force average then running (``average``, None without one).
 
-    From :meth:`Simulation.snapshot`; give it to :meth:`Simulation.restore` to go back to that step.
+    From :meth:`Simulation.snapshot`; give it to :meth:`Simulation.restore` to go back to that step. The
+    state is copied without ``body_f`` and ``body_t`` (``State.TRANSIENT``: the next step writes them before
+    it reads them), and the pair history holds the pairs of the list then (``count``) with some room, not
+    the whole capacity of the live list (:meth:`~polydem.contacts.Contacts.history`).
     """
 
     def __init__(
@@ -679,13 +682,14 @@ class Simulation:
     # -- snapshots -----------------------------------------------------------------------------
 
     def snapshot(self, into: Snapshot | None = None) -> Snapshot:
-        """A :class:`Snapshot` (device copies) of the current step; reuses the arrays of ``into`` where they fit."""
+        """A :class:`Snapshot` (device copies) of the current step; reuses the arrays of ``into`` where they fit.
+        Synchronises once (to read the pair count: the copy of the pair history is sized to the list)."""
         st = self.current_state
         if into is not None and into.state.same_shapes(st):
             into.state.assign(st)
             state = into.state
         else:
-            state = st.copy()
+            state = st.copy(transient=False)  # no body_f, body_t: every step writes them before it reads them
         pairs = self.current_contacts.history(into.pairs if into is not None else None)
         average = None
         if self._average is not None:
@@ -702,6 +706,9 @@ class Simulation:
         The candidate pairs are found afresh at the restored poses; each pair gets its history back by key.
         A contact-force average (:meth:`start_contact_average`) goes on: with the sums of ``snapshot``
         where it was taken during the same interval, else started afresh at the restored step.
+        ``current_state.body_f`` and ``body_t`` are zero afterwards, as before the first step and after a
+        checkpoint is loaded (no step has run since the state was set; a snapshot does not copy them), until
+        the next step writes them; :meth:`contacts` reports the forces that step will apply.
         """
         self._diag_cache = None
         self._report_cache = None

@@ -36,8 +36,9 @@ class State:
         body_v: (N,) ``wp.vec3`` linear velocity [m/s].
         body_w: (N,) ``wp.vec3`` angular velocity in world axes [rad/s].
         body_f: (N,) ``wp.vec3`` force of the contacts and walls in the last step, without
-            gravity [N].
-        body_t: (N,) ``wp.vec3`` torque of those forces about the centroid, world axes [N m].
+            gravity [N]; zero before the first step and after a restore (``Simulation.restore``:
+            no step has run since the state was set; see :attr:`TRANSIENT`).
+        body_t: (N,) ``wp.vec3`` torque of those forces about the centroid, world axes [N m]; as ``body_f``.
         body_dissipated: (N,) energy dissipated so far by damping and friction at the
             body's contacts [J].
         wall_xi: (N, P) ``wp.vec3`` friction springs of the wall contacts [m]; (1, 1) when the
@@ -76,6 +77,11 @@ class State:
 
     SAVED = ("body_q", "body_v", "body_w", "body_dissipated", "wall_xi", "wall_turn", "mesh_q", "step_count")
     """What a checkpoint keeps: ``body_f`` and ``body_t`` are written by every step before they are read."""
+
+    TRANSIENT = ("body_f", "body_t")
+    """The outputs of a step's force stage, which every step writes before it reads them: a snapshot
+    (``copy(transient=False)``, ``Simulation.snapshot``) leaves them out, and :meth:`assign` from such a
+    copy zeroes them."""
 
     # The arrays of each struct (bodies_struct, wall_history_struct), by the struct's member names.
     _BODIES = {"q": "body_q", "v": "body_v", "w": "body_w", "f": "body_f", "t": "body_t"}
@@ -180,19 +186,34 @@ class State:
         return {name: getattr(self, name).numpy() for name in fields}
 
     def assign(self, other: State) -> None:
-        """Copy every array of ``other`` (a state of the same shapes) into this one."""
-        for name in self.FIELDS:
-            wp.copy(getattr(self, name), getattr(other, name))
+        """Copy every array of ``other`` (a state of the same shapes) into this one.
 
-    def copy(self) -> State:
-        """A new state with copies of every array."""
+        Where ``other`` holds no :attr:`TRANSIENT` arrays (a copy made with ``transient=False``), this
+        state's are zeroed: no step has written them since the state was set. Where this state holds none,
+        only the others are copied.
+        """
+        mine, theirs = self.__dict__, other.__dict__
+        for name in self.FIELDS:
+            if name not in mine:
+                continue
+            if name in theirs:
+                wp.copy(mine[name], theirs[name])
+            else:
+                mine[name].zero_()
+
+    def copy(self, transient: bool = True) -> State:
+        """A new state with copies of every array; with ``transient=False`` without :attr:`TRANSIENT`
+        (``body_f``, ``body_t``: a snapshot's, 2 x 12 or 2 x 24 bytes a body less; such a state is only
+        read, by :meth:`assign`, :meth:`numpy` of other fields and :meth:`same_shapes`)."""
         state = State.__new__(State)
         state.device = self.device
         state.precision = self.precision
         for name in self.FIELDS:
-            setattr(state, name, wp.clone(getattr(self, name)))
+            if transient or name not in self.TRANSIENT:
+                setattr(state, name, wp.clone(getattr(self, name)))
         return state
 
     def same_shapes(self, other: State) -> bool:
-        """Whether :meth:`assign` can copy ``other`` into this state."""
-        return all(getattr(self, k).shape == getattr(other, k).shape for k in self.FIELDS)
+        """Whether :meth:`assign` can copy ``other`` into this state: the arrays both hold have the same shapes."""
+        mine, theirs = self.__dict__, other.__dict__
+        return all(mine[k].shape == theirs[k].shape for k in self.FIELDS if k in mine and k in theirs)

@@ -32,7 +32,8 @@ Outputs of ``polydem run`` (in ``--out``, default ``polydem_out/<scene name>/``;
 * pictures (``output.pictures``: frame numbers, or ``"last"`` for the final state, the default;
   ``false`` or ``[]`` for none) as ``pictures/frame_NNNNNN.png`` and ``pictures/last.png``.
 * plots of the energies, the contacts and the packing fraction against time, ``energy.png`` and
-  ``packing.png``, when matplotlib is installed (``pip install "polydem[plot]"``).
+  ``packing.png``, and of the settled region's measures, ``measures.png`` (force distribution, contact
+  normals, packing profile, contact types), when matplotlib is installed (``pip install "polydem[plot]"``).
 * checkpoints in ``output.checkpoint.path`` (default ``checkpoints/``): ``step_NNNNNNNNN.npz``
   every ``output.checkpoint.steps`` steps or ``.seconds`` of simulated time (counted from t = 0),
   ``final.npz`` at the end and ``interrupted.npz`` when the run stops early.

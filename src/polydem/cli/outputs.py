@@ -241,6 +241,30 @@ class Outputs:
         self.plot_files = [relative(p, self.out_dir) for p in plots]
         return None
 
+    def write_measure_plots(self, scene, sim, measured: dict | None) -> str | None:
+        """``measures.png`` of the settled region that the summary's ``measured`` (``measures``) describes; returns
+        a note when there is none (no matplotlib, no region, no contact in it)."""
+        from polydem import measures
+        from polydem.plots import write_measure_plots
+
+        if not measured or "box" not in measured:
+            return None  # the summary says why there are no measures
+        g = np.asarray(scene.gravity, dtype=np.float64)
+        up = -g if np.linalg.norm(g) > 0.0 else np.array([0.0, 0.0, 1.0])
+        try:
+            grains = measures.Grains.from_scene(scene, sim.state())
+            box = measures.Box(measured["box"]["lower"], measured["box"]["upper"])
+            plots = write_measure_plots(grains, sim.contacts(), box, measured, self.out_dir, up=up)
+        except OSError as exc:
+            self.errors.append(f"cannot write the measure plots: {why(exc)}")
+            return None
+        except Exception as exc:  # matplotlib or a measure: the plots are an extra, the run is fine
+            return f"no measure plots: {type(exc).__name__}: {exc}"
+        if isinstance(plots, str):
+            return plots
+        self.plot_files += [relative(p, self.out_dir) for p in plots]
+        return None
+
     def write_summary(self, summary: dict) -> None:
         self.summary_written = False
         if self.summary_path is None:

@@ -296,6 +296,10 @@ class Run:
         if note is not None:
             notes.append(note)
         summary = self.report.summary(wall, reason, notes, consistent)
+        if consistent and note is None:  # the history's plots were written: matplotlib is there
+            more = o.write_measure_plots(self.scene, sim, summary.get("measures"))
+            if more is not None:
+                summary.setdefault("notes", []).append(more)
         if self.settle is not None:
             summary["settle"] = self.settle_summary()
         summary["outputs"]["plots"] = o.plot_files

@@ -229,7 +229,9 @@ def append_bodies(scene, s, m, p, q, v, w, kind_code, rowkey, pivot=None) -> np.
             i = int(bad[0])
             raise scene.error(f"expected finite numbers, got {arr[i].tolist()}", f"{rowkey(i)}.{name}")
     for name, arr in (("velocity", v), ("angular_velocity", w)):
-        # As BODY declares them, for the arrays of add_bodies that do not pass through it.
+        # As BODY declares them, for the arrays of add_bodies that do not pass through it (finite, as checked).
+        if not arr.size or np.abs(arr).max() <= F32_HIGH:
+            continue
         fast = np.flatnonzero(~(np.abs(arr) <= F32_HIGH).all(axis=1))
         if fast.size:
             i = int(fast[0])

@@ -264,7 +264,10 @@ class TunnelLimits:
 def check_body_arrays(scene, a):
     """Indices in range, finite numbers, unit quaternions, valid kinds, pivots only on kinematic bodies,
     fixed bodies at rest and free bodies with a mass; ``a`` holds the scene's body arrays."""
+    # (Each test first over the whole array at once, the bodies one by one only to name the first that fails.)
     for name, count in (("shape", len(scene.shape_names)), ("material", len(scene.material_names))):
+        if len(a[name]) and a[name].min() >= 0 and a[name].max() < count:
+            continue
         bad = np.flatnonzero((a[name] < 0) | (a[name] >= count))
         if bad.size:
             i = int(bad[0])
@@ -272,26 +275,32 @@ def check_body_arrays(scene, a):
                 f"{name} index {int(a[name][i])} out of range: the scene has {count} {name}s", f"bodies[{i}].{name}"
             )
     for name in ("position", "orientation", "velocity", "angular_velocity"):
+        with np.errstate(over="ignore", invalid="ignore"):
+            if np.isfinite(a[name].sum()):  # a finite sum has no inf or NaN in it
+                continue
         bad = np.flatnonzero(~np.isfinite(a[name]).all(axis=1))
         if bad.size:
             i = int(bad[0])
             raise scene.error(f"expected finite numbers, got {a[name][i].tolist()}", f"bodies[{i}].{name}")
     check_quats(a["orientation"], lambda i: f"bodies[{i}].orientation", scene.file)
-    bad = np.flatnonzero((a["kind"] < 0) | (a["kind"] >= len(KINDS)))
+    ok = not len(a["kind"]) or (a["kind"].min() >= 0 and a["kind"].max() < len(KINDS))
+    bad = np.zeros(0, dtype=np.int64) if ok else np.flatnonzero((a["kind"] < 0) | (a["kind"] >= len(KINDS)))
     if bad.size:
         i = int(bad[0])
         raise scene.error(
             f"kind code {int(a['kind'][i])} is not one of 0 (free), 1 (fixed), 2 (kinematic)", f"bodies[{i}].kind"
         )
-    pivoted = np.flatnonzero(~np.isnan(a["pivot"]).any(axis=1) & (a["kind"] != KIND_KINEMATIC))
+    pivoted = np.zeros(0, dtype=np.int64)
+    if not np.isnan(a["pivot"]).all():
+        pivoted = np.flatnonzero(~np.isnan(a["pivot"]).any(axis=1) & (a["kind"] != KIND_KINEMATIC))
     if pivoted.size:
         i = int(pivoted[0])
         raise scene.error(
             "only a kinematic body can turn about a pivot; use kind = 'kinematic' or leave pivot out",
             f"bodies[{i}].pivot",
         )
-    fixed = a["kind"] == KIND_FIXED
-    moving = np.flatnonzero(fixed & (np.any(a["velocity"] != 0, axis=1) | np.any(a["angular_velocity"] != 0, axis=1)))
+    fixed = np.flatnonzero(a["kind"] == KIND_FIXED)
+    moving = fixed[np.any(a["velocity"][fixed] != 0, axis=1) | np.any(a["angular_velocity"][fixed] != 0, axis=1)]
     if moving.size:
         i = int(moving[0])
         raise scene.error(
@@ -310,7 +319,7 @@ def check_body_arrays(scene, a):
             for s in shapes
         ]
     )
-    bad = np.flatnonzero((a["kind"] == KIND_FREE) & massless[a["shape"]])
+    bad = np.flatnonzero((a["kind"] == KIND_FREE) & massless[a["shape"]]) if massless.any() else massless[:0]
     if bad.size:
         i = int(bad[0])
         s = shapes[int(a["shape"][i])]
@@ -667,45 +676,61 @@ def tunnelling_limits(scene, a, dt: float) -> TunnelLimits:
       ``m v^2 / 2 <= TUNNEL_ENERGY_FRACTION W(V_c)`` with the law ``W = k V^m / m``.
     """
     shapes = list(scene.shapes.values())
-    width = np.array([shape_width(sh) for sh in shapes])[a["shape"]]
-    volume = np.array([sh.volume for sh in shapes], dtype=np.float64)[a["shape"]]
-    thinnest = int(np.argmin(width))
-    h = 0.5 * float(width[thinnest])
+    shape_widths = np.array([shape_width(sh) for sh in shapes])
+    n_mat = len(scene.material_names)
+    # The limits depend on a body's shape and material alone: worked out per (shape, material) pair present
+    # (the same operations on the same numbers), then given to the bodies.
+    code = a["shape"].astype(np.int64) * n_mat + a["material"]
+    present = np.bincount(code, minlength=len(shapes) * n_mat) > 0 if len(code) else np.zeros(0, dtype=bool)
+    pairs = np.flatnonzero(present)
+    used_width = shape_widths[np.unique(pairs // n_mat)]
+    if used_width.size and not np.isnan(used_width).any():
+        thinnest = int(np.argmax((shape_widths == used_width.min())[a["shape"]]))  # the first body that thin
+    else:
+        thinnest = int(np.argmin(shape_widths[a["shape"]]))
+    h = 0.5 * float(shape_widths[a["shape"][thinnest]])
     table = scene.pair_table()
     m = float(table["exponent"])
     k_pair = np.asarray(table["k"], dtype=np.float64)
-    present = set(np.unique(a["material"]).tolist())
-    present.update(scene.material_index(p.material) for p in [*scene.planes, *scene.mesh_walls])
-    present = np.array(sorted(present))
-    k = k_pair[:, present].min(axis=1)[a["material"]]
-    mass = np.asarray(scene.body_mass(), dtype=np.float64)
+    materials = set(np.flatnonzero(np.bincount(a["material"], minlength=n_mat)).tolist())
+    materials.update(scene.material_index(p.material) for p in [*scene.planes, *scene.mesh_walls])
+    materials = np.array(sorted(materials))
+    shape_of, material_of = pairs // n_mat, pairs % n_mat
+    width = shape_widths[shape_of]
+    volume = np.array([sh.volume for sh in shapes], dtype=np.float64)[shape_of]
+    k = k_pair[:, materials].min(axis=1)[material_of]
+    density = np.array([mat.density for mat in scene.materials.values()])
+    mass = np.asarray(density[material_of] * np.array([sh.volume for sh in shapes])[shape_of], dtype=np.float64)
     with np.errstate(all="ignore"):
         v_cross = volume / width * np.minimum(width, 2.0 * h)
         ln_w = np.log(k) + m * np.log(v_cross) - math.log(m)
         v_energy = np.exp(0.5 * (math.log(2.0 * TUNNEL_ENERGY_FRACTION) + ln_w - np.log(mass)))
     v_energy = np.where(mass > 0.0, v_energy, np.inf)
     v_step = TUNNEL_STEP_FRACTION * h / dt
-    limit = np.minimum(v_step, v_energy)
+    which = (np.cumsum(present) - 1)[code]
+    limit = np.minimum(v_step, v_energy)[which]
+    step_bound = (v_step <= v_energy)[which]
     if scene.num_bodies < 2 and not scene.planes and not scene.mesh_walls:
         limit = np.full(scene.num_bodies, np.inf)  # nothing to pass through
     return TunnelLimits(
         body_speed_limit=limit,
-        body_step_bound=v_step <= v_energy,
+        body_step_bound=step_bound,
         half_thickness=h,
         thinnest=thinnest,
     )
 
 
-def check_tunnelling(scene, a, dt: float) -> list[str]:
+def check_tunnelling(scene, a, dt: float, limits: TunnelLimits | None = None) -> list[str]:
     """A warning when a body's initial speed (of its fastest point) is above its
-    :func:`tunnelling_limits`; the run still starts (the body may slow down before it meets anything)."""
+    :func:`tunnelling_limits` (``limits``, where they are at hand); the run still starts (the body may slow
+    down before it meets anything)."""
     moving = a["kind"] != KIND_FIXED
     if not moving.any():
         return []
     shapes = list(scene.shapes.values())
     radius = np.array([sh.radius for sh in shapes])[a["shape"]]
     speed = np.linalg.norm(a["velocity"], axis=1) + np.linalg.norm(a["angular_velocity"], axis=1) * radius
-    limits = tunnelling_limits(scene, a, dt)
+    limits = tunnelling_limits(scene, a, dt) if limits is None else limits
     ratio = np.where(moving, speed / limits.body_speed_limit, 0.0)
     i = int(np.argmax(ratio))
     if not ratio[i] > 1.0:
@@ -803,11 +828,13 @@ def check_position_spacing(scene, a) -> None:
     resolve = REFERENCE_DEPTH * thinnest
     if not (math.isfinite(resolve) and resolve > 0.0):
         return
-    far = np.abs(np.asarray(a["position"], dtype=np.float64)).max(axis=1)
+    position = np.asarray(a["position"], dtype=np.float64)
+    # The body farthest out along an axis sets the spacing: its coordinate is the largest of all.
+    if not float(np.spacing(np.abs(position).max())) > resolve:
+        return
+    far = np.abs(position).max(axis=1)
     i = int(np.argmax(far))
     spacing = float(np.spacing(far[i]))
-    if not spacing > resolve:
-        return
     # The largest distance whose float64 spacing (2^(e - 52) in [2^e, 2^(e+1))) is at most `resolve`.
     limit = 2.0 ** (math.floor(math.log2(resolve)) + 53)
     where = next((e["key"] for e in scene.emitters if e["first"] <= i <= e["last"]), None)

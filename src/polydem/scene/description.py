@@ -587,11 +587,16 @@ class Scene:
         key = key or "motion"
         self.motion_named(motion, key)
         kind = np.asarray(self.body_kind)
-        for i in np.atleast_1d(np.asarray(bodies, dtype=np.int64)).tolist():
-            if not 0 <= i < self.num_bodies or kind[i] != BodyKind.KINEMATIC:
-                raise self.error(f"body {i} is not a kinematic body of this scene: only kinematic bodies follow a "
-                                 "motion (kind = 'kinematic')", key)  # fmt: skip
-            self.body_motion[int(i)] = motion
+        index = np.atleast_1d(np.asarray(bodies, dtype=np.int64)).reshape(-1)
+        inside = (index >= 0) & (index < self.num_bodies)
+        bad = ~inside
+        bad[inside] = kind[index[inside]] != BodyKind.KINEMATIC
+        first = int(np.argmax(bad)) if bad.any() else len(index)
+        # The bodies before the first refused one follow it, as one by one.
+        self.body_motion.update(dict.fromkeys(index[:first].tolist(), motion))
+        if first < len(index):
+            raise self.error(f"body {int(index[first])} is not a kinematic body of this scene: only kinematic bodies "
+                             "follow a motion (kind = 'kinematic')", key)  # fmt: skip
 
     def add_box_container(
         self,
@@ -764,9 +769,10 @@ class Scene:
         body arrays; :func:`.checks.tunnelling_limits`)."""
         return checks.tunnelling_limits(self, a, dt)
 
-    def check_tunnelling(self, a, dt: float) -> list[str]:
-        """A warning when a body starts faster than its :meth:`tunnelling_limits` (:func:`.checks.check_tunnelling`)."""
-        return checks.check_tunnelling(self, a, dt)
+    def check_tunnelling(self, a, dt: float, limits: checks.TunnelLimits | None = None) -> list[str]:
+        """A warning when a body starts faster than its :meth:`tunnelling_limits` (``limits``, where they are at
+        hand; :func:`.checks.check_tunnelling`)."""
+        return checks.check_tunnelling(self, a, dt, limits)
 
     def check_run_span(self, dt: float, steps: int, source: str, default: bool = False) -> list[str]:
         """Warnings about the simulated time a run of ``steps`` steps of ``dt`` [s] covers

@@ -304,7 +304,8 @@ class _Obstacles:
         sizes = np.prod(dims, axis=1)
         big = np.flatnonzero(sizes > _PAIR_BATCH)
         if big.size:  # a wall spanning the whole chunk: cut its block into slices along its longest axis
-            pieces = [(sel[i : i + 1], ilo[i : i + 1], dims[i : i + 1]) for i in np.flatnonzero(sizes <= _PAIR_BATCH)]
+            small = np.flatnonzero(sizes <= _PAIR_BATCH)
+            pieces = [(sel[small], ilo[small], dims[small])]  # each of these whole, in their order
             for i in big:
                 ax = int(np.argmax(dims[i]))
                 step = max(1, _PAIR_BATCH // (int(sizes[i]) // int(dims[i, ax])))
@@ -349,14 +350,19 @@ class _Obstacles:
         for sid in np.unique(self.shape[j]):
             pick = np.flatnonzero(self.shape[j] == sid)
             shape = self.shapes[int(sid)]
-            bodies, which = np.unique(j[pick], return_inverse=True)
+            # The obstacles of these pairs (np.unique's, by a mark per obstacle) and each pair's among them.
+            present = np.zeros(len(self.body), dtype=bool)
+            present[j[pick]] = True
+            bodies = np.flatnonzero(present)
+            which = (np.cumsum(present) - 1)[j[pick]]
             normals = np.einsum("bij,fj->bfi", self.rot[bodies], shape.face_normals)  # world normals
             support = h * np.abs(normals).sum(axis=2)  # (bodies, faces): half extent of the cube along each
             r = rel[pick]
             sep = np.full(len(pick), -np.inf)
             for face in range(shape.num_faces):
-                nw = normals[which, face]
-                s = np.einsum("ij,ij->i", r, nw) - shape.face_offsets[face] - support[which, face]
+                # (the same rows as normals[which, face], gathered from a contiguous copy)
+                nw = np.ascontiguousarray(normals[:, face]).take(which, axis=0)
+                s = np.einsum("ij,ij->i", r, nw) - shape.face_offsets[face] - support[:, face].take(which)
                 np.maximum(sep, s, out=sep)
             hit = pick[sep < -tol]
             if hit.size:
@@ -441,7 +447,11 @@ def _emitted_shapes(scene, base, frac, sample_scales, count, rng_shape, rng_scal
     proportions ``frac``, each scaled by a factor drawn from ``sample_scales`` (given as ``scale_key``)."""
     label = rng_shape.permutation(np.repeat(np.arange(len(base)), _largest_remainder(count, frac)))
     bin_index, values = sample_scales(rng_scale, count)
-    combo, inverse = np.unique(label * len(values) + bin_index, return_inverse=True)
+    # np.unique(..., return_inverse=True) of these small codes, by a count of each (no sort of the bodies)
+    code = label * len(values) + bin_index
+    present = np.bincount(code, minlength=len(base) * len(values)) > 0
+    combo = np.flatnonzero(present)
+    inverse = (np.cumsum(present) - 1)[code]
     shapes = list(scene.shapes.values())
     for cb in combo.tolist():
         _check_scaled_radius(scene, shapes[base[cb // len(values)]], float(values[cb % len(values)]), scale_key)
@@ -566,6 +576,16 @@ def _scaled_shape(scene, base: int, factor: float) -> int:
     return scene.scaled_shapes[cache]
 
 
+def _lowest_cells(layer: np.ndarray, draw: np.ndarray, count: int) -> np.ndarray:
+    """The first ``count`` cells of a stable sort by (``layer``, ``draw``), in the order of the cells (sorted
+    indices): the lowest layers whole and, of the last layer needed, the cells of the smallest draws (ties in
+    the order of the cells). ``layer`` ascends, so only that layer is sorted."""
+    last = layer[count - 1]
+    first, end = np.searchsorted(layer, last, side="left"), np.searchsorted(layer, last, side="right")
+    chosen = first + np.argsort(draw[first:end], kind="stable")[: count - first]
+    return np.concatenate([np.arange(first, dtype=np.int64), np.sort(chosen)])
+
+
 def _emitter_cells(scene, lo, hi, cell, count, fill, rng, key, r_max, spacing) -> np.ndarray:
     """(count, 3) centres of the free grid cells chosen for an emitter (see :meth:`emit`)."""
     ext = hi - lo
@@ -638,9 +658,10 @@ def _emitter_cells(scene, lo, hi, cell, count, fill, rng, key, r_max, spacing) -
     layer = np.concatenate(got_layer)
     m = np.concatenate(got_m)
     if fill == "bottom":
-        pick = np.lexsort((rng.random(found), layer))[:count]
+        pick = _lowest_cells(layer, rng.random(found), count)
     else:
-        pick = rng.choice(found, size=count, replace=False)
-    pick.sort()
+        chosen = np.zeros(found, dtype=bool)
+        chosen[rng.choice(found, size=count, replace=False)] = True
+        pick = np.flatnonzero(chosen)  # the cells drawn, in their order
     gi = _cell_index(layer[pick], m[pick], k, ax_a, ax_b, nb_, nk, ascending)
     return origin + (gi + 0.5) * cell
