@@ -509,7 +509,7 @@ def measure_stages(sim, steps, rebuild_reps):
 
     rebuilds = 0
     for _ in range(steps):
-        # The broad phase takes float32 poses: in mixed and float64 the contacts cast them first.
+        # The broad phase takes the poses as they are (float64 ones are cast inside its kernels).
         clock.run("broadphase_check", lambda: bp.needs_rebuild(*contacts._inputs(state.body_q), m.body_flags))
         if int(bp.rebuild_flag.numpy()[0]):
             rebuilds += 1
