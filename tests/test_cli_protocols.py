@@ -15,19 +15,29 @@ import polydem
 from polydem import protocols
 from polydem.checkpoint import read_checkpoint
 
-# Four cubes in a small box tapped twice at 50 Hz, 0.05 s apart: the whole protocol in 0.15 s.
-TAPS = """\
+
+def header(name: str, simulation: str = "") -> str:
+    """The [simulation] (with the lines ``simulation``) and [materials.grain] tables of the scenes below: hertz,
+    mixed, the automatic step."""
+    return f"""\
 [simulation]
-name = "taps"
+name = "{name}"
 dt = "auto"
 gravity = [0.0, 0.0, -9.81]
-
+{simulation}
 [materials.grain]
 density = 2500.0
 law = "hertz"
 k = 1.0e8
 restitution = 0.3
 friction = 0.5
+"""
+
+
+# Four cubes in a small box tapped twice at 50 Hz, 0.05 s apart: the whole protocol in 0.15 s.
+TAPS = (
+    header("taps")
+    + """
 
 [motions.taps]
 frequency = 50.0
@@ -67,21 +77,12 @@ shape = "cube"
 material = "grain"
 position = [0.011, 0.011, 0.0102]
 """
+)
 
 # A cube on a floor pressed by a lid that comes down at 0.1 m/s from 1 mm above it.
-PRESS = """\
-[simulation]
-name = "press"
-dt = "auto"
-gravity = [0.0, 0.0, -9.81]
-duration = 0.012
-
-[materials.grain]
-density = 2500.0
-law = "hertz"
-k = 1.0e8
-restitution = 0.3
-friction = 0.5
+PRESS = (
+    header("press", "duration = 0.012\n")
+    + """
 
 [motions.press]
 kind = "ramp"
@@ -115,20 +116,12 @@ position = [0.0, 0.0, 0.026]
 kind = "kinematic"
 motion = "press"
 """
+)
 
 # Two cubes side by side on a floor, for friction annealing.
-PAIR = """\
-[simulation]
-name = "pair"
-dt = "auto"
-gravity = [0.0, 0.0, -9.81]
-
-[materials.grain]
-density = 2500.0
-law = "hertz"
-k = 1.0e8
-restitution = 0.3
-friction = 0.5
+PAIR = (
+    header("pair")
+    + """
 
 [shapes.cube]
 type = "box"
@@ -150,6 +143,7 @@ shape = "cube"
 material = "grain"
 position = [0.0205, 0.0, 0.0101]
 """
+)
 
 
 def _plain(record):

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from tapping import RESULTS, SHAPES, build
+from tapping import RESULTS, SHAPES, build, measuring_region
 
 
 def main() -> int:
@@ -43,16 +43,12 @@ def main() -> int:
 
     wp.config.quiet = True
     from polydem import Simulation
-    from polydem.measures import Box
     from polydem.protocols import anneal
 
     d = args.grain
     w = args.width * d
 
-    def region(g):
-        # Two grain sizes in from the walls and the floor, up to two below the pile's top (its highest centre).
-        top = float(g.position[g.free][:, 2].max())
-        return Box((-0.5 * w + 2 * d, -0.5 * w + 2 * d, 2 * d), (0.5 * w - 2 * d, 0.5 * w - 2 * d, top - 2 * d))
+    region = measuring_region(w, d)
 
     rows = []
     t0 = time.perf_counter()

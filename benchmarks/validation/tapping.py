@@ -38,6 +38,18 @@ def grain_shape(name: str, d: float):
     raise SystemExit(f"--shape must be one of {', '.join(SHAPES)}, got {name!r}")
 
 
+def measuring_region(w: float, d: float):
+    """The box the packing fraction is measured in, as a function of the grains: two grain sizes ``d`` in from
+    the walls of a box ``w`` wide and from the floor, up to two below the pile's top (its highest centre)."""
+    from polydem.measures import Box
+
+    def region(g):
+        top = float(g.position[g.free][:, 2].max())
+        return Box((-0.5 * w + 2 * d, -0.5 * w + 2 * d, 2 * d), (0.5 * w - 2 * d, 0.5 * w - 2 * d, top - 2 * d))
+
+    return region
+
+
 def build(grains: int, width_d: int, *, d: float, gamma: float, frequency: float, start: float, period: float,
           taps: int, mu: float, seed: int, shape: str = "cube"):  # fmt: skip
     import polydem
@@ -78,7 +90,6 @@ def main() -> int:
 
     wp.config.quiet = True
     from polydem import Simulation
-    from polydem.measures import Box
     from polydem.protocols import tap
 
     d = args.grain
@@ -89,10 +100,7 @@ def main() -> int:
     w = args.width * d
     records = []
 
-    def region(g):
-        # Two grain sizes in from the walls and the floor, up to two below the pile's top (its highest centre).
-        top = float(g.position[g.free][:, 2].max())
-        return Box((-0.5 * w + 2 * d, -0.5 * w + 2 * d, 2 * d), (0.5 * w - 2 * d, 0.5 * w - 2 * d, top - 2 * d))
+    region = measuring_region(w, d)
 
     for r in tap(sim, "taps", region):
         records.append({"tap": r.tap, "time": r.time, "packing_fraction": r.packing_fraction, "fastest": r.fastest})
