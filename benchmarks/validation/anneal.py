@@ -50,8 +50,18 @@ def main() -> int:
 
     region = measuring_region(w, d)
 
+    tag = "" if args.shape == "cube" else f"{args.shape}_"
+    path = Path(args.out) if args.out else RESULTS / f"anneal_{tag}{args.grains}_{args.device.replace(':', '')}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     t0 = time.perf_counter()
+
+    def save(dt: float) -> dict:
+        # Written after every fill: a run stopped at a time limit keeps the fills it finished.
+        out = {"args": vars(args), "dt": dt, "wall_s": time.perf_counter() - t0, "rows": rows}
+        path.write_text(json.dumps(out, indent=1) + "\n")
+        return out
+
     for mu_fill in (float(x) for x in args.mu_fill.split(",")):
         # The tapping scene without taps (none before the end of the run): the same pour, the same box.
         sc = build(args.grains, args.width, d=d, gamma=1.0, frequency=30.0, start=1e9, period=1.0, taps=1,
@@ -69,11 +79,7 @@ def main() -> int:
         print(f"mu_fill {mu_fill:5.2f}: filled at t {fill.time:6.3f} s (settled {fill.settled}) packing fraction "
               f"{fill.packing_fraction:.4f}; at mu {args.mu:g}: t {final.time:6.3f} s (settled {final.settled}) "
               f"{final.packing_fraction:.4f}  ({row['wall_s']:.0f} s)", flush=True)  # fmt: skip
-    out = {"args": vars(args), "dt": sim.dt, "wall_s": time.perf_counter() - t0, "rows": rows}
-    tag = "" if args.shape == "cube" else f"{args.shape}_"
-    path = Path(args.out) if args.out else RESULTS / f"anneal_{tag}{args.grains}_{args.device.replace(':', '')}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1) + "\n")
+        out = save(sim.dt)
     print(f"wrote {path} ({out['wall_s']:.1f} s)")
     return 0
 

@@ -102,15 +102,22 @@ def main() -> int:
 
     region = measuring_region(w, d)
 
-    for r in tap(sim, "taps", region):
-        records.append({"tap": r.tap, "time": r.time, "packing_fraction": r.packing_fraction, "fastest": r.fastest})
-        print(f"tap {r.tap:3d}  t {r.time:7.3f} s  packing fraction {r.packing_fraction:.4f}  fastest grain "
-              f"{r.fastest:.2e} m/s")  # fmt: skip
-    out = {"args": vars(args), "dt": sim.dt, "wall_s": time.perf_counter() - t0, "records": records}
     tag = "" if args.shape == "cube" else f"{args.shape}_"
     path = Path(args.out) if args.out else RESULTS / f"tapping_{tag}{args.grains}_{args.device.replace(':', '')}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1) + "\n")
+
+    def save() -> dict:
+        # Written after every tap: a run stopped at a time limit keeps the taps it made.
+        out = {"args": vars(args), "dt": sim.dt, "wall_s": time.perf_counter() - t0, "records": records}
+        path.write_text(json.dumps(out, indent=1) + "\n")
+        return out
+
+    for r in tap(sim, "taps", region):
+        records.append({"tap": r.tap, "time": r.time, "packing_fraction": r.packing_fraction, "fastest": r.fastest})
+        print(f"tap {r.tap:3d}  t {r.time:7.3f} s  packing fraction {r.packing_fraction:.4f}  fastest grain "
+              f"{r.fastest:.2e} m/s", flush=True)  # fmt: skip
+        save()
+    out = save()
     print(f"wrote {path} ({out['wall_s']:.1f} s)")
     return 0
 
