@@ -112,11 +112,13 @@ def main() -> int:
         path.write_text(json.dumps(out, indent=1) + "\n")
         return out
 
-    for r in tap(sim, "taps", region):
+    def record(r) -> None:
         records.append({"tap": r.tap, "time": r.time, "packing_fraction": r.packing_fraction, "fastest": r.fastest})
         print(f"tap {r.tap:3d}  t {r.time:7.3f} s  packing fraction {r.packing_fraction:.4f}  fastest grain "
               f"{r.fastest:.2e} m/s", flush=True)  # fmt: skip
         save()
+
+    tap(sim, "taps", region, on_record=record)
     out = save()
     print(f"wrote {path} ({out['wall_s']:.1f} s)")
     return 0
