@@ -233,11 +233,11 @@ def test_anneal_command_restores_the_scene_friction(tmp_path, capsys, device):
         (PAIR, ["anneal", "--material", "steel"], "--material: unknown material 'steel'"),
     ],
 )
-def test_protocol_commands_refuse_bad_options_before_running(tmp_path, capsys, scene, args, needle):
+def test_protocol_commands_refuse_bad_options_before_running(device, tmp_path, capsys, scene, args, needle):
     path = write_scene(tmp_path, scene)
     if args[0] == "anneal":
         args = [*args, "--mu-fill", "0.1", "--fill-time", "0.1", "--settle-time", "0.1"]
-    code, out, err = run([args[0], path, *args[1:], "--device", "cpu", "--out", tmp_path / "out"], capsys)
+    code, out, err = run([args[0], path, *args[1:], "--device", device, "--out", tmp_path / "out"], capsys)
     assert code == 2 and needle in err, err
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
@@ -257,7 +257,7 @@ def test_protocol_command_options_are_checked(capsys, args, needle):
     assert code == 2 and needle in err, err
 
 
-def test_a_stopped_tap_run_keeps_its_records_and_state(tmp_path, capsys, monkeypatch):
+def test_a_stopped_tap_run_keeps_its_records_and_state(device, tmp_path, capsys, monkeypatch):
     """A signal during the run (here: seen after the first record) stops it after that record; the record,
     the reason and the state at that time are written, and the exit code is a stopped run's."""
     from polydem import signals
@@ -265,7 +265,7 @@ def test_a_stopped_tap_run_keeps_its_records_and_state(tmp_path, capsys, monkeyp
     path = write_scene(tmp_path, TAPS)
     out_dir = tmp_path / "out"
     monkeypatch.setattr(signals, "received", lambda: True)
-    code, out, err = run(["tap", path, "--device", "cpu", "--out", out_dir, "--margin", 0.25], capsys)
+    code, out, err = run(["tap", path, "--device", device, "--out", out_dir, "--margin", 0.25], capsys)
     assert code == 130, err
     doc, rows = _written(out_dir, "tap")
     assert doc["interrupted"] is True and "Ctrl-C" in doc["reason"] and len(doc["records"]) == 1
@@ -275,10 +275,10 @@ def test_a_stopped_tap_run_keeps_its_records_and_state(tmp_path, capsys, monkeyp
     assert not (out_dir / "checkpoints" / "final.npz").exists()
 
 
-def test_a_margin_that_leaves_no_box_is_a_user_error_that_keeps_the_state(tmp_path, capsys):
+def test_a_margin_that_leaves_no_box_is_a_user_error_that_keeps_the_state(device, tmp_path, capsys):
     path = write_scene(tmp_path, TAPS)
     out_dir = tmp_path / "out"
-    code, out, err = run(["tap", path, "--device", "cpu", "--out", out_dir, "--margin", 5], capsys)
+    code, out, err = run(["tap", path, "--device", device, "--out", out_dir, "--margin", 5], capsys)
     assert code == 2 and "leaves nothing of the box around the grains" in err and "give a smaller --margin" in err
     doc, _ = _written(out_dir, "tap")
     assert doc["records"] == [] and doc["interrupted"] is True

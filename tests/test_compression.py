@@ -244,15 +244,15 @@ def test_servo_refuses_a_stress_without_an_area():
     assert m.target_force(2e-4) == pytest.approx(2.0)
 
 
-def test_a_decomposed_run_refuses_a_servo():
+def test_a_decomposed_run_refuses_a_servo(device):
     """A rank's model holds some of the bodies: the force on a servo's wall would miss the others' grains."""
     from polydem.model import Model
 
     sc, _, lid = boxed_cubes(SERVO)
     with pytest.raises(polydem.SceneError, match="a servo motion needs the force of every grain"):
-        Model(sc, "cpu", bodies=np.arange(3))  # not even holding the lid
+        Model(sc, device, bodies=np.arange(3))  # not even holding the lid
     ramp, _, lid = boxed_cubes(dict(kind="ramp", axis=(0.0, 0.0, -1.0), speed=0.01))
-    assert Model(ramp, "cpu", bodies=np.array([0, lid])).has_measured_motions  # a ramp's pose needs no force
+    assert Model(ramp, device, bodies=np.array([0, lid])).has_measured_motions  # a ramp's pose needs no force
 
 
 def test_compress_names_what_it_cannot_record():
@@ -295,7 +295,7 @@ def test_shipped_compression_scene_loads_and_its_lid_comes_down(device):
     assert sim.state()["body_position"][lid, 2] == pytest.approx(z0 - d, abs=1e-12)
 
 
-def test_polydem_run_reports_the_servo(tmp_path, capsys):
+def test_polydem_run_reports_the_servo(device, tmp_path, capsys):
     """`polydem run` runs a compression from its scene file and reports each ramp and servo in summary.json."""
     import json
     from pathlib import Path
@@ -304,7 +304,7 @@ def test_polydem_run_reports_the_servo(tmp_path, capsys):
 
     text = (Path(__file__).parents[1] / "scenes" / "compression.toml").read_text()
     path = write_scene(tmp_path, text, replace=[("start = 0.5 ", "start = 0.0 ")])
-    code, _, err = run(["run", path, "--device", "cpu", "--steps", "40", "--out", tmp_path / "out"], capsys)
+    code, _, err = run(["run", path, "--device", device, "--steps", "40", "--out", tmp_path / "out"], capsys)
     assert code == 0, err
     press = json.loads((tmp_path / "out" / "summary.json").read_text())["motions"]["press"]
     assert press["kind"] == "servo" and press["force"] == 0.0 and press["velocity"] == 0.25

@@ -118,12 +118,12 @@ def test_a_redone_chunk_is_bit_for_bit(device, device_rebuild):
 
 
 @pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
-def test_pair_slot_scratch_is_shared(precision):
+def test_pair_slot_scratch_is_shared(device, precision):
     """The force stage's outputs, the rebuild's previous history and the by-B sort share one buffer no
     larger than the force stage's outputs were (7 contact scalars a slot, to 64-byte alignment)."""
     scene = busy_box_scene()
     scene.precision = precision
-    sim = Simulation(scene, "cpu")
+    sim = Simulation(scene, device)
     contacts = sim.current_contacts
     cap = contacts.capacity
     scalar = wp.types.type_size_in_bytes(contacts.scalar)
@@ -141,21 +141,21 @@ def test_pair_slot_scratch_is_shared(precision):
 
 
 @pytest.mark.parametrize(("precision", "bound"), [("mixed", 1000.0), ("float32", 850.0)])
-def test_device_bytes_per_body_of_the_settle_pile(precision, bound):
+def test_device_bytes_per_body_of_the_settle_pile(device, precision, bound):
     """benchmarks/settle.py's accounting (every Warp array of the Simulation, views once, plus the BVH's
     estimate) at 1000 cubes on the CPU: 986 bytes a body in "mixed" and 833 in "float32" (at 4000: 974 and
     822, from 1307 and 1099 before issue 27)."""
     settle = _settle_module()
     args = settle.scene_options(precision=precision)
     scene, _ = settle.make_scene(1000, args, seed=0)
-    sim = Simulation(scene, device="cpu")
+    sim = Simulation(scene, device=device)
     sim.step(40)
     mem = settle.device_bytes(sim)
     assert mem["total"] / 1000 <= bound, mem
 
 
-def test_a_byte_view_keeps_its_buffer_alive():
-    base = wp.zeros(16, dtype=wp.int64, device="cpu")
+def test_a_byte_view_keeps_its_buffer_alive(device):
+    base = wp.zeros(16, dtype=wp.int64, device=device)
     ref = weakref.ref(base)
     view = byte_view(base, 8, wp.vec3, 4)
     del base
@@ -166,7 +166,7 @@ def test_a_byte_view_keeps_its_buffer_alive():
     gc.collect()
     assert ref() is None
     with pytest.raises(ValueError, match="does not fit"):
-        byte_view(wp.zeros(2, dtype=wp.int64, device="cpu"), 8, wp.vec3, 1)
+        byte_view(wp.zeros(2, dtype=wp.int64, device=device), 8, wp.vec3, 1)
 
 
 @pytest.mark.parametrize("device_rebuild", [False, True])

@@ -131,11 +131,11 @@ def test_a_sideways_vibration_drags_the_cube_by_friction(device):
     assert abs(sim.state()["body_position"][cube, 0]) < 1e-4
 
 
-def test_snapshot_and_checkpoint_resume_a_driven_wall_bit_for_bit(tmp_path):
+def test_snapshot_and_checkpoint_resume_a_driven_wall_bit_for_bit(device, tmp_path):
     from polydem.checkpoint import load_checkpoint, save_checkpoint
 
     sc, cube = floor_scene("mesh", gamma=2.0)
-    sim = polydem.Simulation(sc, device="cpu")
+    sim = polydem.Simulation(sc, device=device)
     sim.step(700)
     snap = sim.snapshot()
     save_checkpoint(sim, tmp_path / "c.npz")
@@ -144,7 +144,7 @@ def test_snapshot_and_checkpoint_resume_a_driven_wall_bit_for_bit(tmp_path):
     sim.restore(snap)
     sim.step(900)
     np.testing.assert_array_equal(sim.state()["body_position"], end["body_position"])
-    other = polydem.Simulation(floor_scene("mesh", gamma=2.0)[0], device="cpu")
+    other = polydem.Simulation(floor_scene("mesh", gamma=2.0)[0], device=device)
     load_checkpoint(other, tmp_path / "c.npz")
     other.step(900)
     np.testing.assert_array_equal(other.state()["body_position"], end["body_position"])
@@ -213,14 +213,14 @@ position = [0.0, 0.0, 0.011]
             polydem.Scene.from_toml(path)
 
 
-def test_a_picture_draws_the_plane_where_it_is_now():
+def test_a_picture_draws_the_plane_where_it_is_now(device):
     sc, _ = floor_scene("plane", motion={"kind": "ramp", "axis": (0.0, 0.0, 1.0), "speed": 0.1})
-    sim = polydem.Simulation(sc, device="cpu")
+    sim = polydem.Simulation(sc, device=device)
     sim.step(round(0.01 / sim.dt))
     ((point, normal),) = sim.current_planes()
     assert point @ normal == pytest.approx(0.1 * sim.time, rel=1e-9)
     fixed, _ = floor_scene("plane")
-    ((point, _),) = polydem.Simulation(fixed, device="cpu").current_planes()
+    ((point, _),) = polydem.Simulation(fixed, device=device).current_planes()
     assert point.tolist() == [0.0, 0.0, 0.0]
 
 
