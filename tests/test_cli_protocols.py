@@ -283,3 +283,41 @@ def test_a_margin_that_leaves_no_box_is_a_user_error_that_keeps_the_state(device
     doc, _ = _written(out_dir, "tap")
     assert doc["records"] == [] and doc["interrupted"] is True
     assert (out_dir / "checkpoints" / "interrupted.npz").exists()
+
+
+def test_a_stopped_tap_run_resumes_where_it_stopped(tmp_path, capsys, monkeypatch, device):
+    """`polydem tap --resume` on the checkpoint of a run stopped after its first record makes the remaining taps:
+    its tap.json holds the earlier record and the new ones, equal bit for bit to those of a run never stopped."""
+    from polydem import signals
+
+    path = write_scene(tmp_path, TAPS)
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    code, _, err = run(["tap", path, "--device", device, "--out", whole, "--margin", 0.25], capsys)
+    assert code == 0, err
+    with monkeypatch.context() as m:
+        m.setattr(signals, "received", lambda: True)
+        code, _, err = run(["tap", path, "--device", device, "--out", parts, "--margin", 0.25], capsys)
+    assert code == 130, err
+    stopped = parts / "checkpoints" / "interrupted.npz"
+    args = ["tap", path, "--device", device, "--out", parts, "--margin", 0.25, "--resume", stopped]
+    code, out, err = run(args, capsys)
+    assert code == 0, err
+    doc, rows = _written(parts, "tap")
+    assert doc["records"] == _written(whole, "tap")[0]["records"]  # taps 0, 1, 2: one before the stop, two after
+    assert doc["resumed_from"] == str(stopped.resolve()) and len(rows) == 4
+    assert len([x for x in out.splitlines() if x.strip()[:1].isdigit()]) == 2  # only the new taps are printed
+
+
+@pytest.mark.parametrize("which", ["missing", "other scene"])
+def test_tap_resume_refuses_a_checkpoint_it_cannot_use(tmp_path, capsys, device, which):
+    path = write_scene(tmp_path, TAPS)
+    if which == "missing":
+        checkpoint, needle = tmp_path / "nope.npz", "checkpoint not found"
+    else:
+        other = write_scene(tmp_path, TAPS.replace("gamma = 2.0", "gamma = 2.5"), name="other.toml")
+        code, _, err = run(["tap", other, "--device", device, "--out", tmp_path / "o", "--margin", 0.25], capsys)
+        assert code == 0, err
+        checkpoint = tmp_path / "o" / "checkpoints" / "final.npz"
+        needle = "motions.taps.gamma differs: checkpoint 2.5, scene 2"  # the motions are part of the physics
+    code, _, err = run(["tap", path, "--device", device, "--out", tmp_path / "r", "--resume", checkpoint], capsys)
+    assert code == 2 and needle in err and "--resume" in err, err

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from tapping import RESULTS, SHAPES, build, measuring_region
+from tapping import RESULTS, SHAPES, build, describe, measuring_region
 
 
 def main() -> int:
@@ -36,6 +36,7 @@ def main() -> int:
     ap.add_argument("--fill-time", type=float, default=2.0, help="the longest a fill may take to settle [s]")
     ap.add_argument("--settle-time", type=float, default=0.5, help="the longest the final settling may take [s]")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--coordination", action="store_true", help="record the final coordination number")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
 
@@ -75,6 +76,7 @@ def main() -> int:
             "final": {"time": final.time, "settled": final.settled, "packing_fraction": final.packing_fraction},
             "wall_s": time.perf_counter() - t1,
         }
+        row["final"].update(describe(sim, region, args.shape, args.coordination))
         rows.append(row)
         print(f"mu_fill {mu_fill:5.2f}: filled at t {fill.time:6.3f} s (settled {fill.settled}) packing fraction "
               f"{fill.packing_fraction:.4f}; at mu {args.mu:g}: t {final.time:6.3f} s (settled {final.settled}) "

@@ -43,7 +43,10 @@ SIZES = {  # the silo's width in grain sizes, and the grains to pour
 
 
 def build(width_d: int, grains: int, *, d: float, mu: float, mu_w: float, k: float, seed: int, precision: str,
-          lower: float = 0.0, lower_at: float = 0.0, lower_speed: float = 0.01):  # fmt: skip
+          lower: float = 0.0, lower_at: float = 0.0, lower_speed: float = 0.01, previous=None,
+          bottom: float | None = None):  # fmt: skip
+    """The silo with ``grains`` cubes to pour; ``previous``: (positions, orientations) of grains already at rest
+    in it (a staged fill), the new ones poured from ``bottom`` [m] up (default 0.6 d above the floor)."""
     import polydem
 
     # The pour region: the silo's section, a grid of cells 1.1 bounding diameters wide (the emitter's), as
@@ -53,7 +56,8 @@ def build(width_d: int, grains: int, *, d: float, mu: float, mu_w: float, k: flo
     cell = 1.1 * math.sqrt(3.0) * d
     across = int((w - 2.0 * margin) // cell)
     layers = math.ceil(grains / across**2)
-    fill = 0.6 * d + 1.02 * layers * cell
+    bottom = 0.6 * d if bottom is None else bottom
+    fill = bottom + 1.02 * layers * cell
     sc = polydem.Scene(gravity=(0.0, 0.0, -9.81), dt="auto", name="janssen", precision=precision)
     sc.add_material("grain", density=2500.0, k=k, restitution=0.3, friction=mu, law="hertz")
     sc.add_material("wall", density=2500.0, k=k, restitution=0.3, friction=mu_w, law="hertz")
@@ -69,10 +73,43 @@ def build(width_d: int, grains: int, *, d: float, mu: float, mu_w: float, k: flo
         sc.add_body("floor", "wall", position=(0.0, 0.0, -0.5 * d), kind="kinematic", motion="lower")
     else:
         sc.add_box_container((0.0, 0.0, 0.5 * (fill + d)), (w, w, fill + d), "wall")
-    lo = (-0.5 * w + margin, -0.5 * w + margin, 0.6 * d)
+    for position, orientation in zip(*(previous or ((), ())), strict=True):
+        sc.add_body("cube", "grain", position=tuple(position), orientation=tuple(orientation))
+    lo = (-0.5 * w + margin, -0.5 * w + margin, bottom)
     hi = (0.5 * w - margin, 0.5 * w - margin, fill)
     sc.emit("cube", "grain", grains, (lo, hi), seed=seed)
     return sc
+
+
+def staged_fill(args, size, d: float, lower: float):
+    """A gentler fill than one pour of every grain: ``--stages`` batches, each poured from just above the pile
+    the batches before it left at rest (as the grains of a silo filled slowly rain onto the pile), the last one
+    in the scene whose floor is then lowered. Between batches the grains start again from rest at the poses
+    they settled in (velocities and friction springs are not carried over). Returns the last batch's scene and
+    simulation, at t = 0 of that batch."""
+    from polydem import Simulation
+    from polydem.settle import SettleCriterion
+
+    counts = [len(c) for c in np.array_split(np.arange(size["grains"]), args.stages)]
+    previous, bottom = None, None
+    common = dict(d=d, mu=args.mu, mu_w=args.mu_w, k=args.k, precision=args.precision, lower=lower)
+    for stage, n in enumerate(counts):
+        last = stage == len(counts) - 1
+        # The floor's motion starts at the last batch's fill time; before that it must not move.
+        sc = build(size["width"], n, seed=args.seed + stage, lower_at=args.fill_time if last else 1e9,
+                   previous=previous, bottom=bottom, **common)  # fmt: skip
+        sim = Simulation(sc, device=args.device)
+        if last:
+            return sc, sim
+        done = sim.run_until_settled(args.fill_time, SettleCriterion())
+        state = sim.state()
+        free = np.asarray(sc.body_kind) == 0
+        pos, quat = state["body_position"][free], state["body_orientation"][free]
+        previous = (pos, quat)
+        bottom = float(pos[:, 2].max()) + 1.0 * d  # above the highest centre by a bounding radius and more
+        print(f"  stage {stage + 1}/{len(counts)}: {int(free.sum())} grains, at rest {done.settled} at "
+              f"t = {done.time:.3f} s, top centre {bottom - d:.4f} m", flush=True)  # fmt: skip
+    raise AssertionError("unreachable")
 
 
 def janssen_fit(depth, sigma, rho_g):
@@ -99,9 +136,12 @@ def run(args) -> dict:
     size = SIZES[args.size]
     d = args.grain
     lower = args.lower * d
-    sc = build(size["width"], size["grains"], d=d, mu=args.mu, mu_w=args.mu_w, k=args.k, seed=args.seed,
-               precision=args.precision, lower=lower, lower_at=args.fill_time)  # fmt: skip
-    sim = Simulation(sc, device=args.device)
+    if args.stages > 1:
+        sc, sim = staged_fill(args, size, d, lower)
+    else:
+        sc = build(size["width"], size["grains"], d=d, mu=args.mu, mu_w=args.mu_w, k=args.k, seed=args.seed,
+                   precision=args.precision, lower=lower, lower_at=args.fill_time)  # fmt: skip
+        sim = Simulation(sc, device=args.device)
     t0 = time.perf_counter()
     if lower > 0.0:
         sim.step(max(1, math.ceil(args.fill_time / sim.dt)))
@@ -110,7 +150,7 @@ def run(args) -> dict:
     settled = sim.run_until_settled(args.max_time, SettleCriterion())
     wall = time.perf_counter() - t0
     out = measure(sim, sc, args, size, d, floor=-lower)
-    out.update(settled=bool(settled.settled), settle_time=settled.time, wall_s=wall, lowered=lower)
+    out.update(settled=bool(settled.settled), settle_time=settled.time, wall_s=wall, lowered=lower, stages=args.stages)
     if lower > 0.0:
         out["before_lowering"] = {k: filled[k] for k in ("floor_apparent_mass", "side_walls_apparent_mass",
                                                          "packing_fraction", "lambda", "K_fit")}  # fmt: skip
@@ -211,6 +251,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--lower", type=float, default=0.2, help="lower the floor by this many d after the fill (0: not)")
     ap.add_argument("--fill-time", type=float, default=1.5, help="when the floor is lowered [s]")
+    ap.add_argument("--stages", type=int, default=1, help="fill in this many batches, each let come to rest")
     ap.add_argument("--out", default=None)
     ap.add_argument("--checkpoint", default=None, help="save the settled state here (.npz)")
     args = ap.parse_args()

@@ -69,6 +69,29 @@ def build(grains: int, width_d: int, *, d: float, gamma: float, frequency: float
     return sc
 
 
+class _Stop(Exception):
+    """Raised from the record callback once the wall-time budget is spent."""
+
+
+def describe(sim, region, shape: str, contacts: bool) -> dict:
+    """The measures beside the packing fraction at a record: the cubic order of the grains in the measuring
+    region (cubes only: it tells the densest random packing from alignment with the box) and, with
+    ``contacts``, their coordination number without rattlers (contacts with the walls counted)."""
+    from polydem import measures
+
+    grains = measures.Grains.from_simulation(sim)
+    box = region(grains)
+    inside = grains.free & box.contains(grains.position)
+    out = {}
+    if shape == "cube":
+        out["cubic_order"] = measures.cubic_order(grains, box)
+    if contacts:
+        z = measures.coordination(measures.Grains.from_simulation(sim, bodies=inside), sim.contacts(), types=False)
+        out["coordination"] = z.z
+        out["rattler_fraction"] = z.rattler_fraction
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
@@ -83,6 +106,9 @@ def main() -> int:
     ap.add_argument("--period", type=float, default=0.3)
     ap.add_argument("--mu", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--coordination", action="store_true", help="record the coordination number at each tap")
+    ap.add_argument("--stop-after", type=float, default=None, help="stop after the first tap past this wall time [s]")
+    ap.add_argument("--resume", default=None, help="go on from this checkpoint (.npz) of the same options")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
 
@@ -90,37 +116,53 @@ def main() -> int:
 
     wp.config.quiet = True
     from polydem import Simulation
+    from polydem.checkpoint import load_checkpoint, save_checkpoint
     from polydem.protocols import tap
 
     d = args.grain
     sc = build(args.grains, args.width, d=d, gamma=args.gamma, frequency=args.frequency, start=args.start,
                period=args.period, taps=args.taps, mu=args.mu, seed=args.seed, shape=args.shape)  # fmt: skip
     sim = Simulation(sc, device=args.device)
+    if args.resume:
+        load_checkpoint(sim, args.resume)  # the taps already made are skipped: tap() starts at sim.time
     t0 = time.perf_counter()
     w = args.width * d
     records = []
 
     region = measuring_region(w, d)
-
     tag = "" if args.shape == "cube" else f"{args.shape}_"
     path = Path(args.out) if args.out else RESULTS / f"tapping_{tag}{args.grains}_{args.device.replace(':', '')}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
+    checkpoint = path.with_suffix(".npz")
 
-    def save() -> dict:
+    def save(stopped: bool = False) -> dict:
         # Written after every tap: a run stopped at a time limit keeps the taps it made.
-        out = {"args": vars(args), "dt": sim.dt, "wall_s": time.perf_counter() - t0, "records": records}
+        out = {"args": vars(args), "dt": sim.dt, "wall_s": time.perf_counter() - t0, "records": records,
+               "stopped": stopped, "checkpoint": checkpoint.name if stopped else None}  # fmt: skip
         path.write_text(json.dumps(out, indent=1) + "\n")
         return out
 
     def record(r) -> None:
-        records.append({"tap": r.tap, "time": r.time, "packing_fraction": r.packing_fraction, "fastest": r.fastest})
+        row = {"tap": r.tap, "time": r.time, "packing_fraction": r.packing_fraction, "fastest": r.fastest}
+        row.update(describe(sim, region, args.shape, args.coordination))
+        records.append(row)
+        extra = "".join(f"  {k} {v:.4f}" for k, v in row.items() if k in ("cubic_order", "coordination"))
         print(f"tap {r.tap:3d}  t {r.time:7.3f} s  packing fraction {r.packing_fraction:.4f}  fastest grain "
-              f"{r.fastest:.2e} m/s", flush=True)  # fmt: skip
+              f"{r.fastest:.2e} m/s{extra}", flush=True)  # fmt: skip
         save()
+        if args.stop_after is not None and time.perf_counter() - t0 > args.stop_after:
+            raise _Stop
 
-    tap(sim, "taps", region, on_record=record)
-    out = save()
-    print(f"wrote {path} ({out['wall_s']:.1f} s)")
+    try:
+        tap(sim, "taps", region, on_record=record)
+        stopped = False
+    except _Stop:
+        stopped = True
+        # Taken just before the next tap: a run resumed from it makes that tap next.
+        save_checkpoint(sim, checkpoint)
+    out = save(stopped)
+    resume = f"; stopped, resume with --resume {checkpoint}" if stopped else ""
+    print(f"wrote {path} ({out['wall_s']:.1f} s){resume}")
     return 0
 
 

@@ -25,6 +25,7 @@ A checkpoint may carry a ``run`` record (any JSON object), which ``polydem run``
 the summary of a resumed run; :func:`read_checkpoint` returns it.
 """
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -140,6 +141,18 @@ def physics_description(scene, dt):
         desc[f"mesh_walls[{i}].triangles"] = f"{len(wall.triangles)} triangles, sha256 {digest.hexdigest()[:16]}"
         for field in ("material", "pivot", "velocity", "angular_velocity", "thickness"):
             desc[f"mesh_walls[{i}].{field}"] = _plain(getattr(wall, field))
+    motions = getattr(scene, "motions", {})
+    if motions:  # what drives the walls and pistons (a scene without motions keeps its former record)
+        desc["motions"] = sorted(motions)
+        for name in sorted(motions):
+            for f in dataclasses.fields(motions[name]):
+                if f.name != "name":
+                    desc[f"motions.{name}.{f.name}"] = _plain(getattr(motions[name], f.name))
+        desc["bodies.motion"] = {str(i): m for i, m in sorted(scene.body_motion.items())}
+        for i, plane in enumerate(scene.planes):
+            desc[f"planes[{i}].motion"] = plane.motion
+        for i, wall in enumerate(walls):
+            desc[f"mesh_walls[{i}].motion"] = wall.motion
     desc["bodies"] = int(scene.num_bodies)
     desc["simulation.gravity"] = _plain(scene.gravity)
     desc["simulation.precision"] = scene.precision

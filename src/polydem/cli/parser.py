@@ -538,6 +538,13 @@ def _add_tap(sub, fmt) -> None:
         metavar="F",
         help="measure this fraction of the rest between taps before the next tap (default 0.1)",
     )
+    tap.add_argument(
+        "--resume",
+        default=None,
+        metavar="CHECKPOINT",
+        help="go on from a checkpoint of this scene (checkpoints/interrupted.npz of a stopped tap run): the taps "
+        "before its time are not made again, and the records of the run it came from come first in tap.json",
+    )
 
 
 def _add_compress(sub, fmt) -> None:

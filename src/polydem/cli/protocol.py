@@ -35,7 +35,8 @@ from polydem import signals
 from polydem.cli.common import plural, relative
 from polydem.cli.device import warp
 from polydem.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USER_ERROR, CliError, why
-from polydem.cli.run import output_folder, roll_back, scene_and_device
+from polydem.cli.poses import check_poses
+from polydem.cli.run import checkpoint_to_resume, output_folder, roll_back, scene_and_device
 
 if TYPE_CHECKING:
     import argparse
@@ -267,9 +268,13 @@ class ProtocolRun:
         self.args, self.scene, self.sim, self.plan, self.out_dir = args, scene, sim, plan, out_dir
         self.records: list[dict] = []
         self.errors: list[str] = []
+        self.resumed_from: Path | None = None
 
     def on_record(self, record) -> None:
-        self.records.append({k: _plain(v) for k, v in dataclasses.asdict(record).items()})
+        row = {k: _plain(v) for k, v in dataclasses.asdict(record).items()}
+        if "tap" in row:  # a resumed run measures again at the checkpoint's time when it fell on a step
+            self.records = [r for r in self.records if r.get("tap") != row["tap"]]
+        self.records.append(row)
         if not self.args.quiet:
             print(_row(record, self.plan.columns), flush=True)
         if signals.received():
@@ -337,6 +342,7 @@ class ProtocolRun:
             "dt": sim.dt,
             "num_bodies": sim.num_bodies,
             "options": {k: _plain(v) for k, v in plan.options.items()},
+            "resumed_from": str(self.resumed_from.resolve()) if self.resumed_from is not None else None,
             "interrupted": reason is not None,
             "reason": reason,
             "wall_time": wall,
@@ -365,9 +371,29 @@ class ProtocolRun:
         return written
 
 
+def _resume(args: argparse.Namespace, scene: Scene, sim: Simulation, path: Path, ck) -> list[dict]:
+    """Put the checkpoint ``ck`` of ``--resume`` into ``sim`` after checking it against ``scene``; the records of
+    the tap run that wrote it (none for a checkpoint of another command)."""
+    from polydem.checkpoint import CheckpointError, check_scene, restore_checkpoint
+
+    fix = "resume with the scene the checkpoint was written from: polydem tap SCENE --resume CHECKPOINT"
+    check_poses(path, ck.arrays["body_q"][:, :3], scene, args.scene, "checkpoint", fix, "--resume")
+    try:
+        check_scene(ck, sim, fix=f"{fix} (or leave --resume out to tap this scene from t = 0)")
+    except CheckpointError as err:
+        raise CliError(err.message, path, "--resume") from None
+    restore_checkpoint(sim, ck)
+    run = ck.run if isinstance(ck.run, dict) else {}
+    records = run.get("records") if run.get("protocol") == "tap" else None
+    return [dict(r) for r in records] if isinstance(records, list) else []
+
+
 def _cmd(args: argparse.Namespace, command: str) -> int:
     warp()
     signals.check()
+    resume = checkpoint = None
+    if getattr(args, "resume", None) is not None:
+        resume, checkpoint = checkpoint_to_resume(args)  # a damaged file fails before anything is built
     scene, dev = scene_and_device(args)
     plan = PLANS[command](args, scene)
     out_dir = output_folder(args, scene)
@@ -376,8 +402,13 @@ def _cmd(args: argparse.Namespace, command: str) -> int:
     from polydem.simulation import Simulation
 
     sim = Simulation(scene, device=dev)
+    earlier = _resume(args, scene, sim, resume, checkpoint) if resume is not None else []
     signals.check()
-    return ProtocolRun(args, scene, sim, plan, out_dir).execute()
+    run = ProtocolRun(args, scene, sim, plan, out_dir)
+    # The records of the run resumed from stay in this one's files, before the new ones.
+    run.records = earlier
+    run.resumed_from = resume
+    return run.execute()
 
 
 def cmd_tap(args: argparse.Namespace) -> int:

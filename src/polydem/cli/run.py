@@ -323,7 +323,7 @@ def _target_steps(args: argparse.Namespace, scene: Scene, dt: float) -> tuple[in
     return DEFAULT_STEPS, "the default"
 
 
-def _checkpoint_to_resume(args: argparse.Namespace) -> tuple[Path | None, Checkpoint | None]:
+def checkpoint_to_resume(args: argparse.Namespace) -> tuple[Path | None, Checkpoint | None]:
     """The path and the checked checkpoint of ``--resume`` (None, None without it)."""
     if args.resume is None:
         return None, None
@@ -397,7 +397,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _load(args: argparse.Namespace) -> tuple[Path | None, Checkpoint | None, Scene, wp.DeviceLike]:
     """The checkpoint to resume (path and contents, or None), the scene with the options applied, and the device."""
-    resume, checkpoint = _checkpoint_to_resume(args)  # a damaged file fails before the model is built
+    resume, checkpoint = checkpoint_to_resume(args)  # a damaged file fails before the model is built
     scene, dev = scene_and_device(args)
     return resume, checkpoint, scene, dev
 
