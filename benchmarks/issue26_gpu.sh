@@ -4,18 +4,18 @@
 #   bash benchmarks/issue26_gpu.sh [RESUME_DIR]     # on the GPU machine, from the repository root, polydem installed
 # RESUME_DIR: a folder of the tapping checkpoints (*.npz) and JSON of the previous call (carried back): the tap runs
 # go on from there (tapping.py --resume), so that taps to saturation take several calls.
-# BUDGET (seconds, default 510) bounds the jobs; each writes its JSON as it goes.
+# BUDGET (seconds, default 510) bounds the jobs; taps and Beverloo write their JSON as they go, Janssen at its end.
 set -u
-W=/tmp/w26; mkdir -p $W/res $W/log; END=$((SECONDS + ${BUDGET:-510}))
+W=/tmp/w26; rm -rf $W; mkdir -p $W/res $W/log; END=$((SECONDS + ${BUDGET:-510}))
 left() { echo $((END - SECONDS)); }
 R=${1:-}
 gpu() { CUDA_VISIBLE_DEVICES=$1 timeout $(left) "${@:2}"; }
-tapjob() {  # GPU NAME ARGS...: a tap run that stops 2 minutes before the deadline (its build and compilation come first) and keeps a checkpoint
+tapjob() {  # GPU NAME ARGS...: a tap run that stops a minute before the deadline (its clock starts before the build) and keeps a checkpoint
   local g=$1 name=$2; shift 2
   local resume=()
   [ -n "$R" ] && [ -f "$R/$name.npz" ] && resume=(--resume "$R/$name.npz")
   gpu $g python benchmarks/validation/tapping.py --device cuda:0 --taps 400 --start 1.0 --period 0.2 --coordination \
-    --stop-after $(( $(left) - 120 )) "${resume[@]}" --out $W/res/$name.json "$@" > $W/log/$name.log 2>&1
+    --stop-after $(( $(left) - 60 )) "${resume[@]}" --out $W/res/$name.json "$@" > $W/log/$name.log 2>&1
 }
 # GPU 0, 1: taps to saturation, cubes (two seeds) and tetrahedra
 tapjob 0 tap_cube_s1 --grains 5000 --width 24 --seed 1 &

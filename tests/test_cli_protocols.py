@@ -308,11 +308,15 @@ def test_a_stopped_tap_run_resumes_where_it_stopped(tmp_path, capsys, monkeypatc
     assert len([x for x in out.splitlines() if x.strip()[:1].isdigit()]) == 2  # only the new taps are printed
 
 
-@pytest.mark.parametrize("which", ["missing", "other scene"])
+@pytest.mark.parametrize("which", ["missing", "other scene", "other margin"])
 def test_tap_resume_refuses_a_checkpoint_it_cannot_use(tmp_path, capsys, device, which):
     path = write_scene(tmp_path, TAPS)
     if which == "missing":
         checkpoint, needle = tmp_path / "nope.npz", "checkpoint not found"
+    elif which == "other margin":  # its records were measured in another box: they would not go together
+        code, _, err = run(["tap", path, "--device", device, "--out", tmp_path / "o", "--margin", 0.3], capsys)
+        assert code == 0, err
+        checkpoint, needle = tmp_path / "o" / "checkpoints" / "final.npz", "used --margin 0.3, this one --margin 2.0"
     else:
         other = write_scene(tmp_path, TAPS.replace("gamma = 2.0", "gamma = 2.5"), name="other.toml")
         code, _, err = run(["tap", other, "--device", device, "--out", tmp_path / "o", "--margin", 0.25], capsys)
@@ -321,3 +325,19 @@ def test_tap_resume_refuses_a_checkpoint_it_cannot_use(tmp_path, capsys, device,
         needle = "motions.taps.gamma differs: checkpoint 2.5, scene 2"  # the motions are part of the physics
     code, _, err = run(["tap", path, "--device", device, "--out", tmp_path / "r", "--resume", checkpoint], capsys)
     assert code == 2 and needle in err and "--resume" in err, err
+
+
+def test_the_physics_record_of_motions_compares_equal_to_itself(tmp_path):
+    """A checkpoint's record of the scene's motions (read back from JSON) matches the same scene, and names a
+    changed motion; a scene without motions keeps the record it had before motions were recorded."""
+    from polydem.checkpoint import physics_description, physics_differences
+
+    desc, arrays = physics_description(polydem.Scene.from_toml(write_scene(tmp_path, TAPS)), 1e-5)
+    stored = json.loads(json.dumps(desc))
+    assert stored["bodies.motion"] and physics_differences(stored, arrays, desc, arrays) == []
+    other = polydem.Scene.from_toml(write_scene(tmp_path, TAPS.replace("gamma = 2.0", "gamma = 2.5"), "o.toml"))
+    assert physics_differences(stored, arrays, *physics_description(other, 1e-5)) == [
+        "motions.taps.gamma differs: checkpoint 2, scene 2.5"
+    ]
+    plain, _ = physics_description(polydem.Scene.from_toml(write_scene(tmp_path, PAIR, "p.toml")), 1e-5)
+    assert not any(k.startswith("motions") or k.endswith(".motion") for k in plain)

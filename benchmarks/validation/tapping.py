@@ -111,23 +111,24 @@ def main() -> int:
     ap.add_argument("--resume", default=None, help="go on from this checkpoint (.npz) of the same options")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    t0 = time.perf_counter()  # --stop-after counts the build and the compilation too
 
     import warp as wp
 
     wp.config.quiet = True
     from polydem import Simulation
-    from polydem.checkpoint import load_checkpoint, save_checkpoint
+    from polydem.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
     from polydem.protocols import tap
 
     d = args.grain
     sc = build(args.grains, args.width, d=d, gamma=args.gamma, frequency=args.frequency, start=args.start,
                period=args.period, taps=args.taps, mu=args.mu, seed=args.seed, shape=args.shape)  # fmt: skip
     sim = Simulation(sc, device=args.device)
+    records = []
     if args.resume:
         load_checkpoint(sim, args.resume)  # the taps already made are skipped: tap() starts at sim.time
-    t0 = time.perf_counter()
+        records = list((read_checkpoint(args.resume).run or {}).get("records", []))  # they come first
     w = args.width * d
-    records = []
 
     region = measuring_region(w, d)
     tag = "" if args.shape == "cube" else f"{args.shape}_"
@@ -135,16 +136,19 @@ def main() -> int:
     path.parent.mkdir(parents=True, exist_ok=True)
     checkpoint = path.with_suffix(".npz")
 
-    def save(stopped: bool = False) -> dict:
-        # Written after every tap: a run stopped at a time limit keeps the taps it made.
+    def save(complete: bool = False, stopped: bool = False) -> dict:
+        # Written after every tap: a run killed at a time limit keeps the taps it made ("complete" false).
         out = {"args": vars(args), "dt": sim.dt, "wall_s": time.perf_counter() - t0, "records": records,
-               "stopped": stopped, "checkpoint": checkpoint.name if stopped else None}  # fmt: skip
+               "complete": complete, "stopped": stopped,
+               "checkpoint": checkpoint.name if stopped else None}  # fmt: skip
         path.write_text(json.dumps(out, indent=1) + "\n")
         return out
 
     def record(r) -> None:
         row = {"tap": r.tap, "time": r.time, "packing_fraction": r.packing_fraction, "fastest": r.fastest}
         row.update(describe(sim, region, args.shape, args.coordination))
+        # A resumed run measures again at the checkpoint's time when that fell on a step: keep the new record.
+        records[:] = [x for x in records if x["tap"] != row["tap"]]
         records.append(row)
         extra = "".join(f"  {k} {v:.4f}" for k, v in row.items() if k in ("cubic_order", "coordination"))
         print(f"tap {r.tap:3d}  t {r.time:7.3f} s  packing fraction {r.packing_fraction:.4f}  fastest grain "
@@ -158,9 +162,9 @@ def main() -> int:
         stopped = False
     except _Stop:
         stopped = True
-        # Taken just before the next tap: a run resumed from it makes that tap next.
-        save_checkpoint(sim, checkpoint)
-    out = save(stopped)
+        # Taken just before the next tap: a run resumed from it makes that tap next, and keeps these records.
+        save_checkpoint(sim, checkpoint, run={"records": records})
+    out = save(complete=not stopped, stopped=stopped)
     resume = f"; stopped, resume with --resume {checkpoint}" if stopped else ""
     print(f"wrote {path} ({out['wall_s']:.1f} s){resume}")
     return 0

@@ -148,7 +148,7 @@ def physics_description(scene, dt):
             for f in dataclasses.fields(motions[name]):
                 if f.name != "name":
                     desc[f"motions.{name}.{f.name}"] = _plain(getattr(motions[name], f.name))
-        desc["bodies.motion"] = {str(i): m for i, m in sorted(scene.body_motion.items())}
+        desc["bodies.motion"] = [[int(i), m] for i, m in sorted(scene.body_motion.items())]  # lists compare
         for i, plane in enumerate(scene.planes):
             desc[f"planes[{i}].motion"] = plane.motion
         for i, wall in enumerate(walls):

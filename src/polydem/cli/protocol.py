@@ -325,7 +325,8 @@ class ProtocolRun:
         path = self.out_dir / "checkpoints" / ("final.npz" if reason is None else "interrupted.npz")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            save_checkpoint(self.sim, path, run={"protocol": self.plan.command, "records": self.records})
+            run = {"protocol": self.plan.command, "options": _plain(self.plan.options), "records": self.records}
+            save_checkpoint(self.sim, path, run=run)
         except OSError as exc:
             self.errors.append(f"cannot write the checkpoint {relative(path, self.out_dir)}: {why(exc)}")
             return None
@@ -371,7 +372,7 @@ class ProtocolRun:
         return written
 
 
-def _resume(args: argparse.Namespace, scene: Scene, sim: Simulation, path: Path, ck) -> list[dict]:
+def _resume(args: argparse.Namespace, scene: Scene, sim: Simulation, plan: Plan, path: Path, ck) -> list[dict]:
     """Put the checkpoint ``ck`` of ``--resume`` into ``sim`` after checking it against ``scene``; the records of
     the tap run that wrote it (none for a checkpoint of another command)."""
     from polydem.checkpoint import CheckpointError, check_scene, restore_checkpoint
@@ -382,10 +383,26 @@ def _resume(args: argparse.Namespace, scene: Scene, sim: Simulation, path: Path,
         check_scene(ck, sim, fix=f"{fix} (or leave --resume out to tap this scene from t = 0)")
     except CheckpointError as err:
         raise CliError(err.message, path, "--resume") from None
-    restore_checkpoint(sim, ck)
     run = ck.run if isinstance(ck.run, dict) else {}
-    records = run.get("records") if run.get("protocol") == "tap" else None
-    return [dict(r) for r in records] if isinstance(records, list) else []
+    if run.get("protocol") != "tap":
+        restore_checkpoint(sim, ck)
+        return []  # the state of another command or run: this tap run's records start here
+    # The records of the run it came from join this one's only where they were measured alike.
+    before = run.get("options") if isinstance(run.get("options"), dict) else {}
+    for key in ("motion", "margin", "lead"):
+        old, value = before.get(key), plan.options[key]
+        if old is not None and old != value:
+            raise CliError(
+                f"the tap run that wrote this checkpoint used --{key} {old}, this one --{key} {value}; give the same "
+                f"--{key} to go on with its records",
+                path,
+                "--resume",
+            )
+    records = run.get("records")
+    if not isinstance(records, list) or not all(isinstance(r, dict) and "tap" in r for r in records):
+        raise CliError("the checkpoint's record of its tap run is damaged (records without a tap)", path, "--resume")
+    restore_checkpoint(sim, ck)
+    return [dict(r) for r in records]
 
 
 def _cmd(args: argparse.Namespace, command: str) -> int:
@@ -402,7 +419,7 @@ def _cmd(args: argparse.Namespace, command: str) -> int:
     from polydem.simulation import Simulation
 
     sim = Simulation(scene, device=dev)
-    earlier = _resume(args, scene, sim, resume, checkpoint) if resume is not None else []
+    earlier = _resume(args, scene, sim, plan, resume, checkpoint) if resume is not None else []
     signals.check()
     run = ProtocolRun(args, scene, sim, plan, out_dir)
     # The records of the run resumed from stay in this one's files, before the new ones.
