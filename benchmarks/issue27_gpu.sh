@@ -3,6 +3,8 @@
 # before and after, on one GPU in one call.
 #   bash benchmarks/issue27_gpu.sh prepare [REV]   # here: build/before/pkg/polydem from REV (default HEAD; git archive;
 #                                                  # build/ is ignored)
+#   OUT=DIR bash benchmarks/issue27_gpu.sh mixed   # on the GPU: the mixed pile, pair threads in slot order and by
+#                                                  # cost (settle.py --order-pair-threads), SIZES="1e4 1e5" cubes
 #   OUT=DIR bash benchmarks/issue27_gpu.sh run     # on the GPU, from this tree with polydem on PYTHONPATH,
 #                                                  # carrying build/before
 # run: pair_kernel.py (float32; cube, rock20, hull64; 1% deep and flat contacts) with REV's package and with this tree's
@@ -32,8 +34,21 @@ for b, a in zip(before, after, strict=True):
           f"M pairs/s ({a['pairs_per_second'] / b['pairs_per_second']:.2f}x), {same}")
 PY
   ;;
+mixed)
+  # The mixed-shape pile (cubes, tetrahedra, 20-vertex rocks, 2:1:1 boxes) with the pair kernel's threads in slot
+  # order and grouped by cost (Simulation(order_pair_threads=True)), alternating, and the cube pile beside them.
+  out=${OUT:-.}
+  for n in ${SIZES:-10000 100000}; do
+    for o in "" --order-pair-threads "" --order-pair-threads; do
+      python benchmarks/settle.py --device cuda:0 --sizes $n --shapes mixed --precision mixed --no-graph-compare \
+        --warmup-time 0.05 --steps 200 $o --out "$out/mixed_${n}${o:+_ordered}_$RANDOM.json" | tail -1
+    done
+    python benchmarks/settle.py --device cuda:0 --sizes $n --precision mixed --no-graph-compare --warmup-time 0.05 \
+      --steps 200 --out "$out/cubes_$n.json" | tail -1
+  done
+  ;;
 *)
-  echo "usage: $0 prepare [REV] | run" >&2
+  echo "usage: $0 prepare [REV] | run | mixed" >&2
   exit 2
   ;;
 esac

@@ -636,6 +636,7 @@ def run_size(n, args, device, record, save):
         {
             "status": "built",
             "pair_max_registers": sim.stepper.pair_max_registers,
+            "order_pair_threads": sim.stepper.thread_order,
             "dt": sim.dt,
             "skin": sim.skin,
             "use_graph": sim.use_graph,
@@ -923,20 +924,31 @@ def make_parser():
 
 
 def add_kernel_options(ap):
-    """``--max-registers``: the register cap of the step's pair kernel (see :func:`kernel_options`)."""
+    """``--max-registers``: the register cap of the step's pair kernel; ``--order-pair-threads``: its threads take
+    the pairs grouped by cost (see :func:`kernel_options`)."""
     ap.add_argument(
         "--max-registers",
         type=int,
         default=None,
         help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
     )
+    ap.add_argument(
+        "--order-pair-threads",
+        action="store_true",
+        help="Simulation(order_pair_threads=True): the pair kernel's threads take the pairs grouped by the cost of "
+        "their shapes (for --shapes mixed; the same results)",
+    )
 
 
 def kernel_options(args):
-    """The ``Simulation`` keyword arguments of ``--max-registers`` (none at its default)."""
-    if args.max_registers is None:
-        return {}
-    return {"pair_max_registers": args.max_registers or None}
+    """The ``Simulation`` keyword arguments of ``--max-registers`` and ``--order-pair-threads`` (none at their
+    defaults)."""
+    out = {}
+    if args.max_registers is not None:
+        out["pair_max_registers"] = args.max_registers or None
+    if getattr(args, "order_pair_threads", False):
+        out["order_pair_threads"] = True
+    return out
 
 
 def add_pile_options(ap):

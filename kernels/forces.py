@@ -335,6 +335,7 @@ def make_contact_kernels(
     max_registers: int | None = PAIR_MAX_REGISTERS,
     compound: bool = False,
     report: bool = False,
+    thread_order: bool = False,
 ) -> ContactKernels:
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -352,7 +353,9 @@ def make_contact_kernels(
     coordinates of the bodies' size however far they are from the origin. ``max_registers`` caps
     the pair kernel's CUDA registers per thread (None: the compiler's choice; the results do not
     depend on it). ``compound`` builds the variant whose bodies may be compound grains
-    (:mod:`polydem.kernels.compound`: the geometry loops over their parts).
+    (:mod:`polydem.kernels.compound`: the geometry loops over their parts). ``thread_order``: thread t of the
+    pair kernel takes pair ``pairs.thread[t]`` (pairs grouped by cost: :func:`polydem.kernels.pairlist.
+    launch_thread_order`) instead of pair t; the same results, bit for bit.
     """
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
@@ -387,6 +390,8 @@ def make_contact_kernels(
         p = wp.tid()
         if p >= pairs.count[0]:
             return
+        if wp.static(thread_order):
+            p = pairs.thread[p]
         a = pairs.a[p]
         b = pairs.b[p]
         xa = bodies.q[a]

@@ -119,6 +119,29 @@ def body_ranges_kernel(
     body_pairs_b[i] = wp.vec2i(lower_bound_int(keys_b, count, i), lower_bound_int(keys_b, count, i + 1))
 
 
+@wp.kernel(enable_backward=False)
+def cost_keys_kernel(
+    # Model
+    body_shape: wp.array(dtype=int),
+    num_shapes: int,
+    pair_class: wp.array(dtype=int),
+    sentinel: int,
+    # The pair list
+    pair_a: wp.array(dtype=int),
+    pair_b: wp.array(dtype=int),
+    pair_count: wp.array(dtype=int),
+    # Out
+    keys: wp.array(dtype=int),
+    order: wp.array(dtype=int),
+):
+    p = wp.tid()
+    order[p] = p
+    if p < pair_count[0]:
+        keys[p] = pair_class[body_shape[pair_a[p]] * num_shapes + body_shape[pair_b[p]]]
+    else:
+        keys[p] = sentinel
+
+
 @functools.cache
 def make_remap_history_kernel(scalar):
     """The kernel that carries the pair history (in ``scalar``) over a rebuild."""
@@ -300,3 +323,38 @@ def launch_body_ranges(
     )
     if pair_by_b is not None:
         wp.copy(pair_by_b, by_b, count=capacity)
+
+
+def launch_thread_order(
+    *,
+    body_shape: wp.array,
+    pair_class: wp.array,
+    num_classes: int,
+    pair_a: wp.array,
+    pair_b: wp.array,
+    pair_count: wp.array,
+    keys: wp.array,
+    order: wp.array,
+    pair_thread: wp.array,
+) -> None:
+    """Which pair each thread of the pair kernel takes: the pairs by cost class, so that the threads of a warp
+    clip shapes of like face counts (a warp waits for its slowest thread), and within a class in slot order.
+
+    ``pair_class``: (S * S,) int32, the class of a pair of shapes (A's shape * S + B's), 0 to ``num_classes`` - 1.
+    ``keys``, ``order``: (2C,) int32 each, the radix sort's keys and values (scratch). ``pair_thread``: (C,)
+    int32, gets the pair of each thread: the first ``pair_count`` threads take the listed pairs, the rest the
+    empty slots. Each pair's arithmetic is its own, so the results do not depend on this order."""
+    capacity = pair_a.shape[0]
+    if keys.dtype != wp.int32 or keys.size < 2 * capacity or order.size < 2 * capacity:
+        raise ValueError(f"keys and order must be int32 arrays of at least {2 * capacity} entries")
+    num_shapes = int(round(pair_class.shape[0] ** 0.5))
+    wp.launch(
+        cost_keys_kernel,
+        dim=capacity,
+        inputs=[body_shape, num_shapes, pair_class, int(num_classes), pair_a, pair_b, pair_count],
+        outputs=[keys, order],
+        device=pair_a.device,
+    )
+    # Stable: the pairs of one class keep their slot order, and the empty slots (the sentinel) come last.
+    wp.utils.radix_sort_pairs(keys, order, capacity, 0, max(1, int(num_classes).bit_length()))
+    wp.copy(pair_thread, order, count=capacity)

@@ -91,10 +91,12 @@ def wall_history_struct(C: Any) -> Any:
 def pairs_struct(C: Any) -> Any:
     """The candidate pairs (capacity,): bodies ``a`` and ``b``, their ``count`` (1,); history (``xi``, (1,)
     without friction; ``turn``) and last step's ``force``, ``torque_a`` and ``dissipated`` in C; the pairs
-    ordered by B (``by_b``) and each body's (N,) vec2i ranges in the pairs by A and by B (``ranges_a``,
-    ``ranges_b``)."""
+    ordered by B (``by_b``), the pair each thread of the pair kernel takes (``thread``; (1,) where threads take
+    their own slot) and each body's (N,) vec2i ranges in the pairs by A and by B (``ranges_a``, ``ranges_b``)."""
     vec3 = wp.types.vector(3, C)
-    members = arrays(a=int, b=int, count=int, xi=vec3, turn=C, force=vec3, torque_a=vec3, dissipated=C, by_b=int)
+    members = arrays(
+        a=int, b=int, count=int, xi=vec3, turn=C, force=vec3, torque_a=vec3, dissipated=C, by_b=int, thread=int
+    )
     return make_struct("Pairs", **members, **arrays(ranges_a=wp.vec2i, ranges_b=wp.vec2i))
 
 

@@ -39,7 +39,12 @@ import warp as wp
 
 from polydem.kernels.broadphase import BroadPhase, byte_view
 from polydem.kernels.forces import ContactSums
-from polydem.kernels.pairlist import launch_body_ranges, launch_carry_sums, launch_remap_history
+from polydem.kernels.pairlist import (
+    launch_body_ranges,
+    launch_carry_sums,
+    launch_remap_history,
+    launch_thread_order,
+)
 from polydem.kernels.precision import numpy_dtype
 from polydem.kernels.structs import filled, pairs_struct
 
@@ -117,6 +122,18 @@ class PairHistory:
         return all(getattr(self, k).shape == getattr(other, k).shape for k in self.FIELDS)
 
 
+def pair_cost_classes(model) -> tuple[np.ndarray, int]:
+    """(S, S) int32 cost class of each pair of the model's S shapes, and the number of classes: the products of
+    the two shapes' face counts (a compound grain: its parts' faces together), ranked. The pair kernel clips
+    each face of one shape by the other's planes, so its work grows with that product."""
+    from polydem.compound import convex_parts
+
+    faces = np.array([sum(part.num_faces for part, _, _ in convex_parts(s)) for s in model.shapes.shapes], np.int64)
+    cost = np.outer(faces, faces)
+    levels, rank = np.unique(cost, return_inverse=True)
+    return rank.reshape(cost.shape).astype(np.int32), len(levels)
+
+
 class Contacts:
     """The candidate pair list (a Verlet list with a skin) and its history, with the per-pair buffers of a step.
 
@@ -127,6 +144,8 @@ class Contacts:
         capacity: initial number of pairs there is room for (grows on overflow).
         radius_ref: the unit of the broad phase's size classes [m] (``RunSettings.radius_ref``; None:
             the smallest free radius of the model's bodies).
+        thread_order: give the pair kernel's threads the pairs grouped by cost (:attr:`pair_thread`), where the
+            model's shapes differ in cost (else nothing to group: :attr:`thread_order` stays False).
 
     Attributes (device arrays; C = :attr:`capacity`, N bodies):
         broadphase: the :class:`~polydem.kernels.broadphase.BroadPhase`, which owns the pair list
@@ -140,6 +159,9 @@ class Contacts:
         "float64". The last three live in the scratch buffer (module docstring): valid from the pair
         kernel of a step to its end, overwritten by the next rebuild.)
         pair_by_b: (C,) int32 pair indices ordered by body B.
+        pair_thread: (C,) int32 the pair each thread of the pair kernel takes, the pairs ordered by the cost
+            class of their two shapes (the product of their face counts), stably; (1,) without thread_order.
+        thread_order: host bool, whether the pair kernel reads :attr:`pair_thread`.
         body_pairs_a, body_pairs_b: (N,) ``wp.vec2i`` each body's range in the pairs ordered by
             A (``pair_key``) and by B (``pair_by_b``).
         pairs: all of the above in the ``wp.struct`` the kernels take (:func:`polydem.kernels.structs.pairs_struct`),
@@ -160,6 +182,7 @@ class Contacts:
         body_box: tuple[np.ndarray, np.ndarray],
         capacity: int,
         radius_ref: float | None = None,
+        thread_order: bool = False,
     ) -> None:
         self.model = model
         self.device = model.device
@@ -178,6 +201,10 @@ class Contacts:
         self.capacity = 0
         self.generation = 0
         self.average: ContactAverage | None = None
+        self._pair_class, self._num_classes = pair_cost_classes(model) if thread_order else (None, 1)
+        self.thread_order = self._num_classes > 1
+        if self.thread_order:
+            self._pair_class_table = wp.array(self._pair_class.reshape(-1), dtype=int, device=self.device)
 
     def _inputs(self, body_q: wp.array) -> tuple[wp.array, wp.array]:
         """The poses and radii for the broad phase: as they are (float64 poses are cast in its kernels)."""
@@ -235,6 +262,7 @@ class Contacts:
         self.previous = PairHistory(history["key"], history["xi"], history["turn"], wp.zeros(1, dtype=int, device=dev))
         self._keys_b, self._by_b = order["keys_b"], order["by_b"]
         self.pair_by_b = wp.zeros(capacity, dtype=int, device=dev)
+        self.pair_thread = wp.zeros(capacity if self.thread_order else 1, dtype=int, device=dev)
         self.body_pairs_a = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
         self.body_pairs_b = wp.zeros(self.num_bodies, dtype=wp.vec2i, device=dev)
         bp = self.broadphase
@@ -249,6 +277,7 @@ class Contacts:
             torque_a=self.pair_torque_a,
             dissipated=self.pair_dissipated,
             by_b=self.pair_by_b,
+            thread=self.pair_thread,
             ranges_a=self.body_pairs_a,
             ranges_b=self.body_pairs_b,
         )
@@ -298,6 +327,18 @@ class Contacts:
             body_pairs_b=self.body_pairs_b,
             pair_by_b=self.pair_by_b,
         )
+        if self.thread_order:  # the sort by B is done with the scratch: it holds nothing now
+            launch_thread_order(
+                body_shape=self.model.body_shape,
+                pair_class=self._pair_class_table,
+                num_classes=self._num_classes,
+                pair_a=bp.pair_a,
+                pair_b=bp.pair_b,
+                pair_count=bp.pair_count,
+                keys=self._keys_b,
+                order=self._by_b,
+                pair_thread=self.pair_thread,
+            )
 
     # -- rebuilds (the broad phase of a step) -------------------------------------------------
 

@@ -110,6 +110,8 @@ class Stepper:
             CUDA graph capture); an overflow is then reported by ``contacts.host_build_needed()``.
         pair_max_registers: CUDA register cap per thread of the pair kernels (None: the compiler's
             choice); the results do not depend on it (benchmarks/settle.py --max-registers).
+        thread_order: the pair kernel's thread t takes pair ``contacts.pairs.thread[t]`` (the contacts must
+            have been made with ``thread_order``); the results do not depend on it.
 
     Attributes:
         poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_polygons`).
@@ -126,9 +128,14 @@ class Stepper:
     """
 
     def __init__(
-        self, model: Model, device_rebuild: bool = False, pair_max_registers: int | None = PAIR_MAX_REGISTERS
+        self,
+        model: Model,
+        device_rebuild: bool = False,
+        pair_max_registers: int | None = PAIR_MAX_REGISTERS,
+        thread_order: bool = False,
     ) -> None:
         self.model = model
+        self.thread_order = bool(thread_order)
         self.device = model.device
         self.device_rebuild = bool(device_rebuild)
         self.poly_capacity = model.shapes.default_poly_capacity
@@ -212,6 +219,7 @@ class Stepper:
             max_registers=self.pair_max_registers,
             compound=m.shapes.compound,
             report=report,
+            thread_order=self.thread_order,
         )
 
     def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> tuple[wp.Kernel, wp.Kernel] | None:
@@ -591,6 +599,10 @@ class Simulation:
             ``settings``, the bodies step as in the whole scene's run where their contacts are all
             among them (a rank of a decomposed run); body indices of the results are then positions
             in ``bodies``.
+        order_pair_threads: hand the pair kernel's threads the candidate pairs grouped by the cost of their
+            shapes (the product of their face counts), so that a warp's threads clip alike shapes and none waits
+            for a costlier neighbour: for piles of mixed shapes; nothing changes for a single shape. The same
+            results bit for bit (each pair's arithmetic is its own); one sort of the pair list a rebuild.
 
     Attributes:
         scene: the :class:`~polydem.Scene` it was built from (the whole scene, where ``bodies`` is given).
@@ -626,6 +638,7 @@ class Simulation:
         pair_max_registers: int | None = PAIR_MAX_REGISTERS,
         settings: RunSettings | None = None,
         bodies: np.ndarray | None = None,
+        order_pair_threads: bool = False,
     ) -> None:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
@@ -656,9 +669,19 @@ class Simulation:
         # Settled packings of convex grains have 3-4 candidate pairs per body at this skin: start
         # with room for 5 (an overflow grows the buffers and redoes the step).
         self.current_contacts = Contacts(
-            model, self.skin, body_box=(lower, upper), capacity=max(1024, 5 * n), radius_ref=settings.radius_ref
+            model,
+            self.skin,
+            body_box=(lower, upper),
+            capacity=max(1024, 5 * n),
+            radius_ref=settings.radius_ref,
+            thread_order=order_pair_threads,
         )
-        self.stepper = Stepper(model, device_rebuild=self.use_graph, pair_max_registers=pair_max_registers)
+        self.stepper = Stepper(
+            model,
+            device_rebuild=self.use_graph,
+            pair_max_registers=pair_max_registers,
+            thread_order=self.current_contacts.thread_order,
+        )
         self._speed_limit = settings.tunnel.body_speed_limit[model.body_index]
         self.stepper.body_speed_limit.assign(self._speed_limit.astype(np.float32))
         # Warned once a run: already by the scene's validation where the initial speeds are too high.
