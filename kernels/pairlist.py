@@ -14,7 +14,7 @@ No floating-point arithmetic: every kernel is deterministic by construction.
 """
 
 import functools
-from typing import Protocol
+from typing import Any, Protocol
 
 import warp as wp
 from polydem.kernels.forces import ContactSums
@@ -31,11 +31,13 @@ class PairHistoryArrays(Protocol):
 
 
 @wp.func
-def lower_bound(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
+def lower_bound(keys: wp.array(dtype=Any), count: int, key: Any):
+    # The first of the first count (increasing) keys that is not below key: int64 pair keys, int32 body keys.
     lo = int(0)
     hi = count
     while lo < hi:
-        mid = (lo + hi) // 2
+        # Not (lo + hi) // 2: that overflows int32 past 2^30 pairs.
+        mid = lo + (hi - lo) // 2
         if keys[mid] < key:
             lo = mid + 1
         else:
@@ -50,20 +52,6 @@ def find_key(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64):
     if j < count and keys[j] == key:
         return j
     return -1
-
-
-@wp.func
-def lower_bound_int(keys: wp.array(dtype=int), count: int, key: int):
-    lo = int(0)
-    hi = count
-    while lo < hi:
-        # Not (lo + hi) // 2: that overflows int32 past 2^30 pairs.
-        mid = lo + (hi - lo) // 2
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
 
 
 @wp.func
@@ -116,7 +104,7 @@ def body_ranges_kernel(
     hi = lo + n
     body_pairs_a[i] = wp.vec2i(lower_bound(pair_key, count, lo), lower_bound(pair_key, count, hi))
     # i + 1 <= num_bodies < 2^31 (launch_body_ranges checks).
-    body_pairs_b[i] = wp.vec2i(lower_bound_int(keys_b, count, i), lower_bound_int(keys_b, count, i + 1))
+    body_pairs_b[i] = wp.vec2i(lower_bound(keys_b, count, i), lower_bound(keys_b, count, i + 1))
 
 
 @wp.kernel(enable_backward=False)
