@@ -133,6 +133,10 @@ count (see the :class:`BroadPhase`); made again with the arrays when the capacit
 
 _COUNTS = arrays(pair_counter=int, pair_count=int, pair_count_peak=int, host_build_needed=int, device_rebuilds=int)
 Counts = make_struct("Counts", **_COUNTS)
+
+Spheres = make_struct("Spheres", **arrays(radius=float, flags=int))
+"""The bodies' (N,) bounding-sphere radii about their centres [m] and flags (0 free, 1 fixed, 2 kinematic), as the
+broad phase is given them at each call."""
 """The counters (1,) of a query, as the :class:`BroadPhase` names them: the pairs found (may exceed the
 capacity), their count (at most the capacity), the largest found since the last host build, the sticky
 ``host_build_needed`` (a device rebuild overflowed or saw changed flags) and the device rebuilds since the
@@ -241,37 +245,24 @@ def reset_classes_kernel(build: Build):
 
 
 @wp.kernel(enable_backward=False)
-def radius_min_kernel(
-    body_q: wp.array(dtype=Any), body_radius: wp.array(dtype=float), body_flags: wp.array(dtype=int), build: Build
-):
+def radius_min_kernel(body_q: wp.array(dtype=Any), spheres: Spheres, build: Build):
     """Smallest positive radius [m] of the free bodies, into ``build.radius_min[0]``. Launch dim: bodies."""
     i = wp.tid()
-    _q, r = body_input(body_q, body_radius, i)
-    if body_flags[i] == FLAG_FREE and r > 0.0:
+    _q, r = body_input(body_q, spheres.radius, i)
+    if spheres.flags[i] == FLAG_FREE and r > 0.0:
         wp.atomic_min(build.radius_min, 0, r)
 
 
 @wp.kernel(enable_backward=False)
-def classes_kernel(
-    inv_log_class_ratio: float,
-    body_q: wp.array(dtype=Any),
-    body_radius: wp.array(dtype=float),
-    body_flags: wp.array(dtype=int),
-    build: Build,
-):
+def classes_kernel(inv_log_class_ratio: float, body_q: wp.array(dtype=Any), spheres: Spheres, build: Build):
     """BVH group of every body into ``build.body_group`` (its size class, ``NONFREE_GROUP`` for the others;
-    the largest class into ``class_max``, atomic max); remembers the flags of the build. Launch dim: bodies.
-
-    Args:
-        inv_log_class_ratio: 1 / ln(class_ratio) [-].
-        body_q: (N,) body poses (for the radii grown by the cast of float64 poses: :func:`body_input`).
-        body_radius: (N,) bounding-sphere radii about the body centres [m].
-        body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
-        build: :data:`Build`, with the smallest positive free radius in ``radius_min``.
-    """
+    the largest class into ``class_max``, atomic max); remembers the flags (0 free, 1 fixed, 2 kinematic) of the
+    build. Launch dim: bodies. ``inv_log_class_ratio`` is 1 / ln(class_ratio); ``build.radius_min`` holds the
+    smallest positive free radius; the radii [m] are those ``body_input`` makes of ``body_q`` and the
+    ``spheres`` (grown by the cast of float64 poses)."""
     i = wp.tid()
-    _q, r = body_input(body_q, body_radius, i)
-    f = body_flags[i]
+    _q, r = body_input(body_q, spheres.radius, i)
+    f = spheres.flags[i]
     build.flags_build[i] = f
     if f == FLAG_FREE:
         c = int(0)
@@ -286,27 +277,19 @@ def classes_kernel(
 
 
 @wp.kernel(enable_backward=False)
-def bounds_kernel(
-    half_skin: float,
-    body_q: wp.array(dtype=Any),
-    body_radius: wp.array(dtype=float),
-    body_flags: wp.array(dtype=int),
-    build: Build,
-    counts: Counts,
-):
+def bounds_kernel(half_skin: float, body_q: wp.array(dtype=Any), spheres: Spheres, build: Build, counts: Counts):
     """Boxes of the BVH items; remembers the poses and radii of the build. Launch dim: bodies.
 
     Args:
         half_skin: skin / 2 [m].
         body_q: (N,) body poses, position [m] and unit quaternion xyzw.
-        body_radius: (N,) bounding-sphere radii about the body centres [m].
-        body_flags: (N,) 0 free, 1 fixed, 2 kinematic.
+        spheres: :data:`Spheres`, the bodies' radii and flags now.
         build: :data:`Build`: out, ``box_lower``, ``box_upper`` (the sphere boxes inflated by skin/2 [m]),
             ``q_build`` and ``radius_build`` (copies of the inputs, float32: :func:`body_input`); in, ``flags_build``.
         counts: :data:`Counts`: ``host_build_needed`` set to 1 (sticky) when a flag differs from the build's.
     """
     i = wp.tid()
-    q, r = body_input(body_q, body_radius, i)
+    q, r = body_input(body_q, spheres.radius, i)
     x = wp.transform_get_translation(q)
     e = padded_extent(r, half_skin, x)
     ev = wp.vec3(e, e, e)
@@ -314,7 +297,7 @@ def bounds_kernel(
     build.box_upper[i] = x + ev
     build.q_build[i] = q
     build.radius_build[i] = r
-    if body_flags[i] != build.flags_build[i]:
+    if spheres.flags[i] != build.flags_build[i]:
         wp.atomic_max(counts.host_build_needed, 0, 1)
 
 
@@ -505,12 +488,14 @@ def unpack_pairs_kernel(num_bodies: int, pairs: PairList):
 
 @wp.kernel(enable_backward=False)
 def needs_rebuild_kernel(
+    # Now
+    body_q: wp.array(dtype=Any),
+    spheres: Spheres,
+    # At the build, and how far a body may move from it: skin / 2 [m], with or without its turn (0 or 1)
+    build: Build,
     half_skin: float,
     rotation_term: int,
-    body_q: wp.array(dtype=Any),
-    body_radius: wp.array(dtype=float),
-    body_flags: wp.array(dtype=int),
-    build: Build,
+    # Out
     rebuild_flag: wp.array(dtype=int),
 ):
     """Raises ``rebuild_flag[0]`` (atomic max) when a body may have left its skin since the ``build``.
@@ -520,14 +505,14 @@ def needs_rebuild_kernel(
     skin / 2 a pair could be missed. A change of flags also asks for a rebuild.
     """
     i = wp.tid()
-    q, r = body_input(body_q, body_radius, i)
+    q, r = body_input(body_q, spheres.radius, i)
     q0 = build.q_build[i]
     move = wp.length(wp.transform_get_translation(q) - wp.transform_get_translation(q0))
     move += wp.max(r - build.radius_build[i], 0.0)
     # A fixed or kinematic body is tested by its box, which turns with it.
-    if rotation_term != 0 or body_flags[i] != FLAG_FREE:
+    if rotation_term != 0 or spheres.flags[i] != FLAG_FREE:
         move += r * rotation_angle(wp.transform_get_rotation(q), wp.transform_get_rotation(q0))
-    if move > half_skin or body_flags[i] != build.flags_build[i]:
+    if move > half_skin or spheres.flags[i] != build.flags_build[i]:
         wp.atomic_max(rebuild_flag, 0, 1)
 
 
@@ -833,16 +818,17 @@ class BroadPhase:
 
     def _classes(self, body_q, body_radius, body_flags):
         n = self.num_bodies
+        spheres = filled(Spheres, radius=body_radius, flags=body_flags)
         dev = self.device
         inv_log = 0.0 if np.isinf(self.class_ratio) else 1.0 / float(np.log(self.class_ratio))
         wp.launch(reset_classes_kernel, dim=1, inputs=[self._build], device=dev)
         if self.radius_ref is None:
             kernel = for_poses(radius_min_kernel, body_q)
-            wp.launch(kernel, dim=n, inputs=[body_q, body_radius, body_flags, self._build], device=dev)
+            wp.launch(kernel, dim=n, inputs=[body_q, spheres, self._build], device=dev)
         else:
             self.radius_min.fill_(float(self.radius_ref))
         kernel = for_poses(classes_kernel, body_q)
-        wp.launch(kernel, dim=n, inputs=[inv_log, body_q, body_radius, body_flags, self._build], device=dev)
+        wp.launch(kernel, dim=n, inputs=[inv_log, body_q, spheres, self._build], device=dev)
 
     def _spatial_order(self):
         # Query order (body_order): the Morton order of the free bodies at the last (re)build
@@ -879,7 +865,7 @@ class BroadPhase:
         wp.launch(
             for_poses(bounds_kernel, body_q),
             dim=self.num_bodies,
-            inputs=[0.5 * self.skin, body_q, body_radius, body_flags],
+            inputs=[0.5 * self.skin, body_q, filled(Spheres, radius=body_radius, flags=body_flags)],
             outputs=[self._build, self._counts],
             device=self.device,
         )
@@ -1110,7 +1096,13 @@ class BroadPhase:
         wp.launch(
             for_poses(needs_rebuild_kernel, body_q),
             dim=self.num_bodies,
-            inputs=[0.5 * self.skin, int(self.rotation_term), body_q, body_radius, flags, self._build],
+            inputs=[
+                body_q,
+                filled(Spheres, radius=body_radius, flags=flags),
+                self._build,
+                0.5 * self.skin,
+                int(self.rotation_term),
+            ],
             outputs=[self.rebuild_flag],
             device=self.device,
         )

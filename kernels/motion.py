@@ -30,7 +30,7 @@ import math
 
 import warp as wp
 from polydem.kernels.precision import scalars
-from polydem.kernels.structs import arrays, make_struct, pairs_struct
+from polydem.kernels.structs import arrays, make_struct, pairs_struct, planes_struct
 
 __all__ = [
     "LANES",
@@ -63,6 +63,24 @@ Motions = make_struct(
     **arrays(body_motion=int, body_rest=wp.vec3d, rows=int, row_start=int),
     **_WALLS,
 )
+
+
+StepTime = make_struct("StepTime", step_count=wp.array(dtype=int), step_offset=int, dt=wp.float64)
+"""The time the motions are taken at: the end of step ``step_count[0] + step_offset``, of length ``dt`` [s]."""
+
+
+@wp.func
+def time_of(when: StepTime):
+    return wp.float64(when.step_count[0] + when.step_offset) * when.dt
+
+
+def step_time(step_count, step_offset, dt):
+    """A :data:`StepTime` of these values."""
+    when = StepTime()
+    when.step_count, when.step_offset, when.dt = step_count, int(step_offset), float(dt)
+    return when
+
+
 """The motions of a Model (``polydem.model.Model.motions``), per motion (K,): the unit ``axis``; a cycle's
 ``amplitude`` [m], angular frequency ``omega`` [rad/s], ``start`` [s], ``period`` [s] and ``count``; each
 one's ``kind`` (``MOTION_*``), a ramp's and servo's ``speed`` (a servo's largest) [m/s] and a ramp's
@@ -123,10 +141,7 @@ def make_motion_kernels(scalar, travel=False):
 
     @wp.kernel(enable_backward=False)
     def drive_kernel(
-        # The time: the end of step step_count[0] + step_offset, of length dt
-        step_count: wp.array(dtype=int),
-        step_offset: int,
-        dt: wp.float64,
+        when: StepTime,
         motions: Motions,
         # The (d, v, F) of the ramps and servos this step (the travel variant only)
         motion_travel: wp.array(dtype=wp.vec3d),
@@ -138,7 +153,7 @@ def make_motion_kernels(scalar, travel=False):
         m = motions.body_motion[i]
         if m < 0:
             return
-        t = wp.float64(step_count[0] + step_offset) * dt
+        t = time_of(when)
         dv = wp.vec2d()
         if wp.static(travel):
             if motions.kind[m] != MOTION_CYCLE:
@@ -163,18 +178,15 @@ def make_wall_motion_kernel(scalar):
     """The kernel of :func:`launch_drive_walls` for walls in ``scalar`` (the poses' precision)."""
     vec3 = wp.types.vector(3, scalar)
     transform = wp.types.transformation(scalar)
+    Planes = planes_struct(scalar)
 
     @wp.kernel(enable_backward=False)
     def drive_walls_kernel(
-        # The time: the end of step step_count[0] + step_offset, of length dt
-        step_count: wp.array(dtype=int),
-        step_offset: int,
-        dt: wp.float64,
+        when: StepTime,
         motions: Motions,
-        plane_normal: wp.array(dtype=vec3),
-        # Out: the driven planes' offsets and velocities, the driven mesh walls' poses and velocities
-        plane_offset: wp.array(dtype=scalar),
-        plane_v: wp.array(dtype=vec3),
+        # Out: the driven planes' offsets and velocities (their normals in), the driven mesh walls' poses and
+        # velocities
+        planes: Planes,
         mesh_q: wp.array(dtype=transform),
         mesh_v: wp.array(dtype=vec3),
     ):
@@ -187,7 +199,7 @@ def make_wall_motion_kernel(scalar):
             m = motions.mesh_motion[j - num_planes]
         if m < 0:
             return
-        t = wp.float64(step_count[0] + step_offset) * dt
+        t = time_of(when)
         dv = wp.vec2d()
         if motions.kind[m] == MOTION_RAMP:
             dv = ramp_displacement(t, motions.speed[m], motions.start[m], motions.duration[m])
@@ -198,10 +210,10 @@ def make_wall_motion_kernel(scalar):
         u = motions.axis[m]
         v = u * dv[1]
         if j < num_planes:
-            n = plane_normal[j]
+            n = planes.normal[j]
             shift = wp.float64(n[0]) * u[0] + wp.float64(n[1]) * u[1] + wp.float64(n[2]) * u[2]
-            plane_offset[j] = scalar(motions.plane_rest[j] + shift * dv[0])
-            plane_v[j] = vec3(scalar(v[0]), scalar(v[1]), scalar(v[2]))
+            planes.offset[j] = scalar(motions.plane_rest[j] + shift * dv[0])
+            planes.v[j] = vec3(scalar(v[0]), scalar(v[1]), scalar(v[2]))
         else:
             k = j - num_planes
             x = motions.mesh_rest[k] + u * dv[0]
@@ -219,8 +231,8 @@ def launch_drive_walls(motions, step_count, step_offset, dt, planes, mesh_q, mes
     for the bodies."""
     num = motions.plane_motion.shape[0] + motions.mesh_motion.shape[0]
     kernel = make_wall_motion_kernel(_scalar_of(mesh_q))
-    inputs = [step_count, int(step_offset), float(dt), motions, planes.normal]
-    wp.launch(kernel, dim=num, inputs=inputs, outputs=[planes.offset, planes.v, mesh_q, mesh_v], device=device)
+    inputs = [step_time(step_count, step_offset, dt), motions]
+    wp.launch(kernel, dim=num, inputs=inputs, outputs=[planes, mesh_q, mesh_v], device=device)
 
 
 _KERNELS = {}
@@ -243,7 +255,7 @@ def launch_drive_bodies(motions, step_count, step_offset, dt, body_q, body_v, de
     F) of the ramps and servos this step (:func:`launch_measure_motions`), or None for cycles only (the
     kinds are then not read)."""
     kernel = _kernels(_scalar_of(body_q), travel is not None)
-    inputs = [step_count, int(step_offset), float(dt), motions, travel]
+    inputs = [step_time(step_count, step_offset, dt), motions, travel]
     wp.launch(kernel, dim=len(body_q), inputs=inputs, outputs=[body_q, body_v], device=device)
 
 
@@ -274,9 +286,7 @@ def make_measure_kernels(contact_scalar):
     def update_kernel(
         motions: Motions,
         parts: wp.array2d(dtype=wp.vec3d),
-        step_count: wp.array(dtype=int),
-        step_offset: int,
-        dt: wp.float64,
+        when: StepTime,
         motion_travel: wp.array(dtype=wp.vec3d),
     ):
         m = wp.tid()
@@ -288,7 +298,7 @@ def make_measure_kernels(contact_scalar):
             for lane in range(LANES):
                 f += parts[r, lane]
         push = -wp.dot(f, motions.axis[m])
-        t = wp.float64(step_count[0] + step_offset) * dt
+        t = time_of(when)
         if kind == MOTION_RAMP:
             dv = ramp_displacement(t, motions.speed[m], motions.start[m], motions.duration[m])
             motion_travel[m] = wp.vec3d(dv[0], dv[1], push)
@@ -298,7 +308,7 @@ def make_measure_kernels(contact_scalar):
         if t > motions.start[m]:
             vmax = motions.speed[m]
             v = wp.clamp(motions.gain[m] * (motions.target[m] - push), -vmax, vmax)
-        motion_travel[m] = wp.vec3d(motion_travel[m][0] + v * dt, v, push)
+        motion_travel[m] = wp.vec3d(motion_travel[m][0] + v * when.dt, v, push)
 
     return force_parts_kernel, update_kernel
 
@@ -313,5 +323,5 @@ def launch_measure_motions(model, contacts, parts, step_count, step_offset, dt, 
     motions = model.motions
     if len(motions.rows):
         wp.launch(parts_kernel, dim=(len(motions.rows), LANES), inputs=[motions, contacts.pairs, parts], device=device)
-    inputs = [motions, parts, step_count, int(step_offset), float(dt)]
+    inputs = [motions, parts, step_time(step_count, step_offset, dt)]
     wp.launch(update_kernel, dim=len(motions.kind), inputs=inputs, outputs=[motion_travel], device=device)

@@ -18,6 +18,7 @@ from typing import Any, Protocol
 
 import warp as wp
 from polydem.kernels.forces import ContactSums
+from polydem.kernels.structs import arrays, filled, make_struct
 
 
 class PairHistoryArrays(Protocol):
@@ -65,26 +66,6 @@ def copy_sums(src: ContactSums, j: int, dst: ContactSums, k: int):
 
 
 @wp.kernel(enable_backward=False)
-def b_keys_kernel(
-    # Model
-    sentinel: int,
-    # State in
-    pair_b: wp.array(dtype=int),
-    pair_count: wp.array(dtype=int),
-    # Out
-    keys_b: wp.array(dtype=int),
-    pair_by_b: wp.array(dtype=int),
-):
-    """Keys ``b`` (sentinel past the count) with the pair index, to sort stably by the B body."""
-    p = wp.tid()
-    if p < pair_count[0]:
-        keys_b[p] = pair_b[p]
-    else:
-        keys_b[p] = sentinel
-    pair_by_b[p] = p
-
-
-@wp.kernel(enable_backward=False)
 def body_ranges_kernel(
     # Model
     num_bodies: int,
@@ -107,27 +88,29 @@ def body_ranges_kernel(
     body_pairs_b[i] = wp.vec2i(lower_bound(keys_b, count, i), lower_bound(keys_b, count, i + 1))
 
 
+SortKeys = make_struct(
+    "SortKeys",
+    **arrays(pair_a=int, pair_b=int, count=int, body_shape=int, pair_class=int),
+    by_class=int,
+    num_shapes=int,
+    sentinel=int,
+)
+"""What the pair slots are sorted by: body B (``by_class`` 0; ``body_shape`` and ``pair_class`` unread), or the
+cost class of the pair's shapes, ``pair_class[shape_a * num_shapes + shape_b]``; past ``count[0]``, the
+``sentinel`` (above every key)."""
+
+
 @wp.kernel(enable_backward=False)
-def cost_keys_kernel(
-    # Model
-    body_shape: wp.array(dtype=int),
-    num_shapes: int,
-    pair_class: wp.array(dtype=int),
-    sentinel: int,
-    # The pair list
-    pair_a: wp.array(dtype=int),
-    pair_b: wp.array(dtype=int),
-    pair_count: wp.array(dtype=int),
-    # Out
-    keys: wp.array(dtype=int),
-    order: wp.array(dtype=int),
-):
+def sort_keys_kernel(src: SortKeys, keys: wp.array(dtype=int), order: wp.array(dtype=int)):
+    """The key of each pair slot (:data:`SortKeys`) and the identity order (the values sorted with them)."""
     p = wp.tid()
     order[p] = p
-    if p < pair_count[0]:
-        keys[p] = pair_class[body_shape[pair_a[p]] * num_shapes + body_shape[pair_b[p]]]
+    if p >= src.count[0]:
+        keys[p] = src.sentinel
+    elif src.by_class != 0:
+        keys[p] = src.pair_class[src.body_shape[src.pair_a[p]] * src.num_shapes + src.body_shape[src.pair_b[p]]]
     else:
-        keys[p] = sentinel
+        keys[p] = src.pair_b[p]
 
 
 @functools.cache
@@ -292,13 +275,11 @@ def launch_body_ranges(
         raise ValueError(f"{num_bodies} bodies: the pair list takes at most 2^31 - 1")
     if keys_b.dtype != wp.int32 or keys_b.size < 2 * capacity or by_b.size < 2 * capacity:
         raise ValueError(f"keys_b and by_b must be int32 arrays of at least {2 * capacity} entries")
-    wp.launch(
-        b_keys_kernel,
-        dim=capacity,
-        inputs=[num_bodies, pair_b, pair_count],
-        outputs=[keys_b, by_b],
-        device=device,
-    )
+    src = filled(
+        SortKeys, pair_a=pair_b, pair_b=pair_b, count=pair_count, body_shape=pair_b, pair_class=pair_b, by_class=0,
+        num_shapes=0, sentinel=int(num_bodies),
+    )  # fmt: skip
+    wp.launch(sort_keys_kernel, dim=capacity, inputs=[src], outputs=[keys_b, by_b], device=device)
     # Stable (Warp's radix sort: LSD counting passes on the CPU, CUB on CUDA): equal keys b keep the
     # increasing slot order the values start in. Bits up to the sentinel only.
     wp.utils.radix_sort_pairs(keys_b, by_b, capacity, 0, max(1, int(num_bodies).bit_length()))
@@ -335,14 +316,11 @@ def launch_thread_order(
     capacity = pair_a.shape[0]
     if keys.dtype != wp.int32 or keys.size < 2 * capacity or order.size < 2 * capacity:
         raise ValueError(f"keys and order must be int32 arrays of at least {2 * capacity} entries")
-    num_shapes = int(round(pair_class.shape[0] ** 0.5))
-    wp.launch(
-        cost_keys_kernel,
-        dim=capacity,
-        inputs=[body_shape, num_shapes, pair_class, int(num_classes), pair_a, pair_b, pair_count],
-        outputs=[keys, order],
-        device=pair_a.device,
-    )
+    src = filled(
+        SortKeys, pair_a=pair_a, pair_b=pair_b, count=pair_count, body_shape=body_shape, pair_class=pair_class,
+        by_class=1, num_shapes=int(round(pair_class.shape[0] ** 0.5)), sentinel=int(num_classes),
+    )  # fmt: skip
+    wp.launch(sort_keys_kernel, dim=capacity, inputs=[src], outputs=[keys, order], device=pair_a.device)
     # Stable: the pairs of one class keep their slot order, and the empty slots (the sentinel) come last.
     wp.utils.radix_sort_pairs(keys, order, capacity, 0, max(1, int(num_classes).bit_length()))
     wp.copy(pair_thread, order, count=capacity)
