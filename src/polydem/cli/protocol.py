@@ -35,8 +35,7 @@ from polydem import signals
 from polydem.cli.common import plural, relative
 from polydem.cli.device import warp
 from polydem.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USER_ERROR, CliError, why
-from polydem.cli.poses import check_poses
-from polydem.cli.run import checkpoint_to_resume, output_folder, roll_back, scene_and_device
+from polydem.cli.run import check_resume, checkpoint_to_resume, output_folder, roll_back, scene_and_device
 
 if TYPE_CHECKING:
     import argparse
@@ -375,14 +374,9 @@ class ProtocolRun:
 def _resume(args: argparse.Namespace, scene: Scene, sim: Simulation, plan: Plan, path: Path, ck) -> list[dict]:
     """Put the checkpoint ``ck`` of ``--resume`` into ``sim`` after checking it against ``scene``; the records of
     the tap run that wrote it (none for a checkpoint of another command)."""
-    from polydem.checkpoint import CheckpointError, check_scene, restore_checkpoint
+    from polydem.checkpoint import restore_checkpoint
 
-    fix = "resume with the scene the checkpoint was written from: polydem tap SCENE --resume CHECKPOINT"
-    check_poses(path, ck.arrays["body_q"][:, :3], scene, args.scene, "checkpoint", fix, "--resume")
-    try:
-        check_scene(ck, sim, fix=f"{fix} (or leave --resume out to tap this scene from t = 0)")
-    except CheckpointError as err:
-        raise CliError(err.message, path, "--resume") from None
+    check_resume(sim, scene, path, ck, args, "tap")
     run = ck.run if isinstance(ck.run, dict) else {}
     if run.get("protocol") != "tap":
         restore_checkpoint(sim, ck)

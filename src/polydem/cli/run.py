@@ -697,16 +697,24 @@ def _settle_check(sim: RunFront, criterion: SettleCriterion, ck: Checkpoint | No
     return SettleCheck(criterion, float(start), held if same else None, speed_limit=limit)
 
 
-def _resume(sim: RunFront, scene: Scene, path: Path, ck: Checkpoint, args: argparse.Namespace) -> None:
-    """Put the checkpoint ``ck`` (read from ``path``) into ``sim`` after checking it against ``scene``."""
-    from polydem.checkpoint import CheckpointError, check_scene, restore_checkpoint
+def check_resume(sim, scene: Scene, path: Path, ck: Checkpoint, args: argparse.Namespace, command: str) -> None:
+    """CliError (naming ``--resume``) unless the checkpoint ``ck`` of ``--resume`` fits ``scene`` and ``sim``: its
+    poses against the scene's walls, then its physics (``polydem COMMAND SCENE --resume CHECKPOINT``)."""
+    from polydem.checkpoint import CheckpointError, check_scene
 
-    fix = "resume with the scene the checkpoint was written from: polydem run SCENE --resume CHECKPOINT"
+    fix = f"resume with the scene the checkpoint was written from: polydem {command} SCENE --resume CHECKPOINT"
     check_poses(path, ck.arrays["body_q"][:, :3], scene, args.scene, "checkpoint", fix, "--resume")
     try:
-        check_scene(ck, sim, fix=f"{fix} (or leave --resume out to run this scene from t = 0)")
+        check_scene(ck, sim, fix=f"{fix} (or leave --resume out to {command} this scene from t = 0)")
     except CheckpointError as err:
         raise CliError(err.message, path, "--resume") from None
+
+
+def _resume(sim: RunFront, scene: Scene, path: Path, ck: Checkpoint, args: argparse.Namespace) -> None:
+    """Put the checkpoint ``ck`` (read from ``path``) into ``sim`` after checking it against ``scene``."""
+    from polydem.checkpoint import restore_checkpoint
+
+    check_resume(sim, scene, path, ck, args, "run")
     fps = args.fps if args.fps is not None else scene.output.fps
     problem = run_record_problem(ck.run, fps, ck.time, sim.dt) if ck.run is not None else None
     if problem is not None:
