@@ -21,16 +21,12 @@ import sys
 import time
 from pathlib import Path
 
-from tapping import RESULTS, SHAPES, build, describe, measuring_region
+from tapping import RESULTS, add_pile_arguments, build, describe, measuring_region
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--grains", type=int, default=160)
-    ap.add_argument("--width", type=int, default=8, help="box width in grain sizes")
-    ap.add_argument("--grain", type=float, default=0.01, help="the grain's edge [m]")
-    ap.add_argument("--shape", default="cube", choices=SHAPES)
+    add_pile_arguments(ap)
     ap.add_argument("--mu", type=float, default=0.5, help="the final friction")
     ap.add_argument("--mu-fill", default="0,0.5,1.0", help="frictions of the fill, comma-separated")
     ap.add_argument("--fill-time", type=float, default=2.0, help="the longest a fill may take to settle [s]")

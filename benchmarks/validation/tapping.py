@@ -92,13 +92,18 @@ def describe(sim, region, shape: str, contacts: bool) -> dict:
     return out
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_pile_arguments(ap) -> None:
+    """The options of the pour this script and anneal.py share: device, grains, box width, grain edge, shape."""
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--grains", type=int, default=160)
     ap.add_argument("--width", type=int, default=8, help="box width in grain sizes")
     ap.add_argument("--grain", type=float, default=0.01, help="the grain's edge [m]")
     ap.add_argument("--shape", default="cube", choices=SHAPES)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_pile_arguments(ap)
     ap.add_argument("--taps", type=int, default=3)
     ap.add_argument("--gamma", type=float, default=3.0)
     ap.add_argument("--frequency", type=float, default=30.0)
