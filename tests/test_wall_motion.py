@@ -52,6 +52,20 @@ def lift(motion, gravity, t):
     return a * (1.0 - math.cos(motion.omega * s)) if on else 0.0
 
 
+def lift_speed(motion, gravity, t):
+    """d lift / dt: the velocity the contacts must see the floor move at."""
+    a = motion.amplitude_in(gravity)
+    s = t % motion.cycle_period()
+    on = t < motion.count * motion.cycle_period() and motion.omega * s < 2 * math.pi
+    return a * motion.omega * math.sin(motion.omega * s) if on else 0.0
+
+
+def floor_speed(sim, kind):
+    """The floor's vertical velocity as the contact kernels take it (the Stepper's driven walls)."""
+    v = sim.stepper.planes.v if kind == "plane" else sim.stepper.meshes.v
+    return float(v.numpy()[0][2])
+
+
 @pytest.mark.parametrize("kind", ["plane", "mesh"])
 def test_a_shaken_floor_follows_its_motion_and_carries_a_cube(device, kind):
     sc, cube = floor_scene(kind)
@@ -64,6 +78,8 @@ def test_a_shaken_floor_follows_its_motion_and_carries_a_cube(device, kind):
         sim.step(chunk)
         d = lift(motion, sc.gravity, sim.time)
         assert floor_height(sim, kind) == pytest.approx(d, abs=1e-12 + 1e-6 * amp)
+        speed = amp * motion.omega
+        assert floor_speed(sim, kind) == pytest.approx(lift_speed(motion, sc.gravity, sim.time), abs=1e-7 * speed)
         z = sim.state()["body_position"][cube, 2]
         if rest is None:
             rest = z - d
