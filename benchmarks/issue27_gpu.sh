@@ -41,9 +41,9 @@ mixed)
   for n in ${SIZES:-10000 100000}; do
     for o in "" --order-pair-threads "" --order-pair-threads; do
       python benchmarks/settle.py --device cuda:0 --sizes $n --shapes mixed --precision mixed --no-graph-compare \
-        --warmup-time 0.05 --steps 200 $o --out "$out/mixed_${n}${o:+_ordered}_$RANDOM.json" | tail -1
+        --warmup 300 --steps 200 $o --out "$out/mixed_${n}${o:+_ordered}_$RANDOM.json" | tail -1
     done
-    python benchmarks/settle.py --device cuda:0 --sizes $n --precision mixed --no-graph-compare --warmup-time 0.05 \
+    python benchmarks/settle.py --device cuda:0 --sizes $n --precision mixed --no-graph-compare --warmup 300 \
       --steps 200 --out "$out/cubes_$n.json" | tail -1
   done
   ;;

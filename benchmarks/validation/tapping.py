@@ -75,8 +75,9 @@ class _Stop(Exception):
 
 def describe(sim, region, shape: str, contacts: bool) -> dict:
     """The measures beside the packing fraction at a record: the cubic order of the grains in the measuring
-    region (cubes only: it tells the densest random packing from alignment with the box) and, with
-    ``contacts``, their coordination number without rattlers (contacts with the walls counted)."""
+    region (cubes only: it tells the densest random packing from alignment with the box), and in the frame they
+    align with best, and, with ``contacts``, their coordination number without rattlers (contacts with the
+    walls counted) split by contact type."""
     from polydem import measures
 
     grains = measures.Grains.from_simulation(sim)
@@ -85,9 +86,13 @@ def describe(sim, region, shape: str, contacts: bool) -> dict:
     out = {}
     if shape == "cube":
         out["cubic_order"] = measures.cubic_order(grains, box)
+        out["cubic_order_best"] = measures.cubic_frame(grains, box)[0]  # in the frame the grains align with best
     if contacts:
-        z = measures.coordination(measures.Grains.from_simulation(sim, bodies=inside), sim.contacts(), types=False)
+        found = sim.contacts()
+        kinds = measures.classify_contacts(sim, found)  # face-face contacts tell local alignment from random
+        z = measures.coordination(measures.Grains.from_simulation(sim, bodies=inside), found, kinds)
         out["coordination"] = z.z
+        out["coordination_by_kind"] = z.z_by_kind
         out["rattler_fraction"] = z.rattler_fraction
     return out
 
@@ -155,7 +160,8 @@ def main() -> int:
         # A resumed run measures again at the checkpoint's time when that fell on a step: keep the new record.
         records[:] = [x for x in records if x["tap"] != row["tap"]]
         records.append(row)
-        extra = "".join(f"  {k} {v:.4f}" for k, v in row.items() if k in ("cubic_order", "coordination"))
+        shown = ("cubic_order", "cubic_order_best", "coordination")
+        extra = "".join(f"  {k} {v:.4f}" for k, v in row.items() if k in shown)
         print(f"tap {r.tap:3d}  t {r.time:7.3f} s  packing fraction {r.packing_fraction:.4f}  fastest grain "
               f"{r.fastest:.2e} m/s{extra}", flush=True)  # fmt: skip
         save()

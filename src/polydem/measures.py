@@ -82,6 +82,7 @@ __all__ = [
     "classify_features",
     "clipped_volumes",
     "coordination",
+    "cubic_frame",
     "cubic_order",
     "fabric",
     "force_distribution",
@@ -1579,15 +1580,59 @@ def cubic_order(source, box: Box | None = None, *, frame=None) -> float:
     e = np.eye(3) if frame is None else np.asarray(frame, dtype=np.float64)
     if e.shape != (3, 3) or not np.allclose(e @ e.T, np.eye(3), atol=1e-9):
         raise ValueError(f"frame must be 3 orthonormal rows (3, 3), got {np.array2string(np.asarray(frame))}")
+    return float(_cubic_q(e, _counted_axes(g, box)).mean())
+
+
+def _counted_axes(g: Grains, box: Box | None) -> np.ndarray:
     keep = g.counted.copy()
     if box is not None:
         keep &= box.contains(g.position)
     if not keep.any():
         raise ValueError("no counted grain in the box: give a larger box, or none")
-    rot = quat_to_matrix(g.orientation[keep])  # (M, 3, 3): column j is body axis j in the world
-    cos = np.einsum("kw,mwj->mkj", e, rot)
-    q = ((cos**4).sum(axis=(1, 2)) - 1.8) / 1.2
-    return float(q.mean())
+    return quat_to_matrix(g.orientation[keep])  # (M, 3, 3): column j is body axis j in the world
+
+
+def _cubic_q(frame: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    cos = frame @ rot  # (M, 3, 3): cos[m, k, j] = e_k . u_mj
+    return ((cos**4).sum(axis=(1, 2)) - 1.8) / 1.2
+
+
+def cubic_frame(source, box: Box | None = None, *, starts: int = 64, seed: int = 0) -> tuple[float, np.ndarray]:
+    """The frame the counted grains' axes align with best, and the cubic order in it: the cubatic order
+    parameter with its director frame (:func:`cubic_order` maximised over every frame).
+
+    A pile that orders away from its container's axes (in a tilted frame, or face to face in a frame of its
+    own) shows it here and not in ``cubic_order(source)``. The maximum is searched from the frames of
+    ``starts`` grains (chosen with ``seed``; if a fraction of the grains share a frame, some start lies near
+    it) and refined from the best two by a simplex search over rotation vectors. Being a maximum, it is
+    biased up for grains at random: 0.01-0.02 for 2,700 grains, 0.004 for 40,000.
+
+    Returns:
+        (order, frame): order as :func:`cubic_order` gives it in ``frame``, a (3, 3) array of orthonormal rows
+        (the frame's axes in the world, each only up to sign and order: the cube's symmetry).
+    """
+    from scipy.optimize import minimize
+    from scipy.spatial.transform import Rotation
+
+    if int(starts) < 1:
+        raise ValueError(f"starts must be at least 1, got {starts}")
+    rot = _counted_axes(_grains(source), box)
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(len(rot), size=min(int(starts), len(rot)), replace=False)
+    candidates = [np.eye(3)] + [rot[i].T for i in picks]  # a grain's axes as the frame's rows
+    ranked = sorted(candidates, key=lambda e: -_cubic_q(e, rot).mean())
+
+    def loss(v, e0):
+        return -_cubic_q(Rotation.from_rotvec(v).as_matrix() @ e0, rot).mean()
+
+    best_q, best_e = -np.inf, np.eye(3)
+    simplex = 0.2 * np.vstack([np.zeros(3), np.eye(3)])  # rotation vectors of 0.2 rad about each axis
+    for e0 in ranked[:2]:
+        options = {"xatol": 1e-7, "fatol": 1e-12, "initial_simplex": simplex}
+        res = minimize(loss, np.zeros(3), args=(e0,), method="Nelder-Mead", options=options)
+        if -res.fun > best_q:
+            best_q, best_e = float(-res.fun), Rotation.from_rotvec(res.x).as_matrix() @ e0
+    return best_q, best_e
 
 
 def settled_box(scene, region: dict) -> Box | None:
