@@ -546,3 +546,52 @@ def test_mesh_walls_keep_initial_pose_from_positions_only(tmp_path):
     m = np.array(mesh.ComputeLocalToWorldTransform(1), dtype=np.float64)
     pts = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)
     np.testing.assert_allclose((np.c_[pts, np.ones(len(pts))] @ m)[:, :3], scene.mesh_walls[1].vertices, atol=1e-6)
+
+
+@pytest.mark.parametrize("precision", ["float", "half"])
+def test_record_simulation_made_on_the_device_matches_record_from_the_state(tmp_path, device, precision):
+    """record_simulation builds the frame on the device (polydem.kernels.export); record() from
+    Simulation.state() on the host: the same positions and velocities bit for bit, the same quaternions up to
+    the last bit of their float32 norm, in both orientation precisions."""
+    from polydem.usd import read_velocities
+
+    sim = polydem.Simulation(make_scene(), device=device)
+    paths = tmp_path / "device.usdc", tmp_path / "host.usdc"
+    kw = {"frame_dt": sim.dt * STEPS, "meters_per_unit": 0.01, "orientation_precision": precision}
+    with UsdRecorder(paths[0], sim, **kw) as on_device, UsdRecorder(paths[1], sim, **kw) as on_host:
+        for _ in range(3):
+            st = sim.state()
+            assert on_device.record_simulation(sim) == on_host.record(sim.time, *st.values())
+            sim.step(STEPS)
+    for code in range(3):
+        (p_dev, q_dev), (p_host, q_host) = read_frame(paths[0], code), read_frame(paths[1], code)
+        np.testing.assert_array_equal(p_dev, p_host)
+        np.testing.assert_allclose(q_dev, q_host, rtol=0, atol=1.2e-7 if precision == "float" else 1e-3)
+        assert np.all(np.einsum("ij,ij->i", q_dev, q_host) > 0.0)  # the same sign chosen
+        for a, b in zip(read_velocities(paths[0], code), read_velocities(paths[1], code), strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_record_and_record_simulation_keep_one_sign_between_them(tmp_path, device):
+    """Frames alternately from the host and the device: each quaternion keeps the sign nearest the frame
+    before, whichever path wrote that one (q and -q are the same turn; a flip would spin it the long way)."""
+    sim = polydem.Simulation(make_scene(), device=device)
+    st = sim.state()
+    pose = sim.current_state.body_q.numpy()
+    flipped = pose.copy()
+    flipped[:, 3:] *= -1.0  # the same orientations with the other sign
+    path = tmp_path / "mix.usda"
+    with UsdRecorder(path, sim, frame_dt=sim.dt, orientation_precision="float") as rec:
+        rec.record(0.0, st["body_position"], st["body_orientation"], st["body_velocity"], st["body_angular_velocity"])
+        for code, source in ((1, flipped), (2, None), (3, flipped)):
+            sim.time = code * sim.dt  # the recorder reads the time; nothing steps
+            if source is None:
+                rec.record(sim.time, st["body_position"], -st["body_orientation"], st["body_velocity"],
+                           st["body_angular_velocity"])  # fmt: skip
+            else:
+                sim.current_state.body_q.assign(source)
+                rec.record_simulation(sim)
+    first = read_frame(path, 0)[1]
+    np.testing.assert_allclose(first, st["body_orientation"], atol=1e-7)
+    for code in (1, 2, 3):
+        np.testing.assert_allclose(read_frame(path, code)[1], first, atol=1e-7)

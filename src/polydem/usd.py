@@ -78,6 +78,7 @@ import hashlib
 import math
 import os
 import time as _time
+from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
 
@@ -177,6 +178,24 @@ def _quats_to_vt(q_xyzw: np.ndarray, precision: str):
     if precision == "half":
         return Vt.QuathArray.FromNumpy(np.ascontiguousarray(q, dtype=np.float16))
     return Vt.QuatfArray.FromNumpy(np.ascontiguousarray(q, dtype=np.float32))
+
+
+def _vec3f_to_vt(array):
+    """A device (N,) vec3f array -> Vt.Vec3fArray (its one host copy dropped once converted)."""
+    from pxr import Vt
+
+    return Vt.Vec3fArray.FromNumpy(array.numpy())
+
+
+@dataclass
+class _DeviceFrame:
+    """The device arrays of one frame (:func:`polydem.kernels.export.launch_frame`), each (N,)."""
+
+    previous: object  # vec4f: the previous frame's quaternions
+    position: object  # vec3f, file units
+    orientation: object  # vec4f, unit xyzw
+    velocity: object  # vec3f, file units per second of playback
+    angular_velocity: object  # vec3f, degrees per second of playback
 
 
 def _quats_from_vt(values) -> np.ndarray:
@@ -358,6 +377,8 @@ class UsdRecorder:
         p0 = np.asarray(scene.body_position, dtype=np.float64).reshape(n, 3)
         q0 = np.asarray(scene.body_orientation, dtype=np.float64).reshape(n, 4)
         self._prev_q = None  # the last frame's orientations (float32), for the sign choice
+        self._prev_on_device = False  # whether they are in self._frame.previous instead (record_simulation)
+        self._frame = None  # the device arrays record_simulation makes a frame in
         pos, ori, orif, ext = self._convert(p0, q0)
         self._prev_q = None  # the defaults do not count as a frame
         self._pos_attr.Set(pos)
@@ -443,7 +464,6 @@ class UsdRecorder:
     def _convert(self, positions, orientations):
         """Checked numpy poses -> (Vt positions, Vt quath orientations, Vt quatf orientations or None,
         Vt extent) in file units."""
-        from pxr import Vt
 
         n = self.num_bodies
         p = np.asarray(positions)
@@ -461,15 +481,9 @@ class UsdRecorder:
         if self._prev_q is not None:  # nearest sign to the previous frame: interpolation turns the short way
             q[np.einsum("ij,ij->i", q, self._prev_q) < 0.0] *= -1.0
         self._prev_q = q
-        p = np.ascontiguousarray(p, dtype=np.float32)
-        ext = np.zeros((2, 3), dtype=np.float32)
-        if n:
-            r = self._max_radius * self._scale
-            for k in range(3):  # per column: much faster than min(axis=0) on an (N, 3) array
-                ext[0, k], ext[1, k] = p[:, k].min() - r, p[:, k].max() + r
-        pos = Vt.Vec3fArray.FromNumpy(p)
+        pos, ext = self._positions_to_vt(np.ascontiguousarray(p, dtype=np.float32))
         orif = _quats_to_vt(q, "float") if self.orientation_precision == "float" else None
-        return pos, _quats_to_vt(q, "half"), orif, Vt.Vec3fArray.FromNumpy(ext)
+        return pos, _quats_to_vt(q, "half"), orif, ext
 
     def _convert_velocities(self, velocities, angular_velocities):
         """Checked (N, 3) velocities [m/s] and angular velocities [rad/s] -> Vt arrays as the schema has them."""
@@ -511,6 +525,19 @@ class UsdRecorder:
                 (``Simulation.current_state.mesh_q``); moving walls get a time sample. Without it a
                 wall keeps its initial pose.
         """
+        t, code, mesh = self._check_frame(time_s, velocities is not None, angular_velocities is not None, mesh_poses)
+        self._pull_previous()
+        prev_q = self._prev_q
+        try:
+            pos, ori, orif, ext = self._convert(positions, orientations)
+            vel = self._convert_velocities(velocities, angular_velocities) if velocities is not None else None
+        except Exception:
+            self._prev_q = prev_q
+            raise
+        return self._write(t, code, pos, ori, orif, ext, vel, mesh)
+
+    def _check_frame(self, time_s, has_velocities: bool, has_angular: bool, mesh_poses):
+        """The checks of a frame before anything of it is converted: (time [s], time code, mesh poses or None)."""
         if self._closed:
             raise RuntimeError(f"the recorder of {self.path} is closed")
         t = float(time_s)
@@ -523,7 +550,7 @@ class UsdRecorder:
                 f"not after the previous frame's {self.last_time_code}; record frames at least frame_dt apart "
                 "or make frame_dt smaller"
             )
-        given = (velocities is not None, angular_velocities is not None)
+        given = (has_velocities, has_angular)
         if given[0] != given[1]:
             raise ValueError("give both velocities and angular_velocities, or neither")
         if self._with_velocities is not None and given[0] != self._with_velocities:
@@ -541,17 +568,14 @@ class UsdRecorder:
                     f"mesh_poses must have shape ({len(self._mesh_moving)}, 7) (position and quaternion xyzw "
                     f"per mesh wall), got {mesh.shape}"
                 )
-        prev_q = self._prev_q
-        try:
-            pos, ori, orif, ext = self._convert(positions, orientations)
-            vel = self._convert_velocities(velocities, angular_velocities) if given[0] else None
-        except Exception:
-            self._prev_q = prev_q
-            raise
+        return t, code, mesh
+
+    def _write(self, t, code, pos, ori, orif, ext, vel, mesh) -> int:
+        """Set one frame's Vt arrays at ``code``, save when due; returns the time code."""
         if vel is not None and self._vel_attr is None:
             self._vel_attr = self._instancer.CreateVelocitiesAttr()
             self._angvel_attr = self._instancer.CreateAngularVelocitiesAttr()
-        self._with_velocities = given[0]
+        self._with_velocities = vel is not None
         self._pos_attr.Set(pos, code)
         self._ori_attr.Set(ori, code)
         if orif is not None:
@@ -564,7 +588,7 @@ class UsdRecorder:
         if mesh is not None:
             from pxr import Gf
 
-            for k in moving:
+            for k in (k for k, m in enumerate(self._mesh_moving) if m):
                 p, q = mesh[k, :3] * self._scale, mesh[k, 3:] / np.linalg.norm(mesh[k, 3:])
                 self._mesh_ops[k][0].Set(Gf.Vec3d(*p), code)
                 self._mesh_ops[k][1].Set(Gf.Quatd(float(q[3]), float(q[0]), float(q[1]), float(q[2])), code)
@@ -582,17 +606,75 @@ class UsdRecorder:
 
     def record_simulation(self, sim) -> int:
         """Record a :class:`~polydem.Simulation`'s current state (poses and velocities) at ``sim.time``;
-        returns the time code."""
-        st = sim.state()
-        mesh = sim.current_state.mesh_q.numpy()[: sim.model.num_mesh_walls] if sim.model.num_mesh_walls else None
-        return self.record(
-            sim.time,
-            st["body_position"],
-            st["body_orientation"],
-            st["body_velocity"],
-            st["body_angular_velocity"],
-            mesh_poses=mesh,
-        )
+        returns the time code.
+
+        The frame is made on the simulation's device in the file's own types (:mod:`polydem.kernels.export`)
+        and brought to the host one array at a time, each turned into its USD array at once: the host holds
+        the frame once (as the file's arrays) and, briefly, one of its arrays twice, where ``record`` from
+        :meth:`Simulation.state` holds it several times over in float64 (what a frame of 1e8 bodies needs).
+        Same values as ``record(sim.time, **state)`` up to the last bit of the quaternions' float32 norm."""
+        import warp as wp
+
+        from polydem.kernels.export import launch_frame
+
+        if sim.num_bodies != self.num_bodies:
+            raise ValueError(f"the simulation has {sim.num_bodies} bodies, this file {self.num_bodies}")
+        t, code, mesh = self._check_frame(sim.time, True, True, self._mesh_poses(sim))
+        frame = self._device_frame(sim)
+        align = self._prev_q is not None or self._prev_on_device
+        if self._prev_q is not None:  # the previous frame came through record(): its signs go to the device
+            wp.copy(frame.previous, wp.array(self._prev_q, dtype=wp.vec4f, device=frame.previous.device))
+            self._prev_q = None
+        launch_frame(sim.current_state, sim.model.scalar, frame, scale=self._scale, velocity_scale=self._vel_scale,
+                     angular_scale=self._ang_scale, with_velocities=True, align=align)  # fmt: skip
+        self._prev_on_device = True
+        pos, ext = self._positions_to_vt(frame.position.numpy())
+        ori, orif = self._orientations_to_vt(frame.orientation)
+        vel = [_vec3f_to_vt(frame.velocity), _vec3f_to_vt(frame.angular_velocity)]
+        return self._write(t, code, pos, ori, orif, ext, vel, mesh)
+
+    def _mesh_poses(self, sim):
+        return sim.current_state.mesh_q.numpy()[: sim.model.num_mesh_walls] if sim.model.num_mesh_walls else None
+
+    def _device_frame(self, sim):
+        """The device arrays a frame is made in (kept between frames: a frame allocates nothing)."""
+        import warp as wp
+
+        device = sim.current_state.body_q.device
+        frame = self._frame
+        if frame is None or frame.position.device != device:
+            n = self.num_bodies
+            frame = self._frame = _DeviceFrame(
+                previous=wp.zeros(n, dtype=wp.vec4f, device=device),
+                position=wp.empty(n, dtype=wp.vec3f, device=device),
+                orientation=wp.empty(n, dtype=wp.vec4f, device=device),
+                velocity=wp.empty(n, dtype=wp.vec3f, device=device),
+                angular_velocity=wp.empty(n, dtype=wp.vec3f, device=device),
+            )
+        return frame
+
+    def _pull_previous(self) -> None:
+        """Before a frame from the host: the previous frame's signs, where record_simulation left them."""
+        if self._prev_on_device:
+            self._prev_q = self._frame.previous.numpy().copy()
+            self._prev_on_device = False
+
+    def _positions_to_vt(self, p: np.ndarray):
+        """(N, 3) float32 positions in file units -> (Vt positions, Vt extent)."""
+        from pxr import Vt
+
+        ext = np.zeros((2, 3), dtype=np.float32)
+        if len(p):
+            r = self._max_radius * self._scale
+            for k in range(3):  # per column: much faster than min(axis=0) on an (N, 3) array
+                ext[0, k], ext[1, k] = p[:, k].min() - r, p[:, k].max() + r
+        return Vt.Vec3fArray.FromNumpy(p), Vt.Vec3fArray.FromNumpy(ext)
+
+    def _orientations_to_vt(self, orientation):
+        """Device (N,) vec4f unit quaternions xyzw -> (Vt quath, Vt quatf or None), one host copy at a time."""
+        q = orientation.numpy()
+        orif = _quats_to_vt(q, "float") if self.orientation_precision == "float" else None
+        return _quats_to_vt(q, "half"), orif
 
     def save(self) -> None:
         """Write what has been recorded so far to the file (done automatically; see the class)."""
