@@ -617,6 +617,11 @@ class UsdRecorder:
 
         from polydem.kernels.export import launch_frame
 
+        if not isinstance(getattr(sim.current_state, "body_q", None), wp.array):
+            # A state already on the host (a run over several processes gathers its ranks' on the first).
+            st = sim.state()
+            return self.record(sim.time, st["body_position"], st["body_orientation"], st["body_velocity"],
+                               st["body_angular_velocity"], mesh_poses=self._mesh_poses(sim))  # fmt: skip
         if sim.num_bodies != self.num_bodies:
             raise ValueError(f"the simulation has {sim.num_bodies} bodies, this file {self.num_bodies}")
         t, code, mesh = self._check_frame(sim.time, True, True, self._mesh_poses(sim))
