@@ -90,13 +90,15 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--bodies", type=int, default=1_000_000)
     ap.add_argument("--one", default=None, choices=("state", "device"), help=argparse.SUPPRESS)
+    ap.add_argument("--repeat", type=int, default=2, help="runs of each way, alternating")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     if args.one:
         print(json.dumps(one(args.one, args.device, args.bodies)))
         return 0
     rows = []
-    for mode in ("state", "device", "state", "device"):
+    meta = None
+    for mode in ("state", "device") * args.repeat:
         done = subprocess.run([sys.executable, __file__, "--one", mode, "--device", args.device, "--bodies",
                                str(args.bodies)], capture_output=True, text=True, check=True)  # fmt: skip
         row = json.loads(done.stdout.strip().splitlines()[-1])
@@ -104,10 +106,12 @@ def main(argv=None) -> int:
         per_body = row["transient_bytes_per_body"]
         print(f"{mode:>6}: {row['bodies']} bodies, frame {row['frame_s']:.3f} s, host memory above the start "
               f"{per_body:.1f} B/body (the file keeps {FILE_BYTES} B/body of a frame)")  # fmt: skip
-    if args.out:
-        from _meta import run_meta
+        if args.out:  # after every run: a call cut short keeps what it measured
+            if meta is None:
+                from _meta import run_meta
 
-        Path(args.out).write_text(json.dumps({"meta": run_meta(None), "rows": rows}, indent=1) + "\n")
+                meta = run_meta(None)
+            Path(args.out).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
     return 0
 
 

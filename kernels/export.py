@@ -25,7 +25,7 @@ def make_frame_kernel(scalar):
     transform = wp.types.transformation(scalar)
     vec3 = wp.types.vector(3, scalar)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def frame_kernel(
         # State in
         body_q: wp.array(dtype=transform),
@@ -37,7 +37,7 @@ def make_frame_kernel(scalar):
         angular_scale: wp.float64,
         with_velocities: int,
         align: int,
-        # In and out: the previous frame's quaternions
+        # In: the previous frame's quaternions (the caller copies this frame's there once it is written)
         previous: wp.array(dtype=wp.vec4f),
         # Out
         position: wp.array(dtype=wp.vec3f),
@@ -61,7 +61,6 @@ def make_frame_kernel(scalar):
             p = previous[i]
             if q[0] * p[0] + q[1] * p[1] + q[2] * p[2] + q[3] * p[3] < wp.float32(0.0):
                 q = -q
-        previous[i] = q
         orientation[i] = q
         if with_velocities != 0:
             v = body_v[i]
@@ -84,7 +83,7 @@ def launch_frame(state, scalar, frame, *, scale, velocity_scale, angular_scale, 
     """Write one frame of ``state`` (its ``body_q``, ``body_v``, ``body_w``) into ``frame``'s arrays
     (``previous``, ``position``, ``orientation``, ``velocity``, ``angular_velocity``; the last two may be
     one-element placeholders without velocities). ``align``: turn each quaternion to the sign nearest
-    ``frame.previous`` (False for a file's first frame)."""
+    ``frame.previous`` (False for a file's first frame); ``frame.previous`` is read only."""
     n = frame.position.shape[0]
     wp.launch(
         make_frame_kernel(scalar),

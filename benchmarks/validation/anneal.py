@@ -45,7 +45,7 @@ def main() -> int:
     d = args.grain
     w = args.width * d
 
-    region = measuring_region(w, d)
+    region = measuring_region(w, d, args.margin)
 
     tag = "" if args.shape == "cube" else f"{args.shape}_"
     path = Path(args.out) if args.out else RESULTS / f"anneal_{tag}{args.grains}_{args.device.replace(':', '')}.json"

@@ -37,8 +37,11 @@ def taps(plt, out: Path) -> Path:
             aq.plot(n, [r.get("cubic_order", np.nan) for r in rec], style, color=colour, label=f"{label}, box frame")
     for sel, colour in (("s1_t", "C0"), ("s2_t", "C1")):  # the best-frame order from the checkpoints
         rows = [r for r in load("tap_order_cpu.json")["rows"] if f"cube_{sel}" in r["checkpoint"]]
-        aq.plot([round((r["time"] - 0.9833) / 0.2) for r in rows], [r["cubic_order_best"] for r in rows], "o",
-                color=colour, label=f"best frame ({sel[:2]})")  # fmt: skip
+        taps = []
+        for r in rows:  # the tap a checkpoint was taken before, from its run's schedule
+            run = json.loads((RESULTS / "taps" / Path(r["checkpoint"]).with_suffix(".json").name).read_text())["args"]
+            taps.append(round((r["time"] - run["start"]) / run["period"]))
+        aq.plot(taps, [r["cubic_order_best"] for r in rows], "o", color=colour, label=f"best frame ({sel[:2]})")
     for value, err, text, colour in ((0.67, 0.01, "cubes, densest (Baker and Kudrolli)", "C0"),
                                      (0.64, 0.0, "tetrahedra, densest", "C2")):  # fmt: skip
         if err:

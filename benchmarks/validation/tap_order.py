@@ -42,7 +42,7 @@ def analyse(checkpoint: str, device: str) -> dict:
     load_checkpoint(sim, checkpoint)
     sim.step(1)
     grains = measures.Grains.from_simulation(sim)
-    box = tapping.measuring_region(args["width"] * args["grain"], args["grain"])(grains)
+    box = tapping.measuring_region(args["width"] * args["grain"], args["grain"], args.get("margin", 2.0))(grains)
     inside = grains.free & box.contains(grains.position)
     found = sim.contacts()
     z = measures.coordination(measures.Grains.from_simulation(sim, bodies=inside), found,
@@ -53,7 +53,7 @@ def analyse(checkpoint: str, device: str) -> dict:
     if args.get("shape", "cube") == "cube":
         best, frame = measures.cubic_frame(grains, box)
         row.update(cubic_order=measures.cubic_order(grains, box), cubic_order_best=best,
-                   best_frame_tilt_deg=float(np.degrees(np.arccos(np.abs(frame[:, 2]).max()))))  # fmt: skip
+                   best_frame_tilt_deg=float(np.degrees(np.arccos(min(1.0, np.abs(frame[:, 2]).max())))))  # fmt: skip
     return row
 
 

@@ -38,14 +38,21 @@ def grain_shape(name: str, d: float):
     raise SystemExit(f"--shape must be one of {', '.join(SHAPES)}, got {name!r}")
 
 
-def measuring_region(w: float, d: float):
-    """The box the packing fraction is measured in, as a function of the grains: two grain sizes ``d`` in from
-    the walls of a box ``w`` wide and from the floor, up to two below the pile's top (its highest centre)."""
+def measuring_region(w: float, d: float, margin: float = 2.0):
+    """The box the packing fraction is measured in, as a function of the grains: ``margin`` grain sizes ``d`` in
+    from the walls of a box ``w`` wide and from the floor, up to ``margin`` below the pile's top (its highest
+    centre)."""
     from polydem.measures import Box
+
+    m = margin * d
 
     def region(g):
         top = float(g.position[g.free][:, 2].max())
-        return Box((-0.5 * w + 2 * d, -0.5 * w + 2 * d, 2 * d), (0.5 * w - 2 * d, 0.5 * w - 2 * d, top - 2 * d))
+        if top - m <= m or w <= 2 * m:
+            raise SystemExit(f"the pile (top centre {top:.4g} m) in a box {w:.4g} m wide leaves no room to measure "
+                             f"{margin} grain sizes in from its walls, floor and top: give more grains or a smaller "
+                             "--margin")  # fmt: skip
+        return Box((-0.5 * w + m, -0.5 * w + m, m), (0.5 * w - m, 0.5 * w - m, top - m))
 
     return region
 
@@ -83,7 +90,7 @@ def describe(sim, region, shape: str, contacts: bool) -> dict:
     grains = measures.Grains.from_simulation(sim)
     box = region(grains)
     inside = grains.free & box.contains(grains.position)
-    out = {}
+    out = {"grains_in_box": int(inside.sum())}
     if shape == "cube":
         out["cubic_order"] = measures.cubic_order(grains, box)
         out["cubic_order_best"] = measures.cubic_frame(grains, box)[0]  # in the frame the grains align with best
@@ -104,6 +111,7 @@ def add_pile_arguments(ap) -> None:
     ap.add_argument("--width", type=int, default=8, help="box width in grain sizes")
     ap.add_argument("--grain", type=float, default=0.01, help="the grain's edge [m]")
     ap.add_argument("--shape", default="cube", choices=SHAPES)
+    ap.add_argument("--margin", type=float, default=2.0, help="measure this many grain sizes in from walls and top")
 
 
 def main() -> int:
@@ -140,7 +148,7 @@ def main() -> int:
         records = list((read_checkpoint(args.resume).run or {}).get("records", []))  # they come first
     w = args.width * d
 
-    region = measuring_region(w, d)
+    region = measuring_region(w, d, args.margin)
     tag = "" if args.shape == "cube" else f"{args.shape}_"
     path = Path(args.out) if args.out else RESULTS / f"tapping_{tag}{args.grains}_{args.device.replace(':', '')}.json"
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -612,7 +612,8 @@ class UsdRecorder:
         and brought to the host one array at a time, each turned into its USD array at once: the host holds
         the frame once (as the file's arrays) and, briefly, one of its arrays twice, where ``record`` from
         :meth:`Simulation.state` holds it several times over in float64 (what a frame of 1e8 bodies needs).
-        Same values as ``record(sim.time, **state)`` up to the last bit of the quaternions' float32 norm."""
+        Same values as ``record`` given :meth:`Simulation.state`'s four arrays, up to the last bit of the
+        quaternions' float32 norm. It keeps 68 bytes a body of device memory for the frame until :meth:`close`."""
         import warp as wp
 
         from polydem.kernels.export import launch_frame
@@ -629,14 +630,16 @@ class UsdRecorder:
         align = self._prev_q is not None or self._prev_on_device
         if self._prev_q is not None:  # the previous frame came through record(): its signs go to the device
             wp.copy(frame.previous, wp.array(self._prev_q, dtype=wp.vec4f, device=frame.previous.device))
-            self._prev_q = None
+            self._prev_q, self._prev_on_device = None, True
         launch_frame(sim.current_state, sim.model.scalar, frame, scale=self._scale, velocity_scale=self._vel_scale,
                      angular_scale=self._ang_scale, with_velocities=True, align=align)  # fmt: skip
-        self._prev_on_device = True
         pos, ext = self._positions_to_vt(frame.position.numpy())
         ori, orif = self._orientations_to_vt(frame.orientation)
         vel = [_vec3f_to_vt(frame.velocity), _vec3f_to_vt(frame.angular_velocity)]
-        return self._write(t, code, pos, ori, orif, ext, vel, mesh)
+        code = self._write(t, code, pos, ori, orif, ext, vel, mesh)
+        wp.copy(frame.previous, frame.orientation)  # only a frame written sets the signs the next one follows
+        self._prev_on_device = True
+        return code
 
     def _mesh_poses(self, sim):
         return sim.current_state.mesh_q.numpy()[: sim.model.num_mesh_walls] if sim.model.num_mesh_walls else None
@@ -648,6 +651,7 @@ class UsdRecorder:
         device = sim.current_state.body_q.device
         frame = self._frame
         if frame is None or frame.position.device != device:
+            self._pull_previous()  # the signs so far stay on the host until the new arrays take them
             n = self.num_bodies
             frame = self._frame = _DeviceFrame(
                 previous=wp.zeros(n, dtype=wp.vec4f, device=device),
@@ -701,6 +705,7 @@ class UsdRecorder:
         self._stage = None
         self._layer = None
         self._prev_q = None
+        self._frame, self._prev_on_device = None, False  # the device frame's memory goes back
 
     @property
     def closed(self) -> bool:
