@@ -1603,9 +1603,10 @@ def cubic_frame(source, box: Box | None = None, *, starts: int = 64, seed: int =
 
     A pile that orders away from its container's axes (in a tilted frame, or face to face in a frame of its
     own) shows it here and not in ``cubic_order(source)``. The maximum is searched from the frames of
-    ``starts`` grains (chosen with ``seed``; if a fraction of the grains share a frame, some start lies near
-    it) and refined from the best two by a simplex search over rotation vectors. Being a maximum, it is
-    biased up for grains at random: 0.01-0.02 for 2,700 grains, 0.004 for 40,000.
+    ``starts`` grains (chosen with ``seed``; if a fraction f of the grains share a frame, no start lies near
+    it with a chance of only (1 - f)^starts) and refined from the best two by a simplex search over rotation
+    vectors. Being a maximum, it is biased up for grains at random: about 0.01-0.02 for 2,700 grains, 0.005
+    for 40,000 (a local maximum of the search, not always the global one).
 
     Returns:
         (order, frame): order as :func:`cubic_order` gives it in ``frame``, a (3, 3) array of orthonormal rows
