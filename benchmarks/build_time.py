@@ -63,6 +63,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 import settle  # noqa: E402
 from _meta import run_meta  # noqa: E402
+from polydem.kernels.broadphase import BroadPhase  # noqa: E402
 
 from polydem import Scene, Simulation  # noqa: E402
 from polydem import contacts as contacts_module  # noqa: E402
@@ -128,10 +129,13 @@ def make_scene(builder, n):
 
 
 class Timers:
-    """Seconds per name, summed over the calls of the wrapped functions (nested calls count in both)."""
+    """Seconds per name, summed over the calls of the wrapped functions (nested calls count in both); on a CUDA
+    device with a mempool also the pool's bytes in use and its high-water mark when each wrapped call returns."""
 
     def __init__(self):
         self.seconds = {}
+        self.memory = {}
+        self.device = None
 
     def wrap(self, name, fn):
         @functools.wraps(fn)
@@ -141,12 +145,27 @@ class Timers:
                 return fn(*args, **kwargs)
             finally:
                 self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+                pool = mempool(self.device)
+                if pool is not None:
+                    self.memory[name] = pool
 
         return timed
 
     def take(self):
         out, self.seconds = self.seconds, {}
         return out
+
+    def take_memory(self):
+        out, self.memory = self.memory, {}
+        return out
+
+
+def mempool(device):
+    """(bytes in use, high-water mark) of a CUDA device's mempool, after a sync; None elsewhere."""
+    if device is None or not device.is_cuda or not wp.is_mempool_enabled(device):
+        return None
+    wp.synchronize_device(device)
+    return {"current": int(wp.get_mempool_used_mem_current(device)), "high": int(wp.get_mempool_used_mem_high(device))}
 
 
 @contextlib.contextmanager
@@ -179,6 +198,12 @@ def patched(timers):
         (contacts_module.Contacts, "__init__", "contacts_init"),
         (contacts_module.Contacts, "build", "contacts_build"),
         (simulation_module.Stepper, "__init__", "stepper"),
+        # inside the first broad phase (contacts_build): where the device memory's high-water mark is set
+        (contacts_module.Contacts, "_allocate", "contacts_build.contacts_allocate"),
+        (BroadPhase, "_allocate", "contacts_build.broadphase_allocate"),
+        (BroadPhase, "_spatial_order", "contacts_build.spatial_order"),
+        (BroadPhase, "_query", "contacts_build.query"),
+        (wp.Bvh, "__init__", "contacts_build.bvh_init"),
     ]
     for cls, name, label in methods:
         saved.append((cls, name, cls.__dict__[name]))
@@ -193,9 +218,12 @@ def patched(timers):
             setattr(owner, name, value)
 
 
-def build(builder, n, device, timers):
-    """One build of n bodies: (stage seconds, the Simulation)."""
+def build(builder, n, device, timers, steps=0):
+    """One build of n bodies, then ``steps`` steps: (stage seconds, the Scene, the Simulation). On a CUDA device
+    ``timers.memory`` holds the mempool at the end of each stage (``start``: before the Simulation)."""
     stages = {}
+    timers.device = device
+    timers.take_memory()
     gc.collect()
     t0 = time.perf_counter()
     scene = make_scene(builder, n)
@@ -207,11 +235,25 @@ def build(builder, n, device, timers):
         scene.validate()
         stages["validate"] = time.perf_counter() - t0
         stages.update(timers.take())
+        start = mempool(device)
         t0 = time.perf_counter()
         sim = Simulation(scene, device, validate=False)
         wp.synchronize_device(device)
         stages["simulation"] = time.perf_counter() - t0
-    parts = timers.take()
+        if start is not None:
+            timers.memory["start"] = start
+            timers.memory["simulation"] = mempool(device)
+        parts = timers.take()
+        if steps:
+            memory = timers.take_memory()
+            t0 = time.perf_counter()
+            sim.step(steps)
+            wp.synchronize_device(device)
+            stages["steps"] = time.perf_counter() - t0
+            timers.take()  # the steps' own broad phases are not the build's
+            timers.memory = memory
+            if start is not None:
+                timers.memory["steps"] = mempool(device)
     stages.update(parts)
     top = ("run_settings", "model", "state", "contacts_init", "contacts_build", "stepper")
     stages["simulation.rest"] = stages["simulation"] - sum(parts.get(k, 0.0) for k in top)
@@ -251,6 +293,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=1, help="builds per size; the table shows the fastest total")
     ap.add_argument("--profile", default=None, help="also cProfile one build of this many bodies")
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/build_time/<builder>_<device>.json)")
+    ap.add_argument("--steps", type=int, default=0, help="steps after each build (their time and device memory)")
     ap.add_argument("--no-git", action="store_true", help="leave the git commit out of the record")
     args = ap.parse_args()
 
@@ -283,9 +326,11 @@ def main():
         for n in sizes:
             runs = []
             for _ in range(args.repeats):
-                stages, scene, sim = build(args.builder, n, device, timers)
+                stages, scene, sim = build(args.builder, n, device, timers, steps=args.steps)
                 bodies = scene.num_bodies
+                memory = timers.take_memory()
                 del scene, sim
+                gc.collect()
                 runs.append(stages)
             best = min(runs, key=lambda s: s["total"])
             row = {
@@ -294,6 +339,18 @@ def main():
                 "stages_s": best,
                 "us_per_body": {k: 1e6 * v / bodies for k, v in best.items()},
             }
+            if memory:
+                # the pool at the end of each stage over the pool before the Simulation, in bytes per body; the
+                # high-water mark is the process's (never reset), so it grows only where this build set a new one
+                base = memory["start"]["current"]
+                row["mempool"] = memory
+                row["mempool_bytes_per_body"] = {
+                    k: {"current": (m["current"] - base) / bodies, "high": (m["high"] - base) / bodies}
+                    for k, m in memory.items()
+                }
+                log("  device memory (mempool over its use before the Simulation, B/body, current / high-water):")
+                for k, m in row["mempool_bytes_per_body"].items():
+                    log(f"    {k:<38} {m['current']:>9.1f} {m['high']:>9.1f}")
             if args.repeats > 1:
                 row["runs"] = runs
             record["results"].append(row)

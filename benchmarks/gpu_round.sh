@@ -3,11 +3,14 @@
 # whatever still runs at BUDGET seconds (default 500) is stopped, and everything is packed into $OUT/round.tgz
 # (res/: JSON and tap checkpoints, log/: one log a job). From the repository root, polydem importable.
 #   BUDGET=500 bash benchmarks/gpu_round.sh
-# GPU 0: the USD frame's host memory at 1e7 bodies (benchmarks/usd_frame_memory.py), then the CUDA test files
-#        the last changes touch (the USD tests run where usd-core is installed).
-# GPU 1: the tap runs, each resumed from its latest checkpoint in benchmarks/results/validation/taps/.
-# GPU 2: issue 27's pair-thread order on the mixed pile with contacts, alone (timings).
-# GPU 3: tetrahedra's loosest packing (friction annealing at mu_fill = 1), Beverloo's third seed at 10 and 8 d.
+# GPU 0: the build of 1e6, 1e7 and 2e7 cubes and 20 steps, with the device memory at the end of each stage
+#        (benchmarks/build_time.py --steps; what sets the high-water mark that bounds 1e8 on one H200).
+# GPU 1: the mixed pile of 1e5 grains with contacts, pair threads in slot order and grouped by cost, and the cube
+#        pile of 1e5 beside it (issue27_gpu.sh mixed).
+# GPU 2: the CUDA tests of the files the last changes touch (test_usd.py where usd-core is installed).
+# GPU 3: the largest settle pile that fits the card (5e7 cubes on a card of more than 100 GB, else 3e7).
+# RUN_TAPS=1 runs the tap runs instead of GPU 0's job, each resumed from its latest checkpoint in
+# benchmarks/results/validation/taps/ (issue 26).
 set -u
 # Its own process group, so that the deadline stops exactly this script's jobs (never the caller's shell).
 [ -z "${GPU_ROUND_LEADER:-}" ] && GPU_ROUND_LEADER=1 exec setsid --wait bash "$0" "$@"
@@ -25,19 +28,21 @@ tapjob() {
   gpu $g python benchmarks/validation/tapping.py --device cuda:0 --taps 400 --start 1.0 --period 0.2 --coordination \
     --stop-after $(( $(left) - 45 )) "${resume[@]}" --out $W/res/$name.json "$@" > $W/log/$name.log 2>&1
 }
-( gpu 0 python benchmarks/usd_frame_memory.py --device cuda:0 --bodies 10000000 --repeat 1 \
-    --out $W/res/usd_frame_memory_h100.json > $W/log/usd_frame_memory.log 2>&1
-  CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
-    -p no:cacheprovider tests/test_usd.py tests/test_measures.py tests/test_validation_small.py > $W/log/pytest.log 2>&1
-) &
-tapjob 1 tap_cube_s1 --grains 5000 --width 24 --seed 1 &
-tapjob 1 tap_cube_s2 --grains 5000 --width 24 --seed 2 &
-tapjob 1 tap_tetra_s1 --shape tetrahedron --grains 8000 --width 14 --seed 1 &
-( CUDA_VISIBLE_DEVICES=2 OUT=$W/res timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/issue27_mixed.log 2>&1 ) &
-gpu 3 python benchmarks/validation/anneal.py --device cuda:0 --shape tetrahedron --grains 8000 --width 14 \
-  --mu-fill 1.0 --coordination --out $W/res/anneal_tetra_8000_mu1.json > $W/log/anneal_tetra.log 2>&1 &
-gpu 3 python benchmarks/validation/beverloo.py --size full --device cuda:0 --seeds 1 --first-seed 3 --orifices 10,8 \
-  --tag full_s3 --out $W/res/beverloo_full_s3_10-8.json > $W/log/beverloo_s3_10-8.log 2>&1 &
+if [ -n "${RUN_TAPS:-}" ]; then
+  tapjob 0 tap_cube_s1 --grains 5000 --width 24 --seed 1 &
+  tapjob 0 tap_cube_s2 --grains 5000 --width 24 --seed 2 &
+  tapjob 0 tap_tetra_s1 --shape tetrahedron --grains 8000 --width 14 --seed 1 &
+else
+  gpu 0 python benchmarks/build_time.py --device cuda:0 --sizes 1e6,1e7,2e7 --steps 20 --no-git \
+    --out $W/res/build_time_settle.json > $W/log/build_time.log 2>&1 &
+fi
+( CUDA_VISIBLE_DEVICES=1 OUT=$W/res SIZES=100000 ORDERS="slot cost" timeout $(left) bash benchmarks/issue27_gpu.sh mixed \
+    > $W/log/issue27_mixed.log 2>&1 ) &
+CUDA_VISIBLE_DEVICES=2 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+  -p no:cacheprovider tests/test_usd.py tests/test_pair_order.py tests/test_memory.py > $W/log/pytest.log 2>&1 &
+big=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits -i 3 | awk '{print ($1 > 100000) ? 50000000 : 30000000}')
+gpu 3 python benchmarks/settle.py --device cuda:0 --sizes $big --precision mixed --no-graph-compare --warmup 50 \
+  --steps 20 --stage-steps 5 --rebuild-reps 1 --out $W/res/settle_$big.json > $W/log/settle_big.log 2>&1 &
 while [ $SECONDS -lt $END ] && [ -n "$(jobs -r)" ]; do sleep 2; done
 # Every process of this session but this shell (timeout puts each job in its own group, not session).
 left_over=$(pgrep -s $$ | grep -vx $$); [ -n "$left_over" ] && kill -TERM $left_over 2>/dev/null; sleep 2

@@ -4,7 +4,8 @@
 #   bash benchmarks/issue27_gpu.sh prepare [REV]   # here: build/before/pkg/polydem from REV (default HEAD; git archive;
 #                                                  # build/ is ignored)
 #   OUT=DIR bash benchmarks/issue27_gpu.sh mixed   # on the GPU: the mixed pile, pair threads in slot order and by
-#                                                  # cost (settle.py --order-pair-threads), SIZES="1e4 1e5" cubes
+#                                                  # cost (settle.py --pair-thread-order slot|cost), SIZES="1e4 1e5" cubes,
+#                                                  # ORDERS="slot cost slot cost"
 #   OUT=DIR bash benchmarks/issue27_gpu.sh run     # on the GPU, from this tree with polydem on PYTHONPATH,
 #                                                  # carrying build/before
 # run: pair_kernel.py (float32; cube, rock20, hull64; 1% deep and flat contacts) with REV's package and with this tree's
@@ -41,9 +42,10 @@ mixed)
   # of pour: the grains have landed (1e3 mixed on the CPU: 3182 contacts, 5.9 a grain).
   out=${OUT:-.}
   for n in ${SIZES:-10000 100000}; do
-    for o in "" --order-pair-threads "" --order-pair-threads; do
+    for o in ${ORDERS:-slot cost slot cost}; do
       python benchmarks/settle.py --device cuda:0 --sizes $n --shapes mixed --precision mixed --no-graph-compare \
-        --k-rule volume --warmup-time 0.3 --steps 200 $o --out "$out/mixed_${n}${o:+_ordered}_$RANDOM.json" | tail -1
+        --k-rule volume --warmup-time 0.3 --steps 200 --pair-thread-order $o --out "$out/mixed_${n}_${o}_$RANDOM.json" \
+        | tail -1
     done
     python benchmarks/settle.py --device cuda:0 --sizes $n --precision mixed --no-graph-compare --k-rule volume \
       --warmup-time 0.3 \

@@ -924,8 +924,8 @@ def make_parser():
 
 
 def add_kernel_options(ap):
-    """``--max-registers``: the register cap of the step's pair kernel; ``--order-pair-threads``: its threads take
-    the pairs grouped by cost (see :func:`kernel_options`)."""
+    """``--max-registers``: the register cap of the step's pair kernel; ``--pair-thread-order``: its threads take
+    the pairs grouped by cost (the default) or in slot order (see :func:`kernel_options`)."""
     ap.add_argument(
         "--max-registers",
         type=int,
@@ -933,21 +933,27 @@ def add_kernel_options(ap):
         help="CUDA register cap of the step's pair kernel (default: kernels/forces.py PAIR_MAX_REGISTERS; 0: no cap)",
     )
     ap.add_argument(
-        "--order-pair-threads",
-        action="store_true",
-        help="Simulation(order_pair_threads=True): the pair kernel's threads take the pairs grouped by the cost of "
-        "their shapes (for --shapes mixed; the same results)",
+        "--pair-thread-order",
+        choices=("cost", "slot"),
+        default="cost",
+        help="cost (Simulation's default): the pair kernel's threads take the pairs grouped by the cost of their "
+        "shapes where the shapes differ in cost (--shapes mixed); slot: in slot order, order_pair_threads=False "
+        "(the same results)",
+    )
+    # the flag of the runs before the default changed (BENCHMARKS.md 17)
+    ap.add_argument(
+        "--order-pair-threads", dest="pair_thread_order", action="store_const", const="cost", help=argparse.SUPPRESS
     )
 
 
 def kernel_options(args):
-    """The ``Simulation`` keyword arguments of ``--max-registers`` and ``--order-pair-threads`` (none at their
+    """The ``Simulation`` keyword arguments of ``--max-registers`` and ``--pair-thread-order`` (none at their
     defaults)."""
     out = {}
     if args.max_registers is not None:
         out["pair_max_registers"] = args.max_registers or None
-    if getattr(args, "order_pair_threads", False):
-        out["order_pair_threads"] = True
+    if getattr(args, "pair_thread_order", "cost") == "slot":
+        out["order_pair_threads"] = False
     return out
 
 

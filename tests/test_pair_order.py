@@ -182,6 +182,9 @@ def test_pair_threads_ordered_by_cost_give_the_same_bits(device):
     one.add_body("cube", "m", position=(0.0, 0.0, 0.0165))
     sim = Simulation(one, device, order_pair_threads=True)
     assert not sim.current_contacts.thread_order and len(sim.current_contacts.pair_thread) == 1
+    # the default: grouped by cost where the shapes differ, nothing to pay for one shape
+    assert Simulation(default_scene(), device).stepper.thread_order
+    assert not Simulation(one, device).stepper.thread_order
 
 
 def test_pair_threads_ordered_by_cost_with_compound_grains(device):

@@ -9,6 +9,7 @@ import pytest
 
 pxr = pytest.importorskip("pxr")
 
+from conftest import DEVICES  # noqa: E402  (the first test device: these tests are about the file, not the device)
 from pxr import Gf, Sdf, Usd, UsdGeom  # noqa: E402
 
 import polydem  # noqa: E402
@@ -45,7 +46,7 @@ def make_scene():
 def run():
     """The scene, the simulation's dt and FRAMES states (time, positions, orientations) STEPS apart."""
     scene = make_scene()
-    sim = polydem.Simulation(scene, device="cpu")
+    sim = polydem.Simulation(scene, device=DEVICES[0])
     frames = []
     for _ in range(FRAMES):
         st = sim.state()
@@ -158,7 +159,7 @@ def test_frames_match_simulation(tmp_path, run, ext, precision):
 
 def test_record_simulation_and_reopen_same_path(tmp_path):
     scene = make_scene()
-    sim = polydem.Simulation(scene, device="cpu")
+    sim = polydem.Simulation(scene, device=DEVICES[0])
     path = tmp_path / "sub" / "sim.usdc"  # the folder is made
     with UsdRecorder(path, sim, fps=24.0, frame_dt=sim.dt * STEPS, up_axis="y", save_every=1) as rec:
         for k in range(3):
@@ -329,7 +330,7 @@ def test_half_orientations_when_asked_or_when_usd_core_has_no_orientationsf(tmp_
 def moving():
     """FRAMES states (time, positions, orientations, velocities, angular velocities) STEPS apart."""
     scene = make_scene()
-    sim = polydem.Simulation(scene, device="cpu")
+    sim = polydem.Simulation(scene, device=DEVICES[0])
     frames = []
     for _ in range(FRAMES):
         st = sim.state()
@@ -383,7 +384,7 @@ def test_record_simulation_writes_velocities_and_frames_agree(tmp_path, moving):
     from polydem.usd import read_velocities
 
     scene = make_scene()
-    sim = polydem.Simulation(scene, device="cpu")
+    sim = polydem.Simulation(scene, device=DEVICES[0])
     with UsdRecorder(tmp_path / "s.usdc", sim, frame_dt=sim.dt * STEPS) as rec:
         for _ in range(2):
             rec.record_simulation(sim)
@@ -465,7 +466,7 @@ def test_polydem_render_reads_old_and_new_files(tmp_path, capsys):
     toml = tmp_path / "render.toml"
     toml.write_text(RENDER_SCENE)
     scene = polydem.Scene.from_toml(toml)
-    sim = polydem.Simulation(scene, device="cpu")
+    sim = polydem.Simulation(scene, device=DEVICES[0])
     old, new = tmp_path / "old.usdc", tmp_path / "new.usdc"
     with (
         UsdRecorder(old, scene, frame_dt=sim.dt * STEPS, orientation_precision="half") as rec_old,
@@ -483,7 +484,7 @@ def test_polydem_render_reads_old_and_new_files(tmp_path, capsys):
     for path in (old, new):
         png = tmp_path / f"{path.stem}.png"
         args = ["render", path, "--scene", toml, "--frame", "1", "--out", png, "--width", "48", "--height", "32"]
-        code = main([str(a) for a in [*args, "--device", "cpu"]])
+        code = main([str(a) for a in [*args, "--device", DEVICES[0]]])
         out, err = capsys.readouterr()
         assert code == 0, err
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "frame 1" in out
