@@ -162,7 +162,7 @@ class Timers:
 
 def mempool(device):
     """(bytes in use, high-water mark) of a CUDA device's mempool, after a sync; None elsewhere."""
-    if device is None or not device.is_cuda or not wp.is_mempool_enabled(device):
+    if device is None or not device.is_cuda or not wp.is_mempool_enabled(device) or device.is_capturing:
         return None
     wp.synchronize_device(device)
     return {"current": int(wp.get_mempool_used_mem_current(device)), "high": int(wp.get_mempool_used_mem_high(device))}
@@ -186,6 +186,7 @@ def patched(timers):
     ]
     targets.append((overlaps, "check_initial_overlaps", "check.check_initial_overlaps"))
     targets.append((simulation_module, "run_settings", "run_settings"))
+    targets.append((wp.utils, "radix_sort_pairs", "contacts_build.radix_sort_pairs"))
     saved = []
     for module, name, label in targets:
         saved.append((module, name, getattr(module, name)))
