@@ -69,6 +69,7 @@ from polydem import Scene, Simulation  # noqa: E402
 from polydem import contacts as contacts_module  # noqa: E402
 from polydem import model as model_module  # noqa: E402
 from polydem import simulation as simulation_module  # noqa: E402
+from polydem.overlap_check import device_pair_overlaps  # noqa: E402
 from polydem.scene import checks, overlaps  # noqa: E402
 
 BUILDERS = ("settle", "emit", "emit-plane")
@@ -219,7 +220,7 @@ def patched(timers):
             setattr(owner, name, value)
 
 
-def build(builder, n, device, timers, steps=0):
+def build(builder, n, device, timers, steps=0, overlap_check="host"):
     """One build of n bodies, then ``steps`` steps: (stage seconds, the Scene, the Simulation). On a CUDA device
     ``timers.memory`` holds the mempool at the end of each stage (``start``: before the Simulation)."""
     stages = {}
@@ -233,7 +234,7 @@ def build(builder, n, device, timers, steps=0):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         t0 = time.perf_counter()
-        scene.validate()
+        scene.validate(pair_overlaps=overlap_check == "host")
         stages["validate"] = time.perf_counter() - t0
         stages.update(timers.take())
         start = mempool(device)
@@ -245,6 +246,14 @@ def build(builder, n, device, timers, steps=0):
             timers.memory["start"] = start
             timers.memory["simulation"] = mempool(device)
         parts = timers.take()
+        if overlap_check == "device":
+            # the pairs' overlap check on the device (Simulation(overlap_check="device") does it in its build)
+            t0 = time.perf_counter()
+            scene.finish_overlap_check(device_pair_overlaps(scene, sim.model, sim.current_contacts, sim.current_state))
+            stages["overlap_check_device"] = time.perf_counter() - t0
+            stages["simulation"] += stages["overlap_check_device"]
+            if start is not None:
+                timers.memory["overlap_check_device"] = mempool(device)
         if steps:
             memory = timers.take_memory()
             t0 = time.perf_counter()
@@ -258,6 +267,7 @@ def build(builder, n, device, timers, steps=0):
     stages.update(parts)
     top = ("run_settings", "model", "state", "contacts_init", "contacts_build", "stepper")
     stages["simulation.rest"] = stages["simulation"] - sum(parts.get(k, 0.0) for k in top)
+    stages["simulation.rest"] -= stages.get("overlap_check_device", 0.0)
     stages["total"] = stages["scene"] + stages["validate"] + stages["simulation"]
     return stages, scene, sim
 
@@ -295,6 +305,13 @@ def main():
     ap.add_argument("--profile", default=None, help="also cProfile one build of this many bodies")
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/build_time/<builder>_<device>.json)")
     ap.add_argument("--steps", type=int, default=0, help="steps after each build (their time and device memory)")
+    ap.add_argument(
+        "--overlap-check",
+        choices=("host", "device"),
+        default="host",
+        help="initial overlaps of body pairs: the scene's k-d tree check, or the test over the first broad phase's "
+        "pairs on the device (polydem.overlap_check)",
+    )
     ap.add_argument("--no-git", action="store_true", help="leave the git commit out of the record")
     args = ap.parse_args()
 
@@ -316,18 +333,20 @@ def main():
         }
     else:
         meta = run_meta(device)
-    record = {"meta": meta, "builder": args.builder, "results": []}
+    record = {"meta": meta, "builder": args.builder, "overlap_check": args.overlap_check, "results": []}
 
     timers = Timers()
     with patched(timers):
         t0 = time.perf_counter()
-        build(args.builder, 1000, device, timers)
+        build(args.builder, 1000, device, timers, overlap_check=args.overlap_check)
         record["compile_s"] = time.perf_counter() - t0
         log(f"compile (a first build of 1000 bodies, modules loaded or compiled): {record['compile_s']:.2f} s")
         for n in sizes:
             runs = []
             for _ in range(args.repeats):
-                stages, scene, sim = build(args.builder, n, device, timers, steps=args.steps)
+                stages, scene, sim = build(
+                    args.builder, n, device, timers, steps=args.steps, overlap_check=args.overlap_check
+                )
                 bodies = scene.num_bodies
                 memory = timers.take_memory()
                 del scene, sim

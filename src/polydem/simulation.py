@@ -74,6 +74,7 @@ from polydem.kernels.structs import (
     wall_history_struct,
 )
 from polydem.model import Model
+from polydem.overlap_check import device_check_applies, device_pair_overlaps
 from polydem.run_settings import RunSettings, run_settings
 from polydem.scene.bodies import BodyKind
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
@@ -605,6 +606,11 @@ class Simulation:
             shape). The same results bit for bit (each pair's arithmetic is its own); one sort of the pair list a
             rebuild and 4 bytes a pair slot. A mixed pile of 1e5 grains with contacts stepped in 4.4 ms instead
             of 6.9 (BENCHMARKS.md 17); False: slot order.
+        overlap_check: where the validation tests body pairs for initial overlaps: "host" (the scene's own
+            check, a k-d tree search), "device" (the same test over the first broad phase's candidate pairs, on
+            this device: :mod:`polydem.overlap_check`; convex grains, the whole scene), "auto" (default: the
+            device on CUDA from :data:`~polydem.overlap_check.DEVICE_CHECK_MIN_BODIES` bodies on). The same
+            warning or error either way.
 
     Attributes:
         scene: the :class:`~polydem.Scene` it was built from (the whole scene, where ``bodies`` is given).
@@ -641,12 +647,14 @@ class Simulation:
         settings: RunSettings | None = None,
         bodies: np.ndarray | None = None,
         order_pair_threads: bool = True,
+        overlap_check: str = "auto",
     ) -> None:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
         self.tree_rebuild = None if tree_rebuild is None else float(tree_rebuild)
+        on_device = validate and device_check_applies(scene, device, bodies, overlap_check)
         if validate:
-            scene.validate()
+            scene.validate(pair_overlaps=not on_device)
         if settings is None:
             settings = run_settings(scene, skin=skin)
         elif skin is not None:
@@ -703,6 +711,8 @@ class Simulation:
         self._average: ContactAverage | None = None
         self._intervals = 0
         self.current_contacts.build(self.current_state.body_q, keep_history=False)
+        if on_device:
+            scene.finish_overlap_check(device_pair_overlaps(scene, model, self.current_contacts, self.current_state))
 
     # -- snapshots -----------------------------------------------------------------------------
 

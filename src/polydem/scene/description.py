@@ -104,6 +104,9 @@ class Scene:
         self._shape_frames: list[tuple[np.ndarray, np.ndarray]] = []  # (q(R_in), t_in) per shape
         self.warnings: list[str] = []  # of the last validate()
         self._warned: list[str] = []
+        # the initial-overlap messages of the last check, and where they stand among the warnings
+        self._overlap_messages: list[str] = []
+        self._overlap_at = 0
         self.body_table = BodyTable()
         self.material_table = MaterialTable()
         self.wall_table = WallTable()
@@ -210,8 +213,12 @@ class Scene:
         spec = self._shape_specs.get(name)
         return None if spec is None else dict(spec)
 
-    def validate(self) -> Scene:
+    def validate(self, pair_overlaps: bool = True) -> Scene:
         """Check the whole scene; raise :class:`SceneError` on the first problem, else return self.
+
+        ``pair_overlaps=False`` leaves the initial overlaps (plane walls and body pairs) to
+        :meth:`finish_overlap_check`, which a :class:`~polydem.Simulation` calls with the pairs found on
+        its device.
 
         Checks: simulation settings; all materials share one contact law; at least one body; every
         body's shape and material index exists; all numbers finite; unit quaternions; valid kinds;
@@ -256,16 +263,41 @@ class Scene:
         ts = checks.time_step(self)
         checks.check_steps(self, ts)
         found = checks.check_loads(self, a, ts)
-        found += overlaps.check_initial_overlaps(self, a)
+        if pair_overlaps:
+            self._overlap_messages = overlaps.check_initial_overlaps(self, a)
+        self._overlap_at = len(found)
+        # Checked apart (pair_overlaps=False), the overlaps stand here as last found until finish_overlap_check.
+        found += self._overlap_messages
         found += checks.check_tunnelling(self, a, ts.dt)
         found += checks.check_motion_speeds(self, a, ts.dt)
         found += self._check_compound_parts(a)
         # A run validates twice (loading the file, building the Model): say each thing once.
         if found != self._warned:
-            for message in found:
+            for message in found if pair_overlaps else self._without_overlaps(found):
                 warnings.warn(f"{self.file}: {message}" if self.file else message, SceneWarning, stacklevel=2)
         self._warned = found
-        self.warnings = found
+        self.warnings = found if pair_overlaps else self._without_overlaps(found)
+        return self
+
+    def _without_overlaps(self, found: list[str]) -> list[str]:
+        at = self._overlap_at
+        return found[:at] + found[at + len(self._overlap_messages) :]
+
+    def finish_overlap_check(self, pair_overlaps) -> Scene:
+        """The initial-overlap check of a scene validated with ``pair_overlaps=False``: plane walls here, the body
+        pairs' records (:class:`~polydem.scene.overlaps.OverlapRecords`) as found on a device; a
+        :class:`SceneError` for an overlap too deep, else its warning issued (once, as :meth:`validate` issues
+        its) and put in :attr:`warnings` where validate puts it."""
+        found = overlaps.check_initial_overlaps(self, self.body_arrays(), pair_overlaps)
+        at = self._overlap_at
+        warned = self._without_overlaps(self._warned)
+        warned = warned[:at] + found + warned[at:]
+        if warned != self._warned:
+            for message in found:
+                warnings.warn(f"{self.file}: {message}" if self.file else message, SceneWarning, stacklevel=2)
+        self._warned = warned
+        self._overlap_messages = found
+        self.warnings = self.warnings[:at] + found + self.warnings[at:]
         return self
 
     # ------------------------------------------------------------------ bodies (see bodies.py)

@@ -405,7 +405,12 @@ def _pair_overlaps(shapes, body_label, a) -> OverlapRecords:
         return OverlapRecords.none()
     rel, depth, b1, b2 = (np.concatenate(c) for c in zip(*found, strict=True))
     keep = _deepest_of_each_pair(rel, b1 * len(owner) + b2)
-    rel, depth, b1, b2 = rel[keep], depth[keep], b1[keep], b2[keep]
+    return pair_records(rel[keep], depth[keep], b1[keep], b2[keep], body_label)
+
+
+def pair_records(rel, depth, b1, b2, body_label) -> OverlapRecords:
+    """:class:`OverlapRecords` of overlapping body pairs: per pair its depth over the thinner body's thickness
+    (``rel``), its depth [m], the free body (``b1``, the record's body) and the other (``b2``)."""
 
     def words(k):
         return (
@@ -417,9 +422,10 @@ def _pair_overlaps(shapes, body_label, a) -> OverlapRecords:
     return OverlapRecords(rel, depth, b1, words)
 
 
-def check_initial_overlaps(scene, a) -> list[str]:
+def check_initial_overlaps(scene, a, pair_overlaps: OverlapRecords | None = None) -> list[str]:
     """Free bodies of ``scene`` that start behind a plane wall or inside another body (see :meth:`Scene.validate`);
-    ``a`` holds its body arrays.
+    ``a`` holds its body arrays. ``pair_overlaps``: the body pairs' records found already (on the device, from a
+    simulation's first broad phase: :mod:`polydem.overlap_check`), else they are searched here.
 
     Plane walls: the exact depth of the body's lowest vertex behind the plane, over the body's
     thickness along the normal. Body pairs: candidates from a k-d tree on the centres (bounding
@@ -429,9 +435,9 @@ def check_initial_overlaps(scene, a) -> list[str]:
     bound where edge axes are skipped), taken over the thinner body's thickness along that axis.
     """
     shapes = list(scene.shapes.values())
-    records = OverlapRecords.join(
-        [_plane_overlaps(scene.planes, scene.plane_keys, shapes, a), _pair_overlaps(shapes, scene.body_label, a)]
-    )
+    if pair_overlaps is None:
+        pair_overlaps = _pair_overlaps(shapes, scene.body_label, a)
+    records = OverlapRecords.join([_plane_overlaps(scene.planes, scene.plane_keys, shapes, a), pair_overlaps])
     return report_overlaps(
         scene,
         records,

@@ -1,0 +1,123 @@
+"""The initial-overlap check of body pairs on a simulation's device (issue 27: the build of 1e8 grains).
+
+:meth:`Scene.validate` searches the pairs whose bounding spheres meet with a k-d tree on the host, then takes the
+separating-axis test over them (:mod:`polydem.scene.overlaps`): at 7e7 cubes 158 of the build's 258 s on the GPU
+machine's host (BENCHMARKS.md 19). A :class:`~polydem.Simulation` has those pairs already, from its first broad
+phase on the device (each pair of bounding spheres that meet is a candidate pair); here the same test runs over
+them on the device (:mod:`polydem.kernels.initial_overlaps`), and the scene reports what it finds as its own
+check would (:meth:`Scene.finish_overlap_check`: the same warning, or the same error for an overlap too deep).
+
+The records are those of the host's check (the same pairs, depths to rounding); where several overlaps are equally
+deep, the three a warning shows may be other ones of them (the host lists them in its search's order, the device
+by the free body's index, then the other's).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from polydem.compound import is_compound
+from polydem.kernels.initial_overlaps import launch_pair_overlaps
+from polydem.scene.overlaps import _MAX_EDGE_AXES, INITIAL_OVERLAP_WARNING, _edge_directions, pair_records
+
+# Where Simulation(overlap_check="auto") checks the pairs on the device: a CUDA device and at least this many
+# bodies (below, the host's check takes under a second).
+DEVICE_CHECK_MIN_BODIES = 200_000
+
+
+def median_by_counts(values: np.ndarray, counts: np.ndarray) -> float:
+    """``np.median(np.repeat(values, counts))`` without the repeated array (a value per shape, bodies per shape)."""
+    order = np.argsort(values, kind="stable")
+    ends = np.cumsum(counts[order])
+    n = int(ends[-1])
+
+    def at(k):
+        return float(values[order[np.searchsorted(ends, k, side="right")]])
+
+    if n % 2:
+        return at(n // 2)
+    return float(np.mean([at(n // 2 - 1), at(n // 2)]))
+
+
+class OverlapGeometry:
+    """The shapes as the device test reads them, in float64: vertices, face planes, each face's least offset over
+    its own shape's vertices, unit edge directions (parallel edges once), and whether a shape is big (a bounding
+    radius more than 4 times the bodies' median, as the host test takes it: such a body comes first in its pairs).
+
+    Attributes (device arrays; S shapes):
+        shape_vert_start, shape_face_start, shape_edge_start: (S+1,) int32 firsts of each shape.
+        vert: (V,) vec3d [m]; face_plane: (F,) vec4d normal and offset [m]; face_lo: (F,) float64 [m];
+        edge_dir: (E,) vec3d unit; shape_big: (S,) int32 0/1; max_edge_axes: edge-direction pairs a body pair
+        tests, beyond which it takes face normals only.
+    """
+
+    def __init__(self, shapes, body_shape: np.ndarray, device):
+        if any(is_compound(s) for s in shapes):
+            raise ValueError(
+                "the device overlap check takes convex shapes only (a compound grain is checked on the host)"
+            )
+        counts = np.bincount(np.asarray(body_shape), minlength=len(shapes))
+        radius = np.array([s.radius for s in shapes], dtype=np.float64)
+        median = median_by_counts(radius, counts)
+        edges = [_edge_directions(s) for s in shapes]
+        lo = [(s.vertices @ s.face_normals.T).min(axis=0) for s in shapes]
+
+        def starts(sizes):
+            return wp.array(np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32), dtype=int, device=device)
+
+        self.shape_vert_start = starts([len(s.vertices) for s in shapes])
+        self.shape_face_start = starts([len(s.face_normals) for s in shapes])
+        self.shape_edge_start = starts([len(e) for e in edges])
+        self.vert = wp.array(np.concatenate([s.vertices for s in shapes]), dtype=wp.vec3d, device=device)
+        planes = np.concatenate([np.column_stack([s.face_normals, s.face_offsets]) for s in shapes])
+        self.face_plane = wp.array(planes, dtype=wp.vec4d, device=device)
+        self.face_lo = wp.array(np.concatenate(lo), dtype=wp.float64, device=device)
+        self.edge_dir = wp.array(np.concatenate(edges).reshape(-1, 3), dtype=wp.vec3d, device=device)
+        self.shape_big = wp.array((radius > 4.0 * median).astype(np.int32), dtype=int, device=device)
+        self.max_edge_axes = _MAX_EDGE_AXES
+
+
+def device_check_applies(scene, device, bodies=None, overlap_check: str = "auto") -> bool:
+    """Whether a Simulation of ``scene`` on ``device`` checks the initial overlaps of body pairs on the device:
+    ``overlap_check`` "host" never, "device" always (a ValueError where it cannot: compound grains, or a subset
+    of the bodies), "auto" on a CUDA device for scenes of :data:`DEVICE_CHECK_MIN_BODIES` bodies or more."""
+    if overlap_check not in ("auto", "host", "device"):
+        raise ValueError(f"overlap_check must be 'auto', 'host' or 'device', got {overlap_check!r}")
+    if overlap_check == "host":
+        return False
+    compound = any(is_compound(s) for s in scene.shapes.values())
+    if overlap_check == "device":
+        if compound or bodies is not None:
+            raise ValueError(
+                "overlap_check='device' takes a whole scene of convex grains: "
+                + ("this one has compound grains" if compound else "this simulation steps a subset of the bodies")
+                + "; use overlap_check='host' or 'auto'"
+            )
+        return True
+    return (
+        wp.get_device(device).is_cuda
+        and not compound
+        and bodies is None
+        and scene.num_bodies >= DEVICE_CHECK_MIN_BODIES
+    )
+
+
+def device_pair_overlaps(scene, model, contacts, state):
+    """The initial overlaps of body pairs (one free at least) among the contacts' candidate pairs, tested on their
+    device: :class:`~polydem.scene.overlaps.OverlapRecords` for :meth:`Scene.finish_overlap_check`."""
+    geometry = OverlapGeometry(list(scene.shapes.values()), model.body_shape_np, model.body_shape.device)
+    bodies, rel, depth = launch_pair_overlaps(
+        geometry,
+        model.body_shape,
+        model.body_flags,
+        state.body_q,
+        contacts.pair_a,
+        contacts.pair_b,
+        contacts.pair_count,
+        len(contacts.pair_a),
+        INITIAL_OVERLAP_WARNING,
+    )
+    order = np.lexsort((bodies[:, 1], bodies[:, 0]))
+    bodies, rel, depth = bodies[order], rel[order], depth[order]
+    return pair_records(rel, depth, bodies[:, 0], bodies[:, 1], scene.body_label)
