@@ -24,9 +24,9 @@ def taps(plt, out: Path) -> Path:
     packings as bands."""
     fig, (ax, az, aq) = plt.subplots(1, 3, figsize=(13, 4))
     runs = [("tapping_5000_66taps_h100.json", "cubes, seed 1 (first round)", "C0", ":"),
-            ("tapping_cube_5000_s1_55taps_h100.json", "cubes, seed 1", "C0", "-"),
-            ("tapping_cube_5000_s2_56taps_h100.json", "cubes, seed 2", "C1", "-"),
-            ("tapping_tetrahedron_8000_s1_21taps_h100.json", "tetrahedra, seed 1", "C2", "-")]  # fmt: skip
+            ("tapping_cube_5000_s1_75taps_h200.json", "cubes, seed 1", "C0", "-"),
+            ("tapping_cube_5000_s2_76taps_h200.json", "cubes, seed 2", "C1", "-"),
+            ("tapping_tetrahedron_8000_s1_33taps_h200.json", "tetrahedra, seed 1", "C2", "-")]  # fmt: skip
     for name, label, colour, style in runs:
         rec = load(name)["records"]
         n = [r["tap"] for r in rec]
