@@ -41,10 +41,11 @@ KINDS = tuple(kind.label for kind in BodyKind)
 """Body kinds by label; the code of a :class:`BodyKind` is its index in this tuple."""
 KIND_FREE, KIND_FIXED, KIND_KINEMATIC = BodyKind.FREE, BodyKind.FIXED, BodyKind.KINEMATIC
 
-MAX_BODIES = 10**8
-"""Most bodies of one scene: 100 times the largest scenes the simulator is meant for (10^6), low
-enough that a mistyped count fails at once instead of allocating tens of gigabytes (every body holds
-some hundred bytes in the scene alone, more on the device)."""
+MAX_BODIES = 10**8 + 10**6
+"""Most bodies of one scene: 10^8 grains (the largest run one GPU holds: about 1 KB a body on the device, an
+H200's 141 GB) and up to 10^6 walls and containers beside them; low enough that a mistyped count fails at once
+instead of allocating tens of gigabytes (every body holds some hundred bytes in the scene alone), and that the
+device's int32 indices (up to 10 broad-phase keys a body) stay in range."""
 
 BODY = Table(
     "[[bodies]]",
@@ -215,7 +216,7 @@ def append_bodies(scene, s, m, p, q, v, w, kind_code, rowkey, pivot=None) -> np.
     n = p.shape[0]
     if scene.body_table.n + n > MAX_BODIES:
         raise scene.error(
-            f"{n} more bodies would make {scene.body_table.n + n:.3g}, more than a scene can hold ({MAX_BODIES:.0e})",
+            f"{n} more bodies would make {scene.body_table.n + n:.3g}, more than a scene can hold ({MAX_BODIES:.3g})",
             rowkey(0),
         )
     arrays = [("position", p), ("orientation", q), ("velocity", v), ("angular_velocity", w)]
