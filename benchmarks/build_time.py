@@ -145,8 +145,8 @@ class Timers:
             try:
                 return fn(*args, **kwargs)
             finally:
+                pool = mempool(self.device)  # synchronises first: the stage's device work is in its time
                 self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
-                pool = mempool(self.device)
                 if pool is not None:
                     self.memory[name] = pool
 
@@ -256,12 +256,14 @@ def build(builder, n, device, timers, steps=0, overlap_check="host"):
                 timers.memory["overlap_check_device"] = mempool(device)
         if steps:
             memory = timers.take_memory()
+            timers.device = None  # no synchronisation inside the timed steps
             t0 = time.perf_counter()
             sim.step(steps)
             wp.synchronize_device(device)
             stages["steps"] = time.perf_counter() - t0
             timers.take()  # the steps' own broad phases are not the build's
             timers.memory = memory
+            timers.device = device
             if start is not None:
                 timers.memory["steps"] = mempool(device)
     stages.update(parts)

@@ -3,12 +3,14 @@
 # whatever still runs at BUDGET seconds (default 500) is stopped, and everything is packed into $OUT/round.tgz
 # (res/: JSON and tap checkpoints, log/: one log a job). From the repository root, polydem importable.
 #   BUDGET=500 bash benchmarks/gpu_round.sh
-# GPU 0: the build of 1e6, 1e7 and 2e7 cubes and 20 steps, with the device memory at the end of each stage
-#        (benchmarks/build_time.py --steps; what sets the high-water mark that bounds 1e8 on one H200).
+# GPU 0: the build of 1e6 and 1e7 cubes and 20 steps, the initial overlaps checked on the host and then on the
+#        device (benchmarks/build_time.py --overlap-check), with the device memory at the end of each stage.
 # GPU 1: the mixed pile of 1e5 grains with contacts, pair threads in slot order and grouped by cost, and the cube
 #        pile of 1e5 beside it (issue27_gpu.sh mixed).
-# GPU 2: the CUDA tests of the files the last changes touch (test_usd.py where usd-core is installed).
-# GPU 3: the largest settle pile that fits the card (5e7 cubes on a card of more than 100 GB, else 3e7).
+# GPU 2: the CUDA tests of the files the last changes touch (test_usd.py where usd-core is installed; stage its
+#        wheel as a part of its own, the GPU bundle has none).
+# GPU 3: the largest settle pile that fits the card, built with the device's overlap check and stepped 20 times
+#        (1e8 cubes on a card of more than 100 GB: an H200; else 4e7).
 # RUN_TAPS=1 runs the tap runs instead of GPU 0's job, each resumed from its latest checkpoint in
 # benchmarks/results/validation/taps/ (issue 26).
 set -u
@@ -33,16 +35,19 @@ if [ -n "${RUN_TAPS:-}" ]; then
   tapjob 0 tap_cube_s2 --grains 5000 --width 24 --seed 2 &
   tapjob 0 tap_tetra_s1 --shape tetrahedron --grains 8000 --width 14 --seed 1 &
 else
-  gpu 0 python benchmarks/build_time.py --device cuda:0 --sizes 1e6,1e7,2e7 --steps 20 --no-git \
-    --out $W/res/build_time_settle.json > $W/log/build_time.log 2>&1 &
+  ( for oc in host device; do
+      gpu 0 python benchmarks/build_time.py --device cuda:0 --sizes 1e6,1e7 --steps 20 --no-git --overlap-check $oc \
+        --out $W/res/build_time_settle_$oc.json > $W/log/build_time_$oc.log 2>&1
+    done ) &
 fi
 ( CUDA_VISIBLE_DEVICES=1 OUT=$W/res SIZES=100000 ORDERS="slot cost" timeout $(left) bash benchmarks/issue27_gpu.sh mixed \
     > $W/log/issue27_mixed.log 2>&1 ) &
 CUDA_VISIBLE_DEVICES=2 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
-  -p no:cacheprovider tests/test_usd.py tests/test_pair_order.py tests/test_memory.py > $W/log/pytest.log 2>&1 &
-big=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits -i 3 | awk '{print ($1 > 100000) ? 50000000 : 30000000}')
-gpu 3 python benchmarks/settle.py --device cuda:0 --sizes $big --precision mixed --no-graph-compare --warmup 50 \
-  --steps 20 --stage-steps 5 --rebuild-reps 1 --out $W/res/settle_$big.json > $W/log/settle_big.log 2>&1 &
+  -p no:cacheprovider tests/test_overlap_check.py tests/test_usd.py tests/test_pair_order.py tests/test_memory.py \
+  > $W/log/pytest.log 2>&1 &
+big=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits -i 3 | awk '{print ($1 > 100000) ? 100000000 : 40000000}')
+gpu 3 python benchmarks/build_time.py --device cuda:0 --sizes $big --steps 20 --no-git --overlap-check device \
+  --out $W/res/build_time_settle_$big.json > $W/log/build_big.log 2>&1 &
 while [ $SECONDS -lt $END ] && [ -n "$(jobs -r)" ]; do sleep 2; done
 # Every process of this session but this shell (timeout puts each job in its own group, not session).
 left_over=$(pgrep -s $$ | grep -vx $$); [ -n "$left_over" ] && kill -TERM $left_over 2>/dev/null; sleep 2

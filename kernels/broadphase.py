@@ -98,6 +98,9 @@ TREE_BRANCHING = wp.constant(4)
 # builds that grow the pair capacity renew it; a query on it cost 5% more than on a fresh tree) while
 # each check costs a synchronisation and a sort (BENCHMARKS.md section 7e). Scenes that mix for a
 # long time (drums, shaking) can turn it on with Simulation(tree_rebuild=1.2).
+MAX_INDEX = 2**31 - 1
+"""The largest index of a device array the kernels take (int32): the pair buffers hold twice the pair capacity."""
+
 TREE_REBUILD_RATIO = None
 
 # Default capacity in pairs per body (dense packings of equal spheres with a small skin have
@@ -589,12 +592,16 @@ def _overload(kernel: wp.Kernel, pose_dtype: type) -> wp.Kernel:
     return kernel.add_overload(types)
 
 
-# Both overloads of each, made here: the module is then complete before its first load, so that no overload
-# is added (and the module loaded again) in a CUDA graph capture.
+def pose_overloads(kernel: wp.Kernel) -> None:
+    """Both overloads of a kernel generic over ``body_q`` (float32 and float64 poses), made before its module's
+    first load: no overload is then added (and the module loaded again) later, in a CUDA graph capture say."""
+    for pose in (wp.transform, wp.transformd):
+        _overload(kernel, pose)
+
+
 for _kernel in (radius_min_kernel, classes_kernel, bounds_kernel, query_pairs_kernel, needs_rebuild_kernel):
-    for _pose in (wp.transform, wp.transformd):
-        _overload(_kernel, _pose)
-del _kernel, _pose
+    pose_overloads(_kernel)
+del _kernel
 
 
 def byte_view(base: wp.array, offset: int, dtype, length: int) -> wp.array:
@@ -792,6 +799,11 @@ class BroadPhase:
 
     def _allocate(self, capacity: int):
         capacity = max(int(capacity), 1)
+        if 2 * capacity > MAX_INDEX:
+            raise RuntimeError(
+                f"the broad phase needs room for {capacity:,} candidate pairs, more than its int32 indices reach "
+                f"({MAX_INDEX // 2:,}): step fewer bodies on one device (a decomposed run), or take a smaller skin"
+            )
         dev = self.device
         self.capacity = capacity
         # radix_sort_pairs needs 2 * count of keys and values (the upper half is scratch).

@@ -5,15 +5,15 @@ Per candidate pair (one body free, at least), in float64 whatever the run's prec
 projections on each face normal of either body, on the line of their centres and, for shapes with few edge
 directions, on the cross products of their edge directions; the smallest is the penetration depth, taken over the
 thinner body's thickness along that axis (the first axis of least overlap, in the host test's order of axes). A pair
-whose depth exceeds ``INITIAL_OVERLAP_WARNING`` of that thickness is written out (an atomic counter; the output
-holds a record per candidate pair, so none is ever dropped).
+whose depth exceeds ``INITIAL_OVERLAP_WARNING`` of that thickness is written out (an atomic counter; an output too
+small for them is detected and the test run again with room for all).
 """
 
 from typing import Any
 
 import numpy as np
 import warp as wp
-from polydem.kernels.broadphase import _overload, for_poses
+from polydem.kernels.broadphase import for_poses, pose_overloads
 
 # Float64 throughout: the host test's arithmetic, so that the device and the host report the same overlaps.
 INF = wp.constant(wp.float64(1.0e300))
@@ -22,9 +22,17 @@ AXIS_MIN = wp.constant(wp.float64(1.0e-9))
 
 
 @wp.func
-def to_frame(q: wp.quatd, p: wp.vec3d, x: wp.vec3d):
-    """World point ``x`` in the frame of the pose (p, q)."""
-    return wp.quat_rotate_inv(q, x - p)
+def support(vert: wp.array(dtype=wp.vec3d), v0: int, v1: int, q: wp.quatd, p: wp.vec3d, e: wp.vec3d):
+    """The interval of a body's vertices (v0..v1, pose (p, q)) along the unit axis ``e``: (min, max) [m]."""
+    local = wp.quat_rotate_inv(q, e)  # the axis in the body's frame: one rotation, not one a vertex
+    lo = INF
+    hi = -INF
+    for v in range(v0, v1):
+        s = wp.dot(vert[v], local)
+        lo = wp.min(lo, s)
+        hi = wp.max(hi, s)
+    off = wp.dot(p, e)
+    return wp.vec2d(lo + off, hi + off)
 
 
 @wp.func
@@ -42,22 +50,16 @@ def face_axes(
     p2: wp.vec3d,
     best_in: wp.vec2d,
 ):
-    """The face normals of body 1 (faces f0..f1) against body 2's vertices (v0..v1), moved into body 1's frame:
+    """The face normals of body 1 (faces f0..f1) against body 2's vertices (v0..v1), in body 1's frame:
     ``best_in`` (least overlap, the thinner thickness along its axis) updated where an axis overlaps less."""
     best = best_in
+    d = p2 - p1  # body 2's centre from body 1's: no rounding of large world coordinates in the offsets
     for f in range(f0, f1):
         plane = face_plane[f]
-        n = wp.vec3d(plane[0], plane[1], plane[2])
-        lo = INF
-        hi = -INF
-        for v in range(v0, v1):
-            x = to_frame(q1, p1, wp.quat_rotate(q2, vert[v]) + p2)
-            s = wp.dot(x, n)
-            lo = wp.min(lo, s)
-            hi = wp.max(hi, s)
-        ov = wp.min(plane[3] - lo, hi - face_lo[f])
+        b = support(vert, v0, v1, q2, d, wp.quat_rotate(q1, wp.vec3d(plane[0], plane[1], plane[2])))
+        ov = wp.min(plane[3] - b[0], b[1] - face_lo[f])
         if ov < best[0]:
-            best = wp.vec2d(ov, wp.min(plane[3] - face_lo[f], hi - lo))
+            best = wp.vec2d(ov, wp.min(plane[3] - face_lo[f], b[1] - b[0]))
     return best
 
 
@@ -75,26 +77,16 @@ def world_axis(
     axis: wp.vec3d,
     best_in: wp.vec2d,
 ):
-    """A world axis (not yet of unit length; dropped at AXIS_MIN or shorter) against both bodies' world vertices."""
+    """A world axis (not yet of unit length; dropped at AXIS_MIN or shorter) against both bodies' vertices."""
     length = wp.length(axis)
     if length <= AXIS_MIN:
         return best_in
     e = axis / length
-    alo = INF
-    ahi = -INF
-    for v in range(va0, va1):
-        s = wp.dot(wp.quat_rotate(qa, vert[v]) + pa, e)
-        alo = wp.min(alo, s)
-        ahi = wp.max(ahi, s)
-    blo = INF
-    bhi = -INF
-    for v in range(vb0, vb1):
-        s = wp.dot(wp.quat_rotate(qb, vert[v]) + pb, e)
-        blo = wp.min(blo, s)
-        bhi = wp.max(bhi, s)
-    ov = wp.min(ahi - blo, bhi - alo)
+    a = support(vert, va0, va1, qa, pa, e)
+    b = support(vert, vb0, vb1, qb, pb, e)
+    ov = wp.min(a[1] - b[0], b[1] - a[0])
     if ov < best_in[0]:
-        return wp.vec2d(ov, wp.min(ahi - alo, bhi - blo))
+        return wp.vec2d(ov, wp.min(a[1] - a[0], b[1] - b[0]))
     return best_in
 
 
@@ -127,7 +119,8 @@ def pair_overlap_kernel(
     t = wp.tid()
     if t >= pair_count[0]:
         return
-    # The host test's order of a pair: a big body (a container's slab) first, else the lower index first.
+    # The host test's order of a pair (polydem.scene.overlaps): a big body (BIG_RADIUS_RATIO times the median radius:
+    # a container's slab) first, else the lower index first; the free one of the two is the record's body.
     i = pair_a[t]
     j = pair_b[t]
     sa = body_shape[i]
@@ -177,55 +170,63 @@ def pair_overlap_kernel(
                     )
     rel = best[0] / best[1]
     if rel > threshold:
+        # counted past the room, so that the caller knows how much to give the next launch
         slot = wp.atomic_add(out_count, 0, 1)
-        if body_flags[i] == 0:
-            out_body[slot] = wp.vec2i(i, j)
-        else:
-            out_body[slot] = wp.vec2i(j, i)
-        out_rel_depth[slot] = wp.vec2d(rel, best[0])
+        if slot < out_body.shape[0]:
+            if body_flags[i] == 0:
+                out_body[slot] = wp.vec2i(i, j)
+            else:
+                out_body[slot] = wp.vec2i(j, i)
+            out_rel_depth[slot] = wp.vec2d(rel, best[0])
 
 
-# Both overloads made before the module's first load.
-for _pose in (wp.transform, wp.transformd):
-    _overload(pair_overlap_kernel, _pose)
-del _pose
+pose_overloads(pair_overlap_kernel)
 
 
-def launch_pair_overlaps(geometry, body_shape, body_flags, body_q, pair_a, pair_b, pair_count, capacity, threshold):
+def launch_pair_overlaps(
+    geometry, body_shape, body_flags, body_q, pair_a, pair_b, pair_count, capacity, threshold, room
+):
     """Body pairs of the candidate list (``pair_a``, ``pair_b``, ``pair_count`` of at most ``capacity``) that overlap
     by more than ``threshold`` of the thinner body's thickness: ``(bodies (K, 2): the free one first, rel (K,),
-    depth (K,) [m])`` on the host, K <= the pair count. ``geometry``: the shapes' arrays on the device
-    (:class:`polydem.overlap_check.OverlapGeometry`)."""
+    depth (K,) [m])`` on the host. ``geometry``: the shapes' arrays on the device
+    (:class:`polydem.overlap_check.OverlapGeometry`). The output holds ``room`` records; where more overlap, the
+    test runs again with room for all of them (none is dropped)."""
     device = body_q.device
     out_count = wp.zeros(1, dtype=int, device=device)
-    room = max(1, capacity)
-    out_body = wp.empty(room, dtype=wp.vec2i, device=device)
-    out_rel_depth = wp.empty(room, dtype=wp.vec2d, device=device)
-    wp.launch(
-        for_poses(pair_overlap_kernel, body_q),
-        dim=capacity,
-        inputs=[
-            geometry.shape_vert_start,
-            geometry.shape_face_start,
-            geometry.shape_edge_start,
-            geometry.vert,
-            geometry.face_plane,
-            geometry.face_lo,
-            geometry.edge_dir,
-            geometry.max_edge_axes,
-            geometry.shape_big,
-            body_shape,
-            body_flags,
-            wp.float64(threshold),
-            body_q,
-            pair_a,
-            pair_b,
-            pair_count,
-        ],
-        outputs=[out_count, out_body, out_rel_depth],
-        device=device,
-    )
-    k = int(out_count.numpy()[0])
-    bodies = out_body.numpy()[:k].astype(np.int64)
-    rel_depth = out_rel_depth.numpy()[:k]
+    while True:
+        out_body = wp.empty(max(1, room), dtype=wp.vec2i, device=device)
+        out_rel_depth = wp.empty(max(1, room), dtype=wp.vec2d, device=device)
+        out_count.zero_()
+        wp.launch(
+            for_poses(pair_overlap_kernel, body_q),
+            dim=capacity,
+            inputs=[
+                geometry.shape_vert_start,
+                geometry.shape_face_start,
+                geometry.shape_edge_start,
+                geometry.vert,
+                geometry.face_plane,
+                geometry.face_lo,
+                geometry.edge_dir,
+                geometry.max_edge_axes,
+                geometry.shape_big,
+                body_shape,
+                body_flags,
+                wp.float64(threshold),
+                body_q,
+                pair_a,
+                pair_b,
+                pair_count,
+            ],
+            outputs=[out_count, out_body, out_rel_depth],
+            device=device,
+        )
+        k = int(out_count.numpy()[0])
+        if k <= room:
+            break
+        room = k
+    if k == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros(0)
+    bodies = out_body[:k].numpy().astype(np.int64)
+    rel_depth = out_rel_depth[:k].numpy()
     return bodies, rel_depth[:, 0].copy(), rel_depth[:, 1].copy()

@@ -546,3 +546,11 @@ def test_tree_rebuild_between_graph_launches(device):
         check_against_reference(bp, scene, skin)
         assert bp.renew_tree(0.0)  # in place: the graph stays valid
     assert int(bp.device_rebuilds.numpy()[0]) == 3
+
+
+def test_pair_capacity_beyond_int32_indices_is_refused(device):
+    """Room for more candidate pairs than the int32 indices reach: a clear error before any allocation."""
+    bp = BroadPhase(4, device, skin=0.01)
+    with pytest.raises(RuntimeError, match="int32 indices reach"):
+        bp._allocate(2**30)
+    assert bp.capacity < 2**30

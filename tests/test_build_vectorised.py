@@ -191,7 +191,7 @@ def test_apart_never_drops_an_overlap(pair):
     d = rng.normal(size=(p, 3)) * 0.008
     qa, qb = random_quats(rng, p), random_quats(rng, p)
     ra, rb = quat_to_matrix(qa), quat_to_matrix(qb)
-    ea, eb = overlaps._edge_directions(sa), overlaps._edge_directions(sb)
+    ea, eb = overlaps.edge_directions(sa), overlaps.edge_directions(sb)
     depth, thin = overlaps._sat_depth(sa, sb, np.zeros((p, 3)), d, ra, rb, ea, eb)
     rot_a, rot_b = overlaps._rotations(qa), overlaps._rotations(qb)
     apart = overlaps._apart(sa, sb, np.ascontiguousarray(d.T), rot_a, rot_b, np.full(p, 1e-15))
@@ -213,7 +213,7 @@ def slow_pair_records(shapes, a):
         i, j = ii[rows], jj[rows]
         sa, sb = shapes[g[0]], shapes[g[1]]
         ra, rb = quat_to_matrix(a["orientation"][i]), quat_to_matrix(a["orientation"][j])
-        edges = overlaps._edge_directions(sa), overlaps._edge_directions(sb)
+        edges = overlaps.edge_directions(sa), overlaps.edge_directions(sb)
         depth, thin = overlaps._sat_depth(sa, sb, a["position"][i], a["position"][j], ra, rb, *edges)
         for k in np.flatnonzero(depth / thin > overlaps.INITIAL_OVERLAP_WARNING).tolist():
             b1, b2 = (i[k], j[k]) if free[i[k]] else (j[k], i[k])

@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+import warp as wp
 
 from polydem import ConvexShape, Scene, SceneError, Simulation
 from polydem.compound import CompoundShape, place
@@ -55,8 +56,7 @@ def records_of(found):
 @pytest.mark.parametrize("big", [False, True])
 def test_device_records_are_the_host_records(device, big):
     sc = cloud(big=big)
-    sc.validate(pair_overlaps=False)  # the cloud's deep overlaps would raise in the full check
-    sim = Simulation(sc, device, validate=False)
+    sim = Simulation(sc, device, validate=False)  # unvalidated: the cloud's deep overlaps would raise
     host = records_of(overlaps._pair_overlaps(list(sc.shapes.values()), sc.body_label, sc.body_arrays()))
     dev = records_of(device_pair_overlaps(sc, sim.model, sim.current_contacts, sim.current_state))
     assert len(host) > 100
@@ -148,3 +148,111 @@ def test_median_by_counts_is_numpys():
         counts = rng.integers(0, 4, n)
         counts[0] += 1
         assert median_by_counts(values, counts) == np.median(np.repeat(values, counts))
+
+
+def lattice(kinematic=False):
+    """Columns of cubes each pushed 4% of an edge into the one below, all alike: many overlaps equally deep (the
+    host's search and the device list them in other orders); ``kinematic``: the lowest cube of each column driven."""
+    sc = Scene(gravity=(0.0, 0.0, -9.81), dt="auto")
+    sc.add_material("m", density=2500.0, law="hertz", k=1e9, restitution=0.5, friction=0.5)
+    sc.add_shape("cube", ConvexShape.box(0.01))
+    cols = [(0.02 * x, 0.02 * y) for x in range(7) for y in range(7)]
+    pos = np.array([(x, y, 0.005 + 0.0096 * k) for x, y in cols for k in range(2)])
+    lowest = np.arange(0, len(pos), 2)
+    sc.add_bodies("cube", "m", np.delete(pos, lowest, axis=0))
+    if kinematic:
+        for p in pos[lowest]:
+            sc.add_body("cube", "m", position=tuple(p), kind="kinematic")
+    else:
+        sc.add_bodies("cube", "m", pos[lowest])
+    return sc
+
+
+def test_equally_deep_overlaps_say_the_same_once(device):
+    """The CLI's flow (the scene validated on loading, the Simulation's check on the device after it): with
+    overlaps equally deep, the same message, said once; finishing twice keeps one message in the warnings."""
+    said = {}
+    for check in ("host", "device"):
+        sc = lattice()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sc.validate()
+            Simulation(sc, device, overlap_check=check)
+        said[check] = overlap_warnings(caught)
+        assert len(said[check]) == 1 and said[check][0].startswith("49 initial overlaps")
+        assert sc.warnings.count(said[check][0]) == 1
+    assert said["device"] == said["host"]
+    sc.finish_overlap_check()
+    assert sc.warnings.count(said["host"][0]) == 1
+
+
+def test_pairs_left_by_validate_are_finished_by_the_simulation(device):
+    """Scene.validate(pair_overlaps=False) and Simulation(validate=False), as `polydem run` does: the Simulation
+    finishes the check (on the device where it applies, else on the host) and says it as the full check does."""
+    full = lattice()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        full.validate()
+    want = overlap_warnings(caught)
+    for check in ("host", "device"):
+        sc = lattice()
+        sc.validate(pair_overlaps=False)
+        assert sc.pair_overlaps_pending and not [m for m in sc.warnings if "overlap" in m]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            Simulation(sc, device, validate=False, overlap_check=check)
+        assert overlap_warnings(caught) == want and not sc.pair_overlaps_pending
+        assert sc.warnings == full.warnings
+
+
+@pytest.mark.parametrize("precision", ["float32", "mixed"])
+def test_device_check_takes_the_scene_poses_in_any_precision(device, precision):
+    """A float32 state rounds the poses; the device check takes the scene's float64 ones, as the host check."""
+    sc = pile()
+    sc.precision = precision
+    sc.validate(pair_overlaps=False)
+    sim = Simulation(sc, device, validate=False, overlap_check="host")
+    host = records_of(overlaps._pair_overlaps(list(sc.shapes.values()), sc.body_label, sc.body_arrays()))
+    dev = records_of(device_pair_overlaps(sc, sim.model, sim.current_contacts, sim.current_state))
+    assert len(host) > 10 and dev.keys() == host.keys()
+    np.testing.assert_allclose([dev[k] for k in host], [host[k] for k in host], rtol=1e-9, atol=1e-15)
+
+
+def test_kinematic_bodies_and_the_room_for_records(device, monkeypatch):
+    """Kinematic bodies count as not free (a pair of two is no record); more records than the output's first room:
+    the test runs again with room for all of them."""
+    from polydem import overlap_check
+
+    sc = lattice(kinematic=True)
+    sc.validate(pair_overlaps=False)
+    sim = Simulation(sc, device, validate=False, overlap_check="host")
+    host = records_of(overlaps._pair_overlaps(list(sc.shapes.values()), sc.body_label, sc.body_arrays()))
+    real = overlap_check.launch_pair_overlaps
+    rooms = []
+
+    def small_room(*args, room):
+        rooms.append(room)
+        return real(*args, room=3)
+
+    monkeypatch.setattr(overlap_check, "launch_pair_overlaps", small_room)
+    dev = records_of(device_pair_overlaps(sc, sim.model, sim.current_contacts, sim.current_state))
+    assert rooms and len(host) == 49 and dev.keys() == host.keys()
+    assert all(sc.body_arrays()["kind"][k[0]] == 0 for k in dev)
+
+
+def test_auto_takes_the_device_for_large_scenes_on_cuda(monkeypatch):
+    from polydem import overlap_check
+
+    sc = pile()
+    monkeypatch.setattr(overlap_check, "DEVICE_CHECK_MIN_BODIES", 10)
+    assert not device_check_applies(sc, "cpu")
+    if wp.get_cuda_device_count():
+        assert device_check_applies(sc, "cuda:0")
+    monkeypatch.setattr(overlap_check, "DEVICE_CHECK_MIN_BODIES", 10**6)
+    if wp.get_cuda_device_count():
+        assert not device_check_applies(sc, "cuda:0")
+
+
+def test_simulation_refuses_an_unknown_overlap_check():
+    with pytest.raises(ValueError, match="overlap_check must be"):
+        Simulation(pile(), "cpu", validate=False, overlap_check="gpu")

@@ -1,15 +1,12 @@
-"""The initial-overlap check of body pairs on a simulation's device (issue 27: the build of 1e8 grains).
+"""The initial-overlap check of body pairs on a simulation's device, for scenes too large for the host's search.
 
 :meth:`Scene.validate` searches the pairs whose bounding spheres meet with a k-d tree on the host, then takes the
-separating-axis test over them (:mod:`polydem.scene.overlaps`): at 7e7 cubes 158 of the build's 258 s on the GPU
-machine's host (BENCHMARKS.md 19). A :class:`~polydem.Simulation` has those pairs already, from its first broad
-phase on the device (each pair of bounding spheres that meet is a candidate pair); here the same test runs over
-them on the device (:mod:`polydem.kernels.initial_overlaps`), and the scene reports what it finds as its own
-check would (:meth:`Scene.finish_overlap_check`: the same warning, or the same error for an overlap too deep).
-
-The records are those of the host's check (the same pairs, depths to rounding); where several overlaps are equally
-deep, the three a warning shows may be other ones of them (the host lists them in its search's order, the device
-by the free body's index, then the other's).
+separating-axis test over them (:mod:`polydem.scene.overlaps`): the largest part of a large scene's build
+(BENCHMARKS.md 19). A :class:`~polydem.Simulation` has those pairs already, from its first broad phase on the device
+(each pair of bounding spheres that meet is a candidate pair); here the same test runs over them on the device
+(:mod:`polydem.kernels.initial_overlaps`), in float64 from the scene's own poses, and the scene reports what it finds
+as its own check would (:meth:`Scene.finish_overlap_check`: the same warning, or the same error for an overlap too
+deep; equally deep overlaps are listed by body in both).
 """
 
 from __future__ import annotations
@@ -19,11 +16,18 @@ import warp as wp
 
 from polydem.compound import is_compound
 from polydem.kernels.initial_overlaps import launch_pair_overlaps
-from polydem.scene.overlaps import _MAX_EDGE_AXES, INITIAL_OVERLAP_WARNING, _edge_directions, pair_records
+from polydem.scene.overlaps import (
+    BIG_RADIUS_RATIO,
+    INITIAL_OVERLAP_WARNING,
+    MAX_EDGE_AXES,
+    edge_directions,
+    pair_records,
+)
 
 # Where Simulation(overlap_check="auto") checks the pairs on the device: a CUDA device and at least this many
-# bodies (below, the host's check takes under a second).
+# bodies (below, the host's check takes a second or less).
 DEVICE_CHECK_MIN_BODIES = 200_000
+OVERLAP_CHECKS = ("auto", "host", "device")
 
 
 def median_by_counts(values: np.ndarray, counts: np.ndarray) -> float:
@@ -43,7 +47,7 @@ def median_by_counts(values: np.ndarray, counts: np.ndarray) -> float:
 class OverlapGeometry:
     """The shapes as the device test reads them, in float64: vertices, face planes, each face's least offset over
     its own shape's vertices, unit edge directions (parallel edges once), and whether a shape is big (a bounding
-    radius more than 4 times the bodies' median, as the host test takes it: such a body comes first in its pairs).
+    radius more than BIG_RADIUS_RATIO times the bodies' median, as the host test takes it: first in its pairs).
 
     Attributes (device arrays; S shapes):
         shape_vert_start, shape_face_start, shape_edge_start: (S+1,) int32 firsts of each shape.
@@ -60,7 +64,7 @@ class OverlapGeometry:
         counts = np.bincount(np.asarray(body_shape), minlength=len(shapes))
         radius = np.array([s.radius for s in shapes], dtype=np.float64)
         median = median_by_counts(radius, counts)
-        edges = [_edge_directions(s) for s in shapes]
+        edges = [edge_directions(s) for s in shapes]
         lo = [(s.vertices @ s.face_normals.T).min(axis=0) for s in shapes]
 
         def starts(sizes):
@@ -74,16 +78,21 @@ class OverlapGeometry:
         self.face_plane = wp.array(planes, dtype=wp.vec4d, device=device)
         self.face_lo = wp.array(np.concatenate(lo), dtype=wp.float64, device=device)
         self.edge_dir = wp.array(np.concatenate(edges).reshape(-1, 3), dtype=wp.vec3d, device=device)
-        self.shape_big = wp.array((radius > 4.0 * median).astype(np.int32), dtype=int, device=device)
-        self.max_edge_axes = _MAX_EDGE_AXES
+        self.shape_big = wp.array((radius > BIG_RADIUS_RATIO * median).astype(np.int32), dtype=int, device=device)
+        self.max_edge_axes = MAX_EDGE_AXES
+
+
+def check_overlap_check(overlap_check) -> None:
+    """A ValueError unless ``overlap_check`` is one of :data:`OVERLAP_CHECKS`."""
+    if overlap_check not in OVERLAP_CHECKS:
+        raise ValueError(f"overlap_check must be 'auto', 'host' or 'device', got {overlap_check!r}")
 
 
 def device_check_applies(scene, device, bodies=None, overlap_check: str = "auto") -> bool:
     """Whether a Simulation of ``scene`` on ``device`` checks the initial overlaps of body pairs on the device:
     ``overlap_check`` "host" never, "device" always (a ValueError where it cannot: compound grains, or a subset
     of the bodies), "auto" on a CUDA device for scenes of :data:`DEVICE_CHECK_MIN_BODIES` bodies or more."""
-    if overlap_check not in ("auto", "host", "device"):
-        raise ValueError(f"overlap_check must be 'auto', 'host' or 'device', got {overlap_check!r}")
+    check_overlap_check(overlap_check)
     if overlap_check == "host":
         return False
     compound = any(is_compound(s) for s in scene.shapes.values())
@@ -105,19 +114,24 @@ def device_check_applies(scene, device, bodies=None, overlap_check: str = "auto"
 
 def device_pair_overlaps(scene, model, contacts, state):
     """The initial overlaps of body pairs (one free at least) among the contacts' candidate pairs, tested on their
-    device: :class:`~polydem.scene.overlaps.OverlapRecords` for :meth:`Scene.finish_overlap_check`."""
-    geometry = OverlapGeometry(list(scene.shapes.values()), model.body_shape_np, model.body_shape.device)
+    device: :class:`~polydem.scene.overlaps.OverlapRecords` for :meth:`Scene.finish_overlap_check`. The poses are
+    the scene's, in float64 (a float32 state's are rounded: its own poses would move the depths by 1e-5 of them)."""
+    device = model.body_shape.device
+    body_q = state.body_q
+    if body_q.dtype != wp.transformd:
+        a = scene.body_arrays()
+        body_q = wp.array(np.hstack([a["position"], a["orientation"]]), dtype=wp.transformd, device=device)
+    geometry = OverlapGeometry(list(scene.shapes.values()), model.body_shape_np, device)
     bodies, rel, depth = launch_pair_overlaps(
         geometry,
         model.body_shape,
         model.body_flags,
-        state.body_q,
+        body_q,
         contacts.pair_a,
         contacts.pair_b,
         contacts.pair_count,
         len(contacts.pair_a),
         INITIAL_OVERLAP_WARNING,
+        room=min(len(contacts.pair_a), max(1024, model.num_bodies // 8)),
     )
-    order = np.lexsort((bodies[:, 1], bodies[:, 0]))
-    bodies, rel, depth = bodies[order], rel[order], depth[order]
     return pair_records(rel, depth, bodies[:, 0], bodies[:, 1], scene.body_label)

@@ -76,6 +76,7 @@ from polydem.kernels.structs import (
 from polydem.model import Model
 from polydem.overlap_check import device_check_applies, device_pair_overlaps
 from polydem.run_settings import RunSettings, run_settings
+from polydem.scene import SceneError
 from polydem.scene.bodies import BodyKind
 from polydem.settle import SettleCheck, SettleCriterion, SettleResult
 from polydem.state import State
@@ -604,13 +605,14 @@ class Simulation:
             shapes (the product of their face counts), so that a warp's threads clip alike shapes and none waits
             for a costlier neighbour (default; off by itself where every pair costs alike, as in a pile of one
             shape). The same results bit for bit (each pair's arithmetic is its own); one sort of the pair list a
-            rebuild and 4 bytes a pair slot. A mixed pile of 1e5 grains with contacts stepped in 4.4 ms instead
-            of 6.9 (BENCHMARKS.md 17); False: slot order.
+            rebuild and 4 bytes a pair slot (BENCHMARKS.md 17); False: slot order.
         overlap_check: where the validation tests body pairs for initial overlaps: "host" (the scene's own
             check, a k-d tree search), "device" (the same test over the first broad phase's candidate pairs, on
             this device: :mod:`polydem.overlap_check`; convex grains, the whole scene), "auto" (default: the
             device on CUDA from :data:`~polydem.overlap_check.DEVICE_CHECK_MIN_BODIES` bodies on). The same
-            warning or error either way.
+            warning or error either way. A scene validated before with ``Scene.validate(pair_overlaps=False)``
+            (``polydem run`` where the device check applies) is finished here: on the device where it applies,
+            else on the host.
 
     Attributes:
         scene: the :class:`~polydem.Scene` it was built from (the whole scene, where ``bodies`` is given).
@@ -652,7 +654,7 @@ class Simulation:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
         self.tree_rebuild = None if tree_rebuild is None else float(tree_rebuild)
-        on_device = validate and device_check_applies(scene, device, bodies, overlap_check)
+        on_device = device_check_applies(scene, device, bodies, overlap_check)
         if validate:
             scene.validate(pair_overlaps=not on_device)
         if settings is None:
@@ -711,8 +713,17 @@ class Simulation:
         self._average: ContactAverage | None = None
         self._intervals = 0
         self.current_contacts.build(self.current_state.body_q, keep_history=False)
-        if on_device:
-            scene.finish_overlap_check(device_pair_overlaps(scene, model, self.current_contacts, self.current_state))
+        if scene.pair_overlaps_pending:  # validated here or before without the body pairs' overlaps
+            try:
+                found = (
+                    device_pair_overlaps(scene, model, self.current_contacts, self.current_state) if on_device else None
+                )
+                scene.finish_overlap_check(found)
+            except SceneError:
+                # an overlap too deep: nothing of the run is kept (the traceback would hold the device arrays)
+                self.__dict__.clear()
+                del model
+                raise
 
     # -- snapshots -----------------------------------------------------------------------------
 

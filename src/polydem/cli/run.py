@@ -383,7 +383,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _cmd_run_decomposed(args)
     warp()
     signals.check()
-    resume, checkpoint, scene, dev = _load(args)
+    resume, checkpoint, scene, dev = _load(args, pairs_later=True)
     out_dir = output_folder(args, scene)
     check_outputs(args, scene, out_dir)  # before the kernels compile and the run starts
     criterion = _settle_criterion(args, scene)
@@ -391,26 +391,36 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from polydem.simulation import Simulation
 
-    sim: RunFront = Simulation(scene, device=dev)
+    # validated by _load; the body pairs' overlaps, where left to the device, checked in the Simulation's build
+    sim: RunFront = Simulation(scene, device=dev, validate=False)
     return _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
 
 
-def _load(args: argparse.Namespace) -> tuple[Path | None, Checkpoint | None, Scene, wp.DeviceLike]:
-    """The checkpoint to resume (path and contents, or None), the scene with the options applied, and the device."""
+def _load(
+    args: argparse.Namespace, pairs_later: bool = False
+) -> tuple[Path | None, Checkpoint | None, Scene, wp.DeviceLike]:
+    """The checkpoint to resume (path and contents, or None), the scene with the options applied, and the device
+    (``pairs_later``: see :func:`scene_and_device`)."""
     resume, checkpoint = checkpoint_to_resume(args)  # a damaged file fails before the model is built
-    scene, dev = scene_and_device(args)
+    scene, dev = scene_and_device(args, pairs_later)
     return resume, checkpoint, scene, dev
 
 
-def scene_and_device(args: argparse.Namespace) -> tuple[Scene, wp.DeviceLike]:
-    """The scene of ``args.scene`` with ``--precision`` applied, and the device: ``--device``, else the scene's
-    (None: Warp's default)."""
-    scene = load_scene(args.scene)
+def scene_and_device(args: argparse.Namespace, pairs_later: bool = False) -> tuple[Scene, wp.DeviceLike]:
+    """The scene of ``args.scene`` with ``--precision`` applied, validated, and the device: ``--device``, else the
+    scene's (None: Warp's default). ``pairs_later``: the initial overlaps of body pairs are left to the Simulation
+    where it checks them on its device (a large scene on CUDA: :mod:`polydem.overlap_check`), which then
+    finishes the scene's validation; validated once, after the options."""
+    scene = load_scene(args.scene, validate=not pairs_later)
     if args.precision is not None:
         scene.precision = args.precision
     dev = device(args.device) if args.device is not None else None
     if dev is None and scene.device is not None:
         dev = device(scene.device, file=scene.file, key="simulation.device")
+    if pairs_later:
+        from polydem.overlap_check import device_check_applies
+
+        scene.validate(pair_overlaps=not device_check_applies(scene, dev))
     return scene, dev
 
 

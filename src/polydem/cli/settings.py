@@ -26,15 +26,16 @@ DEFAULT_USD = "trajectory.usdc"
 """USD file of a run whose scene file does not mention ``output.usd``."""
 
 
-def load_scene(path):
-    """The scene file ``path``, or the built-in default scene when ``path`` is None."""
+def load_scene(path, validate: bool = True):
+    """The scene file ``path`` (validated unless ``validate`` is False), or the built-in default scene when
+    ``path`` is None."""
     from polydem.scene import Scene
 
     if path is None:
         from polydem.default_scene import default_scene
 
         return default_scene()
-    return Scene.from_toml(path)
+    return Scene.from_toml(path, validate=validate)
 
 
 def _output_keys(scene) -> set | None:

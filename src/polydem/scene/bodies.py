@@ -216,7 +216,7 @@ def append_bodies(scene, s, m, p, q, v, w, kind_code, rowkey, pivot=None) -> np.
     n = p.shape[0]
     if scene.body_table.n + n > MAX_BODIES:
         raise scene.error(
-            f"{n} more bodies would make {scene.body_table.n + n:.3g}, more than a scene can hold ({MAX_BODIES:.3g})",
+            f"{n} more bodies would make {scene.body_table.n + n:,}, more than a scene can hold ({MAX_BODIES:,})",
             rowkey(0),
         )
     arrays = [("position", p), ("orientation", q), ("velocity", v), ("angular_velocity", w)]

@@ -107,6 +107,8 @@ class Scene:
         # the initial-overlap messages of the last check, and where they stand among the warnings
         self._overlap_messages: list[str] = []
         self._overlap_at = 0
+        # validated without the body pairs' overlaps (validate(pair_overlaps=False)) and not finished since
+        self.pair_overlaps_pending = False
         self.body_table = BodyTable()
         self.material_table = MaterialTable()
         self.wall_table = WallTable()
@@ -265,6 +267,7 @@ class Scene:
         found = checks.check_loads(self, a, ts)
         if pair_overlaps:
             self._overlap_messages = overlaps.check_initial_overlaps(self, a)
+        self.pair_overlaps_pending = not pair_overlaps
         self._overlap_at = len(found)
         # Checked apart (pair_overlaps=False), the overlaps stand here as last found until finish_overlap_check.
         found += self._overlap_messages
@@ -283,12 +286,13 @@ class Scene:
         at = self._overlap_at
         return found[:at] + found[at + len(self._overlap_messages) :]
 
-    def finish_overlap_check(self, pair_overlaps) -> Scene:
+    def finish_overlap_check(self, pair_overlaps=None) -> Scene:
         """The initial-overlap check of a scene validated with ``pair_overlaps=False``: plane walls here, the body
-        pairs' records (:class:`~polydem.scene.overlaps.OverlapRecords`) as found on a device; a
-        :class:`SceneError` for an overlap too deep, else its warning issued (once, as :meth:`validate` issues
-        its) and put in :attr:`warnings` where validate puts it."""
+        pairs' records (:class:`~polydem.scene.overlaps.OverlapRecords`) as found on a device, or searched here
+        (None); a :class:`SceneError` for an overlap too deep, else its warning issued (once, as :meth:`validate`
+        issues its) and put in :attr:`warnings` where validate puts it."""
         found = overlaps.check_initial_overlaps(self, self.body_arrays(), pair_overlaps)
+        self.pair_overlaps_pending = False
         at = self._overlap_at
         warned = self._without_overlaps(self._warned)
         warned = warned[:at] + found + warned[at:]
@@ -297,7 +301,7 @@ class Scene:
                 warnings.warn(f"{self.file}: {message}" if self.file else message, SceneWarning, stacklevel=2)
         self._warned = warned
         self._overlap_messages = found
-        self.warnings = self.warnings[:at] + found + self.warnings[at:]
+        self.warnings = warned
         return self
 
     # ------------------------------------------------------------------ bodies (see bodies.py)

@@ -491,7 +491,7 @@ def _check_capacity(scene, count, lo, hi, base, frac, sample_scales, spacing, ke
         many = f"{total:.3g}" if total < 1e300 else as_integer(total)  # :g takes an int only as a float
         raise scene.error(
             f"count = {as_integer(count)} would make {many} bodies, more than a scene can hold "
-            f"({scene_bodies.MAX_BODIES:.3g}); lower count",
+            f"({scene_bodies.MAX_BODIES:,}); lower count",
             f"{key}.count",
         )
     per_shape = _largest_remainder(count, frac)

@@ -13,7 +13,10 @@ INITIAL_OVERLAP_WARNING = 0.01
 INITIAL_OVERLAP_ERROR = 0.5
 
 _BLOCK = 1 << 22  # floats per block of the vectorised overlap tests (32 MiB)
-_MAX_EDGE_AXES = 4096  # edge-direction pairs tested per body pair; beyond, face normals only
+MAX_EDGE_AXES = 4096  # edge-direction pairs tested per body pair; beyond, face normals only
+# A body whose bounding radius is more than this many times the bodies' median (a container's slab, a drum, a
+# boulder) searches the others instead of being searched, and comes first in its pairs.
+BIG_RADIUS_RATIO = 4.0
 
 
 def _blocks(n: int, per_item: int):
@@ -28,10 +31,14 @@ class OverlapRecords:
     record k, made only for the records a message shows (a pile may hold millions of small overlaps).
     :func:`report_overlaps` takes these or a list of ``(rel, depth, body, where, basis, fix)`` tuples."""
 
-    def __init__(self, rel, depth, body, words):
+    def __init__(self, rel, depth, body, words, other=None):
         self.rel = np.asarray(rel, dtype=np.float64).reshape(-1)
         self.depth = np.asarray(depth, dtype=np.float64).reshape(-1)
         self.body = np.asarray(body, dtype=np.int64).reshape(-1)
+        # what the body overlaps (another body, a plane wall): orders records as deep
+        self.other = (
+            np.zeros(len(self.rel), dtype=np.int64) if other is None else np.asarray(other, np.int64).reshape(-1)
+        )
         self.words = words
 
     def __len__(self) -> int:
@@ -58,8 +65,10 @@ class OverlapRecords:
             i = int(np.searchsorted(ends, k, side="right"))
             return parts[i].words(k - (int(ends[i - 1]) if i else 0))
 
-        cat = [np.concatenate([getattr(p, f) for p in parts]) for f in ("rel", "depth", "body")]
-        return cls(*cat, words)
+        rel, depth, body, other = (
+            np.concatenate([getattr(p, f) for p in parts]) for f in ("rel", "depth", "body", "other")
+        )
+        return cls(rel, depth, body, words, other)
 
 
 def _plane_overlaps(planes, plane_keys, shapes, a) -> OverlapRecords:
@@ -101,7 +110,7 @@ def _plane_overlaps(planes, plane_keys, shapes, a) -> OverlapRecords:
             "points to, or move the wall",
         )
 
-    return OverlapRecords(rel, depth, body, words)
+    return OverlapRecords(rel, depth, body, words, plane)
 
 
 def _candidate_pairs(pos: np.ndarray, rad: np.ndarray, near_big=None, tol: float = 0.0) -> np.ndarray:
@@ -124,7 +133,7 @@ def _candidate_pairs(pos: np.ndarray, rad: np.ndarray, near_big=None, tol: float
     n = len(pos)
     if n < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    big_mask = rad > 4.0 * float(np.median(rad))
+    big_mask = rad > BIG_RADIUS_RATIO * float(np.median(rad))
     small, big = np.flatnonzero(~big_mask), np.flatnonzero(big_mask)
     parts = []
     tree = cKDTree(pos[small]) if small.size else None
@@ -172,7 +181,7 @@ def _candidate_pairs(pos: np.ndarray, rad: np.ndarray, near_big=None, tol: float
     return pairs[d < rad[pairs[:, 0]] + rad[pairs[:, 1]]]
 
 
-def _edge_directions(shape) -> np.ndarray:
+def edge_directions(shape) -> np.ndarray:
     """(k, 3) unit edge directions of a shape (body frame), parallel edges once."""
     v = shape.vertices
     loops = shape.faces
@@ -218,7 +227,7 @@ def _sat_depth(shape_a, shape_b, ca, cb, ra, rb, edges_a, edges_b):
     wa = va @ ra.transpose(0, 2, 1) + ca[:, None, :]
     wb = vb @ rb.transpose(0, 2, 1) + cb[:, None, :]
     axes = (cb - ca)[:, None, :]
-    if len(edges_a) * len(edges_b) <= _MAX_EDGE_AXES:
+    if len(edges_a) * len(edges_b) <= MAX_EDGE_AXES:
         ea = np.einsum("pij,kj->pki", ra, edges_a)
         eb = np.einsum("pij,kj->pki", rb, edges_b)
         cross = np.cross(ea[:, :, None, :], eb[:, None, :, :]).reshape(len(ca), -1, 3)
@@ -360,9 +369,9 @@ def _pair_overlaps(shapes, body_label, a) -> OverlapRecords:
         sa, sb = shapes[g // len(shapes)], shapes[g % len(shapes)]
         for s in (g // len(shapes), g % len(shapes)):
             if s not in edges:
-                edges[s] = _edge_directions(shapes[s])
+                edges[s] = edge_directions(shapes[s])
         ea, eb = edges[g // len(shapes)], edges[g % len(shapes)]
-        n_axes = 1 + (len(ea) * len(eb) if len(ea) * len(eb) <= _MAX_EDGE_AXES else 0)
+        n_axes = 1 + (len(ea) * len(eb) if len(ea) * len(eb) <= MAX_EDGE_AXES else 0)
         per_pair = max(len(sb.vertices) * sa.num_faces, len(sa.vertices) * sb.num_faces)
         per_pair = max(per_pair, (len(sa.vertices) + len(sb.vertices)) * n_axes)
         rows = pairs[group == g] if len(groups) <= 8 else pairs[by_group[bounds[gi] : bounds[gi + 1]]]
@@ -419,7 +428,7 @@ def pair_records(rel, depth, b1, b2, body_label) -> OverlapRecords:
             f"move the two apart by at least {float(depth[k]):.3g} m",
         )
 
-    return OverlapRecords(rel, depth, b1, words)
+    return OverlapRecords(rel, depth, b1, words, b2)
 
 
 def check_initial_overlaps(scene, a, pair_overlaps: OverlapRecords | None = None) -> list[str]:
@@ -450,12 +459,13 @@ def report_overlaps(scene, records, head: str, fix: str) -> list[str]:
     """Initial overlaps (:class:`OverlapRecords`, or a list of ``(share of the basis, depth [m], body, where,
     basis, fix)``): a SceneError for the deepest beyond INITIAL_OVERLAP_ERROR, else one warning
     ``"<count> <head>: <the three deepest>; <fix>"`` (plane walls, pairs of bodies and mesh walls alike; of
-    records as deep, the first found first)."""
+    records as deep, to 12 decimals of their share, the lowest body first, then the lowest of what it overlaps:
+    the same message whatever order a search found them in, on the host or a device)."""
     if not isinstance(records, OverlapRecords):
         records = OverlapRecords.of_tuples(records)
     if not len(records):
         return []
-    order = np.argsort(-records.rel, kind="stable")
+    order = np.lexsort((records.other, records.body, -np.round(records.rel, 12)))
     deep = int(np.count_nonzero(records.rel > INITIAL_OVERLAP_ERROR))
     if deep:
         k = int(order[0])
