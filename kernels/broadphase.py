@@ -718,7 +718,9 @@ class BroadPhase:
                 needs it; it makes the rebuild test conservative for later uses of the list.
                 Non-free bodies always count it (they are tested by their boxes).
             body_box: optional pair of (N, 3) arrays, the lower and upper corners of a box around
-                each body's shape in its own frame [m], used to test pairs with non-free bodies.
+                each body's shape in its own frame [m], used to test pairs with non-free bodies; or a triple
+                (lower (B, 3), upper (B, 3), box (N,) int): B boxes and each body's index among them (a box per
+                shape and the bodies' shapes: no array of N boxes to make and sort out).
             radius_ref: the unit of the size classes [m] (default None: the smallest positive radius
                 of the free bodies, found at each build).
         """
@@ -742,14 +744,27 @@ class BroadPhase:
         if body_box is None or not self.num_bodies:
             far = np.full((n, 3), 1.0e30, dtype=np.float32)
             body_box = (-far, far)
-        lo, hi = (np.asarray(b, dtype=np.float32).reshape(-1, 3) for b in body_box)
-        if lo.shape != (self.num_bodies, 3) and self.num_bodies:
-            raise ValueError(f"body_box arrays must have shape ({self.num_bodies}, 3), got {lo.shape}")
-        # Each distinct box once (by its bits; the bodies of one shape share theirs) and each body's row of it:
-        # 4 bytes a body instead of 24.
-        rows = np.ascontiguousarray(np.hstack([lo, hi])).view(np.uint32)
-        boxes, box_of = _distinct_rows(rows)
-        boxes = np.ascontiguousarray(boxes).view(np.float32)
+        lo, hi = (np.asarray(b, dtype=np.float32).reshape(-1, 3) for b in body_box[:2])
+        if len(body_box) == 3 and self.num_bodies:
+            box_of = np.asarray(body_box[2]).reshape(-1)
+            if box_of.shape != (self.num_bodies,) or lo.shape != hi.shape:
+                raise ValueError(
+                    f"body_box (lower, upper, box) needs {self.num_bodies} box indices and two (B, 3) arrays, got "
+                    f"{box_of.shape[0]} indices and {lo.shape}, {hi.shape}"
+                )
+            if box_of.size and not (0 <= box_of.min() and box_of.max() < len(lo)):
+                raise ValueError(
+                    f"body_box: box indices must lie in [0, {len(lo)}), got {box_of.min()}..{box_of.max()}"
+                )
+            boxes = np.hstack([lo, hi])
+        else:
+            if lo.shape != (self.num_bodies, 3) and self.num_bodies:
+                raise ValueError(f"body_box arrays must have shape ({self.num_bodies}, 3), got {lo.shape}")
+            # Each distinct box once (by its bits; the bodies of one shape share theirs) and each body's row of it:
+            # 4 bytes a body instead of 24.
+            rows = np.ascontiguousarray(np.hstack([lo, hi])).view(np.uint32)
+            boxes, box_of = _distinct_rows(rows)
+            boxes = np.ascontiguousarray(boxes).view(np.float32)
         self.body_box_lower = wp.array(boxes[:, :3], dtype=wp.vec3, device=dev)
         self.body_box_upper = wp.array(boxes[:, 3:], dtype=wp.vec3, device=dev)
         self.body_box = wp.array(np.asarray(box_of, dtype=np.int32).reshape(-1), dtype=int, device=dev)

@@ -554,3 +554,23 @@ def test_pair_capacity_beyond_int32_indices_is_refused(device):
     with pytest.raises(RuntimeError, match="int32 indices reach"):
         bp._allocate(2**30)
     assert bp.capacity < 2**30
+
+
+def test_boxes_by_shape_give_the_pairs_of_boxes_by_body(device):
+    """body_box as a box per shape and each body's shape, or as a box per body: the same pairs (fixed and
+    kinematic bodies are tested by their boxes); indices out of range are refused."""
+    rng = np.random.default_rng(5)
+    scene = random_scene(device, 400, rng, 0.01, 0.05, p_fixed=0.2, p_kinematic=0.1)
+    shape_lo = np.array([[-0.01, -0.02, -0.005], [-0.03, -0.01, -0.02], [-0.004, -0.004, -0.004]])
+    shape_hi = -shape_lo * np.array([1.0, 0.5, 1.0])
+    shape = rng.integers(0, 3, scene.n)
+    pairs = []
+    for box in ((shape_lo[shape], shape_hi[shape]), (shape_lo, shape_hi, shape)):
+        bp = BroadPhase(scene.n, device, skin=0.01, body_box=box)
+        count = bp.build(*scene.args())
+        pairs.append((bp.pair_a.numpy()[:count].copy(), bp.pair_b.numpy()[:count].copy()))
+    assert len(pairs[0][0]) > 10
+    for got, want in zip(pairs[1], pairs[0], strict=True):
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="box indices must lie in"):
+        BroadPhase(scene.n, device, skin=0.01, body_box=(shape_lo, shape_hi, shape + 1))

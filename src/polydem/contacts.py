@@ -140,7 +140,8 @@ class Contacts:
     Args:
         model: the :class:`~polydem.model.Model`.
         skin: Verlet skin [m].
-        body_box: (lower, upper), two (N, 3) arrays: a box around each body's shape in its own frame [m].
+        body_box: (lower, upper), two (N, 3) arrays: a box around each body's shape in its own frame [m]; or
+            (lower, upper, box): B boxes and each body's index among them (see :class:`BroadPhase`).
         capacity: initial number of pairs there is room for (grows on overflow).
         radius_ref: the unit of the broad phase's size classes [m] (``RunSettings.radius_ref``; None:
             the smallest free radius of the model's bodies).
@@ -179,7 +180,7 @@ class Contacts:
         self,
         model: Model,
         skin: float,
-        body_box: tuple[np.ndarray, np.ndarray],
+        body_box: tuple[np.ndarray, ...],
         capacity: int,
         radius_ref: float | None = None,
         thread_order: bool = False,

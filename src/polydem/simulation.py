@@ -676,14 +676,14 @@ class Simulation:
         self.skin = settings.skin
         # Bounding spheres about the centre do not change as a body turns: no rotation term.
         shape_list = [scene.shapes[name] for name in scene.shape_names]
-        lower = np.array([s.vertices.min(axis=0) for s in shape_list])[model.body_shape_np]
-        upper = np.array([s.vertices.max(axis=0) for s in shape_list])[model.body_shape_np]
+        lower = np.array([s.vertices.min(axis=0) for s in shape_list])
+        upper = np.array([s.vertices.max(axis=0) for s in shape_list])
         # Settled packings of convex grains have 3-4 candidate pairs per body at this skin: start
         # with room for 5 (an overflow grows the buffers and redoes the step).
         self.current_contacts = Contacts(
             model,
             self.skin,
-            body_box=(lower, upper),
+            body_box=(lower, upper, model.body_shape_np),  # a box per shape
             capacity=max(1024, 5 * n),
             radius_ref=settings.radius_ref,
             thread_order=order_pair_threads,
