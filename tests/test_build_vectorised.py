@@ -263,3 +263,12 @@ def test_report_overlaps_of_records_and_of_tuples_alike():
             overlaps.report_overlaps(sc, given, head, fix)
         messages.append(str(err.value))
     assert messages[0] == messages[1] and "(1 more bodies start this deep)" in messages[0]
+
+
+def test_distinct_codes_are_numpys_unique():
+    from polydem.scene.values import distinct_codes
+
+    rng = np.random.default_rng(11)
+    for size, n in ((1, 5), (7, 1000), (40, 3), (12, 0)):
+        codes = rng.integers(0, size, n).astype(np.int32)
+        np.testing.assert_array_equal(distinct_codes(codes, size), np.unique(codes))

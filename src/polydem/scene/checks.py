@@ -12,7 +12,7 @@ from polydem.quaternions import quat_to_matrix
 from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
 from polydem.scene.overlaps import INITIAL_OVERLAP_WARNING, report_overlaps
 from polydem.scene.settings import MAX_STEPS
-from polydem.scene.values import F32_HIGH, F32_LOW, F32_MARGIN, RADIUS_HIGH, RADIUS_LOW, check_quats
+from polydem.scene.values import F32_HIGH, F32_LOW, F32_MARGIN, RADIUS_HIGH, RADIUS_LOW, check_quats, distinct_codes
 from polydem.scene.walls import mesh_wall_memo
 from polydem.shapes import largest_face_area
 
@@ -445,7 +445,7 @@ def check_float32(scene, a):
     shapes = list(scene.shapes.values())
     names = scene.shape_names
     r_lo, r_hi = RADIUS_LOW, RADIUS_HIGH
-    for s in np.unique(a["shape"]):
+    for s in distinct_codes(a["shape"], len(shapes)):
         sh = shapes[int(s)]
         if not r_lo <= sh.radius <= r_hi:
             i = int(np.flatnonzero(a["shape"] == s)[0])
@@ -470,7 +470,7 @@ def check_float32(scene, a):
     free = a["kind"] == KIND_FREE
     if not free.any():
         return
-    combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])
+    combo = distinct_codes(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free], len(shapes) * len(mats))
     for c in combo.tolist():
         sh, mat = shapes[c // len(mats)], mats[c % len(mats)]
         mass = mat.density * sh.volume
@@ -497,7 +497,7 @@ def check_float32(scene, a):
         return
     # The kernels evaluate W = k V^m / m and W' = k V^(m-1) in float32; at the reference
     # overlap (0.1% of a free body's volume) V^m must stay in range, which bounds m.
-    vols = np.array([sh.volume for sh in shapes])[np.unique(a["shape"][free])]
+    vols = np.array([sh.volume for sh in shapes])[distinct_codes(a["shape"][free], len(shapes))]
     caps = []
     v_small, v_large = REFERENCE_DEPTH * vols.min(), REFERENCE_DEPTH * vols.max()
     if v_small < 1.0:
@@ -553,7 +553,7 @@ def _check_body_loads(scene, a, ts: TimeStep) -> list[str]:
     mats = list(scene.materials.values())
     law, m = table["law"], float(table["exponent"])
     k_pair = np.asarray(table["k"], dtype=np.float64)
-    present = set(np.unique(a["material"]).tolist())
+    present = set(distinct_codes(a["material"], len(mats)).tolist())
     planes = [*scene.planes, *scene.mesh_walls]
     present.update(scene.material_index(p.material) for p in planes)
     present = np.array(sorted(present))
@@ -576,7 +576,7 @@ def _check_body_loads(scene, a, ts: TimeStep) -> list[str]:
             "law = 'hertz' or law = 'power' (with m > 1) for bodies that rest under gravity "
             f"(materials.{mats[0].name}.law)"
         )
-    combo = np.unique(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free])
+    combo = distinct_codes(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free], len(shapes) * len(mats))
     for c in combo.tolist():
         sh, mi = shapes[c // len(mats)], c % len(mats)
         mat = mats[mi]
@@ -683,7 +683,7 @@ def tunnelling_limits(scene, a, dt: float) -> TunnelLimits:
     code = a["shape"].astype(np.int64) * n_mat + a["material"]
     present = np.bincount(code, minlength=len(shapes) * n_mat) > 0 if len(code) else np.zeros(0, dtype=bool)
     pairs = np.flatnonzero(present)
-    used_width = shape_widths[np.unique(pairs // n_mat)]
+    used_width = shape_widths[distinct_codes(pairs // n_mat, len(shapes))]
     if used_width.size and not np.isnan(used_width).any():
         thinnest = int(np.argmax((shape_widths == used_width.min())[a["shape"]]))  # the first body that thin
     else:
@@ -823,7 +823,7 @@ def check_position_spacing(scene, a) -> None:
     """
     shapes = list(scene.shapes.values())
     free = a["kind"] == KIND_FREE
-    used = np.unique(a["shape"][free] if free.any() else a["shape"])
+    used = distinct_codes(a["shape"][free] if free.any() else a["shape"], len(shapes))
     thinnest = min(shape_width(shapes[int(s)]) for s in used)
     resolve = REFERENCE_DEPTH * thinnest
     if not (math.isfinite(resolve) and resolve > 0.0):

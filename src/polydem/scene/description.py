@@ -34,7 +34,7 @@ from polydem.scene.materials import LAW_UNITS, Material, MaterialTable, PairMate
 from polydem.scene.motions import MOTION, Motion
 from polydem.scene.output import Output
 from polydem.scene.settings import SETTING_NAMES, SIMULATION, read_settings
-from polydem.scene.values import typename
+from polydem.scene.values import distinct_codes, typename
 from polydem.scene.walls import BOX, DRUM, MESH, PLANE, Drum, MeshWall, PlaneWall, WallTable
 from polydem.shapes import ConvexShape
 
@@ -824,7 +824,7 @@ class Scene:
         """A warning per compound shape in use whose parts overlap each other: their contacts count the shared
         region twice."""
         found = []
-        used = set(np.unique(a["shape"]).tolist())
+        used = set(distinct_codes(a["shape"], len(self.shapes)).tolist())
         for index, (name, shape) in enumerate(self.shapes.items()):
             if index in used and getattr(shape, "overlapping", False):
                 found.append(

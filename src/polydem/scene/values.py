@@ -205,6 +205,15 @@ def join_key(prefix, k) -> str:
     return f"{prefix}.{k}" if prefix else str(k)
 
 
+def distinct_codes(codes, size: int) -> np.ndarray:
+    """The distinct values of the int array ``codes`` (each in [0, size): shape or material indices, or pairs of
+    them), ascending, as ``np.unique`` gives them: one counting pass instead of a sort of every body's code."""
+    codes = np.asarray(codes).reshape(-1)
+    if not codes.size:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.bincount(codes, minlength=size))
+
+
 def check_quats(q: np.ndarray, rowkey, file) -> np.ndarray:
     """Validate (N, 4) quaternions (zero, non-unit beyond QUAT_TOL) and return them normalised."""
     norms = np.sqrt(np.einsum("ij,ij->i", q, q))
