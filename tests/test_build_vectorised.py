@@ -272,3 +272,12 @@ def test_distinct_codes_are_numpys_unique():
     for size, n in ((1, 5), (7, 1000), (40, 3), (12, 0)):
         codes = rng.integers(0, size, n).astype(np.int32)
         np.testing.assert_array_equal(distinct_codes(codes, size), np.unique(codes))
+
+
+def test_row_norms_are_numpys_bit_for_bit():
+    from polydem.scene.values import row_norms
+
+    rng = np.random.default_rng(12)
+    x = rng.normal(size=(5000, 3)) * rng.uniform(0.0, 1e3, (5000, 1))
+    x[:7] = 0.0
+    np.testing.assert_array_equal(row_norms(x), np.linalg.norm(x, axis=1))

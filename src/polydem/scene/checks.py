@@ -12,7 +12,16 @@ from polydem.quaternions import quat_to_matrix
 from polydem.scene.bodies import KIND_FIXED, KIND_FREE, KIND_KINEMATIC, KINDS
 from polydem.scene.overlaps import INITIAL_OVERLAP_WARNING, report_overlaps
 from polydem.scene.settings import MAX_STEPS
-from polydem.scene.values import F32_HIGH, F32_LOW, F32_MARGIN, RADIUS_HIGH, RADIUS_LOW, check_quats, distinct_codes
+from polydem.scene.values import (
+    F32_HIGH,
+    F32_LOW,
+    F32_MARGIN,
+    RADIUS_HIGH,
+    RADIUS_LOW,
+    check_quats,
+    distinct_codes,
+    row_norms,
+)
 from polydem.scene.walls import mesh_wall_memo
 from polydem.shapes import largest_face_area
 
@@ -560,7 +569,7 @@ def _check_body_loads(scene, a, ts: TimeStep) -> list[str]:
     support = bool(planes) or bool((a["kind"] != KIND_FREE).any())
     partners = bool(planes) or scene.num_bodies >= 2
     g = float(np.linalg.norm(scene.gravity))
-    speeds = np.linalg.norm(a["velocity"][a["kind"] != KIND_FIXED], axis=1)
+    speeds = row_norms(a["velocity"][a["kind"] != KIND_FIXED])
     v_hit = float(speeds.max()) if partners and speeds.size else 0.0
     if not ((support and g > 0.0) or v_hit > 0.0):
         return []
@@ -729,7 +738,7 @@ def check_tunnelling(scene, a, dt: float, limits: TunnelLimits | None = None) ->
         return []
     shapes = list(scene.shapes.values())
     radius = np.array([sh.radius for sh in shapes])[a["shape"]]
-    speed = np.linalg.norm(a["velocity"], axis=1) + np.linalg.norm(a["angular_velocity"], axis=1) * radius
+    speed = row_norms(a["velocity"]) + row_norms(a["angular_velocity"]) * radius
     limits = tunnelling_limits(scene, a, dt) if limits is None else limits
     ratio = np.where(moving, speed / limits.body_speed_limit, 0.0)
     i = int(np.argmax(ratio))
@@ -869,11 +878,7 @@ def check_run_span(scene, dt: float, steps: int, source: str, default: bool = Fa
     with np.errstate(all="ignore"):
         # Symplectic Euler from rest: g t (t + dt) / 2 after t.
         fall = np.where(a["kind"] == KIND_FREE, 0.5 * g * span * (span + dt), 0.0)
-        reach = (
-            np.linalg.norm(a["velocity"], axis=1) * span
-            + np.linalg.norm(a["angular_velocity"], axis=1) * radius * span
-            + fall
-        )
+        reach = row_norms(a["velocity"]) * span + row_norms(a["angular_velocity"]) * radius * span + fall
         dtype = np.float32 if scene.precision == "float32" else np.float64
         far = np.abs(np.asarray(a["position"], dtype=np.float64)).max(axis=1) + radius
         spacing = np.spacing(far.astype(dtype)).astype(np.float64)

@@ -7,6 +7,7 @@ import numpy as np
 from polydem.compound import expand_bodies, is_compound
 from polydem.quaternions import quat_to_matrix
 from polydem.scene.bodies import KIND_FREE
+from polydem.scene.values import row_norms
 
 # Initial overlaps, as a fraction of the thinner body's thickness along the separating axis.
 INITIAL_OVERLAP_WARNING = 0.01
@@ -177,7 +178,7 @@ def _candidate_pairs(pos: np.ndarray, rad: np.ndarray, near_big=None, tol: float
     if not parts:
         return np.zeros((0, 2), dtype=np.int64)
     pairs = np.concatenate(parts).astype(np.int64)
-    d = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
+    d = row_norms(pos[pairs[:, 0]] - pos[pairs[:, 1]])
     return pairs[d < rad[pairs[:, 0]] + rad[pairs[:, 1]]]
 
 

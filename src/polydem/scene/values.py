@@ -205,6 +205,13 @@ def join_key(prefix, k) -> str:
     return f"{prefix}.{k}" if prefix else str(k)
 
 
+def row_norms(x: np.ndarray) -> np.ndarray:
+    """The Euclidean norm of each row of an (N, 3) array: ``np.linalg.norm(x, axis=1)`` bit for bit (its sum over
+    three entries runs in this order), without its slow reduction over a short axis (some 5x at 1e6 rows)."""
+    x = np.asarray(x)
+    return np.sqrt(x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2])
+
+
 def distinct_codes(codes, size: int) -> np.ndarray:
     """The distinct values of the int array ``codes`` (each in [0, size): shape or material indices, or pairs of
     them), ascending, as ``np.unique`` gives them: one counting pass instead of a sort of every body's code."""
