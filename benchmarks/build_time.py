@@ -69,7 +69,6 @@ from polydem import Scene, Simulation  # noqa: E402
 from polydem import contacts as contacts_module  # noqa: E402
 from polydem import model as model_module  # noqa: E402
 from polydem import simulation as simulation_module  # noqa: E402
-from polydem.overlap_check import device_pair_overlaps  # noqa: E402
 from polydem.scene import checks, overlaps  # noqa: E402
 
 BUILDERS = ("settle", "emit", "emit-plane")
@@ -188,6 +187,7 @@ def patched(timers):
     targets.append((overlaps, "check_initial_overlaps", "check.check_initial_overlaps"))
     targets.append((simulation_module, "run_settings", "run_settings"))
     targets.append((wp.utils, "radix_sort_pairs", "contacts_build.radix_sort_pairs"))
+    targets.append((simulation_module, "device_pair_overlaps", "overlap_check_device"))
     saved = []
     for module, name, label in targets:
         saved.append((module, name, getattr(module, name)))
@@ -206,6 +206,7 @@ def patched(timers):
         (BroadPhase, "_spatial_order", "contacts_build.spatial_order"),
         (BroadPhase, "_query", "contacts_build.query"),
         (wp.Bvh, "__init__", "contacts_build.bvh_init"),
+        (Scene, "finish_overlap_check", "overlap_check_finish"),  # the Simulation's: planes, the message
     ]
     for cls, name, label in methods:
         saved.append((cls, name, cls.__dict__[name]))
@@ -239,21 +240,14 @@ def build(builder, n, device, timers, steps=0, overlap_check="host"):
         stages.update(timers.take())
         start = mempool(device)
         t0 = time.perf_counter()
-        sim = Simulation(scene, device, validate=False)
+        # validated above; with overlap_check "device" the Simulation finishes the check (the pairs on the device)
+        sim = Simulation(scene, device, validate=False, overlap_check=overlap_check)
         wp.synchronize_device(device)
         stages["simulation"] = time.perf_counter() - t0
         if start is not None:
             timers.memory["start"] = start
             timers.memory["simulation"] = mempool(device)
         parts = timers.take()
-        if overlap_check == "device":
-            # the pairs' overlap check on the device (Simulation(overlap_check="device") does it in its build)
-            t0 = time.perf_counter()
-            scene.finish_overlap_check(device_pair_overlaps(scene, sim.model, sim.current_contacts, sim.current_state))
-            stages["overlap_check_device"] = time.perf_counter() - t0
-            stages["simulation"] += stages["overlap_check_device"]
-            if start is not None:
-                timers.memory["overlap_check_device"] = mempool(device)
         if steps:
             memory = timers.take_memory()
             timers.device = None  # no synchronisation inside the timed steps
@@ -268,8 +262,8 @@ def build(builder, n, device, timers, steps=0, overlap_check="host"):
                 timers.memory["steps"] = mempool(device)
     stages.update(parts)
     top = ("run_settings", "model", "state", "contacts_init", "contacts_build", "stepper")
+    top += ("overlap_check_device", "overlap_check_finish")
     stages["simulation.rest"] = stages["simulation"] - sum(parts.get(k, 0.0) for k in top)
-    stages["simulation.rest"] -= stages.get("overlap_check_device", 0.0)
     stages["total"] = stages["scene"] + stages["validate"] + stages["simulation"]
     return stages, scene, sim
 
