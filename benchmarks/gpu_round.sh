@@ -5,8 +5,8 @@
 #   BUDGET=500 bash benchmarks/gpu_round.sh
 # GPU 0: the build of 1e6 and 1e7 cubes and 20 steps, the initial overlaps checked on the host and then on the
 #        device (benchmarks/build_time.py --overlap-check), with the device memory at the end of each stage.
-# GPU 1: the mixed pile of 1e5 grains with contacts, pair threads in slot order and grouped by cost, and the cube
-#        pile of 1e5 beside it (issue27_gpu.sh mixed).
+# GPU 1: 7e7 cubes built with the device's overlap check and the host trims, and stepped 20 times (against the
+#        258 s of BENCHMARKS.md 19, built with the host's check).
 # GPU 2: the CUDA tests of the files the last changes touch (test_usd.py where usd-core is installed; stage its
 #        wheel as a part of its own, the GPU bundle has none).
 # GPU 3: the largest settle pile that fits the card, built with the device's overlap check and stepped 20 times
@@ -40,8 +40,8 @@ else
         --out $W/res/build_time_settle_$oc.json > $W/log/build_time_$oc.log 2>&1
     done ) &
 fi
-( CUDA_VISIBLE_DEVICES=1 OUT=$W/res SIZES=100000 ORDERS="slot cost" timeout $(left) bash benchmarks/issue27_gpu.sh mixed \
-    > $W/log/issue27_mixed.log 2>&1 ) &
+gpu 1 python benchmarks/build_time.py --device cuda:0 --sizes 7e7 --steps 20 --no-git --overlap-check device \
+  --out $W/res/build_time_settle_7e7_device.json > $W/log/build_7e7.log 2>&1 &
 CUDA_VISIBLE_DEVICES=2 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
   -p no:cacheprovider tests/test_overlap_check.py tests/test_usd.py tests/test_pair_order.py tests/test_memory.py \
   > $W/log/pytest.log 2>&1 &
