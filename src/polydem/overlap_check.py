@@ -45,38 +45,35 @@ def median_by_counts(values: np.ndarray, counts: np.ndarray) -> float:
 
 
 class OverlapGeometry:
-    """The shapes as the device test reads them, in float64: vertices, face planes, each face's least offset over
-    its own shape's vertices, unit edge directions (parallel edges once), and whether a shape is big (a bounding
-    radius more than BIG_RADIUS_RATIO times the bodies' median, as the host test takes it: first in its pairs).
+    """What the device test reads of the shapes beyond the model's :class:`~polydem.shapeset.ShapeSet` (whose
+    float64 vertices and face planes, ``vert64`` and ``face_plane64``, it takes as they are): each face's least
+    offset over its own shape's vertices, unit edge directions (parallel edges once), and whether a shape is big (a
+    bounding radius more than BIG_RADIUS_RATIO times the bodies' median, as the host test takes it: first in its
+    pairs).
 
-    Attributes (device arrays; S shapes):
-        shape_vert_start, shape_face_start, shape_edge_start: (S+1,) int32 firsts of each shape.
-        vert: (V,) vec3d [m]; face_plane: (F,) vec4d normal and offset [m]; face_lo: (F,) float64 [m];
-        edge_dir: (E,) vec3d unit; shape_big: (S,) int32 0/1; max_edge_axes: edge-direction pairs a body pair
-        tests, beyond which it takes face normals only.
+    Attributes (device arrays; S shapes, F their faces):
+        shapeset: the model's shapes (its first S entries are the scene's shapes, in order: convex ones only).
+        face_lo: (F,) float64 [m]; shape_edge_start: (S+1,) int32; edge_dir: (E,) vec3d unit; shape_big: (S,)
+        int32 0/1; max_edge_axes: edge-direction pairs a body pair tests, beyond which it takes face normals only.
     """
 
-    def __init__(self, shapes, body_shape: np.ndarray, device):
+    def __init__(self, shapeset, body_shape: np.ndarray):
+        shapes = shapeset.shapes
         if any(is_compound(s) for s in shapes):
             raise ValueError(
                 "the device overlap check takes convex shapes only (a compound grain is checked on the host)"
             )
+        device = shapeset.device
         counts = np.bincount(np.asarray(body_shape), minlength=len(shapes))
         radius = np.array([s.radius for s in shapes], dtype=np.float64)
         median = median_by_counts(radius, counts)
         edges = [edge_directions(s) for s in shapes]
-        lo = [(s.vertices @ s.face_normals.T).min(axis=0) for s in shapes]
-
-        def starts(sizes):
-            return wp.array(np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32), dtype=int, device=device)
-
-        self.shape_vert_start = starts([len(s.vertices) for s in shapes])
-        self.shape_face_start = starts([len(s.face_normals) for s in shapes])
-        self.shape_edge_start = starts([len(e) for e in edges])
-        self.vert = wp.array(np.concatenate([s.vertices for s in shapes]), dtype=wp.vec3d, device=device)
-        planes = np.concatenate([np.column_stack([s.face_normals, s.face_offsets]) for s in shapes])
-        self.face_plane = wp.array(planes, dtype=wp.vec4d, device=device)
-        self.face_lo = wp.array(np.concatenate(lo), dtype=wp.float64, device=device)
+        self.shapeset = shapeset
+        # the scene's shapes are the set's first entries: their faces are its first faces, in this order
+        lo = np.concatenate([(s.vertices @ s.face_normals.T).min(axis=0) for s in shapes])
+        self.face_lo = wp.array(lo, dtype=wp.float64, device=device)
+        edge_start = np.concatenate([[0], np.cumsum([len(e) for e in edges])]).astype(np.int32)
+        self.shape_edge_start = wp.array(edge_start, dtype=int, device=device)
         self.edge_dir = wp.array(np.concatenate(edges).reshape(-1, 3), dtype=wp.vec3d, device=device)
         self.shape_big = wp.array((radius > BIG_RADIUS_RATIO * median).astype(np.int32), dtype=int, device=device)
         self.max_edge_axes = MAX_EDGE_AXES
@@ -121,7 +118,7 @@ def device_pair_overlaps(scene, model, contacts, state):
     if body_q.dtype != wp.transformd:
         a = scene.body_arrays()
         body_q = wp.array(np.hstack([a["position"], a["orientation"]]), dtype=wp.transformd, device=device)
-    geometry = OverlapGeometry(list(scene.shapes.values()), model.body_shape_np, device)
+    geometry = OverlapGeometry(model.shapes, model.body_shape_np)
     bodies, rel, depth = launch_pair_overlaps(
         geometry,
         model.body_shape,
