@@ -567,6 +567,10 @@ def test_boxes_by_shape_give_the_pairs_of_boxes_by_body(device):
     pairs = []
     for box in ((shape_lo[shape], shape_hi[shape]), (shape_lo, shape_hi, shape)):
         bp = BroadPhase(scene.n, device, skin=0.01, body_box=box)
+        # each body's box, the same bits either way
+        of = bp.body_box.numpy()
+        np.testing.assert_array_equal(bp.body_box_lower.numpy()[of], shape_lo[shape].astype(np.float32))
+        np.testing.assert_array_equal(bp.body_box_upper.numpy()[of], shape_hi[shape].astype(np.float32))
         count = bp.build(*scene.args())
         pairs.append((bp.pair_a.numpy()[:count].copy(), bp.pair_b.numpy()[:count].copy()))
     assert len(pairs[0][0]) > 10
