@@ -52,6 +52,7 @@ import math
 import os
 import platform
 import pstats
+import resource
 import sys
 import time
 import warnings
@@ -367,6 +368,9 @@ def main():
                 log("  device memory (mempool over its use before the Simulation, B/body, current / high-water):")
                 for k, m in row["mempool_bytes_per_body"].items():
                     log(f"    {k:<38} {m['current']:>9.1f} {m['high']:>9.1f}")
+            # the process's peak resident host memory so far (Linux reports KiB): a 1e8 build must fit the host too
+            row["host_peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+            log(f"  host peak resident memory so far: {row['host_peak_rss_bytes'] / 2**30:.1f} GiB")
             if args.repeats > 1:
                 row["runs"] = runs
             record["results"].append(row)

@@ -1,16 +1,15 @@
 #!/bin/bash
-# The measurements still open, on a machine of 4 GPUs in one call (kind nvidia-h100-x4), under one hard deadline:
+# The measurements still open, on a machine of 1, 2 or 4 GPUs in one call, under one hard deadline:
 # whatever still runs at BUDGET seconds (default 500) is stopped, and everything is packed into $OUT/round.tgz
 # (res/: JSON and tap checkpoints, log/: one log a job). From the repository root, polydem importable.
 #   BUDGET=500 bash benchmarks/gpu_round.sh
-# GPU 0: the build of 1e6 and 1e7 cubes and 20 steps, the initial overlaps checked on the host and then on the
-#        device (benchmarks/build_time.py --overlap-check), with the device memory at the end of each stage.
-# GPU 1: 7e7 cubes built with the device's overlap check and the host trims, and stepped 20 times (against the
-#        258 s of BENCHMARKS.md 19, built with the host's check).
-# GPU 2: the CUDA tests of the files the last changes touch (test_usd.py where usd-core is installed; stage its
-#        wheel as a part of its own, the GPU bundle has none).
-# GPU 3: the largest settle pile that fits the card, built with the device's overlap check and stepped 20 times
-#        (1e8 cubes on a card of more than 100 GB: an H200; else 4e7).
+# On 4 GPUs: GPU 0 builds 1e6 and 1e7 cubes and steps them 20 times, the initial overlaps checked on the host and
+# then on the device (benchmarks/build_time.py --overlap-check), with the device memory at the end of each stage;
+# GPU 1 builds 7e7 with the device's check (against the 258 s of BENCHMARKS.md 19, the host's check); GPU 2 runs
+# the CUDA tests of the files the last changes touch (test_usd.py where usd-core is installed: stage its wheel as a
+# part of its own, the GPU bundle has none); the last GPU builds the largest settle pile that fits it with the
+# device's check and steps it 20 times (1e8 cubes on a card of more than 100 GB, an H200; else 4e7).
+# On 2 GPUs: GPU 0 runs the CUDA tests and then the 1e6/1e7 builds; GPU 1 the largest pile. On 1: no large pile.
 # RUN_TAPS=1 runs the tap runs instead of GPU 0's job, each resumed from its latest checkpoint in
 # benchmarks/results/validation/taps/ (issue 26).
 set -u
@@ -30,24 +29,44 @@ tapjob() {
   gpu $g python benchmarks/validation/tapping.py --device cuda:0 --taps 400 --start 1.0 --period 0.2 --coordination \
     --stop-after $(( $(left) - 45 )) "${resume[@]}" --out $W/res/$name.json "$@" > $W/log/$name.log 2>&1
 }
+NGPU=$(nvidia-smi -L | wc -l)
+# the CUDA tests first (they decide whether the device check may be trusted), then the build on the host and device
+# checks at 1e6 and 1e7
+cuda_tests() {
+  CUDA_VISIBLE_DEVICES=$1 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+    -p no:cacheprovider tests/test_overlap_check.py tests/test_usd.py tests/test_pair_order.py tests/test_memory.py \
+    > $W/log/pytest.log 2>&1
+}
+small_builds() {
+  for oc in host device; do
+    gpu $1 python benchmarks/build_time.py --device cuda:0 --sizes 1e6,1e7 --steps 20 --no-git --overlap-check $oc \
+      --out $W/res/build_time_settle_$oc.json > $W/log/build_time_$oc.log 2>&1
+  done
+}
+# the largest pile that fits the last card: 1e8 cubes on a card of more than 100 GB (an H200), else 4e7
+last=$((NGPU - 1))
+big=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits -i $last \
+  | awk '{print ($1 > 100000) ? 100000000 : 40000000}')
+big_build() {
+  gpu $last python benchmarks/build_time.py --device cuda:0 --sizes $big --steps 20 --no-git --overlap-check device \
+    --out $W/res/build_time_settle_$big.json > $W/log/build_big.log 2>&1
+}
 if [ -n "${RUN_TAPS:-}" ]; then
   tapjob 0 tap_cube_s1 --grains 5000 --width 24 --seed 1 &
   tapjob 0 tap_cube_s2 --grains 5000 --width 24 --seed 2 &
   tapjob 0 tap_tetra_s1 --shape tetrahedron --grains 8000 --width 14 --seed 1 &
+elif [ "$NGPU" -ge 4 ]; then
+  small_builds 0 &
+  gpu 1 python benchmarks/build_time.py --device cuda:0 --sizes 7e7 --steps 20 --no-git --overlap-check device \
+    --out $W/res/build_time_settle_7e7_device.json > $W/log/build_7e7.log 2>&1 &
+  cuda_tests 2 &
+  big_build &
+elif [ "$NGPU" -ge 2 ]; then
+  ( cuda_tests 0; small_builds 0 ) &
+  big_build &
 else
-  ( for oc in host device; do
-      gpu 0 python benchmarks/build_time.py --device cuda:0 --sizes 1e6,1e7 --steps 20 --no-git --overlap-check $oc \
-        --out $W/res/build_time_settle_$oc.json > $W/log/build_time_$oc.log 2>&1
-    done ) &
+  ( cuda_tests 0; small_builds 0 ) &
 fi
-gpu 1 python benchmarks/build_time.py --device cuda:0 --sizes 7e7 --steps 20 --no-git --overlap-check device \
-  --out $W/res/build_time_settle_7e7_device.json > $W/log/build_7e7.log 2>&1 &
-CUDA_VISIBLE_DEVICES=2 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
-  -p no:cacheprovider tests/test_overlap_check.py tests/test_usd.py tests/test_pair_order.py tests/test_memory.py \
-  > $W/log/pytest.log 2>&1 &
-big=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits -i 3 | awk '{print ($1 > 100000) ? 100000000 : 40000000}')
-gpu 3 python benchmarks/build_time.py --device cuda:0 --sizes $big --steps 20 --no-git --overlap-check device \
-  --out $W/res/build_time_settle_$big.json > $W/log/build_big.log 2>&1 &
 while [ $SECONDS -lt $END ] && [ -n "$(jobs -r)" ]; do sleep 2; done
 # Every process of this session but this shell (timeout puts each job in its own group, not session).
 left_over=$(pgrep -s $$ | grep -vx $$); [ -n "$left_over" ] && kill -TERM $left_over 2>/dev/null; sleep 2
