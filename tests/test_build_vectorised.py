@@ -281,3 +281,136 @@ def test_row_norms_are_numpys_bit_for_bit():
     x = rng.normal(size=(5000, 3)) * rng.uniform(0.0, 1e3, (5000, 1))
     x[:7] = 0.0
     np.testing.assert_array_equal(row_norms(x), np.linalg.norm(x, axis=1))
+
+
+# ------------------------------------------------------------------------- codes, time step, run settings
+
+
+def test_body_codes_are_the_int64_codes_in_the_smallest_dtype_that_holds_them():
+    from polydem.scene.values import body_codes
+
+    rng = np.random.default_rng(13)
+    shape, material = rng.integers(0, 5, 300).astype(np.int32), rng.integers(0, 3, 300).astype(np.int32)
+    codes = body_codes(shape, material, 5, 3)
+    assert codes.dtype == np.int32
+    np.testing.assert_array_equal(codes, shape.astype(np.int64) * 3 + material)
+    big = body_codes(shape, material, 2**20, 2**12)  # 2^32 codes: past int32
+    assert big.dtype == np.int64
+    np.testing.assert_array_equal(big, shape.astype(np.int64) * 2**12 + material)
+
+
+@pytest.mark.parametrize("wanted_count", [0, 1, 3, 8, 9, 30])
+def test_first_with_code_is_the_first_index_of_any_wanted_code(wanted_count):
+    from polydem.scene.values import FEW_CODES, first_with_code
+
+    assert FEW_CODES == 8  # the parameters take both sides of it
+    rng = np.random.default_rng(wanted_count)
+    for trial in range(40):
+        size = int(rng.integers(1, 60))
+        codes = rng.integers(0, size + 1, int(rng.integers(0, 500))).astype(np.int32)
+        wanted = rng.choice(size + 1, size=min(wanted_count, size + 1), replace=False)
+        hits = np.flatnonzero(np.isin(codes, wanted))
+        assert first_with_code(codes, wanted, size) == (int(hits[0]) if hits.size else -1), trial
+
+
+def many_kinds_scene(rng, n, kinds=(0, 1, 2), moving=False):
+    """Bodies of three shapes and four materials (two of the same density: equal masses), kinds at random; with
+    ``moving`` the free bodies start at random velocities and spins."""
+    from polydem.scene.bodies import KINDS
+
+    sc = Scene(gravity=(0.0, 0.0, -9.81), dt="auto")
+    for name, rho in (("a", 2500.0), ("b", 1200.0), ("c", 1200.0), ("d", 7800.0)):
+        sc.add_material(name, density=rho, law="hertz", k=float(rng.uniform(1e8, 1e9)), restitution=0.5, friction=0.5)
+    sc.add_shape("cube", ConvexShape.box(0.01))
+    sc.add_shape("plate", ConvexShape.box(0.03, 0.02, 0.004))
+    sc.add_shape("bar", ConvexShape.box(0.008, 0.008, 0.03))
+    grid = np.stack(np.meshgrid(np.arange(10), np.arange(10), np.arange(10), indexing="ij"), -1).reshape(-1, 3)
+    spots = grid[rng.choice(len(grid), n, replace=False)] * 0.05
+    shape = rng.integers(0, 3, n)
+    material = rng.integers(0, 4, n)
+    kind = rng.choice(np.array(kinds), n)
+    for i in range(n):
+        free = kind[i] == 0
+        sc.add_body(
+            ["cube", "plate", "bar"][shape[i]],
+            "abcd"[material[i]],
+            spots[i],
+            orientation=tuple(random_quats(rng, 1)[0]),
+            velocity=tuple(rng.normal(size=3) * 50.0) if moving and free else (0.0, 0.0, 0.0),
+            angular_velocity=tuple(rng.normal(size=3) * 500.0) if moving and free else (0.0, 0.0, 0.0),
+            kind=KINDS[kind[i]],
+        )
+    return sc
+
+
+def test_lightest_body_of_each_shape_is_the_lexsorted_one():
+    from polydem.scene.bodies import KIND_FREE
+    from polydem.scene.checks import lightest_of_each_shape
+
+    rng = np.random.default_rng(14)
+    for trial in range(30):
+        kinds = (0, 1, 2) if trial % 3 else (1, 2)  # some scenes have no free body: the bodies with a mass
+        sc = many_kinds_scene(rng, int(rng.integers(1, 60)), kinds)
+        # the reference: every body's mass, sorted by shape then mass then index (what time_step did before)
+        mass = np.asarray(sc.body_mass(), dtype=np.float64)
+        free = sc.body_kind == KIND_FREE
+        pooled = np.flatnonzero(free if free.any() else mass > 0.0)
+        pool_shape = np.asarray(sc.body_shape)[pooled]
+        order = np.lexsort((mass[pooled], pool_shape))
+        used, first = np.unique(pool_shape[order], return_index=True)
+        got_used, got = lightest_of_each_shape(sc)
+        np.testing.assert_array_equal(got_used, used, err_msg=str(trial))
+        np.testing.assert_array_equal(got, pooled[order[first]], err_msg=str(trial))
+        assert sc.time_step().lightest in set(got.tolist())
+
+
+def test_run_settings_and_tunnelling_limits_match_the_per_body_reference():
+    import warnings
+
+    from polydem.run_settings import SKIN_FRACTION, run_settings
+    from polydem.scene import checks
+    from polydem.scene.bodies import KIND_FIXED, KIND_FREE
+
+    rng = np.random.default_rng(15)
+    for trial in range(12):
+        moving = bool(trial % 2)
+        sc = many_kinds_scene(rng, int(rng.integers(2, 40)), (0, 0, 1, 2) if trial % 4 else (1, 2), moving)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sc.validate()
+        rs = run_settings(sc)
+        a = sc.body_arrays()
+        radius = np.array([sh.radius for sh in sc.shapes.values()])[a["shape"]]
+        free = a["kind"] == KIND_FREE
+        r32 = radius.astype(np.float32)
+        pool = radius[free] if free.any() else radius
+        assert rs.skin == SKIN_FRACTION * float((r32[free] if free.any() else r32).min())
+        assert rs.radius_max == float(pool.max())
+        assert rs.radius_min == (float(radius[free].min()) if free.any() else None)
+        positive = free & (r32 > 0.0)
+        assert rs.radius_ref == (float(r32[positive].min()) if positive.any() else None)
+        # every body's limit from the docstring's formulas, body by body
+        widths = np.array([checks.shape_width(sh) for sh in sc.shapes.values()])
+        h = 0.5 * widths[a["shape"]].min()
+        assert rs.tunnel.half_thickness == h and widths[a["shape"][rs.tunnel.thinnest]] == 2.0 * h
+        assert rs.tunnel.thinnest == int(np.flatnonzero(widths[a["shape"]] == 2.0 * h)[0])
+        k_pair = np.asarray(sc.pair_table()["k"])
+        mats = sorted(set(a["material"].tolist()))
+        shapes = list(sc.shapes.values())
+        densities = [m.density for m in sc.materials.values()]
+        for i in range(sc.num_bodies):
+            sh, mi = shapes[a["shape"][i]], a["material"][i]
+            w = widths[a["shape"][i]]
+            k = k_pair[mi, mats].min()
+            v_c = sh.volume / w * min(w, 2.0 * h)
+            energy = k * v_c**1.5 / 1.5
+            v_energy = np.sqrt(2.0 * checks.TUNNEL_ENERGY_FRACTION * energy / (densities[mi] * sh.volume))
+            v_step = checks.TUNNEL_STEP_FRACTION * h / rs.dt
+            np.testing.assert_allclose(rs.tunnel.body_speed_limit[i], min(v_step, v_energy), rtol=1e-12)
+            assert rs.tunnel.body_step_bound[i] == (v_step <= v_energy)
+        # the initial speeds: warned exactly where some moving body is above its limit (said once, by validate)
+        speed = np.linalg.norm(a["velocity"], axis=1) + np.linalg.norm(a["angular_velocity"], axis=1) * radius
+        fast = (a["kind"] != KIND_FIXED) & (speed > rs.tunnel.body_speed_limit)
+        assert rs.starts_too_fast == bool(fast.any())
+        assert any("may pass through" in str(w.message) for w in caught) == bool(fast.any())
+        assert fast.any() == moving or not free.any()

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from polydem.scene import BodyKind
+from polydem.scene.values import distinct_codes
 
 if TYPE_CHECKING:
     from polydem.scene import Scene
@@ -85,17 +86,20 @@ def run_settings(scene: Scene, skin: float | None = None) -> RunSettings:
     ts = scene.time_step()
     arrays = scene.body_arrays()
     shape_radius = np.array([scene.shapes[name].radius for name in scene.shape_names], dtype=np.float64)
-    radius = shape_radius[arrays["shape"]]
+    # A body's radius is its shape's: the least and largest over the shapes in use, never a gather over the bodies.
+    n_shapes = len(shape_radius)
     free = arrays["kind"] == BodyKind.FREE
-    pool = radius[free] if free.any() else radius
+    free_shapes = distinct_codes(np.where(free, arrays["shape"], n_shapes), n_shapes + 1)
+    free_shapes = free_shapes[free_shapes < n_shapes]
+    pool = shape_radius[free_shapes if free_shapes.size else distinct_codes(arrays["shape"], n_shapes)]
     # float32, as the broad phase holds the radii: the undivided run has always taken the skin so.
-    r32 = radius.astype(np.float32)
+    r32 = shape_radius.astype(np.float32)
     if skin is None:
-        skin = SKIN_FRACTION * float((r32[free] if free.any() else r32).min())
+        skin = SKIN_FRACTION * float(pool.astype(np.float32).min())
     skin = float(skin)
     if not (math.isfinite(skin) and skin >= 0.0):
         raise ValueError(f"skin must be >= 0 [m], got {skin!r}")
-    positive = free & (r32 > 0.0)
+    free_r32 = r32[free_shapes]
     kt = np.array(ts.tangential_stiffness, dtype=np.float64)
     kt.setflags(write=False)
     tunnel = scene.tunnelling_limits(arrays, ts.dt)
@@ -106,8 +110,8 @@ def run_settings(scene: Scene, skin: float | None = None) -> RunSettings:
         tangential_stiffness=kt,
         skin=skin,
         mesh_wall_thickness=tuple(float(scene.mesh_wall_thickness(w)) for w in scene.mesh_walls),
-        radius_min=float(radius[free].min()) if free.any() else None,
-        radius_ref=float(r32[positive].min()) if positive.any() else None,
+        radius_min=float(shape_radius[free_shapes].min()) if free_shapes.size else None,
+        radius_ref=float(free_r32[free_r32 > 0.0].min()) if (free_r32 > 0.0).any() else None,
         radius_max=float(pool.max()),
         tunnel=tunnel,
         starts_too_fast=bool(scene.check_tunnelling(arrays, ts.dt, tunnel)),

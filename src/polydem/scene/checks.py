@@ -18,8 +18,10 @@ from polydem.scene.values import (
     F32_MARGIN,
     RADIUS_HIGH,
     RADIUS_LOW,
+    body_codes,
     check_quats,
     distinct_codes,
+    first_with_code,
     row_norms,
 )
 from polydem.scene.walls import mesh_wall_memo
@@ -339,6 +341,31 @@ def check_body_arrays(scene, a):
         )
 
 
+def lightest_of_each_shape(scene) -> tuple[np.ndarray, np.ndarray]:
+    """(the shapes in use, ascending; the lightest body of each: the least mass, then the least index) among the
+    free bodies, or where none is free among the bodies with a mass; both empty where no body has a mass.
+
+    A body's mass is its material's density times its shape's volume (:meth:`Scene.body_mass`): the masses are
+    worked out per (shape, material) code, never per body, and the bodies are scanned for the first of a code."""
+    shapes = list(scene.shapes.values())
+    n_mat = len(scene.material_names)
+    volume = np.array([sh.volume for sh in shapes], dtype=np.float64)
+    density = np.array([mat.density for mat in scene.materials.values()], dtype=np.float64)
+    code_mass = (density[None, :] * volume[:, None]).reshape(-1)
+    code = body_codes(scene.body_shape, scene.body_material, len(shapes), n_mat)
+    n_code = len(shapes) * n_mat
+    free = scene.body_kind == KIND_FREE
+    pool = free if free.any() else code_mass[code] > 0.0
+    pool_code = np.where(pool, code, n_code)  # n_code: out of the pool
+    in_pool = np.flatnonzero(np.bincount(pool_code, minlength=n_code + 1)[:n_code])
+    used = distinct_codes(in_pool // n_mat, len(shapes))
+    lightest = []
+    for s in used.tolist():
+        codes = in_pool[in_pool // n_mat == s]
+        lightest.append(first_with_code(pool_code, codes[code_mass[codes] == code_mass[codes].min()], n_code))
+    return used, np.array(lightest, dtype=np.int64)
+
+
 def time_step(scene) -> TimeStep:
     """The time step of a run and its bounds (host-only: ``polydem validate`` needs no Warp).
 
@@ -358,24 +385,21 @@ def time_step(scene) -> TimeStep:
     k = np.asarray(table["k"], dtype=np.float64)
     kt = np.asarray(table["tangential_stiffness"], dtype=np.float64)
     shapes = list(scene.shapes.values())
-    mass = np.asarray(scene.body_mass(), dtype=np.float64)
-    free = scene.body_kind == KIND_FREE
     # The free bodies (or, with none, the bodies with a mass) set the step, the lightest body of
     # each shape with the stiffest pair: a light compact grain may need a longer step than a heavier
     # plate, whose large face is stiff, so every shape in use is looked at (once, whatever the count).
-    pool = free if free.any() else mass > 0.0
-    if not pool.any():
+    used, lightest = lightest_of_each_shape(scene)
+    if not used.size:
         raise scene.error(
             "no body has a mass (all are fixed with zero volume), so no time step can be derived; add a free "
             "body or give dt in seconds",
             "simulation.dt",
         )
-    pooled = np.flatnonzero(pool)
-    pool_shape = np.asarray(scene.body_shape)[pooled]
-    order = np.lexsort((mass[pooled], pool_shape))
-    used, first = np.unique(pool_shape[order], return_index=True)
-    lightest = pooled[order[first]]
-    inertia = np.asarray(scene.body_inertia(), dtype=np.float64)
+    density = np.array([mat.density for mat in scene.materials.values()], dtype=np.float64)
+    unit_inertia = np.array([sh.inertia for sh in shapes], dtype=np.float64).reshape(-1, 3)
+    # Scene.body_mass and Scene.body_inertia of these bodies alone (the same products)
+    mass = {int(b): density[scene.body_material[b]] * shapes[scene.body_shape[b]].volume for b in lightest}
+    inertia = {int(b): density[scene.body_material[b]] * unit_inertia[scene.body_shape[b]] for b in lightest}
     gravity = float(np.linalg.norm(np.asarray(scene.gravity, dtype=np.float64)))
     e_min = max(float(np.min(np.asarray(table["restitution"], dtype=np.float64))), 0.1)
     toe = has_toe(law, m)
@@ -432,7 +456,8 @@ def time_step(scene) -> TimeStep:
             area, width = face_contact_size(shape)
             raise scene.error(
                 f"time step {dt:.3g} s is above the stable limit {limit:.3g} s, 1/8 of the period of the stiffest "
-                f"contact of {scene.body_label(light)} (mass {mass[light]:.3g} kg, a face of {area:.3g} m^2, "
+                f"contact of {scene.body_label(light)} (mass {mass[light]:.3g} kg, a face of "
+                f"{area:.3g} m^2, "
                 f"{width:.3g} m thin, {float(np.max(k_n)):.3g} N/m at an overlap of {REFERENCE_DEPTH:g} of that "
                 f'width; recommended {recommended:.3g} s); use dt = "auto" or a value of at most {limit:.3g} s',
                 "simulation.dt",
@@ -569,8 +594,10 @@ def _check_body_loads(scene, a, ts: TimeStep) -> list[str]:
     support = bool(planes) or bool((a["kind"] != KIND_FREE).any())
     partners = bool(planes) or scene.num_bodies >= 2
     g = float(np.linalg.norm(scene.gravity))
-    speeds = row_norms(a["velocity"][a["kind"] != KIND_FIXED])
-    v_hit = float(speeds.max()) if partners and speeds.size else 0.0
+    v_hit = 0.0
+    if partners and a["velocity"].any():  # (bodies at rest need no norms)
+        speeds = row_norms(a["velocity"][a["kind"] != KIND_FIXED])
+        v_hit = float(speeds.max()) if speeds.size else 0.0
     if not ((support and g > 0.0) or v_hit > 0.0):
         return []
     shapes = list(scene.shapes.values())
@@ -585,11 +612,14 @@ def _check_body_loads(scene, a, ts: TimeStep) -> list[str]:
             "law = 'hertz' or law = 'power' (with m > 1) for bodies that rest under gravity "
             f"(materials.{mats[0].name}.law)"
         )
-    combo = distinct_codes(a["shape"][free].astype(np.int64) * len(mats) + a["material"][free], len(shapes) * len(mats))
+    n_code = len(shapes) * len(mats)
+    free_code = np.where(free, body_codes(a["shape"], a["material"], len(shapes), len(mats)), n_code)
+    combo = distinct_codes(free_code, n_code + 1)
+    combo = combo[combo < n_code]
     for c in combo.tolist():
         sh, mi = shapes[c // len(mats)], c % len(mats)
         mat = mats[mi]
-        i = int(np.flatnonzero(free & (a["shape"] == c // len(mats)) & (a["material"] == mi))[0])
+        i = first_with_code(free_code, [c], n_code)
         mass = mat.density * sh.volume
         ln_a, ln_l = (2.0 / 3.0) * _ln(sh.volume), _ln(sh.volume) / 3.0
         j = int(present[np.argmin(k_pair[mi, present])])
@@ -689,12 +719,15 @@ def tunnelling_limits(scene, a, dt: float) -> TunnelLimits:
     n_mat = len(scene.material_names)
     # The limits depend on a body's shape and material alone: worked out per (shape, material) pair present
     # (the same operations on the same numbers), then given to the bodies.
-    code = a["shape"].astype(np.int64) * n_mat + a["material"]
-    present = np.bincount(code, minlength=len(shapes) * n_mat) > 0 if len(code) else np.zeros(0, dtype=bool)
+    code = body_codes(a["shape"], a["material"], len(shapes), n_mat)
+    n_code = len(shapes) * n_mat
+    present = np.bincount(code, minlength=n_code) > 0 if len(code) else np.zeros(0, dtype=bool)
     pairs = np.flatnonzero(present)
-    used_width = shape_widths[distinct_codes(pairs // n_mat, len(shapes))]
+    used = distinct_codes(pairs // n_mat, len(shapes))
+    used_width = shape_widths[used]
     if used_width.size and not np.isnan(used_width).any():
-        thinnest = int(np.argmax((shape_widths == used_width.min())[a["shape"]]))  # the first body that thin
+        # the first body that thin
+        thinnest = first_with_code(a["shape"], used[used_width == used_width.min()], len(shapes))
     else:
         thinnest = int(np.argmin(shape_widths[a["shape"]]))
     h = 0.5 * float(shape_widths[a["shape"][thinnest]])
@@ -716,9 +749,17 @@ def tunnelling_limits(scene, a, dt: float) -> TunnelLimits:
         v_energy = np.exp(0.5 * (math.log(2.0 * TUNNEL_ENERGY_FRACTION) + ln_w - np.log(mass)))
     v_energy = np.where(mass > 0.0, v_energy, np.inf)
     v_step = TUNNEL_STEP_FRACTION * h / dt
-    which = (np.cumsum(present) - 1)[code]
-    limit = np.minimum(v_step, v_energy)[which]
-    step_bound = (v_step <= v_energy)[which]
+    # per code (absent codes never read), then given to the bodies: one gather, or one fill where one code is used
+    code_limit = np.full(n_code, np.inf)
+    code_limit[pairs] = np.minimum(v_step, v_energy)
+    code_step = np.zeros(n_code, dtype=bool)
+    code_step[pairs] = v_step <= v_energy
+    if pairs.size == 1:
+        limit = np.full(len(code), code_limit[pairs[0]])
+        step_bound = np.full(len(code), code_step[pairs[0]])
+    else:
+        limit = code_limit[code]
+        step_bound = code_step[code]
     if scene.num_bodies < 2 and not scene.planes and not scene.mesh_walls:
         limit = np.full(scene.num_bodies, np.inf)  # nothing to pass through
     return TunnelLimits(
@@ -734,8 +775,8 @@ def check_tunnelling(scene, a, dt: float, limits: TunnelLimits | None = None) ->
     :func:`tunnelling_limits` (``limits``, where they are at hand); the run still starts (the body may slow
     down before it meets anything)."""
     moving = a["kind"] != KIND_FIXED
-    if not moving.any():
-        return []
+    if not moving.any() or not (a["velocity"].any() or a["angular_velocity"].any()):
+        return []  # (every body at rest: no speed is above a limit, and none need be worked out)
     shapes = list(scene.shapes.values())
     radius = np.array([sh.radius for sh in shapes])[a["shape"]]
     speed = row_norms(a["velocity"]) + row_norms(a["angular_velocity"]) * radius

@@ -212,6 +212,10 @@ def row_norms(x: np.ndarray) -> np.ndarray:
     return np.sqrt(x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2])
 
 
+FEW_CODES = 8
+"""Up to this many wanted codes :func:`first_with_code` compares the codes once per wanted code."""
+
+
 def distinct_codes(codes, size: int) -> np.ndarray:
     """The distinct values of the int array ``codes`` (each in [0, size): shape or material indices, or pairs of
     them), ascending, as ``np.unique`` gives them: one counting pass instead of a sort of every body's code."""
@@ -219,6 +223,37 @@ def distinct_codes(codes, size: int) -> np.ndarray:
     if not codes.size:
         return np.zeros(0, dtype=np.int64)
     return np.flatnonzero(np.bincount(codes, minlength=size))
+
+
+def body_codes(shape, material, n_shapes: int, n_materials: int) -> np.ndarray:
+    """Each body's (shape, material) code ``shape * n_materials + material`` (indices in range): in int32 where
+    every code and one past the last fit it (half the memory traffic of int64 over every body), else in int64."""
+    shape = np.asarray(shape)
+    material = np.asarray(material)
+    dtype = np.int32 if n_shapes * n_materials < 2**31 - 1 else np.int64
+    codes = shape.astype(dtype, copy=True)
+    codes *= dtype(n_materials)
+    codes += material.astype(dtype, copy=False)
+    return codes
+
+
+def first_with_code(codes, wanted, size: int) -> int:
+    """The first index i with ``codes[i]`` in ``wanted`` (int codes in [0, size]), or -1 where there is none.
+
+    A few wanted codes cost a comparison pass each, stopping at the first hit; many take one pass that keeps the
+    least index of every code (never a sort of every body's code)."""
+    codes = np.asarray(codes).reshape(-1)
+    wanted = np.unique(np.asarray(wanted, dtype=np.int64).reshape(-1))
+    if not codes.size or not wanted.size:
+        return -1
+    if wanted.size <= FEW_CODES:
+        hits = [int(np.argmax(codes == c)) for c in wanted.tolist()]
+        hits = [i for i, c in zip(hits, wanted.tolist(), strict=True) if codes[i] == c]
+        return min(hits) if hits else -1
+    first = np.full(size + 1, codes.size, dtype=np.int64)
+    np.minimum.at(first, codes, np.arange(codes.size, dtype=np.int64))
+    i = int(first[wanted[wanted <= size]].min(initial=codes.size))
+    return i if i < codes.size else -1
 
 
 def check_quats(q: np.ndarray, rowkey, file) -> np.ndarray:
