@@ -5,7 +5,8 @@
 #                                                  # build/ is ignored)
 #   OUT=DIR bash benchmarks/issue27_gpu.sh mixed   # on the GPU: the mixed pile, pair threads in slot order and by
 #                                                  # cost (settle.py --pair-thread-order slot|cost), SIZES="1e4 1e5" cubes,
-#                                                  # ORDERS="slot cost slot cost"
+#                                                  # ORDERS="slot cost slot cost"; the cube pile in
+#                                                  # CUBE_ORDERS (default: "default", Simulation's own)
 #   OUT=DIR bash benchmarks/issue27_gpu.sh run     # on the GPU, from this tree with polydem on PYTHONPATH,
 #                                                  # carrying build/before
 # run: pair_kernel.py (float32; cube, rock20, hull64; 1% deep and flat contacts) with REV's package and with this tree's
@@ -47,9 +48,10 @@ mixed)
         --k-rule volume --warmup-time 0.3 --steps 200 --pair-thread-order $o --out "$out/mixed_${n}_${o}_$RANDOM.json" \
         | tail -1
     done
-    python benchmarks/settle.py --device cuda:0 --sizes $n --precision mixed --no-graph-compare --k-rule volume \
-      --warmup-time 0.3 \
-      --steps 200 --out "$out/cubes_$n.json" | tail -1
+    for o in ${CUBE_ORDERS:-default}; do
+      python benchmarks/settle.py --device cuda:0 --sizes $n --precision mixed --no-graph-compare --k-rule volume \
+        --warmup-time 0.3 --steps 200 --pair-thread-order $o --out "$out/cubes_${n}_${o}_$RANDOM.json" | tail -1
+    done
   done
   ;;
 *)

@@ -637,6 +637,7 @@ def run_size(n, args, device, record, save):
             "status": "built",
             "pair_max_registers": sim.stepper.pair_max_registers,
             "order_pair_threads": sim.stepper.thread_order,
+            "pair_thread_grouping": sim.current_contacts.thread_grouping,
             "dt": sim.dt,
             "skin": sim.skin,
             "use_graph": sim.use_graph,
@@ -934,11 +935,12 @@ def add_kernel_options(ap):
     )
     ap.add_argument(
         "--pair-thread-order",
-        choices=("cost", "slot"),
-        default="cost",
-        help="cost (Simulation's default): the pair kernel's threads take the pairs grouped by the cost of their "
-        "shapes where the shapes differ in cost (--shapes mixed); slot: in slot order, order_pair_threads=False "
-        "(the same results)",
+        choices=("default", "cost", "contact", "slot"),
+        default="default",
+        help="default: Simulation's default (order_pair_threads=True); cost: the pair kernel's threads take the "
+        "pairs grouped by the cost of their shapes where the shapes differ in cost (--shapes mixed); contact: by "
+        "cost and then by whether the pair touched at the last rebuild (any pile); slot: in slot order, "
+        "order_pair_threads=False (the same results every way)",
     )
     # the flag of the runs before the default changed (BENCHMARKS.md 17)
     ap.add_argument(
@@ -952,8 +954,9 @@ def kernel_options(args):
     out = {}
     if args.max_registers is not None:
         out["pair_max_registers"] = args.max_registers or None
-    if getattr(args, "pair_thread_order", "cost") == "slot":
-        out["order_pair_threads"] = False
+    order = getattr(args, "pair_thread_order", "default")
+    if order != "default":
+        out["order_pair_threads"] = False if order == "slot" else order
     return out
 
 

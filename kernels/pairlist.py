@@ -114,6 +114,31 @@ def sort_keys_kernel(src: SortKeys, keys: wp.array(dtype=int), order: wp.array(d
 
 
 @functools.cache
+def make_contact_bit_kernel(scalar):
+    """The kernel that doubles each listed pair's sort key and adds 1 where the pair touches (a turning volume
+    above zero, in ``scalar``): a class's pairs without contact, then those with one."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def contact_bit_kernel(
+        # State in
+        turn: wp.array(dtype=scalar),
+        count: wp.array(dtype=int),
+        sentinel: int,
+        # Out
+        keys: wp.array(dtype=int),
+    ):
+        p = wp.tid()
+        if p >= count[0]:
+            keys[p] = sentinel
+        elif turn[p] > scalar(0.0):
+            keys[p] = 2 * keys[p] + 1
+        else:
+            keys[p] = 2 * keys[p]
+
+    return contact_bit_kernel
+
+
+@functools.cache
 def make_remap_history_kernel(scalar):
     """The kernel that carries the pair history (in ``scalar``) over a rebuild."""
     vec3 = wp.types.vector(3, scalar)
@@ -305,9 +330,13 @@ def launch_thread_order(
     keys: wp.array,
     order: wp.array,
     pair_thread: wp.array,
+    pair_turn: wp.array | None = None,
 ) -> None:
     """Which pair each thread of the pair kernel takes: the pairs by cost class, so that the threads of a warp
     clip shapes of like face counts (a warp waits for its slowest thread), and within a class in slot order.
+    With ``pair_turn`` (C,) (the turning volumes the rebuild carried over) each class is split in two, the pairs
+    without contact first: a pair that touches clips its faces, one that does not stops at its first separating
+    plane, and a warp of both waits for the clipping.
 
     ``pair_class``: (S * S,) int32, the class of a pair of shapes (A's shape * S + B's), 0 to ``num_classes`` - 1.
     ``keys``, ``order``: (2C,) int32 each, the radix sort's keys and values (scratch). ``pair_thread``: (C,)
@@ -321,6 +350,16 @@ def launch_thread_order(
         by_class=1, num_shapes=int(round(pair_class.shape[0] ** 0.5)), sentinel=int(num_classes),
     )  # fmt: skip
     wp.launch(sort_keys_kernel, dim=capacity, inputs=[src], outputs=[keys, order], device=pair_a.device)
-    # Stable: the pairs of one class keep their slot order, and the empty slots (the sentinel) come last.
-    wp.utils.radix_sort_pairs(keys, order, capacity, 0, max(1, int(num_classes).bit_length()))
+    num_keys = int(num_classes)
+    if pair_turn is not None:
+        num_keys *= 2
+        wp.launch(
+            make_contact_bit_kernel(pair_turn.dtype),
+            dim=capacity,
+            inputs=[pair_turn, pair_count, num_keys],
+            outputs=[keys],
+            device=pair_a.device,
+        )
+    # Stable: the pairs of one key keep their slot order, and the empty slots (the sentinel) come last.
+    wp.utils.radix_sort_pairs(keys, order, capacity, 0, max(1, num_keys.bit_length()))
     wp.copy(pair_thread, order, count=capacity)

@@ -142,15 +142,20 @@ def test_simulation_pairs_by_b_after_host_and_device_rebuilds(device):
 
 
 def check_thread_order(contacts):
-    """The threads take every listed pair once, grouped by the cost class of the pair's shapes (ascending) and
-    in slot order within a class."""
+    """The threads take every listed pair once, grouped by the cost class of the pair's shapes (ascending), with
+    "contact" then by whether the pair touched (its turning volume, read right after the rebuild: the steps change
+    it), and in slot order within a group. Returns the number of pairs that touched."""
     count = contacts.count()
     thread = contacts.pair_thread.numpy()[:count]
     np.testing.assert_array_equal(np.sort(thread), np.arange(count))
     shape = contacts.model.body_shape_np
     a, b = contacts.pair_a.numpy()[:count], contacts.pair_b.numpy()[:count]
-    cls = contacts._pair_class[shape[a], shape[b]]
-    np.testing.assert_array_equal(thread, np.argsort(cls, kind="stable"))
+    key = contacts._pair_class[shape[a], shape[b]].astype(np.int64)
+    touched = contacts.pair_turn.numpy()[:count] > 0.0
+    if contacts.thread_grouping == "contact":
+        key = 2 * key + touched
+    np.testing.assert_array_equal(thread, np.argsort(key, kind="stable"))
+    return int(touched.sum())
 
 
 def test_pair_threads_ordered_by_cost_give_the_same_bits(device):
@@ -202,3 +207,42 @@ def test_pair_threads_ordered_by_cost_with_compound_grains(device):
     check_thread_order(sim.current_contacts)
     for key, value in runs[False].items():
         np.testing.assert_array_equal(runs[True][key], value, err_msg=key)
+
+
+@pytest.mark.parametrize("scene_name", ["default", "one shape"])
+def test_pair_threads_grouped_by_contact_give_the_same_bits(device, scene_name):
+    """order_pair_threads="contact": within each cost class the pairs that touched at the rebuild (a carried
+    turning volume) apart from those that did not, in a pile of one shape too; checked right after host and
+    device rebuilds of a settling pile, where both kinds are present; the run the same bits as in slot order."""
+    if scene_name == "default":
+        scene = default_scene()
+    else:
+        scene = polydem.Scene(gravity=(0.0, 0.0, -9.81), dt="auto")
+        scene.add_material("m", density=2500.0, k=1e8, restitution=0.5, friction=0.5, law="hertz")
+        scene.add_shape("cube", polydem.ConvexShape.box(0.01))
+        scene.add_box_container((0.0, 0.0, 0.03), (0.06, 0.06, 0.06), "m")
+        g = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
+        scene.add_bodies("cube", "m", (g - [1.5, 1.5, 0.0]) * 0.0125 + [0.0, 0.0, 0.0065])
+    runs = {}
+    for order in (False, "contact"):
+        sim = Simulation(scene, device, order_pair_threads=order)
+        contacts = sim.current_contacts
+        assert contacts.thread_grouping == ("contact" if order else "slot")
+        sim.step(2600)  # the default scene's grains meet after some 2000 steps
+        runs[order] = sim.state()
+        if order:
+            contacts.build(sim.current_state.body_q)
+            touched = check_thread_order(contacts)
+            assert 0 < touched < contacts.count()
+            contacts.rebuild_on_device(sim.current_state.body_q)
+            assert check_thread_order(contacts) == touched
+    for key, value in runs[False].items():
+        np.testing.assert_array_equal(runs["contact"][key], value, err_msg=key)
+
+
+def test_thread_order_is_checked(device):
+    from polydem.contacts import THREAD_ORDER, THREAD_ORDERS
+
+    assert THREAD_ORDER in THREAD_ORDERS
+    with pytest.raises(ValueError, match="order_pair_threads must be True, False or one of"):
+        Simulation(default_scene(), device, order_pair_threads="fast")

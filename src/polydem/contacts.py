@@ -122,6 +122,13 @@ class PairHistory:
         return all(getattr(self, k).shape == getattr(other, k).shape for k in self.FIELDS)
 
 
+THREAD_ORDERS = ("cost", "contact")
+"""The ways :class:`Contacts` can group the pair kernel's threads (see its ``thread_order``)."""
+
+THREAD_ORDER = "cost"
+"""The grouping ``thread_order=True`` means."""
+
+
 def pair_cost_classes(model) -> tuple[np.ndarray, int]:
     """(S, S) int32 cost class of each pair of the model's S shapes, and the number of classes: the products of
     the two shapes' face counts (a compound grain: its parts' faces together), ranked. The pair kernel clips
@@ -145,8 +152,11 @@ class Contacts:
         capacity: initial number of pairs there is room for (grows on overflow).
         radius_ref: the unit of the broad phase's size classes [m] (``RunSettings.radius_ref``; None:
             the smallest free radius of the model's bodies).
-        thread_order: give the pair kernel's threads the pairs grouped by cost (:attr:`pair_thread`), where the
-            model's shapes differ in cost (else nothing to group: :attr:`thread_order` stays False).
+        thread_order: give the pair kernel's threads the pairs grouped (:attr:`pair_thread`): ``"cost"`` by the
+            cost class of their shapes, where the model's shapes differ in cost (else nothing to group:
+            :attr:`thread_order` stays False); ``"contact"`` by cost class and, within a class, by whether the
+            pair touched when the list was built (its carried turning volume); True: :data:`THREAD_ORDER`;
+            False: slot order.
 
     Attributes (device arrays; C = :attr:`capacity`, N bodies):
         broadphase: the :class:`~polydem.kernels.broadphase.BroadPhase`, which owns the pair list
@@ -161,8 +171,10 @@ class Contacts:
         kernel of a step to its end, overwritten by the next rebuild.)
         pair_by_b: (C,) int32 pair indices ordered by body B.
         pair_thread: (C,) int32 the pair each thread of the pair kernel takes, the pairs ordered by the cost
-            class of their two shapes (the product of their face counts), stably; (1,) without thread_order.
+            class of their two shapes (the product of their face counts) and with ``"contact"`` then by whether
+            they touched at the rebuild, stably; (1,) without thread_order.
         thread_order: host bool, whether the pair kernel reads :attr:`pair_thread`.
+        thread_grouping: host str, how the threads are grouped: "slot" (not at all), "cost" or "contact".
         body_pairs_a, body_pairs_b: (N,) ``wp.vec2i`` each body's range in the pairs ordered by
             A (``pair_key``) and by B (``pair_by_b``).
         pairs: all of the above in the ``wp.struct`` the kernels take (:func:`polydem.kernels.structs.pairs_struct`),
@@ -183,8 +195,12 @@ class Contacts:
         body_box: tuple[np.ndarray, ...],
         capacity: int,
         radius_ref: float | None = None,
-        thread_order: bool = False,
+        thread_order: bool | str = False,
     ) -> None:
+        if thread_order is True:
+            thread_order = THREAD_ORDER
+        if thread_order not in (False, *THREAD_ORDERS):
+            raise ValueError(f"thread_order must be True, False or one of {THREAD_ORDERS}, got {thread_order!r}")
         self.model = model
         self.device = model.device
         self.num_bodies = model.num_bodies
@@ -203,7 +219,10 @@ class Contacts:
         self.generation = 0
         self.average: ContactAverage | None = None
         self._pair_class, self._num_classes = pair_cost_classes(model) if thread_order else (None, 1)
-        self.thread_order = self._num_classes > 1
+        # by contact, even one cost class has two groups
+        self._by_contact = thread_order == "contact"
+        self.thread_order = self._num_classes > 1 or self._by_contact
+        self.thread_grouping = thread_order if self.thread_order else "slot"
         if self.thread_order:
             self._pair_class_table = wp.array(self._pair_class.reshape(-1), dtype=int, device=self.device)
 
@@ -339,6 +358,7 @@ class Contacts:
                 keys=self._keys_b,
                 order=self._by_b,
                 pair_thread=self.pair_thread,
+                pair_turn=self.pair_turn if self._by_contact else None,
             )
 
     # -- rebuilds (the broad phase of a step) -------------------------------------------------

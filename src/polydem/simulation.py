@@ -41,7 +41,14 @@ from typing import TYPE_CHECKING, Literal, NoReturn
 import numpy as np
 import warp as wp
 
-from polydem.contacts import AverageSnapshot, ContactAverage, Contacts, PairHistory, contact_sums
+from polydem.contacts import (
+    THREAD_ORDERS,
+    AverageSnapshot,
+    ContactAverage,
+    Contacts,
+    PairHistory,
+    contact_sums,
+)
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 from polydem.kernels.forces import (
     PAIR_MAX_REGISTERS,
@@ -605,7 +612,10 @@ class Simulation:
             shapes (the product of their face counts), so that a warp's threads clip alike shapes and none waits
             for a costlier neighbour (default; off by itself where every pair costs alike, as in a pile of one
             shape). The same results bit for bit (each pair's arithmetic is its own); one sort of the pair list a
-            rebuild and 4 bytes a pair slot (BENCHMARKS.md 17); False: slot order.
+            rebuild and 4 bytes a pair slot (BENCHMARKS.md 17); False: slot order. ``"cost"`` and ``"contact"``
+            choose the grouping (:class:`~polydem.contacts.Contacts`: "contact" also parts the pairs that touched
+            at the last rebuild from those that did not, in a pile of one shape too); True takes
+            :data:`polydem.contacts.THREAD_ORDER`.
         overlap_check: where the validation tests body pairs for initial overlaps: "host" (the scene's own
             check, a k-d tree search), "device" (the same test over the first broad phase's candidate pairs, on
             this device: :mod:`polydem.overlap_check`; convex grains, the whole scene), "auto" (default: the
@@ -648,11 +658,15 @@ class Simulation:
         pair_max_registers: int | None = PAIR_MAX_REGISTERS,
         settings: RunSettings | None = None,
         bodies: np.ndarray | None = None,
-        order_pair_threads: bool = True,
+        order_pair_threads: bool | str = True,
         overlap_check: str = "auto",
     ) -> None:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
+        if order_pair_threads not in (True, False, *THREAD_ORDERS):
+            raise ValueError(
+                f"order_pair_threads must be True, False or one of {THREAD_ORDERS}, got {order_pair_threads!r}"
+            )
         self.tree_rebuild = None if tree_rebuild is None else float(tree_rebuild)
         on_device = device_check_applies(scene, device, bodies, overlap_check)
         if validate:
