@@ -51,7 +51,21 @@ big_build() {
   gpu $last python benchmarks/build_time.py --device cuda:0 --sizes $big --steps 20 --no-git --overlap-check device \
     --out $W/res/build_time_settle_$big.json > $W/log/build_big.log 2>&1
 }
-if [ -n "${RUN_TAPS:-}" ]; then
+# MODE=grouping: the pair threads grouped by cost against by cost and contact, the mixed pile (GPU 0) and the cube
+# pile (GPU 1, then the largest pile's build), benchmarks/issue27_gpu.sh mixed
+grouping() {
+  ( cd $W/res && mkdir -p grouping )
+  ( CUDA_VISIBLE_DEVICES=0 OUT=$W/res/grouping SIZES=100000 ORDERS="cost contact" CUBE_ORDERS="" \
+      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_mixed_1e5.log 2>&1
+    CUDA_VISIBLE_DEVICES=0 OUT=$W/res/grouping SIZES=10000 ORDERS="cost contact" CUBE_ORDERS="default contact" \
+      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_1e4.log 2>&1 ) &
+  ( CUDA_VISIBLE_DEVICES=1 OUT=$W/res/grouping SIZES=100000 ORDERS="" CUBE_ORDERS="default contact" \
+      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_cubes_1e5.log 2>&1
+    big_build ) &
+}
+if [ "${MODE:-}" = grouping ]; then
+  grouping
+elif [ -n "${RUN_TAPS:-}" ]; then
   tapjob 0 tap_cube_s1 --grains 5000 --width 24 --seed 1 &
   tapjob 0 tap_cube_s2 --grains 5000 --width 24 --seed 2 &
   tapjob 0 tap_tetra_s1 --shape tetrahedron --grains 8000 --width 14 --seed 1 &

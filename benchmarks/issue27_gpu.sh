@@ -6,7 +6,8 @@
 #   OUT=DIR bash benchmarks/issue27_gpu.sh mixed   # on the GPU: the mixed pile, pair threads in slot order and by
 #                                                  # cost (settle.py --pair-thread-order slot|cost), SIZES="1e4 1e5" cubes,
 #                                                  # ORDERS="slot cost slot cost"; the cube pile in
-#                                                  # CUBE_ORDERS (default: "default", Simulation's own)
+#                                                  # CUBE_ORDERS (default: "default", Simulation's own);
+#                                                  # an empty list runs none
 #   OUT=DIR bash benchmarks/issue27_gpu.sh run     # on the GPU, from this tree with polydem on PYTHONPATH,
 #                                                  # carrying build/before
 # run: pair_kernel.py (float32; cube, rock20, hull64; 1% deep and flat contacts) with REV's package and with this tree's
@@ -43,12 +44,12 @@ mixed)
   # of pour: the grains have landed (1e3 mixed on the CPU: 3182 contacts, 5.9 a grain).
   out=${OUT:-.}
   for n in ${SIZES:-10000 100000}; do
-    for o in ${ORDERS:-slot cost slot cost}; do
+    for o in ${ORDERS-slot cost slot cost}; do
       python benchmarks/settle.py --device cuda:0 --sizes $n --shapes mixed --precision mixed --no-graph-compare \
         --k-rule volume --warmup-time 0.3 --steps 200 --pair-thread-order $o --out "$out/mixed_${n}_${o}_$RANDOM.json" \
         | tail -1
     done
-    for o in ${CUBE_ORDERS:-default}; do
+    for o in ${CUBE_ORDERS-default}; do
       python benchmarks/settle.py --device cuda:0 --sizes $n --precision mixed --no-graph-compare --k-rule volume \
         --warmup-time 0.3 --steps 200 --pair-thread-order $o --out "$out/cubes_${n}_${o}_$RANDOM.json" | tail -1
     done
