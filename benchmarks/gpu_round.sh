@@ -63,7 +63,20 @@ grouping() {
       timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_cubes_1e5.log 2>&1
     big_build ) &
 }
-if [ "${MODE:-}" = grouping ]; then
+# MODE=grouping2: the same with the costliest pairs first ("contact"), the mixed pile at 1e5 on GPU 0 and the rest
+# on GPU 1
+grouping2() {
+  ( cd $W/res && mkdir -p grouping )
+  ( CUDA_VISIBLE_DEVICES=0 OUT=$W/res/grouping SIZES=100000 ORDERS="cost contact" CUBE_ORDERS="" \
+      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_mixed_1e5.log 2>&1 ) &
+  ( CUDA_VISIBLE_DEVICES=1 OUT=$W/res/grouping SIZES="10000 100000" ORDERS="" CUBE_ORDERS="default contact" \
+      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_cubes.log 2>&1
+    CUDA_VISIBLE_DEVICES=1 OUT=$W/res/grouping SIZES=10000 ORDERS="cost contact cost contact" CUBE_ORDERS="" \
+      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_mixed_1e4.log 2>&1 ) &
+}
+if [ "${MODE:-}" = grouping2 ]; then
+  grouping2
+elif [ "${MODE:-}" = grouping ]; then
   grouping
 elif [ -n "${RUN_TAPS:-}" ]; then
   tapjob 0 tap_cube_s1 --grains 5000 --width 24 --seed 1 &

@@ -115,14 +115,16 @@ def sort_keys_kernel(src: SortKeys, keys: wp.array(dtype=int), order: wp.array(d
 
 @functools.cache
 def make_contact_bit_kernel(scalar):
-    """The kernel that doubles each listed pair's sort key and adds 1 where the pair touches (a turning volume
-    above zero, in ``scalar``): a class's pairs without contact, then those with one."""
+    """The kernel that turns each listed pair's cost class c (of ``top + 1``) into the key ``2 (top - c)`` where
+    the pair touches (a turning volume above zero, in ``scalar``), ``2 (top - c) + 1`` where it does not: the
+    costliest work first."""
 
     @wp.kernel(enable_backward=False, module="unique")
     def contact_bit_kernel(
         # State in
         turn: wp.array(dtype=scalar),
         count: wp.array(dtype=int),
+        top: int,
         sentinel: int,
         # Out
         keys: wp.array(dtype=int),
@@ -131,9 +133,9 @@ def make_contact_bit_kernel(scalar):
         if p >= count[0]:
             keys[p] = sentinel
         elif turn[p] > scalar(0.0):
-            keys[p] = 2 * keys[p] + 1
+            keys[p] = 2 * (top - keys[p])
         else:
-            keys[p] = 2 * keys[p]
+            keys[p] = 2 * (top - keys[p]) + 1
 
     return contact_bit_kernel
 
@@ -334,9 +336,11 @@ def launch_thread_order(
 ) -> None:
     """Which pair each thread of the pair kernel takes: the pairs by cost class, so that the threads of a warp
     clip shapes of like face counts (a warp waits for its slowest thread), and within a class in slot order.
-    With ``pair_turn`` (C,) (the turning volumes the rebuild carried over) each class is split in two, the pairs
-    without contact first: a pair that touches clips its faces, one that does not stops at its first separating
-    plane, and a warp of both waits for the clipping.
+    With ``pair_turn`` (C,) (the turning volumes the rebuild carried over) each class is split in two, and the
+    costliest work comes first: the classes from the costliest down, in each the pairs that touch (they clip
+    their faces) before those that do not (they stop at their first separating plane). A warp of both kinds
+    waits for the clipping; and blocks handed out costliest first leave the cheap ones to fill the last wave of
+    the launch, where the other way round its slowest blocks ran last, alone on the GPU.
 
     ``pair_class``: (S * S,) int32, the class of a pair of shapes (A's shape * S + B's), 0 to ``num_classes`` - 1.
     ``keys``, ``order``: (2C,) int32 each, the radix sort's keys and values (scratch). ``pair_thread``: (C,)
@@ -356,7 +360,7 @@ def launch_thread_order(
         wp.launch(
             make_contact_bit_kernel(pair_turn.dtype),
             dim=capacity,
-            inputs=[pair_turn, pair_count, num_keys],
+            inputs=[pair_turn, pair_count, int(num_classes) - 1, num_keys],
             outputs=[keys],
             device=pair_a.device,
         )

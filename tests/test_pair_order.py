@@ -142,9 +142,9 @@ def test_simulation_pairs_by_b_after_host_and_device_rebuilds(device):
 
 
 def check_thread_order(contacts):
-    """The threads take every listed pair once, grouped by the cost class of the pair's shapes (ascending), with
-    "contact" then by whether the pair touched (its turning volume, read right after the rebuild: the steps change
-    it), and in slot order within a group. Returns the number of pairs that touched."""
+    """The threads take every listed pair once, grouped by the cost class of the pair's shapes (ascending; with
+    "contact" descending, and in each class the pairs that touched, by their turning volume read right after the
+    rebuild, before the others), and in slot order within a group. Returns the number of pairs that touched."""
     count = contacts.count()
     thread = contacts.pair_thread.numpy()[:count]
     np.testing.assert_array_equal(np.sort(thread), np.arange(count))
@@ -153,7 +153,7 @@ def check_thread_order(contacts):
     key = contacts._pair_class[shape[a], shape[b]].astype(np.int64)
     touched = contacts.pair_turn.numpy()[:count] > 0.0
     if contacts.thread_grouping == "contact":
-        key = 2 * key + touched
+        key = 2 * (contacts._num_classes - 1 - key) + ~touched
     np.testing.assert_array_equal(thread, np.argsort(key, kind="stable"))
     return int(touched.sum())
 

@@ -154,9 +154,9 @@ class Contacts:
             the smallest free radius of the model's bodies).
         thread_order: give the pair kernel's threads the pairs grouped (:attr:`pair_thread`): ``"cost"`` by the
             cost class of their shapes, where the model's shapes differ in cost (else nothing to group:
-            :attr:`thread_order` stays False); ``"contact"`` by cost class and, within a class, by whether the
-            pair touched when the list was built (its carried turning volume); True: :data:`THREAD_ORDER`;
-            False: slot order.
+            :attr:`thread_order` stays False); ``"contact"`` by cost class from the costliest down and, within a
+            class, the pairs that touched when the list was built (a carried turning volume) first;
+            True: :data:`THREAD_ORDER`; False: slot order.
 
     Attributes (device arrays; C = :attr:`capacity`, N bodies):
         broadphase: the :class:`~polydem.kernels.broadphase.BroadPhase`, which owns the pair list
@@ -171,8 +171,8 @@ class Contacts:
         kernel of a step to its end, overwritten by the next rebuild.)
         pair_by_b: (C,) int32 pair indices ordered by body B.
         pair_thread: (C,) int32 the pair each thread of the pair kernel takes, the pairs ordered by the cost
-            class of their two shapes (the product of their face counts) and with ``"contact"`` then by whether
-            they touched at the rebuild, stably; (1,) without thread_order.
+            class of their two shapes (the product of their face counts; with ``"contact"`` from the costliest
+            down, then the pairs that touched at the rebuild first), stably; (1,) without thread_order.
         thread_order: host bool, whether the pair kernel reads :attr:`pair_thread`.
         thread_grouping: host str, how the threads are grouped: "slot" (not at all), "cost" or "contact".
         body_pairs_a, body_pairs_b: (N,) ``wp.vec2i`` each body's range in the pairs ordered by
