@@ -68,7 +68,9 @@ grouping() {
 grouping2() {
   ( cd $W/res && mkdir -p grouping )
   ( CUDA_VISIBLE_DEVICES=0 OUT=$W/res/grouping SIZES=100000 ORDERS="cost contact" CUBE_ORDERS="" \
-      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_mixed_1e5.log 2>&1 ) &
+      timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_mixed_1e5.log 2>&1
+    CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_pair_order.py > $W/log/pytest.log 2>&1 ) &
   ( CUDA_VISIBLE_DEVICES=1 OUT=$W/res/grouping SIZES="10000 100000" ORDERS="" CUBE_ORDERS="default contact" \
       timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_cubes.log 2>&1
     CUDA_VISIBLE_DEVICES=1 OUT=$W/res/grouping SIZES=10000 ORDERS="cost contact cost contact" CUBE_ORDERS="" \
