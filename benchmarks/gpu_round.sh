@@ -76,7 +76,20 @@ grouping2() {
     CUDA_VISIBLE_DEVICES=1 OUT=$W/res/grouping SIZES=10000 ORDERS="cost contact cost contact" CUBE_ORDERS="" \
       timeout $(left) bash benchmarks/issue27_gpu.sh mixed > $W/log/grouping_mixed_1e4.log 2>&1 ) &
 }
-if [ "${MODE:-}" = grouping2 ]; then
+# MODE=grouping1: the same on one GPU, one run after another (the latency-bound mixed pile first)
+grouping1() {
+  ( cd $W/res && mkdir -p grouping )
+  ( for job in "10000|cost contact|" "100000|cost contact|" "10000 100000||default contact"; do
+      IFS='|' read -r sizes orders cubes <<< "$job"
+      CUDA_VISIBLE_DEVICES=0 OUT=$W/res/grouping SIZES="$sizes" ORDERS="$orders" CUBE_ORDERS="$cubes" \
+        timeout $(left) bash benchmarks/issue27_gpu.sh mixed >> $W/log/grouping.log 2>&1
+    done
+    CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_pair_order.py > $W/log/pytest.log 2>&1 ) &
+}
+if [ "${MODE:-}" = grouping1 ]; then
+  grouping1
+elif [ "${MODE:-}" = grouping2 ]; then
   grouping2
 elif [ "${MODE:-}" = grouping ]; then
   grouping
