@@ -937,10 +937,10 @@ def add_kernel_options(ap):
         "--pair-thread-order",
         choices=("default", "cost", "contact", "slot"),
         default="default",
-        help="default: Simulation's default (order_pair_threads=True); cost: the pair kernel's threads take the "
-        "pairs grouped by the cost of their shapes where the shapes differ in cost (--shapes mixed); contact: by "
-        "cost and then by whether the pair touched at the last rebuild (any pile); slot: in slot order, "
-        "order_pair_threads=False (the same results every way)",
+        help="default: Simulation's default (order_pair_threads=True, which is contact); cost: the pair kernel's "
+        "threads take the pairs grouped by the cost of their shapes where the shapes differ in cost (--shapes "
+        "mixed); contact: by cost, the costliest first, and then by whether the pair touched at the last rebuild "
+        "(any pile); slot: in slot order, order_pair_threads=False (the same results every way)",
     )
     # the flag of the runs before the default changed (BENCHMARKS.md 17)
     ap.add_argument(

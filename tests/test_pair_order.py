@@ -163,10 +163,10 @@ def test_pair_threads_ordered_by_cost_give_the_same_bits(device):
     pair kernel's threads take the pairs class by class (also after host and device rebuilds), and the run is
     the same, bit for bit. A scene of one shape has nothing to group and keeps the plain order."""
     runs = {}
-    for ordered in (False, True):
+    for ordered in (False, "cost"):
         sim = Simulation(default_scene(), device, order_pair_threads=ordered)
         contacts = sim.current_contacts
-        assert contacts.thread_order is ordered and sim.stepper.thread_order is ordered
+        assert contacts.thread_order is bool(ordered) and sim.stepper.thread_order is bool(ordered)
         if ordered:
             assert contacts._num_classes > 1
             check_thread_order(contacts)
@@ -177,7 +177,7 @@ def test_pair_threads_ordered_by_cost_give_the_same_bits(device):
             contacts.rebuild_on_device(sim.current_state.body_q)
             check_thread_order(contacts)
     for key, value in runs[False].items():
-        np.testing.assert_array_equal(runs[True][key], value, err_msg=key)
+        np.testing.assert_array_equal(runs["cost"][key], value, err_msg=key)
     scene = default_scene()
     one = polydem.Scene(gravity=scene.gravity)
     one.add_material("m", density=2500.0, k=1e8, restitution=0.5, friction=0.5, law="hertz")
@@ -185,11 +185,12 @@ def test_pair_threads_ordered_by_cost_give_the_same_bits(device):
     one.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
     one.add_body("cube", "m", position=(0.0, 0.0, 0.006))
     one.add_body("cube", "m", position=(0.0, 0.0, 0.0165))
-    sim = Simulation(one, device, order_pair_threads=True)
+    sim = Simulation(one, device, order_pair_threads="cost")
     assert not sim.current_contacts.thread_order and len(sim.current_contacts.pair_thread) == 1
-    # the default: grouped by cost where the shapes differ, nothing to pay for one shape
-    assert Simulation(default_scene(), device).stepper.thread_order
-    assert not Simulation(one, device).stepper.thread_order
+    # the default: grouped by cost and contact, one shape too
+    for sc in (default_scene(), one):
+        sim = Simulation(sc, device)
+        assert sim.stepper.thread_order and sim.current_contacts.thread_grouping == "contact"
 
 
 def test_pair_threads_ordered_by_cost_with_compound_grains(device):
@@ -199,14 +200,17 @@ def test_pair_threads_ordered_by_cost_with_compound_grains(device):
 
     scene = polydem.Scene.from_toml(Path(__file__).parents[1] / "scenes" / "heap.toml")
     runs = {}
-    for ordered in (False, True):
+    for ordered in (False, "cost", "contact"):
         sim = Simulation(scene, device, order_pair_threads=ordered)
         sim.step(100)
         runs[ordered] = sim.state()
-    assert sim.current_contacts.thread_order and sim.current_contacts._num_classes > 1
-    check_thread_order(sim.current_contacts)
+        if ordered:
+            assert sim.current_contacts.thread_order and sim.current_contacts._num_classes > 1
+            sim.current_contacts.build(sim.current_state.body_q)  # (the check reads the rebuild's history)
+            check_thread_order(sim.current_contacts)
     for key, value in runs[False].items():
-        np.testing.assert_array_equal(runs[True][key], value, err_msg=key)
+        np.testing.assert_array_equal(runs["cost"][key], value, err_msg=key)
+        np.testing.assert_array_equal(runs["contact"][key], value, err_msg=key)
 
 
 @pytest.mark.parametrize("scene_name", ["default", "one shape"])

@@ -125,8 +125,8 @@ class PairHistory:
 THREAD_ORDERS = ("cost", "contact")
 """The ways :class:`Contacts` can group the pair kernel's threads (see its ``thread_order``)."""
 
-THREAD_ORDER = "cost"
-"""The grouping ``thread_order=True`` means."""
+THREAD_ORDER = "contact"
+"""The grouping ``thread_order=True`` means (measured against "cost" in BENCHMARKS.md 20)."""
 
 
 def pair_cost_classes(model) -> tuple[np.ndarray, int]:

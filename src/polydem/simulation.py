@@ -608,14 +608,14 @@ class Simulation:
             ``settings``, the bodies step as in the whole scene's run where their contacts are all
             among them (a rank of a decomposed run); body indices of the results are then positions
             in ``bodies``.
-        order_pair_threads: hand the pair kernel's threads the candidate pairs grouped by the cost of their
-            shapes (the product of their face counts), so that a warp's threads clip alike shapes and none waits
-            for a costlier neighbour (default; off by itself where every pair costs alike, as in a pile of one
-            shape). The same results bit for bit (each pair's arithmetic is its own); one sort of the pair list a
-            rebuild and 4 bytes a pair slot (BENCHMARKS.md 17); False: slot order. ``"cost"`` and ``"contact"``
-            choose the grouping (:class:`~polydem.contacts.Contacts`: "contact" also parts the pairs that touched
-            at the last rebuild from those that did not, in a pile of one shape too); True takes
-            :data:`polydem.contacts.THREAD_ORDER`.
+        order_pair_threads: hand the pair kernel's threads the candidate pairs grouped, so that a warp's threads
+            do alike work and none waits for a costlier neighbour: True (default) or ``"contact"``: by the cost of
+            their shapes (the product of their face counts) from the costliest down, and in each cost class the
+            pairs that touched at the last rebuild (they clip their faces) before those that did not (they stop
+            at a separating plane), in a pile of one shape too (BENCHMARKS.md 20: a step of 1e5 cubes 31% and of
+            1e5 mixed grains 39% shorter on an H200); ``"cost"``: by cost class alone, ascending (off by itself
+            where every pair costs alike; BENCHMARKS.md 17); False: slot order. The same results bit for bit
+            (each pair's arithmetic is its own); one sort of the pair list a rebuild and 4 bytes a pair slot.
         overlap_check: where the validation tests body pairs for initial overlaps: "host" (the scene's own
             check, a k-d tree search), "device" (the same test over the first broad phase's candidate pairs, on
             this device: :mod:`polydem.overlap_check`; convex grains, the whole scene), "auto" (default: the
