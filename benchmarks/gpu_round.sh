@@ -87,7 +87,19 @@ grouping1() {
     CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
       -p no:cacheprovider tests/test_pair_order.py > $W/log/pytest.log 2>&1 ) &
 }
-if [ "${MODE:-}" = grouping1 ]; then
+# MODE=tts: time to a settled pile (time_to_settle.py at 4 dt_rec) with the pair threads in slot order (or by
+# cost, the mixed set) and at the default grouping, one after the other on GPU 0: the same piles, bit for bit
+tts() {
+  ( for job in "1e5 cube slot" "1e5 cube default" "1e4 cube slot" "1e4 cube default" "1e6 cube slot" \
+      "1e6 cube default" "1e4 mixed cost" "1e4 mixed default"; do
+      read -r n shapes order <<< "$job"
+      gpu 0 python benchmarks/time_to_settle.py --device cuda:0 --sizes $n --dt-scales 4 --shapes $shapes \
+        --pair-thread-order $order --out $W/res/tts_${n}_${shapes}_${order}.json >> $W/log/tts.log 2>&1
+    done ) &
+}
+if [ "${MODE:-}" = tts ]; then
+  tts
+elif [ "${MODE:-}" = grouping1 ]; then
   grouping1
 elif [ "${MODE:-}" = grouping2 ]; then
   grouping2
