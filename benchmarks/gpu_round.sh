@@ -29,7 +29,7 @@ tapjob() {
   gpu $g python benchmarks/validation/tapping.py --device cuda:0 --taps 400 --start 1.0 --period 0.2 --coordination \
     --stop-after $(( $(left) - 45 )) "${resume[@]}" --out $W/res/$name.json "$@" > $W/log/$name.log 2>&1
 }
-NGPU=$(nvidia-smi -L | wc -l)
+NGPU=$(nvidia-smi --query-gpu=index --format=csv,noheader | wc -l)
 # the CUDA tests first (they decide whether the device check may be trusted), then the build on the host and device
 # checks at 1e6 and 1e7
 cuda_tests() {
@@ -100,6 +100,9 @@ tts() {
         >> $W/log/tts.log 2>&1
     done ) &
 }
+if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
+  [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
+fi
 if [ "${MODE:-}" = tts ]; then
   tts
 elif [ "${MODE:-}" = grouping1 ]; then

@@ -3,9 +3,9 @@
 # before and after, on one GPU in one call.
 #   bash benchmarks/issue27_gpu.sh prepare [REV]   # here: build/before/pkg/polydem from REV (default HEAD; git archive;
 #                                                  # build/ is ignored)
-#   OUT=DIR bash benchmarks/issue27_gpu.sh mixed   # on the GPU: the mixed pile, pair threads in slot order and by
-#                                                  # cost (settle.py --pair-thread-order slot|cost), SIZES="1e4 1e5" cubes,
-#                                                  # ORDERS="slot cost slot cost"; the cube pile in
+#   OUT=DIR bash benchmarks/issue27_gpu.sh mixed   # on the GPU: the mixed pile, pair threads in the orders of
+#                                                  # ORDERS (settle.py --pair-thread-order slot|cost|contact|default,
+#                                                  # default "slot cost slot cost"), SIZES="1e4 1e5" grains; the cube pile in
 #                                                  # CUBE_ORDERS (default: "default", Simulation's own);
 #                                                  # an empty list runs none
 #   OUT=DIR bash benchmarks/issue27_gpu.sh run     # on the GPU, from this tree with polydem on PYTHONPATH,
@@ -38,8 +38,8 @@ for b, a in zip(before, after, strict=True):
 PY
   ;;
 mixed)
-  # The mixed-shape pile (cubes, tetrahedra, 20-vertex rocks, 2:1:1 boxes) with the pair kernel's threads in slot
-  # order and grouped by cost (Simulation(order_pair_threads=True)), alternating, and the cube pile beside them.
+  # The mixed-shape pile (cubes, tetrahedra, 20-vertex rocks, 2:1:1 boxes) with the pair kernel's threads in each
+  # order of ORDERS (slot, cost, contact: BENCHMARKS.md 17 and 20), alternating, and the cube pile beside them.
   # The volume rule's k (the corner rule's step is 3.8e-8 s for the tetrahedra: no contact within a call) and 0.3 s
   # of pour: the grains have landed (1e3 mixed on the CPU: 3182 contacts, 5.9 a grain).
   out=${OUT:-.}

@@ -926,7 +926,8 @@ def make_parser():
 
 def add_kernel_options(ap):
     """``--max-registers``: the register cap of the step's pair kernel; ``--pair-thread-order``: its threads take
-    the pairs grouped by cost (the default) or in slot order (see :func:`kernel_options`)."""
+    the pairs grouped by cost and contact (the default), by cost alone, or in slot order (see
+    :func:`kernel_options`)."""
     ap.add_argument(
         "--max-registers",
         type=int,

@@ -354,8 +354,8 @@ def make_contact_kernels(
     the pair kernel's CUDA registers per thread (None: the compiler's choice; the results do not
     depend on it). ``compound`` builds the variant whose bodies may be compound grains
     (:mod:`polydem.kernels.compound`: the geometry loops over their parts). ``thread_order``: thread t of the
-    pair kernel takes pair ``pairs.thread[t]`` (pairs grouped by cost: :func:`polydem.kernels.pairlist.
-    launch_thread_order`) instead of pair t; the same results, bit for bit.
+    pair kernel takes pair ``pairs.thread[t]`` (pairs grouped by cost, and by contact at the last rebuild:
+    :func:`polydem.kernels.pairlist.launch_thread_order`) instead of pair t; the same results, bit for bit.
     """
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)

@@ -309,7 +309,9 @@ def test_first_with_code_is_the_first_index_of_any_wanted_code(wanted_count):
         size = int(rng.integers(1, 60))
         codes = rng.integers(0, size + 1, int(rng.integers(0, 500))).astype(np.int32)
         wanted = rng.choice(size + 1, size=min(wanted_count, size + 1), replace=False)
-        hits = np.flatnonzero(np.isin(codes, wanted))
+        if trial % 3 == 0:  # codes outside [0, size] never match
+            wanted = np.concatenate([wanted, [-1, -size - 1, size + 1, 2 * size + 3]])
+        hits = np.flatnonzero(np.isin(codes, wanted[(wanted >= 0) & (wanted <= size)]))
         assert first_with_code(codes, wanted, size) == (int(hits[0]) if hits.size else -1), trial
 
 
@@ -362,6 +364,39 @@ def test_lightest_body_of_each_shape_is_the_lexsorted_one():
         np.testing.assert_array_equal(got_used, used, err_msg=str(trial))
         np.testing.assert_array_equal(got, pooled[order[first]], err_msg=str(trial))
         assert sc.time_step().lightest in set(got.tolist())
+
+
+def test_lightest_body_of_each_of_many_shapes_is_the_lexsorted_one():
+    """More shapes in use than FEW_CODES: the first body of every code in one pass."""
+    from polydem.scene.bodies import KIND_FREE
+    from polydem.scene.checks import lightest_of_each_shape
+    from polydem.scene.values import FEW_CODES
+
+    rng = np.random.default_rng(16)
+    for trial in range(6):
+        sc = Scene(gravity=(0.0, 0.0, -9.81), dt="auto")
+        for name, rho in (("a", 2500.0), ("b", 1200.0), ("c", 1200.0)):
+            sc.add_material(name, density=rho, law="hertz", k=5e8, restitution=0.5, friction=0.5)
+        count = FEW_CODES + 4
+        for k in range(count):
+            sc.add_shape(f"s{k}", ConvexShape.box(*rng.uniform(0.004, 0.02, 3)))
+        n = 300
+        shape = rng.integers(0, count, n)
+        material = rng.integers(0, 3, n)
+        kind = rng.choice(np.array(["free", "free", "fixed"] if trial % 2 else ["fixed", "kinematic"]), n)
+        spots = np.stack(np.meshgrid(np.arange(10), np.arange(10), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
+        for i in range(n):
+            sc.add_body(f"s{shape[i]}", "abc"[material[i]], spots[i] * 0.05, kind=str(kind[i]))
+        mass = np.asarray(sc.body_mass(), dtype=np.float64)
+        free = sc.body_kind == KIND_FREE
+        pooled = np.flatnonzero(free if free.any() else mass > 0.0)
+        pool_shape = np.asarray(sc.body_shape)[pooled]
+        order = np.lexsort((mass[pooled], pool_shape))
+        used, first = np.unique(pool_shape[order], return_index=True)
+        got_used, got = lightest_of_each_shape(sc)
+        assert got_used.size > FEW_CODES
+        np.testing.assert_array_equal(got_used, used, err_msg=str(trial))
+        np.testing.assert_array_equal(got, pooled[order[first]], err_msg=str(trial))
 
 
 def test_run_settings_and_tunnelling_limits_match_the_per_body_reference():

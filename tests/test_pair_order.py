@@ -195,19 +195,21 @@ def test_pair_threads_ordered_by_cost_give_the_same_bits(device):
 
 def test_pair_threads_ordered_by_cost_with_compound_grains(device):
     """scenes/heap.toml (compound elbows beside convex grains, a mesh funnel): classes count a compound grain's
-    parts' faces together; the same bits with the threads ordered."""
+    parts' faces together; the same bits with the threads ordered by cost and by cost and contact (checked after
+    a rebuild where some pairs touch)."""
     from pathlib import Path
 
     scene = polydem.Scene.from_toml(Path(__file__).parents[1] / "scenes" / "heap.toml")
     runs = {}
     for ordered in (False, "cost", "contact"):
         sim = Simulation(scene, device, order_pair_threads=ordered)
-        sim.step(100)
+        sim.step(8000)  # the first grains out of the funnel have landed: pairs of both kinds
         runs[ordered] = sim.state()
         if ordered:
             assert sim.current_contacts.thread_order and sim.current_contacts._num_classes > 1
             sim.current_contacts.build(sim.current_state.body_q)  # (the check reads the rebuild's history)
-            check_thread_order(sim.current_contacts)
+            touched = check_thread_order(sim.current_contacts)
+            assert 0 < touched < sim.current_contacts.count()
     for key, value in runs[False].items():
         np.testing.assert_array_equal(runs["cost"][key], value, err_msg=key)
         np.testing.assert_array_equal(runs["contact"][key], value, err_msg=key)
@@ -248,5 +250,10 @@ def test_thread_order_is_checked(device):
     from polydem.contacts import THREAD_ORDER, THREAD_ORDERS
 
     assert THREAD_ORDER in THREAD_ORDERS
+    # truthy and falsy values of other types mean True and False
+    assert Simulation(default_scene(), device, order_pair_threads=np.True_).current_contacts.thread_grouping == (
+        THREAD_ORDER
+    )
+    assert Simulation(default_scene(), device, order_pair_threads=0).current_contacts.thread_grouping == "slot"
     with pytest.raises(ValueError, match="order_pair_threads must be True, False or one of"):
         Simulation(default_scene(), device, order_pair_threads="fast")

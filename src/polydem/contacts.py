@@ -197,8 +197,8 @@ class Contacts:
         radius_ref: float | None = None,
         thread_order: bool | str = False,
     ) -> None:
-        if thread_order is True:
-            thread_order = THREAD_ORDER
+        if not isinstance(thread_order, str):
+            thread_order = THREAD_ORDER if thread_order else False
         if thread_order not in (False, *THREAD_ORDERS):
             raise ValueError(f"thread_order must be True, False or one of {THREAD_ORDERS}, got {thread_order!r}")
         self.model = model

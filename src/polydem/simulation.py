@@ -663,6 +663,8 @@ class Simulation:
     ) -> None:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
+        if not isinstance(order_pair_threads, str):
+            order_pair_threads = bool(order_pair_threads)
         if order_pair_threads not in (True, False, *THREAD_ORDERS):
             raise ValueError(
                 f"order_pair_threads must be True, False or one of {THREAD_ORDERS}, got {order_pair_threads!r}"

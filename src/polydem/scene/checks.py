@@ -16,11 +16,13 @@ from polydem.scene.values import (
     F32_HIGH,
     F32_LOW,
     F32_MARGIN,
+    FEW_CODES,
     RADIUS_HIGH,
     RADIUS_LOW,
     body_codes,
     check_quats,
     distinct_codes,
+    first_of_each_code,
     first_with_code,
     row_norms,
 )
@@ -359,10 +361,13 @@ def lightest_of_each_shape(scene) -> tuple[np.ndarray, np.ndarray]:
     pool_code = np.where(pool, code, n_code)  # n_code: out of the pool
     in_pool = np.flatnonzero(np.bincount(pool_code, minlength=n_code + 1)[:n_code])
     used = distinct_codes(in_pool // n_mat, len(shapes))
+    # a pass per shape where there are few, else the first body of every code in one pass
+    first = first_of_each_code(pool_code, n_code) if used.size > FEW_CODES else None
     lightest = []
     for s in used.tolist():
         codes = in_pool[in_pool // n_mat == s]
-        lightest.append(first_with_code(pool_code, codes[code_mass[codes] == code_mass[codes].min()], n_code))
+        light = codes[code_mass[codes] == code_mass[codes].min()]
+        lightest.append(first_with_code(pool_code, light, n_code) if first is None else int(first[light].min()))
     return used, np.array(lightest, dtype=np.int64)
 
 
@@ -456,8 +461,7 @@ def time_step(scene) -> TimeStep:
             area, width = face_contact_size(shape)
             raise scene.error(
                 f"time step {dt:.3g} s is above the stable limit {limit:.3g} s, 1/8 of the period of the stiffest "
-                f"contact of {scene.body_label(light)} (mass {mass[light]:.3g} kg, a face of "
-                f"{area:.3g} m^2, "
+                f"contact of {scene.body_label(light)} (mass {mass[light]:.3g} kg, a face of {area:.3g} m^2, "
                 f"{width:.3g} m thin, {float(np.max(k_n)):.3g} N/m at an overlap of {REFERENCE_DEPTH:g} of that "
                 f'width; recommended {recommended:.3g} s); use dt = "auto" or a value of at most {limit:.3g} s',
                 "simulation.dt",

@@ -237,22 +237,30 @@ def body_codes(shape, material, n_shapes: int, n_materials: int) -> np.ndarray:
     return codes
 
 
-def first_with_code(codes, wanted, size: int) -> int:
-    """The first index i with ``codes[i]`` in ``wanted`` (int codes in [0, size]), or -1 where there is none.
+def first_of_each_code(codes, size: int) -> np.ndarray:
+    """(size + 1,) int64: the first index of each code in [0, size] of the int array ``codes``, ``len(codes)``
+    where it does not occur; one pass that keeps the least index of every code (never a sort)."""
+    codes = np.asarray(codes).reshape(-1)
+    first = np.full(size + 1, codes.size, dtype=np.int64)
+    np.minimum.at(first, codes, np.arange(codes.size, dtype=np.int64))
+    return first
 
-    A few wanted codes cost a comparison pass each, stopping at the first hit; many take one pass that keeps the
-    least index of every code (never a sort of every body's code)."""
+
+def first_with_code(codes, wanted, size: int) -> int:
+    """The first index i with ``codes[i]`` in ``wanted`` (int codes in [0, size]; wanted codes outside that
+    range never match), or -1 where there is none.
+
+    A few wanted codes cost a comparison pass each; more take :func:`first_of_each_code`."""
     codes = np.asarray(codes).reshape(-1)
     wanted = np.unique(np.asarray(wanted, dtype=np.int64).reshape(-1))
+    wanted = wanted[(wanted >= 0) & (wanted <= size)]
     if not codes.size or not wanted.size:
         return -1
     if wanted.size <= FEW_CODES:
         hits = [int(np.argmax(codes == c)) for c in wanted.tolist()]
         hits = [i for i, c in zip(hits, wanted.tolist(), strict=True) if codes[i] == c]
         return min(hits) if hits else -1
-    first = np.full(size + 1, codes.size, dtype=np.int64)
-    np.minimum.at(first, codes, np.arange(codes.size, dtype=np.int64))
-    i = int(first[wanted[wanted <= size]].min(initial=codes.size))
+    i = int(first_of_each_code(codes, size)[wanted].min())
     return i if i < codes.size else -1
 
 
