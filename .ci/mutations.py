@@ -162,6 +162,20 @@ FAULTS = (
         ("tests/test_overlap_check.py::test_device_records_are_the_host_records[cpu-False]",),
     ),
     Fault(
+        "pair threads by contact: the contact bit ignored",
+        "kernels/pairlist.py",
+        "            keys[p] = 2 * (top - keys[p])\n",
+        "            keys[p] = 2 * (top - keys[p]) + 1\n",
+        ("tests/test_pair_order.py::test_pair_threads_grouped_by_contact_give_the_same_bits[cpu-default]",),
+    ),
+    Fault(
+        "tunnelling limits: one code's limit given to every body",
+        "src/polydem/scene/checks.py",
+        "    if pairs.size == 1:\n",
+        "    if pairs.size >= 1:\n",
+        ("tests/test_build_vectorised.py::test_run_settings_and_tunnelling_limits_match_the_per_body_reference",),
+    ),
+    Fault(
         "initial overlaps on the device: a big body not first in its pairs",
         "kernels/initial_overlaps.py",
         "    if (shape_big[sb] != 0 and shape_big[sa] == 0) or (shape_big[sa] == shape_big[sb] and j < i):\n",
