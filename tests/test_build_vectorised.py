@@ -345,30 +345,36 @@ def many_kinds_scene(rng, n, kinds=(0, 1, 2), moving=False):
     return sc
 
 
-def test_lightest_body_of_each_shape_is_the_lexsorted_one():
+def lexsorted_lightest(sc):
+    """The reference (what time_step did before): every body's mass, the pooled bodies (free, or with a mass where
+    none is free) sorted by shape, then mass, then index; (the shapes in use, the first body of each)."""
     from polydem.scene.bodies import KIND_FREE
+
+    mass = np.asarray(sc.body_mass(), dtype=np.float64)
+    free = sc.body_kind == KIND_FREE
+    pooled = np.flatnonzero(free if free.any() else mass > 0.0)
+    pool_shape = np.asarray(sc.body_shape)[pooled]
+    order = np.lexsort((mass[pooled], pool_shape))
+    used, first = np.unique(pool_shape[order], return_index=True)
+    return used, pooled[order[first]]
+
+
+def test_lightest_body_of_each_shape_is_the_lexsorted_one():
     from polydem.scene.checks import lightest_of_each_shape
 
     rng = np.random.default_rng(14)
     for trial in range(30):
         kinds = (0, 1, 2) if trial % 3 else (1, 2)  # some scenes have no free body: the bodies with a mass
         sc = many_kinds_scene(rng, int(rng.integers(1, 60)), kinds)
-        # the reference: every body's mass, sorted by shape then mass then index (what time_step did before)
-        mass = np.asarray(sc.body_mass(), dtype=np.float64)
-        free = sc.body_kind == KIND_FREE
-        pooled = np.flatnonzero(free if free.any() else mass > 0.0)
-        pool_shape = np.asarray(sc.body_shape)[pooled]
-        order = np.lexsort((mass[pooled], pool_shape))
-        used, first = np.unique(pool_shape[order], return_index=True)
+        used, lightest = lexsorted_lightest(sc)
         got_used, got = lightest_of_each_shape(sc)
         np.testing.assert_array_equal(got_used, used, err_msg=str(trial))
-        np.testing.assert_array_equal(got, pooled[order[first]], err_msg=str(trial))
+        np.testing.assert_array_equal(got, lightest, err_msg=str(trial))
         assert sc.time_step().lightest in set(got.tolist())
 
 
 def test_lightest_body_of_each_of_many_shapes_is_the_lexsorted_one():
     """More shapes in use than FEW_CODES: the first body of every code in one pass."""
-    from polydem.scene.bodies import KIND_FREE
     from polydem.scene.checks import lightest_of_each_shape
     from polydem.scene.values import FEW_CODES
 
@@ -387,16 +393,11 @@ def test_lightest_body_of_each_of_many_shapes_is_the_lexsorted_one():
         spots = np.stack(np.meshgrid(np.arange(10), np.arange(10), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
         for i in range(n):
             sc.add_body(f"s{shape[i]}", "abc"[material[i]], spots[i] * 0.05, kind=str(kind[i]))
-        mass = np.asarray(sc.body_mass(), dtype=np.float64)
-        free = sc.body_kind == KIND_FREE
-        pooled = np.flatnonzero(free if free.any() else mass > 0.0)
-        pool_shape = np.asarray(sc.body_shape)[pooled]
-        order = np.lexsort((mass[pooled], pool_shape))
-        used, first = np.unique(pool_shape[order], return_index=True)
+        used, lightest = lexsorted_lightest(sc)
         got_used, got = lightest_of_each_shape(sc)
         assert got_used.size > FEW_CODES
         np.testing.assert_array_equal(got_used, used, err_msg=str(trial))
-        np.testing.assert_array_equal(got, pooled[order[first]], err_msg=str(trial))
+        np.testing.assert_array_equal(got, lightest, err_msg=str(trial))
 
 
 def test_run_settings_and_tunnelling_limits_match_the_per_body_reference():
