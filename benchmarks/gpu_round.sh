@@ -100,11 +100,26 @@ tts() {
         >> $W/log/tts.log 2>&1
     done ) &
 }
+# MODE=tts2: the same piles to section 7's criterion (kinetic energy alone, --speed-fraction off), the orders side by
+# side, then 1e5 cubes at the default grouping to the default criterion (section 10c's 226 s, --max-time 3)
+tts2() {
+  ( for job in "1e4 cube slot" "1e4 cube default" "1e5 cube slot" "1e5 cube default" "1e4 mixed cost" \
+      "1e4 mixed default" "1e6 cube default" "1e6 cube slot"; do
+      read -r n shapes order <<< "$job"
+      gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes $n --dt-scales 4 --shapes $shapes \
+        --k-rule volume --speed-fraction off --pair-thread-order $order \
+        --out $W/res/tts_kinetic_${n}_${shapes}_${order}.json >> $W/log/tts.log 2>&1
+    done
+    gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes 1e5 --dt-scales 4 --k-rule volume \
+      --max-time 3 --out $W/res/tts_speed_1e5_cube_default.json >> $W/log/tts.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
 if [ "${MODE:-}" = tts ]; then
   tts
+elif [ "${MODE:-}" = tts2 ]; then
+  tts2
 elif [ "${MODE:-}" = grouping1 ]; then
   grouping1
 elif [ "${MODE:-}" = grouping2 ]; then
