@@ -113,6 +113,21 @@ tts2() {
     gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes 1e5 --dt-scales 4 --k-rule volume \
       --max-time 3 --out $W/res/tts_speed_1e5_cube_default.json >> $W/log/tts.log 2>&1 ) &
 }
+# MODE=tts3: the damping loads (BENCHMARKS.md 21): the CUDA tests of the change, then the piles at the default
+# grouping to section 7's criterion and to the default one (every grain at rest), the largest last
+tts3() {
+  ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_damping_load.py tests/test_pair_order.py tests/test_memory.py \
+      > $W/log/pytest.log 2>&1
+    for job in "1e4 cube off 1" "1e5 cube off 1" "1e4 mixed off 1" "1e4 cube default 3" "1e5 cube default 3" \
+      "1e6 cube off 1" "1e4 mixed default 3"; do
+      read -r n shapes speed tmax <<< "$job"
+      sp=(); [ "$speed" = off ] && sp=(--speed-fraction off)
+      gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes $n --dt-scales 4 --shapes $shapes \
+        --k-rule volume "${sp[@]}" --max-time $tmax \
+        --out $W/res/tts_damping_${n}_${shapes}_${speed}.json >> $W/log/tts.log 2>&1
+    done ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -120,6 +135,8 @@ if [ "${MODE:-}" = tts ]; then
   tts
 elif [ "${MODE:-}" = tts2 ]; then
   tts2
+elif [ "${MODE:-}" = tts3 ]; then
+  tts3
 elif [ "${MODE:-}" = grouping1 ]; then
   grouping1
 elif [ "${MODE:-}" = grouping2 ]; then

@@ -65,7 +65,7 @@ from polydem.kernels.compound import make_body_geometry
 from polydem.kernels.geometry import make_geometry
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.kernels.precision import scalars
-from polydem.kernels.response import make_response
+from polydem.kernels.response import DAMPING_SHARE, make_response
 from polydem.kernels.structs import output_dtypes, outputs_struct, struct_types
 
 # What the report variant of the step kernels (``report=True``) does besides the step, by bits of
@@ -121,6 +121,7 @@ class ContactKernels:
     wall_contact: Any
     pair_contact_kernel: Any
     gather_kernel: Any
+    damping_load_kernel: Any
 
 
 # What the launch functions read, by name: a polydem Model, State and Contacts have these members
@@ -143,14 +144,27 @@ class ContactModel(Protocol):
     bodies: Any  # body_model_struct(S)
     materials: Any  # materials_struct(C)
     planes: Any  # planes_struct(S)
+    wall_material: wp.array  # (W,) int32
 
 
 class BodyState(Protocol):
     """What a step's force stage reads and writes of a state (:class:`polydem.state.State`): the structs
-    of the bodies' arrays (``bodies``) and of the wall contacts' history (``walls``)."""
+    of the bodies' arrays (``bodies``) and of the wall contacts' history (``walls``), and the bodies'
+    damping loads (``body_damping``, :func:`launch_damping_load`)."""
 
     bodies: Any  # bodies_struct(S)
     walls: Any  # wall_history_struct(C)
+    body_damping: wp.array  # (N,) float32
+
+
+@wp.func
+def damping_scale(load_a: wp.float32, load_b: wp.float32):
+    """What a contact's tangential dashpot is scaled by (float32): DAMPING_SHARE over the larger damping
+    load of its two bodies where that exceeds DAMPING_SHARE, else 1 (a fixed body or a wall has load 0)."""
+    load = wp.max(load_a, load_b)
+    if load > wp.float32(DAMPING_SHARE):
+        return wp.float32(DAMPING_SHARE) / load
+    return wp.float32(1.0)
 
 
 class PairArrays(Protocol):
@@ -248,6 +262,7 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
         radius: C,
         face_area: C,
         inv_mass: C,
+        damping: C,
         # Model
         materials: T.Materials,
         dt: C,
@@ -263,7 +278,8 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
         t: vec3s,
         lost: S,
     ):
-        # Returns the body's sums with this contact and the contact's normal (zero when open).
+        # Returns the body's sums with this contact and the contact's normal (zero when open). ``damping``: the
+        # dashpot's scale (damping_scale of the body's load).
         if vol <= C(0.0):
             kept = resp.kept_energy(
                 walls.turn[i, j], materials.k[mat], materials.law_m, materials.e[mat], dt, face_area, radius, inv_mass
@@ -291,7 +307,7 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
         force, torque, xi, turn, energy, dl, n, point, fn, ft = resp.respond(
             vol, first_moment, s_a, m_a, fb_a, r_ab, v_a, w_a, v_b, w_b,
             materials.k[mat], materials.law_m, materials.e[mat], materials.mu[mat], materials.kt[mat], xi_in,
-            walls.turn[i, j], dt, radius, face_area, inv_mass,
+            walls.turn[i, j], dt, radius, face_area, inv_mass, damping,
         )  # fmt: skip
         if wp.static(diagnostics):
             out.volume[i, j] = vol
@@ -374,8 +390,10 @@ def make_contact_kernels(
         model: T.BodyModel,
         materials: T.Materials,
         dt: C,
-        # State in: the bodies; in/out: the pairs' history; out (step): their wrench and energy lost
+        # State in: the bodies and their damping loads; in/out: the pairs' history; out (step): their wrench and
+        # energy lost
         bodies: T.Bodies,
+        body_damping: wp.array(dtype=wp.float32),
         pairs: T.Pairs,
         overflow: wp.array(dtype=int),
         # Out (diagnostics)
@@ -438,7 +456,7 @@ def make_contact_kernels(
             vol, first_moment, s_a, m_a, fb_a, r_ab,
             vec3c(bodies.v[a]), vec3c(bodies.w[a]), vec3c(bodies.v[b]), vec3c(bodies.w[b]),
             materials.k[mat], materials.law_m, materials.e[mat], materials.mu[mat], materials.kt[mat], xi_in,
-            pairs.turn[p], dt, r_min, area, inv_mass,
+            pairs.turn[p], dt, r_min, area, inv_mass, C(damping_scale(body_damping[a], body_damping[b])),
         )  # fmt: skip
         if wp.static(diagnostics):
             out.volume[p] = vol
@@ -475,9 +493,11 @@ def make_contact_kernels(
         materials: T.Materials,
         dt: C,
         planes: T.Planes,
-        # State in/out: the bodies (out (step): force, torque, energy lost), the wall contacts' history
+        # State in/out: the bodies (out (step): force, torque, energy lost), the wall contacts' history; in: the
+        # damping loads
         bodies: T.Bodies,
         walls: T.WallHistory,
+        body_damping: wp.array(dtype=wp.float32),
         # In: the pairs' wrenches and energy lost, and the per-body ranges
         pairs: T.Pairs,
         # Out (diagnostics)
@@ -521,6 +541,7 @@ def make_contact_kernels(
         if model.flags[i] == 0:
             xa = bodies.q[i]
             s = model.shape[i]
+            scale = C(damping_scale(body_damping[i], wp.float32(0.0)))
             # The depth only for the diagnostics and a report of the contacts (not for the sums).
             want_depth = wp.static(diagnostics)
             if wp.static(report):
@@ -536,13 +557,64 @@ def make_contact_kernels(
                 f, t, lost, _ = wall_contact(
                     i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
                     -vec3c(pn), vec3c(bodies.v[i]), vec3c(bodies.w[i]), vec3c(planes.v[j]), zero3, xi_pos,
-                    shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]),
+                    shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]), scale,
                     materials, dt, walls, wall_out, report_bits, wall_sums, f, t, lost,
                 )  # fmt: skip
         if wp.static(not diagnostics):
             bodies.f[i] = f
             bodies.t[i] = t
             bodies.dissipated[i] = bodies.dissipated[i] + lost
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def damping_load_kernel(
+        # Model
+        model: T.BodyModel,
+        materials: T.Materials,
+        wall_material: wp.array(dtype=int),
+        dt: C,
+        # In: the contacts' history as this step left it, the per-body ranges
+        pairs: T.Pairs,
+        walls: T.WallHistory,
+        # Out: (N,) the bodies' damping loads for the next step
+        body_damping: wp.array(dtype=wp.float32),
+    ):
+        """Each free body's damping load: dt times the inverse mass at its farthest point (1/m + r^2 / I_min,
+        a bound on the velocity a tangential force meets there) times the sum of the tangential dashpots of
+        its contacts (those with a turning volume: in contact at this step; the dashpot is 0 for e = 1), as
+        the step took them unscaled. The next step scales each contact's dashpot by
+        damping_scale of its bodies' loads, so that no body's dashpots change the velocity at its rim by
+        more than DAMPING_SHARE of it in a step. Summed in the gather's order (pairs by key, then walls)."""
+        i = wp.tid()
+        load = wp.float32(0.0)
+        if model.flags[i] == 0:
+            total = C(0.0)
+            ra = pairs.ranges_a[i]
+            for p in range(ra[0], ra[1]):
+                if pairs.turn[p] > C(0.0):
+                    b = pairs.b[p]
+                    mat = model.material[i] * materials.count + model.material[b]
+                    inv = C(model.inv_mass[i] + model.inv_mass[b])
+                    total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
+            rb = pairs.ranges_b[i]
+            for k in range(rb[0], rb[1]):
+                p = pairs.by_b[k]
+                if pairs.turn[p] > C(0.0):
+                    a = pairs.a[p]
+                    mat = model.material[a] * materials.count + model.material[i]
+                    inv = C(model.inv_mass[a] + model.inv_mass[i])
+                    total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
+            for j in range(wall_material.shape[0]):
+                if walls.turn[i, j] > C(0.0):
+                    mat = model.material[i] * materials.count + wall_material[j]
+                    total += resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[i]))
+            inertia = model.inertia[i]
+            i_min = C(wp.min(inertia[0], wp.min(inertia[1], inertia[2])))
+            reach = C(model.inv_mass[i])
+            if i_min > C(0.0):
+                r = C(model.radius[i])
+                reach += r * r / i_min
+            load = wp.float32(dt * reach * total)
+        body_damping[i] = load
 
     return ContactKernels(
         law=law,
@@ -557,6 +629,7 @@ def make_contact_kernels(
         wall_contact=wall_contact,
         pair_contact_kernel=pair_contact_kernel,
         gather_kernel=gather_kernel,
+        damping_load_kernel=damping_load_kernel,
     )
 
 
@@ -587,7 +660,16 @@ def launch_pair_contacts(
     wp.launch(
         kernels.pair_contact_kernel,
         dim=pairs.capacity,
-        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, state.bodies, pairs.pairs, overflow],
+        inputs=[
+            *m.shapes.kernel_args(),
+            m.bodies,
+            m.materials,
+            dt,
+            state.bodies,
+            state.body_damping,
+            pairs.pairs,
+            overflow,
+        ],
         outputs=[out.pairs, int(report_bits), pair_sums],
         device=state.bodies.q.device,
         block_dim=NARROWPHASE_BLOCK_DIM,
@@ -615,7 +697,36 @@ def launch_gather(
     wp.launch(
         kernels.gather_kernel,
         dim=m.num_bodies,
-        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, planes, state.bodies, state.walls, pairs.pairs],
+        inputs=[
+            *m.shapes.kernel_args(),
+            m.bodies,
+            m.materials,
+            dt,
+            planes,
+            state.bodies,
+            state.walls,
+            state.body_damping,
+            pairs.pairs,
+        ],
         outputs=[out.walls, int(report_bits), wall_sums],
+        device=state.bodies.q.device,
+    )
+
+
+def launch_damping_load(
+    kernels: ContactKernels, *, model: ContactModel, state: BodyState, pairs: PairArrays, dt: float
+) -> None:
+    """The damping load kernel of ``kernels``, one thread per body, after a step's force stage (pair, gather and
+    mesh-wall kernels): each body's damping load for the next step into ``state.body_damping`` (0 without
+    friction: there is no dashpot). ``model.wall_material``: (W,) int32, the material of each wall column
+    (the planes, then the mesh walls)."""
+    if not kernels.friction:
+        return  # the loads stay 0
+    m = model
+    wp.launch(
+        kernels.damping_load_kernel,
+        dim=m.num_bodies,
+        inputs=[m.bodies, m.materials, m.wall_material, dt, pairs.pairs, state.walls],
+        outputs=[state.body_damping],
         device=state.bodies.q.device,
     )

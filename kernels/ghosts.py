@@ -2,9 +2,10 @@
 that are ghosts elsewhere and writes into its own ghosts after each step, and how far its bodies
 have moved since the slabs were cut.
 
-A row is a body's pose (7), velocity (3) and angular velocity (3) in the state's scalar, read from and
-written to scalar views of the state's arrays (``body_q.view(scalar)``: (N, 7), (N, 3), (N, 3)), so
-that one kernel serves float32 and float64 states. Copies only, and a maximum: no rounding.
+A row is a body's pose (7), velocity (3), angular velocity (3) and damping load (1: float32, whose value the
+state's scalar holds exactly) in the state's scalar, read from and written to scalar views of the state's arrays
+(``body_q.view(scalar)``: (N, 7), (N, 3), (N, 3)), so that one kernel serves float32 and float64 states. Copies
+only, and a maximum: no rounding.
 """
 
 from typing import Any
@@ -27,8 +28,9 @@ def rows_kernel(
     q: wp.array2d(dtype=Any),
     v: wp.array2d(dtype=Any),
     w: wp.array2d(dtype=Any),
+    damping: wp.array(dtype=wp.float32),
     index: wp.array(dtype=int),
-    # (len(index), 13) rows: out when packing, in when unpacking
+    # (len(index), 14) rows: out when packing, in when unpacking
     rows: wp.array2d(dtype=Any),
     unpack: int,
 ):
@@ -39,6 +41,10 @@ def rows_kernel(
     for c in range(3):
         copy_value(v, i, c, rows, k, 7 + c, unpack)
         copy_value(w, i, c, rows, k, 10 + c, unpack)
+    if unpack != 0:
+        damping[i] = wp.float32(rows[k, 13])
+    else:
+        rows[k, 13] = rows.dtype(damping[i])
 
 
 @wp.kernel(enable_backward=False)
@@ -60,15 +66,20 @@ def moved_kernel(
 # ---------------------------------------------------------------------------------------------
 
 
-def launch_pack_rows(*, q: wp.array, v: wp.array, w: wp.array, index: wp.array, rows: wp.array) -> None:
-    """The rows (len(index), 13) of the bodies ``index`` of the state's scalar views ``q``, ``v``, ``w``."""
-    wp.launch(rows_kernel, dim=index.shape[0], inputs=[q, v, w, index, rows, 0], device=rows.device)
+def launch_pack_rows(
+    *, q: wp.array, v: wp.array, w: wp.array, damping: wp.array, index: wp.array, rows: wp.array
+) -> None:
+    """The rows (len(index), 14) of the bodies ``index`` of the state's scalar views ``q``, ``v``, ``w`` and its
+    damping loads ``damping``."""
+    wp.launch(rows_kernel, dim=index.shape[0], inputs=[q, v, w, damping, index, rows, 0], device=rows.device)
 
 
-def launch_unpack_rows(*, rows: wp.array, index: wp.array, q: wp.array, v: wp.array, w: wp.array) -> None:
-    """Write the received ``rows`` (len(index), 13) into the bodies ``index`` of the scalar views ``q``, ``v``,
-    ``w``."""
-    wp.launch(rows_kernel, dim=index.shape[0], inputs=[q, v, w, index, rows, 1], device=rows.device)
+def launch_unpack_rows(
+    *, rows: wp.array, index: wp.array, q: wp.array, v: wp.array, w: wp.array, damping: wp.array
+) -> None:
+    """Write the received ``rows`` (len(index), 14) into the bodies ``index`` of the scalar views ``q``, ``v``,
+    ``w`` and the damping loads ``damping``."""
+    wp.launch(rows_kernel, dim=index.shape[0], inputs=[q, v, w, damping, index, rows, 1], device=rows.device)
 
 
 def launch_largest_move(*, q: wp.array, axis: int, x0: wp.array, mine: wp.array, moved: wp.array) -> None:

@@ -20,7 +20,15 @@ import functools
 from typing import Any, Protocol
 
 import warp as wp
-from polydem.kernels.forces import REPORT_CONTACTS, BodyState, ContactKernels, ContactModel, ContactOutputs, ContactSums
+from polydem.kernels.forces import (
+    REPORT_CONTACTS,
+    BodyState,
+    ContactKernels,
+    ContactModel,
+    ContactOutputs,
+    ContactSums,
+    damping_scale,
+)
 from polydem.kernels.precision import scalars
 from polydem.kernels.structs import struct_types
 
@@ -73,6 +81,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
         mesh_q: wp.array(dtype=transform_s),
         bodies: T.Bodies,
         walls: T.WallHistory,
+        body_damping: wp.array(dtype=wp.float32),
         overflow: wp.array(dtype=int),
         # Out (diagnostics)
         wall_out: T.WallOutputs,
@@ -87,6 +96,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
         pa = wp.transform_get_translation(xa)
         s = model.shape[i]
         r = model.radius[i]
+        scale = C(damping_scale(body_damping[i], wp.float32(0.0)))
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
         lost = S(0.0)
@@ -150,7 +160,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
             f, t, lost, n = wall_contact(
                 i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
                 r_ab, vec3c(bodies.v[i]), vec3c(bodies.w[i]), vec3c(meshes.v[m]), vec3c(meshes.w[m]), pa,
-                shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]),
+                shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]), scale,
                 materials, dt, walls, wall_out, report_bits, wall_sums, f, t, lost,
             )  # fmt: skip
             if wp.static(diagnostics or report):
@@ -202,7 +212,17 @@ def launch_mesh_contacts(
     wp.launch(
         kernel,
         dim=m.num_bodies,
-        inputs=[*m.shapes.kernel_args(), m.bodies, m.materials, dt, meshes, state.mesh_q, state.bodies, state.walls],
+        inputs=[
+            *m.shapes.kernel_args(),
+            m.bodies,
+            m.materials,
+            dt,
+            meshes,
+            state.mesh_q,
+            state.bodies,
+            state.walls,
+            state.body_damping,
+        ],
         outputs=[overflow, out.walls, int(report_bits), wall_sums],
         device=state.mesh_q.device,
     )

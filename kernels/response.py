@@ -49,6 +49,12 @@ ENCLOSED_MIN_VOLUME = 1.0e-3
 TWIST_LEVER = 2.0 / 3.0
 # The rocking damping of a contact (respond) is at most this fraction of mu F_n R, R = sqrt(|S_A| / pi).
 ROLL_FRACTION = 0.1
+# The tangential dashpots of all a body's contacts, taken explicitly, may change the velocity at its farthest
+# point by at most this fraction of it in one step (the body's damping load, polydem.kernels.forces): past
+# 1 an explicit dashpot reverses the motion it damps, and two bodies that damp each other's relative motion
+# count twice. A grain held by many contacts at a long step otherwise rings at the step's period forever
+# (a pile at 4 dt_rec never came to rest: BENCHMARKS.md section 21).
+DAMPING_SHARE = 0.5
 
 # What contact_frame found: a regular contact, an enclosed pair (pushed along the fallback area
 # vector) or a sliver (no force).
@@ -78,6 +84,7 @@ class Response:
     diagnostics: bool
     frame: Frame
     kept_energy: Any  # (turn, k, m, e, dt, area, r_min, inv_mass) -> what an opening contact kept [J]
+    dashpot: Any  # (kt, e, inv_mass) -> the tangential dashpot's coefficient [N s/m]
     respond: Any  # (overlap, motion, material, history, step) -> (force, torque, xi, turn, energy, lost, n, ...)
 
 
@@ -262,6 +269,17 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         return (scalar(1.0) - e * e) * law_energy(turn, k, m, vc)
 
     @wp.func
+    def dashpot(kt: scalar, e: scalar, inv_mass: scalar):
+        # The tangential dashpot [N s/m]: the damping ratio that e gives a linear oscillator, on the spring kt
+        # and the pair's translational mass (1 / inv_mass); none without a mass.
+        ct = scalar(0.0)
+        if inv_mass > scalar(0.0):
+            ln_e = wp.log(wp.max(e, scalar(1.0e-6)))
+            zeta = -ln_e / wp.sqrt(ln_e * ln_e + scalar(9.8696044))
+            ct = scalar(2.0) * zeta * wp.sqrt(kt / wp.max(inv_mass, scalar(1.0e-30)))
+        return ct
+
+    @wp.func
     def elastic_volume(volume: scalar, turn: scalar, e2: scalar):
         # u on the unloading branch from the turning volume: du = dV / e^2, u(turn) = turn.
         return turn - (turn - volume) / e2
@@ -318,12 +336,14 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         r_min: scalar,
         face_area: scalar,
         inv_mass: scalar,
+        damping_scale: scalar,
     ):
         """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
 
         ``fallback`` is the geometry's fallback area vector (the push of an enclosed pair, zero
         otherwise), ``r_ab`` is x_B - x_A; ``turn`` the pair's
-        turning volume (0 for a new contact; unused for e = 1). Returns (force on A, torque on A
+        turning volume (0 for a new contact; unused for e = 1); ``damping_scale`` (<= 1) scales the tangential
+        dashpot where the bodies' damping loads exceed DAMPING_SHARE (1 elsewhere). Returns (force on A, torque on A
         about x_A, new spring xi, new turning volume, stored energy, energy dissipated this step,
         unit normal, contact point relative to x_A, normal force magnitude, tangential force).
         """
@@ -380,11 +400,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             xt = xt + vt * dt
             # A tangential dashpot with the damping ratio of e keeps a sticking contact from ringing
             # (an undamped spring rings, slips at each swing and lets a block creep down a slope).
-            ln_e = wp.log(wp.max(e, scalar(1.0e-6)))
-            zeta = -ln_e / wp.sqrt(ln_e * ln_e + scalar(9.8696044))
-            ct = scalar(2.0) * zeta * wp.sqrt(kt / wp.max(inv_mass, scalar(1.0e-30)))
-            if inv_mass <= scalar(0.0):
-                ct = scalar(0.0)
+            ct = dashpot(kt, e, inv_mass) * damping_scale
             ft = -kt * xt - ct * vt
             cap = mu * fn
             ft_norm = wp.length(ft)
@@ -436,7 +452,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             lost -= wp.dot(tr, w_t) * dt
         return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
 
-    return Response(scalar, law, friction, diagnostics, frame, kept_energy, respond)
+    return Response(scalar, law, friction, diagnostics, frame, kept_energy, dashpot, respond)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -522,7 +538,7 @@ def make_force_kernel(scalar, law: str):
             zero3, zero3, zero3, zero3,
             k, m, scalar(1.0), zero, zero,
             zero3, zero,
-            zero, pair_r_min[i], zero, zero,
+            zero, pair_r_min[i], zero, zero, scalar(1.0),
         )  # fmt: skip
         out.force[i] = force
         out.torque_a[i] = torque

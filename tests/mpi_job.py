@@ -24,11 +24,18 @@ def main():
     ds.step(steps)
     state, contacts, energy = ds.state(), ds.contacts(), ds.energy()
     owned, local = ds.balance()
+    # Every rank's damping loads, ghosts included (a ghost's comes from its owner): by global index.
+    mine = (np.zeros(0, np.int64), np.zeros(0, np.float32))
+    if ds.sim is not None:
+        mine = (ds.local_index, ds.sim.current_state.body_damping.numpy())
+    loads = comm.gather(mine, root=0)
     if comm.Get_rank() == 0:
         arrays = {f"state_{k}": v for k, v in state.items()}
         arrays.update({f"contacts_{k}": v for k, v in contacts.items()})
         arrays.update({f"energy_{k}": np.float64(v) for k, v in energy.items()})
         arrays.update(partitions=ds.partitions, owned=owned, local=local, steps_done=ds.steps_done, redone=ds.redone)
+        arrays["damping_index"] = np.concatenate([i for i, _ in loads])
+        arrays["damping"] = np.concatenate([d for _, d in loads])
         np.savez(out, **arrays)
 
 

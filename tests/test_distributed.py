@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from distributed_scenes import build
+from polydem.kernels.response import DAMPING_SHARE
 
 from polydem import Simulation
 from polydem.distributed import DistributedSimulation, launched_size
@@ -114,6 +115,8 @@ needs_mpi = pytest.mark.skipif(not _have_mpi(), reason="needs mpi4py and mpiexec
         ("box_pour", 3000, 0.004, 2, 50),  # a small margin: bodies move to other ranks many times
         ("box_pour", 3000, 0.004, 4, 50),
         ("box_pour", 3000, 0.002, 2, 1000),  # chunks past the margin: stepped again after a new partition
+        ("box_pour_long", 3000, 0.004, 2, 50),  # damping loads above the share: the ghosts' from their owners
+        ("box_pour_long", 3000, 0.002, 2, 1000),  # ... also after a redone chunk (restore, then exchange)
         ("mixer", 2450, 0.01, 2, 50),  # turning mesh walls, non-convex grains (0.031 s: 11 contacts)
         ("chain", 1500, 0.05, 2, 50),  # a pulse through contacts across the boundary
         ("chain", 1500, 0.05, 4, 50),
@@ -135,6 +138,12 @@ def test_decomposed_run_is_the_undivided_run(tmp_path, device, scene, steps, mar
 
     sim = Simulation(build(scene), device=device)
     sim.step(steps)
+    # Each rank's damping loads, its ghosts' too, are the undivided run's (a ghost's contacts are its owner's).
+    damping = sim.current_state.body_damping.numpy()
+    assert np.any(damping > 0.0)
+    np.testing.assert_array_equal(got["damping"], damping[got["damping_index"]])
+    if scene == "box_pour_long":
+        assert np.max(damping) > DAMPING_SHARE
     want_state, want_contacts, want_energy = sim.state(), sim.contacts(), sim.energy()
     for k, v in want_state.items():
         np.testing.assert_array_equal(got[f"state_{k}"], v, err_msg=k)

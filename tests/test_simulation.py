@@ -1101,7 +1101,7 @@ def test_friction_books_no_negative_dissipation_in_one_step(device):
         dt = sc(1.0e-4)
         out = respond(
             vol, c * vol, area[i], wp.cross(c, area[i]), z, c * sc(2.0), v_a[i], w_a[i], z, z,
-            sc(1.0e4), sc(1.0), e[i], mu[i], kt, xi[i], sc(0.0), dt, sc(0.05), sc(0.0), sc(1.0),
+            sc(1.0e4), sc(1.0), e[i], mu[i], kt, xi[i], sc(0.0), dt, sc(0.05), sc(0.0), sc(1.0), sc(1.0),
         )  # fmt: skip
         lost[i] = out[5]
         xi_new = out[2]

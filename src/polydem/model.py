@@ -89,6 +89,7 @@ class Model:
             frame origin in its wall's frame [m]; cell_front: (C,) S vec4 the plane (normal,
             offset [m]) of the triangle a cell lies behind, zero for the cells of concave edges
             and corners (for the reported depth).
+        wall_material: (P + M,) int32 material of each wall column (planes first).
         mesh_material: (M,) int32; mesh_v: (M,) S vec3 velocity of the wall's origin [m/s];
             mesh_w: (M,) S vec3 angular velocity [rad/s]; mesh_q0: (M, 7) initial poses (pivot and
             identity rotation).
@@ -135,6 +136,10 @@ class Model:
             v.setflags(write=False)  # the scene's own arrays where the model has every body
         self.num_bodies = n = len(self.body_index)
         self._mesh_walls(scene, shape_list, dev, s_np)
+        # Every wall column's material, the planes then the mesh walls (the damping loads, kernels/forces.py).
+        mat_of = {name: i for i, name in enumerate(scene.material_names)}
+        wall_mats = [mat_of[p.material] for p in scene.planes] + [mat_of[w.material] for w in scene.mesh_walls]
+        self.wall_material = wp.array(np.array(wall_mats, dtype=np.int32), dtype=int, device=dev)
         self.shapes = ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name, packed=self.mesh_cells)
         self.grain_shapes = (
             ShapeSet(shape_list, device=dev, precision=np.dtype(c_np).name) if self.mesh_cells else self.shapes

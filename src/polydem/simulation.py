@@ -58,6 +58,7 @@ from polydem.kernels.forces import (
     ContactOutputs,
     ContactSums,
     PairArrays,
+    launch_damping_load,
     launch_gather,
     launch_pair_contacts,
     make_contact_kernels,
@@ -303,19 +304,26 @@ class Stepper:
         if average is None:
             mesh = None if self.mesh_kernels is None else self.mesh_kernels[0]
             self._force_stage(self.kernels, mesh, state=state, pairs=contacts, dt=dt, overflow=self.poly_overflow)
-            return
-        kernels, mesh = self._report_kernels()
-        self._force_stage(
-            kernels,
-            mesh,
-            state=state,
-            pairs=contacts,
-            dt=dt,
-            overflow=self.poly_overflow,
-            report_bits=REPORT_SUMS,
-            pair_sums=average.pairs,
-            wall_sums=average.walls,
-        )
+        else:
+            kernels, mesh = self._report_kernels()
+            self._force_stage(
+                kernels,
+                mesh,
+                state=state,
+                pairs=contacts,
+                dt=dt,
+                overflow=self.poly_overflow,
+                report_bits=REPORT_SUMS,
+                pair_sums=average.pairs,
+                wall_sums=average.walls,
+            )
+        self.damping_load(state, contacts, dt)
+
+    def damping_load(self, state: State, contacts: PairArrays, dt: float) -> None:
+        """Each body's damping load for the next step (``state.body_damping``) from the contact history as it is
+        now (kernels/forces.py ``launch_damping_load``): after each step's force stage, and where a state is set
+        from arrays without one (a checkpoint)."""
+        launch_damping_load(self.kernels, model=self.model, state=state, pairs=contacts, dt=dt)
 
     def integrate(self, state: State, dt: float) -> None:
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
@@ -486,9 +494,22 @@ class Stepper:
         bodies = {k: a[f"body_{k}"] for k in ("q", "v", "w")} | {k: scratch[f"body_{k}"] for k in ("f", "t")}
         bodies = filled(bodies_struct(m.scalar), **bodies, dissipated=scratch["body_dissipated"])
         walls = filled(wall_history_struct(m.contact_scalar), xi=scratch["wall_xi"], turn=scratch["wall_turn"])
-        state = SimpleNamespace(bodies=bodies, walls=walls, mesh_q=a["mesh_q"], step_count=a["step_count"])
         Pairs = pairs_struct(m.contact_scalar)
         live = {k: getattr(contacts.pairs, k) for k in Pairs.vars}
+        damping = a.get("body_damping")
+        if damping is None:
+            # Inputs from a snapshot, which holds no damping loads: those the step read, from the history it read.
+            damping = scratch.setdefault("body_damping", wp.zeros(n, dtype=wp.float32, device=self.device))
+            read = SimpleNamespace(
+                bodies=bodies,
+                walls=filled(wall_history_struct(m.contact_scalar), xi=a["wall_xi"], turn=a["wall_turn"]),
+                body_damping=damping,
+            )
+            history = filled(Pairs, **(live | {"xi": a["pair_xi"], "turn": a["pair_turn"]}))
+            self.damping_load(read, SimpleNamespace(capacity=cap, pairs=history), dt)
+        state = SimpleNamespace(
+            bodies=bodies, walls=walls, body_damping=damping, mesh_q=a["mesh_q"], step_count=a["step_count"]
+        )
         steps = {k: scratch[f"pair_{k}"] for k in ("xi", "turn", "force", "torque_a", "dissipated")}
         pairs = SimpleNamespace(capacity=cap, pairs=filled(Pairs, **(live | steps)))
 
@@ -537,13 +558,13 @@ class StepInputs:
     of its last step (:meth:`Simulation.step` needs none: its copy for a redo serves).
 
     Attributes:
-        arrays: device arrays by name: ``body_q``, ``body_v``, ``body_w``, ``mesh_q``, ``wall_xi``,
+        arrays: device arrays by name: ``body_q``, ``body_v``, ``body_w``, ``body_damping``, ``mesh_q``, ``wall_xi``,
             ``wall_turn``, ``step_count`` (as the :class:`~polydem.state.State`'s), ``pair_xi``, ``pair_turn`` (as the
             :class:`~polydem.contacts.Contacts`').
     """
 
     # The step counter too: the walls that follow motions are put where they were at that step.
-    STATE = ("body_q", "body_v", "body_w", "mesh_q", "wall_xi", "wall_turn", "step_count")
+    STATE = ("body_q", "body_v", "body_w", "body_damping", "mesh_q", "wall_xi", "wall_turn", "step_count")
     PAIRS = ("pair_xi", "pair_turn")
 
     def __init__(self) -> None:
@@ -572,8 +593,9 @@ class Snapshot:
 
     From :meth:`Simulation.snapshot`; give it to :meth:`Simulation.restore` to go back to that step. The
     state is copied without ``body_f`` and ``body_t`` (``State.TRANSIENT``: the next step writes them before
-    it reads them), and the pair history holds the pairs of the list then (``count``) with some room, not
-    the whole capacity of the live list (:meth:`~polydem.contacts.Contacts.history`).
+    it reads them) and the damping loads (the restore computes them from the pair history), and the pair
+    history holds the pairs of the list then (``count``) with some room, not the whole capacity of the live
+    list (:meth:`~polydem.contacts.Contacts.history`).
     """
 
     def __init__(
@@ -751,7 +773,7 @@ class Simulation:
             into.state.assign(st)
             state = into.state
         else:
-            state = st.copy(transient=False)  # no body_f, body_t: every step writes them before it reads them
+            state = st.copy(transient=False)  # no body_f, body_t, body_damping (State.TRANSIENT)
         pairs = self.current_contacts.history(into.pairs if into is not None else None)
         average = None
         if self._average is not None:
@@ -770,7 +792,8 @@ class Simulation:
         where it was taken during the same interval, else started afresh at the restored step.
         ``current_state.body_f`` and ``body_t`` are zero afterwards, as before the first step and after a
         checkpoint is loaded (no step has run since the state was set; a snapshot does not copy them), until
-        the next step writes them; :meth:`contacts` reports the forces that step will apply.
+        the next step writes them; :meth:`contacts` reports the forces that step will apply. The damping loads
+        (``body_damping``) are the snapshot's where it holds them, else computed from the restored history.
         """
         self._diag_cache = None
         self._report_cache = None
@@ -793,6 +816,9 @@ class Simulation:
             if avg is None or not avg.overflowed():
                 break
             avg.grow()
+        if "body_damping" not in snapshot.state.__dict__:
+            # A snapshot does not copy the damping loads: derived from the pair history, computed again.
+            self.stepper.damping_load(self.current_state, self.current_contacts, self.dt)
         self.steps_done = snapshot.steps_done
         self.time = snapshot.time
 
@@ -801,6 +827,10 @@ class Simulation:
         ``pair_turn``."""
         m = self.model
         saved = {k: arrays[k] for k in State.SAVED if k in arrays}
+        # The damping loads where the arrays carry them (a decomposed run's rows, whose ghosts' loads come from
+        # their owners); else computed again from the restored history below.
+        if "body_damping" in arrays:
+            saved["body_damping"] = arrays["body_damping"]
         if "mesh_q" not in saved:
             saved["mesh_q"] = self.current_state.mesh_q.numpy()
         # The ramps' and servos' travel, kept apart from State.SAVED (a decomposed run gathers those).
@@ -811,6 +841,8 @@ class Simulation:
             arrays["pair_key"], arrays["pair_xi"], arrays["pair_turn"], m.friction, self.device, m.contact_scalar
         )
         self.restore(Snapshot(state, pairs, steps_done, time))
+        if "body_damping" not in arrays:
+            self.stepper.damping_load(self.current_state, self.current_contacts, self.dt)
 
     @property
     def last_good(self) -> Snapshot | None:
@@ -1165,7 +1197,8 @@ class Simulation:
             # The snapshot's pair history is by key, from before the step's broad phase: carried onto
             # the pair list that phase made (the current one), as the step's rebuild carried it.
             xi, turn = self.stepper.history_on(history, contacts)
-            arrays = {k: getattr(st, k) for k in StepInputs.STATE}
+            # (a snapshot holds no damping loads: the report computes them from this history)
+            arrays = {k: getattr(st, k) for k in StepInputs.STATE if k in vars(st)}
             arrays.update(pair_xi=xi, pair_turn=turn)
             return arrays
         st = self.current_state

@@ -41,6 +41,10 @@ class State:
         body_t: (N,) ``wp.vec3`` torque of those forces about the centroid, world axes [N m]; as ``body_f``.
         body_dissipated: (N,) energy dissipated so far by damping and friction at the
             body's contacts [J].
+        body_damping: (N,) float32 damping load of each free body for the next step [1]: dt times the
+            inverse mass at its farthest point times its contacts' tangential dashpots (kernels/forces.py
+            ``damping_load_kernel``), written at the end of each step's force stage; derived from the contact
+            history (neither a checkpoint nor a snapshot keeps it: it is computed again when one is restored).
         wall_xi: (N, P) ``wp.vec3`` friction springs of the wall contacts [m]; (1, 1) when the
             scene has no friction.
         wall_turn: (N, P) turning volumes of the wall contacts (the normal hysteresis,
@@ -62,6 +66,7 @@ class State:
     body_f: wp.array
     body_t: wp.array
     body_dissipated: wp.array
+    body_damping: wp.array
     wall_xi: wp.array
     wall_turn: wp.array
     mesh_q: wp.array
@@ -72,16 +77,17 @@ class State:
 
     FIELDS: tuple[str, ...] = ("body_q", "body_v", "body_w", "body_f", "body_t", "body_dissipated", "wall_xi")
     FIELDS += ("wall_turn", "mesh_q", "step_count")
-    FIELDS += ("motion_travel",)
+    FIELDS += ("motion_travel", "body_damping")
     """Every array of a state, in the order :meth:`assign` copies them."""
 
     SAVED = ("body_q", "body_v", "body_w", "body_dissipated", "wall_xi", "wall_turn", "mesh_q", "step_count")
     """What a checkpoint keeps: ``body_f`` and ``body_t`` are written by every step before they are read."""
 
-    TRANSIENT = ("body_f", "body_t")
-    """The outputs of a step's force stage, which every step writes before it reads them: a snapshot
-    (``copy(transient=False)``, ``Simulation.snapshot``) leaves them out, and :meth:`assign` from such a
-    copy zeroes them."""
+    TRANSIENT = ("body_f", "body_t", "body_damping")
+    """The outputs of a step's force stage, which every step writes before it reads them, and the damping
+    loads, which the pair history gives: a snapshot (``copy(transient=False)``, ``Simulation.snapshot``) leaves
+    them out, :meth:`assign` from such a copy zeroes them, and ``Simulation.restore`` computes the loads
+    again."""
 
     # The arrays of each struct (bodies_struct, wall_history_struct), by the struct's member names.
     _BODIES = {"q": "body_q", "v": "body_v", "w": "body_w", "f": "body_f", "t": "body_t"}
@@ -126,6 +132,7 @@ class State:
             "mesh_q": wp.types.transformation(s),
             "step_count": int,
             "motion_travel": wp.vec3d,
+            "body_damping": wp.float32,
         }
 
     def __init__(
@@ -173,6 +180,8 @@ class State:
                     a = a.astype(body)
                 elif name == "motion_travel":
                     a = a.astype(np.float64)
+                elif name == "body_damping":
+                    a = a.astype(np.float32)
                 elif name != "step_count":
                     a = a.astype(body if name.startswith("body_") else history)
                 a = wp.array(a, dtype=dtype, device=dev)

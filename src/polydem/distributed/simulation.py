@@ -48,9 +48,10 @@ CHUNK = 50
 """Steps between two agreements of the ranks (errors, overflows, moves): each costs a synchronisation and an
 allreduce; a chunk that must be redone costs up to this many steps."""
 
-ROW = 13
-"""What a ghost receives after every step, per body: pose (7), velocity (3), angular velocity (3); the
-rest of its state is only read by its owner."""
+ROW = 14
+"""What a ghost receives after every step, per body: pose (7), velocity (3), angular velocity (3) and damping
+load (1: the scale of its contacts' dashpots at the next step depends on all its contacts, which only its owner
+has); the rest of its state is only read by its owner."""
 
 
 def simulation_time(start: float, done: int, n: int, dt: float) -> float:
@@ -253,6 +254,7 @@ class DistributedSimulation:
             # The poses and velocities hold the model's body scalar (State.dtypes): viewed as rows of it.
             scalar = self.sim.model.scalar
             self._views = tuple(getattr(st, f).view(scalar) for f in ("body_q", "body_v", "body_w"))
+            self._damping = st.body_damping
             mine = (self.owned & self._free[self.local_index]).astype(np.int32)
             self._mine = wp.array(mine, dtype=int, device=dev)
             self._x0 = wp.array(self._x_partition, dtype=wp.float64, device=dev)
@@ -298,7 +300,8 @@ class DistributedSimulation:
         if sim is not None:
             st = sim.current_state.numpy()
             holders = self._holders(x_local, self.local_index)
-            rows = {k: st[k] for k in ("body_q", "body_v", "body_w", "body_dissipated", "wall_turn")}
+            st["body_damping"] = sim.current_state.body_damping.numpy()
+            rows = {k: st[k] for k in ("body_q", "body_v", "body_w", "body_dissipated", "body_damping", "wall_turn")}
             if sim.model.friction:
                 rows["wall_xi"] = st["wall_xi"]
             hist = sim.current_contacts.history_numpy()
@@ -364,6 +367,9 @@ class DistributedSimulation:
         history = {k: np.asarray(arrays[k]) for k in ("pair_key", "pair_xi", "pair_turn")}
         mesh_q = arrays.get("mesh_q")
         self._set_local(index, owner[index] == self.rank, owner[index], x_all[index], rows, history, mesh_q)
+        # Each rank computed its bodies' damping loads from the history it holds: a ghost's, which counts contacts
+        # this rank lacks, from its owner.
+        self._exchange()
         self.partitions += 1
 
     def saved_arrays(self) -> dict[str, np.ndarray] | None:
@@ -471,6 +477,8 @@ class DistributedSimulation:
                     if flags[0]:
                         sim.stepper.grow_polygons()
                     sim.restore(self._good)
+                # restore computed the damping loads from this rank's history: the ghosts' from their owners
+                self._exchange()
                 if moved > 0.5 * self.margin:
                     # The chunk went past the halo's margin: partition at its start and step it again,
                     # in shorter chunks (a body that fast reaches the margin sooner).
@@ -535,7 +543,7 @@ class DistributedSimulation:
         requests = []
         q, v, w = self._views
         for index, rows, host in self._send.values():
-            launch_pack_rows(q=q, v=v, w=w, index=index, rows=rows)
+            launch_pack_rows(q=q, v=v, w=w, damping=self._damping, index=index, rows=rows)
             if host is not rows:
                 wp.copy(host, rows)
         if not dev.is_cpu:
@@ -548,7 +556,7 @@ class DistributedSimulation:
         for index, rows, host in self._recv.values():
             if host is not rows:
                 wp.copy(rows, host)
-            launch_unpack_rows(rows=rows, index=index, q=q, v=v, w=w)
+            launch_unpack_rows(rows=rows, index=index, q=q, v=v, w=w, damping=self._damping)
         self.sim.forget_diagnostics()
 
     def _track_move(self) -> None:
