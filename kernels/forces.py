@@ -40,7 +40,10 @@ turns it into a wrench (:func:`polydem.kernels.response.respond`):
   (length kept), loaded by the tangential velocity at the contact point, with a dashpot of the
   damping ratio that e gives a linear oscillator, the sum capped at mu times the normal force; it
   acts at the contact point. The slip (at the spring's force), the dashpot's work and the spring
-  energy left when a contact opens are counted as dissipated (see :func:`respond`).
+  energy left when a contact opens are counted as dissipated (see :func:`respond`). The dashpots are
+  explicit: where the dashpots of a body's contacts at the last step would, summed, change the velocity
+  at its rim by more than DAMPING_SHARE of it in a step (its damping load, :func:`launch_damping_load`),
+  each of its contacts' dashpots is scaled down to that share (kernels/response.py).
 
 Forces are written per pair and gathered per body in a fixed order (the pairs' sorted keys), so
 that a run is bit-for-bit repeatable on a device: no floating-point atomics. The gather also adds
@@ -578,12 +581,14 @@ def make_contact_kernels(
         # Out: (N,) the bodies' damping loads for the next step
         body_damping: wp.array(dtype=wp.float32),
     ):
-        """Each free body's damping load: dt times the inverse mass at its farthest point (1/m + r^2 / I_min,
-        a bound on the velocity a tangential force meets there) times the sum of the tangential dashpots of
-        its contacts (those with a turning volume: in contact at this step; the dashpot is 0 for e = 1), as
-        the step took them unscaled. The next step scales each contact's dashpot by
-        damping_scale of its bodies' loads, so that no body's dashpots change the velocity at its rim by
-        more than DAMPING_SHARE of it in a step. Summed in the gather's order (pairs by key, then walls)."""
+        """Each free body's damping load: dt times the inverse mass at its farthest point (1/m + 1.25 r^2 / I_min:
+        a bound on the velocity a tangential force meets there, with the rocking damping made of the same
+        dashpot, at most a quarter of it) times the sum of the tangential dashpots of its contacts with
+        friction (those with a turning volume: in contact at this step; the dashpot is 0 for e = 1; one
+        without friction applies none), as the step took them unscaled. The next step scales each contact's
+        dashpot by damping_scale of its bodies' loads, so that the dashpots of the contacts a body had at
+        this step change the velocity at its rim by at most DAMPING_SHARE of it in a step. Summed in the
+        gather's order (pairs by key, then walls)."""
         i = wp.tid()
         load = wp.float32(0.0)
         if model.flags[i] == 0:
@@ -593,26 +598,28 @@ def make_contact_kernels(
                 if pairs.turn[p] > C(0.0):
                     b = pairs.b[p]
                     mat = model.material[i] * materials.count + model.material[b]
-                    inv = C(model.inv_mass[i] + model.inv_mass[b])
-                    total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
+                    if materials.mu[mat] > C(0.0):
+                        inv = C(model.inv_mass[i] + model.inv_mass[b])
+                        total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
             rb = pairs.ranges_b[i]
             for k in range(rb[0], rb[1]):
                 p = pairs.by_b[k]
                 if pairs.turn[p] > C(0.0):
                     a = pairs.a[p]
                     mat = model.material[a] * materials.count + model.material[i]
-                    inv = C(model.inv_mass[a] + model.inv_mass[i])
-                    total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
+                    if materials.mu[mat] > C(0.0):
+                        inv = C(model.inv_mass[a] + model.inv_mass[i])
+                        total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
             for j in range(wall_material.shape[0]):
-                if walls.turn[i, j] > C(0.0):
-                    mat = model.material[i] * materials.count + wall_material[j]
+                mat = model.material[i] * materials.count + wall_material[j]
+                if walls.turn[i, j] > C(0.0) and materials.mu[mat] > C(0.0):
                     total += resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[i]))
             inertia = model.inertia[i]
             i_min = C(wp.min(inertia[0], wp.min(inertia[1], inertia[2])))
             reach = C(model.inv_mass[i])
             if i_min > C(0.0):
                 r = C(model.radius[i])
-                reach += r * r / i_min
+                reach += C(1.25) * r * r / i_min
             load = wp.float32(dt * reach * total)
         body_damping[i] = load
 

@@ -110,8 +110,8 @@ class Stepper:
     """One time step of a :class:`~polydem.model.Model`: ``step(state_in, state_out, contacts, dt)``.
 
     Stages: :meth:`collide` (the broad phase: rebuild the pair list when needed), :meth:`forces`
-    (pair contacts, then the gather per body with the walls), :meth:`integrate` (and the
-    finiteness check). The kernels update their arrays in place; ``state_out`` may be
+    (pair contacts, then the gather per body with the walls, then each body's damping load for the next
+    step), :meth:`integrate` (and the finiteness check). The kernels update their arrays in place; ``state_out`` may be
     ``state_in`` (the :class:`Simulation` steps in place, so one captured graph serves every step).
 
     Args:
@@ -297,9 +297,9 @@ class Stepper:
             contacts.update(state.body_q)
 
     def forces(self, state: State, contacts: Contacts, dt: float) -> None:
-        """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``;
-        with :attr:`average` set, each contact's force is also added to its sums (the report variant
-        of the kernels)."""
+        """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``, and the
+        damping loads the next step scales the dashpots by into ``state.body_damping``; with :attr:`average`
+        set, each contact's force is also added to its sums (the report variant of the kernels)."""
         average = self.average
         if average is None:
             mesh = None if self.mesh_kernels is None else self.mesh_kernels[0]
@@ -499,7 +499,9 @@ class Stepper:
         damping = a.get("body_damping")
         if damping is None:
             # Inputs from a snapshot, which holds no damping loads: those the step read, from the history it read.
-            damping = scratch.setdefault("body_damping", wp.zeros(n, dtype=wp.float32, device=self.device))
+            if "body_damping" not in scratch:
+                scratch["body_damping"] = wp.zeros(n, dtype=wp.float32, device=self.device)
+            damping = scratch["body_damping"]
             read = SimpleNamespace(
                 bodies=bodies,
                 walls=filled(wall_history_struct(m.contact_scalar), xi=a["wall_xi"], turn=a["wall_turn"]),

@@ -165,8 +165,8 @@ class State:
     def from_numpy(
         cls, arrays: dict[str, np.ndarray], device: wp.DeviceLike = None, precision: str = Precision.FLOAT32
     ) -> State:
-        """A state in ``precision`` from host arrays named as :attr:`FIELDS` (``body_f`` and
-        ``body_t`` may be left out: zeros); the arrays are converted to the precision's dtypes."""
+        """A state in ``precision`` from host arrays named as :attr:`FIELDS` (``body_f``, ``body_t`` and
+        ``body_damping`` may be left out: zeros); the arrays are converted to the precision's dtypes."""
         dev = wp.get_device(device)
         state = cls.__new__(cls)
         state.device = dev
@@ -198,8 +198,9 @@ class State:
         """Copy every array of ``other`` (a state of the same shapes) into this one.
 
         Where ``other`` holds no :attr:`TRANSIENT` arrays (a copy made with ``transient=False``), this
-        state's are zeroed: no step has written them since the state was set. Where this state holds none,
-        only the others are copied.
+        state's are zeroed: no step has written them since the state was set (the damping loads, zero
+        here, are computed again by ``Simulation.restore``; a state stepped without that would run with
+        unscaled dashpots for one step). Where this state holds none, only the others are copied.
         """
         mine, theirs = self.__dict__, other.__dict__
         for name in self.FIELDS:
@@ -212,8 +213,9 @@ class State:
 
     def copy(self, transient: bool = True) -> State:
         """A new state with copies of every array; with ``transient=False`` without :attr:`TRANSIENT`
-        (``body_f``, ``body_t``: a snapshot's, 2 x 12 or 2 x 24 bytes a body less; such a state is only
-        read, by :meth:`assign`, :meth:`numpy` of other fields and :meth:`same_shapes`)."""
+        (``body_f``, ``body_t``, ``body_damping``: a snapshot's, 2 x 12 + 4 or 2 x 24 + 4 bytes a body
+        less; such a state is only read, by :meth:`assign`, :meth:`numpy` of other fields and
+        :meth:`same_shapes`)."""
         state = State.__new__(State)
         state.device = self.device
         state.precision = self.precision

@@ -532,8 +532,8 @@ class DistributedSimulation:
         )
 
     def _exchange(self) -> None:
-        """Send the new poses and velocities of my bodies that are ghosts elsewhere; take my ghosts' from
-        their owners."""
+        """Send the new poses, velocities and damping loads of my bodies that are ghosts elsewhere; take my
+        ghosts' from their owners."""
         comm = self.comm
         if isinstance(comm, SerialComm) or self.sim is None:
             return
