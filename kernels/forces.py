@@ -568,6 +568,15 @@ def make_contact_kernels(
             bodies.t[i] = t
             bodies.dissipated[i] = bodies.dissipated[i] + lost
 
+    @wp.func
+    def friction_dashpot(model: T.BodyModel, materials: T.Materials, a: int, b: int):
+        # The dashpot of pair (a, b) as the pair kernel takes it (0 without friction: no tangential force)
+        mat = model.material[a] * materials.count + model.material[b]
+        ct = C(0.0)
+        if materials.mu[mat] > C(0.0):
+            ct = resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[a] + model.inv_mass[b]))
+        return ct
+
     @wp.kernel(enable_backward=False, module="unique")
     def damping_load_kernel(
         # Model
@@ -596,20 +605,12 @@ def make_contact_kernels(
             ra = pairs.ranges_a[i]
             for p in range(ra[0], ra[1]):
                 if pairs.turn[p] > C(0.0):
-                    b = pairs.b[p]
-                    mat = model.material[i] * materials.count + model.material[b]
-                    if materials.mu[mat] > C(0.0):
-                        inv = C(model.inv_mass[i] + model.inv_mass[b])
-                        total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
+                    total += friction_dashpot(model, materials, i, pairs.b[p])
             rb = pairs.ranges_b[i]
             for k in range(rb[0], rb[1]):
                 p = pairs.by_b[k]
                 if pairs.turn[p] > C(0.0):
-                    a = pairs.a[p]
-                    mat = model.material[a] * materials.count + model.material[i]
-                    if materials.mu[mat] > C(0.0):
-                        inv = C(model.inv_mass[a] + model.inv_mass[i])
-                        total += resp.dashpot(materials.kt[mat], materials.e[mat], inv)
+                    total += friction_dashpot(model, materials, pairs.a[p], i)
             for j in range(wall_material.shape[0]):
                 mat = model.material[i] * materials.count + wall_material[j]
                 if walls.turn[i, j] > C(0.0) and materials.mu[mat] > C(0.0):

@@ -9,12 +9,12 @@ dashpots (its damping load), and the next step scales a contact's dashpot by DAM
 larger load of its two bodies where that exceeds DAMPING_SHARE.
 """
 
-import importlib.util
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_scripts import load_benchmark
 from polydem.kernels.response import DAMPING_SHARE
 
 from polydem import Scene, SettleCriterion, Simulation
@@ -22,11 +22,7 @@ from polydem.checkpoint import load_checkpoint, save_checkpoint
 
 
 def _benchmark_settle():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "settle.py"
-    spec = importlib.util.spec_from_file_location("settle_benchmark_for_damping", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("settle")
 
 
 def pile(n, dt_scale, friction=0.5):

@@ -8,13 +8,12 @@ buffer (polydem/contacts.py). None of it changes a result: the runs below are co
 """
 
 import gc
-import importlib.util
 import weakref
-from pathlib import Path
 
 import numpy as np
 import pytest
 import warp as wp
+from benchmark_scripts import load_benchmark
 from polydem.kernels.broadphase import byte_view
 from test_simulation import busy_box_scene
 
@@ -25,11 +24,7 @@ KEPT = tuple(k for k in State.FIELDS if k not in State.TRANSIENT)
 
 
 def _settle_module():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "settle.py"
-    spec = importlib.util.spec_from_file_location("settle_benchmark", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("settle")
 
 
 def _history(sim):
