@@ -488,6 +488,35 @@ def make_contact_kernels(
                 if (report_bits & REPORT_SUMS) != 0:
                     add_to_sums(pair_sums, p, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
 
+    @wp.func
+    def friction_dashpot(model: T.BodyModel, materials: T.Materials, a: int, b: int):
+        # The dashpot of pair (a, b) as the pair kernel takes it (0 without friction: no tangential force)
+        mat = model.material[a] * materials.count + model.material[b]
+        ct = C(0.0)
+        if materials.mu[mat] > C(0.0):
+            ct = resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[a] + model.inv_mass[b]))
+        return ct
+
+    @wp.func
+    def wall_dashpot(model: T.BodyModel, materials: T.Materials, i: int, wall_mat: int):
+        # The dashpot of body i's contact with a wall of material wall_mat (0 without friction)
+        mat = model.material[i] * materials.count + wall_mat
+        ct = C(0.0)
+        if materials.mu[mat] > C(0.0):
+            ct = resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[i]))
+        return ct
+
+    @wp.func
+    def damping_load(model: T.BodyModel, i: int, dt: C, total: C):
+        # Free body i's damping load from the sum of its contacts' dashpots (see damping_load_kernel).
+        inertia = model.inertia[i]
+        i_min = C(wp.min(inertia[0], wp.min(inertia[1], inertia[2])))
+        reach = C(model.inv_mass[i])
+        if i_min > C(0.0):
+            r = C(model.radius[i])
+            reach += C(1.25) * r * r / i_min
+        return wp.float32(dt * reach * total)
+
     @wp.kernel(enable_backward=False, module="unique")
     def gather_kernel(
         # Model
@@ -503,6 +532,9 @@ def make_contact_kernels(
         body_damping: wp.array(dtype=wp.float32),
         # In: the pairs' wrenches and energy lost, and the per-body ranges
         pairs: T.Pairs,
+        # Out: (N,) the damping loads for the next step, or 0 entries where damping_load_kernel writes them
+        # (it may be body_damping: a thread reads only its own body's load, before it writes it)
+        damping_out: wp.array(dtype=wp.float32),
         # Out (diagnostics)
         wall_out: T.WallOutputs,
         # Report (the report variant only)
@@ -511,11 +543,15 @@ def make_contact_kernels(
     ):
         """Sums each body's pair wrenches in key order and adds its wall contacts (step variant);
         the diagnostics variant only reports the wall contacts; the report variant steps and reports
-        its wall contacts (see the factory)."""
+        its wall contacts (see the factory). Where ``damping_out`` has entries (a scene without mesh walls,
+        with friction), also each body's damping load as damping_load_kernel computes it: the same sums in
+        the same order, so the same bits, without a launch of its own."""
         i = wp.tid()
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
         lost = S(0.0)
+        want_load = wp.static(friction and not diagnostics) and damping_out.shape[0] > 0
+        load_total = C(0.0)
         xi_pos = wp.transform_get_translation(bodies.q[i])
         # A fixed or kinematic body needs no force, and a container wall may touch a whole pile:
         # it skips its pairs (one thread would walk them all), and its free partners book the
@@ -529,6 +565,8 @@ def make_contact_kernels(
                 if model.flags[pairs.b[p]] != 0:
                     share = S(1.0)
                 lost += share * S(pairs.dissipated[p])
+                if want_load and pairs.turn[p] > C(0.0):
+                    load_total += friction_dashpot(model, materials, i, pairs.b[p])
             rb = pairs.ranges_b[i]
             for k in range(rb[0], rb[1]):
                 p = pairs.by_b[k]
@@ -541,6 +579,8 @@ def make_contact_kernels(
                 if model.flags[a] != 0:
                     share = S(1.0)
                 lost += share * S(pairs.dissipated[p])
+                if want_load and pairs.turn[p] > C(0.0):
+                    load_total += friction_dashpot(model, materials, a, i)
         if model.flags[i] == 0:
             xa = bodies.q[i]
             s = model.shape[i]
@@ -563,19 +603,17 @@ def make_contact_kernels(
                     shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]), scale,
                     materials, dt, walls, wall_out, report_bits, wall_sums, f, t, lost,
                 )  # fmt: skip
+                if want_load and walls.turn[i, j] > C(0.0):
+                    load_total += wall_dashpot(model, materials, i, planes.material[j])
         if wp.static(not diagnostics):
             bodies.f[i] = f
             bodies.t[i] = t
             bodies.dissipated[i] = bodies.dissipated[i] + lost
-
-    @wp.func
-    def friction_dashpot(model: T.BodyModel, materials: T.Materials, a: int, b: int):
-        # The dashpot of pair (a, b) as the pair kernel takes it (0 without friction: no tangential force)
-        mat = model.material[a] * materials.count + model.material[b]
-        ct = C(0.0)
-        if materials.mu[mat] > C(0.0):
-            ct = resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[a] + model.inv_mass[b]))
-        return ct
+        if want_load:
+            load = wp.float32(0.0)
+            if model.flags[i] == 0:
+                load = damping_load(model, i, dt, load_total)
+            damping_out[i] = load
 
     @wp.kernel(enable_backward=False, module="unique")
     def damping_load_kernel(
@@ -612,16 +650,9 @@ def make_contact_kernels(
                 if pairs.turn[p] > C(0.0):
                     total += friction_dashpot(model, materials, pairs.a[p], i)
             for j in range(wall_material.shape[0]):
-                mat = model.material[i] * materials.count + wall_material[j]
-                if walls.turn[i, j] > C(0.0) and materials.mu[mat] > C(0.0):
-                    total += resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[i]))
-            inertia = model.inertia[i]
-            i_min = C(wp.min(inertia[0], wp.min(inertia[1], inertia[2])))
-            reach = C(model.inv_mass[i])
-            if i_min > C(0.0):
-                r = C(model.radius[i])
-                reach += C(1.25) * r * r / i_min
-            load = wp.float32(dt * reach * total)
+                if walls.turn[i, j] > C(0.0):
+                    total += wall_dashpot(model, materials, i, wall_material[j])
+            load = damping_load(model, i, dt, total)
         body_damping[i] = load
 
     return ContactKernels(
@@ -695,11 +726,16 @@ def launch_gather(
     report_bits: int,
     wall_sums: ContactSums,
     planes: Any = None,
+    damping_out: wp.array,
 ) -> None:
     """The gather kernel of ``kernels``, one thread per body, after :func:`launch_pair_contacts`: each
     body's pair wrenches in key order plus its plane-wall contacts into ``state.body_f`` and
     ``body_t`` (the step and report variants), its wall contacts into ``out`` and ``wall_sums`` as
-    the pair kernel does. ``planes``: the plane walls where they are now (default the model's, at rest)."""
+    the pair kernel does. ``planes``: the plane walls where they are now (default the model's, at rest).
+    ``damping_out``: (N,) float32, where the gather also writes the damping loads that
+    :func:`launch_damping_load` would (only where the plane walls are all the walls: a mesh wall's contacts
+    come after the gather; may be ``state.body_damping``), or an array of no entries: not written (nor
+    without friction)."""
     m = model
     planes = m.planes if planes is None else planes
     wp.launch(
@@ -716,7 +752,7 @@ def launch_gather(
             state.body_damping,
             pairs.pairs,
         ],
-        outputs=[out.walls, int(report_bits), wall_sums],
+        outputs=[damping_out, out.walls, int(report_bits), wall_sums],
         device=state.bodies.q.device,
     )
 

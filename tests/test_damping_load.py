@@ -17,7 +17,7 @@ import pytest
 from benchmark_scripts import load_benchmark
 from polydem.kernels.response import DAMPING_SHARE
 
-from polydem import Scene, SettleCriterion, Simulation
+from polydem import ConvexShape, Scene, SettleCriterion, Simulation
 from polydem.checkpoint import load_checkpoint, save_checkpoint
 
 
@@ -69,13 +69,30 @@ def loads_from_contacts(sim):
     return np.where(free, sim.dt * reach * total, 0.0)
 
 
-@pytest.mark.parametrize("scene_name", ["pile", "cube_drop"])
+def mesh_floor_scene():
+    """Three 2 cm cubes sliding on a jittered mesh floor of 288 triangles (hertz, friction 0.5, e = 0.5)."""
+    from test_meshwall import floor_grid
+
+    scene = Scene(gravity=(0.0, 0.0, -9.81), dt="auto", precision="mixed")
+    scene.add_material("m", density=2500.0, k=1.0e8, restitution=0.5, friction=0.5, law="hertz")
+    scene.add_shape("cube", ConvexShape.box(0.02))
+    scene.add_mesh_wall(floor_grid(12, size=0.3, jitter=0.3), "m")
+    for k, x in enumerate((0.0, 0.03, 0.07)):
+        scene.add_body("cube", "m", position=(x, 0.003 * k, 0.01 - 1e-6), velocity=(0.05, 0.02, 0.0))
+    return scene
+
+
+@pytest.mark.parametrize("scene_name", ["pile", "cube_drop", "mesh_floor"])
 def test_the_damping_load_is_the_sum_of_the_contacts_dashpots(device, scene_name, tmp_path):
     """The loads the step writes, against a float64 sum over Simulation.contacts() of the same step: pairs
-    (the pile, in a box of fixed slabs) and plane walls (cube_drop.toml's cube put on its floor, sliding)."""
+    (the pile, in a box of fixed slabs), plane walls (cube_drop.toml's cube put on its floor, sliding) and a
+    mesh wall (whose contacts come after the gather: the load kernel of its own)."""
     if scene_name == "pile":
         scene = pile(64, 4.0)
         steps = 2500
+    elif scene_name == "mesh_floor":
+        scene = mesh_floor_scene()
+        steps = 300
     else:
         text = (Path(__file__).resolve().parents[1] / "scenes" / "cube_drop.toml").read_text()
         text = text.replace("position = [0.0, 0.0, 0.2]", "position = [0.0, 0.0, 0.04999999995]")
@@ -84,6 +101,7 @@ def test_the_damping_load_is_the_sum_of_the_contacts_dashpots(device, scene_name
         scene = Scene.from_toml(tmp_path / "on_floor.toml")
         steps = 300
     sim = Simulation(scene, device=device)
+    assert sim.stepper.loads_in_gather == (scene_name != "mesh_floor")
     sim.step(steps)
     want = loads_from_contacts(sim)
     got = sim.current_state.body_damping.numpy().astype(np.float64)
@@ -91,6 +109,23 @@ def test_the_damping_load_is_the_sum_of_the_contacts_dashpots(device, scene_name
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=0.0)
     if scene_name == "pile":
         assert got.max() > DAMPING_SHARE  # the scale acts in this pile
+
+
+@pytest.mark.parametrize("average", [False, True])
+def test_the_gather_writes_the_load_kernels_bits(device, average):
+    """Without mesh walls the gather writes the loads (one launch fewer): the same bits as the load kernel on
+    the same contact history, also while contacts are averaged (the report variant steps)."""
+    sim = Simulation(pile(64, 4.0), device=device)
+    assert sim.stepper.loads_in_gather
+    if average:
+        sim.start_contact_average()
+    sim.step(2000)
+    state = sim.current_state
+    got = state.body_damping.numpy().copy()
+    assert got.max() > DAMPING_SHARE
+    state.body_damping.zero_()
+    sim.stepper.damping_load(state, sim.current_contacts, sim.dt)
+    np.testing.assert_array_equal(state.body_damping.numpy(), got)
 
 
 def test_a_pile_comes_to_rest_at_four_recommended_steps(device):

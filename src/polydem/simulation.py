@@ -168,6 +168,7 @@ class Stepper:
         # What the kernels take where they write nothing: made here, not on the first (captured) step.
         self._no_outputs = ContactOutputs.zeros(1, 1, 1, model.precision, self.device)
         self._no_sums = contact_sums(1, self.device)
+        self._no_loads = wp.zeros(0, dtype=wp.float32, device=self.device)
         self.keep_inputs: StepInputs | None = None
         self.average: ContactAverage | None = None
         self._report: tuple[ContactOutputs, dict[str, wp.array]] | None = None  # the outputs and scratch arrays
@@ -301,9 +302,13 @@ class Stepper:
         damping loads the next step scales the dashpots by into ``state.body_damping``; with :attr:`average`
         set, each contact's force is also added to its sums (the report variant of the kernels)."""
         average = self.average
+        in_gather = self.loads_in_gather
+        loads = state.body_damping if in_gather else None
         if average is None:
             mesh = None if self.mesh_kernels is None else self.mesh_kernels[0]
-            self._force_stage(self.kernels, mesh, state=state, pairs=contacts, dt=dt, overflow=self.poly_overflow)
+            self._force_stage(
+                self.kernels, mesh, state=state, pairs=contacts, dt=dt, overflow=self.poly_overflow, damping_out=loads
+            )
         else:
             kernels, mesh = self._report_kernels()
             self._force_stage(
@@ -316,8 +321,16 @@ class Stepper:
                 report_bits=REPORT_SUMS,
                 pair_sums=average.pairs,
                 wall_sums=average.walls,
+                damping_out=loads,
             )
-        self.damping_load(state, contacts, dt)
+        if not in_gather:
+            self.damping_load(state, contacts, dt)
+
+    @property
+    def loads_in_gather(self) -> bool:
+        """Whether the gather kernel writes the damping loads (the same bits as the load kernel, one launch
+        fewer): with friction and no mesh walls, whose contacts come after the gather."""
+        return self.kernels.friction and self.mesh_kernels is None
 
     def damping_load(self, state: State, contacts: PairArrays, dt: float) -> None:
         """Each body's damping load for the next step (``state.body_damping``) from the contact history as it is
@@ -363,10 +376,12 @@ class Stepper:
         report_bits: int = 0,
         pair_sums: ContactSums | None = None,
         wall_sums: ContactSums | None = None,
+        damping_out: wp.array | None = None,
     ) -> None:
         """The pair, gather and mesh-wall kernels (``kernels``; ``mesh_kernel``, None without mesh walls):
         the step variant, or the diagnostics one into ``out``, or the report variant (``report_bits``,
-        into ``out`` and the sums); a clipped polygon that did not fit sets ``overflow``."""
+        into ``out`` and the sums); a clipped polygon that did not fit sets ``overflow``. ``damping_out``:
+        where the gather writes the damping loads (only without mesh walls; None: not written)."""
         m = self.model
         out = self._no_outputs if out is None else out
         self.drive_walls(state, dt, 0)
@@ -384,7 +399,7 @@ class Stepper:
         wall_sums = self._no_sums if wall_sums is None else wall_sums
         launch_gather(
             kernels, model=m, state=state, pairs=pairs, dt=dt, out=out, report_bits=report_bits, wall_sums=wall_sums,
-            planes=self.planes,
+            planes=self.planes, damping_out=self._no_loads if damping_out is None else damping_out,
         )  # fmt: skip
         if mesh_kernel is not None:
             launch_mesh_contacts(
