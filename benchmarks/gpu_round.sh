@@ -128,10 +128,36 @@ tts3() {
         --out $W/res/tts_damping_${n}_${shapes}_${speed}.json >> $W/log/tts.log 2>&1
     done ) &
 }
+# MODE=mesh: the mesh-wall candidate list and the damping loads written by the gather (BENCHMARKS.md 22): the CUDA
+# tests of both, the fine mesh floor's contact cost through the walk and the list side by side (1e4 and 1e5 cubes),
+# the settle step at 1e4 cubes before (OLD_PKG: a copy of the previous commit's package, on PYTHONPATH) and after,
+# twice each in turn, then 1e5 cubes at 4 dt_rec to the default criterion (every grain at rest), up to 6 s simulated
+mesh() {
+  ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_damping_load.py "tests/test_meshwall.py::test_candidate_list_gives_the_walks_bits" \
+      tests/test_memory.py -k "not redone" > $W/log/pytest.log 2>&1
+    for n in 10000 100000; do
+      gpu 0 python -u benchmarks/wall_contact_cost.py --device cuda:0 --bodies $n --steps 100 --kinds meshT,pair \
+        --triangle-edge 2 --mesh-paths walk,list --out $W/res/wall_contact_cost_fine_$n.json > $W/log/wall_$n.log 2>&1
+    done
+    for rep in 1 2; do
+      for code in old new; do
+        pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?})
+        "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
+          >> $W/log/settle_fold.log 2>&1
+        gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
+          --no-graph-compare --steps 400 --out $W/res/settle_1e4_${code}_$rep.json >> $W/log/settle_fold.log 2>&1
+      done
+    done
+    gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes 1e5 --dt-scales 4 --shapes cube \
+      --k-rule volume --max-time 6 --out $W/res/tts_rest_1e5_cube.json >> $W/log/tts.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
-if [ "${MODE:-}" = tts ]; then
+if [ "${MODE:-}" = mesh ]; then
+  mesh
+elif [ "${MODE:-}" = tts ]; then
   tts
 elif [ "${MODE:-}" = tts2 ]; then
   tts2

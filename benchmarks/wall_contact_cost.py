@@ -20,6 +20,8 @@ wrench. On CUDA the step is a captured graph; on the CPU the host loop.
 
     python benchmarks/wall_contact_cost.py --device cpu --bodies 400
     python benchmarks/wall_contact_cost.py --device cuda:0 --bodies 100000
+    python benchmarks/wall_contact_cost.py --device cuda:0 --bodies 10000 --kinds meshT,pair --triangle-edge 2 \
+        --mesh-paths walk,list      # the two ways to a mesh-wall contact, side by side
 
 Prints a table and writes JSON to ``--out`` (benchmarks/results/issue13/wall_contact_cost_<device>_<N>.json).
 """
@@ -107,16 +109,27 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--precision", default="mixed")
     ap.add_argument("--kinds", default="plane,mesh2,meshT,pair")
+    ap.add_argument(
+        "--mesh-paths",
+        default="default",
+        help="the mesh kinds' contacts through: 'walk' (a thread per body), 'list' (the (body, cell) candidate "
+        "list), 'default' (the device's default); several comma-separated: a row each, in the same run",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    paths = {"walk": False, "list": True, "default": None}
+    mesh_paths = args.mesh_paths.split(",")
+    if not mesh_paths or any(p not in paths for p in mesh_paths):
+        ap.error(f"--mesh-paths takes walk, list or default (comma-separated), got {args.mesh_paths!r}")
     wp.config.quiet = True
     rows = []
-    for kind in args.kinds.split(","):
+    runs = [(k, p) for k in args.kinds.split(",") for p in (mesh_paths if k.startswith("mesh") else [None])]
+    for kind, path in runs:
         res = {}
         for lifted in (False, True):
             scene = build(kind, args.bodies, args.triangles, 0.005 if lifted else 0.0, args.precision,
                           triangle_edge=args.triangle_edge)  # fmt: skip
-            sim = Simulation(scene, device=args.device)
+            sim = Simulation(scene, device=args.device, mesh_candidates=paths[path] if path else None)
             if kind == "meshT":
                 row_triangles = len(scene.mesh_walls[0].triangles)
             t = time_steps(sim, args.steps, args.repeats)
@@ -124,7 +137,8 @@ def main():
             res[lifted] = (t, len(c["volume"]))
         (t_on, contacts), (t_off, _) = res[False], res[True]
         row = {
-            "kind": kind,
+            "kind": kind if path in (None, "default") else f"{kind}/{path}",
+            "mesh_path": path,
             "step_s": t_on,
             "step_lifted_s": t_off,
             "contacts": contacts,
@@ -136,21 +150,22 @@ def main():
             row["triangle_edge_in_cube_edges"] = (side * SPACING + SPACING) / np.sqrt(row_triangles / 2) / EDGE
         rows.append(row)
         print(
-            f"{kind:>8}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "
+            f"{row['kind']:>10}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "
             f"{row['per_contact_s'] * 1e9:9.1f} ns per contact"
         )
     ref = next((r for r in rows if r["kind"] == "pair"), None)
     if ref:
         for r in rows:
             r["per_contact_vs_pair"] = r["per_contact_s"] / ref["per_contact_s"]
-            print(f"{r['kind']:>8}: {r['per_contact_vs_pair']:.2f} x a convex pair contact")
+            print(f"{r['kind']:>10}: {r['per_contact_vs_pair']:.2f} x a convex pair contact")
     out = Path(
         args.out or f"benchmarks/results/issue13/wall_contact_cost_{args.device.replace(':', '')}_{args.bodies}.json"
     )
     out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"device": args.device, "warp": wp.__version__, "bodies": args.bodies, "triangles": args.triangles,
             "triangle_edge": args.triangle_edge,
-            "steps": args.steps, "repeats": args.repeats, "precision": args.precision}  # fmt: skip
+            "steps": args.steps, "repeats": args.repeats, "precision": args.precision,
+            "mesh_paths": mesh_paths}  # fmt: skip
     out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     print(f"wrote {out}")
 

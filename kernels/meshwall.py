@@ -1,22 +1,35 @@
 """Contacts of bodies with triangle-mesh walls, and the motion of those walls.
 
-A mesh wall is a solid cut into convex cells, one behind each triangle (:mod:`polydem.meshwall`). Per
-free body one thread walks every mesh wall: it finds the cells whose bounds meet the body's bounding
-box in the wall's frame (a ``wp.Bvh`` over the cells, built once: the cells do not move in their
-wall's frame), clips the body against each with the exact pair geometry, and SUMS the overlap
-volume, its first moment, S_A, M_A and the fallback over the cells before applying the contact law
-once (:func:`polydem.kernels.response.respond`). The sum of the exact overlaps with cells that tile
-the solid is the exact overlap with the solid: the energy W(V) is that of the body against the
-wall as a whole, so a flat region of many triangles acts as one plane and the edges between
-triangles add nothing. One friction spring and one turning volume per (body, wall), kept in the
+A mesh wall is a solid cut into convex cells, one behind each triangle (:mod:`polydem.meshwall`). A
+free body's candidate cells are those whose bounds meet the body's bounding box in the wall's frame (a
+``wp.Bvh`` over the cells, built once: the cells do not move in their wall's frame) and whose planes do
+not all keep the body's bounding sphere out. The body is clipped against each with the exact pair
+geometry, and the overlap volume, its first moment, S_A, M_A and the fallback are SUMMED over the cells
+before the contact law is applied once (:func:`polydem.kernels.response.respond`). The sum of the exact
+overlaps with cells that tile the solid is the exact overlap with the solid: the energy W(V) is that of
+the body against the wall as a whole, so a flat region of many triangles acts as one plane and the edges
+between triangles add nothing. One friction spring and one turning volume per (body, wall), kept in the
 wall columns of ``State.wall_xi`` / ``wall_turn`` after the plane walls.
 
+Two ways to the same bits (:func:`launch_mesh_contacts`):
+
+* the walk: one thread per free body finds its cells and clips them in turn (the CPU's: one core runs
+  the threads in turn anyway);
+* the candidate list (:class:`MeshCandidates`, CUDA's): one thread per body counts its cells, a scan
+  places them, a second pass lists them as (body, cell) candidates, one thread per candidate clips, and
+  one thread per body sums its candidates in the walk's order and applies the law. A grain on a fine
+  mesh meets 4 to 6 cells: the walk left each thread that many clippings in a row (20x a pair contact
+  on the GPU, BENCHMARKS 8d) where the pair kernel has a thread per contact. The list has a fixed
+  capacity; where the candidates do not fit, it says so (:meth:`MeshCandidates.overflowed`) and the
+  step is redone with room for them all.
+
 A wall moves rigidly: its frame's origin (the pivot) with ``mesh_v``, its orientation turning at
-``mesh_w``; :func:`launch_advance_meshes` steps its pose. The thread runs after the gather kernel and adds
-to the body's force and torque (one thread per body: a fixed order, no atomics).
+``mesh_w``; :func:`launch_advance_meshes` steps its pose. The contacts come after the gather kernel and
+add to the body's force and torque (one thread per body: a fixed order, no atomics).
 """
 
 import functools
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import warp as wp
@@ -30,7 +43,7 @@ from polydem.kernels.forces import (
     damping_scale,
 )
 from polydem.kernels.precision import scalars
-from polydem.kernels.structs import struct_types
+from polydem.kernels.structs import arrays, filled, make_struct, struct_types
 
 # Rounding allowance of the float32 BVH query box, relative to the body's distance from the wall's
 # origin plus its radius (the box is cast from the state's scalar).
@@ -52,21 +65,195 @@ class MeshWallState(BodyState, Protocol):
 
 
 @functools.cache
-def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
-    """The mesh-wall contact kernel of the variant of ``kernels`` (the contact kernels of one law, friction
-    setting, polygon capacity and precision, :func:`polydem.kernels.forces.make_contact_kernels`: the step
-    variant, or the diagnostics one that reports and changes nothing, or the report one that steps and
-    reports; with ``compound`` each part of a body is clipped against each cell), made of the same
-    geometry and wall contact; and the kernel that moves the mesh walls."""
+def candidates_struct(C: Any) -> Any:
+    """The candidate list of :class:`MeshCandidates`: per body (N,) its number of candidate cells (``count``)
+    and the first (``start``, the exclusive scan of ``count``); per candidate (capacity,) its body, mesh wall
+    and cell (global index) and what its clipping gave: ``volume``, ``first_moment``, ``s_a``, ``m_a``,
+    ``fallback`` (C, as :func:`polydem.kernels.compound.make_body_geometry`'s ``pair_geometry``) and ``depth``
+    (the diagnostics and report variants only); ``overflow`` (1,): set when they did not fit."""
+    vec3c = wp.types.vector(3, C)
+    members = arrays(count=int, start=int, body=int, mesh=int, cell=int, volume=C)
+    members |= arrays(first_moment=vec3c, s_a=vec3c, m_a=vec3c, fallback=vec3c, depth=C, overflow=int)
+    return make_struct("MeshCandidates", **members)
+
+
+class MeshCandidates:
+    """The (body, cell) candidates of one step's mesh-wall contacts on the device (:func:`candidates_struct`):
+    room for ``capacity`` of them, grown by :meth:`grow` after a step that did not fit (its results are
+    wrong: redo it). About 120 bytes a candidate in mixed precision, 12 a body."""
+
+    def __init__(self, num_bodies: int, capacity: int, precision: str, device: Any) -> None:
+        if num_bodies < 1 or capacity < 1:
+            raise ValueError(f"a candidate list needs bodies and room: got {num_bodies} bodies, capacity {capacity}")
+        self.num_bodies = int(num_bodies)
+        self.precision = precision
+        self.device = device
+        self.generation = 0
+        self._allocate(int(capacity))
+
+    def _allocate(self, capacity: int) -> None:
+        _, C = scalars(self.precision)
+        vec3c = wp.types.vector(3, C)
+        n, dev = self.num_bodies, self.device
+        self.capacity = capacity
+        per_candidate = {"body": int, "mesh": int, "cell": int, "volume": C, "depth": C}
+        per_candidate |= dict.fromkeys(("first_moment", "s_a", "m_a", "fallback"), vec3c)
+        self.arrays = {k: wp.zeros(capacity, dtype=dtype, device=dev) for k, dtype in per_candidate.items()}
+        self.arrays |= {k: wp.zeros(n, dtype=int, device=dev) for k in ("count", "start")}
+        self.arrays["overflow"] = wp.zeros(1, dtype=int, device=dev)
+        self.candidates = filled(candidates_struct(C), **self.arrays)
+
+    def needed(self) -> int:
+        """Host: how many candidates the last listing found (fitted or not)."""
+        count, start = self.arrays["count"].numpy()[-1:], self.arrays["start"].numpy()[-1:]
+        return int(count[0]) + int(start[0])
+
+    def overflowed(self) -> bool:
+        """Host: whether a listing since the last :meth:`grow` found more candidates than there is room for."""
+        return bool(int(self.arrays["overflow"].numpy()[0]))
+
+    def grow(self) -> None:
+        """Room for half as many again as the last listing found (new arrays: recapture a graph)."""
+        self._allocate(max(self.capacity, int(1.5 * self.needed()) + 1))
+        self.generation += 1
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.capacity for a in self.arrays.values())
+
+
+@dataclass(frozen=True, eq=False)
+class MeshKernels:
+    """The mesh-wall kernels of one contact variant (:func:`make_mesh_kernels`): the walk (``contact``), the
+    candidate list's passes (``count``, ``fill``, ``clip``, ``apply``) and the walls' motion (``advance``)."""
+
+    contact: wp.Kernel
+    count: wp.Kernel
+    fill: wp.Kernel
+    clip: wp.Kernel
+    apply: wp.Kernel
+    advance: wp.Kernel
+
+
+@functools.cache
+def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
+    """The mesh-wall kernels of the variant of ``kernels`` (the contact kernels of one law, friction setting,
+    polygon capacity and precision, :func:`polydem.kernels.forces.make_contact_kernels`: the step variant,
+    or the diagnostics one that reports and changes nothing, or the report one that steps and reports; with
+    ``compound`` each part of a body is clipped against each cell), made of the same geometry and wall
+    contact, and the kernel that moves the mesh walls."""
     S, C = scalars(kernels.precision)
     vec3s = wp.types.vector(3, S)
     vec3c = wp.types.vector(3, C)
     quat_s = wp.types.quaternion(S)
     transform_s = wp.types.transformation(S)
     T = struct_types(kernels.precision)
+    Candidates = candidates_struct(C)
     diagnostics, report = kernels.diagnostics, kernels.report
     geom, body_geom, wall_contact = kernels.geometry, kernels.body_geometry, kernels.wall_contact
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
+
+    # -- helpers: the walk and the candidate list share them, so that both give the same bits --------------
+
+    @wp.func
+    def query_pad(xm: transform_s, pa: vec3s, r: float):
+        # The body's centre in the wall's frame (where the cells' BVH lives), float32, and the half-width of
+        # its bounding box there.
+        local = wp.transform_point(wp.transform_inverse(xm), pa)
+        lf = wp.vec3(float(local[0]), float(local[1]), float(local[2]))
+        pad = r * (1.0 + QUERY_ROUNDING) + QUERY_ROUNDING * wp.length(lf)
+        return lf, pad
+
+    @wp.func
+    def cell_pose(meshes: T.MeshWalls, xm: transform_s, cell: int):
+        # The cell's frame in the world: its origin carried by the wall's pose, the wall's orientation.
+        return transform_s(wp.transform_point(xm, meshes.cell_center[cell]), wp.transform_get_rotation(xm))
+
+    @wp.func
+    def cell_apart(shapes: geom.shapes, sb: int, pa: vec3s, xb: transform_s, pad: float):
+        # A cheap test before the clipping: the body's bounding sphere wholly in front of one of the cell's
+        # planes cannot overlap it (the box query is coarser: a cell's bounds span its whole thickness).
+        c_cell = wp.vec3d(wp.quat_rotate_inv(wp.transform_get_rotation(xb), pa - wp.transform_get_translation(xb)))
+        apart = int(0)
+        for fp in range(shapes.shape_face_start[sb], shapes.shape_face_start[sb + 1]):
+            pl = shapes.face_plane64[fp]
+            if pl[0] * c_cell[0] + pl[1] * c_cell[1] + pl[2] * c_cell[2] - pl[3] > wp.float64(pad):
+                apart = 1
+        return apart
+
+    @wp.func
+    def cell_depth(shapes: geom.shapes, meshes: T.MeshWalls, s: int, xa: transform_s, xm: transform_s, cell: int):
+        # How far the body reaches behind the plane of the triangle the cell lies behind (the cells of
+        # concave edges and corners have none: 0).
+        fr = meshes.cell_front[cell]
+        depth = C(0.0)
+        if fr[0] != S(0.0) or fr[1] != S(0.0) or fr[2] != S(0.0):
+            n_w = wp.quat_rotate(wp.transform_get_rotation(xm), vec3s(fr[0], fr[1], fr[2]))
+            off = fr[3] + wp.dot(n_w, wp.transform_get_translation(xm))
+            depth = C(body_geom.plane_depth(shapes, s, xa, n_w, off))
+        return depth
+
+    @wp.func
+    def wants_depth(report_bits: int):
+        # The depth and normal only for the diagnostics and a report of the contacts (not for the sums).
+        want = wp.static(diagnostics)
+        if wp.static(report):
+            want = (report_bits & REPORT_CONTACTS) != 0
+        return want
+
+    @wp.func
+    def apply_wall(
+        shapes: geom.shapes,
+        model: T.BodyModel,
+        materials: T.Materials,
+        dt: C,
+        meshes: T.MeshWalls,
+        mesh_q: wp.array(dtype=transform_s),
+        bodies: T.Bodies,
+        walls: T.WallHistory,
+        wall_out: T.WallOutputs,
+        report_bits: int,
+        wall_sums: ContactSums,
+        i: int,
+        m: int,
+        scale: C,
+        vol: C,
+        first_moment: vec3c,
+        s_a: vec3c,
+        m_a: vec3c,
+        fb_a: vec3c,
+        depth: C,
+        f: vec3s,
+        t: vec3s,
+        lost: S,
+    ):
+        # Body i's contact with mesh wall m from the sums over its cells: the law once, into the body's sums.
+        xm = mesh_q[m]
+        j = meshes.first_column + m
+        pa = wp.transform_get_translation(bodies.q[i])
+        s = model.shape[i]
+        mat = model.material[i] * materials.count + meshes.material[m]
+        # B's motion about the wall's origin: r_ab from the body to it, its velocity there.
+        r_ab = vec3c(wp.transform_get_translation(xm) - pa)
+        f, t, lost, n = wall_contact(
+            i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
+            r_ab, vec3c(bodies.v[i]), vec3c(bodies.w[i]), vec3c(meshes.v[m]), vec3c(meshes.w[m]), pa,
+            shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]), scale,
+            materials, dt, walls, wall_out, report_bits, wall_sums, f, t, lost,
+        )  # fmt: skip
+        if wp.static(diagnostics or report):
+            if wants_depth(report_bits) and vol > C(0.0):
+                wall_out.normal[i, j] = n
+        return f, t, lost
+
+    @wp.func
+    def add_to_body(bodies: T.Bodies, i: int, f: vec3s, t: vec3s, lost: S):
+        if wp.static(not diagnostics):
+            bodies.f[i] = bodies.f[i] + f
+            bodies.t[i] = bodies.t[i] + t
+            bodies.dissipated[i] = bodies.dissipated[i] + lost
+
+    # -- the walk: one thread per body -----------------------------------------------------------------------
 
     @wp.kernel(enable_backward=False, module="unique")
     def mesh_contact_kernel(
@@ -95,22 +282,14 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
         xa = bodies.q[i]
         pa = wp.transform_get_translation(xa)
         s = model.shape[i]
-        r = model.radius[i]
         scale = C(damping_scale(body_damping[i], wp.float32(0.0)))
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
         lost = S(0.0)
-        # The depth and normal only for the diagnostics and a report of the contacts (not for the sums).
-        want_depth = wp.static(diagnostics)
-        if wp.static(report):
-            want_depth = (report_bits & REPORT_CONTACTS) != 0
+        want_depth = wants_depth(report_bits)
         for m in range(meshes.bvh.shape[0]):
             xm = mesh_q[m]
-            j = meshes.first_column + m
-            # The body's bounding box in the wall's frame (where the cells' BVH lives).
-            local = wp.transform_point(wp.transform_inverse(xm), pa)
-            lf = wp.vec3(float(local[0]), float(local[1]), float(local[2]))
-            pad = r * (1.0 + QUERY_ROUNDING) + QUERY_ROUNDING * wp.length(lf)
+            lf, pad = query_pad(xm, pa, model.radius[i])
             ext = wp.vec3(pad, pad, pad)
             query = wp.bvh_query_aabb(meshes.bvh[m], lf - ext, lf + ext)
             k = int(0)
@@ -121,21 +300,11 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
             fb_a = zero3
             depth = C(0.0)
             base = meshes.cell_start[m]
-            rot = wp.transform_get_rotation(xm)
             while wp.bvh_query_next(query, k):
                 cell = base + k
                 sb = meshes.cell_shape[cell]
-                xb = transform_s(wp.transform_point(xm, meshes.cell_center[cell]), rot)
-                # A cheap test before the clipping: the body's bounding sphere wholly in front of one
-                # of the cell's planes cannot overlap it (the box query is coarser: a cell's bounds
-                # span its whole thickness).
-                c_cell = wp.vec3d(wp.quat_rotate_inv(rot, pa - wp.transform_get_translation(xb)))
-                apart = int(0)
-                for fp in range(shapes.shape_face_start[sb], shapes.shape_face_start[sb + 1]):
-                    pl = shapes.face_plane64[fp]
-                    if pl[0] * c_cell[0] + pl[1] * c_cell[1] + pl[2] * c_cell[2] - pl[3] > wp.float64(pad):
-                        apart = 1
-                if apart != 0:
+                xb = cell_pose(meshes, xm, cell)
+                if cell_apart(shapes, sb, pa, xb, pad) != 0:
                     continue
                 v_c, fm_c, sa_c, ma_c, sb_c, mb_c, fb_c, of = body_geom.pair_geometry(shapes, s, sb, xa, xb)
                 if of != 0:
@@ -147,29 +316,178 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
                     m_a += ma_c
                     fb_a += fb_c
                     if wp.static(diagnostics or report):
-                        # How far the body reaches behind the plane of the triangle the cell lies
-                        # behind (the cells of concave edges and corners have none).
-                        fr = meshes.cell_front[cell]
-                        if want_depth and (fr[0] != S(0.0) or fr[1] != S(0.0) or fr[2] != S(0.0)):
-                            n_w = wp.quat_rotate(rot, vec3s(fr[0], fr[1], fr[2]))
-                            off = fr[3] + wp.dot(n_w, wp.transform_get_translation(xm))
-                            depth = wp.max(depth, C(body_geom.plane_depth(shapes, s, xa, n_w, off)))
-            mat = model.material[i] * materials.count + meshes.material[m]
-            # B's motion about the wall's origin: r_ab from the body to it, its velocity there.
-            r_ab = vec3c(wp.transform_get_translation(xm) - pa)
-            f, t, lost, n = wall_contact(
-                i, j, mat, vol, first_moment, s_a, m_a, fb_a, depth,
-                r_ab, vec3c(bodies.v[i]), vec3c(bodies.w[i]), vec3c(meshes.v[m]), vec3c(meshes.w[m]), pa,
-                shapes.shape_radius[s], shapes.shape_face_area[s], C(model.inv_mass[i]), scale,
-                materials, dt, walls, wall_out, report_bits, wall_sums, f, t, lost,
+                        if want_depth:
+                            depth = wp.max(depth, cell_depth(shapes, meshes, s, xa, xm, cell))
+            f, t, lost = apply_wall(
+                shapes, model, materials, dt, meshes, mesh_q, bodies, walls, wall_out, report_bits, wall_sums,
+                i, m, scale, vol, first_moment, s_a, m_a, fb_a, depth, f, t, lost,
             )  # fmt: skip
-            if wp.static(diagnostics or report):
-                if want_depth and vol > C(0.0):
-                    wall_out.normal[i, j] = n
-        if wp.static(not diagnostics):
-            bodies.f[i] = bodies.f[i] + f
-            bodies.t[i] = bodies.t[i] + t
-            bodies.dissipated[i] = bodies.dissipated[i] + lost
+        add_to_body(bodies, i, f, t, lost)
+
+    # -- the candidate list: count, (scan), fill, clip, apply ------------------------------------------------
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def count_kernel(
+        # Model
+        shapes: geom.shapes,
+        model: T.BodyModel,
+        meshes: T.MeshWalls,
+        # State in
+        mesh_q: wp.array(dtype=transform_s),
+        bodies: T.Bodies,
+        # Out: count
+        cand: Candidates,
+    ):
+        """Each free body's number of candidate cells, over all mesh walls."""
+        i = wp.tid()
+        n = int(0)
+        if model.flags[i] == 0:
+            pa = wp.transform_get_translation(bodies.q[i])
+            for m in range(meshes.bvh.shape[0]):
+                xm = mesh_q[m]
+                lf, pad = query_pad(xm, pa, model.radius[i])
+                ext = wp.vec3(pad, pad, pad)
+                query = wp.bvh_query_aabb(meshes.bvh[m], lf - ext, lf + ext)
+                k = int(0)
+                while wp.bvh_query_next(query, k):
+                    cell = meshes.cell_start[m] + k
+                    if cell_apart(shapes, meshes.cell_shape[cell], pa, cell_pose(meshes, xm, cell), pad) == 0:
+                        n += 1
+        cand.count[i] = n
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def fill_kernel(
+        # Model
+        shapes: geom.shapes,
+        model: T.BodyModel,
+        meshes: T.MeshWalls,
+        # State in
+        mesh_q: wp.array(dtype=transform_s),
+        bodies: T.Bodies,
+        # In: count, start; out: the candidates (body, mesh, cell) where they fit, else overflow
+        cand: Candidates,
+    ):
+        """Each free body's candidates from ``start[i]`` on, by wall and in the BVH's order (the walk's)."""
+        i = wp.tid()
+        if cand.count[i] == 0:
+            return
+        capacity = cand.body.shape[0]
+        if cand.start[i] + cand.count[i] > capacity:
+            cand.overflow[0] = 1
+            return
+        c = cand.start[i]
+        pa = wp.transform_get_translation(bodies.q[i])
+        for m in range(meshes.bvh.shape[0]):
+            xm = mesh_q[m]
+            lf, pad = query_pad(xm, pa, model.radius[i])
+            ext = wp.vec3(pad, pad, pad)
+            query = wp.bvh_query_aabb(meshes.bvh[m], lf - ext, lf + ext)
+            k = int(0)
+            while wp.bvh_query_next(query, k):
+                cell = meshes.cell_start[m] + k
+                if cell_apart(shapes, meshes.cell_shape[cell], pa, cell_pose(meshes, xm, cell), pad) == 0:
+                    cand.body[c] = i
+                    cand.mesh[c] = m
+                    cand.cell[c] = cell
+                    c += 1
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def clip_kernel(
+        # Model
+        shapes: geom.shapes,
+        model: T.BodyModel,
+        meshes: T.MeshWalls,
+        # State in
+        mesh_q: wp.array(dtype=transform_s),
+        bodies: T.Bodies,
+        overflow: wp.array(dtype=int),
+        # In: the candidates; out: their geometry
+        cand: Candidates,
+        report_bits: int,
+    ):
+        """One candidate's clipping: the body against the cell."""
+        c = wp.tid()
+        last = cand.count.shape[0] - 1
+        if c >= cand.start[last] + cand.count[last]:
+            return
+        i = cand.body[c]
+        m = cand.mesh[c]
+        cell = cand.cell[c]
+        xa = bodies.q[i]
+        s = model.shape[i]
+        xm = mesh_q[m]
+        v_c, fm_c, sa_c, ma_c, sb_c, mb_c, fb_c, of = body_geom.pair_geometry(
+            shapes, s, meshes.cell_shape[cell], xa, cell_pose(meshes, xm, cell)
+        )
+        if of != 0:
+            wp.atomic_max(overflow, 0, 1)
+        cand.volume[c] = v_c
+        cand.first_moment[c] = fm_c
+        cand.s_a[c] = sa_c
+        cand.m_a[c] = ma_c
+        cand.fallback[c] = fb_c
+        if wp.static(diagnostics or report):
+            depth = C(0.0)
+            if v_c > C(0.0) and wants_depth(report_bits):
+                depth = cell_depth(shapes, meshes, s, xa, xm, cell)
+            cand.depth[c] = depth
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def apply_kernel(
+        # Model
+        shapes: geom.shapes,
+        model: T.BodyModel,
+        materials: T.Materials,
+        dt: C,
+        meshes: T.MeshWalls,
+        # State in: the walls' poses; in/out: the bodies (their force, torque and energy lost added to)
+        # and the wall contacts' history
+        mesh_q: wp.array(dtype=transform_s),
+        bodies: T.Bodies,
+        walls: T.WallHistory,
+        body_damping: wp.array(dtype=wp.float32),
+        # In: the candidates and their geometry
+        cand: Candidates,
+        # Out (diagnostics)
+        wall_out: T.WallOutputs,
+        # Report (the report variant only)
+        report_bits: int,
+        wall_sums: ContactSums,
+    ):
+        """Each free body's candidates summed per wall in the walk's order, the law applied once per wall."""
+        i = wp.tid()
+        # Not all candidates listed: the step is redone (its ranges may reach past the list).
+        if model.flags[i] != 0 or cand.overflow[0] != 0:
+            return
+        scale = C(damping_scale(body_damping[i], wp.float32(0.0)))
+        f = vec3s(S(0.0), S(0.0), S(0.0))
+        t = vec3s(S(0.0), S(0.0), S(0.0))
+        lost = S(0.0)
+        c = cand.start[i]
+        end = c + cand.count[i]
+        for m in range(meshes.bvh.shape[0]):
+            vol = C(0.0)
+            first_moment = zero3
+            s_a = zero3
+            m_a = zero3
+            fb_a = zero3
+            depth = C(0.0)
+            while c < end and cand.mesh[c] == m:
+                v_c = cand.volume[c]
+                if v_c > C(0.0):
+                    vol += v_c
+                    first_moment += cand.first_moment[c]
+                    s_a += cand.s_a[c]
+                    m_a += cand.m_a[c]
+                    fb_a += cand.fallback[c]
+                    if wp.static(diagnostics or report):
+                        depth = wp.max(depth, cand.depth[c])
+                c += 1
+            f, t, lost = apply_wall(
+                shapes, model, materials, dt, meshes, mesh_q, bodies, walls, wall_out, report_bits, wall_sums,
+                i, m, scale, vol, first_moment, s_a, m_a, fb_a, depth, f, t, lost,
+            )  # fmt: skip
+        add_to_body(bodies, i, f, t, lost)
 
     @wp.kernel(enable_backward=False, module="unique")
     def advance_meshes_kernel(meshes: T.MeshWalls, dt: S, mesh_q: wp.array(dtype=transform_s)):
@@ -182,7 +500,14 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
             rot = wp.normalize(wp.quat_from_axis_angle(wp.normalize(w), angle) * rot)
         mesh_q[m] = transform_s(wp.transform_get_translation(x) + meshes.v[m] * dt, quat_s(rot))
 
-    return mesh_contact_kernel, advance_meshes_kernel
+    return MeshKernels(
+        contact=mesh_contact_kernel,
+        count=count_kernel,
+        fill=fill_kernel,
+        clip=clip_kernel,
+        apply=apply_kernel,
+        advance=advance_meshes_kernel,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -191,7 +516,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> tuple[wp.Kernel, wp.Kernel]:
 
 
 def launch_mesh_contacts(
-    kernel: wp.Kernel,
+    kernels: MeshKernels,
     *,
     model: MeshWallModel,
     state: MeshWallState,
@@ -201,35 +526,48 @@ def launch_mesh_contacts(
     report_bits: int,
     wall_sums: ContactSums,
     meshes: Any = None,
+    candidates: MeshCandidates | None = None,
 ) -> None:
-    """The mesh-wall contact kernel (``make_mesh_kernels(...)[0]``), one thread per body, after the
-    gather: adds each free body's mesh-wall contacts to ``state.body_f`` and ``body_t`` (the step and
-    report variants) or writes them into the wall columns of ``out`` (diagnostics; the report variant
-    by ``report_bits``), as :func:`polydem.kernels.forces.launch_gather` does for the planes. ``meshes``:
-    the mesh walls with their velocities now (default the model's)."""
+    """The mesh-wall contacts of ``kernels`` (:func:`make_mesh_kernels`), after the gather: adds each free
+    body's mesh-wall contacts to ``state.body_f`` and ``body_t`` (the step and report variants) or writes them
+    into the wall columns of ``out`` (diagnostics; the report variant by ``report_bits``), as
+    :func:`polydem.kernels.forces.launch_gather` does for the planes. ``meshes``: the mesh walls with their
+    velocities now (default the model's). ``candidates``: through this candidate list (five launches, a
+    thread per (body, cell) for the clipping; the same bits; :meth:`MeshCandidates.overflowed` says whether
+    they fitted), or None: the walk (one launch, a thread per body)."""
     m = model
     meshes = m.meshes if meshes is None else meshes
+    dev = state.mesh_q.device
+    n = m.num_bodies
+    shapes = m.shapes.kernel_args()
+    if candidates is None:
+        inputs = [*shapes, m.bodies, m.materials, dt, meshes, state.mesh_q, state.bodies, state.walls]
+        wp.launch(
+            kernels.contact,
+            dim=n,
+            inputs=[*inputs, state.body_damping],
+            outputs=[overflow, out.walls, int(report_bits), wall_sums],
+            device=dev,
+        )
+        return
+    cand = candidates.candidates
+    where = [*shapes, m.bodies, meshes, state.mesh_q, state.bodies]
+    wp.launch(kernels.count, dim=n, inputs=where, outputs=[cand], device=dev)
+    wp.utils.array_scan(candidates.arrays["count"], candidates.arrays["start"], inclusive=False)
+    wp.launch(kernels.fill, dim=n, inputs=[*where, cand], device=dev)
+    wp.launch(kernels.clip, dim=candidates.capacity, inputs=[*where, overflow, cand, int(report_bits)], device=dev)
     wp.launch(
-        kernel,
-        dim=m.num_bodies,
-        inputs=[
-            *m.shapes.kernel_args(),
-            m.bodies,
-            m.materials,
-            dt,
-            meshes,
-            state.mesh_q,
-            state.bodies,
-            state.walls,
-            state.body_damping,
-        ],
-        outputs=[overflow, out.walls, int(report_bits), wall_sums],
-        device=state.mesh_q.device,
-    )
+        kernels.apply,
+        dim=n,
+        inputs=[*shapes, m.bodies, m.materials, dt, meshes, state.mesh_q, state.bodies, state.walls,
+                state.body_damping, cand],
+        outputs=[out.walls, int(report_bits), wall_sums],
+        device=dev,
+    )  # fmt: skip
 
 
 def launch_advance_meshes(kernel: wp.Kernel, *, meshes: Any, dt: float, mesh_q: wp.array) -> None:
-    """The wall-motion kernel (``make_mesh_kernels(...)[1]``): each mesh wall's pose ``mesh_q`` moved by
+    """The wall-motion kernel (``make_mesh_kernels(...).advance``): each mesh wall's pose ``mesh_q`` moved by
     ``dt`` at its velocity ``meshes.v`` and turned at its angular velocity ``meshes.w`` (one thread per wall;
     ``meshes``: :func:`polydem.kernels.structs.mesh_walls_struct`; ``mesh_q`` may hold a placeholder more)."""
     wp.launch(kernel, dim=meshes.v.shape[0], inputs=[meshes, dt, mesh_q], device=mesh_q.device)

@@ -531,3 +531,47 @@ def test_checkpoint_of_another_mesh_is_refused(tmp_path, device):
     other.add_mesh_wall(floor_grid(3, size=0.4), "m")
     with pytest.raises(CheckpointError, match=r"mesh_walls\[0\].triangles"):
         load_checkpoint(Simulation(other, device=device), tmp_path / "c.npz")
+
+
+@pytest.mark.parametrize("precision", ["mixed", "float32"])
+def test_candidate_list_gives_the_walks_bits(device, precision):
+    """The mesh-wall contacts through the (body, cell) candidate list (CUDA's default) against the walk, one
+    thread per body (the CPU's): cubes, rocks and L-shaped compound grains pressed into a jittered floor of
+    2,048 triangles and on a shelf of 8 above it (hertz, friction, e = 0.5), the list started with room for one
+    candidate, so that the first steps overflow, grow it and are redone. The states, the contacts reported
+    (the report variant), the energies (the diagnostics variant) and the loads: the same bits."""
+    from test_compound import H, l_partition
+
+    from polydem.kernels.meshwall import MeshCandidates
+
+    def scene():
+        sc = base_scene(precision, friction=0.5, restitution=0.5)
+        sc.add_shape("L", l_partition())
+        sc.add_mesh_wall(floor_grid(32, jitter=0.3), "m")
+        v, f = floor_grid(2, size=0.3)
+        sc.add_mesh_wall((v + (0.0, 0.0, 0.1), f), "m")  # a shelf of 8 triangles above the floor
+        add_grains(sc, grid_centres(5, spacing=0.1), seed=4, depth=(1.0e-5, 1.0e-4))
+        for k, c in enumerate(grid_centres(3, spacing=0.08, z=0.1 + 0.5 * H - 2.0e-4)):
+            sc.add_body("L", "m", position=c, velocity=(0.3, 0.1 * k, 0.0))  # sliding on the shelf
+        return sc
+
+    runs = {}
+    for listed in (False, True):
+        sim = Simulation(scene(), device=device, mesh_candidates=listed)
+        if listed:
+            sim.stepper.mesh_candidates = MeshCandidates(sim.num_bodies, 1, precision, sim.device)
+        sim.step(400)
+        st = sim.current_state
+        arrays = {k: getattr(st, k).numpy() for k in ("body_q", "body_v", "body_w", "body_damping", "wall_turn")}
+        runs[listed] = (sim, arrays, sim.contacts(), sim.energy())
+    walk, listed = runs[False], runs[True]
+    candidates = listed[0].stepper.mesh_candidates
+    assert walk[0].stepper.mesh_candidates is None
+    assert candidates.generation >= 1 and candidates.capacity >= candidates.needed() > 25  # it grew
+    for k, a in walk[1].items():
+        np.testing.assert_array_equal(listed[1][k], a, k)
+    walls = walk[2]["body_b"] < 0
+    assert np.count_nonzero(walls) > 25  # many grains on the walls, of three shapes
+    for k, a in walk[2].items():
+        np.testing.assert_array_equal(listed[2][k], a, k)
+    assert listed[3] == walk[3]

@@ -920,13 +920,13 @@ def test_contacts_regrow_the_polygon_buffer(device):
     """
     ref = Simulation(overlapping_spheres_scene(), device)
     expected, expected_energy = ref.contacts(), ref.energy()
-    assert len(expected["volume"]) == 1 and not ref.stepper.polygons_overflowed()
+    assert len(expected["volume"]) == 1 and not ref.stepper.buffers_overflowed()
     sim = Simulation(overlapping_spheres_scene(), device)
     sim.stepper.poly_capacity = 3
     sim.stepper._kernels()
     got = sim.contacts()
     print(f"\nvolume {got['volume']} expected {expected['volume']}")
-    assert sim.stepper.poly_capacity > 3 and not sim.stepper.polygons_overflowed()
+    assert sim.stepper.poly_capacity > 3 and not sim.stepper.buffers_overflowed()
     for k in ("body_a", "body_b", "volume", "normal", "normal_force"):
         np.testing.assert_array_equal(got[k], expected[k], err_msg=k)
     assert sim.energy() == expected_energy

@@ -70,7 +70,14 @@ from polydem.kernels.integrate import (
     launch_integrate,
     launch_settle_measures,
 )
-from polydem.kernels.meshwall import MeshWallState, launch_advance_meshes, launch_mesh_contacts, make_mesh_kernels
+from polydem.kernels.meshwall import (
+    MeshCandidates,
+    MeshKernels,
+    MeshWallState,
+    launch_advance_meshes,
+    launch_mesh_contacts,
+    make_mesh_kernels,
+)
 from polydem.kernels.motion import LANES, launch_drive_bodies, launch_drive_walls, launch_measure_motions
 from polydem.kernels.precision import numpy_dtype
 from polydem.kernels.structs import (
@@ -122,9 +129,12 @@ class Stepper:
             choice); the results do not depend on it (benchmarks/settle.py --max-registers).
         thread_order: the pair kernel's thread t takes pair ``contacts.pairs.thread[t]`` (the contacts must
             have been made with ``thread_order``); the results do not depend on it.
+        mesh_candidates: as for :class:`Simulation` (None: on CUDA).
 
     Attributes:
-        poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_polygons`).
+        poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_buffers`).
+        mesh_candidates: the :class:`~polydem.kernels.meshwall.MeshCandidates` of the mesh-wall contacts (grow
+            with :meth:`grow_buffers`), or None (no mesh walls, or the walk).
         poly_overflow: (1,) int32, set when a clipped polygon did not fit (the step must be redone).
         bad_step: (1,) int32, the first step whose state was not finite (``NO_STEP``: none yet).
         body_speed_limit: (N,) float32 speed of a body's fastest point above which it may tunnel
@@ -143,6 +153,7 @@ class Stepper:
         device_rebuild: bool = False,
         pair_max_registers: int | None = PAIR_MAX_REGISTERS,
         thread_order: bool = False,
+        mesh_candidates: bool | None = None,
     ) -> None:
         self.model = model
         self.thread_order = bool(thread_order)
@@ -162,6 +173,12 @@ class Stepper:
         rows = len(model.measured_rows) if model.has_measured_motions else 0
         self._motion_parts = wp.zeros((max(rows, 1), LANES), dtype=wp.vec3d, device=self.device)
         self._wall_arrays()
+        if mesh_candidates is None:
+            mesh_candidates = wp.get_device(self.device).is_cuda
+        self.mesh_candidates: MeshCandidates | None = None
+        if model.num_mesh_walls and mesh_candidates:
+            # Room for a quarter of the bodies' worth to start with: it grows to what a step lists.
+            self.mesh_candidates = MeshCandidates(n, max(1024, n // 4), model.precision, self.device)
         self._kernels()
         self._diag: ContactOutputs | None = None
         self._diag_generation: int | None = None
@@ -233,23 +250,25 @@ class Stepper:
             thread_order=self.thread_order,
         )
 
-    def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> tuple[wp.Kernel, wp.Kernel] | None:
+    def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> MeshKernels | None:
         if not self.model.num_mesh_walls:
             return None
         return make_mesh_kernels(self._contact_kernels(diagnostics, report))
 
-    def _report_kernels(self) -> tuple[ContactKernels, wp.Kernel | None]:
+    def _report_kernels(self) -> tuple[ContactKernels, MeshKernels | None]:
         """The report variant of the step's kernels (built on first use: a run that never asks for
-        its contacts or an average never compiles it): (contact kernels, mesh kernel or None)."""
-        kernels = self._contact_kernels(report=True)
-        mesh = self._mesh_kernels(False, report=True)
-        return kernels, None if mesh is None else mesh[0]
+        its contacts or an average never compiles it): (contact kernels, mesh kernels or None)."""
+        return self._contact_kernels(report=True), self._mesh_kernels(False, report=True)
 
-    def grow_polygons(self) -> None:
-        """Double the room for clipped polygons (after an overflow); new kernels, so recapture a graph."""
-        self.poly_overflow.zero_()
-        self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
-        self._kernels()
+    def grow_buffers(self) -> None:
+        """After :meth:`buffers_overflowed`: double the room for clipped polygons (new kernels) or grow the
+        mesh-wall candidate list (new arrays), whichever overflowed; recapture a graph."""
+        if int(self.poly_overflow.numpy()[0]):
+            self.poly_overflow.zero_()
+            self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
+            self._kernels()
+        if self.mesh_candidates is not None and self.mesh_candidates.overflowed():
+            self.mesh_candidates.grow()
 
     def clear_checks(self) -> None:
         """Forget the non-finite steps and the speeds recorded so far (their states were discarded by a restore)."""
@@ -261,9 +280,16 @@ class Stepper:
         """Host: whether a body went above its ``body_speed_limit`` since :meth:`clear_checks`."""
         return bool(int(self.too_fast.numpy()[0]))
 
-    def polygons_overflowed(self) -> bool:
-        """Host: whether a clipped polygon did not fit since :meth:`grow_polygons`."""
+    def buffers_overflowed(self) -> bool:
+        """Host: whether a clipped polygon or the mesh-wall candidates did not fit since :meth:`grow_buffers`."""
+        if self.mesh_candidates is not None and self.mesh_candidates.overflowed():
+            return True
         return bool(int(self.poly_overflow.numpy()[0]))
+
+    @property
+    def buffer_generation(self) -> tuple[int, int]:
+        """What a captured step depends on besides the pair list: the polygon room, the candidate list's arrays."""
+        return self.poly_capacity, 0 if self.mesh_candidates is None else self.mesh_candidates.generation
 
     def first_bad_step(self) -> int | None:
         """Host: the first step whose state was not finite, or None."""
@@ -305,9 +331,14 @@ class Stepper:
         in_gather = self.loads_in_gather
         loads = state.body_damping if in_gather else None
         if average is None:
-            mesh = None if self.mesh_kernels is None else self.mesh_kernels[0]
             self._force_stage(
-                self.kernels, mesh, state=state, pairs=contacts, dt=dt, overflow=self.poly_overflow, damping_out=loads
+                self.kernels,
+                self.mesh_kernels,
+                state=state,
+                pairs=contacts,
+                dt=dt,
+                overflow=self.poly_overflow,
+                damping_out=loads,
             )
         else:
             kernels, mesh = self._report_kernels()
@@ -343,7 +374,7 @@ class Stepper:
         m = self.model
         launch_integrate(model=m, state=state, dt=dt)
         if self.mesh_kernels is not None and m.mesh_moves:
-            launch_advance_meshes(self.mesh_kernels[1], meshes=m.meshes, dt=dt, mesh_q=state.mesh_q)
+            launch_advance_meshes(self.mesh_kernels.advance, meshes=m.meshes, dt=dt, mesh_q=state.mesh_q)
         launch_count_step(state.step_count)
         if m.has_motions:
             # The driven containers' poses at the end of this step, from the counter just advanced.
@@ -366,7 +397,7 @@ class Stepper:
     def _force_stage(
         self,
         kernels: ContactKernels,
-        mesh_kernel: wp.Kernel | None,
+        mesh_kernels: MeshKernels | None,
         *,
         state: MeshWallState,
         pairs: PairArrays,
@@ -378,7 +409,7 @@ class Stepper:
         wall_sums: ContactSums | None = None,
         damping_out: wp.array | None = None,
     ) -> None:
-        """The pair, gather and mesh-wall kernels (``kernels``; ``mesh_kernel``, None without mesh walls):
+        """The pair, gather and mesh-wall kernels (``kernels``; ``mesh_kernels``, None without mesh walls):
         the step variant, or the diagnostics one into ``out``, or the report variant (``report_bits``,
         into ``out`` and the sums); a clipped polygon that did not fit sets ``overflow``. ``damping_out``:
         where the gather writes the damping loads (only without mesh walls; None: not written)."""
@@ -401,9 +432,9 @@ class Stepper:
             kernels, model=m, state=state, pairs=pairs, dt=dt, out=out, report_bits=report_bits, wall_sums=wall_sums,
             planes=self.planes, damping_out=self._no_loads if damping_out is None else damping_out,
         )  # fmt: skip
-        if mesh_kernel is not None:
+        if mesh_kernels is not None:
             launch_mesh_contacts(
-                mesh_kernel,
+                mesh_kernels,
                 model=m,
                 state=state,
                 dt=dt,
@@ -412,6 +443,7 @@ class Stepper:
                 report_bits=report_bits,
                 wall_sums=wall_sums,
                 meshes=self.meshes,
+                candidates=self.mesh_candidates,
             )
 
     def _diag_arrays(self, pairs: int) -> ContactOutputs:
@@ -424,9 +456,13 @@ class Stepper:
         overflowed: an overflowed contact is wrong, so the room grows (for the steps too from now on: their
         kernels and graph are rebuilt) and the pass runs again."""
         bound = self.model.shapes.max_poly_bound
+        candidates = self.mesh_candidates
         while True:
             self._diag_overflow.zero_()
             run_pass()
+            if candidates is not None and candidates.overflowed():
+                candidates.grow()  # not all mesh-wall candidates were listed
+                continue
             if not int(self._diag_overflow.numpy()[0]) or self.poly_capacity >= bound:
                 return
             self.poly_capacity = min(2 * self.poly_capacity, bound)
@@ -447,7 +483,6 @@ class Stepper:
         def run_pass() -> None:
             kernels = self._contact_kernels(diagnostics=True)
             mesh = self._mesh_kernels(True)
-            mesh = None if mesh is None else mesh[0]
             self._force_stage(
                 kernels, mesh, state=state, pairs=contacts, dt=dt, overflow=self._diag_overflow, out=self._diag
             )
@@ -662,6 +697,9 @@ class Simulation:
             warning or error either way. A scene validated before with ``Scene.validate(pair_overlaps=False)``
             (``polydem run`` where the device check applies) is finished here: on the device where it applies,
             else on the host.
+        mesh_candidates: the mesh-wall contacts through a list of (body, cell) candidates, a thread each to
+            clip (True), or a thread per body walking its cells (False); None (default): the list on CUDA, the
+            walk on the CPU. The same bits either way (:mod:`polydem.kernels.meshwall`).
 
     Attributes:
         scene: the :class:`~polydem.Scene` it was built from (the whole scene, where ``bodies`` is given).
@@ -699,6 +737,7 @@ class Simulation:
         bodies: np.ndarray | None = None,
         order_pair_threads: bool | str = True,
         overlap_check: str = "auto",
+        mesh_candidates: bool | None = None,
     ) -> None:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
@@ -748,6 +787,7 @@ class Simulation:
             device_rebuild=self.use_graph,
             pair_max_registers=pair_max_registers,
             thread_order=self.current_contacts.thread_order,
+            mesh_candidates=mesh_candidates,
         )
         self._speed_limit = settings.tunnel.body_speed_limit[model.body_index]
         self.stepper.body_speed_limit.assign(self._speed_limit.astype(np.float32))
@@ -892,7 +932,7 @@ class Simulation:
         """The captured step (``keep_inputs``: the one that also keeps its inputs, for advance()), for
         the current buffers, polygon room and average."""
         state, contacts, avg = self.current_state, self.current_contacts, self._average
-        key = (contacts.generation, self.stepper.poly_capacity, None if avg is None else (id(avg), avg.generation))
+        key = (contacts.generation, self.stepper.buffer_generation, None if avg is None else (id(avg), avg.generation))
         if self._graph_key != key:
             self._graphs = {}
             self._graph_key = key
@@ -953,8 +993,8 @@ class Simulation:
             self._last_good = self.snapshot(into=self._last_good)
             self._run_chunk(chunk)
             redo = False
-            if self.stepper.polygons_overflowed():
-                self.stepper.grow_polygons()
+            if self.stepper.buffers_overflowed():
+                self.stepper.grow_buffers()
                 redo = True
             if self.stepper.device_rebuild and self.current_contacts.host_build_needed():
                 redo = True

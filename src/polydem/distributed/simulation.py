@@ -475,7 +475,7 @@ class DistributedSimulation:
                 self.redone += 1
                 if sim is not None:
                     if flags[0]:
-                        sim.stepper.grow_polygons()
+                        sim.stepper.grow_buffers()
                     sim.restore(self._good)
                 # restore computed the damping loads from this rank's history: the ghosts' from their owners
                 self._exchange()
@@ -508,11 +508,12 @@ class DistributedSimulation:
         self.timers["partition"] += time.perf_counter() - t0
 
     def _chunk_flags(self) -> tuple[float, float, float, float]:
-        """(polygon overflow, pair list overflow, non-finite state, largest move [m]) of this rank's chunk."""
+        """(polygon or mesh candidate overflow, pair list overflow, non-finite state, largest move [m]) of this
+        rank's chunk."""
         sim = self.sim
         if sim is None:
             return (0.0, 0.0, 0.0, 0.0)
-        overflow = sim.stepper.polygons_overflowed()
+        overflow = sim.stepper.buffers_overflowed()
         host_build = sim.stepper.device_rebuild and sim.current_contacts.host_build_needed()
         bad = sim.stepper.first_bad_step() is not None
         return (float(overflow), float(host_build), float(bad), float(self._moved.numpy()[0]))
