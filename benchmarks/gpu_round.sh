@@ -142,7 +142,7 @@ mesh() {
     done
     for rep in 1 2; do
       for code in old new; do
-        pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?})
+        pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
         "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
           >> $W/log/settle_fold.log 2>&1
         gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
@@ -152,11 +152,35 @@ mesh() {
     gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes 1e5 --dt-scales 4 --shapes cube \
       --k-rule volume --max-time 6 --out $W/res/tts_rest_1e5_cube.json >> $W/log/tts.log 2>&1 ) &
 }
+# MODE=mesh2: the candidate list's clipping under the pair kernel's register cap and block size against without
+# (OLD_PKG2: the package of the commit before, on PYTHONPATH), each kernel's GPU time; then the fold as in MODE=mesh
+mesh2() {
+  ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider "tests/test_meshwall.py::test_candidate_list_gives_the_walks_bits" > $W/log/pytest.log 2>&1
+    for n in 10000 100000; do
+      gpu 0 env PYTHONPATH=${OLD_PKG2:?}:${PYTHONPATH:-} python -u benchmarks/wall_contact_cost.py --device cuda:0 \
+        --bodies $n --steps 100 --kinds meshT,pair --triangle-edge 2 --mesh-paths list \
+        --out $W/res/wall_fine_${n}_before.json > $W/log/wall_${n}_before.log 2>&1
+      gpu 0 python -u benchmarks/wall_contact_cost.py --device cuda:0 --bodies $n --steps 100 --kinds meshT,pair \
+        --triangle-edge 2 --mesh-paths walk,list --profile --out $W/res/wall_fine_$n.json > $W/log/wall_$n.log 2>&1
+    done
+    for rep in 1 2; do
+      for code in old new; do
+        pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
+        "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
+          >> $W/log/settle_fold.log 2>&1
+        gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
+          --no-graph-compare --steps 400 --out $W/res/settle_1e4_${code}_$rep.json >> $W/log/settle_fold.log 2>&1
+      done
+    done ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
 if [ "${MODE:-}" = mesh ]; then
   mesh
+elif [ "${MODE:-}" = mesh2 ]; then
+  mesh2
 elif [ "${MODE:-}" = tts ]; then
   tts
 elif [ "${MODE:-}" = tts2 ]; then

@@ -97,6 +97,20 @@ def time_steps(sim, steps, repeats):
     return statistics.median(times)
 
 
+def kernel_profile(scene, device, mesh_candidates, steps):
+    """GPU milliseconds per step of each kernel (Warp's activity timing; the host loop, no graph), largest first."""
+    sim = Simulation(scene, device=device, use_graph=False, mesh_candidates=mesh_candidates)
+    sim.step(steps)  # warm-up: compile, grow the buffers
+    wp.synchronize_device(sim.device)
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
+    sim.step(steps)
+    totals = {}
+    for r in wp.timing_end():
+        name = r.name.split("make_")[-1] if r.name else r.filter
+        totals[name] = totals.get(name, 0.0) + r.elapsed / steps
+    return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu")
@@ -115,6 +129,7 @@ def main():
         help="the mesh kinds' contacts through: 'walk' (a thread per body), 'list' (the (body, cell) candidate "
         "list), 'default' (the device's default); several comma-separated: a row each, in the same run",
     )
+    ap.add_argument("--profile", action="store_true", help="CUDA: each kernel's GPU time per step, in contact")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     paths = {"walk": False, "list": True, "default": None}
@@ -148,6 +163,11 @@ def main():
             row["triangles"] = row_triangles
             side = int(np.ceil(np.sqrt(args.bodies)))
             row["triangle_edge_in_cube_edges"] = (side * SPACING + SPACING) / np.sqrt(row_triangles / 2) / EDGE
+        if args.profile and wp.get_device(args.device).is_cuda:
+            scene = build(kind, args.bodies, args.triangles, 0.0, args.precision, triangle_edge=args.triangle_edge)
+            row["kernel_ms_per_step"] = kernel_profile(scene, args.device, paths[path] if path else None, args.steps)
+            for name, ms in list(row["kernel_ms_per_step"].items())[:8]:
+                print(f"{'':>12}{ms:9.4f} ms  {name[:90]}")
         rows.append(row)
         print(
             f"{row['kind']:>10}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "

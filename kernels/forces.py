@@ -118,6 +118,7 @@ class ContactKernels:
     precision: str
     report: bool
     compound: bool
+    max_registers: int | None
     geometry: Any  # polydem.kernels.geometry.Geometry
     body_geometry: Any  # polydem.kernels.compound.BodyGeometry
     respond: Any
@@ -662,6 +663,7 @@ def make_contact_kernels(
         precision=precision,
         report=report,
         compound=compound,
+        max_registers=max_registers,
         geometry=geom,
         body_geometry=body_geom,
         respond=resp.respond,

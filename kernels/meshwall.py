@@ -42,6 +42,7 @@ from polydem.kernels.forces import (
     ContactSums,
     damping_scale,
 )
+from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.kernels.precision import scalars
 from polydem.kernels.structs import arrays, filled, make_struct, struct_types
 
@@ -391,7 +392,8 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
                     cand.cell[c] = cell
                     c += 1
 
-    @wp.kernel(enable_backward=False, module="unique")
+    # The pair kernel's register cap: the same clipping code.
+    @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=kernels.max_registers)
     def clip_kernel(
         # Model
         shapes: geom.shapes,
@@ -555,7 +557,13 @@ def launch_mesh_contacts(
     wp.launch(kernels.count, dim=n, inputs=where, outputs=[cand], device=dev)
     wp.utils.array_scan(candidates.arrays["count"], candidates.arrays["start"], inclusive=False)
     wp.launch(kernels.fill, dim=n, inputs=[*where, cand], device=dev)
-    wp.launch(kernels.clip, dim=candidates.capacity, inputs=[*where, overflow, cand, int(report_bits)], device=dev)
+    wp.launch(
+        kernels.clip,
+        dim=candidates.capacity,
+        inputs=[*where, overflow, cand, int(report_bits)],
+        device=dev,
+        block_dim=NARROWPHASE_BLOCK_DIM,  # the pair kernel's
+    )
     wp.launch(
         kernels.apply,
         dim=n,
