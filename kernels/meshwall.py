@@ -15,9 +15,9 @@ Two ways to the same bits (:func:`launch_mesh_contacts`):
 
 * the walk: one thread per free body finds its cells and clips them in turn (the CPU's: one core runs
   the threads in turn anyway);
-* the candidate list (:class:`MeshCandidates`, CUDA's): one thread per body counts its cells, a scan
-  places them, a second pass lists them as (body, cell) candidates, one thread per candidate clips, and
-  one thread per body sums its candidates in the walk's order and applies the law. A grain on a fine
+* the candidate list (:class:`MeshCandidates`, CUDA's): one thread per body lists its cells as (body, cell)
+  candidates in a block it reserves, one thread per candidate clips, and one thread per body sums its
+  candidates in the walk's order and applies the law. A grain on a fine
   mesh meets 4 to 6 cells: the walk left each thread that many clippings in a row (20x a pair contact
   on the GPU, BENCHMARKS 8d) where the pair kernel has a thread per contact. The list has a fixed
   capacity; where the candidates do not fit, it says so (:meth:`MeshCandidates.overflowed`) and the
@@ -46,6 +46,10 @@ from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.kernels.precision import scalars
 from polydem.kernels.structs import arrays, filled, make_struct, struct_types
 
+# Candidates a body keeps in its thread while it traverses the BVH (a grain on a fine mesh meets 4 to 6 cells);
+# one with more traverses it again for the rest.
+LISTED_IN_REGISTERS = 8
+
 # Rounding allowance of the float32 BVH query box, relative to the body's distance from the wall's
 # origin plus its radius (the box is cast from the state's scalar).
 QUERY_ROUNDING = 4.0e-7
@@ -68,12 +72,13 @@ class MeshWallState(BodyState, Protocol):
 @functools.cache
 def candidates_struct(C: Any) -> Any:
     """The candidate list of :class:`MeshCandidates`: per body (N,) its number of candidate cells (``count``)
-    and the first (``start``, the exclusive scan of ``count``); per candidate (capacity,) its body, mesh wall
-    and cell (global index) and what its clipping gave: ``volume``, ``first_moment``, ``s_a``, ``m_a``,
-    ``fallback`` (C, as :func:`polydem.kernels.compound.make_body_geometry`'s ``pair_geometry``) and ``depth``
-    (the diagnostics and report variants only); ``overflow`` (1,): set when they did not fit."""
+    and where they start (``start``: a block reserved from ``total`` (1,), so the blocks' order varies from run
+    to run, each block's does not); per candidate (capacity,) its body, mesh wall and cell (global index) and
+    what its clipping gave: ``volume``, ``first_moment``, ``s_a``, ``m_a``, ``fallback`` (C, as
+    :func:`polydem.kernels.compound.make_body_geometry`'s ``pair_geometry``) and ``depth`` (the diagnostics and
+    report variants only); ``overflow`` (1,): set when they did not fit."""
     vec3c = wp.types.vector(3, C)
-    members = arrays(count=int, start=int, body=int, mesh=int, cell=int, volume=C)
+    members = arrays(count=int, start=int, total=int, body=int, mesh=int, cell=int, volume=C)
     members |= arrays(first_moment=vec3c, s_a=vec3c, m_a=vec3c, fallback=vec3c, depth=C, overflow=int)
     return make_struct("MeshCandidates", **members)
 
@@ -101,13 +106,12 @@ class MeshCandidates:
         per_candidate |= dict.fromkeys(("first_moment", "s_a", "m_a", "fallback"), vec3c)
         self.arrays = {k: wp.zeros(capacity, dtype=dtype, device=dev) for k, dtype in per_candidate.items()}
         self.arrays |= {k: wp.zeros(n, dtype=int, device=dev) for k in ("count", "start")}
-        self.arrays["overflow"] = wp.zeros(1, dtype=int, device=dev)
+        self.arrays |= {k: wp.zeros(1, dtype=int, device=dev) for k in ("total", "overflow")}
         self.candidates = filled(candidates_struct(C), **self.arrays)
 
     def needed(self) -> int:
         """Host: how many candidates the last listing found (fitted or not)."""
-        count, start = self.arrays["count"].numpy()[-1:], self.arrays["start"].numpy()[-1:]
-        return int(count[0]) + int(start[0])
+        return int(self.arrays["total"].numpy()[0])
 
     def overflowed(self) -> bool:
         """Host: whether a listing since the last :meth:`grow` found more candidates than there is room for."""
@@ -126,11 +130,10 @@ class MeshCandidates:
 @dataclass(frozen=True, eq=False)
 class MeshKernels:
     """The mesh-wall kernels of one contact variant (:func:`make_mesh_kernels`): the walk (``contact``), the
-    candidate list's passes (``count``, ``fill``, ``clip``, ``apply``) and the walls' motion (``advance``)."""
+    candidate list's passes (``list``, ``clip``, ``apply``) and the walls' motion (``advance``)."""
 
     contact: wp.Kernel
-    count: wp.Kernel
-    fill: wp.Kernel
+    list: wp.Kernel
     clip: wp.Kernel
     apply: wp.Kernel
     advance: wp.Kernel
@@ -150,6 +153,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
     transform_s = wp.types.transformation(S)
     T = struct_types(kernels.precision)
     Candidates = candidates_struct(C)
+    listed_t = wp.types.vector(LISTED_IN_REGISTERS, int)
     diagnostics, report = kernels.diagnostics, kernels.report
     geom, body_geom, wall_contact = kernels.geometry, kernels.body_geometry, kernels.wall_contact
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
@@ -325,10 +329,10 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
             )  # fmt: skip
         add_to_body(bodies, i, f, t, lost)
 
-    # -- the candidate list: count, (scan), fill, clip, apply ------------------------------------------------
+    # -- the candidate list: list, clip, apply --------------------------------------------------------------
 
     @wp.kernel(enable_backward=False, module="unique")
-    def count_kernel(
+    def list_kernel(
         # Model
         shapes: geom.shapes,
         model: T.BodyModel,
@@ -336,14 +340,18 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
         # State in
         mesh_q: wp.array(dtype=transform_s),
         bodies: T.Bodies,
-        # Out: count
+        # In/out: total (zeroed before); out: count, start and the candidates (body, mesh, cell) where they fit,
+        # else overflow
         cand: Candidates,
     ):
-        """Each free body's number of candidate cells, over all mesh walls."""
+        """Each free body's candidate cells, by wall and in the BVH's order (the walk's), in a block of its own:
+        one traversal remembers the first LISTED_IN_REGISTERS, a second one (rare) finds the rest."""
         i = wp.tid()
         n = int(0)
+        kept_cell = listed_t()
+        kept_mesh = listed_t()
+        pa = wp.transform_get_translation(bodies.q[i])
         if model.flags[i] == 0:
-            pa = wp.transform_get_translation(bodies.q[i])
             for m in range(meshes.bvh.shape[0]):
                 xm = mesh_q[m]
                 lf, pad = query_pad(xm, pa, model.radius[i])
@@ -353,44 +361,38 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
                 while wp.bvh_query_next(query, k):
                     cell = meshes.cell_start[m] + k
                     if cell_apart(shapes, meshes.cell_shape[cell], pa, cell_pose(meshes, xm, cell), pad) == 0:
+                        if n < LISTED_IN_REGISTERS:
+                            kept_cell[n] = cell
+                            kept_mesh[n] = m
                         n += 1
         cand.count[i] = n
-
-    @wp.kernel(enable_backward=False, module="unique")
-    def fill_kernel(
-        # Model
-        shapes: geom.shapes,
-        model: T.BodyModel,
-        meshes: T.MeshWalls,
-        # State in
-        mesh_q: wp.array(dtype=transform_s),
-        bodies: T.Bodies,
-        # In: count, start; out: the candidates (body, mesh, cell) where they fit, else overflow
-        cand: Candidates,
-    ):
-        """Each free body's candidates from ``start[i]`` on, by wall and in the BVH's order (the walk's)."""
-        i = wp.tid()
-        if cand.count[i] == 0:
+        if n == 0:
             return
-        capacity = cand.body.shape[0]
-        if cand.start[i] + cand.count[i] > capacity:
+        c = wp.atomic_add(cand.total, 0, n)
+        cand.start[i] = c
+        if c + n > cand.body.shape[0]:
             cand.overflow[0] = 1
             return
-        c = cand.start[i]
-        pa = wp.transform_get_translation(bodies.q[i])
-        for m in range(meshes.bvh.shape[0]):
-            xm = mesh_q[m]
-            lf, pad = query_pad(xm, pa, model.radius[i])
-            ext = wp.vec3(pad, pad, pad)
-            query = wp.bvh_query_aabb(meshes.bvh[m], lf - ext, lf + ext)
-            k = int(0)
-            while wp.bvh_query_next(query, k):
-                cell = meshes.cell_start[m] + k
-                if cell_apart(shapes, meshes.cell_shape[cell], pa, cell_pose(meshes, xm, cell), pad) == 0:
-                    cand.body[c] = i
-                    cand.mesh[c] = m
-                    cand.cell[c] = cell
-                    c += 1
+        for h in range(wp.min(n, LISTED_IN_REGISTERS)):
+            cand.body[c + h] = i
+            cand.mesh[c + h] = kept_mesh[h]
+            cand.cell[c + h] = kept_cell[h]
+        if n > LISTED_IN_REGISTERS:
+            h = int(0)
+            for m in range(meshes.bvh.shape[0]):
+                xm = mesh_q[m]
+                lf, pad = query_pad(xm, pa, model.radius[i])
+                ext = wp.vec3(pad, pad, pad)
+                query = wp.bvh_query_aabb(meshes.bvh[m], lf - ext, lf + ext)
+                k = int(0)
+                while wp.bvh_query_next(query, k):
+                    cell = meshes.cell_start[m] + k
+                    if cell_apart(shapes, meshes.cell_shape[cell], pa, cell_pose(meshes, xm, cell), pad) == 0:
+                        if h >= LISTED_IN_REGISTERS:
+                            cand.body[c + h] = i
+                            cand.mesh[c + h] = m
+                            cand.cell[c + h] = cell
+                        h += 1
 
     # The pair kernel's register cap: the same clipping code.
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=kernels.max_registers)
@@ -409,8 +411,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
     ):
         """One candidate's clipping: the body against the cell."""
         c = wp.tid()
-        last = cand.count.shape[0] - 1
-        if c >= cand.start[last] + cand.count[last]:
+        if c >= cand.total[0]:
             return
         i = cand.body[c]
         m = cand.mesh[c]
@@ -504,8 +505,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
 
     return MeshKernels(
         contact=mesh_contact_kernel,
-        count=count_kernel,
-        fill=fill_kernel,
+        list=list_kernel,
         clip=clip_kernel,
         apply=apply_kernel,
         advance=advance_meshes_kernel,
@@ -534,7 +534,7 @@ def launch_mesh_contacts(
     body's mesh-wall contacts to ``state.body_f`` and ``body_t`` (the step and report variants) or writes them
     into the wall columns of ``out`` (diagnostics; the report variant by ``report_bits``), as
     :func:`polydem.kernels.forces.launch_gather` does for the planes. ``meshes``: the mesh walls with their
-    velocities now (default the model's). ``candidates``: through this candidate list (five launches, a
+    velocities now (default the model's). ``candidates``: through this candidate list (three launches, a
     thread per (body, cell) for the clipping; the same bits; :meth:`MeshCandidates.overflowed` says whether
     they fitted), or None: the walk (one launch, a thread per body)."""
     m = model
@@ -554,9 +554,8 @@ def launch_mesh_contacts(
         return
     cand = candidates.candidates
     where = [*shapes, m.bodies, meshes, state.mesh_q, state.bodies]
-    wp.launch(kernels.count, dim=n, inputs=where, outputs=[cand], device=dev)
-    wp.utils.array_scan(candidates.arrays["count"], candidates.arrays["start"], inclusive=False)
-    wp.launch(kernels.fill, dim=n, inputs=[*where, cand], device=dev)
+    candidates.arrays["total"].zero_()
+    wp.launch(kernels.list, dim=n, inputs=where, outputs=[cand], device=dev)
     wp.launch(
         kernels.clip,
         dim=candidates.capacity,
