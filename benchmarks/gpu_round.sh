@@ -174,6 +174,31 @@ mesh2() {
       done
     done ) &
 }
+# MODE=mesh3: the one-traversal listing against the two-pass one (OLD_PKG2) and the walk, each kernel's GPU time,
+# between the runs of the fold before (OLD_PKG) and after
+fold_pair() {
+  for code in old new; do
+    pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
+    "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
+      >> $W/log/settle_fold.log 2>&1
+    gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
+      --no-graph-compare --steps 400 --out $W/res/settle_1e4_${code}_$1.json >> $W/log/settle_fold.log 2>&1
+  done
+}
+mesh3() {
+  ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider "tests/test_meshwall.py::test_candidate_list_gives_the_walks_bits" -k mixed \
+      > $W/log/pytest.log 2>&1
+    fold_pair 1
+    for n in 10000 100000; do
+      gpu 0 env PYTHONPATH=${OLD_PKG2:?}:${PYTHONPATH:-} python -u benchmarks/wall_contact_cost.py --device cuda:0 \
+        --bodies $n --steps 100 --kinds meshT --triangle-edge 2 --mesh-paths list --profile \
+        --out $W/res/wall_fine_${n}_twopass.json > $W/log/wall_${n}_twopass.log 2>&1
+      gpu 0 python -u benchmarks/wall_contact_cost.py --device cuda:0 --bodies $n --steps 100 --kinds meshT,pair \
+        --triangle-edge 2 --mesh-paths list,walk --profile --out $W/res/wall_fine_$n.json > $W/log/wall_$n.log 2>&1
+    done
+    fold_pair 2 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -181,6 +206,8 @@ if [ "${MODE:-}" = mesh ]; then
   mesh
 elif [ "${MODE:-}" = mesh2 ]; then
   mesh2
+elif [ "${MODE:-}" = mesh3 ]; then
+  mesh3
 elif [ "${MODE:-}" = tts ]; then
   tts
 elif [ "${MODE:-}" = tts2 ]; then
