@@ -11,15 +11,16 @@ the body against the wall as a whole, so a flat region of many triangles acts as
 between triangles add nothing. One friction spring and one turning volume per (body, wall), kept in the
 wall columns of ``State.wall_xi`` / ``wall_turn`` after the plane walls.
 
-Two ways to the same bits (:func:`launch_mesh_contacts`):
+Two ways to the same motion, bit for bit (:func:`launch_mesh_contacts`; on CUDA the book of the energy lost
+may differ in its last bits: the compiler contracts its multiply-adds differently in the two kernels):
 
 * the walk: one thread per free body finds its cells and clips them in turn (the CPU's: one core runs
   the threads in turn anyway);
 * the candidate list (:class:`MeshCandidates`, CUDA's): one thread per body lists its cells as (body, cell)
   candidates in a block it reserves, one thread per candidate clips, and one thread per body sums its
-  candidates in the walk's order and applies the law. A grain on a fine
-  mesh meets 4 to 6 cells: the walk left each thread that many clippings in a row (20x a pair contact
-  on the GPU, BENCHMARKS 8d) where the pair kernel has a thread per contact. The list has a fixed
+  candidates in the walk's order and applies the law. A grain on a fine mesh meets 4 to 6 cells: the walk
+  left each thread that many clippings in a row (20x a pair contact on the GPU, BENCHMARKS 8d) where the
+  pair kernel has a thread per contact. The list has a fixed
   capacity; where the candidates do not fit, it says so (:meth:`MeshCandidates.overflowed`) and the
   step is redone with room for them all.
 
@@ -76,9 +77,9 @@ def candidates_struct(C: Any) -> Any:
     to run, each block's does not); per candidate (capacity,) its body, mesh wall and cell (global index) and
     what its clipping gave: ``volume``, ``first_moment``, ``s_a``, ``m_a``, ``fallback`` (C, as
     :func:`polydem.kernels.compound.make_body_geometry`'s ``pair_geometry``) and ``depth`` (the diagnostics and
-    report variants only); ``overflow`` (1,): set when they did not fit."""
+    report variants only); ``overflow`` (1,): set when they did not fit, ``peak`` (1,) then the most listed."""
     vec3c = wp.types.vector(3, C)
-    members = arrays(count=int, start=int, total=int, body=int, mesh=int, cell=int, volume=C)
+    members = arrays(count=int, start=int, total=int, peak=int, body=int, mesh=int, cell=int, volume=C)
     members |= arrays(first_moment=vec3c, s_a=vec3c, m_a=vec3c, fallback=vec3c, depth=C, overflow=int)
     return make_struct("MeshCandidates", **members)
 
@@ -86,7 +87,7 @@ def candidates_struct(C: Any) -> Any:
 class MeshCandidates:
     """The (body, cell) candidates of one step's mesh-wall contacts on the device (:func:`candidates_struct`):
     room for ``capacity`` of them, grown by :meth:`grow` after a step that did not fit (its results are
-    wrong: redo it). About 120 bytes a candidate in mixed precision, 12 a body."""
+    wrong: redo it). 68 bytes a candidate in the float32 and mixed precisions (124 in float64), 8 a body."""
 
     def __init__(self, num_bodies: int, capacity: int, precision: str, device: Any) -> None:
         if num_bodies < 1 or capacity < 1:
@@ -106,20 +107,23 @@ class MeshCandidates:
         per_candidate |= dict.fromkeys(("first_moment", "s_a", "m_a", "fallback"), vec3c)
         self.arrays = {k: wp.zeros(capacity, dtype=dtype, device=dev) for k, dtype in per_candidate.items()}
         self.arrays |= {k: wp.zeros(n, dtype=int, device=dev) for k in ("count", "start")}
-        self.arrays |= {k: wp.zeros(1, dtype=int, device=dev) for k in ("total", "overflow")}
+        self.arrays |= {k: wp.zeros(1, dtype=int, device=dev) for k in ("total", "peak", "overflow")}
         self.candidates = filled(candidates_struct(C), **self.arrays)
 
     def needed(self) -> int:
-        """Host: how many candidates the last listing found (fitted or not)."""
-        return int(self.arrays["total"].numpy()[0])
+        """Host: the most candidates a listing found since the last :meth:`grow` (fitted or not): the last
+        listing's, or more where one that did not fit found more (the steps after it apply no mesh-wall force,
+        so theirs may be fewer)."""
+        return max(int(self.arrays["total"].numpy()[0]), int(self.arrays["peak"].numpy()[0]))
 
     def overflowed(self) -> bool:
         """Host: whether a listing since the last :meth:`grow` found more candidates than there is room for."""
         return bool(int(self.arrays["overflow"].numpy()[0]))
 
     def grow(self) -> None:
-        """Room for half as many again as the last listing found (new arrays: recapture a graph)."""
-        self._allocate(max(self.capacity, int(1.5 * self.needed()) + 1))
+        """Room for half as many again as :meth:`needed`, at least twice the room there was (so that a redone
+        step that finds more again grows on; new arrays: recapture a graph)."""
+        self._allocate(max(2 * self.capacity, int(1.5 * self.needed()) + 1))
         self.generation += 1
 
     @property
@@ -372,6 +376,7 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
         cand.start[i] = c
         if c + n > cand.body.shape[0]:
             cand.overflow[0] = 1
+            wp.atomic_max(cand.peak, 0, c + n)
             return
         for h in range(wp.min(n, LISTED_IN_REGISTERS)):
             cand.body[c + h] = i
@@ -411,7 +416,8 @@ def make_mesh_kernels(kernels: ContactKernels) -> MeshKernels:
     ):
         """One candidate's clipping: the body against the cell."""
         c = wp.tid()
-        if c >= cand.total[0]:
+        # Not all listed: the step is redone (stale entries are not clipped, their polygons could not overflow)
+        if c >= cand.total[0] or cand.overflow[0] != 0:
             return
         i = cand.body[c]
         m = cand.mesh[c]
@@ -535,7 +541,7 @@ def launch_mesh_contacts(
     into the wall columns of ``out`` (diagnostics; the report variant by ``report_bits``), as
     :func:`polydem.kernels.forces.launch_gather` does for the planes. ``meshes``: the mesh walls with their
     velocities now (default the model's). ``candidates``: through this candidate list (three launches, a
-    thread per (body, cell) for the clipping; the same bits; :meth:`MeshCandidates.overflowed` says whether
+    thread per (body, cell) for the clipping; the same motion; :meth:`MeshCandidates.overflowed` says whether
     they fitted), or None: the walk (one launch, a thread per body)."""
     m = model
     meshes = m.meshes if meshes is None else meshes

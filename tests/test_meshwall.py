@@ -534,6 +534,25 @@ def test_checkpoint_of_another_mesh_is_refused(tmp_path, device):
         load_checkpoint(Simulation(other, device=device), tmp_path / "c.npz")
 
 
+def candidate_scene(precision):
+    """Cubes, rocks and L-shaped compound grains pressed into a jittered floor of 2,048 triangles and sliding on a
+    shelf of 8 above it, and a slab over some 20 cells (hertz, friction 0.5, e = 0.5)."""
+    from test_compound import H, l_partition
+
+    sc = base_scene(precision, friction=0.5, restitution=0.5)
+    sc.add_shape("L", l_partition())
+    sc.add_mesh_wall(floor_grid(32, jitter=0.3), "m")
+    v, f = floor_grid(2, size=0.3)
+    sc.add_mesh_wall((v + (0.0, 0.0, 0.1), f), "m", thickness=0.02)  # a shelf of 8 triangles above the floor
+    add_grains(sc, grid_centres(5, spacing=0.1), seed=4, depth=(1.0e-5, 1.0e-4))
+    for k, c in enumerate(grid_centres(3, spacing=0.08, z=0.1 + 0.5 * H - 5.0e-5)):
+        sc.add_body("L", "m", position=c, velocity=(0.3, 0.1 * k, 0.0))  # sliding on the shelf
+    # A slab over some 20 cells: more than a thread keeps while it traverses (LISTED_IN_REGISTERS)
+    sc.add_shape("slab", ConvexShape.box(0.12, 0.12, 0.02))
+    sc.add_body("slab", "m", position=(0.35, 0.35, 0.01 - 5.0e-5), velocity=(0.1, 0.0, 0.0))
+    return sc
+
+
 @pytest.mark.parametrize("precision", ["mixed", "float32"])
 def test_candidate_list_gives_the_walks_bits(device, precision):
     """The mesh-wall contacts through the (body, cell) candidate list (CUDA's default) against the walk, one
@@ -543,25 +562,10 @@ def test_candidate_list_gives_the_walks_bits(device, precision):
     (the report variant), the energies (the diagnostics variant) and the loads: the same bits (the energy lost
     to 1e-6 on CUDA)."""
     from polydem.kernels.meshwall import LISTED_IN_REGISTERS, MeshCandidates
-    from test_compound import H, l_partition
-
-    def scene():
-        sc = base_scene(precision, friction=0.5, restitution=0.5)
-        sc.add_shape("L", l_partition())
-        sc.add_mesh_wall(floor_grid(32, jitter=0.3), "m")
-        v, f = floor_grid(2, size=0.3)
-        sc.add_mesh_wall((v + (0.0, 0.0, 0.1), f), "m", thickness=0.02)  # a shelf of 8 triangles above the floor
-        add_grains(sc, grid_centres(5, spacing=0.1), seed=4, depth=(1.0e-5, 1.0e-4))
-        for k, c in enumerate(grid_centres(3, spacing=0.08, z=0.1 + 0.5 * H - 5.0e-5)):
-            sc.add_body("L", "m", position=c, velocity=(0.3, 0.1 * k, 0.0))  # sliding on the shelf
-        # A slab over some 20 cells: more than a thread keeps while it traverses (LISTED_IN_REGISTERS)
-        sc.add_shape("slab", ConvexShape.box(0.12, 0.12, 0.02))
-        sc.add_body("slab", "m", position=(0.35, 0.35, 0.01 - 5.0e-5), velocity=(0.1, 0.0, 0.0))
-        return sc
 
     runs = {}
     for listed in (False, True):
-        sim = Simulation(scene(), device=device, mesh_candidates=listed)
+        sim = Simulation(candidate_scene(precision), device=device, mesh_candidates=listed)
         if listed:
             sim.stepper.mesh_candidates = MeshCandidates(sim.num_bodies, 1, precision, sim.device)
         sim.step(400)
@@ -587,3 +591,24 @@ def test_candidate_list_gives_the_walks_bits(device, precision):
     # of it apart after 400 steps, the motion the same bits).
     rtol = 0.0 if wp.get_device(device).is_cpu else 1.0e-6
     np.testing.assert_allclose(energies[0]["dissipated"], energies[1]["dissipated"], rtol=rtol, atol=0.0)
+
+
+def test_candidate_overflow_of_steps_outlives_a_report(device):
+    """Steps run without a check (Simulation.advance, as a decomposed run does) overflow the candidate list; a
+    report of the contacts before the caller's check grows the list for its own pass but still lets the check see
+    the steps' overflow, and the list grows to at least what the first step listed (later steps of the chunk,
+    with no mesh-wall force, may list fewer)."""
+    from polydem.kernels.meshwall import MeshCandidates
+
+    roomy = Simulation(candidate_scene("mixed"), device=device, mesh_candidates=True)
+    roomy.step(1)
+    first = roomy.stepper.mesh_candidates.needed()
+    sim = Simulation(candidate_scene("mixed"), device=device, mesh_candidates=True)
+    sim.stepper.mesh_candidates = MeshCandidates(sim.num_bodies, 1, "mixed", sim.device)
+    sim.advance(20)
+    assert sim.stepper.mesh_candidates.needed() >= first > 25
+    sim.energy()  # the diagnostics pass: grows the list, lists all
+    assert sim.stepper.buffers_overflowed()
+    sim.stepper.grow_buffers()
+    assert not sim.stepper.buffers_overflowed()
+    assert sim.stepper.mesh_candidates.capacity >= 1.5 * first

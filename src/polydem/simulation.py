@@ -176,6 +176,7 @@ class Stepper:
         if mesh_candidates is None:
             mesh_candidates = wp.get_device(self.device).is_cuda
         self.mesh_candidates: MeshCandidates | None = None
+        self._steps_overflowed = False  # the candidates of a step overflowed, seen (and grown) by a later pass
         if model.num_mesh_walls and mesh_candidates:
             # Room for a quarter of the bodies' worth to start with: it grows to what a step lists.
             self.mesh_candidates = MeshCandidates(n, max(1024, n // 4), model.precision, self.device)
@@ -269,6 +270,7 @@ class Stepper:
             self._kernels()
         if self.mesh_candidates is not None and self.mesh_candidates.overflowed():
             self.mesh_candidates.grow()
+        self._steps_overflowed = False
 
     def clear_checks(self) -> None:
         """Forget the non-finite steps and the speeds recorded so far (their states were discarded by a restore)."""
@@ -282,7 +284,7 @@ class Stepper:
 
     def buffers_overflowed(self) -> bool:
         """Host: whether a clipped polygon or the mesh-wall candidates did not fit since :meth:`grow_buffers`."""
-        if self.mesh_candidates is not None and self.mesh_candidates.overflowed():
+        if self._steps_overflowed or (self.mesh_candidates is not None and self.mesh_candidates.overflowed()):
             return True
         return bool(int(self.poly_overflow.numpy()[0]))
 
@@ -365,8 +367,8 @@ class Stepper:
 
     def damping_load(self, state: State, contacts: PairArrays, dt: float) -> None:
         """Each body's damping load for the next step (``state.body_damping``) from the contact history as it is
-        now (kernels/forces.py ``launch_damping_load``): after each step's force stage, and where a state is set
-        from arrays without one (a checkpoint)."""
+        now (kernels/forces.py ``launch_damping_load``): after each step's force stage where the gather does not
+        write them (:attr:`loads_in_gather`), and where a state is set from arrays without one (a checkpoint)."""
         launch_damping_load(self.kernels, model=self.model, state=state, pairs=contacts, dt=dt)
 
     def integrate(self, state: State, dt: float) -> None:
@@ -453,10 +455,14 @@ class Stepper:
 
     def _until_polygons_fit(self, run_pass: Callable[[], None]) -> None:
         """Run ``run_pass`` (a diagnostics or report pass, with the current kernels) until no clipped polygon
-        overflowed: an overflowed contact is wrong, so the room grows (for the steps too from now on: their
-        kernels and graph are rebuilt) and the pass runs again."""
+        overflowed and the mesh-wall candidates fitted: an overflowed contact is wrong, so the room grows (for
+        the steps too from now on: their kernels and graph are rebuilt) and the pass runs again. The candidate
+        list's flag is shared with the steps: one the steps left set is kept for :meth:`buffers_overflowed`."""
         bound = self.model.shapes.max_poly_bound
         candidates = self.mesh_candidates
+        if candidates is not None and candidates.overflowed():
+            self._steps_overflowed = True  # the caller's check (after Simulation.advance) must still see it
+            candidates.grow()
         while True:
             self._diag_overflow.zero_()
             run_pass()
@@ -699,7 +705,8 @@ class Simulation:
             else on the host.
         mesh_candidates: the mesh-wall contacts through a list of (body, cell) candidates, a thread each to
             clip (True), or a thread per body walking its cells (False); None (default): the list on CUDA, the
-            walk on the CPU. The same bits either way (:mod:`polydem.kernels.meshwall`).
+            walk on the CPU. The same motion bit for bit either way (:mod:`polydem.kernels.meshwall`; on CUDA the
+            energy-lost book may differ in its last bits).
 
     Attributes:
         scene: the :class:`~polydem.Scene` it was built from (the whole scene, where ``bodies`` is given).
