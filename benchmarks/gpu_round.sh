@@ -175,7 +175,8 @@ mesh2() {
     done ) &
 }
 # MODE=mesh3: the one-traversal listing against the two-pass one (OLD_PKG2) and the walk, each kernel's GPU time,
-# between the runs of the fold before (OLD_PKG) and after
+# between the runs of the fold before (OLD_PKG) and after. The set-up and the packing take 30-40 s besides BUDGET:
+# in a call of 600 s give BUDGET=540 at most (a call past its limit returns nothing)
 fold_pair() {
   for code in old new; do
     pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
