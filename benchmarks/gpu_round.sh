@@ -128,6 +128,16 @@ tts3() {
         --out $W/res/tts_damping_${n}_${shapes}_${speed}.json >> $W/log/tts.log 2>&1
     done ) &
 }
+# the settle step at 1e4 cubes with the previous commit's package (OLD_PKG, on PYTHONPATH) and this one, in turn
+fold_pair() {
+  for code in old new; do
+    pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
+    "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
+      >> $W/log/settle_fold.log 2>&1
+    gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
+      --no-graph-compare --steps 400 --out $W/res/settle_1e4_${code}_$1.json >> $W/log/settle_fold.log 2>&1
+  done
+}
 # MODE=mesh: the mesh-wall candidate list and the damping loads written by the gather (BENCHMARKS.md 22): the CUDA
 # tests of both, the fine mesh floor's contact cost through the walk and the list side by side (1e4 and 1e5 cubes),
 # the settle step at 1e4 cubes before (OLD_PKG: a copy of the previous commit's package, on PYTHONPATH) and after,
@@ -140,15 +150,7 @@ mesh() {
       gpu 0 python -u benchmarks/wall_contact_cost.py --device cuda:0 --bodies $n --steps 100 --kinds meshT,pair \
         --triangle-edge 2 --mesh-paths walk,list --out $W/res/wall_contact_cost_fine_$n.json > $W/log/wall_$n.log 2>&1
     done
-    for rep in 1 2; do
-      for code in old new; do
-        pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
-        "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
-          >> $W/log/settle_fold.log 2>&1
-        gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
-          --no-graph-compare --steps 400 --out $W/res/settle_1e4_${code}_$rep.json >> $W/log/settle_fold.log 2>&1
-      done
-    done
+    fold_pair 1; fold_pair 2
     gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes 1e5 --dt-scales 4 --shapes cube \
       --k-rule volume --max-time 6 --out $W/res/tts_rest_1e5_cube.json >> $W/log/tts.log 2>&1 ) &
 }
@@ -164,28 +166,11 @@ mesh2() {
       gpu 0 python -u benchmarks/wall_contact_cost.py --device cuda:0 --bodies $n --steps 100 --kinds meshT,pair \
         --triangle-edge 2 --mesh-paths walk,list --profile --out $W/res/wall_fine_$n.json > $W/log/wall_$n.log 2>&1
     done
-    for rep in 1 2; do
-      for code in old new; do
-        pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
-        "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
-          >> $W/log/settle_fold.log 2>&1
-        gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
-          --no-graph-compare --steps 400 --out $W/res/settle_1e4_${code}_$rep.json >> $W/log/settle_fold.log 2>&1
-      done
-    done ) &
+    fold_pair 1; fold_pair 2 ) &
 }
 # MODE=mesh3: the one-traversal listing against the two-pass one (OLD_PKG2) and the walk, each kernel's GPU time,
 # between the runs of the fold before (OLD_PKG) and after. The set-up and the packing take 30-40 s besides BUDGET:
 # in a call of 600 s give BUDGET=540 at most (a call past its limit returns nothing)
-fold_pair() {
-  for code in old new; do
-    pp=(); [ $code = old ] && pp=(env PYTHONPATH=${OLD_PKG:?}:${PYTHONPATH:-})
-    "${pp[@]}" python -c "import polydem, polydem.kernels.forces as f; print('$code:', f.__file__)" \
-      >> $W/log/settle_fold.log 2>&1
-    gpu 0 "${pp[@]}" python -u benchmarks/settle.py --device cuda:0 --sizes 1e4 --precision mixed --k-rule volume \
-      --no-graph-compare --steps 400 --out $W/res/settle_1e4_${code}_$1.json >> $W/log/settle_fold.log 2>&1
-  done
-}
 mesh3() {
   ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
       -p no:cacheprovider "tests/test_meshwall.py::test_candidate_list_gives_the_walks_bits" -k mixed \
