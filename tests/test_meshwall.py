@@ -565,7 +565,8 @@ def test_candidate_list_gives_the_walks_bits(device, precision):
 
     runs = {}
     for listed in (False, True):
-        sim = Simulation(candidate_scene(precision), device=device, mesh_candidates=listed)
+        # One cell per triangle: many cells a grain (joined, the floor is one)
+        sim = Simulation(candidate_scene(precision), device=device, mesh_candidates=listed, join_flat_cells=False)
         if listed:
             sim.stepper.mesh_candidates = MeshCandidates(sim.num_bodies, 1, precision, sim.device)
         sim.step(400)
@@ -600,10 +601,10 @@ def test_candidate_overflow_of_steps_outlives_a_report(device):
     with no mesh-wall force, may list fewer)."""
     from polydem.kernels.meshwall import MeshCandidates
 
-    roomy = Simulation(candidate_scene("mixed"), device=device, mesh_candidates=True)
+    roomy = Simulation(candidate_scene("mixed"), device=device, mesh_candidates=True, join_flat_cells=False)
     roomy.step(1)
     first = roomy.stepper.mesh_candidates.needed()
-    sim = Simulation(candidate_scene("mixed"), device=device, mesh_candidates=True)
+    sim = Simulation(candidate_scene("mixed"), device=device, mesh_candidates=True, join_flat_cells=False)
     sim.stepper.mesh_candidates = MeshCandidates(sim.num_bodies, 1, "mixed", sim.device)
     sim.advance(20)
     assert sim.stepper.mesh_candidates.needed() >= first > 25
@@ -612,3 +613,67 @@ def test_candidate_overflow_of_steps_outlives_a_report(device):
     sim.stepper.grow_buffers()
     assert not sim.stepper.buffers_overflowed()
     assert sim.stepper.mesh_candidates.capacity >= 1.5 * first
+
+
+def joined_scene(precision):
+    """Cubes and rocks pressed into the floor and the wall of a crease (two flat patches of 32 triangles,
+    a concave edge between them), over the floor's open edge, and into an L-shaped jittered floor (a flat
+    patch not convex: its cells stay one per triangle); hertz, friction 0.5, e = 0.5."""
+    sc = base_scene(precision, friction=0.5, restitution=0.5)
+    sc.add_mesh_wall(crease_mesh(), "m", thickness=0.05)
+    v, f = floor_grid(8, size=0.4, jitter=0.3)
+    centroid = v[f].mean(axis=1)
+    keep = ~((centroid[:, 0] > 0.0) & (centroid[:, 1] > 0.0))
+    sc.add_mesh_wall((v + (0.0, 0.0, -0.3), f[keep]), "m", thickness=0.05)
+    on_floor = [(x, y, 0.0) for x in (0.04, 0.11, 0.192) for y in (-0.06, 0.0, 0.05)]
+    add_grains(sc, on_floor, seed=7, depth=(1.0e-5, 1.0e-3))
+    on_wall = [(0.0, y, z) for y in (-0.05, 0.04) for z in (0.06, 0.13)]
+    add_grains(sc, on_wall, seed=8, depth=(1.0e-5, 1.0e-3), down=(1.0, 0.0, 0.0))
+    rng = np.random.default_rng(9)
+    for y in (-0.07, 0.02, 0.08):  # in the crease, pressed into both faces
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        x = -lowest(sc.shapes["cube"], q, [1.0, 0.0, 0.0]) - 5.0e-4
+        z = -lowest(sc.shapes["cube"], q, [0.0, 0.0, 1.0]) - 7.0e-4
+        sc.add_body("cube", "m", position=(x, y, z), orientation=q)
+    on_l = [(x, y, -0.3) for x, y in ((-0.1, -0.1), (0.1, -0.12), (-0.12, 0.1), (0.013, -0.011))]
+    add_grains(sc, on_l, seed=10, depth=(1.0e-5, 1.0e-3))
+    return sc
+
+
+@pytest.mark.parametrize("precision", ["float64", "mixed"])
+def test_joined_flat_cells_give_the_triangles_contacts(device, precision):
+    """The cells of a flat patch joined into one (the default) against one cell per triangle: the crease's
+    floor and wall each become one cell, the L-shaped floor keeps its cells; the contacts of the first step
+    (overlap, force, normal, depth) to rounding, and 300 steps of bouncing, sliding grains (hertz, friction)
+    alike to 1e-12 (float64) or 1e-6 (mixed) of their travel."""
+    runs = {}
+    for join in (False, True):
+        sim = Simulation(joined_scene(precision), device=device, join_flat_cells=join)
+        c = contacts_by_body(sim)
+        f, t = first_forces(sim)
+        start = sim.state()["body_position"].copy()
+        sim.step(299)
+        runs[join] = (sim, c, f, t, start, sim.state(), sim.energy())
+    apart, joined = runs[False], runs[True]
+    cells = [[mc.num_cells for mc in r[0].model.mesh_cells] for r in (apart, joined)]
+    crease = len(build_cells(*crease_mesh(), thickness=0.05).cells)
+    assert cells[0][0] == crease and cells[1][0] == crease - 64 + 2  # the floor and the wall: a cell each
+    assert cells[1][1] == cells[0][1]  # the L: not convex, one cell per triangle
+    c0, c1 = apart[1], joined[1]
+    n = joined[0].num_bodies
+    assert len(c0["volume"]) == n  # every grain touches a wall
+    tol = 1e-11 if precision == "float64" else 1e-5  # measured: 1e-13, 5e-7
+    np.testing.assert_array_equal(c1["body_a"], c0["body_a"])
+    np.testing.assert_allclose(c1["volume"], c0["volume"], rtol=tol)
+    np.testing.assert_allclose(c1["normal_force"], c0["normal_force"], rtol=tol)
+    np.testing.assert_allclose(c1["normal"], c0["normal"], atol=tol)
+    np.testing.assert_allclose(c1["depth"], c0["depth"], rtol=tol, atol=1e-9)
+    for a, b in ((joined[2], apart[2]), (joined[3], apart[3])):
+        np.testing.assert_allclose(a, b, atol=tol * np.abs(b).max())
+    travel = np.linalg.norm(apart[5]["body_position"] - apart[4], axis=1)
+    assert np.median(travel) > 2e-4  # pushed out, bouncing, sliding
+    gap = np.linalg.norm(joined[5]["body_position"] - apart[5]["body_position"], axis=1)
+    assert gap.max() <= (1e-12 if precision == "float64" else 1e-6) * travel.max()  # measured: 2e-15, 8e-8
+    for k in ("kinetic", "contact", "dissipated"):
+        assert joined[6][k] == pytest.approx(apart[6][k], rel=1e-9 if precision == "float64" else 1e-4), k

@@ -161,7 +161,7 @@ def clean_triangles(vertices, faces, label="mesh"):
     return v, f
 
 
-def _edge_pairs(faces, label):
+def edge_pairs(faces, label):
     """The triangle pairs that share an edge: ``(f1, j1, f2, j2)``, edge j1 of triangle f1 (from its
     vertex j1 to j1 + 1) being edge j2 of f2, and the number of edges shared by more than two.
 
@@ -199,7 +199,7 @@ def _edge_planes(vertices, faces, normals, label):
     edge as such rows and each one's bend (the rise of f2's far vertex over f1's plane, per length
     of the edge: negative at a convex edge).
     """
-    f1, j1, f2, j2, nonmanifold = _edge_pairs(faces, label)
+    f1, j1, f2, j2, nonmanifold = edge_pairs(faces, label)
     a = faces
     b = np.roll(faces, -1, axis=1)
     start, end = vertices[a], vertices[b]
@@ -582,7 +582,7 @@ def _polytopes(start, planes, first, count, origin, tol, ids):
     return _faces(x, live, inc, planes, applied, origin, ids)
 
 
-def _ragged(counts):
+def ragged(counts):
     """(sum counts,) the row of each entry of consecutive groups of ``counts`` and its place in it."""
     starts = np.cumsum(counts) - counts
     row = np.repeat(np.arange(len(counts)), counts)
@@ -678,7 +678,7 @@ class MeshCells:
         """(F, 4) each face's centre (its loop's vertices' mean, in its cell's frame) and the largest
         distance of its vertices from it [m]."""
         ls = self.face_loop_start
-        face_row, _ = _ragged(np.diff(ls))
+        face_row, _ = ragged(np.diff(ls))
         owner = np.repeat(np.arange(self.num_cells), np.diff(self.cell_face_start))
         pts = self.cell_vertices[self.cell_vert_start[owner][face_row] + self.face_loop]
         centers = np.add.reduceat(pts, ls[:-1], axis=0) / np.diff(ls)[:, None]
@@ -687,20 +687,23 @@ class MeshCells:
 
     def largest_face_areas(self) -> np.ndarray:
         """(C,) the area of each cell's largest face [m^2] (:func:`polydem.shapes.largest_face_area`)."""
+        return np.maximum.reduceat(self.face_areas(), self.cell_face_start[:-1])
+
+    def face_areas(self) -> np.ndarray:
+        """(F,) the area of each face [m^2]."""
         ls = self.face_loop_start
-        face_row, col = _ragged(np.diff(ls))
+        face_row, col = ragged(np.diff(ls))
         owner = np.repeat(np.arange(self.num_cells), np.diff(self.cell_face_start))
         first = self.cell_vert_start[owner][face_row]
         nxt = np.where(col + 1 < np.diff(ls)[face_row], np.arange(len(col)) + 1, ls[:-1][face_row])
         a, b = self.cell_vertices[first + self.face_loop], self.cell_vertices[first + self.face_loop[nxt]]
         twice = np.add.reduceat(np.cross(a, b), ls[:-1], axis=0)
-        area = 0.5 * np.abs(np.einsum("fk,fk->f", twice, self.face_planes[:, :3]))
-        return np.maximum.reduceat(area, self.cell_face_start[:-1])
+        return 0.5 * np.abs(np.einsum("fk,fk->f", twice, self.face_planes[:, :3]))
 
     def _make_cells(self) -> list:
         ls = self.face_loop_start
         local = self.cell_vertices
-        face_row, _ = _ragged(np.diff(ls))
+        face_row, _ = ragged(np.diff(ls))
         # Each face's centre and radius, over its own loop.
         owner = np.repeat(np.arange(self.num_cells), np.diff(self.cell_face_start))
         pts = local[self.cell_vert_start[owner][face_row] + self.face_loop]
@@ -733,7 +736,8 @@ class MeshCells:
 
 
 def build_cells(vertices, faces, thickness: float, label: str = "mesh", progress=None) -> MeshCells:
-    """The convex cells of the solid ``thickness`` [m] deep behind the triangles (see the module docstring).
+    """The convex cells of the solid ``thickness`` [m] deep behind the triangles (see the module docstring;
+    :func:`polydem.meshmerge.join_flat_cells` joins those of flat patches for the contact kernels).
 
     ``progress``: None prints a line on stderr now and then once the set-up has taken PROGRESS_AFTER
     seconds; False prints nothing; a callable gets ``(triangles done, triangles)`` after each block.
@@ -1018,9 +1022,9 @@ def _corner_cells(v, f, normals, front_d, concave, pairs, h, tol, first_id, bloc
             x = v[corners[g]]
             planes = np.zeros((len(g), k, 4))
             mg, tg = m[g], tri_n[g]
-            row, col = _ragged(mg)
+            row, col = ragged(mg)
             planes[row, col, :3] = dirs[start[g][row] + col]
-            row, col = _ragged(tg)
+            row, col = ragged(tg)
             tri = tri_of[tri_start[g][row] + col]
             planes[row, mg[row] + col, :3] = normals[tri]
             planes[row, mg[row] + col, 3] = front_d[tri] - np.einsum("ek,ek->e", normals[tri], x[row])
@@ -1036,9 +1040,9 @@ def _corner_cells(v, f, normals, front_d, concave, pairs, h, tol, first_id, bloc
 
 def _select(block: _Block, keep: np.ndarray) -> _Block:
     """The cells ``keep`` (bool per cell) of a block."""
-    vrow, _ = _ragged(block.nv)
-    frow, _ = _ragged(block.nfaces)
-    lrow, _ = _ragged(block.nloop)
+    vrow, _ = ragged(block.nv)
+    frow, _ = ragged(block.nfaces)
+    lrow, _ = ragged(block.nloop)
     fkeep = keep[frow]
     return _Block(
         ids=block.ids[keep],
@@ -1062,11 +1066,11 @@ def _merge_blocks(blocks) -> _Block:
         return _Block(**cat)
     nv, nfaces, nloop = cat["nv"], cat["nfaces"], cat["nloop"]
     # Ragged gathers: the cells in id order, then their faces, then the faces' loops.
-    row, col = _ragged(nv[order])
+    row, col = ragged(nv[order])
     verts = cat["verts"][(np.cumsum(nv) - nv)[order][row] + col]
-    row, col = _ragged(nfaces[order])
+    row, col = ragged(nfaces[order])
     face_order = (np.cumsum(nfaces) - nfaces)[order][row] + col
-    row, col = _ragged(nloop[face_order])
+    row, col = ragged(nloop[face_order])
     loops = cat["loops"][(np.cumsum(nloop) - nloop)[face_order][row] + col]
     return _Block(
         ids=ids[order],
@@ -1129,7 +1133,7 @@ def _assemble(v, f, blocks, n_tri, edge_ends, corner_vertex, nonmanifold, h, lab
 
 def check_winding(vertices, faces, label: str = "mesh") -> None:
     """Raise MeshWallError where two triangles sharing an edge disagree about which side is solid."""
-    _edge_pairs(np.asarray(faces, dtype=np.int64), label)
+    edge_pairs(np.asarray(faces, dtype=np.int64), label)
 
 
 # ---------------------------------------------------------------------- host-side queries (scene checks)
@@ -1172,7 +1176,7 @@ def cell_reach(cells: MeshCells, cell: np.ndarray, points: np.ndarray) -> np.nda
     planes, _ = cells.world_planes()
     start = cells.cell_face_start
     counts = start[cell + 1] - start[cell]
-    row, col = _ragged(counts)
+    row, col = ragged(counts)
     faces = planes[start[cell][row] + col]
     s = np.einsum("emk,ek->em", points[row], faces[:, :3]) - faces[:, 3, None]
     return np.maximum.reduceat(s, np.cumsum(counts) - counts, axis=0)
@@ -1184,7 +1188,7 @@ def ray_exit(cells: MeshCells, cell: np.ndarray, origin: np.ndarray, direction: 
     planes, _ = cells.world_planes()
     start = cells.cell_face_start
     counts = start[cell + 1] - start[cell]
-    row, col = _ragged(counts)
+    row, col = ragged(counts)
     faces = planes[start[cell][row] + col]
     rate = np.einsum("ek,ek->e", faces[:, :3], direction[row])
     gap = faces[:, 3] - np.einsum("ek,ek->e", faces[:, :3], origin[row])
@@ -1244,7 +1248,7 @@ def winding(points, vertices, faces) -> np.ndarray:
     i1 = np.floor((hi - lo_all[1:]) / cell).astype(np.int64)
     wide = i1 - i0 + 1
     count = wide[:, 0] * wide[:, 1]
-    t_row, k = _ragged(count)
+    t_row, k = ragged(count)
     by = i0[t_row, 0] + k // wide[t_row, 1]
     bz = i0[t_row, 1] + k % wide[t_row, 1]
     key = by * n_bins + bz
@@ -1256,7 +1260,7 @@ def winding(points, vertices, faces) -> np.ndarray:
     pkey = pb[:, 0] * n_bins + pb[:, 1]
     first = np.searchsorted(key, pkey)
     n = np.searchsorted(key, pkey, side="right") - first
-    p_row, k = _ragged(n)
+    p_row, k = ragged(n)
     cand = t_row[first[p_row] + k]
     p = pts[which[p_row]]
     c = tri[cand]

@@ -20,6 +20,7 @@ from polydem.kernels.structs import (
     mesh_walls_struct,
     planes_struct,
 )
+from polydem.meshmerge import join_flat_cells
 from polydem.quaternions import quat_to_matrix
 from polydem.run_settings import RunSettings, run_settings
 from polydem.scene import (  # noqa: F401  (re-exported: the time step is computed host-side in polydem.scene)
@@ -31,6 +32,7 @@ from polydem.scene import (  # noqa: F401  (re-exported: the time step is comput
 )
 from polydem.scene.bodies import BodyKind
 from polydem.scene.motions import KINDS
+from polydem.scene.walls import mesh_wall_memo
 from polydem.shapeset import ShapeSet
 from polydem.state import State
 
@@ -82,7 +84,9 @@ class Model:
             (the wall is n.x <= offset); plane_material: (P,) int32.
         num_mesh_walls: M, the triangle-mesh walls (:mod:`polydem.meshwall`); num_walls: P + M, the
             columns of the wall-contact arrays of the state (planes first).
-        mesh_cells: M :class:`~polydem.meshwall.MeshCells`, each wall's surface and cells in its frame.
+        mesh_cells: M :class:`~polydem.meshwall.MeshCells`, each wall's surface and cells in its frame (those of
+            flat patches joined where they are convex together, :func:`~polydem.meshmerge.join_flat_cells`,
+            unless ``join_flat_cells`` is False: one cell per triangle).
         mesh_bvh: (M,) uint64 ids of a ``wp.Bvh`` per wall over its cells' bounds (in ``mesh_bvhs``).
         mesh_cell_start: (M+1,) int32 first cell of each wall; cell_shape: (C,) int32 the cell's
             shape in ``shapes`` (after the scene's shapes); cell_center: (C,) S vec3 the cell's
@@ -110,7 +114,10 @@ class Model:
         *,
         settings: RunSettings | None = None,
         bodies: np.ndarray | None = None,
+        join_flat_cells: bool = True,
     ) -> None:
+        if not isinstance(join_flat_cells, bool):
+            raise TypeError(f"join_flat_cells must be True or False, got {join_flat_cells!r}")
         if validate:
             scene.validate()
         self.settings = run_settings(scene) if settings is None else settings
@@ -135,7 +142,7 @@ class Model:
         for v in rows.values():
             v.setflags(write=False)  # the scene's own arrays where the model has every body
         self.num_bodies = n = len(self.body_index)
-        self._mesh_walls(scene, shape_list, dev, s_np)
+        self._mesh_walls(scene, shape_list, dev, s_np, join_flat_cells)
         # Every wall column's material, the planes then the mesh walls (the damping loads, kernels/forces.py).
         mat_of = {name: i for i, name in enumerate(scene.material_names)}
         wall_mats = [mat_of[p.material] for p in scene.planes] + [mat_of[w.material] for w in scene.mesh_walls]
@@ -240,7 +247,9 @@ class Model:
         if n == 0:
             raise SceneError("the scene has no bodies", key="bodies")
 
-    def _mesh_walls(self, scene: Scene, shape_list: list[ConvexShape], dev: wp.Device, s_np: type) -> None:
+    def _mesh_walls(
+        self, scene: Scene, shape_list: list[ConvexShape], dev: wp.Device, s_np: type, join_flat: bool
+    ) -> None:
         walls = scene.mesh_walls
         self.num_mesh_walls = len(walls)
         self.num_walls = len(scene.planes) + len(walls)
@@ -256,6 +265,11 @@ class Model:
         for wall, thickness in zip(walls, self.settings.mesh_wall_thickness, strict=True):
             # The scene's cells (its checks built them at validation, at this thickness): one build.
             mc = scene.mesh_wall_cells(wall, thickness)
+            if join_flat:
+                memo = mesh_wall_memo(scene, wall, thickness)
+                if "joined" not in memo:
+                    memo["joined"] = join_flat_cells(mc)
+                mc = memo["joined"]
             self.mesh_cells.append(mc)
             starts.append(starts[-1] + mc.num_cells)
             centers.append(mc.cell_center)

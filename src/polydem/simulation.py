@@ -707,6 +707,9 @@ class Simulation:
             clip (True), or a thread per body walking its cells (False); None (default): the list on CUDA, the
             walk on the CPU. The same motion bit for bit either way (:mod:`polydem.kernels.meshwall`; on CUDA the
             energy-lost book may differ in its last bits).
+        join_flat_cells: the mesh walls' cells of coplanar triangles joined into one where they are convex
+            together (True, default: fewer cells to clip, the same contacts to rounding), or one cell per
+            triangle (False); see :mod:`polydem.meshmerge`.
 
     Attributes:
         scene: the :class:`~polydem.Scene` it was built from (the whole scene, where ``bodies`` is given).
@@ -745,6 +748,7 @@ class Simulation:
         order_pair_threads: bool | str = True,
         overlap_check: str = "auto",
         mesh_candidates: bool | None = None,
+        join_flat_cells: bool = True,
     ) -> None:
         if tree_rebuild is not None and not float(tree_rebuild) >= 0.0:
             raise ValueError(f"tree_rebuild must be >= 0 or None, got {tree_rebuild}")
@@ -764,7 +768,9 @@ class Simulation:
             raise ValueError("give the skin to run_settings(scene, skin=...), which made the settings given")
         self.scene = scene
         self.settings = settings
-        self.model = model = Model(scene, device, validate=False, settings=settings, bodies=bodies)
+        self.model = model = Model(
+            scene, device, validate=False, settings=settings, bodies=bodies, join_flat_cells=join_flat_cells
+        )
         self.device = dev = model.device
         self.dt = model.dt
         n = model.num_bodies
