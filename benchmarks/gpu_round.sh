@@ -185,6 +185,20 @@ mesh3() {
     done
     fold_pair 2 ) &
 }
+# MODE=mesh4: a flat patch's cells joined into one (the default) against one cell per triangle, on the fine floor
+# (the list and the walk) and in the shipped mesh-wall scenes; the joined cells' test on cuda:0. BUDGET=540 at most.
+mesh4() {
+  ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider "tests/test_meshwall.py::test_joined_flat_cells_give_the_triangles_contacts" \
+      > $W/log/pytest.log 2>&1
+    for n in 10000 100000; do
+      gpu 0 python -u benchmarks/wall_contact_cost.py --device cuda:0 --bodies $n --steps 100 --kinds meshT,pair \
+        --triangle-edge 2 --mesh-paths list,walk --cells joined,triangles --profile \
+        --out $W/res/wall_joined_$n.json > $W/log/wall_joined_$n.log 2>&1
+    done
+    gpu 0 python -u benchmarks/joined_cells.py --device cuda:0 --warmup 0.5 --out $W/res/joined_cells.json \
+      > $W/log/joined_cells.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -194,6 +208,8 @@ elif [ "${MODE:-}" = mesh2 ]; then
   mesh2
 elif [ "${MODE:-}" = mesh3 ]; then
   mesh3
+elif [ "${MODE:-}" = mesh4 ]; then
+  mesh4
 elif [ "${MODE:-}" = tts ]; then
   tts
 elif [ "${MODE:-}" = tts2 ]; then

@@ -22,6 +22,8 @@ wrench. On CUDA the step is a captured graph; on the CPU the host loop.
     python benchmarks/wall_contact_cost.py --device cuda:0 --bodies 100000
     python benchmarks/wall_contact_cost.py --device cuda:0 --bodies 10000 --kinds meshT,pair --triangle-edge 2 \
         --mesh-paths walk,list      # the two ways to a mesh-wall contact, side by side
+    python benchmarks/wall_contact_cost.py --device cuda:0 --bodies 10000 --kinds meshT,pair --triangle-edge 2 \
+        --cells joined,triangles    # the flat floor as one cell, and one cell per triangle (as a curved mesh)
 
 Prints a table and writes JSON to ``--out`` (benchmarks/results/issue13/wall_contact_cost_<device>_<N>.json).
 """
@@ -97,9 +99,9 @@ def time_steps(sim, steps, repeats):
     return statistics.median(times)
 
 
-def kernel_profile(scene, device, mesh_candidates, steps):
+def kernel_profile(scene, device, mesh_candidates, join, steps):
     """GPU milliseconds per step of each kernel (Warp's activity timing; the host loop, no graph), largest first."""
-    sim = Simulation(scene, device=device, use_graph=False, mesh_candidates=mesh_candidates)
+    sim = Simulation(scene, device=device, use_graph=False, mesh_candidates=mesh_candidates, join_flat_cells=join)
     sim.step(steps)  # warm-up: compile, grow the buffers
     wp.synchronize_device(sim.device)
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
@@ -129,6 +131,12 @@ def main():
         help="the mesh kinds' contacts through: 'walk' (a thread per body), 'list' (the (body, cell) candidate "
         "list), 'default' (the device's default); several comma-separated: a row each, in the same run",
     )
+    ap.add_argument(
+        "--cells",
+        default="joined",
+        help="the mesh kinds' cells: 'joined' (a flat patch's cells joined where convex together, the default), "
+        "'triangles' (one per triangle, as on a curved mesh); both comma-separated: a row each, in the same run",
+    )
     ap.add_argument("--profile", action="store_true", help="CUDA: each kernel's GPU time per step, in contact")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
@@ -136,24 +144,37 @@ def main():
     mesh_paths = args.mesh_paths.split(",")
     if not mesh_paths or any(p not in paths for p in mesh_paths):
         ap.error(f"--mesh-paths takes walk, list or default (comma-separated), got {args.mesh_paths!r}")
+    cell_kinds = args.cells.split(",")
+    if not cell_kinds or any(c not in ("joined", "triangles") for c in cell_kinds):
+        ap.error(f"--cells takes joined or triangles (comma-separated), got {args.cells!r}")
     wp.config.quiet = True
     rows = []
-    runs = [(k, p) for k in args.kinds.split(",") for p in (mesh_paths if k.startswith("mesh") else [None])]
-    for kind, path in runs:
+    runs = [
+        (k, p, c)
+        for k in args.kinds.split(",")
+        for p in (mesh_paths if k.startswith("mesh") else [None])
+        for c in (cell_kinds if k.startswith("mesh") else ["joined"])
+    ]
+    for kind, path, cells in runs:
+        join = cells == "joined"
         res = {}
         for lifted in (False, True):
             scene = build(kind, args.bodies, args.triangles, 0.005 if lifted else 0.0, args.precision,
                           triangle_edge=args.triangle_edge)  # fmt: skip
-            sim = Simulation(scene, device=args.device, mesh_candidates=paths[path] if path else None)
+            sim = Simulation(
+                scene, device=args.device, mesh_candidates=paths[path] if path else None, join_flat_cells=join
+            )
             if kind == "meshT":
                 row_triangles = len(scene.mesh_walls[0].triangles)
+                row_cells = sim.model.mesh_cells[0].num_cells
             t = time_steps(sim, args.steps, args.repeats)
             c = sim.contacts()
             res[lifted] = (t, len(c["volume"]))
         (t_on, contacts), (t_off, _) = res[False], res[True]
         row = {
-            "kind": kind if path in (None, "default") else f"{kind}/{path}",
+            "kind": (kind if path in (None, "default") else f"{kind}/{path}") + ("" if join else "/tri"),
             "mesh_path": path,
+            "cells": cells if kind.startswith("mesh") else None,
             "step_s": t_on,
             "step_lifted_s": t_off,
             "contacts": contacts,
@@ -161,23 +182,26 @@ def main():
         }
         if kind == "meshT":
             row["triangles"] = row_triangles
+            row["mesh_cells"] = row_cells
             side = int(np.ceil(np.sqrt(args.bodies)))
             row["triangle_edge_in_cube_edges"] = (side * SPACING + SPACING) / np.sqrt(row_triangles / 2) / EDGE
         if args.profile and wp.get_device(args.device).is_cuda:
             scene = build(kind, args.bodies, args.triangles, 0.0, args.precision, triangle_edge=args.triangle_edge)
-            row["kernel_ms_per_step"] = kernel_profile(scene, args.device, paths[path] if path else None, args.steps)
+            row["kernel_ms_per_step"] = kernel_profile(
+                scene, args.device, paths[path] if path else None, join, args.steps
+            )
             for name, ms in list(row["kernel_ms_per_step"].items())[:8]:
                 print(f"{'':>12}{ms:9.4f} ms  {name[:90]}")
         rows.append(row)
         print(
-            f"{row['kind']:>10}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "
+            f"{row['kind']:>14}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "
             f"{row['per_contact_s'] * 1e9:9.1f} ns per contact"
         )
     ref = next((r for r in rows if r["kind"] == "pair"), None)
     if ref:
         for r in rows:
             r["per_contact_vs_pair"] = r["per_contact_s"] / ref["per_contact_s"]
-            print(f"{r['kind']:>10}: {r['per_contact_vs_pair']:.2f} x a convex pair contact")
+            print(f"{r['kind']:>14}: {r['per_contact_vs_pair']:.2f} x a convex pair contact")
     out = Path(
         args.out or f"benchmarks/results/issue13/wall_contact_cost_{args.device.replace(':', '')}_{args.bodies}.json"
     )
@@ -185,7 +209,7 @@ def main():
     meta = {"device": args.device, "warp": wp.__version__, "bodies": args.bodies, "triangles": args.triangles,
             "triangle_edge": args.triangle_edge,
             "steps": args.steps, "repeats": args.repeats, "precision": args.precision,
-            "mesh_paths": mesh_paths}  # fmt: skip
+            "mesh_paths": mesh_paths, "cells": cell_kinds}  # fmt: skip
     out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     print(f"wrote {out}")
 
