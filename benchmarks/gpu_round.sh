@@ -199,6 +199,15 @@ mesh4() {
     gpu 0 python -u benchmarks/joined_cells.py --device cuda:0 --warmup 0.5 --out $W/res/joined_cells.json \
       > $W/log/joined_cells.log 2>&1 ) &
 }
+# MODE=mesh5: the rest of mesh4 (its call ran out): the shipped hopper and cup both ways, the 1e5 floor's joined cells
+# against a pair contact. BUDGET=330 in a call with under 450 s of device time left.
+mesh5() {
+  ( gpu 0 python -u benchmarks/joined_cells.py --device cuda:0 --scenes hopper,tapped_cup --warmup 0.3 --repeats 3 \
+      --out $W/res/joined_cells.json > $W/log/joined_cells.log 2>&1
+    gpu 0 python -u benchmarks/wall_contact_cost.py --device cuda:0 --bodies 100000 --steps 100 --kinds meshT,pair \
+      --triangle-edge 2 --mesh-paths list,walk --cells joined --out $W/res/wall_joined_100000.json \
+      > $W/log/wall_joined_100000.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -210,6 +219,8 @@ elif [ "${MODE:-}" = mesh3 ]; then
   mesh3
 elif [ "${MODE:-}" = mesh4 ]; then
   mesh4
+elif [ "${MODE:-}" = mesh5 ]; then
+  mesh5
 elif [ "${MODE:-}" = tts ]; then
   tts
 elif [ "${MODE:-}" = tts2 ]; then
