@@ -315,3 +315,21 @@ def test_emitter_beside_a_mesh_its_cells_cannot_resolve_is_refused():
         sc.emit("cube", "m", 10, ((-0.1, -0.1, 0.05), (0.1, 0.1, 0.3)))
     assert err.value.key == "mesh_walls[0]"
     assert "times the size of its smallest triangle" in err.value.message
+
+
+def test_folded_triangles_warn():
+    """A floor whose middle vertex is dragged past its neighbours: the triangles turned over fold back onto
+    theirs, and the grains that reach one would be pushed the wrong way: a warning names two of them."""
+    v, f = floor(4)
+    middle = int(np.argmin(np.linalg.norm(v, axis=1)))
+    v[middle, 0] = 0.4  # past the vertices at x = 0.25
+    sc = scene()
+    sc.add_mesh_wall((v, f), "m")
+    sc.add_body("cube", "m", position=(-0.3, -0.3, 0.5 * CUBE + 1e-3))
+    found = validate(sc)
+    assert len(found) == 1 and found[0].startswith("mesh wall mesh_walls[0]: triangles ")
+    assert "fold back onto each other" in found[0] and "remesh" in found[0]
+    sc = scene()
+    sc.add_mesh_wall(floor(4), "m")
+    sc.add_body("cube", "m", position=(-0.3, -0.3, 0.5 * CUBE + 1e-3))
+    assert validate(sc) == []

@@ -966,9 +966,9 @@ def _time_step_cause(scene) -> str:
 def check_mesh_walls(scene, a, ts: TimeStep) -> list[str]:
     """Mesh walls: a thickness their cells resolve (SceneError), free bodies that start in their solid
     (as plane walls: a SceneError beyond INITIAL_OVERLAP_ERROR of the body's thickness, a warning beyond
-    INITIAL_OVERLAP_WARNING), a thickness above half the thinnest part of a closed wall (warning) and a
-    wall that moves faster than the bodies it meets can take (warning, as :func:`check_tunnelling`
-    warns of a drum's parts). Returns the warnings."""
+    INITIAL_OVERLAP_WARNING), triangles that fold back onto their neighbours (warning), a thickness above
+    half the thinnest part of a closed wall (warning) and a wall that moves faster than the bodies it meets
+    can take (warning, as :func:`check_tunnelling` warns of a drum's parts). Returns the warnings."""
     walls = list(zip(scene.mesh_walls, scene.mesh_wall_keys, strict=True))
     if not walls:
         return []
@@ -980,8 +980,34 @@ def check_mesh_walls(scene, a, ts: TimeStep) -> list[str]:
         records += _mesh_overlaps(scene, wall, key, a)
     found += _report_mesh_overlaps(scene, records)
     for wall, key in walls:
+        found += _mesh_folds(wall, key)
         found += _mesh_thickness_rule(scene, wall, key)
     return found
+
+
+# Neighbouring triangles whose normals are this close to opposite (1 - cos of the angle between the
+# faces, 0.8 degrees) fold back onto each other.
+FOLD = 1e-4
+
+
+def _mesh_folds(wall, key) -> list[str]:
+    """A warning where two triangles sharing an edge fold back onto each other (their normals opposite):
+    one of them is turned over, and the solid behind it lies on the grains' side."""
+    from polydem.meshwall import edge_pairs, triangle_normals
+
+    f = np.asarray(wall.triangles, dtype=np.int64)
+    normals, _ = triangle_normals(np.asarray(wall.vertices, dtype=np.float64), f)
+    f1, _, f2, _, _ = edge_pairs(f, f"mesh wall {key}")
+    folded = np.einsum("ek,ek->e", normals[f1], normals[f2]) < FOLD - 1.0
+    if not folded.any():
+        return []
+    k = int(np.flatnonzero(folded)[0])
+    return [
+        f"mesh wall {key}: triangles {int(f1[k])} and {int(f2[k])} share an edge but fold back onto each other "
+        f"(their normals are opposite; {int(folded.sum())} such edge(s)): one is turned over, a sliver whose solid "
+        "lies on the grains' side, and grains that reach it are pushed the wrong way; remesh the surface there "
+        "(e.g. trimesh's remove of degenerate and duplicate faces, or a smaller jitter of its vertices)"
+    ]
 
 
 def _check_mesh_thickness(scene, wall, key):
