@@ -110,7 +110,7 @@ FAULTS = (
         "kernels/response.py",
         "        if s_norm < scalar(ENCLOSED_RATIO) * v23:\n",
         "        if s_norm < scalar(ENCLOSED_RATIO) * v23 or wp.length(fallback) > scalar(0.0):\n",
-        ("tests/test_flat_contacts.py::test_face_on_a_grid_line_pushes_up[cpu-mixed]",),
+        ("tests/test_flat_contacts.py::test_face_on_a_grid_line_pushes_up[cpu-mixed-triangles]",),
     ),
     Fault(
         "compound cut faces shared half and half",

@@ -132,13 +132,15 @@ def cube_on_floor(precision, position, rotation, velocity=(0.0, 0.0, 0.0)):
     return scene
 
 
+@pytest.mark.parametrize("cells", ["triangles", "joined"])
 @pytest.mark.parametrize("precision", ["mixed", "float64"])
-def test_face_on_a_grid_line_pushes_up(device, precision):
+def test_face_on_a_grid_line_pushes_up(device, precision, cells):
     """A cube whose side face lies within 1e-8 m of a grid line of a triangulated floor, turned by up to 1e-6
     rad, 1e-9 to 1e-5 m deep: the force is the floor's normal force, sideways at most 1e-3 of it in mixed and
     1e-9 in float64 (measured 6e-5 and 1e-14). Before, one cell cut to an enclosed sliver by the grid line
     gave its fallback, the cube's whole projected area sideways, to the sum over the cells: in mixed 10 of
-    these 16 poses pushed the cube sideways, up to 1e34 times the normal force."""
+    these 16 poses pushed the cube sideways, up to 1e34 times the normal force. With one cell per triangle (as
+    on a curved mesh, or a float32 file's floor) and with the floor's cells joined into one."""
     rng = np.random.default_rng(3)
     cube = ConvexShape.box(0.1)
     worst = 0.0
@@ -148,7 +150,7 @@ def test_face_on_a_grid_line_pushes_up(device, precision):
         low = (cube.vertices @ r.T)[:, 2].min()
         dx = rng.choice([0.0, rng.uniform(-1e-8, 1e-8)])
         position = (0.05 + dx, rng.uniform(-0.04, 0.04), -low - 10 ** rng.uniform(-9, -5))
-        sim = Simulation(cube_on_floor(precision, position, r), device)
+        sim = Simulation(cube_on_floor(precision, position, r), device, join_flat_cells=cells == "joined")
         sim.step(1)
         c = sim.contacts()
         f = (-c["normal_force"][:, None] * c["normal"] + c["tangential_force"]).sum(axis=0)
@@ -157,13 +159,14 @@ def test_face_on_a_grid_line_pushes_up(device, precision):
     assert worst < (1e-3 if precision == "mixed" else 1e-9), worst
 
 
+@pytest.mark.parametrize("cells", ["triangles", "joined"])
 @pytest.mark.parametrize("precision", ["mixed", "float64"])
-def test_cube_slides_across_grid_lines_without_spikes(device, precision):
+def test_cube_slides_across_grid_lines_without_spikes(device, precision, cells):
     """A steel cube sliding at 1 m/s over a triangulated floor, its face crossing a grid line and the cells'
     diagonals: the floor's vertical push stays within 1e-2 (mixed) and 1e-3 (float64) of the weight in every
-    step (the issue measured spikes of 26-42 times the weight in mixed)."""
+    step (the issue measured spikes of 26-42 times the weight in mixed); one cell per triangle, and joined."""
     scene = cube_on_floor(precision, (-0.052, 0.03, 0.05), np.eye(3), velocity=(1.0, 0.0, 0.0))
-    sim = Simulation(scene, device)
+    sim = Simulation(scene, device, join_flat_cells=cells == "joined")
     weight = 7800.0 * 0.1**3 * 9.81
     sim.step(int(0.005 / sim.dt))  # settle onto the floor while sliding
     push = []

@@ -1,5 +1,7 @@
 """Triangle-mesh walls against slow, obviously right references: a plane, fixed convex bodies, finite differences."""
 
+import itertools
+
 import numpy as np
 import pytest
 import trimesh
@@ -82,24 +84,24 @@ def grid_centres(n=6, spacing=0.12, z=0.0):
 
 @pytest.mark.parametrize("precision", ["float64", "mixed"])
 def test_flat_mesh_of_many_triangles_acts_as_one_plane(device, precision):
-    """Grains pressed into a floor of 2 triangles, of 2,048 jittered triangles, and a plane wall:
-    the same overlap, force, torque and energy per grain, to rounding."""
+    """Grains pressed into a floor of 2 triangles, of 2,048 jittered triangles (a cell each, and joined into
+    one), and a plane wall: the same overlap, force, torque and energy per grain, to rounding."""
     results = {}
-    for kind in ("plane", "2", "2048"):
+    for kind in ("plane", "2", "2048", "2048/tri"):
         sc = base_scene(precision)
         if kind == "plane":
             sc.add_plane((0, 0, 0), (0, 0, 1), "m")
         else:
             sc.add_mesh_wall(floor_grid(1) if kind == "2" else floor_grid(32, jitter=0.3), "m")
         add_grains(sc, grid_centres(), seed=1)
-        sim = Simulation(sc, device=device)
+        sim = Simulation(sc, device=device, join_flat_cells=kind != "2048/tri")
         c = contacts_by_body(sim)
         e = sim.energy()["contact"]
         results[kind] = (c, e, *first_forces(sim))
     c0, e0, f0, t0 = results["plane"]
     assert len(c0["volume"]) == 36
     tol = 1e-11 if precision == "float64" else 1e-4
-    for kind in ("2", "2048"):
+    for kind in ("2", "2048", "2048/tri"):
         c, e, f, t = results[kind]
         np.testing.assert_array_equal(c["body_a"], c0["body_a"])
         np.testing.assert_allclose(c["volume"], c0["volume"], rtol=tol)
@@ -112,9 +114,10 @@ def test_flat_mesh_of_many_triangles_acts_as_one_plane(device, precision):
 
 
 def test_cube_sliding_across_many_triangles_as_on_a_plane(device):
-    """A spinning cube sliding frictionless across 2 and 2,048 triangles follows the plane-wall run."""
+    """A spinning cube sliding frictionless across 2 and 2,048 triangles (a cell each, and joined) follows the
+    plane-wall run."""
     runs = {}
-    for kind in ("plane", "2", "2048"):
+    for kind in ("plane", "2", "2048", "2048/tri"):
         sc = base_scene("float64")
         if kind == "plane":
             sc.add_plane((0, 0, 0), (0, 0, 1), "m")
@@ -122,7 +125,7 @@ def test_cube_sliding_across_many_triangles_as_on_a_plane(device):
             sc.add_mesh_wall(floor_grid(1) if kind == "2" else floor_grid(32, jitter=0.3), "m")
         sc.add_body("cube", "m", position=(0.0123, 0.0371, 0.5 * CUBE - 6.0e-8), velocity=(2.0, 0.7, 0.0),
                     angular_velocity=(0.0, 0.0, 4.0))  # fmt: skip
-        sim = Simulation(sc, device=device)
+        sim = Simulation(sc, device=device, join_flat_cells=kind != "2048/tri")
         rows = []
         for _ in range(6):
             sim.step(300)
@@ -133,7 +136,7 @@ def test_cube_sliding_across_many_triangles_as_on_a_plane(device):
     ref = runs["plane"]
     assert np.all(ref[:, 0] > 0.0)  # in contact at every sample
     assert ref[-1, 3] - ref[0, 3] > 0.1  # it crossed many triangles (of 0.03 m)
-    for kind in ("2", "2048"):
+    for kind in ("2", "2048", "2048/tri"):
         np.testing.assert_allclose(runs[kind][:, :3], ref[:, :3], rtol=1e-7)
         np.testing.assert_allclose(runs[kind][:, 3:], ref[:, 3:], atol=1e-10)
 
@@ -145,8 +148,8 @@ def box_mesh(size, center):
 
 
 def test_closed_box_mesh_equals_a_fixed_box_body_at_edges_and_corners(device):
-    """Grains over the convex edges and corners of a closed box mesh meet the same solid as a fixed
-    convex box body: the overlaps and forces agree to rounding."""
+    """Grains over the convex edges and corners of a closed box mesh (a cell per triangle, and the faces'
+    two joined) meet the same solid as a fixed convex box body: the overlaps and forces agree to rounding."""
     size, centre = np.array([0.3, 0.24, 0.16]), np.array([0.0, 0.0, -0.08])
     rng = np.random.default_rng(4)
     # The 8 corners and a point on each of the 12 edges, each grain pressed in along the outward
@@ -166,7 +169,7 @@ def test_closed_box_mesh_equals_a_fixed_box_body_at_edges_and_corners(device):
                 points.append(p)
                 dirs.append(sign / np.sqrt(2.0))
     results = {}
-    for kind in ("body", "mesh"):
+    for kind in ("body", "mesh", "mesh/tri"):
         for law in ("hertz", "linear"):
             sc = base_scene("float64", law=law)
             rng_g = np.random.default_rng(9)
@@ -180,11 +183,11 @@ def test_closed_box_mesh_equals_a_fixed_box_body_at_edges_and_corners(device):
                 sc.add_body("box", "m", position=centre, kind="fixed")
             else:
                 sc.add_mesh_wall(box_mesh(size, centre), "m", thickness=0.08)
-            sim = Simulation(sc, device=device)
-            c = contacts_by_body(sim, wall_rows=(kind == "mesh"))
+            sim = Simulation(sc, device=device, join_flat_cells=kind != "mesh/tri")
+            c = contacts_by_body(sim, wall_rows=(kind != "body"))
             results[kind, law] = (c, sim.energy()["contact"], *first_forces(sim))
-    for law in ("hertz", "linear"):
-        (cb, eb, fb, tb), (cm, em, fm, tm) = results["body", law], results["mesh", law]
+    for kind, law in itertools.product(("mesh", "mesh/tri"), ("hertz", "linear")):
+        (cb, eb, fb, tb), (cm, em, fm, tm) = results["body", law], results[kind, law]
         assert len(cb["volume"]) == len(points)
         np.testing.assert_array_equal(cm["body_a"], cb["body_a"])
         np.testing.assert_allclose(cm["volume"], cb["volume"], rtol=1e-10)
