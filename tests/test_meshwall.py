@@ -142,14 +142,15 @@ def test_cube_sliding_across_many_triangles_as_on_a_plane(device):
 
 
 def box_mesh(size, center):
-    m = trimesh.creation.box(extents=size)
+    """A closed box, each face of 8 triangles (joined into one cell by default)."""
+    m = trimesh.creation.box(extents=size).subdivide()
     m.apply_translation(center)
     return m
 
 
 def test_closed_box_mesh_equals_a_fixed_box_body_at_edges_and_corners(device):
-    """Grains over the convex edges and corners of a closed box mesh (a cell per triangle, and the faces'
-    two joined) meet the same solid as a fixed convex box body: the overlaps and forces agree to rounding."""
+    """Grains over the convex edges and corners of a closed box mesh (a cell per triangle, and each face's
+    eight joined) meet the same solid as a fixed convex box body: the overlaps and forces agree to rounding."""
     size, centre = np.array([0.3, 0.24, 0.16]), np.array([0.0, 0.0, -0.08])
     rng = np.random.default_rng(4)
     # The 8 corners and a point on each of the 12 edges, each grain pressed in along the outward

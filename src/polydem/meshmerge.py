@@ -9,8 +9,10 @@ and M_A are the same sums (to rounding, not bit for bit) and the wall acts as be
 cells.
 
 A flat patch whose cells are not convex together (an L-shaped floor, a floor with a hole) keeps one
-cell per triangle: cutting it into convex parts is not done yet. Each patch costs one convex hull
-(about 0.1 ms), so a mesh of many small flat patches (quads of two triangles) takes longer to set up.
+cell per triangle: cutting it into convex parts is not done yet. Each patch costs a convex hull (0.2 to
+2 ms), so patches of fewer than MIN_PATCH cells (the quads of two triangles of a cylinder's side or a
+box's face) are left as they are; a patch that cannot be a convex polygon of few enough corners in its
+plane (a disc's fan) is turned down by a test in 2-D before its hull.
 A joined cell may have no more faces, nor more vertices on a face, than the wall's own cells
 have (at least those of a box), so that joining never raises the polygon capacity of the contact
 kernels (:class:`polydem.shapeset.ShapeSet`). Only exactly coplanar triangles join (within the cells'
@@ -23,6 +25,9 @@ import numpy as np
 
 from polydem.meshwall import CELL_TOLERANCE, TRIANGLE, MeshCells, edge_pairs, ragged
 
+# The fewest cells of a patch that are joined: a convex hull costs 0.2-2 ms in Python, so a mesh of many
+# quads (two triangles each, a cylinder's side) would take seconds per thousand; they keep their two cells.
+MIN_PATCH = 3
 # A hull facet's normal within this of a member plane's (1 - cos) is that plane.
 _SAME_NORMAL = 1e-9
 # Hulls of more triangles than this cannot fit the face limits: not joined.
@@ -70,7 +75,7 @@ def join_flat_cells(cells):
     sizes = np.bincount(label, minlength=count)
     joiner = _Joiner(cells, tol)
     joined = []
-    for patch in (np.flatnonzero(label == c) for c in np.flatnonzero(sizes > 1)):
+    for patch in (np.flatnonzero(label == c) for c in np.flatnonzero(sizes >= MIN_PATCH)):
         cell = joiner.hull_cell(patch)
         if cell is not None:
             joined.append((patch, cell))
@@ -92,15 +97,45 @@ class _Joiner:
         self.max_faces = max(6, int(np.diff(cells.cell_face_start).max()))
         self.max_face_vertices = max(4, int(np.diff(cells.face_loop_start).max()))
 
+    def plausible(self, rows) -> bool:
+        """Whether the triangles of the cells ``rows`` make a convex polygon of few enough corners, in their
+        plane (a cheap test in 2-D that spares the 3-D hull of a large patch that cannot join)."""
+        if len(rows) <= 2:
+            return True
+        from scipy.spatial import ConvexHull, QhullError
+
+        c = self.cells
+        tri = c.faces[c.cell_source[rows, 0]]
+        normal = c.cell_front[rows[0], :3]
+        u = np.cross(normal, np.eye(3)[int(np.argmin(np.abs(normal)))])
+        u /= np.linalg.norm(u)
+        w = np.cross(normal, u)
+        corners = np.unique(tri)
+        flat = c.vertices[corners] @ np.column_stack([u, w])
+        try:
+            hull = ConvexHull(flat)
+        except QhullError:
+            return False
+        if len(hull.vertices) > self.max_face_vertices + 2:  # a margin for corners on its sides
+            return False
+        a, b, d = (c.vertices[tri[:, k]] for k in range(3))
+        area = 0.5 * np.linalg.norm(np.cross(b - a, d - a), axis=1).sum()
+        return hull.volume <= area * (1.0 + 1e-9) + self.tol * hull.area
+
     def hull_cell(self, rows):
         """The convex cell that is the union of the cells ``rows``, as ``(points, rings, planes)`` in the
         mesh frame (each face's corners as indices into the points, counter-clockwise from outside);
         None where the union is not convex or the cell would exceed the face limits."""
         from scipy.spatial import ConvexHull, QhullError
 
+        if not self.plausible(rows):
+            return None
         vs = self.cells.cell_vert_start
         row, col = ragged(vs[rows + 1] - vs[rows])
         pts = self.points[vs[rows][row] + col]
+        # The members' shared corners once (copies apart by rounding would make corners of their own).
+        _, first = np.unique(np.round(pts / self.tol), axis=0, return_index=True)
+        pts = pts[np.sort(first)]
         try:
             hull = ConvexHull(pts)
         except QhullError:
@@ -113,51 +148,57 @@ class _Joiner:
         fs = self.cells.cell_face_start
         row, col = ragged(fs[rows + 1] - fs[rows])
         planes = self.planes[fs[rows][row] + col]
-        # Each facet is one of the members' planes; coplanar facets make one face.
-        faces = []  # (plane, set of hull point indices)
-        for eq, simplex in zip(hull.equations, hull.simplices, strict=True):
-            normal, offset = eq[:3], -eq[3]
-            for plane, verts in faces:
-                if 1.0 - float(normal @ plane[:3]) <= _SAME_NORMAL and abs(offset - plane[3]) <= self.tol:
-                    verts.update(simplex.tolist())
-                    break
-            else:
-                near = np.flatnonzero(
-                    (1.0 - planes[:, :3] @ normal <= _SAME_NORMAL) & (np.abs(planes[:, 3] - offset) <= self.tol)
-                )
-                if not len(near):
-                    return None
-                faces.append((planes[near[0]], set(simplex.tolist())))
-            if len(faces) > self.max_faces:
+        # Each facet is one of the members' planes (the first that matches it); coplanar facets make one face.
+        eq = hull.equations
+        match = (1.0 - eq[:, :3] @ planes[:, :3].T <= _SAME_NORMAL) & (
+            np.abs(eq[:, 3, None] + planes[None, :, 3]) <= self.tol
+        )
+        if not match.any(axis=1).all():
+            return None
+        rows_used, facet_face = np.unique(match.argmax(axis=1), return_inverse=True)
+        used = planes[rows_used]
+        # Members' planes that coincide (two cells' fronts) are one face.
+        same = (1.0 - used[:, :3] @ used[:, :3].T <= _SAME_NORMAL) & (
+            np.abs(used[:, 3, None] - used[None, :, 3]) <= self.tol
+        )
+        first = same.argmax(axis=1)
+        keep, face_of = np.unique(first, return_inverse=True)
+        if len(keep) > self.max_faces:
+            return None
+        used = used[keep]
+        facet_face = face_of[facet_face]
+        rings = []
+        for k in range(len(used)):
+            idx = np.unique(hull.simplices[facet_face == k])
+            if np.abs(pts[idx] @ used[k, :3] - used[k, 3]).max() > self.tol:
                 return None
-        rings, used = [], []
-        for plane, verts in faces:
-            idx = np.array(sorted(verts))
-            if np.abs(pts[idx] @ plane[:3] - plane[3]).max() > self.tol:
-                return None
-            ring = idx[_polygon(pts[idx], plane[:3], self.tol)]
+            ring = idx[_polygon(pts[idx], used[k, :3], self.tol)]
             if len(ring) > self.max_face_vertices:
                 return None
             rings.append(ring)
-            used.append(plane)
-        return pts, rings, np.array(used)
+        return pts, rings, used
+
+
+def _cross(a, b):
+    """Row-wise cross products of (n, 3) arrays (np.cross costs more on small arrays)."""
+    return a[:, [1, 2, 0]] * b[:, [2, 0, 1]] - a[:, [2, 0, 1]] * b[:, [1, 2, 0]]
 
 
 def _polygon(points, normal, tol) -> np.ndarray:
     """The indices of the corners of the convex polygon ``points`` (on a plane of unit ``normal``),
     counter-clockwise seen from the side ``normal`` points to; points on its sides (within ``tol``) left out."""
-    centre = points.mean(axis=0)
-    u = points[np.argmax(np.linalg.norm(points - centre, axis=1))] - centre
-    u /= np.linalg.norm(u)
-    w = np.cross(normal, u)
-    rel = points - centre
+    rel = points - points.mean(axis=0)
+    u = rel[np.argmax(np.einsum("ij,ij->i", rel, rel))]
+    u = u / np.sqrt(u @ u)
+    w = _cross(normal[None], u[None])[0]
     ring = np.argsort(np.arctan2(rel @ w, rel @ u), kind="stable")
     while len(ring) > 3:
-        p = points[ring]
-        prev, nxt = np.roll(p, 1, axis=0), np.roll(p, -1, axis=0)
+        p = rel[ring]
+        prev, nxt = p[np.arange(-1, len(p) - 1)], p[np.r_[1 : len(p), 0]]
         chord = nxt - prev
         # How far each corner stands off the chord between its neighbours.
-        off = np.linalg.norm(np.cross(chord, p - prev), axis=1) / np.maximum(np.linalg.norm(chord, axis=1), 1e-300)
+        off = np.sqrt(np.einsum("ij,ij->i", *(2 * (_cross(chord, p - prev),))))
+        off /= np.maximum(np.sqrt(np.einsum("ij,ij->i", chord, chord)), 1e-300)
         k = int(np.argmin(off))
         if off[k] > tol:
             break
