@@ -681,3 +681,55 @@ def test_joined_flat_cells_give_the_triangles_contacts(device, precision):
     assert gap.max() <= (1e-12 if precision == "float64" else 1e-6) * travel.max()  # measured: 2e-15, 8e-8
     for k in ("kinetic", "contact", "dissipated"):
         assert joined[6][k] == pytest.approx(apart[6][k], rel=1e-9 if precision == "float64" else 1e-4), k
+
+
+def _cell_count_at(cells, points):
+    """How many of ``cells`` hold each of ``points`` (the mesh frame)."""
+    planes, owner = cells.world_planes()
+    out = planes[:, :3] @ points.T - planes[:, 3, None] > 1e-12  # (F, P): outside that face
+    return cells.num_cells - np.add.reduceat(out, cells.cell_face_start[:-1], axis=0).astype(bool).sum(axis=0)
+
+
+def _tilted(v, angle=0.4):
+    c, s = np.cos(angle), np.sin(angle)
+    return v @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]).T
+
+
+@pytest.mark.parametrize("name", ["jittered floor", "tilted floor", "box", "folded floor", "crease"])
+def test_joined_cells_are_the_same_solid(name):
+    """Joined cells against the cells of one triangle each, on their own: every face's corners lie on its plane
+    and run counter-clockwise about its outward normal, every corner lies in its cell, and 40,000 points near
+    the surface lie in as many cells either way. A floor folded over (a vertex dragged past its neighbours,
+    whose cells overlap) does not join across the fold."""
+    from polydem.meshmerge import join_flat_cells
+
+    h = 0.05
+    if name in ("jittered floor", "tilted floor", "folded floor"):
+        v, f = floor_grid(8, size=0.4, jitter=0.3 if name != "folded floor" else 0.0)
+        if name == "tilted floor":
+            v = _tilted(v)
+        if name == "folded floor":
+            v[np.argmin(np.linalg.norm(v, axis=1)), 0] = 0.08  # past its neighbours at x = 0.05
+    elif name == "box":
+        m = box_mesh(np.array([0.3, 0.24, 0.16]), np.zeros(3))
+        v, f = m.vertices, m.faces
+    else:
+        v, f = crease_mesh()
+    cells = build_cells(v, f, thickness=h)
+    joined = join_flat_cells(cells)
+    if name != "folded floor":
+        assert joined.num_cells < cells.num_cells
+    planes, _ = joined.world_planes()
+    for k, c in enumerate(joined.cells):
+        corners = c.vertices + c.center
+        for loop, normal, offset in zip(c.faces, c.face_normals, c.face_offsets, strict=True):
+            pts = c.vertices[loop]
+            assert np.abs(pts @ normal - offset).max() < 1e-12
+            assert np.cross(pts, np.roll(pts, -1, axis=0)).sum(axis=0) @ normal > 0.0  # counter-clockwise
+        own = planes[joined.cell_face_start[k] : joined.cell_face_start[k + 1]]
+        assert (corners @ own[:, :3].T - own[:, 3]).max() < 1e-12
+    lo, hi = cells.lower.min(axis=0), cells.upper.max(axis=0)
+    pts = np.random.default_rng(3).uniform(lo, hi, (40_000, 3))
+    before, after = _cell_count_at(cells, pts), _cell_count_at(joined, pts)
+    assert np.count_nonzero(before) > 5_000
+    np.testing.assert_array_equal(after, before)

@@ -13,10 +13,10 @@ cell per triangle: cutting it into convex parts is not done yet. Each patch cost
 2 ms), so patches of fewer than MIN_PATCH cells (the quads of two triangles of a cylinder's side or a
 box's face) are left as they are; a patch that cannot be a convex polygon of few enough corners in its
 plane (a disc's fan) is turned down by a test in 2-D before its hull.
-A joined cell may have no more faces, nor more vertices on a face, than the wall's own cells
-have (at least those of a box), so that joining never raises the polygon capacity of the contact
-kernels (:class:`polydem.shapeset.ShapeSet`). Only exactly coplanar triangles join (within the cells'
-tolerance): triangles of a float32 file (STL) bent by rounding stay apart.
+A joined cell may have no more faces, nor more vertices on a face, than the wall's own cells or a box
+(6 faces of 4 corners), so that joining raises the polygon capacity of the contact kernels
+(:class:`polydem.shapeset.ShapeSet`) at most to what a box needs. Only exactly coplanar triangles join
+(within the cells' tolerance): triangles of a float32 file (STL) bent by rounding stay apart.
 """
 
 from __future__ import annotations
@@ -75,7 +75,9 @@ def join_flat_cells(cells):
     sizes = np.bincount(label, minlength=count)
     joiner = _Joiner(cells, tol)
     joined = []
-    for patch in (np.flatnonzero(label == c) for c in np.flatnonzero(sizes >= MIN_PATCH)):
+    # Each patch's cells at once (a scan of every label per patch would cost patches x cells).
+    by_patch = np.split(np.argsort(label, kind="stable"), np.cumsum(sizes)[:-1])
+    for patch in (by_patch[c] for c in np.flatnonzero(sizes >= MIN_PATCH)):
         cell = joiner.hull_cell(patch)
         if cell is not None:
             joined.append((patch, cell))
@@ -120,7 +122,7 @@ class _Joiner:
             return False
         a, b, d = (c.vertices[tri[:, k]] for k in range(3))
         area = 0.5 * np.linalg.norm(np.cross(b - a, d - a), axis=1).sum()
-        return hull.volume <= area * (1.0 + 1e-9) + self.tol * hull.area
+        return abs(hull.volume - area) <= 1e-9 * area + self.tol * hull.area
 
     def hull_cell(self, rows):
         """The convex cell that is the union of the cells ``rows``, as ``(points, rings, planes)`` in the
@@ -133,17 +135,18 @@ class _Joiner:
         vs = self.cells.cell_vert_start
         row, col = ragged(vs[rows + 1] - vs[rows])
         pts = self.points[vs[rows][row] + col]
-        # The members' shared corners once (copies apart by rounding would make corners of their own).
+        # The members' shared corners once, mostly (copies apart by rounding that straddle a step of the grid
+        # stay two; the hull and the rings take either).
         _, first = np.unique(np.round(pts / self.tol), axis=0, return_index=True)
         pts = pts[np.sort(first)]
         try:
             hull = ConvexHull(pts)
         except QhullError:
             return None
-        # The union lies inside its hull: it is the hull where the hull holds no more than a skin of the
-        # tolerance beyond the union's volume.
+        # The union lies inside its hull: it is the hull where their volumes agree to a skin of the tolerance
+        # over the hull's surface, both ways (members that overlap, at a fold of the mesh, sum to more).
         excess = hull.volume - float(self.volumes[rows].sum())
-        if excess > self.tol * hull.area or len(hull.simplices) > _MAX_HULL_FACETS:
+        if abs(excess) > self.tol * hull.area or len(hull.simplices) > _MAX_HULL_FACETS:
             return None
         fs = self.cells.cell_face_start
         row, col = ragged(fs[rows + 1] - fs[rows])

@@ -633,8 +633,9 @@ class MeshCells:
         cell_face_start: (C+1,) first face of each cell in ``face_planes`` ((F, 4) normal and
             offset in the cell's frame); face_loop_start: (F+1,) first entry of each face in
             ``face_loop`` (the cell's own vertex indices, counter-clockwise seen from outside).
-        cells: C :class:`CellShape` (cell k < nf behind triangle k), made from the arrays above on
-            first use.
+        cells: C :class:`CellShape` (cell k < nf behind triangle k, as :func:`build_cells` makes them;
+            :func:`polydem.meshmerge.join_flat_cells` puts the joined cells last, each naming its first
+            triangle in ``cell_source``), made from the arrays above on first use.
     """
 
     vertices: np.ndarray
