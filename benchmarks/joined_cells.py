@@ -13,11 +13,11 @@ Prints a table and writes JSON to ``--out`` (benchmarks/results/issue27/joined_c
 
 import argparse
 import json
-import statistics
 import time
 from pathlib import Path
 
 import warp as wp
+from wall_contact_cost import time_steps
 
 from polydem import Scene, Simulation
 
@@ -30,13 +30,7 @@ def run(name, device, join, warmup, steps, repeats):
     sim = Simulation(scene, device=device, join_flat_cells=join)
     setup = time.perf_counter() - t0
     sim.step(max(1, round(warmup / sim.dt)))
-    wp.synchronize_device(sim.device)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        sim.step(steps)
-        wp.synchronize_device(sim.device)
-        times.append((time.perf_counter() - t0) / steps)
+    step = time_steps(sim, steps, repeats)
     walls = (sim.contacts()["body_b"] < 0).sum()
     return {
         "scene": name,
@@ -46,7 +40,7 @@ def run(name, device, join, warmup, steps, repeats):
         "bodies": sim.num_bodies,
         "wall_contacts": int(walls),
         "setup_s": setup,
-        "step_s": statistics.median(times),
+        "step_s": step,
     }
 
 

@@ -91,7 +91,7 @@ class _Joiner:
 
     def __init__(self, cells, tol):
         self.cells, self.tol = cells, tol
-        self.planes, self.plane_cell = cells.world_planes()
+        self.planes, _ = cells.world_planes()
         counts = np.diff(cells.cell_vert_start)
         row, _ = ragged(counts)
         self.points = cells.cell_vertices + cells.cell_center[row]

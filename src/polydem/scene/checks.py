@@ -980,7 +980,7 @@ def check_mesh_walls(scene, a, ts: TimeStep) -> list[str]:
         records += _mesh_overlaps(scene, wall, key, a)
     found += _report_mesh_overlaps(scene, records)
     for wall, key in walls:
-        found += _mesh_folds(wall, key)
+        found += _mesh_folds(scene, wall, key)
         found += _mesh_thickness_rule(scene, wall, key)
     return found
 
@@ -990,9 +990,16 @@ def check_mesh_walls(scene, a, ts: TimeStep) -> list[str]:
 FOLD = 1e-4
 
 
-def _mesh_folds(wall, key) -> list[str]:
+def _mesh_folds(scene, wall, key) -> list[str]:
     """A warning where two triangles sharing an edge fold back onto each other (their normals opposite):
-    one of them is turned over, and the solid behind it lies on the grains' side."""
+    one of them is turned over, and the solid behind it lies on the grains' side. Kept with the cells."""
+    memo = mesh_wall_memo(scene, wall, scene.mesh_wall_thickness(wall))
+    if "folds" not in memo:
+        memo["folds"] = _folds(wall, key)
+    return memo["folds"]
+
+
+def _folds(wall, key) -> list[str]:
     from polydem.meshwall import edge_pairs, triangle_normals
 
     f = np.asarray(wall.triangles, dtype=np.int64)
