@@ -208,10 +208,46 @@ mesh5() {
       --triangle-edge 2 --mesh-paths list,walk --cells joined --out $W/res/wall_joined_100000.json \
       > $W/log/wall_joined_100000.log 2>&1 ) &
 }
+# MODE=conv1: time to a converged pile, polydem's half (benchmarks/converged_pile.py): the pour at k x 1, 4, 16, 64 and
+# dt x 4, 1 of the recommended step (each to section 7's criterion), 1e5 cubes first, then 1e4 and 1e3 (several seeds:
+# their scatter), then 1e6 at the base setting. BUDGET=530 at most in a call of 600 s.
+conv1() {
+  ( for job in "1e5 1x4,4x4,16x4,1x1,64x4 0" "1e4 1x4,4x4,16x4,1x1 0,1" "1e3 1x4,4x4,16x4,1x1 0,1,2" "1e6 1x4 0"; do
+      read -r n settings seeds <<< "$job"
+      gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes $n --settings $settings --seeds $seeds \
+        --k-rule volume --speed-fraction off --max-time 3 --out $W/res/conv_$n.json > $W/log/conv_$n.log 2>&1
+    done ) &
+}
+# MODE=conv2: Newton's half (newton_pour.py on the same pours: pour_scene.py export on the GPU), 1e4 then 1e3, dt from
+# 1e-3 s down to 1.25e-4 s (the newton wheel staged with the call, ../shared/gpu/README.md step 4)
+conv2() {
+  ( for n in 10000 1000; do
+      gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --device cuda:0 --out $W/pour_$n.json \
+        > $W/log/export_$n.log 2>&1
+      gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 --scene $W/pour_$n.json \
+        --dt-sweep ${NEWTON_DTS:-1e-3,5e-4,2.5e-4,1.25e-4} --max-time 4 --out $W/res/newton_$n.json \
+        > $W/log/newton_$n.log 2>&1
+    done ) &
+}
+# MODE=conv3: Newton at 1e5 at the dts of NEWTON_DTS (default 2.5e-4 s), then polydem's 1e6 at k x 4
+conv3() {
+  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 100000 --device cuda:0 --out $W/pour_100000.json \
+      > $W/log/export_100000.log 2>&1
+    gpu 0 python -u benchmarks/peers/newton_pour.py --grains 100000 --device cuda:0 --scene $W/pour_100000.json \
+      --dt-sweep ${NEWTON_DTS:-2.5e-4} --max-time 4 --out $W/res/newton_100000.json > $W/log/newton_100000.log 2>&1
+    gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes 1e6 --settings 4x4 --k-rule volume \
+      --speed-fraction off --max-time 3 --out $W/res/conv_1e6_k4.json > $W/log/conv_1e6_k4.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
-if [ "${MODE:-}" = mesh ]; then
+if [ "${MODE:-}" = conv1 ]; then
+  conv1
+elif [ "${MODE:-}" = conv2 ]; then
+  conv2
+elif [ "${MODE:-}" = conv3 ]; then
+  conv3
+elif [ "${MODE:-}" = mesh ]; then
   mesh
 elif [ "${MODE:-}" = mesh2 ]; then
   mesh2

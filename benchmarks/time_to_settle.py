@@ -138,7 +138,8 @@ def run_size(n, args, device, dt_scale=1.0):
     }
 
 
-def main():
+def make_parser():
+    """The command line's options (converged_pile.py runs with them too)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu", help="Warp device (default cpu)")
     ap.add_argument("--sizes", default=None, help="comma-separated cube counts (default 200 on the CPU, 1e4 on a GPU)")
@@ -166,7 +167,11 @@ def main():
     )
     add_pile_options(ap)
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/time_to_settle_<device>.json)")
-    args = ap.parse_args()
+    return ap
+
+
+def main():
+    args = make_parser().parse_args()
 
     wp.config.quiet = True
     wp.init()

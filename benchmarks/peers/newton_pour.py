@@ -338,16 +338,19 @@ def criterion_of(args):
     from polydem import SettleCriterion
 
     kf = None if args.kinetic_fraction <= 0.0 else args.kinetic_fraction
-    return SettleCriterion(kinetic_fraction=kf, max_speed=args.max_speed, hold=args.hold)
+    return SettleCriterion(
+        kinetic_fraction=kf, max_speed=args.max_speed, hold=args.hold, speed_fraction=args.speed_fraction
+    )
 
 
-def run_until_settled(runner, meter, criterion, max_time, every):
+def run_until_settled(runner, meter, criterion, max_time, every, speed_limit=None):
     """polydem's ``Simulation.run_until_settled`` loop on a Newton runner: checks every ``every`` steps
-    (substeps) at absolute step counts, from step ``runner.steps_done``; returns (settled, check)."""
+    (substeps) at absolute step counts, from step ``runner.steps_done``; ``speed_limit`` [m/s]: the
+    criterion's for the pour's scene (``SettleCriterion.speed_limit_of``); returns (settled, check)."""
     from polydem.settle import SettleCheck
 
     dt, sub = runner.dt, runner.substeps
-    check = SettleCheck(criterion, meter.measure()[1])
+    check = SettleCheck(criterion, meter.measure()[1], speed_limit=speed_limit)
     start = runner.steps_done
     end = start + sub * math.ceil(max(1, math.ceil(max_time / dt - 1e-9)) / sub)
     settled = False
@@ -455,7 +458,8 @@ def settle_run(sc, scene, builder, device, args, dt, save_poses):
     wp.synchronize_device(device)
     setup = time.perf_counter() - t0
     t1 = time.perf_counter()
-    settled, check = run_until_settled(runner, meter, criterion, args.max_time, every)
+    limit = criterion.speed_limit_of(scene)
+    settled, check = run_until_settled(runner, meter, criterion, args.max_time, every, limit)
     wp.synchronize_device(device)
     wall = time.perf_counter() - t1
     sim_time = runner.steps_done * dt
@@ -587,6 +591,13 @@ def main():
     )
     ap.add_argument("--max-speed", type=float, default=None, help="settled: also |v| + |w| r < this [m/s]")
     ap.add_argument("--hold", type=float, default=0.02, help="settled for this long [s]")
+    ap.add_argument(
+        "--speed-fraction",
+        type=lambda v: None if v == "off" else float(v),
+        default=None,
+        help="settled: also every grain's fastest point below this x sqrt(g r_min), as polydem's default rule "
+        "(default off: the kinetic part alone, section 7's rule, unless --max-speed)",
+    )
     ap.add_argument("--check-every", type=int, default=None, help="steps between checks (default polydem's, 64)")
     ap.add_argument("--save-poses", action="store_true", help="--dt-sweep: keep every row's final poses")
     ap.add_argument("--out", default=None)

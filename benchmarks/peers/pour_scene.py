@@ -49,7 +49,7 @@ def build(n):
     return settle.make_scene(n, settle_options())
 
 
-def export(n, path):
+def export(n, path, device="cpu"):
     import warp as wp
 
     wp.config.quiet = True
@@ -57,7 +57,7 @@ def export(n, path):
     from polydem.model import Model
 
     scene, info = build(n)
-    model = Model(scene, "cpu")
+    model = Model(scene, device)  # its dt (the GPU machine has no CPU compiler: --device cuda:0 there)
     kinds = np.asarray(scene.body_kind)
     shapes = scene.shapes
     names = scene.shape_names
@@ -206,7 +206,7 @@ def main():
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     if args.mode == "export":
-        export(args.grains, args.out or os.path.join(OUT_DIR, f"pour_{args.grains}.json"))
+        export(args.grains, args.out or os.path.join(OUT_DIR, f"pour_{args.grains}.json"), args.device)
     else:
         os.makedirs(OUT_DIR, exist_ok=True)
         dev = args.device.replace(":", "")
