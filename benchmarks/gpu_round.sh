@@ -238,11 +238,35 @@ conv3() {
     gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes 1e6 --settings 4x4 --k-rule volume \
       --speed-fraction off --max-time 3 --out $W/res/conv_1e6_k4.json > $W/log/conv_1e6_k4.log 2>&1 ) &
 }
+# MODE=conv4: stiffer piles at larger multiples of their recommended step (which shrinks as 1/k above k x 1, while
+# the stable limit shrinks as k^-1/2): 1e4 cubes, two seeds, then 1e5 at k x 16 and 64 near their limits
+conv4() {
+  ( for job in "1e4 1x4,1x1,4x4,4x8,16x4,16x16,64x16,64x32 0 a" "1e4 1x4,1x1,4x4,4x8,16x4,16x16,64x16,64x32 1 b" \
+      "1e4 64x8 0 c" "1e5 16x16 0 d" "1e5 64x32 0 e"; do
+      read -r n settings seeds tag <<< "$job"
+      gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes $n --settings $settings --seeds $seeds \
+        --k-rule volume --speed-fraction off --max-time 1.5 --out $W/res/conv_${n}_$tag.json > $W/log/conv_${n}_$tag.log 2>&1
+    done ) &
+}
+# MODE=conv5: Newton at 1e4 (1e-3 s down to 1.25e-4 s) and at 1e5 (NEWTON_DTS_1E5, default 5e-4 and 2.5e-4 s)
+conv5() {
+  ( for n in 10000 100000; do
+      dts=${NEWTON_DTS:-1e-3,5e-4,2.5e-4,1.25e-4}; [ $n = 100000 ] && dts=${NEWTON_DTS_1E5:-5e-4,2.5e-4}
+      gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --device cuda:0 --out $W/pour_$n.json \
+        > $W/log/export_$n.log 2>&1
+      gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 --scene $W/pour_$n.json \
+        --dt-sweep $dts --max-time 4 --out $W/res/newton_$n.json > $W/log/newton_$n.log 2>&1
+    done ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
 if [ "${MODE:-}" = conv1 ]; then
   conv1
+elif [ "${MODE:-}" = conv4 ]; then
+  conv4
+elif [ "${MODE:-}" = conv5 ]; then
+  conv5
 elif [ "${MODE:-}" = conv2 ]; then
   conv2
 elif [ "${MODE:-}" = conv3 ]; then
