@@ -16,7 +16,7 @@ set -u
 # Its own process group, so that the deadline stops exactly this script's jobs (never the caller's shell).
 [ -z "${GPU_ROUND_LEADER:-}" ] && GPU_ROUND_LEADER=1 exec setsid --wait bash "$0" "$@"
 cd "$(dirname "$0")/.."
-W=/tmp/round; rm -rf $W; mkdir -p $W/res $W/log; END=$((SECONDS + ${BUDGET:-500}))
+W=/tmp/round; rm -rf $W; mkdir -p $W/res $W/log /tmp/pours; END=$((SECONDS + ${BUDGET:-500}))
 # never 0 or less: `timeout 0` means no limit at all
 left() { local l=$((END - SECONDS)); [ $l -lt 5 ] && l=5; echo $l; }
 gpu() { CUDA_VISIBLE_DEVICES=$1 timeout $(left) "${@:2}"; }
@@ -222,18 +222,18 @@ conv1() {
 # 1e-3 s down to 1.25e-4 s (the newton wheel staged with the call, ../shared/gpu/README.md step 4)
 conv2() {
   ( for n in 10000 1000; do
-      gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --device cuda:0 --out $W/pour_$n.json \
+      gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --device cuda:0 --out /tmp/pours/pour_$n.json \
         > $W/log/export_$n.log 2>&1
-      gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 --scene $W/pour_$n.json \
+      gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 --scene /tmp/pours/pour_$n.json \
         --dt-sweep ${NEWTON_DTS:-1e-3,5e-4,2.5e-4,1.25e-4} --max-time 4 --out $W/res/newton_$n.json \
         > $W/log/newton_$n.log 2>&1
     done ) &
 }
 # MODE=conv3: Newton at 1e5 at the dts of NEWTON_DTS (default 2.5e-4 s), then polydem's 1e6 at k x 4
 conv3() {
-  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 100000 --device cuda:0 --out $W/pour_100000.json \
+  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 100000 --device cuda:0 --out /tmp/pours/pour_100000.json \
       > $W/log/export_100000.log 2>&1
-    gpu 0 python -u benchmarks/peers/newton_pour.py --grains 100000 --device cuda:0 --scene $W/pour_100000.json \
+    gpu 0 python -u benchmarks/peers/newton_pour.py --grains 100000 --device cuda:0 --scene /tmp/pours/pour_100000.json \
       --dt-sweep ${NEWTON_DTS:-2.5e-4} --max-time 4 --out $W/res/newton_100000.json > $W/log/newton_100000.log 2>&1
     gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes 1e6 --settings 4x4 --k-rule volume \
       --speed-fraction off --max-time 3 --out $W/res/conv_1e6_k4.json > $W/log/conv_1e6_k4.log 2>&1 ) &
@@ -252,9 +252,9 @@ conv4() {
 conv5() {
   ( for n in 10000 100000; do
       dts=${NEWTON_DTS:-1e-3,5e-4,2.5e-4,1.25e-4}; [ $n = 100000 ] && dts=${NEWTON_DTS_1E5:-5e-4,2.5e-4}
-      gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --device cuda:0 --out $W/pour_$n.json \
+      gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --device cuda:0 --out /tmp/pours/pour_$n.json \
         > $W/log/export_$n.log 2>&1
-      gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 --scene $W/pour_$n.json \
+      gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 --scene /tmp/pours/pour_$n.json \
         --dt-sweep $dts --max-time 4 --out $W/res/newton_$n.json > $W/log/newton_$n.log 2>&1
     done ) &
 }
