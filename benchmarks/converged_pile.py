@@ -89,7 +89,8 @@ def judge(table, phi_tol, z_tol):
     for t in table:
         t["converged"] = bool(t["settled"] and ref["settled"] and near(t, ref))
     stopped = len(table) > 1 and near(table[-1], table[-2])
-    done = [t for t in table if t["converged"]]
+    # Without a reference that has stopped moving there is no converged pile to be near: no verdict.
+    done = [t for t in table if t["converged"]] if stopped else []
     fastest = min(done, key=lambda t: t["wall_s"]) if done else None
     return table, fastest, stopped
 
@@ -118,7 +119,16 @@ def print_table(name, n, table, fastest, stopped):
             f"{t['setting']:>22s} {t['runs']:>4d} {str(t['settled']):>7s} {t['settle_time_s']:>8.3f} "
             f"{t['wall_s']:>8.2f} {phi:>7s} {z:>6s} {'yes' if t['converged'] else 'no'}"
         )
-    print(f"  the two most refined agree: {stopped}; fastest converged: {fastest['setting'] if fastest else 'none'}")
+    if stopped:
+        print(f"  the two most refined agree; fastest converged: {fastest['setting'] if fastest else 'none'}")
+    elif len(table) > 1 and None not in (table[-1]["phi"], table[-2]["phi"], table[-1]["z"], table[-2]["z"]):
+        a, b = table[-1], table[-2]
+        print(
+            f"  NOT CONVERGED: the two most refined differ by {a['phi'] - b['phi']:+.4f} in phi and "
+            f"{a['z'] - b['z']:+.3f} in Z; the converged pile takes more than {a['wall_s']:.2f} s (refine further)"
+        )
+    else:
+        print("  no verdict: fewer than two refined settings with phi and Z")
 
 
 def analyse(record, newton_records, phi_tol, z_tol):
@@ -143,6 +153,7 @@ def analyse(record, newton_records, phi_tol, z_tol):
             print_table("Newton", n, table, fastest, stopped)
             entry["newton"] = {"table": table, "fastest": fastest, "refined_agree": stopped}
         p, q = (entry.get(c, {}).get("fastest") for c in ("polydem", "newton"))
+        # a ratio only where both codes' references have stopped moving (judge gives no fastest otherwise)
         if p and q:
             entry["newton_over_polydem"] = q["wall_s"] / p["wall_s"]
             print(f"  time to the converged pile: polydem {p['wall_s']:.2f} s, Newton {q['wall_s']:.2f} s: "
@@ -160,7 +171,7 @@ def main():
     ap.add_argument("--phi-tol", type=float, default=PHI_TOL)
     ap.add_argument("--z-tol", type=float, default=Z_TOL)
     ap.add_argument("--newton", default=None, help="comma-separated newton_pour.py --dt-sweep JSON files")
-    ap.add_argument("--analyse", default=None, help="a JSON of this script: analyse it, run nothing")
+    ap.add_argument("--analyse", default=None, help="JSON files of this script (comma-separated): analyse them")
     ap.add_argument("--out", default=None, help="JSON (default benchmarks/results/converged_pile_<device>.json)")
     args, rest = ap.parse_known_args()
     newton = []
@@ -169,8 +180,10 @@ def main():
             with open(path) as f:
                 newton.append(json.load(f))
     if args.analyse:
-        with open(args.analyse) as f:
-            record = json.load(f)
+        record = {"runs": []}
+        for path in args.analyse.split(","):
+            with open(path) as f:
+                record["runs"] += json.load(f)["runs"]
         analyse(record, newton, args.phi_tol, args.z_tol)
         return
 
