@@ -4,8 +4,9 @@ the fastest setting whose pile is the converged one.
 A pile's packing fraction phi and coordination number Z depend on the contact stiffness k and the step dt
 until both are refined far enough; the user's job is the pile of the refined limit. Here the pour of
 time_to_settle.py (settle.py's cubes in columns in an open box, hertz, e = 0.5, mu = 0.5, k from ``--k-rule``)
-runs to settled at each setting ``KxS`` of ``--settings`` (k = K x the rule's k, dt = S x the recommended step,
-which itself follows k as k^-1/2) and each seed of ``--seeds``. Per size, the reference is the most refined
+runs to settled at each setting ``KxS`` of ``--settings`` (k = K x the rule's k, dt = S x the recommended step
+of that k, which falls as 1/k where the resting rule of ``Scene.time_step`` sets it, while the stable limit falls
+as k^-1/2) and each seed of ``--seeds``. Per size, the reference is the most refined
 setting (the largest k, then the smallest dt; the seeds' mean); a setting is converged where its mean phi and Z
 lie within ``--phi-tol`` (0.005) and ``--z-tol`` (0.1) of the reference's; the time to the converged pile is
 the wall time of the fastest converged setting (its seeds' mean). Whether the reference itself has stopped
@@ -13,7 +14,8 @@ moving is reported too: the two most refined settings within the tolerances of e
 
 ``--newton FILE[,FILE]`` (``peers/newton_pour.py --dt-sweep`` results of the same pour, ``pour_scene.py
 export``) applies the same rule to Newton's rows, its smallest dt the reference, and prints the ratio of the
-times to the converged piles. ``--analyse FILE`` reads a run of this script instead of running.
+times to the converged piles, only where both references have stopped moving. ``--analyse FILE[,FILE]`` reads
+runs of this script (their runs together) instead of running.
 
     python benchmarks/converged_pile.py --device cpu --sizes 200 --settings 1x4,4x4 --max-time 1.5
     python benchmarks/converged_pile.py --device cuda:0 --sizes 1e5 --settings 1x4,4x4,16x4,1x1
@@ -96,17 +98,11 @@ def judge(table, phi_tol, z_tol):
 
 
 def polydem_rows(record):
-    rows = []
-    for r in record["runs"]:
-        rows.append(dict(r, setting=f"k x{r['k_factor']:g}, dt x{r['dt_scale']:g}"))
-    return rows
+    return [dict(r, setting=f"k x{r['k_factor']:g}, dt x{r['dt_scale']:g}") for r in record["runs"]]
 
 
 def newton_rows(record):
-    rows = []
-    for r in record["rows"]:
-        rows.append(dict(r, setting=f"dt {r['dt']:g} s", bodies=record["grains"]))
-    return rows
+    return [dict(r, setting=f"dt {r['dt']:g} s", bodies=record["grains"]) for r in record["rows"]]
 
 
 def print_table(name, n, table, fastest, stopped):
@@ -200,6 +196,12 @@ def main():
         os.path.dirname(os.path.abspath(__file__)), "results", f"converged_pile_{str(device).replace(':', '')}.json"
     )
     record = {"meta": run_meta(device), "args": vars(args), "time_to_settle_args": vars(tts_args), "runs": []}
+
+    def save():
+        os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+        with open(out, "w") as f:
+            json.dump(record, f, indent=1)
+
     settings = parse_settings(args.settings)
     for n in (int(float(s)) for s in args.sizes.split(",")):
         for k, scale in settings:
@@ -214,12 +216,9 @@ def main():
                     f"Z {r['coordination_number']}",
                     flush=True,
                 )
-                os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
-                with open(out, "w") as f:
-                    json.dump(record, f, indent=1)
+                save()
     record["analysis"] = analyse(record, newton, args.phi_tol, args.z_tol)
-    with open(out, "w") as f:
-        json.dump(record, f, indent=1)
+    save()
     print(f"wrote {out}")
 
 

@@ -218,26 +218,6 @@ conv1() {
         --k-rule volume --speed-fraction off --max-time 3 --out $W/res/conv_$n.json > $W/log/conv_$n.log 2>&1
     done ) &
 }
-# MODE=conv2: Newton's half (newton_pour.py on the same pours: pour_scene.py export on the GPU), 1e4 then 1e3, dt from
-# 1e-3 s down to 1.25e-4 s (the newton wheel staged with the call, ../shared/gpu/README.md step 4)
-conv2() {
-  ( for n in 10000 1000; do
-      gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --device cuda:0 --out /tmp/pours/pour_$n.json \
-        > $W/log/export_$n.log 2>&1
-      gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 --scene /tmp/pours/pour_$n.json \
-        --dt-sweep ${NEWTON_DTS:-1e-3,5e-4,2.5e-4,1.25e-4} --max-time 4 --out $W/res/newton_$n.json \
-        > $W/log/newton_$n.log 2>&1
-    done ) &
-}
-# MODE=conv3: Newton at 1e5 at the dts of NEWTON_DTS (default 2.5e-4 s), then polydem's 1e6 at k x 4
-conv3() {
-  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 100000 --device cuda:0 --out /tmp/pours/pour_100000.json \
-      > $W/log/export_100000.log 2>&1
-    gpu 0 python -u benchmarks/peers/newton_pour.py --grains 100000 --device cuda:0 --scene /tmp/pours/pour_100000.json \
-      --dt-sweep ${NEWTON_DTS:-2.5e-4} --max-time 4 --out $W/res/newton_100000.json > $W/log/newton_100000.log 2>&1
-    gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes 1e6 --settings 4x4 --k-rule volume \
-      --speed-fraction off --max-time 3 --out $W/res/conv_1e6_k4.json > $W/log/conv_1e6_k4.log 2>&1 ) &
-}
 # MODE=conv4: stiffer piles at larger multiples of their recommended step (which shrinks as 1/k above k x 1, while
 # the stable limit shrinks as k^-1/2): 1e4 cubes, two seeds, then 1e5 at k x 16 and 64 near their limits
 conv4() {
@@ -267,10 +247,6 @@ elif [ "${MODE:-}" = conv4 ]; then
   conv4
 elif [ "${MODE:-}" = conv5 ]; then
   conv5
-elif [ "${MODE:-}" = conv2 ]; then
-  conv2
-elif [ "${MODE:-}" = conv3 ]; then
-  conv3
 elif [ "${MODE:-}" = mesh ]; then
   mesh
 elif [ "${MODE:-}" = mesh2 ]; then
