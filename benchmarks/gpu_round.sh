@@ -238,6 +238,28 @@ conv5() {
         --dt-sweep $dts --max-time 4 --out $W/res/newton_$n.json > $W/log/newton_$n.log 2>&1
     done ) &
 }
+# MODE=conv6: the pile at steps the toe does not set (1e4 cubes, two seeds): k x 1 below dt_rec (dt study), k x 4 and
+# 16 at 1 and 2 x their dt_rec (the k study)
+conv6() {
+  ( for job in "1x0.5,1x0.25 0,1 a" "4x2,4x1 0,1 b" "16x2 0,1 c" "16x1 0 d" "16x1 1 e"; do
+      read -r settings seeds tag <<< "$job"
+      gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes 1e4 --settings $settings --seeds $seeds \
+        --k-rule volume --speed-fraction off --max-time 1.5 --out $W/res/conv6_$tag.json > $W/log/conv6_$tag.log 2>&1
+    done ) &
+}
+# MODE=toe1: long steps with the toe of the recommended step (benchmarks/toe_swap.py; 1e4 cubes): TOE_JOBS is a list
+# of "K S T SEED" (k factor, step and toe step as multiples of that k's dt_rec)
+toe1() {
+  ( while read -r k s t seed; do
+      [ -z "$k" ] && continue
+      gpu 0 python -u benchmarks/toe_swap.py --device cuda:0 --bodies 10000 --k-factor $k --dt-scale $s --toe-step $t \
+        --seed $seed --out $W/res/toe_${k}x${s}_t${t}_s$seed.json > $W/log/toe_${k}x${s}_t${t}_s$seed.log 2>&1
+    done <<< "${TOE_JOBS:-1 4 1 0
+1 4 1 1
+16 4 1 0
+16 8 1 0
+64 16 1 0}" ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -247,6 +269,10 @@ elif [ "${MODE:-}" = conv4 ]; then
   conv4
 elif [ "${MODE:-}" = conv5 ]; then
   conv5
+elif [ "${MODE:-}" = conv6 ]; then
+  conv6
+elif [ "${MODE:-}" = toe1 ]; then
+  toe1
 elif [ "${MODE:-}" = mesh ]; then
   mesh
 elif [ "${MODE:-}" = mesh2 ]; then
