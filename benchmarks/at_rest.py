@@ -1,7 +1,7 @@
 """At rest: force spread of a resting cube, creep on a slope, and the balance of a settled pile.
 
 For every law and precision (and, for the hertz law the shipped scenes use, every restitution in
-0.1, 0.3, 0.5, 0.9), at dt = "auto":
+0.1, 0.3, 0.5, 0.9), at dt = "auto" (``--dt-scale S``: S times it, the price of a long step at rest):
 
 * **cube**: scenes/cube_drop.toml's 0.1 m steel cube set down on the floor; after 0.1 s, the normal
   force reported in each of the next 400 steps, as a fraction of the weight (min, max), and the
@@ -18,6 +18,7 @@ PYTHONPATH). Prints a table and writes JSON (``--out``).
 
     python benchmarks/at_rest.py --device cpu --quick
     python benchmarks/at_rest.py --device cuda:0 --pile 1000
+    python benchmarks/at_rest.py --device cpu --quick --dt-scale 4
 """
 
 import argparse
@@ -47,7 +48,14 @@ def material(scene, law, m, k, e, mu, density):
     scene.add_material("m", **kw)
 
 
-def cube_case(device, law, m, e, precision, steps):
+def scaled_step(scene, dt_scale):
+    """``scene`` at ``dt_scale`` times its recommended step (1: dt = "auto" as built)."""
+    if dt_scale != 1.0:
+        scene.dt = dt_scale * scene.time_step().recommended
+    return scene
+
+
+def cube_case(device, law, m, e, precision, steps, dt_scale=1.0):
     k = {"hertz": 1e10, "power": 1e10, "linear": 1e6}[law] if law != "power" or m < 2 else 1e10
     if precision == "float32" and law == "hertz":
         k = 1e8  # float32 positions near 0.05 m round to 3.7e-9 m: rest 5.8e-7 m deep
@@ -56,7 +64,7 @@ def cube_case(device, law, m, e, precision, steps):
     scene.add_shape("cube", ConvexShape.box(0.1))
     scene.add_body("cube", "m", position=(0.0, 0.0, 0.05))
     scene.add_plane((0, 0, 0), (0, 0, 1), "m")
-    sim = Simulation(scene, device)
+    sim = Simulation(scaled_step(scene, dt_scale), device)
     sim.step(int(0.1 / sim.dt))
     weight = 7.8 * G
     f, z = [], []
@@ -68,14 +76,14 @@ def cube_case(device, law, m, e, precision, steps):
     return {"dt": sim.dt, "force_min": min(f), "force_max": max(f), "height_range": float(np.ptp(z))}
 
 
-def slope_case(device, law, m, e, precision, duration):
+def slope_case(device, law, m, e, precision, duration, dt_scale=1.0):
     th = math.radians(20.0)
     scene = Scene(gravity=(G * math.sin(th), 0, -G * math.cos(th)), dt="auto", precision=precision)
     material(scene, law, m, 1e9 if law != "linear" else 1e6, e, 0.5, 2700.0)
     scene.add_shape("block", ConvexShape.box(0.2, 0.1, 0.05))
     scene.add_body("block", "m", position=(0.0, 0.0, 0.025))
     scene.add_plane((0, 0, 0), (0, 0, 1), "m")
-    sim = Simulation(scene, device)
+    sim = Simulation(scaled_step(scene, dt_scale), device)
     sim.step(int(0.05 / sim.dt))
     x0 = sim.state()["body_position"][0].copy()
     weight = 2700.0 * 1e-3 * G * math.cos(th)  # the block's normal load [N]
@@ -87,7 +95,7 @@ def slope_case(device, law, m, e, precision, duration):
     return {"dt": sim.dt, "moved": moved, "duration": duration, "normal_min": min(fn), "normal_max": max(fn)}
 
 
-def pile_case(device, n, precision, max_time):
+def pile_case(device, n, precision, max_time, dt_scale=1.0):
     """N cubes of 1 cm dropped from a loose grid into a 'frictionless' box; balance after settling."""
     edge = 0.01
     side = max(2, int(round(n ** (1.0 / 3.0))))
@@ -118,7 +126,7 @@ def pile_case(device, n, precision, max_time):
             pt[axis] = sign * half
             nr[axis] = -sign
             scene.add_plane(tuple(pt), tuple(nr), "wall")
-    sim = Simulation(scene, device)
+    sim = Simulation(scaled_step(scene, dt_scale), device)
     res = sim.run_until_settled(max_time)
     mass = 2500.0 * edge**3
     weight = n * mass * G
@@ -154,6 +162,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help="hertz in mixed only, fewer steps (a CPU check)")
     ap.add_argument("--pile", type=int, default=0, help="cubes in the settled pile (0: no pile)")
     ap.add_argument("--pile-max-time", type=float, default=2.0)
+    ap.add_argument("--dt-scale", type=float, default=1.0, help='the step, x dt = "auto"')
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     wp.config.quiet = True
@@ -169,8 +178,8 @@ def main():
         name = law if m is None else f"{law} m={m:g}"
         row = {"law": law, "m": m, "e": e, "precision": precision}
         try:
-            row["cube"] = cube_case(args.device, law, m, e, precision, 100 if args.quick else 400)
-            row["slope"] = slope_case(args.device, law, m, e, precision, 0.1 if args.quick else 0.5)
+            row["cube"] = cube_case(args.device, law, m, e, precision, 100 if args.quick else 400, args.dt_scale)
+            row["slope"] = slope_case(args.device, law, m, e, precision, 0.1 if args.quick else 0.5, args.dt_scale)
         except Exception as exc:  # a case that cannot run (e.g. validate refuses it) is reported, not fatal
             row["error"] = f"{type(exc).__name__}: {exc}"
         rows.append(row)
@@ -184,9 +193,10 @@ def main():
             f"Fn/W {s['normal_min']:.4f}..{s['normal_max']:.4f}",
             flush=True,
         )
-    out = {"meta": run_meta(wp.get_device(args.device)), "polydem": os.path.dirname(polydem.__file__), "cases": rows}
+    out = {"meta": run_meta(wp.get_device(args.device)), "polydem": os.path.dirname(polydem.__file__)}
+    out |= {"dt_scale": args.dt_scale, "cases": rows}
     if args.pile:
-        pile = pile_case(args.device, args.pile, "mixed", args.pile_max_time)
+        pile = pile_case(args.device, args.pile, "mixed", args.pile_max_time, args.dt_scale)
         out["pile"] = pile
         print(
             f"pile of {pile['bodies']}: settled {pile['settled']} at {pile['settle_time']:.3f} s "

@@ -286,8 +286,9 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
         # dashpot's scale (damping_scale of the body's load).
         if vol <= C(0.0):
             kept = resp.kept_energy(
-                walls.turn[i, j], materials.k[mat], materials.law_m, materials.e[mat], dt, face_area, radius, inv_mass
-            )
+                walls.turn[i, j], materials.k[mat], materials.law_m, materials.e[mat], materials.toe_dt, face_area,
+                radius, inv_mass,
+            )  # fmt: skip
             if wp.static(diagnostics):
                 out.volume[i, j] = C(0.0)
                 out.energy[i, j] = kept
@@ -311,7 +312,7 @@ def make_wall_contact(law: str, friction: bool, diagnostics: bool, precision: st
         force, torque, xi, turn, energy, dl, n, point, fn, ft = resp.respond(
             vol, first_moment, s_a, m_a, fb_a, r_ab, v_a, w_a, v_b, w_b,
             materials.k[mat], materials.law_m, materials.e[mat], materials.mu[mat], materials.kt[mat], xi_in,
-            walls.turn[i, j], dt, radius, face_area, inv_mass, damping,
+            walls.turn[i, j], dt, materials.toe_dt, radius, face_area, inv_mass, damping,
         )  # fmt: skip
         if wp.static(diagnostics):
             out.volume[i, j] = vol
@@ -430,8 +431,9 @@ def make_contact_kernels(
         if vol <= C(0.0):
             # Until the step books what an opening contact kept, it is still part of its energy.
             kept = resp.kept_energy(
-                pairs.turn[p], materials.k[mat], materials.law_m, materials.e[mat], dt, area, r_min, inv_mass
-            )
+                pairs.turn[p], materials.k[mat], materials.law_m, materials.e[mat], materials.toe_dt, area, r_min,
+                inv_mass,
+            )  # fmt: skip
             if wp.static(diagnostics):
                 out.volume[p] = C(0.0)
                 out.energy[p] = kept
@@ -460,7 +462,8 @@ def make_contact_kernels(
             vol, first_moment, s_a, m_a, fb_a, r_ab,
             vec3c(bodies.v[a]), vec3c(bodies.w[a]), vec3c(bodies.v[b]), vec3c(bodies.w[b]),
             materials.k[mat], materials.law_m, materials.e[mat], materials.mu[mat], materials.kt[mat], xi_in,
-            pairs.turn[p], dt, r_min, area, inv_mass, C(damping_scale(body_damping[a], body_damping[b])),
+            pairs.turn[p], dt, materials.toe_dt, r_min, area, inv_mass,
+            C(damping_scale(body_damping[a], body_damping[b])),
         )  # fmt: skip
         if wp.static(diagnostics):
             out.volume[p] = vol

@@ -32,7 +32,8 @@ import numpy as np
 
 # The resolved toe of the laws stiffer than linear at V = 0 (kernels/response.py, toe_volume, and its host
 # twin scene/depth.py, toe_volume): a face contact is at most as stiff as a frequency of TOE_OMEGA_DT / dt
-# against the pair's translational mass, on the unloading branch (1 / e^2 stiffer than the loading one).
+# against the pair's translational mass, on the unloading branch (1 / e^2 stiffer than the loading one), dt the
+# larger of the run's step and the scene's recommended one (Model.toe_dt): the law is the same at every shorter step.
 # Symplectic Euler is stable below 2; a face contact of one degree of freedom rests for every restitution
 # up to 1.5.
 TOE_OMEGA_DT = 1.0

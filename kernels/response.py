@@ -208,10 +208,12 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
     def toe_volume(k: scalar, m: scalar, e: scalar, dt: scalar, area: scalar, r_min: scalar, inv_mass: scalar):
         """V_c [m^3] of the resolved toe: the normal stiffness W''(0) A^2 of a face of area ``area`` (the
         smaller of the two bodies' largest faces), taken 1/e^2 stiffer on the unloading branch, meets the
-        pair's translational mass (1 / ``inv_mass``) at a frequency of TOE_OMEGA_DT / dt. A constant of the
-        pair, so that W stays a function of V alone and the step's energy books stay exact; at most the
-        smaller bounding cube r_min^3. 0 (no toe) for a law without a singular stiffness, without a step
-        (the batch API) or without mass."""
+        pair's translational mass (1 / ``inv_mass``) at a frequency of TOE_OMEGA_DT / dt, dt the larger of the
+        run's step and the scene's recommended one (``Model.toe_dt``): below the recommended step a toe that
+        followed the run's (V_c ~ dt^4) made every refinement of dt another law; above it the run's step keeps
+        a face at rest resolved (BENCHMARKS.md section 25). A constant of the pair, so that W stays a function
+        of V alone and the step's energy books stay exact; at most the smaller bounding cube r_min^3. 0 (no
+        toe) for a law without a singular stiffness, without a step (the batch API) or without mass."""
         vc = scalar(0.0)
         if wp.static(toe_law):
             if (
@@ -261,11 +263,11 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
 
     @wp.func
     def kept_energy(
-        turn: scalar, k: scalar, m: scalar, e: scalar, dt: scalar, area: scalar, r_min: scalar, inv_mass: scalar
+        turn: scalar, k: scalar, m: scalar, e: scalar, toe_dt: scalar, area: scalar, r_min: scalar, inv_mass: scalar
     ):
         # (1 - e^2) W(turn) [J]: what the last impact of a contact that opens never gave back, dissipated
         # as it opens (its force may have ended before, at u = 0). Arguments as for toe_volume.
-        vc = toe_volume(k, m, e, dt, area, r_min, inv_mass)
+        vc = toe_volume(k, m, e, toe_dt, area, r_min, inv_mass)
         return (scalar(1.0) - e * e) * law_energy(turn, k, m, vc)
 
     @wp.func
@@ -333,6 +335,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         turn: scalar,
         # Step
         dt: scalar,
+        toe_dt: scalar,
         r_min: scalar,
         face_area: scalar,
         inv_mass: scalar,
@@ -341,14 +344,15 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         """Wrench on A from the overlap (V, V * centroid, S_A, M_A about x_A; all relative to x_A).
 
         ``fallback`` is the geometry's fallback area vector (the push of an enclosed pair, zero
-        otherwise), ``r_ab`` is x_B - x_A; ``turn`` the pair's
+        otherwise), ``r_ab`` is x_B - x_A; ``dt`` the run's step and ``toe_dt`` the step whose toe the law
+        takes (toe_volume); ``turn`` the pair's
         turning volume (0 for a new contact; unused for e = 1); ``damping_scale`` (<= 1) scales the tangential
         dashpot where the bodies' damping loads exceed DAMPING_SHARE (1 elsewhere). Returns (force on A, torque on A
         about x_A, new spring xi, new turning volume, stored energy, energy dissipated this step,
         unit normal, contact point relative to x_A, normal force magnitude, tangential force).
         """
         e2 = e * e
-        vc = toe_volume(k, m, e, dt, face_area, r_min, inv_mass)
+        vc = toe_volume(k, m, e, toe_dt, face_area, r_min, inv_mass)
         if e2 >= scalar(1.0):
             turn = scalar(0.0)
         kind, n, point, s, mom, s_norm = contact_frame(volume, first_moment, area, moment, fallback, r_ab, r_min)
@@ -538,7 +542,7 @@ def make_force_kernel(scalar, law: str):
             zero3, zero3, zero3, zero3,
             k, m, scalar(1.0), zero, zero,
             zero3, zero,
-            zero, pair_r_min[i], zero, zero, scalar(1.0),
+            zero, zero, pair_r_min[i], zero, zero, scalar(1.0),
         )  # fmt: skip
         out.force[i] = force
         out.torque_a[i] = torque

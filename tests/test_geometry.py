@@ -206,7 +206,7 @@ def response_kernel(law):
             vel, zero3, zero3, zero3,
             k, m, e, zero, zero,
             zero3, turn[i],
-            F64(1.0e-4), F64(1.0), F64(0.0), F64(1.0), F64(1.0),
+            F64(1.0e-4), F64(1.0e-4), F64(1.0), F64(0.0), F64(1.0), F64(1.0),
         )  # fmt: skip
         force[i] = f
         turn_out[i] = tn

@@ -103,7 +103,8 @@ class Model:
             ``num_planes``, the first mesh column; None without mesh walls) in the ``wp.struct`` the kernels
             take (:mod:`polydem.kernels.structs`), built once here.
         gravity: (3,) [m/s^2]; dt: time step [s]; dt_recommended, dt_limit: the recommended and the
-            largest accurate step [s] (from ``settings``).
+            largest accurate step [s] (from ``settings``); toe_dt: the step whose resolved toe the hertz and
+            power (m < 2) laws take [s], the larger of ``dt`` and the recommended step (kernels/response.py).
     """
 
     def __init__(
@@ -176,6 +177,10 @@ class Model:
 
         kt = self.settings.tangential_stiffness
         self.dt_recommended = self.settings.dt_recommended
+        # The resolved toe is the recommended step's at and below it, so that a shorter step integrates the same law
+        # (a toe that shrank with dt made each refinement another law); above it the run's, so that a face at rest
+        # stays resolved (the recommended step's toe made a cube on the floor chatter at 4x it: BENCHMARKS.md 25).
+        self.toe_dt = max(self.settings.dt, self.dt_recommended)
         self.dt_limit = self.settings.dt_limit
         self.dt = self.settings.dt
         self.gravity = np.asarray(scene.gravity, dtype=np.float64)
@@ -202,6 +207,7 @@ class Model:
             materials_struct(c),
             count=self.num_materials,
             law_m=self.law_m,
+            toe_dt=self.toe_dt,
             k=self.material_k,
             e=self.material_e,
             mu=self.material_mu,

@@ -43,18 +43,19 @@ V = 0 (hertz, power with m < 2) the simulator continues the law below a toe volu
 ``W'(V) = a V + b V^2``, ``a = (3 - m) k V_c^(m-2)``, ``b = (m - 2) k V_c^(m-3)`` (W' and W'' continuous
 at V_c). V_c is set per pair so that a face of area ``A_toe`` (the smaller of the two bodies' largest face
 areas) on the unloading branch (1/e^2 stiffer) has omega dt = TOE_OMEGA_DT against the pair's translational
-mass:
+mass, dt the larger of the run's step and the scene's recommended one (``Model.toe_dt``), so that a shorter
+step integrates the same law:
 ``a A_toe^2 inv_mass / e^2 = (TOE_OMEGA_DT / dt)^2``, so ``a = (TOE_OMEGA_DT e / dt)^2 / (inv_mass A_toe^2)``
 whatever k is. A lightly loaded face (A d << V_c) therefore rests on a linear spring of stiffness a A^2:
 
     d = F / (a A^2) = F inv_mass (A_toe / A)^2 (dt / (TOE_OMEGA_DT e))^2
 
-(deeper by about a third of A d / V_c, the b V^2 term), set by the time step and the pair's mass, not by k.
+(deeper by about a third of A d / V_c, the b V^2 term), set by that step and the pair's mass, not by k.
 A body resting on its largest face on a wall under its own weight (F inv_mass = g, A = A_toe) sits
 ``g (dt / (TOE_OMEGA_DT e))^2`` deep: 1.4e-9 m at dt = 6e-6 s, e = 0.5. Loads above
 the toe's ``F_c = k V_c^(m-1) A`` follow the law. Edges and corners below V_c rest on the toe too, where
-their force ``j a c^2 d^(2j-1)`` (a corner's d^5) is softer than the law's. Under dt = "auto" set by the
-reference contact (dt^2 ~ 1/k) V_c is a fixed share of the grain's volume, 4e-5 for a pair of 1 cm cubes
+their force ``j a c^2 d^(2j-1)`` (a corner's d^5) is softer than the law's. Where the reference contact
+sets the recommended step (dt^2 ~ 1/k) V_c is a fixed share of the grain's volume, 4e-5 for a pair of 1 cm cubes
 with e = 0.5 (so corners up to 3.5% of the edge deep), growing as 1/e^4; where the resting rule sets it
 (dt ~ 1/k, at stiffer k) V_c shrinks as 1/k^2. Give :class:`Toe` to include it; :func:`stiffness_for_depth`
 takes a function of k for it (:func:`auto_dt`), and :func:`pile_depths` says where a depth is the toe's.
@@ -462,10 +463,10 @@ def stiffness_for_depth(
 
     ``toe`` None: the law alone, the largest over the features of ``F / (W'_1(V(d)) |S(d)|)``, W'_1 the law
     with k = 1 (the force is proportional to k); for a cube's corner under hertz ``F / (3 (sqrt(3)/2)^1.5
-    d^3.5)``. Else a function of k giving the :class:`Toe` of a run at that k (:func:`auto_dt`: under
-    dt = "auto" the step follows k): the toe is softer than the law below V_c, so the k is found by bisection
-    above the law's; inf where no k reaches the depth (a fixed dt gives the toe a slope that does not grow
-    with k: lower dt).
+    d^3.5)``. Else a function of k giving the :class:`Toe` of a scene at that k (:func:`auto_dt`: the
+    recommended step, and with it the toe, follows k): the toe is softer than the law below V_c, so the k is
+    found by bisection above the law's; inf where no k reaches the depth (a given dt above the recommended
+    step gives the toe a slope that does not grow with k: lower dt).
     """
     if not (math.isfinite(depth) and depth > 0.0):
         raise ValueError(f"depth must be a positive length [m], got {depth!r}")
@@ -531,8 +532,8 @@ class PileDepth:
     its own [N]; ``column``: grains in a column ``height`` [m] tall (at least 1; see :func:`pile_depths`);
     ``depth_weight`` and ``depth_column``: feature -> :class:`Rest` under one weight and under the
     column's; ``allowed``: a corner depth as a share of the size, and the k that keeps every corner at most
-    that deep under the column: ``k_corner`` with the toe of the scene's time step (inf where its dt is
-    given and too long), ``k_corner_law`` by the law alone; ``partner``: what the toe's pair mass takes the
+    that deep under the column: ``k_corner`` with the toe of the scene's step (inf where its dt is given and
+    too long), ``k_corner_law`` by the law alone; ``partner``: what the toe's pair mass takes the
     grain to rest on ("a like grain", or "a wall" for a lone body); ``shallowest_face``: the
     :class:`Rest` of its shallowest face (its largest, as a rule) under its own weight.
     """
@@ -567,9 +568,10 @@ def pile_depths(scene, ts=None, allowed: float = ALLOWED_CORNER_DEPTH) -> list[P
     extent (their span along gravity plus a bounding diameter) or, where less, the bed they settle into
     (their volume at a solid fraction of BED_PACKING over their horizontal span), against the softest pair
     the grain can meet, with the toe of a pair of two such grains (of the grain and a wall where it is the
-    only free body) at the scene's time step (``ts``, its :class:`~polydem.scene.checks.TimeStep`; None: no
-    toe); and the k for a corner ``allowed`` of the size deep under the column (under dt = "auto" the step,
-    and with it the toe, follows k: :func:`auto_dt`). Empty without gravity or free bodies."""
+    only free body) of the scene's step, at least the recommended one (``ts``, its
+    :class:`~polydem.scene.checks.TimeStep`; None: no toe); and the k for a corner ``allowed`` of the size deep
+    under the column (the recommended step, and with it the toe, follows k: :func:`auto_dt`). Empty without
+    gravity or free bodies."""
     a = scene.body_arrays()
     free = a["kind"] == BodyKind.FREE
     g = float(np.linalg.norm(scene.gravity))
@@ -611,10 +613,13 @@ def pile_depths(scene, ts=None, allowed: float = ALLOWED_CORNER_DEPTH) -> list[P
         cuts = {f: shape_cuts(shape, f) for f in FEATURES}
         toe = None
         if ts is not None:
-            toe = Toe(e, ts.dt, pair_bodies / mass, shape.radius, largest_face_area(shape))
+            # The toe of the larger of the run's step and the recommended one (Model.toe_dt); the latter follows k.
+            toe = Toe(e, max(ts.dt, ts.recommended), pair_bodies / mass, shape.radius, largest_face_area(shape))
 
             def toe_at(kk, e=e, mass=mass, shape=shape, k0=k):
-                dt = auto_dt(ts, law, m_law, kk / k0) if scene.dt == "auto" else ts.dt
+                dt = auto_dt(ts, law, m_law, kk / k0)
+                if scene.dt != "auto":
+                    dt = max(dt, ts.dt)
                 return Toe(e, dt, pair_bodies / mass, shape.radius, largest_face_area(shape))
 
         under = [
