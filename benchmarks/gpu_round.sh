@@ -247,6 +247,19 @@ conv6() {
         --k-rule volume --speed-fraction off --max-time 1.5 --out $W/res/conv6_$tag.json > $W/log/conv6_$tag.log 2>&1
     done ) &
 }
+# MODE=conv7: Newton at 1e4 one step finer (NEWTON_DTS, default 6.25e-5 s), then polydem at k x 64 near its dt_rec
+# (1e4 cubes, seeds 0 and 1)
+conv7() {
+  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 10000 --device cuda:0 --out /tmp/pours/pour_10000.json \
+      > $W/log/export_10000.log 2>&1
+    gpu 0 python -u benchmarks/peers/newton_pour.py --grains 10000 --device cuda:0 --scene /tmp/pours/pour_10000.json \
+      --dt-sweep ${NEWTON_DTS:-6.25e-5} --max-time 4 --out $W/res/newton_10000.json > $W/log/newton_10000.log 2>&1
+    for seed in 0 1; do
+      gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes 1e4 --settings ${CONV7_SETTINGS:-64x4} \
+        --seeds $seed --k-rule volume --speed-fraction off --max-time 1.5 --out $W/res/conv7_s$seed.json \
+        > $W/log/conv7_s$seed.log 2>&1
+    done ) &
+}
 # MODE=toe1: long steps with the toe of the recommended step (benchmarks/toe_swap.py; 1e4 cubes): TOE_JOBS is a list
 # of "K S T SEED" (k factor, step and toe step as multiples of that k's dt_rec)
 toe1() {
@@ -271,6 +284,8 @@ elif [ "${MODE:-}" = conv5 ]; then
   conv5
 elif [ "${MODE:-}" = conv6 ]; then
   conv6
+elif [ "${MODE:-}" = conv7 ]; then
+  conv7
 elif [ "${MODE:-}" = toe1 ]; then
   toe1
 elif [ "${MODE:-}" = mesh ]; then
