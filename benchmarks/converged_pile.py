@@ -9,13 +9,14 @@ of that k, which falls as 1/k where the resting rule of ``Scene.time_step`` sets
 as k^-1/2) and each seed of ``--seeds``. Per size, the reference is the most refined
 setting (the largest k, then the smallest dt; the seeds' mean); a setting is converged where its mean phi and Z
 lie within ``--phi-tol`` (0.005) and ``--z-tol`` (0.1) of the reference's; the time to the converged pile is
-the wall time of the fastest converged setting (its seeds' mean). Whether the reference itself has stopped
-moving is reported too: the two most refined settings within the tolerances of each other.
+the wall time of the fastest converged setting (its seeds' mean), given only where the reference has stopped
+moving in both k and dt: the next smaller step at its k and the most refined setting of the next smaller k
+both within the tolerances of it (a pile at k x 64 stopped moving in dt and still moved with k: section 25).
 
 ``--newton FILE[,FILE]`` (``peers/newton_pour.py --dt-sweep`` results of the same pour, ``pour_scene.py
 export``) applies the same rule to Newton's rows, its smallest dt the reference, and prints the ratio of the
-times to the converged piles, only where both references have stopped moving. ``--analyse FILE[,FILE]`` reads
-runs of this script (their runs together) instead of running.
+times to the converged piles, only where both references have stopped moving (Newton's: in dt). ``--analyse
+FILE[,FILE]`` reads runs of this script (their runs together) instead of running.
 
     python benchmarks/converged_pile.py --device cpu --sizes 200 --settings 1x4,4x4 --max-time 1.5
     python benchmarks/converged_pile.py --device cuda:0 --sizes 1e5 --settings 1x4,4x4,16x4,1x1
@@ -65,6 +66,7 @@ def summarise(rows, refined_key):
         table.append({
             "setting": setting,
             "order": refined_key(rs[0]),
+            "k_factor": rs[0].get("k_factor"),
             "runs": len(rs),
             "settled": all(r["settled"] for r in rs),
             "phi": float(np.mean(phi)) if phi else None,
@@ -78,23 +80,40 @@ def summarise(rows, refined_key):
     return table
 
 
-def judge(table, phi_tol, z_tol):
+def judge(table, phi_tol, z_tol, by_k=False):
     """Marks each setting converged or not against the most refined one; returns (table, fastest converged
-    setting or None, whether the two most refined settings agree)."""
+    setting or None, whether the reference has stopped moving, the checks: (what was refined, the setting it was
+    refined from, its phi and Z minus the reference's, or None where no such setting ran)).
+
+    The reference has stopped moving where the next most refined setting lies within the tolerances of it; with
+    ``by_k`` (settings of k and dt) in both: the next smaller step at the reference's k (dt) and the most refined
+    setting of the next smaller k (k). A pile that stops moving in dt at one k may still move with k (the volume
+    law's corners: BENCHMARKS.md section 25)."""
 
     def near(a, b):
         if None in (a["phi"], b["phi"], a["z"], b["z"]):
             return False
         return abs(a["phi"] - b["phi"]) <= phi_tol and abs(a["z"] - b["z"]) <= z_tol
 
+    def check(name, other):
+        if other is None or None in (other["phi"], ref["phi"], other["z"], ref["z"]):
+            return (name, None if other is None else other["setting"], None, None, False)
+        return (name, other["setting"], ref["phi"] - other["phi"], ref["z"] - other["z"], near(other, ref))
+
     ref = table[-1]
     for t in table:
         t["converged"] = bool(t["settled"] and ref["settled"] and near(t, ref))
-    stopped = len(table) > 1 and near(table[-1], table[-2])
+    if by_k:
+        same_k = [t for t in table[:-1] if t["k_factor"] == ref["k_factor"]]
+        softer = [t for t in table if t["k_factor"] < ref["k_factor"]]
+        checks = [check("dt", same_k[-1] if same_k else None), check("k", softer[-1] if softer else None)]
+    else:
+        checks = [check("dt", table[-2] if len(table) > 1 else None)]
+    stopped = all(c[-1] for c in checks)
     # Without a reference that has stopped moving there is no converged pile to be near: no verdict.
     done = [t for t in table if t["converged"]] if stopped else []
     fastest = min(done, key=lambda t: t["wall_s"]) if done else None
-    return table, fastest, stopped
+    return table, fastest, stopped, checks
 
 
 def polydem_rows(record):
@@ -105,7 +124,7 @@ def newton_rows(record):
     return [dict(r, setting=f"dt {r['dt']:g} s", bodies=record["grains"]) for r in record["rows"]]
 
 
-def print_table(name, n, table, fastest, stopped):
+def print_table(name, n, table, fastest, stopped, checks):
     print(f"\n{name}, {n} grains (reference: the last row; converged: phi within the tolerance and Z too)")
     print(f"{'setting':>22s} {'runs':>4s} {'settled':>7s} {'t_settle':>8s} {'wall s':>8s} {'phi':>7s} {'Z':>6s} conv")
     for t in table:
@@ -115,16 +134,19 @@ def print_table(name, n, table, fastest, stopped):
             f"{t['setting']:>22s} {t['runs']:>4d} {str(t['settled']):>7s} {t['settle_time_s']:>8.3f} "
             f"{t['wall_s']:>8.2f} {phi:>7s} {z:>6s} {'yes' if t['converged'] else 'no'}"
         )
+    for what, other, dphi, dz, ok in checks:
+        if other is None:
+            print(f"  refined in {what}: no setting to compare with (run one)")
+        elif dphi is None:
+            print(f"  refined in {what} from {other}: no phi and Z to compare")
+        else:
+            print(f"  refined in {what} from {other}: phi {dphi:+.4f}, Z {dz:+.3f}: {'within' if ok else 'OUTSIDE'} "
+                  "the tolerances")  # fmt: skip
     if stopped:
-        print(f"  the two most refined agree; fastest converged: {fastest['setting'] if fastest else 'none'}")
-    elif len(table) > 1 and None not in (table[-1]["phi"], table[-2]["phi"], table[-1]["z"], table[-2]["z"]):
-        a, b = table[-1], table[-2]
-        print(
-            f"  NOT CONVERGED: the two most refined differ by {a['phi'] - b['phi']:+.4f} in phi and "
-            f"{a['z'] - b['z']:+.3f} in Z; the converged pile takes more than {a['wall_s']:.2f} s (refine further)"
-        )
+        print(f"  the reference has stopped moving; fastest converged: {fastest['setting'] if fastest else 'none'}")
     else:
-        print("  no verdict: fewer than two refined settings with phi and Z")
+        print(f"  NO VERDICT: the reference still moves (or was not refined); the converged pile takes more than "
+              f"{table[-1]['wall_s']:.2f} s")  # fmt: skip
 
 
 def analyse(record, newton_records, phi_tol, z_tol):
@@ -141,13 +163,14 @@ def analyse(record, newton_records, phi_tol, z_tol):
         entry = {}
         if by_size.get(n):
             # refined: stiffer first, then the smaller absolute step
-            table, fastest, stopped = judge(summarise(by_size[n], lambda r: (r["k_factor"], -r["dt"])), phi_tol, z_tol)
-            print_table("polydem", n, table, fastest, stopped)
-            entry["polydem"] = {"table": table, "fastest": fastest, "refined_agree": stopped}
+            summary = summarise(by_size[n], lambda r: (r["k_factor"], -r["dt"]))
+            table, fastest, stopped, checks = judge(summary, phi_tol, z_tol, by_k=True)
+            print_table("polydem", n, table, fastest, stopped, checks)
+            entry["polydem"] = {"table": table, "fastest": fastest, "refined_agree": stopped, "checks": checks}
         if newton_by_size.get(n):
-            table, fastest, stopped = judge(summarise(newton_by_size[n], lambda r: -r["dt"]), phi_tol, z_tol)
-            print_table("Newton", n, table, fastest, stopped)
-            entry["newton"] = {"table": table, "fastest": fastest, "refined_agree": stopped}
+            table, fastest, stopped, checks = judge(summarise(newton_by_size[n], lambda r: -r["dt"]), phi_tol, z_tol)
+            print_table("Newton", n, table, fastest, stopped, checks)
+            entry["newton"] = {"table": table, "fastest": fastest, "refined_agree": stopped, "checks": checks}
         p, q = (entry.get(c, {}).get("fastest") for c in ("polydem", "newton"))
         # a ratio only where both codes' references have stopped moving (judge gives no fastest otherwise)
         if p and q:

@@ -40,16 +40,36 @@ def test_the_fastest_setting_near_a_reference_that_stopped_moving(converged_pile
         run(16, 8, 1e-5, 0.520, 5.60, 9.0),  # faster than k x 16 at 4, but 0.008 off in phi
         run(16, 4, 5e-6, 0.529, 5.86, 25.0),
         run(64, 8, 3e-6, 0.528, 5.84, 50.0),
+        run(64, 4, 1.5e-6, 0.527, 5.85, 100.0),  # the reference: refined in dt from 64x8, in k from 16x4
     ]
     fast = newton((5e-4, 0.60, 6.5, 5.0), (2.5e-4, 0.545, 5.70, 14.0), (1.25e-4, 0.543, 5.65, 37.0))
     out = converged_pile.analyse({"runs": runs}, [fast], 0.005, 0.1)["1000"]
     p = out["polydem"]
     assert p["refined_agree"]
-    assert [t["converged"] for t in p["table"]] == [False, True, False, True, True]
+    assert [t["converged"] for t in p["table"]] == [False, True, False, True, True, True]
     assert p["fastest"]["setting"] == "k x4, dt x4" and p["fastest"]["runs"] == 2
     assert p["fastest"]["wall_s"] == pytest.approx(5.3)
     assert out["newton"]["fastest"]["setting"] == "dt 0.00025 s"
     assert out["newton_over_polydem"] == pytest.approx(14.0 / 5.3)
+
+
+def test_a_pile_converged_in_dt_but_moving_with_k_gets_no_verdict(converged_pile):
+    """Section 25's 1e4 cubes: k x 64 at 8 and 4 x its dt_rec agree, but k x 16 lies 0.018 in phi off (a first
+    version named k x 64 at 8 dt_rec the converged pile); and one k alone is no verdict either."""
+    runs = [
+        run(16, 2, 2.8e-6, 0.4973, 5.165, 46.3),
+        run(16, 1, 1.4e-6, 0.5001, 5.145, 95.3),
+        run(64, 8, 2.8e-6, 0.4844, 4.944, 49.9),
+        run(64, 4, 1.4e-6, 0.4817, 4.851, 104.0),
+    ]
+    p = converged_pile.analyse({"runs": runs}, [], 0.005, 0.1)["1000"]["polydem"]
+    dt_check, k_check = p["checks"]
+    assert dt_check[0] == "dt" and dt_check[1] == "k x64, dt x8" and dt_check[-1]
+    assert k_check[0] == "k" and k_check[1] == "k x16, dt x1" and not k_check[-1]
+    assert k_check[2] == pytest.approx(0.4817 - 0.5001)
+    assert not p["refined_agree"] and p["fastest"] is None
+    one_k = converged_pile.analyse({"runs": runs[2:]}, [], 0.005, 0.1)["1000"]["polydem"]
+    assert not one_k["refined_agree"] and one_k["checks"][1][1] is None
 
 
 def test_a_setting_is_k_factor_times_step(converged_pile):
