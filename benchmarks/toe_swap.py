@@ -2,9 +2,10 @@
 another step (BENCHMARKS.md section 24).
 
 Under hertz the simulator continues the law below a toe volume V_c set per pair from the run's step
-(``polydem.kernels.response.toe_volume``: its stiffness meets the pair's mass at TOE_OMEGA_DT e / dt). Here
-TOE_OMEGA_DT is multiplied by ``--dt-scale / --toe-step`` before any kernel is built, so that V_c is the one of a
-run at ``--toe-step`` x the recommended step while the run steps at ``--dt-scale`` x it: a pile that follows its
+(``polydem.kernels.response.toe_volume``: its stiffness meets the pair's mass at TOE_OMEGA_DT e / dt, dt the larger
+of the run's step and the recommended one since section 25). Here TOE_OMEGA_DT is multiplied by ``max(--dt-scale,
+1) / --toe-step`` before any kernel is built, so that V_c is the one of ``--toe-step`` x the recommended step
+while the run steps at ``--dt-scale`` x it: a pile that follows its
 toe comes out as the run at ``--toe-step``'s, one that follows its step as its own. ``--no-damping-share`` also
 takes the damping loads' scaling of the dashpots out (section 21b). A diagnostic: it changes module constants
 of ``polydem.kernels`` in this process only, with a kernel cache of its own.
@@ -43,8 +44,9 @@ def main():
     import warp as wp
 
     wp.config.quiet = True
-    # V_c goes with (dt / TOE_OMEGA_DT)^(2 / (2 - m)): the toe of T x dt_rec at a step of S x dt_rec takes S / T
-    toe = 1.0 if args.toe_step is None else args.dt_scale / args.toe_step
+    # V_c goes with (dt / TOE_OMEGA_DT)^(2 / (2 - m)), dt the larger of the step and dt_rec (Model.toe_dt): the toe
+    # of T x dt_rec at a step of S x dt_rec takes max(S, 1) / T
+    toe = 1.0 if args.toe_step is None else max(args.dt_scale, 1.0) / args.toe_step
     share = None if not args.no_damping_share else 1e30
     # Warp caches kernels by their source: the changed constants get a cache of their own.
     wp.config.kernel_cache_dir = os.path.join(tempfile.gettempdir(), f"polydem_toe_swap_{toe:g}_{share}")
