@@ -1854,3 +1854,41 @@ def test_derived_tangential_spring_has_the_normal_frequency():
         other.add_shape("cube", ConvexShape.box(0.02))
         other.add_body("cube", "stone", position=(0.0, 0.0, 0.1))
         assert other.time_step().period == pytest.approx(ts.period / ratio, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    "law, scale, warned",
+    [
+        ("hertz", 4.0, True),
+        ("hertz", 2.0, False),
+        ("hertz", None, False),
+        ("power2", 4.0, False),
+        ("linear", 4.0, False),
+    ],
+)
+def test_a_step_above_the_toes_reach_is_warned_about(law, scale, warned):
+    """Under hertz a given dt above 2 recommended steps puts the pile's small overlaps on the step's toe, whose
+    V_c grows as dt^4 (BENCHMARKS.md 24-25: at 4 dt_rec the pour's pile is another): a warning that says so and
+    how to mend it; none at 2, none for "auto", none for laws without the toe (power m = 2, linear)."""
+    kw = {"power2": dict(law="power", m=2.0, k=1e12), "linear": dict(law="linear", k=1e6)}.get(
+        law, dict(law=law, k=1e9)
+    )
+    scene = Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("m", density=2500.0, restitution=0.5, friction=0.5, **kw)
+    scene.add_shape("cube", ConvexShape.box(0.01))
+    scene.add_body("cube", "m", position=(0.0, 0.0, 0.005))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    recommended = scene.time_step().recommended
+    if scale is not None:
+        scene.dt = scale * recommended
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene.validate()
+    found = [str(w.message) for w in caught if "resolved toe" in str(w.message)]
+    if not warned:
+        assert not found
+        return
+    assert len(found) == 1 and found == [w for w in scene.warnings if "resolved toe" in w]
+    text = found[0]
+    assert "simulation.dt" in text and "4 times the recommended step" in text and "dt^4" in text
+    assert "256 times larger" in text and f"({2.0 * recommended:.3g} s)" in text and '"auto"' in text

@@ -59,6 +59,9 @@ STANDARD_GRAVITY = 9.80665
 # simulated time than this is most likely a time step far shorter than meant (a k or a density off by
 # powers of ten, or a dt in the wrong unit): the default steps are meant to show a scene moving.
 DEFAULT_RUN_MIN_TIME = 1.0e-6
+# A given dt above this many recommended steps under a law with the resolved toe is warned about
+# (check_toe_step): at 2 the 1000-cube pour's pile is the recommended step's, at 4 it is not.
+TOE_STEP_WARNING = 2.0
 
 
 def reference_stiffness(law, k, exponent, volume, area=None, width=None):
@@ -899,6 +902,29 @@ def check_position_spacing(scene, a) -> None:
         f"{limit:.3g} m of the origin (move the whole scene: only relative positions matter)",
         f"{where}.region" if where is not None else f"bodies[{i}].position",
     )
+
+
+def check_toe_step(scene, ts) -> list[str]:
+    """A warning where the scene gives a dt above TOE_STEP_WARNING recommended steps under a law with the
+    resolved toe (:func:`has_toe`): the toe is the run's step's there (``Model.toe_dt``), and its V_c grows as
+    dt^(2 / (2 - m)), so overlaps below it follow a stiffness set by dt instead of k, and a pile comes out
+    otherwise than at the recommended step (BENCHMARKS.md sections 24-25)."""
+    if scene.dt == "auto" or not (ts.recommended > 0.0 and ts.dt > TOE_STEP_WARNING * ts.recommended):
+        return []
+    table = scene.pair_table()
+    law, m = table["law"], float(table["exponent"])
+    if not has_toe(law, m):
+        return []
+    ratio = ts.dt / ts.recommended
+    power = 2.0 / (2.0 - m)
+    return [
+        f"simulation.dt = {ts.dt:.3g} s is {ratio:.3g} times the recommended step {ts.recommended:.3g} s: under the "
+        f"{law} law the resolved toe (the law below a volume V_c, which keeps a face at rest resolved) follows the "
+        f"step above the recommended one, V_c ~ dt^{power:.3g}, here {ratio**power:.3g} times larger, and overlaps "
+        "below it follow a stiffness set by dt instead of k, so a pile settles otherwise than at the recommended "
+        f'step; for results that hold as dt is refined use dt = "auto" or at most {TOE_STEP_WARNING:g} times it '
+        f"({TOE_STEP_WARNING * ts.recommended:.3g} s)"
+    ]
 
 
 def check_run_span(scene, dt: float, steps: int, source: str, default: bool = False) -> list[str]:

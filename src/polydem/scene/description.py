@@ -235,6 +235,8 @@ class Scene:
         * the time step (:meth:`time_step`): finite, a given dt within the stable limit, and the
           steps of the run (``duration / dt``) at most MAX_STEPS;
         * contacts stiff enough for the bodies' weight and initial speeds (see :func:`.checks.check_loads`);
+        * a given dt above TOE_STEP_WARNING recommended steps under a law with the resolved toe: a warning
+          (:func:`.checks.check_toe_step`);
         * tunnelling: a warning where a body starts faster than a step or its contacts can stop it
           before it is through the thinnest body (:meth:`tunnelling_limits`);
         * initial overlaps: a free body deep behind a plane wall or deep inside another body
@@ -265,6 +267,7 @@ class Scene:
         ts = checks.time_step(self)
         checks.check_steps(self, ts)
         found = checks.check_loads(self, a, ts)
+        found += checks.check_toe_step(self, ts)
         if pair_overlaps:
             self._overlap_messages = overlaps.check_initial_overlaps(self, a)
         self.pair_overlaps_pending = not pair_overlaps
