@@ -9,8 +9,8 @@ energy released, for ``--hold`` s) or ``--max-time``. Reported per run: the pack
 number of the settled interior (``polydem.cli.diagnostics.settled_region``, the run summary's definition;
 none for a bed narrower than about 4 cube diameters), and the depths of the corner contacts as fractions of
 the edge, largest and median, next to the static corner depth under a column of ``--layers`` cubes that
-``polydem.scene.depth`` predicts for the law alone and with the resolved toe of the run's dt. A contact is a
-corner (or two crossing edges) where its overlap ``V < 0.42 |S| d`` (a cap ``V = c d^j`` has
+``polydem.scene.depth`` predicts for the law alone and with the resolved toe of the run (``Model.toe_dt``). A
+contact is a corner (or two crossing edges) where its overlap ``V < 0.42 |S| d`` (a cap ``V = c d^j`` has
 ``V = |S| d / j``: 1 face, 1/2 edge, 1/3 corner), from ``polydem.overlap`` of the contact's two bodies.
 
     python benchmarks/k_convergence.py --device cpu                               # 125 cubes, about 10 minutes
@@ -89,7 +89,7 @@ def run_factor(factor, args, device):
     ratio = contact_kinds(scene, state, contacts, device)
     corner = ratio < CORNER_RATIO
     rel = contacts["depth"] / EDGE
-    law, toe = predicted_corner(scene, args, sim.dt)
+    law, toe = predicted_corner(scene, args, sim.model.toe_dt)
     return {
         "factor": factor,
         "k_hertz": info["k_hertz"],
