@@ -342,7 +342,7 @@ def incline_scene(theta_deg, e, mu=0.5, law="power", precision="mixed", depth=No
 
         probe = incline_scene(theta_deg, e, mu, law, precision, depth=0.0)
         mat, mass = probe.materials["m"], float(probe.body_mass()[0])
-        toe = depth_model.Toe(e, probe.time_step().recommended, 1.0 / mass)
+        toe = depth_model.Toe(e, probe.time_step().toe_dt, 1.0 / mass)
         load = mass * G * math.cos(th)
         rest = depth_model.resting_contact(
             probe.shapes["block"], mat.law, mat.k, load, "face", m=mat.m, toe=toe, shallowest=True

@@ -104,7 +104,7 @@ class Model:
             take (:mod:`polydem.kernels.structs`), built once here.
         gravity: (3,) [m/s^2]; dt: time step [s]; dt_recommended, dt_limit: the recommended and the
             largest accurate step [s] (from ``settings``); toe_dt: the step whose resolved toe the hertz and
-            power (m < 2) laws take [s], the larger of ``dt`` and the recommended step (kernels/response.py).
+            power (m < 2) laws take [s] (:func:`polydem.scene.checks.toe_step`).
     """
 
     def __init__(
@@ -177,10 +177,7 @@ class Model:
 
         kt = self.settings.tangential_stiffness
         self.dt_recommended = self.settings.dt_recommended
-        # The resolved toe is the recommended step's at and below it, so that a shorter step integrates the same law
-        # (a toe that shrank with dt made each refinement another law); above it the run's, so that a face at rest
-        # stays resolved (the recommended step's toe made a cube on the floor chatter at 4x it: BENCHMARKS.md 25).
-        self.toe_dt = max(self.settings.dt, self.dt_recommended)
+        self.toe_dt = self.settings.dt_toe
         self.dt_limit = self.settings.dt_limit
         self.dt = self.settings.dt
         self.gravity = np.asarray(scene.gravity, dtype=np.float64)

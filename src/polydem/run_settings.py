@@ -40,6 +40,7 @@ class RunSettings:
     Attributes:
         dt: time step [s]: the scene's dt, or the recommended step for dt = "auto".
         dt_recommended: the step the scene's contacts resolve well [s] (:class:`~polydem.scene.TimeStep`).
+        dt_toe: the step whose resolved toe the hertz and power (m < 2) laws take [s] (``TimeStep.toe_dt``).
         dt_limit: the largest accurate step [s].
         tangential_stiffness: (M, M) float64 friction spring stiffness of every material pair [N/m]
             (read-only): the materials' value, else the one derived from the free shapes.
@@ -61,6 +62,7 @@ class RunSettings:
 
     dt: float
     dt_recommended: float
+    dt_toe: float
     dt_limit: float
     tangential_stiffness: np.ndarray
     skin: float
@@ -106,6 +108,7 @@ def run_settings(scene: Scene, skin: float | None = None) -> RunSettings:
     return RunSettings(
         dt=float(ts.dt),
         dt_recommended=float(ts.recommended),
+        dt_toe=float(ts.toe_dt),
         dt_limit=float(ts.limit),
         tangential_stiffness=kt,
         skin=skin,

@@ -168,6 +168,19 @@ class TimeStep:
     tangential_stiffness: np.ndarray
     resting: float = math.inf
 
+    @property
+    def toe_dt(self) -> float:
+        """The step whose resolved toe a run takes [s] (:func:`toe_step` of ``dt`` and ``recommended``)."""
+        return toe_step(self.dt, self.recommended)
+
+
+def toe_step(dt: float, recommended: float) -> float:
+    """The step [s] whose resolved toe (kernels/response.py, toe_volume) a run at ``dt`` takes: the recommended
+    step's at and below it, so that a shorter step integrates the same law (a toe that shrank with dt made each
+    refinement another law); the run's above it, so that a face at rest stays resolved (the recommended step's toe
+    made a cube on the floor chatter at 4x it: BENCHMARKS.md section 25)."""
+    return max(dt, recommended)
+
 
 def _ln(x) -> float:
     """Natural log of a positive float, -inf for 0 (log-space arithmetic of the range checks)."""

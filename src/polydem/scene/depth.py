@@ -613,13 +613,14 @@ def pile_depths(scene, ts=None, allowed: float = ALLOWED_CORNER_DEPTH) -> list[P
         cuts = {f: shape_cuts(shape, f) for f in FEATURES}
         toe = None
         if ts is not None:
-            # The toe of the larger of the run's step and the recommended one (Model.toe_dt); the latter follows k.
-            toe = Toe(e, max(ts.dt, ts.recommended), pair_bodies / mass, shape.radius, largest_face_area(shape))
+            from polydem.scene.checks import toe_step
+
+            toe = Toe(e, ts.toe_dt, pair_bodies / mass, shape.radius, largest_face_area(shape))
 
             def toe_at(kk, e=e, mass=mass, shape=shape, k0=k):
-                dt = auto_dt(ts, law, m_law, kk / k0)
-                if scene.dt != "auto":
-                    dt = max(dt, ts.dt)
+                # The recommended step follows k; a given dt does not (dt = "auto": the recommended step).
+                rec = auto_dt(ts, law, m_law, kk / k0)
+                dt = toe_step(rec if scene.dt == "auto" else ts.dt, rec)
                 return Toe(e, dt, pair_bodies / mass, shape.radius, largest_face_area(shape))
 
         under = [
