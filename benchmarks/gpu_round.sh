@@ -260,6 +260,20 @@ conv7() {
         > $W/log/conv7_s$seed.log 2>&1
     done ) &
 }
+# MODE=conv8: the CUDA tests of the toe's kernels (CONV8_TESTS, at most 150 s), then the pour under the power law
+# m = 2 (a face contact is a linear spring: its step falls as k^-1/2, no toe), 1e4 cubes: CONV8_JOBS lines of
+# "SETTINGS SEEDS TAG"
+conv8() {
+  ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(( $(left) < 150 ? $(left) : 150 )) python -m pytest -q \
+      -rf --tb=short -p no:cacheprovider ${CONV8_TESTS:-tests/test_geometry.py tests/test_at_rest.py tests/test_laws.py} \
+      > $W/log/pytest.log 2>&1
+    while read -r settings seeds tag; do
+      [ -z "$settings" ] && continue
+      gpu 0 python -u benchmarks/converged_pile.py --device cuda:0 --sizes 1e4 --settings $settings --seeds $seeds \
+        --law power --exponent 2 --k-rule volume --speed-fraction off --max-time 1.5 --out $W/res/conv8_$tag.json \
+        > $W/log/conv8_$tag.log 2>&1
+    done <<< "${CONV8_JOBS:-1x1,16x1,256x1,1024x2 0 a}" ) &
+}
 # MODE=toe1: long steps with the toe of the recommended step (benchmarks/toe_swap.py; 1e4 cubes): TOE_JOBS is a list
 # of "K S T SEED" (k factor, step and toe step as multiples of that k's dt_rec)
 toe1() {
@@ -286,6 +300,8 @@ elif [ "${MODE:-}" = conv6 ]; then
   conv6
 elif [ "${MODE:-}" = conv7 ]; then
   conv7
+elif [ "${MODE:-}" = conv8 ]; then
+  conv8
 elif [ "${MODE:-}" = toe1 ]; then
   toe1
 elif [ "${MODE:-}" = mesh ]; then

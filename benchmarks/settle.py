@@ -105,7 +105,7 @@ import warp as wp
 from polydem.kernels.broadphase import TREE_REBUILD_RATIO
 
 from polydem import ConvexShape, Scene, Simulation
-from polydem.scene.depth import stiffness_for_depth
+from polydem.scene.depth import Law, stiffness_for_depth
 from polydem.simulation import CHUNK_STEPS as CHUNK
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -147,37 +147,45 @@ def half_heights(q, edge):
     return 0.5 * edge * (np.abs(r20) + np.abs(r21) + np.abs(r22))
 
 
-def hertz_k(edge, density, layers, overlap, load_factor, g=9.81):
-    """Hertz k [J/m^4.5] of the former rule (``--k-rule volume``): a face contact (area edge^2) carrying
+def hertz_k(edge, density, layers, overlap, load_factor, g=9.81, law="hertz", m=None):
+    """k of the former rule (``--k-rule volume``; J/m^4.5 under hertz): a face contact (area edge^2) carrying
     load_factor times the weight of a column of ``layers`` cubes overlaps by ``overlap`` of the cube volume.
 
-    W = 2/3 k V^1.5, so the force of a face contact of overlap volume V is k sqrt(V) edge^2.
+    W = 2/3 k V^1.5, so the force of a face contact of overlap volume V is k sqrt(V) edge^2; under ``law``
+    "power" (W = k V^m / m) it is k V^(m-1) edge^2.
     """
     force = load_factor * layers * density * edge**3 * g
     volume = overlap * edge**3
-    return force / (math.sqrt(volume) * edge**2)
+    return force / (Law(law, 1.0, m).derivative(volume) * edge**2)
 
 
 K_RULES = ("corner", "volume")
 """``--k-rule``: an allowed corner depth under a column (the default), or the former volume overlap of a face."""
 
 
-def corner_k(shapes, edge, density, layers, depth, g=9.81):
-    """Hertz k [J/m^4.5] that keeps every corner of ``shapes`` (each of volume edge^3) at most ``depth`` times
+def corner_k(shapes, edge, density, layers, depth, g=9.81, law="hertz", m=None):
+    """k of ``law`` (J/m^4.5 under hertz) that keeps every corner of ``shapes`` (each of volume edge^3) at most ``depth`` times
     ``edge`` deep under the weight of a column of ``layers`` of them (the law alone, without the resolved toe)."""
     load = layers * density * edge**3 * g
-    return max(stiffness_for_depth(shape, "hertz", depth * edge, load, "corner") for shape in shapes)
+    return max(stiffness_for_depth(shape, law, depth * edge, load, "corner", m=m) for shape in shapes)
+
+
+def pile_law(args):
+    """(law, m) of the pile's material: ``--law`` (hertz, the default, or power with ``--exponent`` m)."""
+    law = getattr(args, "law", "hertz")
+    return law, (getattr(args, "exponent", 2.0) if law == "power" else None)
 
 
 def pile_k(args, shapes):
-    """The pile's hertz k [J/m^4.5] by ``args.k_rule`` times ``args.k_factor`` (see the module docstring). A
+    """The pile's k (J/m^4.5 under hertz) by ``args.k_rule`` times ``args.k_factor`` (see the module docstring). A
     namespace without ``k_rule`` (built by hand with the former rule's ``overlap`` and ``load_factor``) gets the
     volume rule."""
     rule = getattr(args, "k_rule", "volume")
+    law, m = pile_law(args)
     if rule == "corner":
-        k = corner_k(shapes, args.edge, args.density, args.layers, args.corner_depth)
+        k = corner_k(shapes, args.edge, args.density, args.layers, args.corner_depth, law=law, m=m)
     elif rule == "volume":
-        k = hertz_k(args.edge, args.density, args.layers, args.overlap, args.load_factor)
+        k = hertz_k(args.edge, args.density, args.layers, args.overlap, args.load_factor, law=law, m=m)
     else:
         raise ValueError(f"k_rule must be one of {K_RULES}, got {rule!r}")
     return k * getattr(args, "k_factor", 1.0)
@@ -230,8 +238,10 @@ def make_scene(n, args, seed=0):
     k = pile_k(args, shapes)
     scene = Scene(gravity=(0.0, 0.0, -9.81), dt="auto", name=f"settle_{n}")
     scene.precision = getattr(args, "precision", "float32")
+    law, m = pile_law(args)
+    extra = {} if m is None else {"m": m}
     scene.add_material(
-        "grain", density=args.density, law="hertz", k=k, restitution=args.restitution, friction=args.friction
+        "grain", density=args.density, law=law, k=k, restitution=args.restitution, friction=args.friction, **extra
     )
     for shape in shapes:
         scene.add_shape(shape.name, shape)
@@ -313,6 +323,8 @@ def make_scene(n, args, seed=0):
         "container_inner_m": [lx, ly, lz],
         "walls": args.walls,
         "k_hertz": k,
+        "law": law,
+        "m": m,
         "k_rule": getattr(args, "k_rule", "volume"),
         "order": getattr(args, "order", "grid"),
     }
@@ -971,6 +983,8 @@ def add_pile_options(ap):
         "--corner-depth", type=float, default=0.05, help="k rule corner: largest corner depth / edge under a column"
     )
     ap.add_argument("--k-factor", type=float, default=1.0, help="k = this x the rule's")
+    ap.add_argument("--law", choices=("hertz", "power"), default="hertz", help="the grains' contact law")
+    ap.add_argument("--exponent", type=float, default=2.0, help="m of --law power (W = k V^m / m)")
     ap.add_argument("--order", choices=ORDERS, default="grid", help="listing order of the cubes in memory")
     ap.add_argument(
         "--tree-rebuild",

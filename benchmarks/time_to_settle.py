@@ -72,7 +72,7 @@ def run_size(n, args, device, dt_scale=1.0):
 
     options = scene_options(
         edge=EDGE, precision=args.precision, order=args.order, shapes=args.shapes, k_rule=args.k_rule,
-        corner_depth=args.corner_depth, k_factor=args.k_factor,
+        corner_depth=args.corner_depth, k_factor=args.k_factor, law=args.law, exponent=args.exponent,
     )  # fmt: skip
     scene, info = make_scene(n, options, seed=args.seed)
     scene = with_tangential_ratio(scene, args.tangential_ratio)
