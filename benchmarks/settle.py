@@ -164,8 +164,8 @@ K_RULES = ("corner", "volume")
 
 
 def corner_k(shapes, edge, density, layers, depth, g=9.81, law="hertz", m=None):
-    """k of ``law`` (J/m^4.5 under hertz) that keeps every corner of ``shapes`` (each of volume edge^3) at most ``depth`` times
-    ``edge`` deep under the weight of a column of ``layers`` of them (the law alone, without the resolved toe)."""
+    """k of ``law`` (J/m^4.5 under hertz) that keeps every corner of ``shapes`` (each of volume edge^3) at most
+    ``depth`` times ``edge`` deep under the weight of a column of ``layers`` of them (the law alone, no toe)."""
     load = layers * density * edge**3 * g
     return max(stiffness_for_depth(shape, law, depth * edge, load, "corner", m=m) for shape in shapes)
 
