@@ -258,7 +258,7 @@ def test_stack_of_five_cubes_holds_on_a_slope(device):
 def test_leaning_pair_holds(device):
     """Two 2 x 10 x 20 cm boards leaning on each other at 15 degrees from the vertical, top edges
     touching, on a floor with mu = 0.5 (each needs a friction of 0.084 times its normal force):
-    after 0.24 s neither moves more than 5e-8 m in 40 ms."""
+    after 0.32 s neither moves more than 1e-8 m in 40 ms."""
     w, d, h = 0.02, 0.1, 0.2
     tilt = math.radians(15.0)
     scene = material_scene(density=2700.0, k=1.0e9, friction=0.5)
@@ -273,16 +273,17 @@ def test_leaning_pair_holds(device):
         scene.add_body("board", "m", position=pos, orientation=tuple(rot.as_quat()))
     scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
     sim = Simulation(scene, device)
-    # Set down touching, they sink into their contacts and settle (0.4 mm in the first 20 ms, 1e-7 m per
-    # 20 ms at 0.2 s, 1e-10 m from 0.26 s on).
-    sim.step(int(0.24 / sim.dt))
+    # Set down touching, they sink into their contacts and settle: 0.3 mm in the first 40 ms, 1e-7 m in the
+    # 40 ms to 0.24 s, then at rest, 1e-9 m per 40 ms from 0.28 s on the CPU and from 0.32 s on an H200 (whose
+    # rounding keeps them sliding for one window more: 6e-8 m to 0.28 s, where an earlier window failed there).
+    sim.step(int(0.32 / sim.dt))
     x0 = sim.state()["body_position"].copy()
     sim.step(int(0.04 / sim.dt))
     moved = np.linalg.norm(sim.state()["body_position"] - x0, axis=1)
     c = sim.contacts()
     print(f"\nleaning pair: largest move {moved.max():.3g} m in 40 ms; {len(c['volume'])} contacts")
     assert len(c["volume"]) == 3  # each on the floor, and the two tops
-    assert moved.max() < 5e-8
+    assert moved.max() < 1e-8
 
 
 # ---------------------------------------------------------------------------------------------
