@@ -139,9 +139,10 @@ def pair_inputs(kernel, arrays):
     return [BatchPairs(*arrays).struct()]
 
 
-def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None):
+def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None, clip="polygon"):
     """Median seconds of a launch of the engine's overlap kernel over the pairs, and the outputs.
-    ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode)."""
+    ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode).
+    ``clip``: make_geometry's clipping method (only "polygon" exists in trees before it)."""
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
@@ -150,7 +151,10 @@ def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=
     vec3 = wp.types.vector(3, scalar)
     tf = wp.types.transformation(pose_scalar)
     cap, faces = shapes.default_poly_capacity, shapes.max_faces
-    kernel = make_narrowphase(scalar, cap, faces, max_registers=max_registers, pose_scalar=pose_scalar).overlap_kernel
+    extra = {} if clip == "polygon" else {"clip": clip}
+    kernel = make_narrowphase(
+        scalar, cap, faces, max_registers=max_registers, pose_scalar=pose_scalar, **extra
+    ).overlap_kernel
     pair_arrays = [
         wp.zeros(n, dtype=int, device=dev),
         wp.zeros(n, dtype=int, device=dev),
@@ -204,6 +208,9 @@ def main():
     ap.add_argument("--precisions", default="float32,float64")
     ap.add_argument("--shapes", default="cube,tetrahedron,rock20,hull64")
     ap.add_argument("--depths", default="0.001,0.01,0.1", help="depths of the touching half; 'flat': flat contacts")
+    ap.add_argument(
+        "--clips", default="polygon", help="comma-separated clipping methods (make_geometry's clip: polygon, edges)"
+    )
     ap.add_argument("--out", default=os.path.join(HERE, "results", "pair_kernel.json"))
     args = ap.parse_args()
 
@@ -217,8 +224,8 @@ def main():
     cases = {}  # poses per (shape, depth), shared by both precisions
     print(f"device {dev.name} ({dev.alias}), {n} pairs per case, half touching, median of {repeats}")
     print(
-        f"{'shape':<12}{'faces':>6}{'depth':>8}{'prec':>9}{'touch':>7}{'Mpairs/s':>11}{'ns/pair':>10}"
-        f"{'err V':>10}{'err S':>10}"
+        f"{'shape':<12}{'faces':>6}{'depth':>8}{'prec':>9}{'clip':>9}{'touch':>7}{'Mpairs/s':>11}{'ns/pair':>10}"
+        f"{'err V':>10}{'err S':>10}{'vs first':>10}"
     )
     for prec in args.precisions.split(","):
         for name in args.shapes.split(","):
@@ -230,33 +237,51 @@ def main():
                 elif (name, depth) not in cases:
                     cases[name, depth] = make_pairs(shape, n, depth, np.random.default_rng(12345), dev)
                 pa, pb = cases[name, depth]
-                t, outs = time_kernel(shapes, pa, pb, repeats)
-                ev, es = reference_errors(shape, pa, pb, outs, args.sample)
-                touching = int((outs[0][: n // 2] > 0).sum())
-                row = {
-                    "shape": name,
-                    "faces": shape.num_faces,
-                    "vertices": shape.num_vertices,
-                    "depth": depth,
-                    "precision": prec,
-                    "pairs": n,
-                    "touching": touching,
-                    "seconds": t,
-                    "pairs_per_second": n / t,
-                    "error_volume": ev,
-                    "error_area_vector": es,
-                    # SHA-256 of all outputs: two trees that agree here gave the same bits.
-                    "outputs_sha256": hashlib.sha256(b"".join(o.tobytes() for o in outs)).hexdigest(),
-                }
-                rows.append(row)
-                label = depth if depth == "flat" else f"{depth:.3g}"
-                print(
-                    f"{name:<12}{shape.num_faces:>6}{label:>8}{prec:>9}{touching / (n // 2):>7.0%}"
-                    f"{n / t / 1e6:>11.1f}{t / n * 1e9:>10.1f}{ev:>10.1e}{es:>10.1e}",
-                    flush=True,
-                )
-                write(args.out, dev, rows)
+                first = None
+                for clip in args.clips.split(","):
+                    t, outs = time_kernel(shapes, pa, pb, repeats, clip=clip)
+                    # The largest difference from the first method's outputs, over the size's power of each.
+                    size = 2.0 * shape.radius
+                    diff = 0.0
+                    if first is None:
+                        first = outs
+                    else:
+                        for o, f0, power in zip(outs, first, (3, 4, 2, 3, 2, 3, 2), strict=True):
+                            d = np.abs(o.astype(np.float64) - f0.astype(np.float64)).max() if len(o) else 0.0
+                            diff = max(diff, float(d) / size**power)
+                    rows.append(case_row(args, shape, name, depth, prec, clip, n, t, outs, pa, pb, diff))
+                    write(args.out, dev, rows)
     print(f"wrote {args.out}")
+
+
+def case_row(args, shape, name, depth, prec, clip, n, t, outs, pa, pb, diff):
+    """One case's row (printed as a table line)."""
+    ev, es = reference_errors(shape, pa, pb, outs, args.sample)
+    touching = int((outs[0][: n // 2] > 0).sum())
+    row = {
+        "shape": name,
+        "faces": shape.num_faces,
+        "vertices": shape.num_vertices,
+        "depth": depth,
+        "precision": prec,
+        "clip": clip,
+        "pairs": n,
+        "touching": touching,
+        "seconds": t,
+        "pairs_per_second": n / t,
+        "error_volume": ev,
+        "error_area_vector": es,
+        "difference_from_first_clip": diff,
+        # SHA-256 of all outputs: two trees that agree here gave the same bits.
+        "outputs_sha256": hashlib.sha256(b"".join(o.tobytes() for o in outs)).hexdigest(),
+    }
+    label = depth if depth == "flat" else f"{depth:.3g}"
+    print(
+        f"{name:<12}{shape.num_faces:>6}{label:>8}{prec:>9}{clip:>9}{touching / (n // 2):>7.0%}"
+        f"{n / t / 1e6:>11.1f}{t / n * 1e9:>10.1f}{ev:>10.1e}{es:>10.1e}{diff:>10.1e}",
+        flush=True,
+    )
+    return row
 
 
 def write(path, dev, rows):
