@@ -12,7 +12,10 @@ SHA-256 of each case's outputs (two trees that agree there gave the same bits).
 
 The other ways of holding the kernel's working set that BENCHMARKS.md section 7c compares live at
 the git tag ``pair-variants-7c``, where this script takes ``--variants``; the clip layouts of issue 27
-(BENCHMARKS.md section 14) at the tag ``clip-layouts-27``, where ``pair_layouts.py`` times them.
+(BENCHMARKS.md section 14) at the tag ``clip-layouts-27``, where ``pair_layouts.py`` times them; the clipping
+without a polygon buffer (``make_geometry(clip="edges")``, BENCHMARKS.md section 26) at the tag ``clip-edges-27``,
+where ``--clips polygon,edges`` times both on the same pairs and prints each one's largest difference from the
+first (over the size's power of each output). This tree has the polygon method only.
 """
 
 import argparse

@@ -93,9 +93,6 @@ PARALLEL_COS = 0.999
 # geometry then also returns the fallback area vector that contact_frame pushes along.
 ENCLOSED_RATIO = 1.0e-4
 
-CLIP_METHODS = ("polygon", "edges")
-"""``make_geometry(clip=)``: Sutherland-Hodgman over a polygon buffer, or the facet's boundary piece by piece."""
-
 vec3d = wp.types.vector(3, wp.float64)
 quatd = wp.types.quaternion(wp.float64)
 mat33d = wp.types.matrix(shape=(3, 3), dtype=wp.float64)
@@ -417,7 +414,6 @@ def make_geometry(
     max_faces: int,
     coincident_tol: float | None = None,
     pose_scalar=None,
-    clip: str = "polygon",
 ) -> Geometry:
     """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
@@ -431,14 +427,7 @@ def make_geometry(
         coincident_tol: relative tolerance of the coincident-face test (default per precision).
         pose_scalar: precision of the poses taken (default ``scalar``); ``wp.float64`` with a
             ``wp.float32`` ``scalar`` is the mixed mode.
-        clip: how a face is cut to its facet. "polygon" (the default): Sutherland-Hodgman passes over a
-            per-thread polygon buffer. "edges": no buffer; the facet's area and moment are summed over its
-            boundary, the face's own edges cut to the other body and the chords that the other body's planes
-            cut across the face, each clipped as a parameter interval (a measured variant: the buffer's
-            local-memory traffic bounds the pair kernel; see BENCHMARKS.md section 26).
     """
-    if clip not in CLIP_METHODS:
-        raise ValueError(f"clip must be one of {CLIP_METHODS}, got {clip!r}")
     if pose_scalar is None:
         pose_scalar = scalar
     prim = make_primitives(scalar, pose_scalar)
@@ -577,55 +566,6 @@ def make_geometry(
                 return False
         return True
 
-    # What a plane of the other body does to a face (plane_cuts): nothing (the face lies inside it), cut it,
-    # leave nothing of it (the face lies beyond), or share it (coincident, same outward normal).
-    plane_inside = 0
-    plane_clips = 1
-    plane_outside = 2
-    plane_shared = 3
-
-    @wp.func
-    def other_plane(
-        shapes: Shapes, face_is_1: bool, other: int, turned: bool, frame: quatd, apex: vec3d, rot_l: mat33d,
-        off_2: vec3d,
-    ):  # fmt: skip
-        # Plane of face `other` of the body that does not own the face being clipped, pair-local.
-        if face_is_1:
-            return plane_row_2(shapes, other, rot_l, off_2)
-        return plane_row_1(shapes, other, turned, frame, apex)
-
-    @wp.func
-    def plane_cuts(
-        shapes: Shapes, face_is_1: bool, face: int, other: int, plane: vec4, pl: vec4, centre: vec3, r: scalar,
-        rot_l: mat33d, off_2: vec3d, tol_c: scalar,
-    ):  # fmt: skip
-        # The polygon variant's tests of a plane against a face (bounding sphere `centre`, `r`), in its order.
-        nc = vec3(pl[0], pl[1], pl[2])
-        dist_c = plane_distance(nc, pl[3], centre)
-        if dist_c <= -r:
-            return plane_inside
-        if dist_c > r:
-            return plane_outside
-        if wp.dot(vec3(plane[0], plane[1], plane[2]), nc) >= scalar(parallel_cos):
-            same = bool(False)
-            if face_is_1:
-                same = coincident(shapes, plane, other, rot_l, off_2, tol_c)
-            else:
-                same = coincident(shapes, pl, face, rot_l, off_2, tol_c)
-            if same:
-                return plane_shared
-        return plane_clips
-
-    @wp.func
-    def skipped(
-        shapes: Shapes, skip: wp.uint64, t: int, face_is_1: bool, face: int, other: int, plane: vec4, pl: vec4,
-        centre: vec3, r: scalar, rot_l: mat33d, off_2: vec3d, tol_c: scalar,
-    ):  # fmt: skip
-        # Whether plane t leaves the face as it is: its bit of `skip` for the first 64, else plane_cuts again.
-        if t < 64:
-            return ((skip >> wp.uint64(t)) & wp.uint64(1)) != wp.uint64(0)
-        return plane_cuts(shapes, face_is_1, face, other, plane, pl, centre, r, rot_l, off_2, tol_c) != plane_clips
-
     @wp.func
     def extent_overlaps(shapes: Shapes, s1: int, s2: int, rot: mat33d, pos: vec3d, u: vec3d):
         # How far body 1 (own frame) reaches past body 2 (at rot x + pos) along the unit vector u,
@@ -737,8 +677,7 @@ def make_geometry(
         # assignment next to that is the same fill (a later one was a second).
         ids_1 = ids_t()
         ids_2 = ids_t()
-        if wp.static(clip == "polygon"):
-            poly = poly_t()
+        poly = poly_t()
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         rot_ct = wp.transpose(rot_c)
         # Separating face planes, by bounding spheres first and exactly (all of the other body's
@@ -913,137 +852,43 @@ def make_geometry(
                     centre = to_scalar3(c64 - apex)
             else:
                 centre = to_scalar3(rot_l * c64 + off_2)
+            for k in range(count):
+                poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
             weight = scalar(1.0)
             alive = bool(True)
-            sum_a2 = scalar(0.0)
-            sum_c = zero3
-            if wp.static(clip == "polygon"):
-                for k in range(count):
-                    poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
-                weight = scalar(1.0)
-                alive = bool(True)
-                for t in range(num_planes):
-                    other = int(0)
+            for t in range(num_planes):
+                other = int(0)
+                if face_is_1:
+                    other = face_of(ids_2[slot(t)], t, f20)
+                else:
+                    other = face_of(ids_1[slot(t)], t, f10)
+                pl = vec4()
+                if face_is_1:
+                    pl = plane_row_2(shapes, other, rot_l, off_2)
+                else:
+                    pl = plane_row_1(shapes, other, turned, frame, apex)
+                nc = vec3(pl[0], pl[1], pl[2])
+                dc = pl[3]
+                dist_c = plane_distance(nc, dc, centre)
+                if dist_c <= -sph[3]:
+                    continue  # the whole face lies inside this plane
+                if dist_c > sph[3]:
+                    alive = False
+                    break
+                if wp.dot(nf, nc) >= scalar(parallel_cos):
+                    # Coincident faces with the same outward normal: shared half and half, decided
+                    # by one function evaluated the same way from both sides (body 1's plane, body
+                    # 2's face), so both sides agree bit for bit. Opposite normals are no special
+                    # case: a flat contact of any thickness is clipped like any other.
+                    same = bool(False)
                     if face_is_1:
-                        other = face_of(ids_2[slot(t)], t, f20)
+                        same = coincident(shapes, plane, other, rot_l, off_2, tol_c)
                     else:
-                        other = face_of(ids_1[slot(t)], t, f10)
-                    pl = vec4()
-                    if face_is_1:
-                        pl = plane_row_2(shapes, other, rot_l, off_2)
-                    else:
-                        pl = plane_row_1(shapes, other, turned, frame, apex)
-                    nc = vec3(pl[0], pl[1], pl[2])
-                    dc = pl[3]
-                    dist_c = plane_distance(nc, dc, centre)
-                    if dist_c <= -sph[3]:
-                        continue  # the whole face lies inside this plane
-                    if dist_c > sph[3]:
-                        alive = False
-                        break
-                    if wp.dot(nf, nc) >= scalar(parallel_cos):
-                        # Coincident faces with the same outward normal: shared half and half, decided
-                        # by one function evaluated the same way from both sides (body 1's plane, body
-                        # 2's face), so both sides agree bit for bit. Opposite normals are no special
-                        # case: a flat contact of any thickness is clipped like any other.
-                        same = bool(False)
-                        if face_is_1:
-                            same = coincident(shapes, plane, other, rot_l, off_2, tol_c)
-                        else:
-                            same = coincident(shapes, pl, face, rot_l, off_2, tol_c)
-                        if same:
-                            # Half to each body; but where one of the two faces lies inside its grain (a
-                            # compound's cut plane), the other is the boundary of the union there and
-                            # takes it all. The same rule read from both sides: the weights sum to 1.
-                            inside_face = shapes.face_internal[face]
-                            inside_other = shapes.face_internal[other]
-                            weight = scalar(0.5)
-                            if inside_face != inside_other:
-                                weight = scalar(1.0)
-                                if inside_face != 0:
-                                    weight = scalar(0.0)
-                            continue
-                    # Sutherland-Hodgman against ncut.x <= dcut (the plane nc, dc, read again: with nc and
-                    # dc themselves the kernel compiles otherwise than the one timed in BENCHMARKS.md 7c),
-                    # in place: the output overwrites the input behind the reading, which runs one vertex
-                    # ahead (v_k+1 is read before step k writes): a convex polygon's output stays within
-                    # rows <= k+1 at step k. A vertex already in its row is not written again, so a plane
-                    # that cuts nothing writes nothing. A polygon rounded off convex can cross the plane
-                    # more than twice: before its output would overrun input not yet read, finish_pass
-                    # does the rest of the pass out of place.
-                    ncut = vec3(pl[0], pl[1], pl[2])
-                    dcut = pl[3]
-                    n_out = int(0)
-                    full = int(0)
-                    prev = poly[count - 1]
-                    s_prev = plane_distance(ncut, dcut, prev)
-                    v = poly[0]
-                    for k in range(count):
-                        ahead = v
-                        if k + 1 < count:
-                            ahead = poly[k + 1]
-                        sk = plane_distance(ncut, dcut, v)
-                        cut = crosses(s_prev, sk)
-                        keep = sk <= scalar(0.0)
-                        if n_out < count and k + 2 < count and n_out + int(cut) + int(keep) > k + 2:
-                            n_out, full = finish_pass(poly, poly, count, k, n_out, prev, s_prev, v, ncut, dcut)
-                            break
-                        if cut:
-                            if n_out >= max_poly:
-                                full = 1
-                                break
-                            poly[n_out] = edge_cut(prev, s_prev, v, sk)
-                            n_out += 1
-                        if keep:
-                            if n_out >= max_poly:
-                                full = 1
-                                break
-                            if n_out != k:
-                                poly[n_out] = v
-                            n_out += 1
-                        prev = v
-                        s_prev = sk
-                        v = ahead
-                    if full != 0:
-                        overflow = 1
-                    if n_out < 3 or full != 0:
-                        alive = False
-                        break
-                    count = n_out
-                if not alive:
-                    continue
-                # Fan triangulation: facet area and area-weighted centroid, each vertex read once (a
-                # triangle's second vertex is the previous one's third).
-                sum_a2 = scalar(0.0)
-                sum_c = zero3
-                p0 = poly[0]
-                p1 = poly[1]
-                for k in range(1, count - 1):
-                    p2 = poly[k + 1]
-                    sum_a2, sum_c = fan_add(p0, p1, p2, nf, sum_a2, sum_c)
-                    p1 = p2
-            else:
-                # The facet's boundary, piece by piece, without a polygon buffer: each edge of the face cut to
-                # the other body's half-spaces, and each chord that one of its planes cuts across the face cut
-                # to the others, as parameter intervals. Its area and moment are the fan of those pieces from
-                # the foot of the apex on the face's plane (a point by the overlap, as the fan's own vertex is
-                # in the polygon variant). A piece's end where a plane crosses an edge of the face is
-                # edge_cut's, from the same numbers as the chord's end there: the two meet in the same bits.
-                # The planes that cannot cut the face (it lies inside them, or in them) are skipped, found once
-                # here (a bit each for the first 64, looked up again beyond).
-                skip = wp.uint64(0)
-                for t in range(num_planes):
-                    other = int(0)
-                    if face_is_1:
-                        other = face_of(ids_2[slot(t)], t, f20)
-                    else:
-                        other = face_of(ids_1[slot(t)], t, f10)
-                    pl = other_plane(shapes, face_is_1, other, turned, frame, apex, rot_l, off_2)
-                    code = plane_cuts(shapes, face_is_1, face, other, plane, pl, centre, sph[3], rot_l, off_2, tol_c)
-                    if code == plane_outside:
-                        alive = False
-                        break
-                    if code == plane_shared:
+                        same = coincident(shapes, pl, face, rot_l, off_2, tol_c)
+                    if same:
+                        # Half to each body; but where one of the two faces lies inside its grain (a
+                        # compound's cut plane), the other is the boundary of the union there and
+                        # takes it all. The same rule read from both sides: the weights sum to 1.
                         inside_face = shapes.face_internal[face]
                         inside_other = shapes.face_internal[other]
                         weight = scalar(0.5)
@@ -1051,123 +896,66 @@ def make_geometry(
                             weight = scalar(1.0)
                             if inside_face != 0:
                                 weight = scalar(0.0)
-                    if code != plane_clips and t < 64:
-                        skip = skip | (wp.uint64(1) << wp.uint64(t))
-                if not alive:
-                    continue
-                foot = scalar(plane[3]) * nf
-                # The chords, one per plane that crosses the face: from where the boundary leaves the plane's
-                # inside to where it comes back (the order of the face's loop about nf).
-                for t in range(num_planes):
-                    other = int(0)
-                    if face_is_1:
-                        other = face_of(ids_2[slot(t)], t, f20)
-                    else:
-                        other = face_of(ids_1[slot(t)], t, f10)
-                    pl = other_plane(shapes, face_is_1, other, turned, frame, apex, rot_l, off_2)
-                    if skipped(shapes, skip, t, face_is_1, face, other, plane, pl, centre, sph[3], rot_l, off_2, tol_c):
                         continue
-                    nt = vec3(pl[0], pl[1], pl[2])
-                    prev = face_vertex(shapes, face_is_1, begin + count - 1, turned, frame, rot_l, off_2, apex)
-                    s_prev = plane_distance(nt, pl[3], prev)
-                    any_in = bool(False)
-                    has_exit = bool(False)
-                    has_entry = bool(False)
-                    exit_p = zero3
-                    entry_p = zero3
-                    for k in range(count):
-                        v = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
-                        sk = plane_distance(nt, pl[3], v)
-                        if sk <= scalar(0.0):
-                            any_in = True
-                            if s_prev > scalar(0.0) and not has_entry:
-                                entry_p = edge_cut(prev, s_prev, v, sk)
-                                has_entry = True
-                        elif s_prev <= scalar(0.0) and not has_exit:
-                            exit_p = edge_cut(prev, s_prev, v, sk)
-                            has_exit = True
-                        prev = v
-                        s_prev = sk
-                    if not any_in:
-                        alive = False  # the face lies beyond this plane
-                        break
-                    if not (has_exit and has_entry):
-                        continue
-                    lo = scalar(0.0)
-                    hi = scalar(1.0)
-                    seg_a = exit_p
-                    seg_b = entry_p
-                    empty = bool(False)
-                    for u in range(num_planes):
-                        if u == t:
-                            continue
-                        other_u = int(0)
-                        if face_is_1:
-                            other_u = face_of(ids_2[slot(u)], u, f20)
-                        else:
-                            other_u = face_of(ids_1[slot(u)], u, f10)
-                        pu = other_plane(shapes, face_is_1, other_u, turned, frame, apex, rot_l, off_2)
-                        if skipped(shapes, skip, u, face_is_1, face, other_u, plane, pu, centre, sph[3], rot_l, off_2,
-                                   tol_c):  # fmt: skip
-                            continue
-                        nu = vec3(pu[0], pu[1], pu[2])
-                        sp0 = plane_distance(nu, pu[3], exit_p)
-                        sp1 = plane_distance(nu, pu[3], entry_p)
-                        if sp0 > scalar(0.0):
-                            if sp1 > scalar(0.0):
-                                empty = True
-                                break
-                            lam = sp0 / (sp0 - sp1)
-                            if lam > lo:
-                                lo = lam
-                                seg_a = edge_cut(exit_p, sp0, entry_p, sp1)
-                        elif sp1 > scalar(0.0):
-                            lam = sp0 / (sp0 - sp1)
-                            if lam < hi:
-                                hi = lam
-                                seg_b = edge_cut(exit_p, sp0, entry_p, sp1)
-                    if not empty and lo < hi:
-                        sum_a2, sum_c = fan_add(foot, seg_a, seg_b, nf, sum_a2, sum_c)
-                if not alive:
-                    continue
-                # The face's own edges, each cut to every plane.
-                prev = face_vertex(shapes, face_is_1, begin + count - 1, turned, frame, rot_l, off_2, apex)
+                # Sutherland-Hodgman against ncut.x <= dcut (the plane nc, dc, read again: with nc and
+                # dc themselves the kernel compiles otherwise than the one timed in BENCHMARKS.md 7c),
+                # in place: the output overwrites the input behind the reading, which runs one vertex
+                # ahead (v_k+1 is read before step k writes): a convex polygon's output stays within
+                # rows <= k+1 at step k. A vertex already in its row is not written again, so a plane
+                # that cuts nothing writes nothing. A polygon rounded off convex can cross the plane
+                # more than twice: before its output would overrun input not yet read, finish_pass
+                # does the rest of the pass out of place.
+                ncut = vec3(pl[0], pl[1], pl[2])
+                dcut = pl[3]
+                n_out = int(0)
+                full = int(0)
+                prev = poly[count - 1]
+                s_prev = plane_distance(ncut, dcut, prev)
+                v = poly[0]
                 for k in range(count):
-                    v = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
-                    lo = scalar(0.0)
-                    hi = scalar(1.0)
-                    seg_a = prev
-                    seg_b = v
-                    empty = bool(False)
-                    for t in range(num_planes):
-                        other = int(0)
-                        if face_is_1:
-                            other = face_of(ids_2[slot(t)], t, f20)
-                        else:
-                            other = face_of(ids_1[slot(t)], t, f10)
-                        pl = other_plane(shapes, face_is_1, other, turned, frame, apex, rot_l, off_2)
-                        if skipped(shapes, skip, t, face_is_1, face, other, plane, pl, centre, sph[3], rot_l, off_2,
-                                   tol_c):  # fmt: skip
-                            continue
-                        nt = vec3(pl[0], pl[1], pl[2])
-                        sp0 = plane_distance(nt, pl[3], prev)
-                        sp1 = plane_distance(nt, pl[3], v)
-                        if sp0 > scalar(0.0):
-                            if sp1 > scalar(0.0):
-                                empty = True
-                                break
-                            lam = sp0 / (sp0 - sp1)
-                            if lam > lo:
-                                lo = lam
-                                seg_a = edge_cut(prev, sp0, v, sp1)
-                        elif sp1 > scalar(0.0):
-                            lam = sp0 / (sp0 - sp1)
-                            if lam < hi:
-                                hi = lam
-                                seg_b = edge_cut(prev, sp0, v, sp1)
-                    if not empty and lo < hi:
-                        sum_a2, sum_c = fan_add(foot, seg_a, seg_b, nf, sum_a2, sum_c)
+                    ahead = v
+                    if k + 1 < count:
+                        ahead = poly[k + 1]
+                    sk = plane_distance(ncut, dcut, v)
+                    cut = crosses(s_prev, sk)
+                    keep = sk <= scalar(0.0)
+                    if n_out < count and k + 2 < count and n_out + int(cut) + int(keep) > k + 2:
+                        n_out, full = finish_pass(poly, poly, count, k, n_out, prev, s_prev, v, ncut, dcut)
+                        break
+                    if cut:
+                        if n_out >= max_poly:
+                            full = 1
+                            break
+                        poly[n_out] = edge_cut(prev, s_prev, v, sk)
+                        n_out += 1
+                    if keep:
+                        if n_out >= max_poly:
+                            full = 1
+                            break
+                        if n_out != k:
+                            poly[n_out] = v
+                        n_out += 1
                     prev = v
+                    s_prev = sk
+                    v = ahead
+                if full != 0:
+                    overflow = 1
+                if n_out < 3 or full != 0:
+                    alive = False
+                    break
+                count = n_out
+            if not alive:
+                continue
+            # Fan triangulation: facet area and area-weighted centroid, each vertex read once (a
+            # triangle's second vertex is the previous one's third).
+            sum_a2 = scalar(0.0)
+            sum_c = zero3
+            p0 = poly[0]
+            p1 = poly[1]
+            for k in range(1, count - 1):
+                p2 = poly[k + 1]
+                sum_a2, sum_c = fan_add(p0, p1, p2, nf, sum_a2, sum_c)
+                p1 = p2
             area, area_c = fan_close(sum_a2, sum_c, weight)
             dv, dv_c = cone(area, area_c, plane, zero3)
             vol += dv

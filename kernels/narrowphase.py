@@ -98,18 +98,17 @@ def make_narrowphase(
     max_registers: int | None = 128,
     pose_scalar=None,
     compound: bool = False,
-    clip: str = "polygon",
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
     Args:
         scalar: ``wp.float32`` or ``wp.float64``.
-        max_poly, max_faces, coincident_tol, pose_scalar, clip: as for
+        max_poly, max_faces, coincident_tol, pose_scalar: as for
             :func:`polydem.kernels.geometry.make_geometry`.
         max_registers: CUDA register cap per thread (128 is faster than no cap for 20-vertex rocks
             and slightly slower for cubes; see benchmarks/tune_pair_kernel.py and BENCHMARKS.md).
     """
-    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, clip)
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
