@@ -274,6 +274,15 @@ conv8() {
         > $W/log/conv8_$tag.log 2>&1
     done <<< "${CONV8_JOBS:-1x1,16x1,256x1,1024x2 0 a}" ) &
 }
+# MODE=newton1e6: Newton at 1e6 cubes (the replicated builder), the pour exported as poses only, at NEWTON_DTS
+# (default 1e-3 s), --max-time NEWTON_MAX_TIME (default 1.5 s simulated)
+newton1e6() {
+  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 1000000 --no-world-vertices \
+      --out /tmp/pours/pour_1000000.json > $W/log/export_1e6.log 2>&1
+    gpu 0 python -u benchmarks/peers/newton_pour.py --grains 1000000 --device cuda:0 \
+      --scene /tmp/pours/pour_1000000.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-1.5} \
+      --out $W/res/newton_1e6.json > $W/log/newton_1e6.log 2>&1 ) &
+}
 # MODE=toe1: long steps with the toe of the recommended step (benchmarks/toe_swap.py; 1e4 cubes): TOE_JOBS is a list
 # of "K S T SEED" (k factor, step and toe step as multiples of that k's dt_rec)
 toe1() {
@@ -302,6 +311,8 @@ elif [ "${MODE:-}" = conv7 ]; then
   conv7
 elif [ "${MODE:-}" = conv8 ]; then
   conv8
+elif [ "${MODE:-}" = newton1e6 ]; then
+  newton1e6
 elif [ "${MODE:-}" = toe1 ]; then
   toe1
 elif [ "${MODE:-}" = mesh ]; then

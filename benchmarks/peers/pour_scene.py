@@ -49,15 +49,11 @@ def build(n):
     return settle.make_scene(n, settle_options())
 
 
-def export(n, path, device="cpu"):
-    import warp as wp
-
-    wp.config.quiet = True
-    wp.config.log_level = wp.LOG_WARNING
-    from polydem.model import Model
-
+def export(n, path, world_vertices=True):
+    """Write the pour of ``n`` cubes as JSON; without ``world_vertices`` (the Yade scripts' and compare.py's
+    input, 8 corners a cube: most of the file and of its time) the cubes are poses only, all Newton reads."""
     scene, info = build(n)
-    model = Model(scene, device)  # its dt (the GPU machine has no CPU compiler: --device cuda:0 there)
+    ts = scene.time_step()  # the Model's dt and limit, on the host
     kinds = np.asarray(scene.body_kind)
     shapes = scene.shapes
     names = scene.shape_names
@@ -71,8 +67,8 @@ def export(n, path, device="cpu"):
         "edge": 0.01,
         "density": mat.density,
         "gravity": list(scene.gravity),
-        "dt": float(model.dt),
-        "dt_limit": float(model.dt_limit),
+        "dt": float(ts.dt),
+        "dt_limit": float(ts.limit),
         "material": {"law": mat.law, "k": mat.k, "restitution": mat.restitution, "friction": mat.friction},
         "design": {
             "note": "k sized so that a face contact carrying 20 weights of a 10-cube column overlaps by 1% of a cube",
@@ -88,10 +84,11 @@ def export(n, path, device="cpu"):
         "cubes": {
             "position": np.asarray(scene.body_position)[free].tolist(),
             "orientation_xyzw": np.asarray(scene.body_orientation)[free].tolist(),
-            "world_vertices": [scene.body_vertices(int(i)).tolist() for i in free],
         },
         "walls": [],
     }
+    if world_vertices:
+        data["cubes"]["world_vertices"] = [scene.body_vertices(int(i)).tolist() for i in free]
     for i in walls:
         s = shapes[names[body_shape[i]]]
         v = np.asarray(s.vertices)
@@ -106,7 +103,7 @@ def export(n, path, device="cpu"):
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:
         json.dump(data, f)
-    print(f"wrote {path}: {len(free)} cubes, {len(walls)} walls, dt {model.dt:.4g} s", flush=True)
+    print(f"wrote {path}: {len(free)} cubes, {len(walls)} walls, dt {ts.dt:.4g} s", flush=True)
     return data
 
 
@@ -203,10 +200,14 @@ def main():
     ap.add_argument(
         "--settle-time", type=float, default=None, help="go on to this simulated time for at-rest figures (GPU 0.5 s)"
     )
+    ap.add_argument(
+        "--no-world-vertices", action="store_true", help="export: poses only (enough for Newton; Yade needs them)"
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     if args.mode == "export":
-        export(args.grains, args.out or os.path.join(OUT_DIR, f"pour_{args.grains}.json"), args.device)
+        path = args.out or os.path.join(OUT_DIR, f"pour_{args.grains}.json")
+        export(args.grains, path, world_vertices=not args.no_world_vertices)
     else:
         os.makedirs(OUT_DIR, exist_ok=True)
         dev = args.device.replace(":", "")
