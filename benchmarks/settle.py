@@ -156,7 +156,9 @@ def hertz_k(edge, density, layers, overlap, load_factor, g=9.81, law="hertz", m=
     """
     force = load_factor * layers * density * edge**3 * g
     volume = overlap * edge**3
-    return force / (Law(law, 1.0, m).derivative(volume) * edge**2)
+    # (hertz through math.sqrt, as before the law was an option: the same k to the bit)
+    slope = math.sqrt(volume) if law == "hertz" else Law(law, 1.0, m).derivative(volume)
+    return force / (slope * edge**2)
 
 
 K_RULES = ("corner", "volume")
