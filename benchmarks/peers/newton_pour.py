@@ -30,7 +30,7 @@ so that compare.py can also measure the overlaps with polydem's exact geometry.
 
 Time to settled (``--until-settled``, or ``--dt-sweep`` for one run per dt in one process): the
 ModelBuilder is filled once (``builder_s``; by default one cube's builder replicated to every pose in one batched
-pass, ``ModelBuilder.replicate``: 8.3 s at 1e5 and 86 s at 1e6 on the 2-core CPU machine, against 72 s at 1e5 for
+pass, ``ModelBuilder.replicate``: 8.3 s at 1e5 and 70 s at 1e6 on the 2-core CPU machine, against 72 s at 1e5 for
 ``--builder loop``, a Python loop over the bodies; ``--check-builders`` finalizes both and compares every array
 of their Models) and finalized into a fresh Model per dt; after one launch (``setup_wall_s``: finalize, collision
 pipeline, solver, graph capture and that launch, kernels compiled), the run goes until polydem's
@@ -206,10 +206,10 @@ def builders_agree(sc, device, args):
             print(f"  {name}: an array in the loop's Model only")
             same = False
             continue
-        a, b = value.numpy(), other.numpy()
-        compared += 1
         if name == "shape_color":
             continue  # the viewer's colour of each shape: the loop's vary, the copies take the template's
+        a, b = value.numpy(), other.numpy()
+        compared += 1
         if name.endswith("_ptr"):
             # Device addresses of the meshes each Model uploaded: the same sharing (which shapes use which
             # mesh), not the same numbers.
