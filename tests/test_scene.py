@@ -1892,3 +1892,40 @@ def test_a_step_above_the_toes_reach_is_warned_about(law, scale, warned):
     text = found[0]
     assert "simulation.dt" in text and "4 times the recommended step" in text and "dt^4" in text
     assert "256 times larger" in text and f"({2.0 * recommended:.3g} s)" in text and '"auto"' in text
+
+
+@pytest.mark.parametrize(
+    "law, m, e, gravity, warned",
+    [
+        ("power", 2.0, 0.1, True, True),
+        ("power", 3.0, 0.15, True, True),
+        ("power", 2.0, 0.2, True, False),
+        ("power", 1.75, 0.1, True, False),
+        ("hertz", None, 0.1, True, False),
+        ("power", 2.0, 0.1, False, False),
+    ],
+)
+def test_a_power_law_without_the_toe_at_small_restitution_is_warned_about(law, m, e, gravity, warned):
+    """Power m >= 2 has no resolved toe, and below e = 0.2 a contact that comes to rest rings (BENCHMARKS.md 26e):
+    a warning naming the materials, the law and what to do; none from e = 0.2, none with the toe (hertz, power
+    m < 2), none without gravity. Only the lower of two materials' mixed restitutions counts."""
+    scene = Scene(gravity=(0.0, 0.0, -9.81) if gravity else (0.0, 0.0, 0.0))
+    extra = {} if m is None else {"m": m}
+    k = {2.0: 1e12, 3.0: 1e16, 1.75: 1e11}.get(m, 1e9)
+    scene.add_material("steel", density=7800.0, law=law, k=k, restitution=e, friction=0.5, **extra)
+    scene.add_material("rubber", density=1200.0, law=law, k=k, restitution=0.9, friction=0.5, **extra)
+    scene.add_shape("cube", ConvexShape.box(0.01))
+    scene.add_body("cube", "steel", position=(0.0, 0.0, 0.005))
+    scene.add_body("cube", "rubber", position=(0.0, 0.0, 0.02))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "steel")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene.validate()
+    found = [str(w.message) for w in caught if "rings" in str(w.message)]
+    if not warned:
+        assert not found
+        return
+    assert len(found) == 1 and found == [w for w in scene.warnings if "rings" in w]
+    text = found[0]
+    assert f"restitution {e:g} between 'steel'" in text and f"m = {m:g}" in text
+    assert "restitution >= 0.2" in text and 'law = "hertz"' in text

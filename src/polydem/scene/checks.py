@@ -62,6 +62,10 @@ DEFAULT_RUN_MIN_TIME = 1.0e-6
 # A given dt above this many recommended steps under a law with the resolved toe is warned about
 # (check_toe_step): at 2 the 1000-cube pour's pile is the recommended step's, at 4 it is not.
 TOE_STEP_WARNING = 2.0
+# Below this restitution a law without the resolved toe (power, m >= 2) rings at rest (check_resting_ringing):
+# a steel cube set down on the floor reported 0.79-1.20 of its weight 0.3 s later at e = 0.1 (m = 2; m = 3:
+# 0.85-1.21), exactly it by then at 0.2 (BENCHMARKS.md section 26e).
+RINGING_RESTITUTION = 0.2
 
 
 def reference_stiffness(law, k, exponent, volume, area=None, width=None):
@@ -937,6 +941,30 @@ def check_toe_step(scene, ts) -> list[str]:
         "below it follow a stiffness set by dt instead of k, so a pile settles otherwise than at the recommended "
         f'step; for results that hold as dt is refined use dt = "auto" or at most {TOE_STEP_WARNING:g} times it '
         f"({TOE_STEP_WARNING * ts.recommended:.3g} s)"
+    ]
+
+
+def check_resting_ringing(scene) -> list[str]:
+    """A warning where a power law without the resolved toe (m >= 2) meets a restitution below
+    RINGING_RESTITUTION under gravity: the hysteresis branches do not damp an oscillation about the unloading
+    branch (1/e^2 stiffer than loading), so a face that comes to rest after an impact swings for many of its
+    periods (BENCHMARKS.md section 26e). Hertz and power m < 2 rest on their toe."""
+    table = scene.pair_table()
+    law, m = table["law"], float(table["exponent"])
+    if law != "power" or has_toe(law, m) or not np.any(np.asarray(scene.gravity, dtype=np.float64) != 0.0):
+        return []
+    e = np.asarray(table["restitution"], dtype=np.float64)
+    low = float(np.min(e))
+    if not low < RINGING_RESTITUTION:
+        return []
+    names = list(scene.materials)
+    i, j = np.unravel_index(int(np.argmin(e)), e.shape)
+    pair = f"{names[i]!r}" if i == j else f"{names[i]!r} and {names[j]!r}"
+    return [
+        f"restitution {low:g} between {pair} under the power law with m = {m:g} (no resolved toe): a contact that "
+        "comes to rest after an impact rings, its force swinging from step to step (a cube set down on a floor at "
+        "e = 0.1 still reports 0.8 to 1.2 times its weight 0.3 s later and rests after about 1 s); for resting "
+        f'contacts give restitution >= {RINGING_RESTITUTION:g} or use law = "hertz"'
     ]
 
 

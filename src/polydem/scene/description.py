@@ -237,6 +237,8 @@ class Scene:
         * contacts stiff enough for the bodies' weight and initial speeds (see :func:`.checks.check_loads`);
         * a given dt above TOE_STEP_WARNING recommended steps under a law with the resolved toe: a warning
           (:func:`.checks.check_toe_step`);
+        * a power law without the toe (m >= 2) with a restitution below RINGING_RESTITUTION under gravity: a
+          warning, such contacts ring at rest (:func:`.checks.check_resting_ringing`);
         * tunnelling: a warning where a body starts faster than a step or its contacts can stop it
           before it is through the thinnest body (:meth:`tunnelling_limits`);
         * initial overlaps: a free body deep behind a plane wall or deep inside another body
@@ -268,6 +270,7 @@ class Scene:
         checks.check_steps(self, ts)
         found = checks.check_loads(self, a, ts)
         found += checks.check_toe_step(self, ts)
+        found += checks.check_resting_ringing(self)
         if pair_overlaps:
             self._overlap_messages = overlaps.check_initial_overlaps(self, a)
         self.pair_overlaps_pending = not pair_overlaps
