@@ -1,17 +1,17 @@
 """Time to a converged pile: the same pour at several contact stiffnesses and steps, each run to settled, and
 the fastest setting whose pile is the converged one.
 
-A pile's packing fraction phi and coordination number Z depend on the contact stiffness k and the step dt
-until both are refined far enough; the user's job is the pile of the refined limit. Here the pour of
-time_to_settle.py (settle.py's cubes in columns in an open box, hertz, e = 0.5, mu = 0.5, k from ``--k-rule``)
-runs to settled at each setting ``KxS`` of ``--settings`` (k = K x the rule's k, dt = S x the recommended step
-of that k, which falls as 1/k where the resting rule of ``Scene.time_step`` sets it, while the stable limit falls
-as k^-1/2) and each seed of ``--seeds``. Per size, the reference is the most refined
-setting (the largest k, then the smallest dt; the seeds' mean); a setting is converged where its mean phi and Z
-lie within ``--phi-tol`` (0.005) and ``--z-tol`` (0.1) of the reference's; the time to the converged pile is
-the wall time of the fastest converged setting (its seeds' mean), given only where the reference has stopped
-moving in both k and dt: the next smaller step at its k and the most refined setting of the next smaller k
-both within the tolerances of it (a pile at k x 64 stopped moving in dt and still moved with k: section 25).
+A pile's packing fraction phi and coordination number Z depend on the contact stiffness k and the step dt until both
+are refined far enough; the user's job is the pile of the refined limit. Here the pour of time_to_settle.py
+(settle.py's cubes in columns in an open box, hertz or ``--law power --exponent m``, e = 0.5, mu = 0.5, k from
+``--k-rule``) runs to settled at each setting ``KxS`` of ``--settings`` (k = K x the rule's k, dt = S x the
+recommended step of that k, which falls as 1/k where the resting rule of ``Scene.time_step`` sets it, while the stable
+limit falls as k^-1/2) and each seed of ``--seeds``. Per size, the reference is the most refined setting (the largest
+k, then the smallest dt; the seeds' mean); a setting is converged where its mean phi and Z lie within ``--phi-tol``
+(0.005) and ``--z-tol`` (0.1) of the reference's; the time to the converged pile is the wall time of the fastest
+converged setting (its seeds' mean), given only where the reference has stopped moving in both k and dt: the next
+smaller step at its k and the most refined setting of the next smaller k both within the tolerances of it (a pile at k
+x 64 stopped moving in dt and still moved with k: section 25).
 
 ``--newton FILE[,FILE]`` (``peers/newton_pour.py --dt-sweep`` results of the same pour, ``pour_scene.py
 export``) applies the same rule to Newton's rows, its smallest dt the reference, and prints the ratio of the

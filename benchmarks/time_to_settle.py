@@ -1,18 +1,17 @@
 """Time to a settled packing: wall time until a poured pile of cubes (or of mixed shapes) comes to rest.
 
-The scene is the settling benchmark's (benchmarks/settle.py: 1 cm cubes in loose columns in an open
-box of fixed slabs, hertz, e = 0.5, mu = 0.5, k by settle.py's ``--k-rule``: corners at most
-``--corner-depth`` (5%) of the edge deep under a column, or ``volume``, the former 1% overlap under 20
-column weights; dt "auto"). Each run goes until the pile is settled by the simulator's own stopping rule
-(``Simulation.run_until_settled``: the free bodies' kinetic energy below ``--kinetic-fraction`` of
-the gravitational energy released, held for ``--hold`` seconds) or ``--max-time`` simulated
-seconds. Reported per size: settled or not, simulated time and steps to it, wall time (the first
-chunk, which compiles the kernels and captures the CUDA graph, is timed apart), wall time per
-simulated second; at the end the largest penetration depth (shortest separating translation, as a
-fraction of the edge) and the largest overlap volume (of a cube's volume), the packing fraction and
-coordination number of the settled interior (``polydem.cli.diagnostics.settled_region``, the
-summary's definition). ``--order`` lists the cubes in memory in another order (settle.py's option:
-grid, shuffled, morton) and ``--tree-rebuild`` sets the Simulation's tree renewal policy.
+The scene is the settling benchmark's (benchmarks/settle.py: 1 cm cubes in loose columns in an open box of fixed
+slabs, hertz (or settle.py's ``--law power --exponent m``), e = 0.5, mu = 0.5, k by settle.py's ``--k-rule``: corners
+at most ``--corner-depth`` (5%) of the edge deep under a column, or ``volume``, the former 1% overlap under 20 column
+weights; dt "auto"). Each run goes until the pile is settled by the simulator's own stopping rule
+(``Simulation.run_until_settled``: the free bodies' kinetic energy below ``--kinetic-fraction`` of the gravitational
+energy released, held for ``--hold`` seconds) or ``--max-time`` simulated seconds. Reported per size: settled or not,
+simulated time and steps to it, wall time (the first chunk, which compiles the kernels and captures the CUDA graph, is
+timed apart), wall time per simulated second; at the end the largest penetration depth (shortest separating
+translation, as a fraction of the edge) and the largest overlap volume (of a cube's volume), the packing fraction and
+coordination number of the settled interior (``polydem.cli.diagnostics.settled_region``, the summary's definition).
+``--order`` lists the cubes in memory in another order (settle.py's option: grid, shuffled, morton) and
+``--tree-rebuild`` sets the Simulation's tree renewal policy.
 
 ``--shapes mixed``: settle.py's mixed set instead of cubes (cubes, regular tetrahedra, 20-vertex
 rocks and 2:1:1 boxes of the cube's volume, in equal numbers, in the same columns spaced for the
