@@ -582,6 +582,7 @@ def settle_main(sc, device, args):
         "check_every_steps": args.check_every,
         "max_time_s": args.max_time,
         "builder_s": builder_s,
+        "builder": args.builder,
         "rows": [],
         "meta": run_meta(device),
     }
@@ -589,7 +590,14 @@ def settle_main(sc, device, args):
     tag = "" if (args.solver, args.shape) == ("xpbd", "hull") else f"_{args.solver}_{args.shape}"
     out = args.out or os.path.join(OUT_DIR, f"newton_settle_{device.alias.replace(':', '')}_{n}{tag}.json")
     head = ("dt", "settled", "t_settle", "steps", "setup s", "wall s", "wall/sim", "pen", "depth", "max V", "phi", "Z")
-    print(f"newton {newton.__version__} {args.solver} ({args.shape}) on {device.name}: {n} cubes", flush=True)
+    # Written before the first run too: a run cut off by a deadline (1e6 cubes) still leaves the build's figures.
+    with open(out, "w") as f:
+        json.dump(record, f)
+    print(
+        f"newton {newton.__version__} {args.solver} ({args.shape}) on {device.name}: {n} cubes, builder "
+        f"({args.builder}) {builder_s:.1f} s",
+        flush=True,
+    )
     print(" ".join(f"{h:>9s}" for h in head), flush=True)
     for dt in dts:
         r = settle_run(sc, scene, builder, device, args, dt, args.save_poses or not sweep)
