@@ -951,7 +951,8 @@ def check_resting_ringing(scene) -> list[str]:
     periods (BENCHMARKS.md section 26e). Hertz and power m < 2 rest on their toe."""
     table = scene.pair_table()
     law, m = table["law"], float(table["exponent"])
-    if law != "power" or has_toe(law, m) or not np.any(np.asarray(scene.gravity, dtype=np.float64) != 0.0):
+    # (m < 2 with m > 1 rests on the toe; m = 1 is the linear law's force, which has no resting depth at all)
+    if law != "power" or m < 2.0 or not np.any(np.asarray(scene.gravity, dtype=np.float64) != 0.0):
         return []
     e = np.asarray(table["restitution"], dtype=np.float64)
     low = float(np.min(e))
