@@ -1856,6 +1856,14 @@ def test_derived_tangential_spring_has_the_normal_frequency():
         assert other.time_step().period == pytest.approx(ts.period / ratio, rel=1e-9)
 
 
+def validation_warnings(scene, word):
+    """The warnings ``scene.validate()`` issues that contain ``word``."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene.validate()
+    return [str(w.message) for w in caught if word in str(w.message)]
+
+
 @pytest.mark.parametrize(
     "law, scale, warned",
     [
@@ -1881,10 +1889,7 @@ def test_a_step_above_the_toes_reach_is_warned_about(law, scale, warned):
     recommended = scene.time_step().recommended
     if scale is not None:
         scene.dt = scale * recommended
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        scene.validate()
-    found = [str(w.message) for w in caught if "resolved toe" in str(w.message)]
+    found = validation_warnings(scene, "resolved toe")
     if not warned:
         assert not found
         return
@@ -1918,10 +1923,7 @@ def test_a_power_law_without_the_toe_at_small_restitution_is_warned_about(law, m
     scene.add_body("cube", "steel", position=(0.0, 0.0, 0.005))
     scene.add_body("cube", "rubber", position=(0.0, 0.0, 0.02))
     scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "steel")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        scene.validate()
-    found = [str(w.message) for w in caught if "rings" in str(w.message)]
+    found = validation_warnings(scene, "rings")
     if not warned:
         assert not found
         return
