@@ -280,7 +280,7 @@ newton1e6() {
   ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 1000000 --no-world-vertices \
       --out /tmp/pours/pour_1000000.json > $W/log/export_1e6.log 2>&1
     gpu 0 python -u benchmarks/peers/newton_pour.py --grains 1000000 --device cuda:0 \
-      --scene /tmp/pours/pour_1000000.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-1.5} \
+      --scene /tmp/pours/pour_1000000.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-1.5} --progress 20 \
       --out $W/res/newton_1e6.json > $W/log/newton_1e6.log 2>&1 ) &
 }
 # MODE=toe1: long steps with the toe of the recommended step (benchmarks/toe_swap.py; 1e4 cubes): TOE_JOBS is a list

@@ -392,10 +392,12 @@ def criterion_of(args):
     )
 
 
-def run_until_settled(runner, meter, criterion, max_time, every, speed_limit=None):
+def run_until_settled(runner, meter, criterion, max_time, every, speed_limit=None, progress=0.0):
     """polydem's ``Simulation.run_until_settled`` loop on a Newton runner: checks every ``every`` steps
     (substeps) at absolute step counts, from step ``runner.steps_done``; ``speed_limit`` [m/s]: the
-    criterion's for the pour's scene (``SettleCriterion.speed_limit_of``); returns (settled, check)."""
+    criterion's for the pour's scene (``SettleCriterion.speed_limit_of``); ``progress`` [s]: a line at a check
+    at most this often in wall time (0: none), so that a run cut off by a deadline still shows its step's cost;
+    returns (settled, check)."""
     from polydem.settle import SettleCheck
 
     dt, sub = runner.dt, runner.substeps
@@ -403,6 +405,7 @@ def run_until_settled(runner, meter, criterion, max_time, every, speed_limit=Non
     start = runner.steps_done
     end = start + sub * math.ceil(max(1, math.ceil(max_time / dt - 1e-9)) / sub)
     settled = False
+    t0 = last = time.perf_counter()
     while runner.steps_done < end and not settled:
         stop = min(end, (runner.steps_done // every + 1) * every)
         runner.launch((stop - runner.steps_done) // sub)
@@ -411,6 +414,14 @@ def run_until_settled(runner, meter, criterion, max_time, every, speed_limit=Non
             check.holds(*meter.measure())
         else:
             settled = check.update(stop, dt, *meter.measure())
+        now = time.perf_counter()
+        if progress > 0 and now - last >= progress:
+            last = now
+            print(
+                f"  t {stop * dt:.3f} s, step {stop}, wall {now - t0:.1f} s ({1e3 * (now - t0) / (stop - start):.3f} "
+                f"ms/step), kinetic fraction {check.kinetic_fraction:.3g}, largest speed {check.largest_speed:.3g} m/s",
+                flush=True,
+            )
     return settled, check
 
 
@@ -508,7 +519,7 @@ def settle_run(sc, scene, builder, device, args, dt, save_poses):
     setup = time.perf_counter() - t0
     t1 = time.perf_counter()
     limit = criterion.speed_limit_of(scene)
-    settled, check = run_until_settled(runner, meter, criterion, args.max_time, every, limit)
+    settled, check = run_until_settled(runner, meter, criterion, args.max_time, every, limit, args.progress)
     wp.synchronize_device(device)
     wall = time.perf_counter() - t1
     sim_time = runner.steps_done * dt
@@ -656,6 +667,7 @@ def main():
         "(default off: the kinetic part alone, section 7's rule, unless --max-speed)",
     )
     ap.add_argument("--check-every", type=int, default=None, help="steps between checks (default polydem's, 64)")
+    ap.add_argument("--progress", type=float, default=0.0, help="settle runs: a line every this many wall s (0: none)")
     ap.add_argument("--save-poses", action="store_true", help="--dt-sweep: keep every row's final poses")
     ap.add_argument(
         "--builder",
