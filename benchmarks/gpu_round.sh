@@ -283,6 +283,29 @@ newton1e6() {
       --scene /tmp/pours/pour_1000000.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-1.5} --progress 20 \
       --out $W/res/newton_1e6.json > $W/log/newton_1e6.log 2>&1 ) &
 }
+# MODE=newtonsize: Newton's pour at NEWTON_N cubes (default 4e5, below the size where its SAP scan wraps, about
+# 5.9e5 in this pour: newton_pour.py --sap-estimate) to settled at NEWTON_DTS, --max-time NEWTON_MAX_TIME (default 3)
+newtonsize() {
+  local n=${NEWTON_N:-400000}
+  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains $n --no-world-vertices \
+      --out /tmp/pours/pour_$n.json > $W/log/export_$n.log 2>&1
+    gpu 0 python -u benchmarks/peers/newton_pour.py --grains $n --device cuda:0 \
+      --scene /tmp/pours/pour_$n.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-3} --progress 20 \
+      --out $W/res/newton_$n.json > $W/log/newton_$n.log 2>&1 ) &
+}
+# MODE=newtonsap: Newton's own SAP work at 1e6 cubes (a few steps: newton_pour.py records it from its arrays), then
+# polydem's time to settle at POLYDEM_SIZES (default 4e5) to section 7's criterion, as the headline row's
+newtonsap() {
+  ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 1000000 --no-world-vertices \
+      --out /tmp/pours/pour_1000000.json > $W/log/export_1e6.log 2>&1
+    gpu 0 python -u benchmarks/peers/newton_pour.py --grains 1000000 --device cuda:0 \
+      --scene /tmp/pours/pour_1000000.json --dt-sweep 1e-3 --max-time 0.064 \
+      --out $W/res/newton_sap_1e6.json > $W/log/newton_sap_1e6.log 2>&1
+    for n in ${POLYDEM_SIZES:-4e5}; do
+      gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes $n --dt-scales 4 --k-rule volume \
+        --speed-fraction off --out $W/res/tts_kinetic_${n}_cube_default.json >> $W/log/tts.log 2>&1
+    done ) &
+}
 # MODE=toe1: long steps with the toe of the recommended step (benchmarks/toe_swap.py; 1e4 cubes): TOE_JOBS is a list
 # of "K S T SEED" (k factor, step and toe step as multiples of that k's dt_rec)
 toe1() {
@@ -313,6 +336,10 @@ elif [ "${MODE:-}" = conv8 ]; then
   conv8
 elif [ "${MODE:-}" = newton1e6 ]; then
   newton1e6
+elif [ "${MODE:-}" = newtonsize ]; then
+  newtonsize
+elif [ "${MODE:-}" = newtonsap ]; then
+  newtonsap
 elif [ "${MODE:-}" = toe1 ]; then
   toe1
 elif [ "${MODE:-}" = mesh ]; then

@@ -286,6 +286,62 @@ class Runner:
                 self._substeps()
 
 
+INT32_MAX = 2**31 - 1
+# Newton 1.8's SAP projects every AABB on this fixed direction (broad_phase_sap.py: "random fixed direction").
+NEWTON_SAP_DIRECTION = np.array([0.5935, 0.7790, 0.1235])
+
+
+def sap_work(runner):
+    """Newton's SAP work of its last launch: (the exact total of its per-shape ranges, summed here in int64; the
+    total its int32 scan holds, from which its pair kernel takes its work), or None for another broad phase. Past
+    2^31 - 1 the scan wraps and the broad phase misses pairs (the 1e6 pour: every cube falls through the floor)."""
+    bp = runner.pipeline.broad_phase
+    if not hasattr(bp, "sap_range"):
+        return None
+    ranges = bp.sap_range.numpy().astype(np.int64)
+    return int(ranges.sum()), int(bp.sap_cumulative_sum.numpy()[-1])
+
+
+def sap_work_estimate(sc, gap):
+    """Newton 1.8's SAP work for the export's initial poses, from numpy alone (no Newton, any size): each shape's
+    AABB (a cube's rotated box, a wall's vertices) widened by ``gap`` on each side as Newton's pipeline does,
+    projected on NEWTON_SAP_DIRECTION, sorted by lower end; a shape's work is the number of shapes after it whose
+    lower end is below its upper end. Returns the int64 total."""
+    pos = np.asarray(sc["cubes"]["position"], dtype=np.float64)
+    x, y, z, w = np.asarray(sc["cubes"]["orientation_xyzw"], dtype=np.float64).T
+    rot = np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
+    half = np.abs(rot).sum(-1) * 0.5 * sc["edge"]
+    lower, upper = [pos - half], [pos + half]
+    for wall in sc["walls"]:
+        hx, hy, hz = wall["half_extents_body"]
+        corners = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        qx, qy, qz, qw = wall["orientation_xyzw"]
+        r = np.array(
+            [
+                [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+                [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+                [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
+            ]
+        )
+        world = corners @ r.T + np.asarray(wall["center"])
+        lower.append(world.min(0, keepdims=True))
+        upper.append(world.max(0, keepdims=True))
+    lower, upper = np.vstack(lower) - gap, np.vstack(upper) + gap
+    d = NEWTON_SAP_DIRECTION / np.linalg.norm(NEWTON_SAP_DIRECTION)
+    centre, radius = 0.5 * (lower + upper) @ d, 0.5 * (upper - lower) @ np.abs(d)
+    lo, hi = centre - radius, centre + radius
+    order = np.argsort(lo, kind="stable")
+    limit = np.searchsorted(lo[order], hi[order], side="left")
+    return int(np.maximum(limit - np.arange(len(order)) - 1, 0).sum(dtype=np.int64))
+
+
 def model_gap(runner):
     gap = getattr(runner.model, "shape_gap", None)
     return float(gap.numpy().max()) if gap is not None else None
@@ -517,12 +573,19 @@ def settle_run(sc, scene, builder, device, args, dt, save_poses):
     runner.steps_done = args.substeps
     wp.synchronize_device(device)
     setup = time.perf_counter() - t0
+    work_start = sap_work(runner)
+    if work_start and work_start[0] > INT32_MAX:
+        print(
+            f"  Newton's SAP work {work_start[0]:,} > 2^31 - 1: its int32 scan holds {work_start[1]:,}, pairs are missed",
+            flush=True,
+        )
     t1 = time.perf_counter()
     limit = criterion.speed_limit_of(scene)
     settled, check = run_until_settled(runner, meter, criterion, args.max_time, every, limit, args.progress)
     wp.synchronize_device(device)
     wall = time.perf_counter() - t1
     sim_time = runner.steps_done * dt
+    work_end = sap_work(runner)
     runner.overflow = meter.most_contacts - runner.contacts.rigid_contact_max
     pen, count = penetration(runner)
     q = runner.state_0.body_q.numpy().astype(np.float64)
@@ -552,6 +615,12 @@ def settle_run(sc, scene, builder, device, args, dt, save_poses):
         "shape_pairs_max": int(runner.shape_pairs_max),
         "most_broad_phase_pairs": int(meter.most_pairs),
         "pair_overflow": int(max(meter.most_pairs - runner.shape_pairs_max, 0)),
+        # Newton's SAP work (exact, int64) and what its int32 scan held, after the first and the last launch
+        "sap_work_start": None if work_start is None else work_start[0],
+        "sap_scan_start": None if work_start is None else work_start[1],
+        "sap_work_end": None if work_end is None else work_end[0],
+        "sap_scan_end": None if work_end is None else work_end[1],
+        "sap_scan_overflow": any(w is not None and w[0] > INT32_MAX for w in (work_start, work_end)),
         **figures,
         "yardstick_wall_s": time.perf_counter() - t2,
         "graph": runner.graph is not None,
@@ -678,16 +747,31 @@ def main():
     ap.add_argument(
         "--check-builders", action="store_true", help="finalize both builders and compare every Model array"
     )
+    ap.add_argument(
+        "--sap-estimate",
+        action="store_true",
+        help="print Newton's SAP work for the export's initial poses (numpy, no Newton) and exit",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
 
+    path = args.scene or os.path.join(OUT_DIR, f"pour_{args.grains}.json")
+    if args.sap_estimate:
+        with open(path) as f:
+            sc = json.load(f)
+        gap = args.gap if args.gap is not None else sc.get("skin", 0.2 * 0.5 * np.sqrt(3.0) * sc["edge"])
+        work = sap_work_estimate(sc, gap)
+        print(
+            f"{sc['grains']} cubes: Newton's SAP work at the start {work:,} ({work / INT32_MAX:.2f} x 2^31 - 1: "
+            f"{'its int32 scan wraps' if work > INT32_MAX else 'fits'})"
+        )
+        return
     wp.config.quiet = True
     wp.config.log_level = wp.LOG_WARNING
     import newton
 
     wp.init()
     device = wp.get_device(args.device)
-    path = args.scene or os.path.join(OUT_DIR, f"pour_{args.grains}.json")
     with open(path) as f:
         sc = json.load(f)
     if args.shape == "box" and not axis_aligned(sc["cube_body_vertices"]):
@@ -708,7 +792,13 @@ def main():
     runner = Runner(model, args, dt)
     t_build = time.perf_counter() - t0
     if args.check:
-        runner.launch(10)
+        runner.launch(1)
+        wp.synchronize_device(device)
+        work = sap_work(runner)
+        if work is not None:
+            estimate = sap_work_estimate(sc, model_gap(runner))
+            print(f"Newton's SAP work at the first launch {work[0]:,} (its scan {work[1]:,}), numpy's {estimate:,}")
+        runner.launch(9)
         wp.synchronize_device(device)
         q = runner.state_0.body_q.numpy()
         ok = bool(np.isfinite(q).all())
