@@ -576,7 +576,7 @@ def settle_run(sc, scene, builder, device, args, dt, save_poses):
     work_start = sap_work(runner)
     if work_start and work_start[0] > INT32_MAX:
         print(
-            f"  Newton's SAP work {work_start[0]:,} > 2^31 - 1: its int32 scan holds {work_start[1]:,}, pairs are missed",
+            f"  Newton's SAP work {work_start[0]:,} > 2^31 - 1: its int32 scan holds {work_start[1]:,}, pairs missed",
             flush=True,
         )
     t1 = time.perf_counter()
