@@ -293,6 +293,13 @@ newtonsize() {
       --scene /tmp/pours/pour_$n.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-3} --progress 20 \
       --out $W/res/newton_$n.json > $W/log/newton_$n.log 2>&1 ) &
 }
+# MODE=small: Newton's pour and polydem's time to settle at NEWTON_N (default 1000), in turn, to section 7's criterion
+small() {
+  local n=${NEWTON_N:-1000}
+  ( NEWTON_N=$n newtonsize; wait
+    gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes $n --dt-scales 4 --k-rule volume \
+      --speed-fraction off --out $W/res/tts_kinetic_${n}_cube_default.json >> $W/log/tts.log 2>&1 ) &
+}
 # MODE=newtonsap: Newton's own SAP work at 1e6 cubes (a few steps: newton_pour.py records it from its arrays), then
 # polydem's time to settle at POLYDEM_SIZES (default 4e5) to section 7's criterion, as the headline row's
 newtonsap() {
@@ -338,6 +345,8 @@ elif [ "${MODE:-}" = newton1e6 ]; then
   newton1e6
 elif [ "${MODE:-}" = newtonsize ]; then
   newtonsize
+elif [ "${MODE:-}" = small ]; then
+  small
 elif [ "${MODE:-}" = newtonsap ]; then
   newtonsap
 elif [ "${MODE:-}" = toe1 ]; then
