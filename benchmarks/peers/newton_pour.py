@@ -53,7 +53,15 @@ and coordination number of the settled interior (``polydem.cli.diagnostics.settl
 pour's polydem Scene, rebuilt by pour_scene.build and checked against the export, with Newton's
 poses: the definition of time_to_settle.py). Writes
 ``results/peers/newton_settle_<device>_<N>.json``, one row per dt, with the final poses of a single
-run (of every row with ``--save-poses``).
+run (of every row with ``--save-poses``). ``--progress S`` prints the step's cost at a check every S wall
+seconds, so that a run stopped by a deadline still shows it.
+
+Newton's SAP broad phase counts its work (per shape, the shapes whose projections on one fixed direction start
+inside its own) into an int32 prefix sum; past 2^31 - 1 the sum wraps and pairs are never tested (BENCHMARKS.md
+26f: the 1e6 pour, 4.7e9 work items, every cube falls through the floor). Each row records that work, summed
+in int64 from Newton's own arrays after the first and the last launch, and what its scan held
+(``sap_work_*``, ``sap_scan_*``, ``sap_scan_overflow``); ``--sap-estimate`` counts it for an export's initial
+poses in numpy, without Newton, at any size.
 """
 
 import argparse
