@@ -76,3 +76,11 @@ def test_a_setting_is_k_factor_times_step(converged_pile):
     assert converged_pile.parse_settings("1x4, 64x0.5") == [(1.0, 4.0), (64.0, 0.5)]
     with pytest.raises(SystemExit, match="KxS"):
         converged_pile.parse_settings("4")
+
+
+def test_a_newton_row_whose_broad_phase_wrapped_is_left_out(converged_pile, capsys):
+    record = newton((1e-3, 0.209, 0.0, 30.7), (5e-4, 0.60, 6.5, 5.0))
+    record["rows"][0] |= {"sap_scan_overflow": True, "sap_work_start": 4_700_001_012}
+    rows = converged_pile.newton_rows(record)
+    assert [r["dt"] for r in rows] == [5e-4]
+    assert "4,700,001,012 work items" in capsys.readouterr().out
