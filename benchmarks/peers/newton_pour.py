@@ -58,7 +58,7 @@ seconds, so that a run stopped by a deadline still shows it.
 
 Newton's SAP broad phase counts its work (per shape, the shapes whose projections on one fixed direction start
 inside its own) into an int32 prefix sum; past 2^31 - 1 the sum wraps and pairs are never tested (BENCHMARKS.md
-26f: the 1e6 pour, 4.7e9 work items, every cube falls through the floor). Each row records that work, summed
+26f: the 1e6 pour, 4.7e9 work items, the cubes fall through the floor). Each row records that work, summed
 in int64 from Newton's own arrays after the first and the last launch, and what its scan held
 (``sap_work_*``, ``sap_scan_*``, ``sap_scan_overflow``); ``--sap-estimate`` counts it for an export's initial
 poses in numpy, without Newton, at any size.
@@ -302,7 +302,7 @@ NEWTON_SAP_DIRECTION = np.array([0.5935, 0.7790, 0.1235])
 def sap_work(runner):
     """Newton's SAP work of its last launch: (the exact total of its per-shape ranges, summed here in int64; the
     total its int32 scan holds, from which its pair kernel takes its work), or None for another broad phase. Past
-    2^31 - 1 the scan wraps and the broad phase misses pairs (the 1e6 pour: every cube falls through the floor)."""
+    2^31 - 1 the scan wraps and the broad phase misses pairs (the 1e6 pour: the cubes fall through the floor)."""
     bp = runner.pipeline.broad_phase
     if not hasattr(bp, "sap_range"):
         return None
