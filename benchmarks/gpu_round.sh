@@ -280,8 +280,8 @@ newton1e6() {
   ( gpu 0 python benchmarks/peers/pour_scene.py export --grains 1000000 --no-world-vertices \
       --out /tmp/pours/pour_1000000.json > $W/log/export_1e6.log 2>&1
     gpu 0 python -u benchmarks/peers/newton_pour.py --grains 1000000 --device cuda:0 \
-      --scene /tmp/pours/pour_1000000.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-1.5} --progress 20 \
-      --out $W/res/newton_1e6.json > $W/log/newton_1e6.log 2>&1 ) &
+      --scene /tmp/pours/pour_1000000.json --dt-sweep ${NEWTON_DTS:-1e-3} --max-time ${NEWTON_MAX_TIME:-1.5} \
+      --progress 20 --out $W/res/newton_1e6.json > $W/log/newton_1e6.log 2>&1 ) &
 }
 # MODE=newtonsize: Newton's pour at NEWTON_N cubes (default 4e5, below the size where its SAP scan wraps, about
 # 5.9e5 in this pour: newton_pour.py --sap-estimate) to settled at NEWTON_DTS, --max-time NEWTON_MAX_TIME (default 3)

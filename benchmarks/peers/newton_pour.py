@@ -136,6 +136,12 @@ def shape_config(newton, sc, args):
     return cfg
 
 
+def detection_gap(sc, args):
+    """Newton's contact detection gap [m]: ``--gap``, else the export's skin (polydem's Verlet skin), else 0.2 of a
+    cube's half diagonal."""
+    return args.gap if args.gap is not None else sc.get("skin", 0.2 * 0.5 * np.sqrt(3.0) * sc["edge"])
+
+
 def make_builder(sc, args):
     """Newton's ModelBuilder of the exported pour (a Model per ``finalize``)."""
     import newton
@@ -143,7 +149,7 @@ def make_builder(sc, args):
     builder = newton.ModelBuilder(gravity=tuple(float(g) for g in sc["gravity"]))
     # Newton's default detection gap is 0.1 m, ten cube edges: every cube would be paired with
     # hundreds of neighbours (and the contact buffer overflows). Use polydem's Verlet skin instead.
-    builder.rigid_gap = args.gap if args.gap is not None else sc.get("skin", 0.2 * 0.5 * np.sqrt(3.0) * sc["edge"])
+    builder.rigid_gap = detection_gap(sc, args)
     cfg = shape_config(newton, sc, args)
     cfg.density = sc["density"]
     verts = np.asarray(sc["cube_body_vertices"], dtype=np.float32)
@@ -767,8 +773,7 @@ def main():
     if args.sap_estimate:
         with open(path) as f:
             sc = json.load(f)
-        gap = args.gap if args.gap is not None else sc.get("skin", 0.2 * 0.5 * np.sqrt(3.0) * sc["edge"])
-        work = sap_work_estimate(sc, gap)
+        work = sap_work_estimate(sc, detection_gap(sc, args))
         print(
             f"{sc['grains']} cubes: Newton's SAP work at the start {work:,} ({work / INT32_MAX:.2f} x 2^31 - 1: "
             f"{'its int32 scan wraps' if work > INT32_MAX else 'fits'})"
