@@ -318,39 +318,23 @@ def sap_work(runner):
 
 def sap_work_estimate(sc, gap):
     """Newton 1.8's SAP work for the export's initial poses, from numpy alone (no Newton, any size): each shape's
-    AABB (a cube's rotated box, a wall's vertices) widened by ``gap`` on each side as Newton's pipeline does,
-    projected on NEWTON_SAP_DIRECTION, sorted by lower end; a shape's work is the number of shapes after it whose
-    lower end is below its upper end. Returns the int64 total."""
-    pos = np.asarray(sc["cubes"]["position"], dtype=np.float64)
-    x, y, z, w = np.asarray(sc["cubes"]["orientation_xyzw"], dtype=np.float64).T
-    rot = np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-    half = np.abs(rot).sum(-1) * 0.5 * sc["edge"]
-    lower, upper = [pos - half], [pos + half]
-    for wall in sc["walls"]:
-        hx, hy, hz = wall["half_extents_body"]
-        corners = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-        qx, qy, qz, qw = wall["orientation_xyzw"]
-        r = np.array(
-            [
-                [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
-                [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
-                [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
-            ]
-        )
-        world = corners @ r.T + np.asarray(wall["center"])
-        lower.append(world.min(0, keepdims=True))
-        upper.append(world.max(0, keepdims=True))
-    lower, upper = np.vstack(lower) - gap, np.vstack(upper) + gap
+    AABB (a turned box: a cube or a wall) widened by ``gap`` on each side as Newton's pipeline does, projected on
+    NEWTON_SAP_DIRECTION, sorted by lower end; a shape's work is the number of shapes after it whose lower end is
+    below its upper end. Returns the int64 total."""
+    from polydem.quaternions import quat_to_matrix
+
+    walls = sc["walls"]
+    n = len(sc["cubes"]["position"])
+    centre = np.vstack([np.asarray(sc["cubes"]["position"], dtype=np.float64).reshape(n, 3)]
+                       + [np.asarray(w["center"], dtype=np.float64)[None] for w in walls])  # fmt: skip
+    quat = np.vstack([np.asarray(sc["cubes"]["orientation_xyzw"], dtype=np.float64).reshape(n, 4)]
+                     + [np.asarray(w["orientation_xyzw"], dtype=np.float64)[None] for w in walls])  # fmt: skip
+    half = np.vstack([np.full((n, 3), 0.5 * sc["edge"])] + [np.asarray(w["half_extents_body"])[None] for w in walls])
+    # A turned box's AABB half-widths: |R| times its half extents.
+    reach = np.einsum("nij,nj->ni", np.abs(quat_to_matrix(quat)), half) + gap
     d = NEWTON_SAP_DIRECTION / np.linalg.norm(NEWTON_SAP_DIRECTION)
-    centre, radius = 0.5 * (lower + upper) @ d, 0.5 * (upper - lower) @ np.abs(d)
-    lo, hi = centre - radius, centre + radius
+    mid, radius = centre @ d, reach @ np.abs(d)
+    lo, hi = mid - radius, mid + radius
     order = np.argsort(lo, kind="stable")
     limit = np.searchsorted(lo[order], hi[order], side="left")
     return int(np.maximum(limit - np.arange(len(order)) - 1, 0).sum(dtype=np.int64))
