@@ -89,6 +89,26 @@ def test_resting_cube_reports_its_weight_in_every_step(device, law, m, e, precis
     assert np.ptp(z) < 1e-11 + 1e-6 * abs(z[0] - 0.05)
 
 
+def test_resting_cube_sinks_to_the_hertz_laws_volume(device):
+    """A soft hertz floor (k 1e6, mixed, dt "auto"): the cube rests where the law carries its weight, W'(V) A =
+    k sqrt(V) A = m g, far above the toe's V_c, so the overlap volume is (m g / (k A))^2 (5.9e-5 m^3, 5.9 mm deep)
+    to 1e-5: a law off by 1e-4 moves it by 2e-4."""
+    k = 1.0e6
+    scene = material_scene("mixed", k=k, restitution=0.3)
+    scene.add_shape("cube", ConvexShape.box(0.1))
+    scene.add_body("cube", "m", position=(0.0, 0.0, 0.05))
+    scene.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "m")
+    sim = Simulation(scene, device)
+    # Its bounce (a 0.22 s period at dt 1.1e-3 s) dies out through the hysteresis alone: within 7e-7 by 2.5 s.
+    sim.step(int(3.0 / sim.dt))
+    c = sim.contacts()
+    weight = 7800.0 * 1e-3 * G
+    expected = (weight / (k * 0.1**2)) ** 2
+    print(f"\nresting volume {c['volume'][0]:.9g} m^3 against the law's {expected:.9g}")
+    assert len(c["volume"]) == 1
+    assert c["volume"][0] == pytest.approx(expected, rel=1e-5)
+
+
 @pytest.mark.parametrize("scale", [0.5, 4.0])
 def test_resting_cube_at_a_shorter_and_a_longer_step(device, scale):
     """The hertz cube (e = 0.5) at half and four times dt = "auto": its weight in every step either way. The toe
