@@ -326,6 +326,32 @@ toe1() {
 16 8 1 0
 64 16 1 0}" ) &
 }
+# MODE=split: the step split for the ghost exchange's overlap (issue 27): its CUDA tests (one process; then two MPI
+# ranks on GPU 0 against the undivided run, with the MPICH wheel staged in .gpu3), what the split costs and how early
+# its first part ends at SPLIT_SIZES (default 1e6 and 1e5 cubes, benchmarks/split_step.py), then polydem's time to
+# settle at TTS_SIZES (default 1e3 and 1e4, one after the other in this call), then the CUDA test of the hertz
+# resting volume
+split() {
+  ( CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_split_step.py > $W/log/pytest_split.log 2>&1
+    if [ ! -x /tmp/gpu/prefix/bin/mpiexec ]; then
+      python3 -m pip install -q --no-index --no-deps --ignore-installed --prefix /tmp/gpu/prefix /tmp/gpu/mpich-*.whl
+    fi
+    PATH=/tmp/gpu/prefix/bin:$PATH LD_LIBRARY_PATH=/tmp/gpu/prefix/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH} \
+      CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_distributed.py -k "decomposed and (box_pour-3000-0.004-2-50 or chain-1500-0.05-2)" \
+      > $W/log/pytest_mpi.log 2>&1
+    for n in ${SPLIT_SIZES:-1000000 100000}; do
+      gpu 0 python -u benchmarks/split_step.py --device cuda:0 --bodies $n --out $W/res/split_step_$n.json \
+        > $W/log/split_step_$n.log 2>&1
+    done
+    for n in ${TTS_SIZES:-1e3 1e4}; do
+      gpu 0 python -u benchmarks/time_to_settle.py --device cuda:0 --sizes $n --dt-scales 4 --k-rule volume \
+        --speed-fraction off --out $W/res/tts_kinetic_${n}_cube_default.json >> $W/log/tts.log 2>&1
+    done
+    CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_at_rest.py -k hertz_laws_volume > $W/log/pytest_at_rest.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -351,6 +377,8 @@ elif [ "${MODE:-}" = newtonsap ]; then
   newtonsap
 elif [ "${MODE:-}" = toe1 ]; then
   toe1
+elif [ "${MODE:-}" = split ]; then
+  split
 elif [ "${MODE:-}" = mesh ]; then
   mesh
 elif [ "${MODE:-}" = mesh2 ]; then

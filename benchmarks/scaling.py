@@ -16,6 +16,9 @@ ghosts, which includes waiting for the neighbours' messages), ``wait`` (the step
 allreduce of the error flag and the largest move) and ``partition`` (repartitions in the window).
 With ``--baseline`` (one rank only) the same pile is also stepped by a plain Simulation (the
 undivided production path: CUDA graph chunks), the reference for the efficiency.
+``--overlap on`` (default) sends the ghosts while each step runs (DistributedSimulation(overlap=True)), ``off``
+after it; ``both`` times windows of ``--steps`` off, on, off, on in one run (the same pile, the same ranks) and
+reports each window and the medians.
 Rank 0 prints a table and writes JSON to ``--out``.
 """
 
@@ -25,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -48,6 +52,7 @@ def main():
     ap.add_argument("--precision", default="float32")
     ap.add_argument("--baseline", action="store_true", help="also time a plain Simulation (one rank only)")
     ap.add_argument("--split", action="store_true", help="synchronise after each step's kernels to split the time")
+    ap.add_argument("--overlap", choices=("on", "off", "both"), default="on")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     wp.config.quiet = True
@@ -60,25 +65,37 @@ def main():
     build_scene = time.perf_counter() - t0
     device = device_for_rank(args.device if args.device != "cuda" else "cuda:0", comm)
     t0 = time.perf_counter()
-    ds = DistributedSimulation(scene, device=device, comm=comm)
+    ds = DistributedSimulation(scene, device=device, comm=comm, overlap=args.overlap != "off")
     ds.sync_timers = args.split
     build = time.perf_counter() - t0
     ds.step(args.warmup)
+    if args.overlap == "both":  # the other mode's kernels and graphs too, before any window
+        ds.set_overlap(False)
+        ds.step(min(args.warmup, 20))
     wp.synchronize()
-    for k in ds.timers:
-        ds.timers[k] = 0.0
+    modes = {"on": [True], "off": [False], "both": [False, True, False, True]}[args.overlap]
     parts0 = ds.partitions
-    comm.Barrier()
-    t0 = time.perf_counter()
-    ds.step(args.steps)
-    wp.synchronize()
-    comm.Barrier()
-    wall = time.perf_counter() - t0
+    windows = []
+    for overlap in modes:
+        if ds.overlap != overlap:
+            ds.set_overlap(overlap)
+            ds.step(5)  # untimed: the graphs of the mode (captured again when it changes)
+        for k in ds.timers:
+            ds.timers[k] = 0.0
+        comm.Barrier()
+        t0 = time.perf_counter()
+        ds.step(args.steps)
+        wp.synchronize()
+        comm.Barrier()
+        windows.append({"overlap": overlap, "split": ds.split, "wall_s": time.perf_counter() - t0,
+                        "timers_s": dict(ds.timers)})  # fmt: skip
+    wall = windows[-1]["wall_s"]
     owned, local = ds.balance()
     mine = {
         "rank": rank,
         "device": str(ds.device),
         "timers_s": dict(ds.timers),
+        "windows": windows,
         "owned": int(ds.owned.sum()),
         "local": len(ds.local_index),
         "build_s": build,
@@ -97,10 +114,17 @@ def main():
     if rank != 0:
         return
     step_ms = 1e3 * wall / args.steps
+    # The window's wall time is the same on every rank (barriers at both ends): rank 0's.
+    by_mode = {}
+    for w in ranks[0]["windows"]:
+        by_mode.setdefault("on" if w["overlap"] else "off", []).append(1e3 * w["wall_s"] / args.steps)
+    medians = {k: float(np.median(v)) for k, v in by_mode.items()}
     record = {
         "meta": {**vars(args), "warp": wp.__version__, "ranks": size, "bodies": scene.num_bodies, "grains": n},
         "scene": info,
         "step_ms": step_ms,
+        "step_ms_by_overlap": by_mode,
+        "step_ms_median_by_overlap": medians,
         "body_steps_per_s": scene.num_bodies * args.steps / wall,
         "partitions_in_window": ds.partitions - parts0,
         "ranks": ranks,
@@ -118,6 +142,12 @@ def main():
             f"ghosts); ms/step compute {per['compute']}, exchange {per['exchange']}, wait {per['wait']}, "
             f"partition {per['partition']}; built in {r['build_s']:.1f} s"
         )
+    for mode, v in by_mode.items():
+        split = [w["split"] for r in ranks for w in r["windows"] if ("on" if w["overlap"] else "off") == mode]
+        print(f"  overlap {mode}: ms/step by window {', '.join(f'{x:.3f}' for x in v)}, median {medians[mode]:.3f} "
+              f"(ranks split: {sum(split)} of {len(split)})")  # fmt: skip
+    if len(medians) == 2:
+        print(f"  overlap on / off: {medians['on'] / medians['off']:.3f}")
     if baseline is not None:
         print(f"  plain Simulation: {baseline['step_ms']:.3f} ms/step")
     tag = str(args.device).replace(":", "")

@@ -357,6 +357,7 @@ def make_contact_kernels(
     compound: bool = False,
     report: bool = False,
     thread_order: bool = False,
+    phased: bool = False,
 ) -> ContactKernels:
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -377,6 +378,12 @@ def make_contact_kernels(
     (:mod:`polydem.kernels.compound`: the geometry loops over their parts). ``thread_order``: thread t of the
     pair kernel takes pair ``pairs.thread[t]`` (pairs grouped by cost, and by contact at the last rebuild:
     :func:`polydem.kernels.pairlist.launch_thread_order`) instead of pair t; the same results, bit for bit.
+    ``phased``: the pair and gather kernels can run a step's force stage in two launches each (their ``phase``
+    argument, with ``body_first`` (N,) int32): phase 1 takes the pairs with a body flagged in ``body_first``
+    and gathers the flagged bodies, phase 2 the rest, phase 0 everything; every pair and body is computed as in
+    one launch, so the same bits. A decomposed run (:mod:`polydem.distributed`) flags the bodies it sends, so
+    that their new state is known, and on its way, before the rest of the step has run. Without ``phased`` the
+    kernels take the two arguments and never read them.
     """
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
@@ -406,6 +413,9 @@ def make_contact_kernels(
         # Report (the report variant only)
         report_bits: int,
         pair_sums: ContactSums,
+        # Phases (the phased variant only): (N,) 1 for the bodies of phase 1; 0 all pairs, 1 or 2 one phase's
+        body_first: wp.array(dtype=wp.int32),
+        phase: int,
     ):
         """The step variant writes the wrench on A, the spring and the energy dissipated; the
         diagnostics variant (run on request only) writes what energy() reports, at the current
@@ -417,6 +427,10 @@ def make_contact_kernels(
             p = pairs.thread[p]
         a = pairs.a[p]
         b = pairs.b[p]
+        if wp.static(phased):
+            first = body_first[a] + body_first[b] > 0
+            if (phase == 1 and not first) or (phase == 2 and first):
+                return
         xa = bodies.q[a]
         xb = bodies.q[b]
         vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = body_geom.pair_geometry(
@@ -544,6 +558,9 @@ def make_contact_kernels(
         # Report (the report variant only)
         report_bits: int,
         wall_sums: ContactSums,
+        # Phases (the phased variant only): (N,) 1 for the bodies of phase 1; 0 all bodies, 1 or 2 one phase's
+        body_first: wp.array(dtype=wp.int32),
+        phase: int,
     ):
         """Sums each body's pair wrenches in key order and adds its wall contacts (step variant);
         the diagnostics variant only reports the wall contacts; the report variant steps and reports
@@ -551,6 +568,10 @@ def make_contact_kernels(
         with friction), also each body's damping load as damping_load_kernel computes it: the same sums in
         the same order, so the same bits, without a launch of its own."""
         i = wp.tid()
+        if wp.static(phased):
+            first = body_first[i] != 0
+            if (phase == 1 and not first) or (phase == 2 and first):
+                return
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
         lost = S(0.0)
@@ -693,13 +714,17 @@ def launch_pair_contacts(
     out: ContactOutputs,
     report_bits: int,
     pair_sums: ContactSums,
+    body_first: wp.array,
+    phase: int = 0,
 ) -> None:
     """The pair kernel of ``kernels``, one thread per candidate pair: each pair's wrench on A, spring,
     turning volume and energy dissipated into ``pairs`` (the step and report variants), its contact
     into ``out`` (the diagnostics variant; the report variant by ``report_bits``), its force into
     ``pair_sums`` (the report variant, ``REPORT_SUMS``). A clipped polygon that did not fit sets
     ``overflow``. ``out`` and ``pair_sums`` may be placeholders of one entry where nothing is written
-    to them."""
+    to them. ``body_first`` (N,) int32 and ``phase``: which pairs (phased kernels: 1, those with a body
+    flagged in ``body_first``; 2, the others; 0, all; kernels not phased take all and never read
+    ``body_first``, which may then be a placeholder of one entry)."""
     m = model
     wp.launch(
         kernels.pair_contact_kernel,
@@ -714,7 +739,7 @@ def launch_pair_contacts(
             pairs.pairs,
             overflow,
         ],
-        outputs=[out.pairs, int(report_bits), pair_sums],
+        outputs=[out.pairs, int(report_bits), pair_sums, body_first, int(phase)],
         device=state.bodies.q.device,
         block_dim=NARROWPHASE_BLOCK_DIM,
     )
@@ -732,6 +757,8 @@ def launch_gather(
     wall_sums: ContactSums,
     planes: Any = None,
     damping_out: wp.array,
+    body_first: wp.array,
+    phase: int = 0,
 ) -> None:
     """The gather kernel of ``kernels``, one thread per body, after :func:`launch_pair_contacts`: each
     body's pair wrenches in key order plus its plane-wall contacts into ``state.body_f`` and
@@ -740,7 +767,8 @@ def launch_gather(
     ``damping_out``: (N,) float32, where the gather also writes the damping loads that
     :func:`launch_damping_load` would (only where the plane walls are all the walls: a mesh wall's contacts
     come after the gather; may be ``state.body_damping``), or an array of no entries: not written (nor
-    without friction)."""
+    without friction). ``body_first`` and ``phase``: which bodies, as :func:`launch_pair_contacts` takes pairs
+    (phase 1: the flagged bodies, 2: the others)."""
     m = model
     planes = m.planes if planes is None else planes
     wp.launch(
@@ -757,7 +785,7 @@ def launch_gather(
             state.body_damping,
             pairs.pairs,
         ],
-        outputs=[damping_out, out.walls, int(report_bits), wall_sums],
+        outputs=[damping_out, out.walls, int(report_bits), wall_sums, body_first, int(phase)],
         device=state.bodies.q.device,
     )
 

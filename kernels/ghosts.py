@@ -8,9 +8,11 @@ state's scalar holds exactly) in the state's scalar, read from and written to sc
 only, and a maximum: no rounding.
 """
 
+import functools
 from typing import Any
 
 import warp as wp
+from polydem.kernels.integrate import make_integrator
 
 
 @wp.func
@@ -61,6 +63,43 @@ def moved_kernel(
         wp.atomic_max(moved, 0, wp.abs(wp.float64(q[i, axis]) - x0[i]))
 
 
+@functools.cache
+def make_step_rows_kernel(scalar):
+    """The kernel that writes the rows of bodies as the integrator will leave them at the end of the step (from
+    their force, torque and damping load as the force stage left them), without changing the state: the rows a
+    decomposed run sends while the rest of its step still runs (``scalar``: the state's)."""
+    ig = make_integrator(scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def step_rows_kernel(
+        # Model
+        model: ig.BodyModel,
+        gravity: ig.vec3,
+        dt: scalar,
+        # State in: the bodies after the force stage (free bodies only), their damping loads for the next step
+        bodies: ig.Bodies,
+        damping: wp.array(dtype=wp.float32),
+        index: wp.array(dtype=int),
+        # Out: (len(index), 14) rows
+        rows: wp.array2d(dtype=scalar),
+    ):
+        k = wp.tid()
+        i = index[k]
+        tf, v, w = ig.free_body_step(model, gravity, dt, i, bodies.q[i], bodies.v[i], bodies.w[i], bodies.f[i],
+                                     bodies.t[i])  # fmt: skip
+        p = wp.transform_get_translation(tf)
+        q = wp.transform_get_rotation(tf)
+        for c in range(3):
+            rows[k, c] = p[c]
+            rows[k, 7 + c] = v[c]
+            rows[k, 10 + c] = w[c]
+        for c in range(4):
+            rows[k, 3 + c] = q[c]
+        rows[k, 13] = scalar(damping[i])
+
+    return step_rows_kernel
+
+
 # ---------------------------------------------------------------------------------------------
 # Launch functions
 # ---------------------------------------------------------------------------------------------
@@ -86,3 +125,22 @@ def launch_largest_move(*, q: wp.array, axis: int, x0: wp.array, mine: wp.array,
     """Raise ``moved`` (1,) float64 to the largest move along ``axis`` [m] of a body flagged in ``mine``
     (N,) since its coordinate ``x0`` (N,) float64 at the partition (``q``: the (N, 7) view of the poses)."""
     wp.launch(moved_kernel, dim=mine.shape[0], inputs=[q, axis, x0, mine], outputs=[moved], device=moved.device)
+
+
+def launch_step_rows(
+    *, model: Any, gravity: Any, dt: float, bodies: Any, damping: wp.array, index: wp.array, rows: wp.array
+) -> None:
+    """The rows (len(index), 14) of the free bodies ``index`` as the integrator will leave them at the end of this
+    step: called after the force stage has written their force, torque and damping load (``model``: the
+    bodies' model struct; ``gravity``: three numbers [m/s^2]; ``bodies``: the state's bodies struct). The
+    same bits as :func:`launch_pack_rows` after the step (the integrator's own function)."""
+    scalar = rows.dtype
+    ig = make_integrator(scalar)
+    g = ig.vec3(*[scalar(float(x)) for x in gravity])
+    wp.launch(
+        make_step_rows_kernel(scalar),
+        dim=index.shape[0],
+        inputs=[model, g, scalar(float(dt)), bodies, damping, index],
+        outputs=[rows],
+        device=rows.device,
+    )

@@ -117,6 +117,7 @@ class Integrator:
     body_momentum: Any
     angular_velocity: Any
     body_kinetic_energy: Any
+    free_body_step: Any
     integrate_bodies_kernel: Any
     kinetic_energy_kernel: Any
 
@@ -203,6 +204,26 @@ def make_integrator(scalar) -> Integrator:
         err = pi - body_momentum(q, inertia, w)
         return w + wp.quat_rotate(q, wp.cw_mul(inv_inertia, err))
 
+    @wp.func
+    def free_body_step(model: BodyModel, gravity: vec3, dt: scalar, i: int, tf: transform, v: vec3, w: vec3, f: vec3,
+                       t: vec3):  # fmt: skip
+        # Free body i's pose and velocities after a step under force f and torque t: (pose, velocity, angular
+        # velocity). The integrate kernel's, and a decomposed run's for the bodies it sends before the step ends.
+        x = wp.transform_get_translation(tf)
+        q = wp.transform_get_rotation(tf)
+        # Translation: symplectic Euler.
+        v_new = v + (f * model.inv_mass[i] + gravity) * dt
+        x_new = x + v_new * dt
+
+        # Rotation: kick the body-frame momentum, then drift the free rotor.
+        inertia = model.inertia[i]
+        inv_inertia = vec3(safe_inv(inertia[0]), safe_inv(inertia[1]), safe_inv(inertia[2]))
+        pi = body_momentum(q, inertia, w) + wp.quat_rotate_inv(q, t * dt)
+        pi, dq = free_rotor_drift(pi, inv_inertia, dt)
+        q_new = wp.normalize(q * dq)
+        w_new = angular_velocity(q_new, inertia, inv_inertia, pi)
+        return transform(x_new, q_new), v_new, w_new
+
     # -----------------------------------------------------------------------------------------
     # Kernels
 
@@ -234,20 +255,9 @@ def make_integrator(scalar) -> Integrator:
             bodies.v[i] = v_new
             return
 
-        # Translation: symplectic Euler.
-        v_new = v + (bodies.f[i] * model.inv_mass[i] + gravity) * dt
-        x_new = x + v_new * dt
+        tf_new, v_new, w_new = free_body_step(model, gravity, dt, i, tf, v, w, bodies.f[i], bodies.t[i])
         bodies.v[i] = v_new
-
-        # Rotation: kick the body-frame momentum, then drift the free rotor.
-        inertia = model.inertia[i]
-        inv_inertia = vec3(safe_inv(inertia[0]), safe_inv(inertia[1]), safe_inv(inertia[2]))
-        pi = body_momentum(q, inertia, w) + wp.quat_rotate_inv(q, bodies.t[i] * dt)
-        pi, dq = free_rotor_drift(pi, inv_inertia, dt)
-        q_new = wp.normalize(q * dq)
-        w_new = angular_velocity(q_new, inertia, inv_inertia, pi)
-
-        bodies.q[i] = transform(x_new, q_new)
+        bodies.q[i] = tf_new
         bodies.w[i] = w_new
 
     @wp.func
@@ -280,6 +290,7 @@ def make_integrator(scalar) -> Integrator:
         body_momentum=body_momentum,
         angular_velocity=angular_velocity,
         body_kinetic_energy=body_kinetic_energy,
+        free_body_step=free_body_step,
         integrate_bodies_kernel=integrate_bodies_kernel,
         kinetic_energy_kernel=kinetic_energy_kernel,
     )

@@ -110,29 +110,34 @@ needs_mpi = pytest.mark.skipif(not _have_mpi(), reason="needs mpi4py and mpiexec
 
 @needs_mpi
 @pytest.mark.parametrize(
-    "scene, steps, margin, ranks, chunk",
+    "scene, steps, margin, ranks, chunk, overlap",
     [
-        ("box_pour", 3000, 0.004, 2, 50),  # a small margin: bodies move to other ranks many times
-        ("box_pour", 3000, 0.004, 4, 50),
-        ("box_pour", 3000, 0.002, 2, 1000),  # chunks past the margin: stepped again after a new partition
-        ("box_pour_long", 3000, 0.004, 2, 50),  # damping loads above the share: the ghosts' from their owners
-        ("box_pour_long", 3000, 0.002, 2, 1000),  # ... also after a redone chunk (restore, then exchange)
-        ("mixer", 2450, 0.01, 2, 50),  # turning mesh walls, non-convex grains (0.031 s: 11 contacts)
-        ("chain", 1500, 0.05, 2, 50),  # a pulse through contacts across the boundary
-        ("chain", 1500, 0.05, 4, 50),
+        ("box_pour", 3000, 0.004, 2, 50, True),  # a small margin: bodies move to other ranks many times
+        ("box_pour", 3000, 0.004, 2, 50, False),  # the ghosts exchanged after the whole step
+        ("box_pour", 3000, 0.004, 4, 50, True),
+        ("box_pour", 3000, 0.002, 2, 1000, True),  # chunks past the margin: stepped again after a new partition
+        ("box_pour_long", 3000, 0.004, 2, 50, True),  # damping loads above the share: the ghosts' from their owners
+        ("box_pour_long", 3000, 0.002, 2, 1000, True),  # ... also after a redone chunk (restore, then exchange)
+        ("mixer", 2450, 0.01, 2, 50, True),  # turning mesh walls (no split), non-convex grains (11 contacts)
+        ("chain", 1500, 0.05, 2, 50, True),  # a pulse through contacts across the boundary
+        ("chain", 1500, 0.05, 4, 50, True),
     ],
 )
-def test_decomposed_run_is_the_undivided_run(tmp_path, device, scene, steps, margin, ranks, chunk):
+def test_decomposed_run_is_the_undivided_run(tmp_path, device, scene, steps, margin, ranks, chunk, overlap):
+    """Every rank's state and contacts are the one-process run's, bit for bit, with the ghosts sent while the
+    step runs (its first part: the contacts, forces and new state of the bodies sent) and without."""
     out = tmp_path / "run.npz"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
     cmd = [_mpiexec(), "-n", str(ranks), sys.executable, str(HERE / "mpi_job.py"), scene, str(steps)]
-    cmd += [str(margin), device, str(out), str(chunk)]
+    cmd += [str(margin), device, str(out), str(chunk), str(int(overlap))]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     got = np.load(out)
     if scene != "chain":  # the chain's bodies hardly move: one partition all along
         assert int(got["partitions"]) > 1, "the run should have moved bodies between ranks"
     assert np.all(got["owned"] > 0)
+    # The split step is what ran where it applies: with overlap, on every rank at every check, but with mesh walls.
+    assert np.all(got["split"]) if overlap and scene != "mixer" else not np.any(got["split"])
     if chunk > 100:
         assert int(got["redone"]) > 0, "chunks past the margin should have been stepped again"
 

@@ -34,9 +34,9 @@ from __future__ import annotations
 import math
 import time as _time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Literal, NoReturn
+from typing import TYPE_CHECKING, Any, Literal, NoReturn
 
 import numpy as np
 import warp as wp
@@ -145,6 +145,8 @@ class Stepper:
             (for :meth:`report`), or None.
         average: a :class:`~polydem.contacts.ContactAverage` that the next steps add each contact's
             force to, or None.
+        body_first: (N,) int32, the bodies whose contacts and new state :meth:`step_part` 1 computes (None:
+            the step is not split; :meth:`split_at`).
     """
 
     def __init__(
@@ -180,6 +182,7 @@ class Stepper:
         if model.num_mesh_walls and mesh_candidates:
             # Room for a quarter of the bodies' worth to start with: it grows to what a step lists.
             self.mesh_candidates = MeshCandidates(n, max(1024, n // 4), model.precision, self.device)
+        self.body_first: wp.array | None = None
         self._kernels()
         self._diag: ContactOutputs | None = None
         self._diag_generation: int | None = None
@@ -187,6 +190,7 @@ class Stepper:
         self._no_outputs = ContactOutputs.zeros(1, 1, 1, model.precision, self.device)
         self._no_sums = contact_sums(1, self.device)
         self._no_loads = wp.zeros(0, dtype=wp.float32, device=self.device)
+        self._no_first = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.keep_inputs: StepInputs | None = None
         self.average: ContactAverage | None = None
         self._report: tuple[ContactOutputs, dict[str, wp.array]] | None = None  # the outputs and scratch arrays
@@ -249,6 +253,7 @@ class Stepper:
             compound=m.shapes.compound,
             report=report,
             thread_order=self.thread_order,
+            phased=self.body_first is not None and not diagnostics,
         )
 
     def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> MeshKernels | None:
@@ -260,6 +265,22 @@ class Stepper:
         """The report variant of the step's kernels (built on first use: a run that never asks for
         its contacts or an average never compiles it): (contact kernels, mesh kernels or None)."""
         return self._contact_kernels(report=True), self._mesh_kernels(False, report=True)
+
+    def split_at(self, body_first: np.ndarray | None) -> None:
+        """Split each step in two parts (:meth:`step_part`): the first computes the contacts of the bodies
+        flagged in ``body_first`` ((N,) bool) and the forces on them, so that their new state can be computed
+        (:func:`polydem.kernels.ghosts.launch_step_rows`) before the second has run; None: one part. The same
+        bits either way. Not with mesh walls (their contacts come after the gather of every body)."""
+        if body_first is None:
+            self.body_first = None
+        else:
+            if self.mesh_kernels is not None:
+                raise ValueError("a step with mesh walls cannot be split in two parts (their contacts come last)")
+            flags = np.asarray(body_first, dtype=bool)
+            if flags.shape != (self.model.num_bodies,):
+                raise ValueError(f"body_first must have one flag per body ({self.model.num_bodies}), got {flags.shape}")
+            self.body_first = wp.array(flags.astype(np.int32), dtype=wp.int32, device=self.device)
+        self._kernels()
 
     def grow_buffers(self) -> None:
         """After :meth:`buffers_overflowed`: double the room for clipped polygons (new kernels) or grow the
@@ -318,6 +339,24 @@ class Stepper:
                                    state_out.motion_travel, device=self.device)  # fmt: skip
         self.integrate(state_out, dt)
 
+    def step_part(self, state: State, contacts: Contacts, dt: float, part: int) -> None:
+        """One of the two parts of a split step (:meth:`split_at`), in place: part 1 the broad phase and the
+        force stage of the flagged bodies (their pairs, their gather), part 2 the rest of the force stage and
+        the integration. Parts 1 then 2 are :meth:`step` with ``state_out`` = ``state_in``, to the bit."""
+        if self.body_first is None:
+            raise RuntimeError("the step is not split: call split_at() first")
+        if part == 1:
+            self.collide(state, contacts)
+            if self.keep_inputs is not None:
+                self.keep_inputs.save(state, contacts)
+            self.forces(state, contacts, dt, phase=1)
+            return
+        self.forces(state, contacts, dt, phase=2)
+        if self.model.has_measured_motions:
+            launch_measure_motions(self.model, contacts, self._motion_parts, state.step_count, 1, dt,
+                                   state.motion_travel, device=self.device)  # fmt: skip
+        self.integrate(state, dt)
+
     def collide(self, state: State, contacts: Contacts) -> None:
         """The broad phase: rebuild the pair list when some body may have left its skin."""
         if self.device_rebuild:
@@ -325,10 +364,11 @@ class Stepper:
         else:
             contacts.update(state.body_q)
 
-    def forces(self, state: State, contacts: Contacts, dt: float) -> None:
+    def forces(self, state: State, contacts: Contacts, dt: float, phase: int = 0) -> None:
         """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``, and the
         damping loads the next step scales the dashpots by into ``state.body_damping``; with :attr:`average`
-        set, each contact's force is also added to its sums (the report variant of the kernels)."""
+        set, each contact's force is also added to its sums (the report variant of the kernels). ``phase``: 0
+        every body, 1 or 2 the part of a split step (:meth:`step_part`)."""
         average = self.average
         in_gather = self.loads_in_gather
         loads = state.body_damping if in_gather else None
@@ -341,6 +381,7 @@ class Stepper:
                 dt=dt,
                 overflow=self.poly_overflow,
                 damping_out=loads,
+                phase=phase,
             )
         else:
             kernels, mesh = self._report_kernels()
@@ -355,6 +396,7 @@ class Stepper:
                 pair_sums=average.pairs,
                 wall_sums=average.walls,
                 damping_out=loads,
+                phase=phase,
             )
         if not in_gather:
             self.damping_load(state, contacts, dt)
@@ -410,14 +452,18 @@ class Stepper:
         pair_sums: ContactSums | None = None,
         wall_sums: ContactSums | None = None,
         damping_out: wp.array | None = None,
+        phase: int = 0,
     ) -> None:
         """The pair, gather and mesh-wall kernels (``kernels``; ``mesh_kernels``, None without mesh walls):
         the step variant, or the diagnostics one into ``out``, or the report variant (``report_bits``,
         into ``out`` and the sums); a clipped polygon that did not fit sets ``overflow``. ``damping_out``:
-        where the gather writes the damping loads (only without mesh walls; None: not written)."""
+        where the gather writes the damping loads (only without mesh walls; None: not written). ``phase``: the
+        part of a split step (:meth:`step_part`; 0: the whole force stage)."""
         m = self.model
         out = self._no_outputs if out is None else out
-        self.drive_walls(state, dt, 0)
+        first = self._no_first if self.body_first is None or phase == 0 else self.body_first
+        if phase != 2:
+            self.drive_walls(state, dt, 0)
         launch_pair_contacts(
             kernels,
             model=m,
@@ -428,11 +474,14 @@ class Stepper:
             out=out,
             report_bits=report_bits,
             pair_sums=self._no_sums if pair_sums is None else pair_sums,
+            body_first=first,
+            phase=phase,
         )
         wall_sums = self._no_sums if wall_sums is None else wall_sums
         launch_gather(
             kernels, model=m, state=state, pairs=pairs, dt=dt, out=out, report_bits=report_bits, wall_sums=wall_sums,
             planes=self.planes, damping_out=self._no_loads if damping_out is None else damping_out,
+            body_first=first, phase=phase,
         )  # fmt: skip
         if mesh_kernels is not None:
             launch_mesh_contacts(
@@ -806,8 +855,9 @@ class Simulation:
         self.stepper.body_speed_limit.assign(self._speed_limit.astype(np.float32))
         # Warned once a run: already by the scene's validation where the initial speeds are too high.
         self._tunnel_warned = settings.starts_too_fast
-        self._graphs: dict[bool, wp.Graph] = {}
+        self._graphs: dict[Any, wp.Graph] = {}
         self._graph_key: tuple | None = None
+        self._split_event: wp.Event | None = None
         self._last_good: Snapshot | None = None
         self._diag_cache: dict[str, np.ndarray] | None = None
         # contacts() runs the last step's force stage again on what it read: where that is kept
@@ -941,15 +991,21 @@ class Simulation:
 
     # -- stepping ------------------------------------------------------------------------------
 
-    def _graph(self, keep_inputs: bool) -> wp.Graph:
-        """The captured step (``keep_inputs``: the one that also keeps its inputs, for advance()), for
-        the current buffers, polygon room and average."""
-        state, contacts, avg = self.current_state, self.current_contacts, self._average
-        key = (contacts.generation, self.stepper.buffer_generation, None if avg is None else (id(avg), avg.generation))
+    def _graph_cache(self) -> dict[Any, wp.Graph]:
+        """The captured steps for the current pair list, buffers, polygon room, split and average."""
+        contacts, avg, stepper = self.current_contacts, self._average, self.stepper
+        key = (contacts.generation, stepper.buffer_generation, id(stepper.kernels),
+               None if avg is None else (id(avg), avg.generation))  # fmt: skip
         if self._graph_key != key:
             self._graphs = {}
             self._graph_key = key
-        graph = self._graphs.get(keep_inputs)
+        return self._graphs
+
+    def _graph(self, keep_inputs: bool) -> wp.Graph:
+        """The captured step (``keep_inputs``: the one that also keeps its inputs, for advance()), for
+        the current buffers, polygon room and average."""
+        state, contacts = self.current_state, self.current_contacts
+        graph = self._graph_cache().get(keep_inputs)
         if graph is None:
             self.stepper.keep_inputs = self._inputs if keep_inputs else None
             try:
@@ -959,6 +1015,27 @@ class Simulation:
                 self.stepper.keep_inputs = None
             graph = self._graphs[keep_inputs] = capture.graph
         return graph
+
+    def _split_graphs(self, between: Callable[[], None], key: Hashable) -> tuple[wp.Graph, wp.Graph]:
+        """The two captured parts of a split step that keeps its inputs (:meth:`advance_split`), ``between``
+        captured at the end of the first."""
+        state, contacts = self.current_state, self.current_contacts
+        graphs = self._graph_cache()
+        parts = graphs.get(("split", key))
+        if parts is None:
+            captured = []
+            for part in (1, 2):
+                self.stepper.keep_inputs = self._inputs if part == 1 else None
+                try:
+                    with wp.ScopedCapture(device=self.device) as capture:
+                        self.stepper.step_part(state, contacts, self.dt, part)
+                        if part == 1:
+                            between()
+                finally:
+                    self.stepper.keep_inputs = None
+                captured.append(capture.graph)
+            parts = graphs["split", key] = (captured[0], captured[1])
+        return parts
 
     def _run_chunk(self, steps: int, keep_inputs: bool = False) -> None:
         """``steps`` steps; ``keep_inputs``: the last one keeps what its force stage read (StepInputs)."""
@@ -1053,6 +1130,46 @@ class Simulation:
         step keeps a copy of what its force stage read (:class:`StepInputs`), for :meth:`contacts`.
         """
         self._run_chunk(int(steps), keep_inputs=True)
+
+    def advance_split(self, between: Callable[[], None], key: Hashable = None) -> wp.Event | None:
+        """One step as :meth:`advance` takes it, in the two parts of the stepper's split
+        (:meth:`Stepper.split_at`, which must have been called), with ``between`` (which launches work on this
+        device: on a GPU it is captured once with the first part, per ``key``) run after the first part.
+
+        Returns, on a GPU, an event recorded once the first part and ``between`` are done, while the second part
+        may still be running; on the CPU None (everything has run). The same bits as ``advance(1)``.
+        """
+        self._diag_cache = None
+        self._report_cache = None
+        self._last_step = None
+        state, contacts = self.current_state, self.current_contacts
+        self.stepper.average = self._average
+        if self._inputs is None:
+            self._inputs = StepInputs()
+        self._inputs.ensure(state, contacts)
+        event = None
+        if self.use_graph:
+            first, second = self._split_graphs(between, key)
+            wp.capture_launch(first)
+            event = self._first_part_done()
+            wp.capture_launch(second)
+        else:
+            self.stepper.keep_inputs = self._inputs
+            try:
+                self.stepper.step_part(state, contacts, self.dt, 1)
+            finally:
+                self.stepper.keep_inputs = None
+            between()
+            if self.device.is_cuda:
+                event = self._first_part_done()
+            self.stepper.step_part(state, contacts, self.dt, 2)
+        self._last_step = "inputs"
+        return event
+
+    def _first_part_done(self) -> wp.Event:
+        if self._split_event is None:
+            self._split_event = wp.Event(self.device)
+        return wp.get_stream(self.device).record_event(self._split_event)
 
     def forget_diagnostics(self) -> None:
         """Drop the contact diagnostics computed at this step (after the state was changed from outside).

@@ -34,7 +34,7 @@ import warp as wp
 
 from polydem.distributed import partition
 from polydem.distributed.comm import SerialComm, world
-from polydem.kernels.ghosts import launch_largest_move, launch_pack_rows, launch_unpack_rows
+from polydem.kernels.ghosts import launch_largest_move, launch_pack_rows, launch_step_rows, launch_unpack_rows
 from polydem.kernels.integrate import kinetic_energy
 from polydem.run_settings import run_settings
 from polydem.scene.bodies import BodyKind
@@ -88,6 +88,12 @@ class DistributedSimulation:
         skin: Verlet skin of the ranks' broad phases [m] (default: the undivided run's).
         use_graph: CUDA graphs in the ranks' simulations (default: on CUDA devices).
         chunk: steps between two agreements of the ranks (see :meth:`step`).
+        overlap: send the ghosts' rows while the step still runs (default: on a GPU, whose kernels run while the
+            host exchanges; on the CPU they run in the calling thread, and a split step costs more): each rank's step
+            is split
+            (:meth:`polydem.Simulation.advance_split`), its first part computes the contacts and forces of the
+            bodies it sends and their rows as the step will leave them, and the exchange runs while the
+            second part computes the rest. The same bits as without; not with mesh walls (:attr:`split`).
 
     The methods that read the state (:meth:`state`, :meth:`contacts`, :meth:`energy`,
     :meth:`settle_measures`) and :meth:`step` are collective: every rank calls them in the same
@@ -104,6 +110,8 @@ class DistributedSimulation:
         owned: (n,) bool, which local bodies this rank owns.
         cuts: (size + 1,) slab boundaries along ``axis``; partitions: partitions made so far; redone:
             chunks stepped again (an overflow somewhere, or a body past the margin).
+        split: whether this rank's steps are split for the overlap (``overlap``, a Simulation with bodies to
+            send, no mesh walls).
         timers: seconds spent per part of the step on this rank: ``compute`` (the local
             simulation's steps), ``exchange`` (packing, sending and unpacking ghosts), ``wait``
             (waiting for the other ranks at the step's agreement), ``partition``. On a GPU the launches
@@ -129,13 +137,16 @@ class DistributedSimulation:
         use_graph: bool | None = None,
         root: int = 0,
         chunk: int = CHUNK,
+        overlap: bool | None = None,
     ) -> None:
+        self.split = False
         self.comm = comm if comm is not None else world()
         self.rank = int(self.comm.Get_rank())
         self.size = int(self.comm.Get_size())
         self.root = int(root)
         self.scene = scene
         self.device = wp.get_device(device)
+        self.overlap = self.device.is_cuda if overlap is None else bool(overlap)
         self.use_graph = use_graph
         self.num_bodies = n = scene.num_bodies
         # Decided once from the whole scene, and the same on every rank: each rank's Simulation takes them.
@@ -249,6 +260,7 @@ class DistributedSimulation:
                 self._send[s] = self._buffers(send)
             if len(recv):
                 self._recv[s] = self._buffers(recv)
+        self._apply_overlap()
         if self.sim is not None:
             st = self.sim.current_state
             # The poses and velocities hold the model's body scalar (State.dtypes): viewed as rows of it.
@@ -259,6 +271,23 @@ class DistributedSimulation:
             self._mine = wp.array(mine, dtype=int, device=dev)
             self._x0 = wp.array(self._x_partition, dtype=wp.float64, device=dev)
             self._moved = wp.zeros(1, dtype=wp.float64, device=dev)
+
+    def set_overlap(self, overlap: bool) -> None:
+        """Send the ghosts while the step runs, or after it (the ``overlap`` argument; the same bits either way)."""
+        self.overlap = bool(overlap)
+        self._apply_overlap()
+
+    def _apply_overlap(self) -> None:
+        sim = self.sim
+        split = sim is not None and self.overlap and bool(self._send) and sim.stepper.mesh_kernels is None
+        if split:
+            first = np.zeros(len(self.local_index), dtype=bool)
+            for index, _, _ in self._send.values():
+                first[index.numpy()] = True
+            sim.stepper.split_at(first)
+        elif sim is not None and sim.stepper.body_first is not None:
+            sim.stepper.split_at(None)
+        self.split = split
 
     def _buffers(self, index: np.ndarray) -> tuple[wp.array, wp.array, wp.array]:
         """(device index, device rows, host rows) for the ghost rows of ``index`` (local) that go to or
@@ -447,17 +476,24 @@ class DistributedSimulation:
                 self._good = sim.snapshot(into=self._good)
             compute = exchange = 0.0
             error = ""
+            # The timers' split needs each step's kernels done before the exchange: no overlap then.
+            split = self.split and not self.sync_timers
             for _ in range(k):
                 t1 = time.perf_counter()
+                packed, ready = False, None
                 if sim is not None and not error:
                     try:
-                        sim.advance(1)
+                        if split:
+                            ready = sim.advance_split(self._step_rows, key="ghost rows")
+                            packed = True
+                        else:
+                            sim.advance(1)
                     except Exception as exc:  # the others must hear of it at the agreement, not wait forever
                         error = f"rank {self.rank}: {type(exc).__name__}: {exc}"
                 if self.sync_timers and sim is not None:
                     wp.synchronize_device(self.device)  # so that compute holds the step's kernels, not their launch
                 t2 = time.perf_counter()
-                self._exchange()
+                self._exchange(packed, ready)
                 self._track_move()
                 compute += t2 - t1
                 exchange += time.perf_counter() - t2
@@ -532,9 +568,21 @@ class DistributedSimulation:
             "the stiffness and the initial overlaps."
         )
 
-    def _exchange(self) -> None:
+    def _step_rows(self) -> None:
+        """Launch the rows of my bodies that are ghosts elsewhere as this step will leave them, and their copy to
+        the host (the first part of a split step, after the forces on them)."""
+        sim = self.sim
+        st, m = sim.current_state, sim.model
+        for index, rows, host in self._send.values():
+            launch_step_rows(model=m.bodies, gravity=m.gravity, dt=self.dt, bodies=st.bodies, damping=st.body_damping,
+                             index=index, rows=rows)  # fmt: skip
+            if host is not rows:
+                wp.copy(host, rows)
+
+    def _exchange(self, packed: bool = False, ready: wp.Event | None = None) -> None:
         """Send the new poses, velocities and damping loads of my bodies that are ghosts elsewhere; take my
-        ghosts' from their owners."""
+        ghosts' from their owners. ``packed``: the rows to send were launched by the step (:meth:`_step_rows`),
+        done once ``ready`` is (None: once the device is); else packed here from the state after the step."""
         comm = self.comm
         if isinstance(comm, SerialComm) or self.sim is None:
             return
@@ -543,11 +591,14 @@ class DistributedSimulation:
         dev = self.device
         requests = []
         q, v, w = self._views
-        for index, rows, host in self._send.values():
-            launch_pack_rows(q=q, v=v, w=w, damping=self._damping, index=index, rows=rows)
-            if host is not rows:
-                wp.copy(host, rows)
-        if not dev.is_cpu:
+        if not packed:
+            for index, rows, host in self._send.values():
+                launch_pack_rows(q=q, v=v, w=w, damping=self._damping, index=index, rows=rows)
+                if host is not rows:
+                    wp.copy(host, rows)
+        if ready is not None:
+            wp.synchronize_event(ready)  # the rows only: the rest of the step may still run
+        elif not dev.is_cpu:
             wp.synchronize_device(dev)
         for s, (_, _, host) in self._send.items():
             requests.append(comm.Isend(host.numpy(), dest=s, tag=11))

@@ -1,0 +1,124 @@
+"""What splitting the step costs on one device, and how early the split step's first part is done.
+
+A decomposed run (polydem.distributed, ``overlap=True``) splits each rank's step in two parts
+(Simulation.advance_split): the first computes the contacts and forces of the bodies the rank sends and their
+rows as the step will leave them (kernels/ghosts.py launch_step_rows), the second the rest; the ghost
+exchange runs on the host while the second part runs on the GPU. This script measures, on one device and
+without MPI, both sides of that trade for the pile of benchmarks/settle.py (a 2:1 footprint, as one of two
+ranks): the whole step (``Simulation.advance(1)``, as the run steps without the overlap) against the split step
+with the rows of the bodies within the halo of a cut through the middle of the pile (as the rank would send),
+in alternating windows (off, on, off, on) with a device synchronisation after each step, and within the split
+step the time at which the rows are ready (the event the exchange waits on) against the step's end: the
+time the exchange can hide behind.
+
+    python benchmarks/split_step.py --device cuda:0 --bodies 1000000
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from polydem.kernels.ghosts import launch_step_rows  # noqa: E402
+from settle import make_scene, scene_options  # noqa: E402
+
+from polydem import Simulation  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--bodies", type=int, default=1000000)
+    ap.add_argument("--precision", default="float32")
+    ap.add_argument("--warmup", type=int, default=200, help="steps before the windows (as benchmarks/scaling.py)")
+    ap.add_argument("--steps", type=int, default=200, help="steps per window")
+    ap.add_argument("--windows", type=int, default=2, help="windows per mode")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    wp.config.quiet = True
+    scene, info = make_scene(args.bodies, scene_options(aspect=2.0, precision=args.precision))
+    sim = Simulation(scene, device=args.device)
+    sim.step(args.warmup)
+    m, st = sim.model, sim.current_state
+    x = st.body_q.numpy()[:, 0].astype(np.float64)
+    free = m.body_flags_np == 0
+    cut = float(np.median(x[free]))
+    halo = 3.0 * sim.settings.radius_max  # DistributedSimulation's default: 2 r_max + a margin of r_max
+    send = free & (x < cut) & (x > cut - halo)
+    index = np.flatnonzero(send)
+    rows = wp.empty((len(index), 14), dtype=m.scalar, device=sim.device)
+    host = wp.empty((len(index), 14), dtype=m.scalar, device="cpu", pinned=sim.device.is_cuda)
+    idx = wp.array(index.astype(np.int32), dtype=int, device=sim.device)
+
+    def between():
+        launch_step_rows(model=m.bodies, gravity=m.gravity, dt=sim.dt, bodies=st.bodies, damping=st.body_damping,
+                         index=idx, rows=rows)  # fmt: skip
+        wp.copy(host, rows)
+
+    def window(split, steps):
+        ready = []
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            t1 = time.perf_counter()
+            if split:
+                event = sim.advance_split(between, key="rows")
+                if event is not None:
+                    wp.synchronize_event(event)
+                ready.append(time.perf_counter() - t1)
+            else:
+                sim.advance(1)
+            wp.synchronize_device(sim.device)
+        return time.perf_counter() - t0, ready
+
+    modes = [False, True] * args.windows
+    for split in (True, False):  # the graphs of both modes, captured before any window
+        sim.stepper.split_at(send if split else None)
+        window(split, 3)
+    results = []
+    for split in modes:
+        sim.stepper.split_at(send if split else None)
+        window(split, 3)  # untimed: the mode's graphs captured again
+        wall, ready = window(split, args.steps)
+        results.append({"split": split, "step_ms": 1e3 * wall / args.steps,
+                        "rows_ready_ms_median": float(1e3 * np.median(ready)) if ready else None})  # fmt: skip
+    whole = float(np.median([r["step_ms"] for r in results if not r["split"]]))
+    split_ms = float(np.median([r["step_ms"] for r in results if r["split"]]))
+    ready_ms = float(np.median([r["rows_ready_ms_median"] for r in results if r["split"]]))
+    record = {
+        "meta": {**vars(args), "warp": wp.__version__, "device_name": sim.device.name},
+        "scene": info,
+        "bodies": scene.num_bodies,
+        "sent_bodies": len(index),
+        "candidate_pairs": sim.current_contacts.count(),
+        "windows": results,
+        "whole_step_ms_median": whole,
+        "split_step_ms_median": split_ms,
+        "rows_ready_ms_median": ready_ms,
+        "split_over_whole": split_ms / whole,
+        "hideable_ms": split_ms - ready_ms,
+    }
+    print(
+        f"{scene.num_bodies} bodies ({len(index)} sent, {record['candidate_pairs']} candidate pairs) on "
+        f"{sim.device.name}: whole step {whole:.3f} ms, split step {split_ms:.3f} ms ({split_ms / whole:.3f}x); "
+        f"rows ready {ready_ms:.3f} ms into the split step: {split_ms - ready_ms:.3f} ms of the step left to hide "
+        f"the exchange behind"
+    )
+    for r in results:
+        name = "split" if r["split"] else "whole"
+        print(f"  {name}: {r['step_ms']:.3f} ms/step, rows ready {r['rows_ready_ms_median']}")
+    tag = str(args.device).replace(":", "")
+    out = Path(args.out or ROOT / f"benchmarks/results/issue27/split_step_{tag}_{args.bodies}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(record, indent=1, default=float))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
