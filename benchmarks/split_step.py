@@ -79,11 +79,11 @@ def main():
 
     modes = [False, True] * args.windows
     for split in (True, False):  # the graphs of both modes, captured before any window
-        sim.stepper.split_at(send if split else None)
+        sim.split_at(send if split else None)
         window(split, 3)
     results = []
     for split in modes:
-        sim.stepper.split_at(send if split else None)
+        sim.split_at(send if split else None)
         window(split, 3)  # untimed: the mode's graphs captured again
         wall, ready = window(split, args.steps)
         results.append({"split": split, "step_ms": 1e3 * wall / args.steps,

@@ -119,6 +119,8 @@ class ContactKernels:
     report: bool
     compound: bool
     max_registers: int | None
+    thread_order: bool
+    phased: bool
     geometry: Any  # polydem.kernels.geometry.Geometry
     body_geometry: Any  # polydem.kernels.compound.BodyGeometry
     respond: Any
@@ -413,21 +415,30 @@ def make_contact_kernels(
         # Report (the report variant only)
         report_bits: int,
         pair_sums: ContactSums,
-        # Phases (the phased variant only): (N,) 1 for the bodies of phase 1; 0 all pairs, 1 or 2 one phase's
+        # Phases (the phased variant only): (N,) 1 for the bodies of phase 1; 0 all pairs, 1 or 2 one phase's;
+        # with thread_order, (1,) the number of phase 1's pairs, which the thread order puts first
         body_first: wp.array(dtype=wp.int32),
         phase: int,
+        first_count: wp.array(dtype=int),
     ):
         """The step variant writes the wrench on A, the spring and the energy dissipated; the
         diagnostics variant (run on request only) writes what energy() reports, at the current
         state, and changes nothing; the report variant steps and reports (see the factory)."""
         p = wp.tid()
+        if wp.static(phased and thread_order):
+            # Phase 1's pairs come first in the thread order (Contacts.split_at): each phase takes its own range.
+            if phase == 1:
+                if p >= first_count[0]:
+                    return
+            elif phase == 2:
+                p = p + first_count[0]
         if p >= pairs.count[0]:
             return
         if wp.static(thread_order):
             p = pairs.thread[p]
         a = pairs.a[p]
         b = pairs.b[p]
-        if wp.static(phased):
+        if wp.static(phased and not thread_order):
             first = body_first[a] + body_first[b] > 0
             if (phase == 1 and not first) or (phase == 2 and first):
                 return
@@ -688,6 +699,8 @@ def make_contact_kernels(
         report=report,
         compound=compound,
         max_registers=max_registers,
+        thread_order=thread_order,
+        phased=phased,
         geometry=geom,
         body_geometry=body_geom,
         respond=resp.respond,
@@ -703,6 +716,13 @@ def make_contact_kernels(
 # ---------------------------------------------------------------------------------------------
 
 
+@wp.kernel(enable_backward=False)
+def room_kernel(count: wp.array(dtype=int), room: int, overflow: wp.array(dtype=int)):
+    """Flag ``overflow`` where ``count`` is above ``room``."""
+    if count[0] > room:
+        overflow[0] = 1
+
+
 def launch_pair_contacts(
     kernels: ContactKernels,
     *,
@@ -716,6 +736,9 @@ def launch_pair_contacts(
     pair_sums: ContactSums,
     body_first: wp.array,
     phase: int = 0,
+    first_count: wp.array | None = None,
+    first_room: int | None = None,
+    first_overflow: wp.array | None = None,
 ) -> None:
     """The pair kernel of ``kernels``, one thread per candidate pair: each pair's wrench on A, spring,
     turning volume and energy dissipated into ``pairs`` (the step and report variants), its contact
@@ -724,11 +747,20 @@ def launch_pair_contacts(
     ``overflow``. ``out`` and ``pair_sums`` may be placeholders of one entry where nothing is written
     to them. ``body_first`` (N,) int32 and ``phase``: which pairs (phased kernels: 1, those with a body
     flagged in ``body_first``; 2, the others; 0, all; kernels not phased take all and never read
-    ``body_first``, which may then be a placeholder of one entry)."""
+    ``body_first``, which may then be a placeholder of one entry). With the threads ordered (``thread_order``),
+    ``first_count`` (1,) int32 holds how many pairs phase 1 has, first in the order (Contacts.split_at); phase 1
+    then launches ``first_room`` threads and sets ``first_overflow`` (1,) int32 where they were too few (the
+    step must be redone with more)."""
     m = model
+    ordered = kernels.phased and kernels.thread_order and phase != 0
+    first_count = body_first if first_count is None else first_count
+    dim = pairs.capacity
+    if ordered and phase == 1:
+        dim = min(int(first_room), pairs.capacity)
+        wp.launch(room_kernel, dim=1, inputs=[first_count, dim], outputs=[first_overflow], device=body_first.device)
     wp.launch(
         kernels.pair_contact_kernel,
-        dim=pairs.capacity,
+        dim=dim,
         inputs=[
             *m.shapes.kernel_args(),
             m.bodies,
@@ -739,7 +771,7 @@ def launch_pair_contacts(
             pairs.pairs,
             overflow,
         ],
-        outputs=[out.pairs, int(report_bits), pair_sums, body_first, int(phase)],
+        outputs=[out.pairs, int(report_bits), pair_sums, body_first, int(phase), first_count],
         device=state.bodies.q.device,
         block_dim=NARROWPHASE_BLOCK_DIM,
     )

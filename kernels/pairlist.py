@@ -140,6 +140,28 @@ def make_contact_bit_kernel(scalar):
     return contact_bit_kernel
 
 
+@wp.kernel(enable_backward=False)
+def first_keys_kernel(
+    # In
+    pair_a: wp.array(dtype=int),
+    pair_b: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    body_first: wp.array(dtype=wp.int32),
+    num_keys: int,
+    # In/out: each pair's key, raised by num_keys unless it has a flagged body; out: (1,) the pairs that have one
+    keys: wp.array(dtype=int),
+    first_count: wp.array(dtype=int),
+):
+    """The pairs of a split step's first part (a body flagged in ``body_first``) before all the others."""
+    p = wp.tid()
+    if p >= count[0]:
+        keys[p] = 2 * num_keys
+    elif body_first[pair_a[p]] + body_first[pair_b[p]] > 0:
+        wp.atomic_add(first_count, 0, 1)
+    else:
+        keys[p] = keys[p] + num_keys
+
+
 @functools.cache
 def make_remap_history_kernel(scalar):
     """The kernel that carries the pair history (in ``scalar``) over a rebuild."""
@@ -333,6 +355,8 @@ def launch_thread_order(
     order: wp.array,
     pair_thread: wp.array,
     pair_turn: wp.array | None = None,
+    body_first: wp.array | None = None,
+    first_count: wp.array | None = None,
 ) -> None:
     """Which pair each thread of the pair kernel takes: the pairs by cost class, so that the threads of a warp
     clip shapes of like face counts (a warp waits for its slowest thread), and within a class in slot order.
@@ -345,7 +369,10 @@ def launch_thread_order(
     ``pair_class``: (S * S,) int32, the class of a pair of shapes (A's shape * S + B's), 0 to ``num_classes`` - 1.
     ``keys``, ``order``: (2C,) int32 each, the radix sort's keys and values (scratch). ``pair_thread``: (C,)
     int32, gets the pair of each thread: the first ``pair_count`` threads take the listed pairs, the rest the
-    empty slots. Each pair's arithmetic is its own, so the results do not depend on this order."""
+    empty slots. Each pair's arithmetic is its own, so the results do not depend on this order.
+    With ``body_first`` (N,) int32 (a split step, :meth:`polydem.simulation.Stepper.split_at`): the pairs with a
+    flagged body first, each part so grouped, and their number into ``first_count`` (1,) int32: the first part
+    of the step takes threads 0 to ``first_count`` - 1, the second the rest."""
     capacity = pair_a.shape[0]
     if keys.dtype != wp.int32 or keys.size < 2 * capacity or order.size < 2 * capacity:
         raise ValueError(f"keys and order must be int32 arrays of at least {2 * capacity} entries")
@@ -364,6 +391,16 @@ def launch_thread_order(
             outputs=[keys],
             device=pair_a.device,
         )
+    if body_first is not None:
+        first_count.zero_()
+        wp.launch(
+            first_keys_kernel,
+            dim=capacity,
+            inputs=[pair_a, pair_b, pair_count, body_first, num_keys],
+            outputs=[keys, first_count],
+            device=pair_a.device,
+        )
+        num_keys *= 2
     # Stable: the pairs of one key keep their slot order, and the empty slots (the sentinel) come last.
     wp.utils.radix_sort_pairs(keys, order, capacity, 0, max(1, num_keys.bit_length()))
     wp.copy(pair_thread, order, count=capacity)

@@ -25,17 +25,20 @@ def _rows(sim, index):
     return rows.numpy()
 
 
-@pytest.mark.parametrize("scene", ["box_pour", "chain"])
-def test_split_step_is_the_step(device, scene):
+@pytest.mark.parametrize("scene, ordered", [("box_pour", True), ("box_pour", False), ("chain", True)])
+def test_split_step_is_the_step(device, scene, ordered):
+    """``ordered``: the pair threads grouped (the default), the first part's pairs first in their order and the
+    first part launching threads for them alone; else each part's kernels skip the other part's pairs."""
     whole = Simulation(build(scene), device=device)
-    split = Simulation(build(scene), device=device)
+    split = Simulation(build(scene), device=device, order_pair_threads=ordered)
     n = whole.model.num_bodies
     rng = np.random.default_rng(1)
     flags = rng.random(n) < 0.3
     flags &= whole.model.body_flags_np == 0  # free bodies: a decomposed run sends no other
     index = np.flatnonzero(flags)
     assert len(index) > 5
-    split.stepper.split_at(flags)
+    split.split_at(flags)
+    assert split.stepper.kernels.phased and split.stepper.kernels.thread_order == ordered
     st, m = split.current_state, split.model
     rows = wp.zeros((len(index), 14), dtype=m.scalar, device=split.device)
     idx = wp.array(index.astype(np.int32), dtype=int, device=split.device)
@@ -44,6 +47,21 @@ def test_split_step_is_the_step(device, scene):
         launch_step_rows(model=m.bodies, gravity=m.gravity, dt=split.dt, bodies=st.bodies, damping=st.body_damping,
                          index=idx, rows=rows)  # fmt: skip
 
+    def probe_first_part():
+        # The first part's pairs come first in the order; with too few threads for them the step notices (a
+        # caller grows them and redoes it).
+        first = int(split.current_contacts.pair_first_count.numpy()[0])
+        assert 0 < first < split.current_contacts.count()
+        snap = split.snapshot()
+        split.stepper.first_room = 1
+        split.advance_split(lambda: None, key="too few")
+        assert split.stepper.buffers_overflowed()
+        split.stepper.grow_buffers()
+        assert split.stepper.first_room == 2 and not split.stepper.buffers_overflowed()
+        split.restore(snap)
+        split.split_at(flags)  # room for the pairs there are
+        assert split.stepper.first_room == max(1024, 2 * first)
+
     steps = 3000 if scene == "box_pour" else 1500  # as in test_distributed: grains in contact by then
     checked = 0
     for k in range(steps):
@@ -51,6 +69,8 @@ def test_split_step_is_the_step(device, scene):
         event = split.advance_split(between, key="test")
         if event is not None:
             wp.synchronize_event(event)
+        if ordered and k == steps // 2:
+            probe_first_part()
         if k % 100 == 99:
             np.testing.assert_array_equal(rows.numpy(), _rows(whole, index))
             checked += 1
@@ -68,9 +88,9 @@ def test_split_step_is_the_step(device, scene):
 def test_split_needs_one_flag_per_body_and_no_mesh_walls(device):
     sim = Simulation(build("box_pour"), device=device)
     with pytest.raises(ValueError, match="one flag per body"):
-        sim.stepper.split_at(np.ones(3, dtype=bool))
+        sim.split_at(np.ones(3, dtype=bool))
     with pytest.raises(RuntimeError, match="split_at"):
         sim.stepper.step_part(sim.current_state, sim.current_contacts, sim.dt, 1)
     mixer = Simulation(build("mixer"), device=device)
     with pytest.raises(ValueError, match="mesh walls"):
-        mixer.stepper.split_at(np.ones(mixer.model.num_bodies, dtype=bool))
+        mixer.split_at(np.ones(mixer.model.num_bodies, dtype=bool))

@@ -225,6 +225,8 @@ class Contacts:
         self.thread_grouping = thread_order if self.thread_order else "slot"
         if self.thread_order:
             self._pair_class_table = wp.array(self._pair_class.reshape(-1), dtype=int, device=self.device)
+        self.body_first: wp.array | None = None
+        self.pair_first_count = wp.zeros(1, dtype=int, device=self.device)
 
     def _inputs(self, body_q: wp.array) -> tuple[wp.array, wp.array]:
         """The poses and radii for the broad phase: as they are (float64 poses are cast in its kernels)."""
@@ -348,18 +350,36 @@ class Contacts:
             pair_by_b=self.pair_by_b,
         )
         if self.thread_order:  # the sort by B is done with the scratch: it holds nothing now
-            launch_thread_order(
-                body_shape=self.model.body_shape,
-                pair_class=self._pair_class_table,
-                num_classes=self._num_classes,
-                pair_a=bp.pair_a,
-                pair_b=bp.pair_b,
-                pair_count=bp.pair_count,
-                keys=self._keys_b,
-                order=self._by_b,
-                pair_thread=self.pair_thread,
-                pair_turn=self.pair_turn if self._by_contact else None,
-            )
+            self._thread_order()
+
+    def _thread_order(self) -> None:
+        bp = self.broadphase
+        launch_thread_order(
+            body_shape=self.model.body_shape,
+            pair_class=self._pair_class_table,
+            num_classes=self._num_classes,
+            pair_a=bp.pair_a,
+            pair_b=bp.pair_b,
+            pair_count=bp.pair_count,
+            keys=self._keys_b,
+            order=self._by_b,
+            pair_thread=self.pair_thread,
+            pair_turn=self.pair_turn if self._by_contact else None,
+            body_first=self.body_first,
+            first_count=self.pair_first_count,
+        )
+
+    def split_at(self, body_first: wp.array | None) -> int | None:
+        """Order the pair kernel's threads for a split step (:meth:`polydem.simulation.Stepper.split_at`): the pairs
+        with a body flagged in ``body_first`` (N,) int32 first (:attr:`pair_first_count` of them), now and at each
+        rebuild; None: not split. Returns how many there are now (None without :attr:`thread_order`, where the
+        split step's kernels skip the other pairs instead)."""
+        self.body_first = body_first
+        if not self.thread_order:
+            return None
+        if self.capacity:
+            self._thread_order()
+        return int(self.pair_first_count.numpy()[0]) if body_first is not None else None
 
     # -- rebuilds (the broad phase of a step) -------------------------------------------------
 

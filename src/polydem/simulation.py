@@ -183,6 +183,9 @@ class Stepper:
             # Room for a quarter of the bodies' worth to start with: it grows to what a step lists.
             self.mesh_candidates = MeshCandidates(n, max(1024, n // 4), model.precision, self.device)
         self.body_first: wp.array | None = None
+        # With the pair threads ordered, a split step's first part launches this many (grown when too few).
+        self.first_room = 1024
+        self.first_overflow = wp.zeros(1, dtype=int, device=self.device)
         self._kernels()
         self._diag: ContactOutputs | None = None
         self._diag_generation: int | None = None
@@ -270,7 +273,8 @@ class Stepper:
         """Split each step in two parts (:meth:`step_part`): the first computes the contacts of the bodies
         flagged in ``body_first`` ((N,) bool) and the forces on them, so that their new state can be computed
         (:func:`polydem.kernels.ghosts.launch_step_rows`) before the second has run; None: one part. The same
-        bits either way. Not with mesh walls (their contacts come after the gather of every body)."""
+        bits either way. Not with mesh walls (their contacts come after the gather of every body). With the pair
+        threads ordered, the contacts must be ordered for it too (:meth:`Simulation.split_at` does both)."""
         if body_first is None:
             self.body_first = None
         else:
@@ -283,8 +287,12 @@ class Stepper:
         self._kernels()
 
     def grow_buffers(self) -> None:
-        """After :meth:`buffers_overflowed`: double the room for clipped polygons (new kernels) or grow the
-        mesh-wall candidate list (new arrays), whichever overflowed; recapture a graph."""
+        """After :meth:`buffers_overflowed`: double the room for clipped polygons (new kernels), grow the
+        mesh-wall candidate list (new arrays) or double a split step's first part (:attr:`first_room`),
+        whichever overflowed; recapture a graph."""
+        if int(self.first_overflow.numpy()[0]):
+            self.first_overflow.zero_()
+            self.first_room *= 2
         if int(self.poly_overflow.numpy()[0]):
             self.poly_overflow.zero_()
             self.poly_capacity = min(2 * self.poly_capacity, self.model.shapes.max_poly_bound)
@@ -307,12 +315,15 @@ class Stepper:
         """Host: whether a clipped polygon or the mesh-wall candidates did not fit since :meth:`grow_buffers`."""
         if self._steps_overflowed or (self.mesh_candidates is not None and self.mesh_candidates.overflowed()):
             return True
+        if self.body_first is not None and int(self.first_overflow.numpy()[0]):
+            return True
         return bool(int(self.poly_overflow.numpy()[0]))
 
     @property
-    def buffer_generation(self) -> tuple[int, int]:
+    def buffer_generation(self) -> tuple[int, int, int]:
         """What a captured step depends on besides the pair list: the polygon room, the candidate list's arrays."""
-        return self.poly_capacity, 0 if self.mesh_candidates is None else self.mesh_candidates.generation
+        mesh = 0 if self.mesh_candidates is None else self.mesh_candidates.generation
+        return self.poly_capacity, mesh, self.first_room
 
     def first_bad_step(self) -> int | None:
         """Host: the first step whose state was not finite, or None."""
@@ -345,6 +356,9 @@ class Stepper:
         the integration. Parts 1 then 2 are :meth:`step` with ``state_out`` = ``state_in``, to the bit."""
         if self.body_first is None:
             raise RuntimeError("the step is not split: call split_at() first")
+        if self.thread_order and getattr(contacts, "body_first", None) is not self.body_first:
+            # The ordered kernels take each part's pairs from the contacts' order: it must be the split's.
+            raise RuntimeError("the contacts' thread order is not this split's: call Simulation.split_at()")
         if part == 1:
             self.collide(state, contacts)
             if self.keep_inputs is not None:
@@ -476,6 +490,9 @@ class Stepper:
             pair_sums=self._no_sums if pair_sums is None else pair_sums,
             body_first=first,
             phase=phase,
+            first_count=getattr(pairs, "pair_first_count", None),
+            first_room=self.first_room,
+            first_overflow=self.first_overflow,
         )
         wall_sums = self._no_sums if wall_sums is None else wall_sums
         launch_gather(
@@ -1131,9 +1148,21 @@ class Simulation:
         """
         self._run_chunk(int(steps), keep_inputs=True)
 
+    def split_at(self, body_first: np.ndarray | None) -> None:
+        """Split each step in two parts (:meth:`advance_split`): the first computes the contacts of the bodies
+        flagged in ``body_first`` ((N,) bool), the forces on them and whatever ``advance_split``'s ``between``
+        launches, the second the rest; None: one part. The same bits either way (:meth:`Stepper.split_at`). With
+        the pair threads ordered, the flagged bodies' pairs come first in the order, and the first part launches
+        only threads for them (about twice as many as now; more where they grow)."""
+        stepper, contacts = self.stepper, self.current_contacts
+        stepper.split_at(body_first)
+        first = contacts.split_at(stepper.body_first)
+        if first is not None:
+            stepper.first_room = max(1024, 2 * first)
+
     def advance_split(self, between: Callable[[], None], key: Hashable = None) -> wp.Event | None:
         """One step as :meth:`advance` takes it, in the two parts of the stepper's split
-        (:meth:`Stepper.split_at`, which must have been called), with ``between`` (which launches work on this
+        (:meth:`split_at`, which must have been called), with ``between`` (which launches work on this
         device: on a GPU it is captured once with the first part, per ``key``) run after the first part.
 
         Returns, on a GPU, an event recorded once the first part and ``between`` are done, while the second part

@@ -284,9 +284,9 @@ class DistributedSimulation:
             first = np.zeros(len(self.local_index), dtype=bool)
             for index, _, _ in self._send.values():
                 first[index.numpy()] = True
-            sim.stepper.split_at(first)
+            sim.split_at(first)
         elif sim is not None and sim.stepper.body_first is not None:
-            sim.stepper.split_at(None)
+            sim.split_at(None)
         self.split = split
 
     def _buffers(self, index: np.ndarray) -> tuple[wp.array, wp.array, wp.array]:
