@@ -352,6 +352,29 @@ split() {
     CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
       -p no:cacheprovider tests/test_at_rest.py -k hertz_laws_volume > $W/log/pytest_at_rest.log 2>&1 ) &
 }
+# MODE=split2: the split step's first part from the pair threads' order (its pairs first, its launch as many threads
+# as they need) against the masked split of MODE=split (OLD_PKG3: that commit's package and its split_step.py, built
+# by `git archive cc08e7d src/polydem kernels benchmarks/split_step.py benchmarks/settle.py`), at SPLIT_SIZES,
+# alternating; then the CUDA tests: the split step, the at-rest volume and rocking tests, two MPI ranks on GPU 0
+split2() {
+  local old=${OLD_PKG3:-.oldpkg3}
+  ( for n in ${SPLIT_SIZES:-1000000 100000}; do
+      PYTHONPATH=$old:${PYTHONPATH:-} gpu 0 python -u $old/bench/split_step.py --device cuda:0 --bodies $n \
+        --out $W/res/split_masked_$n.json > $W/log/split_masked_$n.log 2>&1
+      gpu 0 python -u benchmarks/split_step.py --device cuda:0 --bodies $n --out $W/res/split_ordered_$n.json \
+        > $W/log/split_ordered_$n.log 2>&1
+    done
+    CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_split_step.py tests/test_at_rest.py -k "split or hertz_laws_volume or rocks" \
+      > $W/log/pytest_split.log 2>&1
+    if [ ! -x /tmp/gpu/prefix/bin/mpiexec ]; then
+      python3 -m pip install -q --no-index --no-deps --ignore-installed --prefix /tmp/gpu/prefix /tmp/gpu/mpich-*.whl
+    fi
+    PATH=/tmp/gpu/prefix/bin:$PATH LD_LIBRARY_PATH=/tmp/gpu/prefix/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH} \
+      CUDA_VISIBLE_DEVICES=0 POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short \
+      -p no:cacheprovider tests/test_distributed.py -k "decomposed and (box_pour-3000-0.004-2-50 or chain-1500-0.05-2)" \
+      > $W/log/pytest_mpi.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -379,6 +402,8 @@ elif [ "${MODE:-}" = toe1 ]; then
   toe1
 elif [ "${MODE:-}" = split ]; then
   split
+elif [ "${MODE:-}" = split2 ]; then
+  split2
 elif [ "${MODE:-}" = mesh ]; then
   mesh
 elif [ "${MODE:-}" = mesh2 ]; then
