@@ -40,6 +40,7 @@ def main():
     ap.add_argument("--warmup", type=int, default=200, help="steps before the windows (as benchmarks/scaling.py)")
     ap.add_argument("--steps", type=int, default=200, help="steps per window")
     ap.add_argument("--windows", type=int, default=2, help="windows per mode")
+    ap.add_argument("--profile", type=int, default=0, help="also time each kernel and graph on the GPU for N steps")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     wp.config.quiet = True
@@ -88,6 +89,22 @@ def main():
         wall, ready = window(split, args.steps)
         results.append({"split": split, "step_ms": 1e3 * wall / args.steps,
                         "rows_ready_ms_median": float(1e3 * np.median(ready)) if ready else None})  # fmt: skip
+    profile = {}
+    if args.profile and sim.device.is_cuda:
+        # Warp's activity timing: each graph launch's GPU time, then (graphs off) each kernel's and copy's.
+        for graphs in (True, False):
+            sim.use_graph = graphs
+            for split in (False, True):
+                sim.split_at(send if split else None)
+                window(split, 3)
+                wp.timing_begin(cuda_filter=wp.TIMING_GRAPH if graphs else wp.TIMING_KERNEL | wp.TIMING_MEMCPY)
+                window(split, args.profile)
+                sums = {}
+                for r in wp.timing_end():
+                    sums[r.name] = sums.get(r.name, 0.0) + r.elapsed / args.profile
+                key = f"{'graphs' if graphs else 'kernels'}_{'split' if split else 'whole'}"
+                profile[key] = dict(sorted(sums.items(), key=lambda kv: -kv[1]))
+        sim.use_graph = True
     whole = float(np.median([r["step_ms"] for r in results if not r["split"]]))
     split_ms = float(np.median([r["step_ms"] for r in results if r["split"]]))
     ready_ms = float(np.median([r["rows_ready_ms_median"] for r in results if r["split"]]))
@@ -103,6 +120,7 @@ def main():
         "rows_ready_ms_median": ready_ms,
         "split_over_whole": split_ms / whole,
         "hideable_ms": split_ms - ready_ms,
+        "profile_ms_per_step": profile,
     }
     print(
         f"{scene.num_bodies} bodies ({len(index)} sent, {record['candidate_pairs']} candidate pairs) on "
@@ -113,6 +131,9 @@ def main():
     for r in results:
         name = "split" if r["split"] else "whole"
         print(f"  {name}: {r['step_ms']:.3f} ms/step, rows ready {r['rows_ready_ms_median']}")
+    for key, sums in profile.items():
+        top = ", ".join(f"{name[-40:]} {ms:.4f}" for name, ms in list(sums.items())[:12])
+        print(f"  {key}: total {sum(sums.values()):.4f} ms/step GPU; {top}")
     tag = str(args.device).replace(":", "")
     out = Path(args.out or ROOT / f"benchmarks/results/issue27/split_step_{tag}_{args.bodies}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
