@@ -569,8 +569,10 @@ def make_contact_kernels(
         # Report (the report variant only)
         report_bits: int,
         wall_sums: ContactSums,
-        # Phases (the phased variant only): (N,) 1 for the bodies of phase 1; 0 all bodies, 1 or 2 one phase's
+        # Phases (the phased variant only): (N,) 1 for the bodies of phase 1, and their indices (phase 1 takes
+        # thread t to body first_index[t]); 0 all bodies, 1 or 2 one phase's
         body_first: wp.array(dtype=wp.int32),
+        first_index: wp.array(dtype=int),
         phase: int,
     ):
         """Sums each body's pair wrenches in key order and adds its wall contacts (step variant);
@@ -580,8 +582,10 @@ def make_contact_kernels(
         the same order, so the same bits, without a launch of its own."""
         i = wp.tid()
         if wp.static(phased):
-            first = body_first[i] != 0
-            if (phase == 1 and not first) or (phase == 2 and first):
+            # Phase 1 launches a thread per flagged body: a pass over all of them would cost this kernel's launch.
+            if phase == 1:
+                i = first_index[i]
+            elif phase == 2 and body_first[i] != 0:
                 return
         f = vec3s(S(0.0), S(0.0), S(0.0))
         t = vec3s(S(0.0), S(0.0), S(0.0))
@@ -791,6 +795,7 @@ def launch_gather(
     damping_out: wp.array,
     body_first: wp.array,
     phase: int = 0,
+    first_index: wp.array | None = None,
 ) -> None:
     """The gather kernel of ``kernels``, one thread per body, after :func:`launch_pair_contacts`: each
     body's pair wrenches in key order plus its plane-wall contacts into ``state.body_f`` and
@@ -800,12 +805,16 @@ def launch_gather(
     :func:`launch_damping_load` would (only where the plane walls are all the walls: a mesh wall's contacts
     come after the gather; may be ``state.body_damping``), or an array of no entries: not written (nor
     without friction). ``body_first`` and ``phase``: which bodies, as :func:`launch_pair_contacts` takes pairs
-    (phase 1: the flagged bodies, 2: the others)."""
+    (phase 1: the flagged bodies, one thread each from ``first_index`` (their indices, int32); 2: the others)."""
     m = model
     planes = m.planes if planes is None else planes
+    first_index = body_first if first_index is None else first_index
+    dim = m.num_bodies
+    if kernels.phased and phase == 1:
+        dim = first_index.shape[0]
     wp.launch(
         kernels.gather_kernel,
-        dim=m.num_bodies,
+        dim=dim,
         inputs=[
             *m.shapes.kernel_args(),
             m.bodies,
@@ -817,7 +826,7 @@ def launch_gather(
             state.body_damping,
             pairs.pairs,
         ],
-        outputs=[damping_out, out.walls, int(report_bits), wall_sums, body_first, int(phase)],
+        outputs=[damping_out, out.walls, int(report_bits), wall_sums, body_first, first_index, int(phase)],
         device=state.bodies.q.device,
     )
 

@@ -25,12 +25,19 @@ def _rows(sim, index):
     return rows.numpy()
 
 
-@pytest.mark.parametrize("scene, ordered", [("box_pour", True), ("box_pour", False), ("chain", True)])
-def test_split_step_is_the_step(device, scene, ordered):
+@pytest.mark.parametrize(
+    "scene, ordered, graphs", [("box_pour", True, True), ("box_pour", False, True), ("box_pour", True, False),
+                               ("chain", True, True)]
+)  # fmt: skip
+def test_split_step_is_the_step(device, scene, ordered, graphs):
     """``ordered``: the pair threads grouped (the default), the first part's pairs first in their order and the
-    first part launching threads for them alone; else each part's kernels skip the other part's pairs."""
+    first part launching threads for them alone; else each part's kernels skip the other part's pairs. On a GPU
+    the first part runs on a stream of its own beside the other pairs, from captured graphs or (``graphs``
+    off) launched one by one."""
+    if not graphs and not wp.get_device(device).is_cuda:
+        pytest.skip("graphs are a GPU's")
     whole = Simulation(build(scene), device=device)
-    split = Simulation(build(scene), device=device, order_pair_threads=ordered)
+    split = Simulation(build(scene), device=device, order_pair_threads=ordered, use_graph=graphs)
     n = whole.model.num_bodies
     rng = np.random.default_rng(1)
     flags = rng.random(n) < 0.3

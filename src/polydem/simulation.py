@@ -183,6 +183,7 @@ class Stepper:
             # Room for a quarter of the bodies' worth to start with: it grows to what a step lists.
             self.mesh_candidates = MeshCandidates(n, max(1024, n // 4), model.precision, self.device)
         self.body_first: wp.array | None = None
+        self.body_first_index: wp.array | None = None
         # With the pair threads ordered, a split step's first part launches this many (grown when too few).
         self.first_room = 1024
         self.first_overflow = wp.zeros(1, dtype=int, device=self.device)
@@ -284,6 +285,7 @@ class Stepper:
             if flags.shape != (self.model.num_bodies,):
                 raise ValueError(f"body_first must have one flag per body ({self.model.num_bodies}), got {flags.shape}")
             self.body_first = wp.array(flags.astype(np.int32), dtype=wp.int32, device=self.device)
+            self.body_first_index = wp.array(np.flatnonzero(flags).astype(np.int32), dtype=int, device=self.device)
         self._kernels()
 
     def grow_buffers(self) -> None:
@@ -350,22 +352,34 @@ class Stepper:
                                    state_out.motion_travel, device=self.device)  # fmt: skip
         self.integrate(state_out, dt)
 
-    def step_part(self, state: State, contacts: Contacts, dt: float, part: int) -> None:
-        """One of the two parts of a split step (:meth:`split_at`), in place: part 1 the broad phase and the
-        force stage of the flagged bodies (their pairs, their gather), part 2 the rest of the force stage and
-        the integration. Parts 1 then 2 are :meth:`step` with ``state_out`` = ``state_in``, to the bit."""
+    SPLIT_PARTS = ("collide", "first", "pairs", "rest")
+    """The parts of a split step, in the order :meth:`step_part` takes them: "first" and "pairs" write disjoint
+    arrays (each pair's slot once; the flagged bodies' forces, loads and wall histories) and may run at once."""
+
+    def step_part(self, state: State, contacts: Contacts, dt: float, part: str) -> None:
+        """One part of a split step (:meth:`split_at`), in place: "collide" the broad phase, "first" the force
+        stage of the flagged bodies (their pairs, their gather), "pairs" the other pairs, "rest" the other
+        bodies' gather and the integration. The parts in :data:`SPLIT_PARTS`' order are :meth:`step` with
+        ``state_out`` = ``state_in``, to the bit, and so are they with "first" and "pairs" run concurrently."""
         if self.body_first is None:
             raise RuntimeError("the step is not split: call split_at() first")
         if self.thread_order and getattr(contacts, "body_first", None) is not self.body_first:
             # The ordered kernels take each part's pairs from the contacts' order: it must be the split's.
             raise RuntimeError("the contacts' thread order is not this split's: call Simulation.split_at()")
-        if part == 1:
+        if part == "collide":
             self.collide(state, contacts)
             if self.keep_inputs is not None:
                 self.keep_inputs.save(state, contacts)
+            return
+        if part == "first":
             self.forces(state, contacts, dt, phase=1)
             return
-        self.forces(state, contacts, dt, phase=2)
+        if part == "pairs":
+            self.forces(state, contacts, dt, phase=2, stage="pairs")
+            return
+        if part != "rest":
+            raise ValueError(f"part must be one of {self.SPLIT_PARTS}, got {part!r}")
+        self.forces(state, contacts, dt, phase=2, stage="gather")
         if self.model.has_measured_motions:
             launch_measure_motions(self.model, contacts, self._motion_parts, state.step_count, 1, dt,
                                    state.motion_travel, device=self.device)  # fmt: skip
@@ -378,11 +392,12 @@ class Stepper:
         else:
             contacts.update(state.body_q)
 
-    def forces(self, state: State, contacts: Contacts, dt: float, phase: int = 0) -> None:
+    def forces(self, state: State, contacts: Contacts, dt: float, phase: int = 0, stage: str = "all") -> None:
         """Contact forces and torques of the pairs and walls into ``state.body_f``, ``state.body_t``, and the
         damping loads the next step scales the dashpots by into ``state.body_damping``; with :attr:`average`
         set, each contact's force is also added to its sums (the report variant of the kernels). ``phase``: 0
-        every body, 1 or 2 the part of a split step (:meth:`step_part`)."""
+        every body, 1 or 2 the part of a split step (:meth:`step_part`); ``stage``: "all", or the pair kernel
+        ("pairs") or what follows it ("gather") alone."""
         average = self.average
         in_gather = self.loads_in_gather
         loads = state.body_damping if in_gather else None
@@ -396,6 +411,7 @@ class Stepper:
                 overflow=self.poly_overflow,
                 damping_out=loads,
                 phase=phase,
+                stage=stage,
             )
         else:
             kernels, mesh = self._report_kernels()
@@ -411,8 +427,9 @@ class Stepper:
                 wall_sums=average.walls,
                 damping_out=loads,
                 phase=phase,
+                stage=stage,
             )
-        if not in_gather:
+        if not in_gather and phase != 1 and stage != "pairs":
             self.damping_load(state, contacts, dt)
 
     @property
@@ -467,6 +484,7 @@ class Stepper:
         wall_sums: ContactSums | None = None,
         damping_out: wp.array | None = None,
         phase: int = 0,
+        stage: str = "all",
     ) -> None:
         """The pair, gather and mesh-wall kernels (``kernels``; ``mesh_kernels``, None without mesh walls):
         the step variant, or the diagnostics one into ``out``, or the report variant (``report_bits``,
@@ -478,27 +496,15 @@ class Stepper:
         first = self._no_first if self.body_first is None or phase == 0 else self.body_first
         if phase != 2:
             self.drive_walls(state, dt, 0)
-        launch_pair_contacts(
-            kernels,
-            model=m,
-            state=state,
-            pairs=pairs,
-            dt=dt,
-            overflow=overflow,
-            out=out,
-            report_bits=report_bits,
-            pair_sums=self._no_sums if pair_sums is None else pair_sums,
-            body_first=first,
-            phase=phase,
-            first_count=getattr(pairs, "pair_first_count", None),
-            first_room=self.first_room,
-            first_overflow=self.first_overflow,
-        )
+        if stage != "gather":
+            self._pairs_stage(kernels, state, pairs, dt, overflow, out, report_bits, pair_sums, first, phase)
+        if stage == "pairs":
+            return
         wall_sums = self._no_sums if wall_sums is None else wall_sums
         launch_gather(
             kernels, model=m, state=state, pairs=pairs, dt=dt, out=out, report_bits=report_bits, wall_sums=wall_sums,
             planes=self.planes, damping_out=self._no_loads if damping_out is None else damping_out,
-            body_first=first, phase=phase,
+            body_first=first, phase=phase, first_index=self.body_first_index if phase == 1 else None,
         )  # fmt: skip
         if mesh_kernels is not None:
             launch_mesh_contacts(
@@ -513,6 +519,24 @@ class Stepper:
                 meshes=self.meshes,
                 candidates=self.mesh_candidates,
             )
+
+    def _pairs_stage(self, kernels, state, pairs, dt, overflow, out, report_bits, pair_sums, first, phase) -> None:
+        launch_pair_contacts(
+            kernels,
+            model=self.model,
+            state=state,
+            pairs=pairs,
+            dt=dt,
+            overflow=overflow,
+            out=out,
+            report_bits=report_bits,
+            pair_sums=self._no_sums if pair_sums is None else pair_sums,
+            body_first=first,
+            phase=phase,
+            first_count=getattr(pairs, "pair_first_count", None),
+            first_room=self.first_room,
+            first_overflow=self.first_overflow,
+        )
 
     def _diag_arrays(self, pairs: int) -> ContactOutputs:
         # The outputs of the diagnostics and report variants for ``pairs`` candidate pairs.
@@ -874,7 +898,8 @@ class Simulation:
         self._tunnel_warned = settings.starts_too_fast
         self._graphs: dict[Any, wp.Graph] = {}
         self._graph_key: tuple | None = None
-        self._split_event: wp.Event | None = None
+        self._side_stream: wp.Stream | None = None
+        self._split_events: list[wp.Event] = []
         self._last_good: Snapshot | None = None
         self._diag_cache: dict[str, np.ndarray] | None = None
         # contacts() runs the last step's force stage again on what it read: where that is kept
@@ -1033,26 +1058,25 @@ class Simulation:
             graph = self._graphs[keep_inputs] = capture.graph
         return graph
 
-    def _split_graphs(self, between: Callable[[], None], key: Hashable) -> tuple[wp.Graph, wp.Graph]:
-        """The two captured parts of a split step that keeps its inputs (:meth:`advance_split`), ``between``
-        captured at the end of the first."""
-        state, contacts = self.current_state, self.current_contacts
+    def _split_graph(self, part: str, between: Callable[[], None], key: Hashable, stream: wp.Stream) -> wp.Graph:
+        """Part ``part`` of a split step that keeps its inputs (:meth:`advance_split`), captured on ``stream``;
+        the "first" part with ``between``."""
         graphs = self._graph_cache()
-        parts = graphs.get(("split", key))
-        if parts is None:
-            captured = []
-            for part in (1, 2):
-                self.stepper.keep_inputs = self._inputs if part == 1 else None
-                try:
-                    with wp.ScopedCapture(device=self.device) as capture:
-                        self.stepper.step_part(state, contacts, self.dt, part)
-                        if part == 1:
-                            between()
-                finally:
-                    self.stepper.keep_inputs = None
-                captured.append(capture.graph)
-            parts = graphs["split", key] = (captured[0], captured[1])
-        return parts
+        graph = graphs.get(("split", part, key))
+        if graph is None:
+            self.stepper.keep_inputs = self._inputs if part == "collide" else None
+            try:
+                with wp.ScopedCapture(device=self.device, stream=stream) as capture:
+                    self._split_part(part, between)
+            finally:
+                self.stepper.keep_inputs = None
+            graph = graphs["split", part, key] = capture.graph
+        return graph
+
+    def _split_part(self, part: str, between: Callable[[], None]) -> None:
+        self.stepper.step_part(self.current_state, self.current_contacts, self.dt, part)
+        if part == "first":
+            between()
 
     def _run_chunk(self, steps: int, keep_inputs: bool = False) -> None:
         """``steps`` steps; ``keep_inputs``: the last one keeps what its force stage read (StepInputs)."""
@@ -1161,12 +1185,13 @@ class Simulation:
             stepper.first_room = max(1024, 2 * first)
 
     def advance_split(self, between: Callable[[], None], key: Hashable = None) -> wp.Event | None:
-        """One step as :meth:`advance` takes it, in the two parts of the stepper's split
-        (:meth:`split_at`, which must have been called), with ``between`` (which launches work on this
-        device: on a GPU it is captured once with the first part, per ``key``) run after the first part.
+        """One step as :meth:`advance` takes it, split (:meth:`split_at`, which must have been called) so that the
+        flagged bodies' contacts and forces, then ``between`` (which launches work on this device that reads
+        them: on a GPU it is captured once with them, per ``key``), come first, and on a GPU run on a stream of
+        their own alongside the other pairs' contacts (:data:`Stepper.SPLIT_PARTS`).
 
-        Returns, on a GPU, an event recorded once the first part and ``between`` are done, while the second part
-        may still be running; on the CPU None (everything has run). The same bits as ``advance(1)``.
+        Returns, on a GPU, an event recorded once that part and ``between`` are done, while the rest of the step
+        may still run; on the CPU None (everything has run). The same bits as ``advance(1)``.
         """
         self._diag_cache = None
         self._report_cache = None
@@ -1176,29 +1201,41 @@ class Simulation:
         if self._inputs is None:
             self._inputs = StepInputs()
         self._inputs.ensure(state, contacts)
-        event = None
-        if self.use_graph:
-            first, second = self._split_graphs(between, key)
-            wp.capture_launch(first)
-            event = self._first_part_done()
-            wp.capture_launch(second)
-        else:
+        if not self.device.is_cuda:
             self.stepper.keep_inputs = self._inputs
             try:
-                self.stepper.step_part(state, contacts, self.dt, 1)
+                self._split_part("collide", between)
             finally:
                 self.stepper.keep_inputs = None
-            between()
-            if self.device.is_cuda:
-                event = self._first_part_done()
-            self.stepper.step_part(state, contacts, self.dt, 2)
+            for part in ("first", "pairs", "rest"):
+                self._split_part(part, between)
+            self._last_step = "inputs"
+            return None
+        main = wp.get_stream(self.device)
+        if self._side_stream is None:
+            self._side_stream = wp.Stream(self.device)
+            self._split_events = [wp.Event(self.device) for _ in range(2)]
+        side, (collided, first_done) = self._side_stream, self._split_events
+        # collide on the main stream; then the first part on the side stream and the other pairs on the main one,
+        # at once; the rest once both are done.
+        for part, stream in (("collide", main), ("first", side), ("pairs", main), ("rest", main)):
+            if part == "first":
+                side.wait_event(main.record_event(collided))
+            if part == "rest":
+                main.wait_event(first_done)
+            if self.use_graph:
+                wp.capture_launch(self._split_graph(part, between, key, stream), stream=stream)
+            else:
+                self.stepper.keep_inputs = self._inputs if part == "collide" else None
+                try:
+                    with wp.ScopedStream(stream, sync_enter=False):
+                        self._split_part(part, between)
+                finally:
+                    self.stepper.keep_inputs = None
+            if part == "first":
+                side.record_event(first_done)
         self._last_step = "inputs"
-        return event
-
-    def _first_part_done(self) -> wp.Event:
-        if self._split_event is None:
-            self._split_event = wp.Event(self.device)
-        return wp.get_stream(self.device).record_event(self._split_event)
+        return first_done
 
     def forget_diagnostics(self) -> None:
         """Drop the contact diagnostics computed at this step (after the state was changed from outside).
