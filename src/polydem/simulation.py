@@ -1066,7 +1066,8 @@ class Simulation:
         if graph is None:
             self.stepper.keep_inputs = self._inputs if part == "collide" else None
             try:
-                with wp.ScopedCapture(device=self.device, stream=stream) as capture:
+                # The capture records the stream it is given; the launches go to the current stream: the same one.
+                with wp.ScopedStream(stream, sync_enter=False), wp.ScopedCapture(stream=stream) as capture:
                     self._split_part(part, between)
             finally:
                 self.stepper.keep_inputs = None
