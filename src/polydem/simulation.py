@@ -1214,7 +1214,9 @@ class Simulation:
             return None
         main = wp.get_stream(self.device)
         if self._side_stream is None:
-            self._side_stream = wp.Stream(self.device)
+            # High priority: its blocks go ahead of the other pairs' as SMs free up, so that its rows are ready
+            # early (at the default priority they waited behind the whole pair kernel).
+            self._side_stream = wp.Stream(self.device, priority=-1)
             self._split_events = [wp.Event(self.device) for _ in range(2)]
         side, (collided, first_done) = self._side_stream, self._split_events
         # collide on the main stream; then the first part on the side stream and the other pairs on the main one,
