@@ -276,8 +276,10 @@ class Stepper:
         (:func:`polydem.kernels.ghosts.launch_step_rows`) before the second has run; None: one part. The same
         bits either way. Not with mesh walls (their contacts come after the gather of every body). With the pair
         threads ordered, the contacts must be ordered for it too (:meth:`Simulation.split_at` does both)."""
+        self.first_overflow.zero_()
         if body_first is None:
             self.body_first = None
+            self.body_first_index = None
         else:
             if self.mesh_kernels is not None:
                 raise ValueError("a step with mesh walls cannot be split in two parts (their contacts come last)")
@@ -490,7 +492,8 @@ class Stepper:
         the step variant, or the diagnostics one into ``out``, or the report variant (``report_bits``,
         into ``out`` and the sums); a clipped polygon that did not fit sets ``overflow``. ``damping_out``:
         where the gather writes the damping loads (only without mesh walls; None: not written). ``phase``: the
-        part of a split step (:meth:`step_part`; 0: the whole force stage)."""
+        part of a split step (:meth:`step_part`; 0: the whole force stage); ``stage``: "all", "pairs" (the pair
+        kernel alone) or "gather" (the rest)."""
         m = self.model
         out = self._no_outputs if out is None else out
         first = self._no_first if self.body_first is None or phase == 0 else self.body_first
@@ -521,6 +524,7 @@ class Stepper:
             )
 
     def _pairs_stage(self, kernels, state, pairs, dt, overflow, out, report_bits, pair_sums, first, phase) -> None:
+        # The pair kernel of _force_stage; with the threads ordered for a split step, the part's own range of them.
         launch_pair_contacts(
             kernels,
             model=self.model,
