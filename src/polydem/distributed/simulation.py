@@ -90,9 +90,8 @@ class DistributedSimulation:
         chunk: steps between two agreements of the ranks (see :meth:`step`).
         overlap: send the ghosts' rows while the step still runs (default: on a GPU, whose kernels run while the
             host exchanges; on the CPU they run in the calling thread, and a split step costs more): each rank's step
-            is split
-            (:meth:`polydem.Simulation.advance_split`), its first part computes the contacts and forces of the
-            bodies it sends and their rows as the step will leave them, and the exchange runs while the
+            is split (:meth:`polydem.Simulation.advance_split`), its first part computes the contacts and forces
+            of the bodies it sends and their rows as the step will leave them, and the exchange runs while the
             second part computes the rest. The same bits as without; not with mesh walls (:attr:`split`).
 
     The methods that read the state (:meth:`state`, :meth:`contacts`, :meth:`energy`,
