@@ -92,6 +92,7 @@ def run_size(n, args, device, dt_scale=1.0):
     wall = time.perf_counter() - t1
     e1 = sim.energy()
     released = e0["gravity"] - e1["gravity"]
+    profile = step_profile(sim, args.profile_steps) if args.profile_steps else None
     contacts = sim.contacts()
     state = sim.state()
     region = settled_region(scene, state, contacts)
@@ -134,7 +135,34 @@ def run_size(n, args, device, dt_scale=1.0):
         "coordination_number": region.get("coordination_number"),
         "largest_speed_m_s": float(np.linalg.norm(state["body_velocity"][free], axis=1).max()),
         "scene": info,
+        "profile": profile,
     }
+
+
+def step_profile(sim, steps):
+    """The settled pile's step, ``steps`` more of them: the wall time per step as run_until_settled takes them
+    (graph chunks), each captured graph's GPU time per step, and (graphs off) each kernel's and copy's."""
+    wp.synchronize_device(sim.device)
+    t0 = time.perf_counter()
+    sim.step(steps)
+    wp.synchronize_device(sim.device)
+    record = {"steps": steps, "wall_ms_per_step": 1e3 * (time.perf_counter() - t0) / steps}
+    if not sim.device.is_cuda:
+        return record
+    graphs = sim.use_graph
+    for use_graph, filt in ((True, wp.TIMING_GRAPH), (False, wp.TIMING_KERNEL | wp.TIMING_MEMCPY)):
+        sim.use_graph = use_graph
+        sim.step(3)
+        wp.timing_begin(cuda_filter=filt)
+        sim.step(steps)
+        sums = {}
+        for r in wp.timing_end():
+            sums[r.name] = sums.get(r.name, 0.0) + r.elapsed / steps
+        record["graphs_ms_per_step" if use_graph else "kernels_ms_per_step"] = dict(
+            sorted(sums.items(), key=lambda kv: -kv[1])
+        )
+    sim.use_graph = graphs
+    return record
 
 
 def make_parser():
@@ -155,6 +183,7 @@ def make_parser():
     ap.add_argument("--precision", default="mixed", choices=("float32", "mixed", "float64"))
     ap.add_argument("--shapes", default="cube", choices=SHAPE_SETS, help="cubes, or settle.py's mixed set")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile-steps", type=int, default=0, help="after settling, profile this many more steps")
     ap.add_argument(
         "--dt-scales", default="1", help="comma-separated steps, as multiples of the recommended dt (dt = 'auto')"
     )
