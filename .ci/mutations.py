@@ -187,7 +187,9 @@ FAULTS = (
         "kernels/ghosts.py",
         "        damping[i] = wp.float32(rows[k, 13])\n",
         "        damping[i] = damping[i]\n",
-        ("tests/test_distributed.py::test_decomposed_run_is_the_undivided_run[cpu-box_pour_long-3000-0.004-2-50-True]",),
+        (
+            "tests/test_distributed.py::test_decomposed_run_is_the_undivided_run[cpu-box_pour_long-3000-0.004-2-50-True]",
+        ),
     ),
     Fault(
         "mesh-wall candidates: a body's cells past those kept in its thread never listed",
