@@ -24,6 +24,7 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _meta import run_meta  # noqa: E402
 from polydem.kernels.ghosts import launch_step_rows  # noqa: E402
 from settle import make_scene, scene_options  # noqa: E402
 
@@ -109,7 +110,8 @@ def main():
     split_ms = float(np.median([r["step_ms"] for r in results if r["split"]]))
     ready_ms = float(np.median([r["rows_ready_ms_median"] for r in results if r["split"]]))
     record = {
-        "meta": {**vars(args), "warp": wp.__version__, "device_name": sim.device.name},
+        "meta": run_meta(sim.device),
+        "args": vars(args),
         "scene": info,
         "bodies": scene.num_bodies,
         "sent_bodies": len(index),
