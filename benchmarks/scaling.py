@@ -18,7 +18,9 @@ With ``--baseline`` (one rank only) the same pile is also stepped by a plain Sim
 undivided production path: CUDA graph chunks), the reference for the efficiency.
 ``--overlap on`` (default) sends the ghosts while each step runs (DistributedSimulation(overlap=True)), ``off``
 after it; ``both`` times windows of ``--steps`` off, on, off, on in one run (the same pile, the same ranks) and
-reports each window and the medians.
+reports each window and the medians. ``--exchange host`` (default) sends the ghosts' rows through host memory
+over MPI, ``nccl`` from GPU to GPU with NCCL (DistributedSimulation(exchange="nccl"): nccl4py, a GPU per rank),
+``both`` alternates them too (with ``--overlap both``: the four modes, twice each).
 Rank 0 prints a table and writes JSON to ``--out``.
 """
 
@@ -53,6 +55,7 @@ def main():
     ap.add_argument("--baseline", action="store_true", help="also time a plain Simulation (one rank only)")
     ap.add_argument("--split", action="store_true", help="synchronise after each step's kernels to split the time")
     ap.add_argument("--overlap", choices=("on", "off", "both"), default="on")
+    ap.add_argument("--exchange", choices=("host", "nccl", "both"), default="host")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     wp.config.quiet = True
@@ -65,20 +68,26 @@ def main():
     build_scene = time.perf_counter() - t0
     device = device_for_rank(args.device if args.device != "cuda" else "cuda:0", comm)
     t0 = time.perf_counter()
-    ds = DistributedSimulation(scene, device=device, comm=comm, overlap=args.overlap != "off")
+    exchanges = {"host": ["host"], "nccl": ["nccl"], "both": ["host", "nccl"]}[args.exchange]
+    overlaps = {"on": [True], "off": [False], "both": [False, True]}[args.overlap]
+    ds = DistributedSimulation(scene, device=device, comm=comm, overlap=overlaps[0], exchange=exchanges[0])
     ds.sync_timers = args.split
     build = time.perf_counter() - t0
     ds.step(args.warmup)
-    if args.overlap == "both":  # the other mode's kernels and graphs too, before any window
-        ds.set_overlap(False)
+    modes = [(o, e) for e in exchanges for o in overlaps]
+    for overlap, exchange in modes[1:]:  # the other modes' kernels and graphs too, before any window
+        ds.set_overlap(overlap)
+        ds.set_exchange(exchange)
         ds.step(min(args.warmup, 20))
     wp.synchronize()
-    modes = {"on": [True], "off": [False], "both": [False, True, False, True]}[args.overlap]
+    if len(modes) > 1:
+        modes = modes * 2
     parts0 = ds.partitions
     windows = []
-    for overlap in modes:
-        if ds.overlap != overlap:
+    for overlap, exchange in modes:
+        if ds.overlap != overlap or ds.exchange != exchange:
             ds.set_overlap(overlap)
+            ds.set_exchange(exchange)
             ds.step(5)  # untimed: the graphs of the mode (captured again when it changes)
         for k in ds.timers:
             ds.timers[k] = 0.0
@@ -87,7 +96,7 @@ def main():
         ds.step(args.steps)
         wp.synchronize()
         comm.Barrier()
-        windows.append({"overlap": overlap, "split": ds.split, "wall_s": time.perf_counter() - t0,
+        windows.append({"overlap": overlap, "exchange": exchange, "split": ds.split, "wall_s": time.perf_counter() - t0,
                         "timers_s": dict(ds.timers)})  # fmt: skip
     wall = windows[-1]["wall_s"]
     owned, local = ds.balance()
@@ -114,17 +123,21 @@ def main():
     if rank != 0:
         return
     step_ms = 1e3 * wall / args.steps
+
     # The window's wall time is the same on every rank (barriers at both ends): rank 0's.
+    def mode_name(w):
+        return f"{'on' if w['overlap'] else 'off'}/{w['exchange']}"
+
     by_mode = {}
     for w in ranks[0]["windows"]:
-        by_mode.setdefault("on" if w["overlap"] else "off", []).append(1e3 * w["wall_s"] / args.steps)
+        by_mode.setdefault(mode_name(w), []).append(1e3 * w["wall_s"] / args.steps)
     medians = {k: float(np.median(v)) for k, v in by_mode.items()}
     record = {
         "meta": {**vars(args), "warp": wp.__version__, "ranks": size, "bodies": scene.num_bodies, "grains": n},
         "scene": info,
         "step_ms": step_ms,
-        "step_ms_by_overlap": by_mode,
-        "step_ms_median_by_overlap": medians,
+        "step_ms_by_mode": by_mode,
+        "step_ms_median_by_mode": medians,
         "body_steps_per_s": scene.num_bodies * args.steps / wall,
         "partitions_in_window": ds.partitions - parts0,
         "ranks": ranks,
@@ -143,11 +156,9 @@ def main():
             f"partition {per['partition']}; built in {r['build_s']:.1f} s"
         )
     for mode, v in by_mode.items():
-        split = [w["split"] for r in ranks for w in r["windows"] if ("on" if w["overlap"] else "off") == mode]
-        print(f"  overlap {mode}: ms/step by window {', '.join(f'{x:.3f}' for x in v)}, median {medians[mode]:.3f} "
-              f"(ranks split: {sum(split)} of {len(split)})")  # fmt: skip
-    if len(medians) == 2:
-        print(f"  overlap on / off: {medians['on'] / medians['off']:.3f}")
+        split = [w["split"] for r in ranks for w in r["windows"] if mode_name(w) == mode]
+        print(f"  overlap/exchange {mode}: ms/step by window {', '.join(f'{x:.3f}' for x in v)}, median "
+              f"{medians[mode]:.3f} (ranks split: {sum(split)} of {len(split)})")  # fmt: skip
     if baseline is not None:
         print(f"  plain Simulation: {baseline['step_ms']:.3f} ms/step")
     tag = str(args.device).replace(":", "")

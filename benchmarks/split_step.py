@@ -42,6 +42,18 @@ def main():
     ap.add_argument("--steps", type=int, default=200, help="steps per window")
     ap.add_argument("--windows", type=int, default=2, help="windows per mode")
     ap.add_argument("--profile", type=int, default=0, help="also time each kernel and graph on the GPU for N steps")
+    ap.add_argument(
+        "--part-times",
+        type=int,
+        default=0,
+        help="also time, with events, when each part of N split steps ends (from the step's launch)",
+    )
+    ap.add_argument(
+        "--pipelined",
+        action="store_true",
+        help="also time windows with no synchronisation after each step (the split waits for its rows "
+        "only, as a decomposed run's exchange does): the GPU's own cost of the split",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     wp.config.quiet = True
@@ -64,7 +76,7 @@ def main():
                          index=idx, rows=rows)  # fmt: skip
         wp.copy(host, rows)
 
-    def window(split, steps):
+    def window(split, steps, sync=True):
         ready = []
         t0 = time.perf_counter()
         for _ in range(steps):
@@ -76,8 +88,36 @@ def main():
                 ready.append(time.perf_counter() - t1)
             else:
                 sim.advance(1)
-            wp.synchronize_device(sim.device)
+            if sync:
+                wp.synchronize_device(sim.device)
+        wp.synchronize_device(sim.device)
         return time.perf_counter() - t0, ready
+
+    def part_times(steps):
+        """Per step, when each part ended and when the whole step did, from the step's launch [ms] (events)."""
+        main = wp.get_stream(sim.device)
+        start = wp.Event(sim.device, enable_timing=True)
+        marks = [wp.Event(sim.device, enable_timing=True) for _ in sim.stepper.SPLIT_PARTS]
+        end = wp.Event(sim.device, enable_timing=True)
+        split_rows, whole_rows = [], []
+        for split in (True, False):
+            sim.split_at(send if split else None)
+            window(split, 3)
+            for _ in range(steps):
+                main.record_event(start)
+                if split:
+                    sim.advance_split(between, key="rows", marks=marks)
+                else:
+                    sim.advance(1)
+                    main.record_event(end)
+                wp.synchronize_device(sim.device)
+                if split:
+                    split_rows.append([wp.get_event_elapsed_time(start, e) for e in marks])
+                else:
+                    whole_rows.append(wp.get_event_elapsed_time(start, end))
+        med = np.median(np.array(split_rows), axis=0)
+        return {"split_part_end_ms": dict(zip(sim.stepper.SPLIT_PARTS, map(float, med), strict=True)),
+                "whole_end_ms": float(np.median(whole_rows))}  # fmt: skip
 
     modes = [False, True] * args.windows
     for split in (True, False):  # the graphs of both modes, captured before any window
@@ -90,6 +130,14 @@ def main():
         wall, ready = window(split, args.steps)
         results.append({"split": split, "step_ms": 1e3 * wall / args.steps,
                         "rows_ready_ms_median": float(1e3 * np.median(ready)) if ready else None})  # fmt: skip
+    pipelined = []
+    if args.pipelined:
+        for split in modes:
+            sim.split_at(send if split else None)
+            window(split, 3)
+            wall, _ = window(split, args.steps, sync=False)
+            pipelined.append({"split": split, "step_ms": 1e3 * wall / args.steps})
+    parts = part_times(args.part_times) if args.part_times and sim.device.is_cuda else {}
     profile = {}
     if args.profile and sim.device.is_cuda:
         # Warp's activity timing: each graph launch's GPU time, then (graphs off) each kernel's and copy's.
@@ -123,6 +171,8 @@ def main():
         "split_over_whole": split_ms / whole,
         "hideable_ms": split_ms - ready_ms,
         "profile_ms_per_step": profile,
+        "pipelined_windows": pipelined,
+        "part_times": parts,
     }
     print(
         f"{scene.num_bodies} bodies ({len(index)} sent, {record['candidate_pairs']} candidate pairs) on "
@@ -133,6 +183,11 @@ def main():
     for r in results:
         name = "split" if r["split"] else "whole"
         print(f"  {name}: {r['step_ms']:.3f} ms/step, rows ready {r['rows_ready_ms_median']}")
+    for r in pipelined:
+        print(f"  pipelined {'split' if r['split'] else 'whole'}: {r['step_ms']:.3f} ms/step")
+    if parts:
+        ends = ", ".join(f"{k} {v:.3f}" for k, v in parts["split_part_end_ms"].items())
+        print(f"  part ends from the launch [ms]: {ends}; the whole step ends at {parts['whole_end_ms']:.3f}")
     for key, sums in profile.items():
         top = ", ".join(f"{name[-40:]} {ms:.4f}" for name, ms in list(sums.items())[:12])
         print(f"  {key}: total {sum(sums.values()):.4f} ms/step GPU; {top}")

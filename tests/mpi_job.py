@@ -1,9 +1,10 @@
 """A decomposed run for tests/test_distributed.py, launched by mpiexec: steps a test scene on every rank
 and writes the whole state and contacts (gathered on rank 0) to an npz file.
 
-    mpiexec -n 2 python tests/mpi_job.py SCENE STEPS MARGIN DEVICE OUT [CHUNK [OVERLAP]]
+    mpiexec -n 2 python tests/mpi_job.py SCENE STEPS MARGIN DEVICE OUT [CHUNK [OVERLAP [EXCHANGE]]]
 
-OVERLAP 0 exchanges the ghosts after each whole step (DistributedSimulation(overlap=False)).
+OVERLAP 0 exchanges the ghosts after each whole step (DistributedSimulation(overlap=False)). DEVICE "cuda": a GPU
+per rank (``device_for_rank``). EXCHANGE "host" (default) or "nccl".
 """
 
 import sys
@@ -16,14 +17,19 @@ wp.config.quiet = True
 from distributed_scenes import build  # noqa: E402
 
 from polydem.distributed import DistributedSimulation, world  # noqa: E402
+from polydem.distributed.root import device_for_rank  # noqa: E402
 
 
 def main():
     name, steps, margin, device, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], sys.argv[5]
     chunk = int(sys.argv[6]) if len(sys.argv) > 6 else 50
     overlap = bool(int(sys.argv[7])) if len(sys.argv) > 7 else True
+    exchange = sys.argv[8] if len(sys.argv) > 8 else "host"
     comm = world()
-    ds = DistributedSimulation(build(name), device=device, comm=comm, margin=margin, chunk=chunk, overlap=overlap)
+    if device == "cuda":
+        device = device_for_rank(device, comm)
+    ds = DistributedSimulation(build(name), device=device, comm=comm, margin=margin, chunk=chunk, overlap=overlap,
+                               exchange=exchange)  # fmt: skip
     splits = []
     for _ in range(0, steps, 500):  # whether the ranks' steps were split, after every partition
         ds.step(min(500, steps - ds.steps_done))

@@ -108,6 +108,63 @@ def _have_mpi():
 needs_mpi = pytest.mark.skipif(not _have_mpi(), reason="needs mpi4py and mpiexec (pip install '.[test]')")
 
 
+def test_the_nccl_exchange_asks_for_a_gpu_and_a_known_name():
+    scene = build("box_pour")
+    with pytest.raises(ValueError, match="exchange must be one of"):
+        DistributedSimulation(scene, device="cpu", comm=SerialComm(), exchange="mpi")
+    with pytest.raises(ValueError, match="between GPUs, but this rank runs on cpu"):
+        DistributedSimulation(scene, device="cpu", comm=SerialComm(), exchange="nccl")
+    ds = DistributedSimulation(scene, device="cpu", comm=SerialComm())
+    with pytest.raises(ValueError, match="exchange='host'"):
+        ds.set_exchange("nccl")
+    assert ds.exchange == "host"
+
+
+def test_without_nccl4py_the_nccl_exchange_says_how_to_install_it(monkeypatch):
+    from polydem.distributed import nccl as nccl_module
+
+    monkeypatch.setitem(sys.modules, "nccl.core", None)  # import nccl.core then raises ImportError
+    monkeypatch.setitem(sys.modules, "nccl", None)
+    with pytest.raises(RuntimeError, match=r"pip install 'polydem\[nccl\]'.*exchange='host'"):
+        nccl_module.load_nccl()
+
+
+def _have_nccl():
+    try:
+        import nccl.core  # noqa: F401
+    except ImportError:
+        return False
+    import warp as wp
+
+    return wp.get_cuda_device_count() >= 2
+
+
+@needs_mpi
+@pytest.mark.skipif(not _have_mpi() or not _have_nccl(), reason="needs nccl4py and two GPUs (a GPU per rank)")
+@pytest.mark.parametrize("scene, steps, overlap", [("box_pour", 3000, True), ("box_pour", 3000, False),
+                                                   ("chain", 1500, True)])  # fmt: skip
+def test_nccl_exchange_is_the_undivided_run(tmp_path, scene, steps, overlap):
+    """Ghost rows from GPU to GPU with NCCL, in the steps' graphs (split or not): the undivided run's bits."""
+    out = tmp_path / "run.npz"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+    cmd = [_mpiexec(), "-n", "2", sys.executable, str(HERE / "mpi_job.py"), scene, str(steps), "0.004"]
+    cmd += ["cuda", str(out), "50", str(int(overlap)), "nccl"]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    got = np.load(out)
+    if scene != "chain":
+        assert int(got["partitions"]) > 1, "the run should have moved bodies between ranks"
+    assert np.all(got["split"]) if overlap else not np.any(got["split"])
+    sim = Simulation(build(scene), device="cuda:0")
+    sim.step(steps)
+    damping = sim.current_state.body_damping.numpy()
+    np.testing.assert_array_equal(got["damping"], damping[got["damping_index"]])
+    for k, v in sim.state().items():
+        np.testing.assert_array_equal(got[f"state_{k}"], v, err_msg=k)
+    for k, v in sim.contacts().items():
+        np.testing.assert_array_equal(got[f"contacts_{k}"], v, err_msg=k)
+
+
 @needs_mpi
 @pytest.mark.parametrize(
     "scene, steps, margin, ranks, chunk, overlap",

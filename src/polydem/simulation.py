@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 import time as _time
 import warnings
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Sequence
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Literal, NoReturn
 
@@ -1189,7 +1189,9 @@ class Simulation:
         if first is not None:
             stepper.first_room = max(1024, 2 * first)
 
-    def advance_split(self, between: Callable[[], None], key: Hashable = None) -> wp.Event | None:
+    def advance_split(
+        self, between: Callable[[], None], key: Hashable = None, marks: Sequence[wp.Event] | None = None
+    ) -> wp.Event | None:
         """One step as :meth:`advance` takes it, split (:meth:`split_at`, which must have been called) so that the
         flagged bodies' contacts and forces, then ``between`` (which launches work on this device that reads
         them: on a GPU it is captured once with them, per ``key``), come first, and on a GPU run on a stream of
@@ -1197,7 +1199,12 @@ class Simulation:
 
         Returns, on a GPU, an event recorded once that part and ``between`` are done, while the rest of the step
         may still run; on the CPU None (everything has run). The same bits as ``advance(1)``.
+
+        ``marks``: on a GPU, one event per part of :data:`Stepper.SPLIT_PARTS`, each recorded on its part's stream
+        as the part ends (made with ``enable_timing=True``, they time the parts: ``benchmarks/split_step.py``).
         """
+        if marks is not None and len(marks) != len(Stepper.SPLIT_PARTS):
+            raise ValueError(f"marks: one event per part of {Stepper.SPLIT_PARTS}, got {len(marks)}")
         self._diag_cache = None
         self._report_cache = None
         self._last_step = None
@@ -1241,6 +1248,8 @@ class Simulation:
                     self.stepper.keep_inputs = None
             if part == "first":
                 side.record_event(first_done)
+            if marks is not None:
+                stream.record_event(marks[Stepper.SPLIT_PARTS.index(part)])
         self._last_step = "inputs"
         return first_done
 

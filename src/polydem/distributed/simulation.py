@@ -34,6 +34,7 @@ import warp as wp
 
 from polydem.distributed import partition
 from polydem.distributed.comm import SerialComm, world
+from polydem.distributed.nccl import NcclExchange
 from polydem.kernels.ghosts import launch_largest_move, launch_pack_rows, launch_step_rows, launch_unpack_rows
 from polydem.kernels.integrate import kinetic_energy
 from polydem.run_settings import run_settings
@@ -47,6 +48,9 @@ if TYPE_CHECKING:
 CHUNK = 50
 """Steps between two agreements of the ranks (errors, overflows, moves): each costs a synchronisation and an
 allreduce; a chunk that must be redone costs up to this many steps."""
+
+EXCHANGES = ("host", "nccl")
+"""How the ghosts' rows travel between ranks (:class:`DistributedSimulation`'s ``exchange``)."""
 
 ROW = 14
 """What a ghost receives after every step, per body: pose (7), velocity (3), angular velocity (3) and damping
@@ -93,6 +97,10 @@ class DistributedSimulation:
             is split (:meth:`polydem.Simulation.advance_split`), its first part computes the contacts and forces
             of the bodies it sends and their rows as the step will leave them, and the exchange runs while the
             second part computes the rest. The same bits as without; not with mesh walls (:attr:`split`).
+        exchange: how the ghosts' rows travel: "host" (default) through pinned host memory over MPI, the host
+            waiting for each step's rows before it launches the next step; "nccl" from GPU to GPU with NCCL
+            (nccl4py, :mod:`polydem.distributed.nccl`), enqueued on the GPU's streams and captured in the steps'
+            graphs, so that the host never waits within a chunk. One GPU per rank; the same bits either way.
 
     The methods that read the state (:meth:`state`, :meth:`contacts`, :meth:`energy`,
     :meth:`settle_measures`) and :meth:`step` are collective: every rank calls them in the same
@@ -137,6 +145,7 @@ class DistributedSimulation:
         root: int = 0,
         chunk: int = CHUNK,
         overlap: bool | None = None,
+        exchange: str = "host",
     ) -> None:
         self.split = False
         self.comm = comm if comm is not None else world()
@@ -146,6 +155,10 @@ class DistributedSimulation:
         self.scene = scene
         self.device = wp.get_device(device)
         self.overlap = self.device.is_cuda if overlap is None else bool(overlap)
+        self.exchange = "host"
+        self._nccl: NcclExchange | None = None
+        self._exchange_graphs: dict[bool, wp.Graph] = {}
+        self.set_exchange(exchange)
         self.use_graph = use_graph
         self.num_bodies = n = scene.num_bodies
         # Decided once from the whole scene, and the same on every rank: each rank's Simulation takes them.
@@ -260,6 +273,7 @@ class DistributedSimulation:
             if len(recv):
                 self._recv[s] = self._buffers(recv)
         self._apply_overlap()
+        self._exchange_graphs = {}
         if self.sim is not None:
             st = self.sim.current_state
             # The poses and velocities hold the model's body scalar (State.dtypes): viewed as rows of it.
@@ -270,6 +284,21 @@ class DistributedSimulation:
             self._mine = wp.array(mine, dtype=int, device=dev)
             self._x0 = wp.array(self._x_partition, dtype=wp.float64, device=dev)
             self._moved = wp.zeros(1, dtype=wp.float64, device=dev)
+
+    def set_exchange(self, exchange: str) -> None:
+        """How the ghosts' rows travel: "host" or "nccl" (the ``exchange`` argument; collective: the first switch to
+        "nccl" makes the NCCL communicator)."""
+        if exchange not in EXCHANGES:
+            raise ValueError(f"exchange must be one of {EXCHANGES}, got {exchange!r}")
+        if exchange == "nccl" and not self.device.is_cuda:
+            raise ValueError(
+                f"exchange='nccl' moves the ghost rows between GPUs, but this rank runs on {self.device}: "
+                "use exchange='host' (or a CUDA device per rank)"
+            )
+        if exchange == "nccl" and self._nccl is None and self.size > 1:
+            self._nccl = NcclExchange(self.comm, self.device)
+        self.exchange = exchange
+        self._exchange_graphs = {}
 
     def set_overlap(self, overlap: bool) -> None:
         """Send the ghosts while the step runs, or after it (the ``overlap`` argument; the same bits either way)."""
@@ -483,7 +512,7 @@ class DistributedSimulation:
                 if sim is not None and not error:
                     try:
                         if split:
-                            ready = sim.advance_split(self._step_rows, key="ghost rows")
+                            ready = sim.advance_split(self._step_rows, key=("ghost rows", self.exchange))
                             packed = True
                         else:
                             sim.advance(1)
@@ -569,14 +598,46 @@ class DistributedSimulation:
 
     def _step_rows(self) -> None:
         """Launch the rows of my bodies that are ghosts elsewhere as this step will leave them, and their copy to
-        the host (the first part of a split step, after the forces on them)."""
+        the host, or with NCCL the exchange itself (the first part of a split step, after the forces on them)."""
         sim = self.sim
         st, m = sim.current_state, sim.model
         for index, rows, host in self._send.values():
             launch_step_rows(model=m.bodies, gravity=m.gravity, dt=self.dt, bodies=st.bodies, damping=st.body_damping,
                              index=index, rows=rows)  # fmt: skip
-            if host is not rows:
+            if host is not rows and self.exchange == "host":
                 wp.copy(host, rows)
+        if self.exchange == "nccl":
+            self._post_nccl()
+
+    def _post_nccl(self) -> None:
+        """Enqueue the step's NCCL sends and receipts on the current stream (none with one rank)."""
+        if self._nccl is None:
+            return
+        send = {s: rows for s, (_, rows, _) in self._send.items()}
+        recv = {s: rows for s, (_, rows, _) in self._recv.items()}
+        self._nccl.post(send, recv, wp.get_stream(self.device))
+
+    def _device_exchange(self, packed: bool) -> None:
+        """The exchange with NCCL, all of it enqueued on the device (captured once as a graph with the sim's graphs):
+        the rows packed from the state unless ``packed`` (sent and received by the step), the ghosts unpacked."""
+        if not self.sim.use_graph:
+            self._enqueue_device_exchange(packed)
+            return
+        graph = self._exchange_graphs.get(packed)
+        if graph is None:
+            with wp.ScopedCapture(device=self.device) as capture:
+                self._enqueue_device_exchange(packed)
+            graph = self._exchange_graphs[packed] = capture.graph
+        wp.capture_launch(graph)
+
+    def _enqueue_device_exchange(self, packed: bool) -> None:
+        q, v, w = self._views
+        if not packed:
+            for index, rows, _ in self._send.values():
+                launch_pack_rows(q=q, v=v, w=w, damping=self._damping, index=index, rows=rows)
+            self._post_nccl()
+        for index, rows, _ in self._recv.values():
+            launch_unpack_rows(rows=rows, index=index, q=q, v=v, w=w, damping=self._damping)
 
     def _exchange(self, packed: bool = False, ready: wp.Event | None = None) -> None:
         """Send the new poses, velocities and damping loads of my bodies that are ghosts elsewhere; take my
@@ -584,6 +645,10 @@ class DistributedSimulation:
         done once ``ready`` is (None: once the device is); else packed here from the state after the step."""
         comm = self.comm
         if isinstance(comm, SerialComm) or self.sim is None:
+            return
+        if self.exchange == "nccl":
+            self._device_exchange(packed)
+            self.sim.forget_diagnostics()
             return
         from mpi4py import MPI
 
