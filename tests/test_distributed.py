@@ -264,3 +264,20 @@ def test_an_error_on_one_rank_stops_every_rank(tmp_path):
         done.stderr == f"polydem: error: {not_a_folder}: --out: the output folder is a file; give a folder with --out\n"
     )
     assert not_a_folder.read_text() == "x"
+
+
+@needs_mpi
+def test_the_nccl_exchange_on_cpu_ranks_is_a_user_error(tmp_path):
+    """``--exchange nccl`` sends the rows from GPU to GPU: on CPU ranks every rank stops before the run with one
+    line naming the option (exit code 2), nothing written."""
+    scene = str(HERE.parent / "scenes" / "default.toml")
+    out = tmp_path / "out"
+    cmd = [_mpiexec(), "-n", "2", sys.executable, "-m", "polydem", "run", scene, "--out", str(out)]
+    done = subprocess.run(cmd + ["--device", "cpu", "-q", "--exchange", "nccl"], capture_output=True, text=True,
+                          timeout=300)  # fmt: skip
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr == (
+        "polydem: error: --exchange: nccl sends the ghost rows from GPU to GPU, but this rank runs on cpu: run on "
+        "GPUs (--device cuda, one per rank) or leave --exchange at host\n"
+    )
+    assert not out.exists()

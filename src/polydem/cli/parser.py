@@ -262,6 +262,13 @@ def _add_run(sub, fmt) -> None:
         help='Warp device: "cpu", "cuda" or "cuda:N"; default: the scene\'s [simulation] device, else the GPU '
         "when there is one",
     )
+    run.add_argument(
+        "--exchange",
+        choices=("host", "nccl"),
+        default="host",
+        help="under mpiexec: how the ranks' ghost rows travel: through host memory over MPI (host, the default) or "
+        'from GPU to GPU with NCCL (nccl: a GPU per rank, pip install "polydem[nccl]"); a run of one process has none',
+    )
     length = run.add_mutually_exclusive_group()
     length.add_argument(
         "--steps",

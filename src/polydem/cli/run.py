@@ -455,6 +455,8 @@ def _cmd_run_decomposed(args: argparse.Namespace) -> int:
     resume = checkpoint = scene = dev = out_dir = criterion = None
     try:
         resume, checkpoint, scene, dev = _load(args)
+        if args.exchange == "nccl":
+            _check_nccl(dev)
         if root:
             out_dir = output_folder(args, scene)
             check_outputs(args, scene, out_dir)
@@ -477,7 +479,7 @@ def _cmd_run_decomposed(args: argparse.Namespace) -> int:
         return code
     ds = None
     try:
-        ds = DistributedSimulation(scene, device=dev, comm=comm)
+        ds = DistributedSimulation(scene, device=dev, comm=comm, exchange=args.exchange)
     except Exception as exc:  # after its collective steps (the partition): building the rank's Simulation
         failure = exc
     code = _agree(comm, failure)
@@ -512,6 +514,29 @@ def _cmd_run_decomposed(args: argparse.Namespace) -> int:
         raise
     finally:
         sim.stop(code)  # the others exit with rank 0's code
+
+
+def _check_nccl(dev) -> None:
+    """``--exchange nccl`` can work on this rank's device ``dev`` (None: the default): a GPU, and nccl4py installed
+    (else a CliError naming the option)."""
+    import warp as wp
+
+    from polydem.distributed.nccl import load_nccl
+
+    if dev is None:
+        dev = "cuda:0" if wp.get_cuda_device_count() else "cpu"
+    dev = wp.get_device(dev)
+    if not dev.is_cuda:
+        raise CliError(
+            f"nccl sends the ghost rows from GPU to GPU, but this rank runs on {dev}: run on GPUs "
+            "(--device cuda, one per rank) or leave --exchange at host",
+            key="--exchange",
+        )
+    try:
+        load_nccl()
+    except RuntimeError as exc:
+        raise CliError(str(exc).replace("exchange='nccl'", "nccl").replace("exchange=", "--exchange "),
+                       key="--exchange") from exc  # fmt: skip
 
 
 def _user_error(exc: BaseException) -> bool:

@@ -45,9 +45,21 @@ class NcclExchange:
     def __init__(self, comm: Comm, device: wp.Device) -> None:
         if not device.is_cuda:
             raise ValueError(f"exchange='nccl' moves the ghost rows between GPUs: the rank's device is {device}")
-        self._nccl = nccl = load_nccl()
         rank, size = int(comm.Get_rank()), int(comm.Get_size())
-        uid = comm.bcast(nccl.get_unique_id() if rank == 0 else None, root=0)
+        # Each collective step only once every rank is known to get there: a rank that raised alone would leave
+        # the others waiting in the broadcast or in NCCL's own set-up.
+        nccl = uid = None
+        try:
+            nccl = load_nccl()
+            uid = nccl.get_unique_id() if rank == 0 else None
+            failure = ""
+        except Exception as exc:
+            failure = f"rank {rank}: {exc}"
+        failures = [m for m in comm.allgather(failure) if m]
+        if failures:
+            raise RuntimeError("; ".join(failures))
+        self._nccl = nccl
+        uid = comm.bcast(uid, root=0)
         try:
             from cuda.core import Device
 
