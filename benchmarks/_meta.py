@@ -65,3 +65,17 @@ def run_meta(device=None):
                 pass
     meta.update(git_state())
     return meta
+
+
+def activity_ms_per_step(run, steps, cuda_filter):
+    """Warp's activity timing of ``run()``, which takes ``steps`` steps: GPU milliseconds per step by activity
+    (kernel, copy or graph launch) name, the costliest first. ``cuda_filter``: ``wp.TIMING_GRAPH``, or
+    ``wp.TIMING_KERNEL | wp.TIMING_MEMCPY`` with the graphs off."""
+    import warp as wp
+
+    wp.timing_begin(cuda_filter=cuda_filter)
+    run()
+    sums = {}
+    for r in wp.timing_end():
+        sums[r.name] = sums.get(r.name, 0.0) + r.elapsed / steps
+    return dict(sorted(sums.items(), key=lambda kv: -kv[1]))

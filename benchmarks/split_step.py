@@ -24,7 +24,7 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _meta import run_meta  # noqa: E402
+from _meta import activity_ms_per_step, run_meta  # noqa: E402
 from polydem.kernels.ghosts import launch_step_rows  # noqa: E402
 from settle import make_scene, scene_options  # noqa: E402
 
@@ -146,13 +146,9 @@ def main():
             for split in (False, True):
                 sim.split_at(send if split else None)
                 window(split, 3)
-                wp.timing_begin(cuda_filter=wp.TIMING_GRAPH if graphs else wp.TIMING_KERNEL | wp.TIMING_MEMCPY)
-                window(split, args.profile)
-                sums = {}
-                for r in wp.timing_end():
-                    sums[r.name] = sums.get(r.name, 0.0) + r.elapsed / args.profile
+                filt = wp.TIMING_GRAPH if graphs else wp.TIMING_KERNEL | wp.TIMING_MEMCPY
                 key = f"{'graphs' if graphs else 'kernels'}_{'split' if split else 'whole'}"
-                profile[key] = dict(sorted(sums.items(), key=lambda kv: -kv[1]))
+                profile[key] = activity_ms_per_step(lambda: window(split, args.profile), args.profile, filt)  # noqa: B023
         sim.use_graph = True
     whole = float(np.median([r["step_ms"] for r in results if not r["split"]]))
     split_ms = float(np.median([r["step_ms"] for r in results if r["split"]]))

@@ -43,7 +43,7 @@ from polydem import settle as polydem_settle
 from polydem.cli.diagnostics import body_volumes, relative_depths, relative_overlaps, settled_region
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _meta import run_meta  # noqa: E402
+from _meta import activity_ms_per_step, run_meta  # noqa: E402
 from settle import SHAPE_SETS, add_pile_options, kernel_options, make_scene, scene_options  # noqa: E402
 
 EDGE = 0.01  # cube edge [m]
@@ -153,14 +153,8 @@ def step_profile(sim, steps):
     for use_graph, filt in ((True, wp.TIMING_GRAPH), (False, wp.TIMING_KERNEL | wp.TIMING_MEMCPY)):
         sim.use_graph = use_graph
         sim.step(3)
-        wp.timing_begin(cuda_filter=filt)
-        sim.step(steps)
-        sums = {}
-        for r in wp.timing_end():
-            sums[r.name] = sums.get(r.name, 0.0) + r.elapsed / steps
-        record["graphs_ms_per_step" if use_graph else "kernels_ms_per_step"] = dict(
-            sorted(sums.items(), key=lambda kv: -kv[1])
-        )
+        sums = activity_ms_per_step(lambda: sim.step(steps), steps, filt)
+        record["graphs_ms_per_step" if use_graph else "kernels_ms_per_step"] = sums
     sim.use_graph = graphs
     return record
 
