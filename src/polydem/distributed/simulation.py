@@ -521,8 +521,8 @@ class DistributedSimulation:
                 if self.sync_timers and sim is not None:
                     wp.synchronize_device(self.device)  # so that compute holds the step's kernels, not their launch
                 t2 = time.perf_counter()
-                self._exchange(packed, ready)
-                self._track_move()
+                if not self._exchange(packed, ready):
+                    self._track_move()
                 compute += t2 - t1
                 exchange += time.perf_counter() - t2
             t3 = time.perf_counter()
@@ -619,7 +619,8 @@ class DistributedSimulation:
 
     def _device_exchange(self, packed: bool) -> None:
         """The exchange with NCCL, all of it enqueued on the device (captured once as a graph with the sim's graphs):
-        the rows packed from the state unless ``packed`` (sent and received by the step), the ghosts unpacked."""
+        the rows packed from the state unless ``packed`` (sent and received by the step), the ghosts unpacked, the
+        largest move raised (:meth:`_track_move`)."""
         if not self.sim.use_graph:
             self._enqueue_device_exchange(packed)
             return
@@ -638,18 +639,20 @@ class DistributedSimulation:
             self._post_nccl()
         for index, rows, _ in self._recv.values():
             launch_unpack_rows(rows=rows, index=index, q=q, v=v, w=w, damping=self._damping)
+        self._track_move()
 
-    def _exchange(self, packed: bool = False, ready: wp.Event | None = None) -> None:
+    def _exchange(self, packed: bool = False, ready: wp.Event | None = None) -> bool:
         """Send the new poses, velocities and damping loads of my bodies that are ghosts elsewhere; take my
         ghosts' from their owners. ``packed``: the rows to send were launched by the step (:meth:`_step_rows`),
-        done once ``ready`` is (None: once the device is); else packed here from the state after the step."""
+        done once ``ready`` is (None: once the device is); else packed here from the state after the step. Returns
+        whether it also raised the largest move (:meth:`_track_move`: the NCCL exchange's graph does)."""
         comm = self.comm
         if isinstance(comm, SerialComm) or self.sim is None:
-            return
+            return False
         if self.exchange == "nccl":
             self._device_exchange(packed)
             self.sim.forget_diagnostics()
-            return
+            return True
         from mpi4py import MPI
 
         dev = self.device
@@ -674,6 +677,7 @@ class DistributedSimulation:
                 wp.copy(rows, host)
             launch_unpack_rows(rows=rows, index=index, q=q, v=v, w=w, damping=self._damping)
         self.sim.forget_diagnostics()
+        return False
 
     def _track_move(self) -> None:
         """Raise ``_moved`` (device) to the largest move along the axis of a free body of mine since the
