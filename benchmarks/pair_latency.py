@@ -1,0 +1,127 @@
+"""How long one warp of the pair kernel takes, and what its 32 pairs' differences cost it (latency at small sizes).
+
+Below about 1e4 grains the step is the pair kernel's slowest warp (BENCHMARKS.md 27b: at 1e3 cubes the pair kernel
+is 0.17 of the graph's 0.20 ms a step): a warp runs its 32 threads in lock step, so it takes as long as the union
+of their paths through the clipping loops. This script times launches of the engine's overlap kernel (the pair
+kernel's geometry, ``benchmarks/pair_kernel.py``) that are one wave or less, with CUDA events:
+
+* ``one``: a single touching pair (one thread of one warp);
+* ``same32``: 32 copies of that pair in one warp (the same path: the warp's own latency);
+* ``diff32``: 32 different touching pairs in one warp (their paths' union);
+* ``packedN`` / ``spreadN``: N different touching pairs, packed 32 to a warp or one to a warp (the other 31 lanes
+  far apart, leaving at the bounding-sphere test).
+
+    python benchmarks/pair_latency.py --device cuda:0
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import warp as wp
+from pair_kernel import make_pairs, pair_inputs, shape_library
+from polydem.kernels.narrowphase import OVERLAP_OUTPUTS, make_narrowphase
+
+from polydem.shapeset import ShapeSet
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from _meta import run_meta  # noqa: E402
+
+
+def event_time(shapes, pa, pb, pose_scalar, repeats):
+    """Median GPU milliseconds of the overlap kernel over the pairs (pa, pb), by CUDA events."""
+    dev = shapes.device
+    n = len(pa)
+    np_pose = np.float32 if pose_scalar == wp.float32 else np.float64
+    tf = wp.types.transformation(pose_scalar)
+    vec3 = wp.types.vector(3, shapes.scalar)
+    kernel = make_narrowphase(
+        shapes.scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=128, pose_scalar=pose_scalar
+    ).overlap_kernel
+    arrays = [
+        wp.zeros(n, dtype=int, device=dev),
+        wp.zeros(n, dtype=int, device=dev),
+        wp.array(pa.astype(np_pose), dtype=tf, device=dev),
+        wp.array(pb.astype(np_pose), dtype=tf, device=dev),
+    ]
+    outs = [wp.zeros(n, dtype=shapes.scalar, device=dev)]
+    outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
+    overflow = wp.zeros(1, dtype=int, device=dev)
+    launch = {"dim": n, "inputs": [*shapes.kernel_args(), *pair_inputs(kernel, arrays)],
+              "outputs": [*outs, overflow], "device": dev, "block_dim": 64}  # fmt: skip
+    wp.launch(kernel, **launch)
+    times = []
+    if dev.is_cuda:
+        start, end = wp.Event(dev, enable_timing=True), wp.Event(dev, enable_timing=True)
+        for _ in range(repeats):
+            wp.record_event(start)
+            wp.launch(kernel, **launch)
+            wp.record_event(end)
+            times.append(wp.get_event_elapsed_time(start, end))
+    else:  # the CPU runs the kernel in the calling thread: the wall time is its time
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            wp.launch(kernel, **launch)
+            times.append(1e3 * (time.perf_counter() - t0))
+    touching = int((outs[0].numpy() > 0).sum())
+    return float(np.median(times)), touching
+
+
+def spread(pa, pb, lanes):
+    """The pairs one to a warp: lane 0 of each warp a pair of (pa, pb), the other lanes copies of it moved far apart."""
+    n = len(pa)
+    far_b = pb.copy()
+    far_b[:, :3] += 1000.0
+    out_a = np.repeat(pa, lanes, axis=0)
+    out_b = np.repeat(far_b, lanes, axis=0)
+    out_b[::lanes] = pb
+    assert len(out_a) == n * lanes
+    return out_a, out_b
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--shapes", default="cube,rock20")
+    ap.add_argument("--depth", type=float, default=0.01, help="depth of the touching pairs (fraction of the size)")
+    ap.add_argument("--sizes", default="256,1024", help="N of packedN and spreadN")
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "issue27", "pair_latency.json"))
+    args = ap.parse_args()
+    wp.config.quiet = True
+    dev = wp.get_device(args.device)
+    lib = shape_library()
+    rows = []
+    for name in args.shapes.split(","):
+        shape = lib[name]
+        rng = np.random.default_rng(7)
+        sizes = [int(s) for s in args.sizes.split(",")]
+        n_max = max(max(sizes), 32)
+        pa, pb = make_pairs(shape, 2 * n_max, args.depth, rng, dev)
+        pa, pb = pa[:n_max], pb[:n_max]  # the touching half
+        shapes = ShapeSet([shape], device=dev, precision="float32")
+        cases = {
+            "one": (pa[:1], pb[:1]),
+            "same32": (np.repeat(pa[:1], 32, axis=0), np.repeat(pb[:1], 32, axis=0)),
+            "diff32": (pa[:32], pb[:32]),
+        }
+        for n in sizes:
+            cases[f"packed{n}"] = (pa[:n], pb[:n])
+            cases[f"spread{n}"] = spread(pa[:n], pb[:n], 32)
+        for case, (a, b) in cases.items():
+            ms, touching = event_time(shapes, a, b, wp.float64, args.repeats)
+            rows.append({"shape": name, "case": case, "threads": len(a), "touching": touching, "ms": ms})
+            print(f"{name:8s} {case:12s} threads {len(a):7d} touching {touching:5d}: {1e3 * ms:8.1f} us")
+    record = {"meta": run_meta(dev), "args": vars(args), "rows": rows}
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(record, f, indent=1)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
