@@ -8,8 +8,9 @@ kernel's geometry, ``benchmarks/pair_kernel.py``) that are one wave or less, wit
 * ``one``: a single touching pair (one thread of one warp);
 * ``same32``: 32 copies of that pair in one warp (the same path: the warp's own latency);
 * ``diff32``: 32 different touching pairs in one warp (their paths' union);
+* ``sortedN``: packedN's pairs sorted by the kind of contact (how many corners of each lie in the other);
 * ``packedN`` / ``spreadN``: N different touching pairs, packed 32 to a warp or one to a warp (the other 31 lanes
-  far apart, leaving at the bounding-sphere test).
+  far apart, leaving at the bounding-sphere test); ``spreadN_lanesL``: one pair every L lanes.
 
     python benchmarks/pair_latency.py --device cuda:0
 """
@@ -22,7 +23,7 @@ import time
 
 import numpy as np
 import warp as wp
-from pair_kernel import make_pairs, pair_inputs, shape_library
+from pair_kernel import make_pairs, pair_inputs, rotate, shape_library
 from polydem.kernels.narrowphase import OVERLAP_OUTPUTS, make_narrowphase
 
 from polydem.shapeset import ShapeSet
@@ -83,6 +84,26 @@ def spread(pa, pb, lanes):
     return out_a, out_b
 
 
+def inside_counts(shape, pa, pb):
+    """Per pair, how many of B's vertices lie inside A and how many of A's inside B (the contact's kind: a corner
+    in a face, edges crossing, faces on faces), from the poses (xyz, xyzw)."""
+    verts = np.asarray(shape.vertices, dtype=np.float64)
+    normals = np.asarray(shape.face_normals, dtype=np.float64)
+    offsets = np.array([normals[f] @ verts[loop[0]] for f, loop in enumerate(shape.faces)])
+
+    def count(p_in, p_of):
+        # p_of's vertices in p_in's frame, against p_in's planes
+        n, k = len(p_in), len(verts)
+        q_of = np.repeat(p_of[:, 3:], k, axis=0)
+        q_in = np.repeat(p_in[:, 3:], k, axis=0)
+        v = rotate(q_of, np.tile(verts, (n, 1))) + np.repeat(p_of[:, :3] - p_in[:, :3], k, axis=0)
+        local = rotate(q_in * np.array([-1, -1, -1, 1]), v)
+        inside = (local @ normals.T <= offsets[None]).all(axis=1)
+        return inside.reshape(n, k).sum(axis=1)
+
+    return count(pa, pb), count(pb, pa)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda:0")
@@ -90,6 +111,7 @@ def main():
     ap.add_argument("--depth", type=float, default=0.01, help="depth of the touching pairs (fraction of the size)")
     ap.add_argument("--sizes", default="256,1024", help="N of packedN and spreadN")
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--lanes", default="32", help="lanes per pair of spreadN (32: one pair to a warp)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "issue27", "pair_latency.json"))
     args = ap.parse_args()
     wp.config.quiet = True
@@ -109,9 +131,18 @@ def main():
             "same32": (np.repeat(pa[:1], 32, axis=0), np.repeat(pb[:1], 32, axis=0)),
             "diff32": (pa[:32], pb[:32]),
         }
+        kind_b, kind_a = inside_counts(shape, pa, pb)
         for n in sizes:
             cases[f"packed{n}"] = (pa[:n], pb[:n])
-            cases[f"spread{n}"] = spread(pa[:n], pb[:n], 32)
+            order = np.lexsort((kind_a[:n], kind_b[:n]))  # the same kinds of contact side by side
+            cases[f"sorted{n}"] = (pa[:n][order], pb[:n][order])
+            kinds, counts = np.unique(np.stack([kind_b[:n], kind_a[:n]], 1), axis=0, return_counts=True)
+            print(
+                f"{name}: kinds of contact (B's corners in A, A's in B): count "
+                + ", ".join(f"{tuple(k)}: {c}" for k, c in zip(kinds.tolist(), counts.tolist(), strict=True))
+            )
+            for lanes in [int(x) for x in args.lanes.split(",")]:
+                cases[f"spread{n}" if lanes == 32 else f"spread{n}_lanes{lanes}"] = spread(pa[:n], pb[:n], lanes)
         for case, (a, b) in cases.items():
             ms, touching = event_time(shapes, a, b, wp.float64, args.repeats)
             rows.append({"shape": name, "case": case, "threads": len(a), "touching": touching, "ms": ms})
