@@ -82,6 +82,12 @@ REPORT_SUMS = wp.constant(2)
 # despite the spills (BENCHMARKS.md section 7c).
 PAIR_MAX_REGISTERS = 128
 
+SPREAD_LANES = 8
+"""Lanes a spread pair takes (a power of two; :func:`make_contact_kernels`' ``spread``): one pair every 8 lanes, 4 to a
+warp. A warp runs its lanes' paths through the clipping in lock step, so that 32 different pairs took 1.8x (cubes) to
+5x (64-vertex hulls) one pair's time on an H200; 4 to a warp, 0.8x (cubes) and 0.6x (rocks) of 32 to a warp, where
+the launch is one wave (BENCHMARKS.md 28)."""
+
 
 @wp.struct
 class ContactSums:
@@ -121,6 +127,7 @@ class ContactKernels:
     max_registers: int | None
     thread_order: bool
     phased: bool
+    spread: bool
     geometry: Any  # polydem.kernels.geometry.Geometry
     body_geometry: Any  # polydem.kernels.compound.BodyGeometry
     respond: Any
@@ -360,6 +367,7 @@ def make_contact_kernels(
     report: bool = False,
     thread_order: bool = False,
     phased: bool = False,
+    spread: bool = False,
 ) -> ContactKernels:
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -386,7 +394,14 @@ def make_contact_kernels(
     one launch, so the same bits. A decomposed run (:mod:`polydem.distributed`) flags the bodies it sends, so
     that their new state is known, and on its way, before the rest of the step has run. Without ``phased`` the
     kernels take the two arguments and never read them.
+    ``spread`` (with ``thread_order``, not ``phased``): the first ``spread_pairs`` pairs of the thread order (the
+    pair kernel's argument; the costliest, as the order puts them) take :data:`SPREAD_LANES` lanes each, one
+    computing and the others idle, and the rest one lane each: at a launch of a wave or less (below about 1e4
+    grains), where the step waits for its slowest warps, a warp then runs 4 pairs' paths in lock step, not 32.
+    The same results, bit for bit.
     """
+    if spread and not (thread_order and not phased):
+        raise ValueError("spread needs thread_order and not phased")
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
     vec3c = wp.types.vector(3, C)
@@ -420,6 +435,8 @@ def make_contact_kernels(
         body_first: wp.array(dtype=wp.int32),
         phase: int,
         first_count: wp.array(dtype=int),
+        # Spread (the spread variant only): how many of the first pairs of the thread order take SPREAD_LANES lanes
+        spread_pairs: int,
     ):
         """The step variant writes the wrench on A, the spring and the energy dissipated; the
         diagnostics variant (run on request only) writes what energy() reports, at the current
@@ -432,6 +449,15 @@ def make_contact_kernels(
                     return
             elif phase == 2:
                 p = p + first_count[0]
+        if wp.static(spread):
+            # Threads [0, s L) hold the first s pairs, one every SPREAD_LANES lanes; the rest one pair each.
+            s = wp.min(pairs.count[0], spread_pairs)
+            if p < s * wp.static(SPREAD_LANES):
+                if (p & wp.static(SPREAD_LANES - 1)) != 0:
+                    return
+                p = p >> wp.static(SPREAD_LANES.bit_length() - 1)
+            else:
+                p = p - s * wp.static(SPREAD_LANES - 1)
         if p >= pairs.count[0]:
             return
         if wp.static(thread_order):
@@ -705,6 +731,7 @@ def make_contact_kernels(
         max_registers=max_registers,
         thread_order=thread_order,
         phased=phased,
+        spread=spread,
         geometry=geom,
         body_geometry=body_geom,
         respond=resp.respond,
@@ -718,6 +745,17 @@ def make_contact_kernels(
 # ---------------------------------------------------------------------------------------------
 # Launch functions
 # ---------------------------------------------------------------------------------------------
+
+
+def spread_room(device: wp.DeviceLike, max_registers: int | None = PAIR_MAX_REGISTERS) -> int:
+    """How many pairs of the thread order the pair kernel spreads on ``device`` (:data:`SPREAD_LANES` lanes each): as
+    many as half a wave of its resident threads can idle for (a register cap of R leaves 65536 / R threads an SM);
+    none on the CPU, whose kernels run one thread after another."""
+    dev = wp.get_device(device)
+    if not dev.is_cuda:
+        return 0
+    threads_per_sm = 65536 // max(int(max_registers or 255), 32)
+    return dev.sm_count * threads_per_sm // 2 // (SPREAD_LANES - 1)
 
 
 @wp.kernel(enable_backward=False)
@@ -743,6 +781,7 @@ def launch_pair_contacts(
     first_count: wp.array | None = None,
     first_room: int | None = None,
     first_overflow: wp.array | None = None,
+    spread_pairs: int = 0,
 ) -> None:
     """The pair kernel of ``kernels``, one thread per candidate pair: each pair's wrench on A, spring,
     turning volume and energy dissipated into ``pairs`` (the step and report variants), its contact
@@ -754,11 +793,17 @@ def launch_pair_contacts(
     ``body_first``, which may then be a placeholder of one entry). With the threads ordered (``thread_order``),
     ``first_count`` (1,) int32 holds how many pairs phase 1 has, first in the order (Contacts.split_at); phase 1
     then launches ``first_room`` threads and sets ``first_overflow`` (1,) int32 where they were too few (the
-    step must be redone with more)."""
+    step must be redone with more). ``spread_pairs``: with the ``spread`` kernels, how many of the first pairs of the
+    thread order take :data:`SPREAD_LANES` lanes each (0: none)."""
     m = model
     ordered = kernels.phased and kernels.thread_order and phase != 0
     first_count = body_first if first_count is None else first_count
     dim = pairs.capacity
+    if kernels.spread:
+        spread_pairs = min(int(spread_pairs), pairs.capacity)
+        dim += spread_pairs * (SPREAD_LANES - 1)
+    else:
+        spread_pairs = 0
     if ordered and phase == 1:
         dim = min(int(first_room), pairs.capacity)
         wp.launch(room_kernel, dim=1, inputs=[first_count, dim], outputs=[first_overflow], device=body_first.device)
@@ -775,7 +820,7 @@ def launch_pair_contacts(
             pairs.pairs,
             overflow,
         ],
-        outputs=[out.pairs, int(report_bits), pair_sums, body_first, int(phase), first_count],
+        outputs=[out.pairs, int(report_bits), pair_sums, body_first, int(phase), first_count, spread_pairs],
         device=state.bodies.q.device,
         block_dim=NARROWPHASE_BLOCK_DIM,
     )

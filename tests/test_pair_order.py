@@ -257,3 +257,35 @@ def test_thread_order_is_checked(device):
     assert Simulation(default_scene(), device, order_pair_threads=0).current_contacts.thread_grouping == "slot"
     with pytest.raises(ValueError, match="order_pair_threads must be True, False or one of"):
         Simulation(default_scene(), device, order_pair_threads="fast")
+
+
+@pytest.mark.parametrize("spread", [37, 10**7])
+def test_spread_pairs_give_the_same_bits(device, spread):
+    """The first pairs of the thread order spread over SPREAD_LANES lanes each (the default on a GPU, none on the
+    CPU, whose kernel runs one thread after another): every pair is still computed once, by one thread, so the run
+    and the contacts it reports are the same bits as without; some pairs spread, and more than the list holds."""
+    from polydem.kernels.forces import spread_room
+
+    assert spread_room("cpu") == 0
+    if wp.get_device(device).is_cuda:
+        assert Simulation(default_scene(), device).stepper.spread_pairs == spread_room(device) > 0
+    runs = {}
+    for pairs in (0, spread):
+        sim = Simulation(default_scene(), device)
+        sim.stepper.set_spread(pairs)
+        assert sim.stepper.kernels.spread is (pairs > 0)
+        sim.step(2600)  # the grains meet after some 2000 steps
+        runs[pairs] = sim.state(), sim.contacts()
+    assert 37 < Simulation(default_scene(), device).current_contacts.count()
+    assert len(runs[0][1]["body_a"]) > 10
+    for got, want in zip(runs[spread], runs[0], strict=True):
+        for key, value in want.items():
+            np.testing.assert_array_equal(got[key], value, err_msg=key)
+
+
+def test_spread_needs_the_thread_order(device):
+    sim = Simulation(default_scene(), device, order_pair_threads=False)
+    with pytest.raises(ValueError, match="needs the pair threads ordered"):
+        sim.stepper.set_spread(10)
+    with pytest.raises(ValueError, match="spread pairs must be >= 0"):
+        Simulation(default_scene(), device).stepper.set_spread(-1)

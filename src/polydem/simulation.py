@@ -62,6 +62,7 @@ from polydem.kernels.forces import (
     launch_gather,
     launch_pair_contacts,
     make_contact_kernels,
+    spread_room,
 )
 from polydem.kernels.integrate import (
     kinetic_energy,
@@ -187,6 +188,8 @@ class Stepper:
         # With the pair threads ordered, a split step's first part launches this many (grown when too few).
         self.first_room = 1024
         self.first_overflow = wp.zeros(1, dtype=int, device=self.device)
+        # The costliest pairs of the thread order spread over more warps, where the launch is a wave or less.
+        self.spread_pairs = spread_room(self.device, pair_max_registers) if self.thread_order else 0
         self._kernels()
         self._diag: ContactOutputs | None = None
         self._diag_generation: int | None = None
@@ -258,6 +261,7 @@ class Stepper:
             report=report,
             thread_order=self.thread_order,
             phased=self.body_first is not None and not diagnostics,
+            spread=self.thread_order and self.body_first is None and self.spread_pairs > 0,
         )
 
     def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> MeshKernels | None:
@@ -324,10 +328,23 @@ class Stepper:
         return bool(int(self.poly_overflow.numpy()[0]))
 
     @property
-    def buffer_generation(self) -> tuple[int, int, int]:
-        """What a captured step depends on besides the pair list: the polygon room, the candidate list's arrays."""
+    def buffer_generation(self) -> tuple[int, int, int, int]:
+        """What a captured step depends on besides the pair list: the polygon room, the candidate list's arrays, the
+        split's first room and the spread pairs."""
         mesh = 0 if self.mesh_candidates is None else self.mesh_candidates.generation
-        return self.poly_capacity, mesh, self.first_room
+        return self.poly_capacity, mesh, self.first_room, self.spread_pairs
+
+    def set_spread(self, pairs: int) -> None:
+        """Spread the first ``pairs`` pairs of the thread order over :data:`~polydem.kernels.forces.SPREAD_LANES`
+        lanes each (0: none; the default: :func:`~polydem.kernels.forces.spread_room`); the same bits either way.
+        Needs the pair threads ordered."""
+        pairs = int(pairs)
+        if pairs < 0:
+            raise ValueError(f"spread pairs must be >= 0, got {pairs}")
+        if pairs and not self.thread_order:
+            raise ValueError("spreading the pairs needs the pair threads ordered (Simulation(order_pair_threads=True))")
+        self.spread_pairs = pairs
+        self._kernels()
 
     def first_bad_step(self) -> int | None:
         """Host: the first step whose state was not finite, or None."""
@@ -540,6 +557,7 @@ class Stepper:
             first_count=getattr(pairs, "pair_first_count", None),
             first_room=self.first_room,
             first_overflow=self.first_overflow,
+            spread_pairs=self.spread_pairs,
         )
 
     def _diag_arrays(self, pairs: int) -> ContactOutputs:
