@@ -394,11 +394,12 @@ def make_contact_kernels(
     one launch, so the same bits. A decomposed run (:mod:`polydem.distributed`) flags the bodies it sends, so
     that their new state is known, and on its way, before the rest of the step has run. Without ``phased`` the
     kernels take the two arguments and never read them.
-    ``spread`` (with ``thread_order``, not ``phased``): the first ``spread_pairs`` pairs of the thread order (the
-    pair kernel's argument; the costliest, as the order puts them) take :data:`SPREAD_LANES` lanes each, one
-    computing and the others idle, and the rest one lane each: at a launch of a wave or less (below about 1e4
-    grains), where the step waits for its slowest warps, a warp then runs 4 pairs' paths in lock step, not 32.
-    The same results, bit for bit.
+    ``spread`` (with ``thread_order`` grouped by contact, costliest first; not ``phased``): the first pairs of the
+    thread order take :data:`SPREAD_LANES` lanes each, one computing and the others idle, and the rest one lane
+    each, so that a warp runs 4 pairs' paths in lock step, not 32: as many as fit a launch of ``spread_threads``
+    threads (the pair kernel's arguments; a wave: below about 1e4 grains the step waits for its slowest warps), or
+    more, the pairs of costly shapes (``costly[0]``, :func:`polydem.kernels.pairlist.launch_thread_order`), whose
+    paths differ the most; at most ``spread_pairs``. The same results, bit for bit.
     """
     if spread and not (thread_order and not phased):
         raise ValueError("spread needs thread_order and not phased")
@@ -435,8 +436,11 @@ def make_contact_kernels(
         body_first: wp.array(dtype=wp.int32),
         phase: int,
         first_count: wp.array(dtype=int),
-        # Spread (the spread variant only): how many of the first pairs of the thread order take SPREAD_LANES lanes
+        # Spread (the spread variant only): at most spread_pairs of the first pairs of the thread order take
+        # SPREAD_LANES lanes: as many as spread_threads threads leave room for, or the costly pairs ((1,) costly)
         spread_pairs: int,
+        spread_threads: int,
+        costly: wp.array(dtype=int),
     ):
         """The step variant writes the wrench on A, the spring and the energy dissipated; the
         diagnostics variant (run on request only) writes what energy() reports, at the current
@@ -451,7 +455,9 @@ def make_contact_kernels(
                 p = p + first_count[0]
         if wp.static(spread):
             # Threads [0, s L) hold the first s pairs, one every SPREAD_LANES lanes; the rest one pair each.
-            s = wp.min(pairs.count[0], spread_pairs)
+            listed = pairs.count[0]
+            room = wp.max(spread_threads - listed, 0) / wp.static(SPREAD_LANES - 1)
+            s = wp.min(wp.min(listed, spread_pairs), wp.max(room, costly[0]))
             if p < s * wp.static(SPREAD_LANES):
                 if (p & wp.static(SPREAD_LANES - 1)) != 0:
                     return
@@ -747,15 +753,16 @@ def make_contact_kernels(
 # ---------------------------------------------------------------------------------------------
 
 
-def spread_room(device: wp.DeviceLike, max_registers: int | None = PAIR_MAX_REGISTERS) -> int:
-    """How many pairs of the thread order the pair kernel spreads on ``device`` (:data:`SPREAD_LANES` lanes each): as
-    many as half a wave of its resident threads can idle for (a register cap of R leaves 65536 / R threads an SM);
-    none on the CPU, whose kernels run one thread after another."""
+def spread_room(device: wp.DeviceLike, max_registers: int | None = PAIR_MAX_REGISTERS) -> tuple[int, int]:
+    """(at most how many pairs, threads of a wave) the pair kernel's spread takes on ``device`` (the kernel's
+    ``spread_pairs`` and ``spread_threads``): a wave is the threads that its register cap of R leaves resident
+    (65536 / R an SM); at most as many pairs as half a wave can idle for. (0, 0) on the CPU, whose kernels run one
+    thread after another."""
     dev = wp.get_device(device)
     if not dev.is_cuda:
-        return 0
-    threads_per_sm = 65536 // max(int(max_registers or 255), 32)
-    return dev.sm_count * threads_per_sm // 2 // (SPREAD_LANES - 1)
+        return 0, 0
+    wave = dev.sm_count * (65536 // max(int(max_registers or 255), 32))
+    return wave // 2 // (SPREAD_LANES - 1), wave
 
 
 @wp.kernel(enable_backward=False)
@@ -782,6 +789,8 @@ def launch_pair_contacts(
     first_room: int | None = None,
     first_overflow: wp.array | None = None,
     spread_pairs: int = 0,
+    spread_threads: int = 0,
+    costly: wp.array | None = None,
 ) -> None:
     """The pair kernel of ``kernels``, one thread per candidate pair: each pair's wrench on A, spring,
     turning volume and energy dissipated into ``pairs`` (the step and report variants), its contact
@@ -793,8 +802,9 @@ def launch_pair_contacts(
     ``body_first``, which may then be a placeholder of one entry). With the threads ordered (``thread_order``),
     ``first_count`` (1,) int32 holds how many pairs phase 1 has, first in the order (Contacts.split_at); phase 1
     then launches ``first_room`` threads and sets ``first_overflow`` (1,) int32 where they were too few (the
-    step must be redone with more). ``spread_pairs``: with the ``spread`` kernels, how many of the first pairs of the
-    thread order take :data:`SPREAD_LANES` lanes each (0: none)."""
+    step must be redone with more). ``spread_pairs``, ``spread_threads``, ``costly`` (1,) int32: with the ``spread``
+    kernels, at most how many of the first pairs of the thread order take :data:`SPREAD_LANES` lanes each (0: none),
+    the threads that leave room for, and how many pairs of costly shapes come first (``pairs.pair_costly``)."""
     m = model
     ordered = kernels.phased and kernels.thread_order and phase != 0
     first_count = body_first if first_count is None else first_count
@@ -820,7 +830,17 @@ def launch_pair_contacts(
             pairs.pairs,
             overflow,
         ],
-        outputs=[out.pairs, int(report_bits), pair_sums, body_first, int(phase), first_count, spread_pairs],
+        outputs=[
+            out.pairs,
+            int(report_bits),
+            pair_sums,
+            body_first,
+            int(phase),
+            first_count,
+            spread_pairs,
+            int(spread_threads),
+            body_first if costly is None else costly,
+        ],  # fmt: skip
         device=state.bodies.q.device,
         block_dim=NARROWPHASE_BLOCK_DIM,
     )

@@ -343,6 +343,12 @@ def launch_body_ranges(
         wp.copy(pair_by_b, by_b, count=capacity)
 
 
+@wp.kernel(enable_backward=False)
+def costly_count_kernel(keys: wp.array(dtype=int), num_keys: int, below: int, costly: wp.array(dtype=int)):
+    """How many of the sorted ``keys`` (the first ``num_keys``) are below ``below``: one thread."""
+    costly[0] = lower_bound(keys, num_keys, below)
+
+
 def launch_thread_order(
     *,
     body_shape: wp.array,
@@ -357,6 +363,8 @@ def launch_thread_order(
     pair_turn: wp.array | None = None,
     body_first: wp.array | None = None,
     first_count: wp.array | None = None,
+    costly_from: int | None = None,
+    costly_count: wp.array | None = None,
 ) -> None:
     """Which pair each thread of the pair kernel takes: the pairs by cost class, so that the threads of a warp
     clip shapes of like face counts (a warp waits for its slowest thread), and within a class in slot order.
@@ -372,7 +380,10 @@ def launch_thread_order(
     empty slots. Each pair's arithmetic is its own, so the results do not depend on this order.
     With ``body_first`` (N,) int32 (a split step, :meth:`polydem.simulation.Stepper.split_at`): the pairs with a
     flagged body first, each part so grouped, and their number into ``first_count`` (1,) int32: the first part
-    of the step takes threads 0 to ``first_count`` - 1, the second the rest."""
+    of the step takes threads 0 to ``first_count`` - 1, the second the rest.
+    With ``pair_turn``, no ``body_first`` and ``costly_count`` (1,) int32: how many pairs of the classes from
+    ``costly_from`` up (which the order puts first) into ``costly_count``: the pairs the pair kernel spreads over
+    more lanes (:func:`polydem.kernels.forces.make_contact_kernels`' ``spread``)."""
     capacity = pair_a.shape[0]
     if keys.dtype != wp.int32 or keys.size < 2 * capacity or order.size < 2 * capacity:
         raise ValueError(f"keys and order must be int32 arrays of at least {2 * capacity} entries")
@@ -404,3 +415,9 @@ def launch_thread_order(
     # Stable: the pairs of one key keep their slot order, and the empty slots (the sentinel) come last.
     wp.utils.radix_sort_pairs(keys, order, capacity, 0, max(1, num_keys.bit_length()))
     wp.copy(pair_thread, order, count=capacity)
+    if costly_count is not None and pair_turn is not None and body_first is None:
+        # Class c's keys are 2 (top - c) and 2 (top - c) + 1: those of the classes from costly_from up lie below
+        # 2 (top - costly_from) + 2 (none where costly_from is num_classes).
+        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 2
+        wp.launch(costly_count_kernel, dim=1, inputs=[keys, capacity, below], outputs=[costly_count],
+                  device=pair_a.device)  # fmt: skip

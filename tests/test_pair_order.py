@@ -259,24 +259,36 @@ def test_thread_order_is_checked(device):
         Simulation(default_scene(), device, order_pair_threads="fast")
 
 
-@pytest.mark.parametrize("spread", [37, 10**7])
-def test_spread_pairs_give_the_same_bits(device, spread):
+@pytest.mark.parametrize("spread, threads", [(37, 10**9), (10**7, 10**9), (10**7, 0)])
+def test_spread_pairs_give_the_same_bits(device, spread, threads):
     """The first pairs of the thread order spread over SPREAD_LANES lanes each (the default on a GPU, none on the
-    CPU, whose kernel runs one thread after another): every pair is still computed once, by one thread, so the run
-    and the contacts it reports are the same bits as without; some pairs spread, and more than the list holds."""
+    CPU, whose kernel runs one thread after another): as many as the room of ``threads`` (some pairs, more than
+    the list holds) or, with no room, the pairs of costly shapes (counted at each rebuild, checked against numpy).
+    Every pair is still computed once, by one thread: the run and the contacts it reports are the same bits as
+    without."""
     from polydem.kernels.forces import spread_room
 
-    assert spread_room("cpu") == 0
+    from polydem.contacts import COSTLY_FACES
+
+    assert spread_room("cpu") == (0, 0)
     if wp.get_device(device).is_cuda:
-        assert Simulation(default_scene(), device).stepper.spread_pairs == spread_room(device) > 0
+        stepper = Simulation(default_scene(), device).stepper
+        assert (stepper.spread_pairs, stepper.spread_threads) == spread_room(device) and stepper.spread_pairs > 0
     runs = {}
     for pairs in (0, spread):
         sim = Simulation(default_scene(), device)
-        sim.stepper.set_spread(pairs)
+        sim.stepper.set_spread(pairs, threads)
         assert sim.stepper.kernels.spread is (pairs > 0)
         sim.step(2600)  # the grains meet after some 2000 steps
         runs[pairs] = sim.state(), sim.contacts()
-    assert 37 < Simulation(default_scene(), device).current_contacts.count()
+        contacts = sim.current_contacts
+        contacts.build(sim.current_state.body_q)
+        a, b = contacts.pair_a.numpy()[: contacts.count()], contacts.pair_b.numpy()[: contacts.count()]
+        faces = np.array([s.num_faces for s in sim.model.shapes.shapes])
+        shape = sim.model.body_shape.numpy()
+        costly = int((faces[shape[a]] * faces[shape[b]] > COSTLY_FACES).sum())
+        assert int(contacts.pair_costly.numpy()[0]) == costly
+    assert 0 < costly < contacts.count()  # the default scene's rocks: some pairs of each kind
     assert len(runs[0][1]["body_a"]) > 10
     for got, want in zip(runs[spread], runs[0], strict=True):
         for key, value in want.items():
@@ -284,8 +296,10 @@ def test_spread_pairs_give_the_same_bits(device, spread):
 
 
 def test_spread_needs_the_thread_order(device):
-    sim = Simulation(default_scene(), device, order_pair_threads=False)
-    with pytest.raises(ValueError, match="needs the pair threads ordered"):
-        sim.stepper.set_spread(10)
+    for order in (False, "cost"):
+        sim = Simulation(default_scene(), device, order_pair_threads=order)
+        assert sim.stepper.spread_pairs == 0
+        with pytest.raises(ValueError, match="needs the pair threads grouped by contact"):
+            sim.stepper.set_spread(10)
     with pytest.raises(ValueError, match="spread pairs must be >= 0"):
         Simulation(default_scene(), device).stepper.set_spread(-1)

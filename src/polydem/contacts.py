@@ -141,6 +141,22 @@ def pair_cost_classes(model) -> tuple[np.ndarray, int]:
     return rank.reshape(cost.shape).astype(np.int32), len(levels)
 
 
+COSTLY_FACES = 64
+"""A pair of shapes whose face counts multiply to more than this is costly: the pair kernel spreads such pairs over
+more lanes of a warp (kernels/forces.py ``SPREAD_LANES``). A 20-vertex rock's pairs are (36 faces: 144 with a
+tetrahedron), a cube's with a cube or a tetrahedron are not (36, 24): 32 different rock pairs took a warp 3.1x one
+pair's time on an H200, cube pairs 1.8x (BENCHMARKS.md 28)."""
+
+
+def costly_class_from(model) -> int:
+    """The first cost class (:func:`pair_cost_classes`' rank) of the pairs of shapes above :data:`COSTLY_FACES`."""
+    from polydem.compound import convex_parts
+
+    faces = np.array([sum(part.num_faces for part, _, _ in convex_parts(s)) for s in model.shapes.shapes], np.int64)
+    levels = np.unique(np.outer(faces, faces))
+    return int(np.searchsorted(levels, COSTLY_FACES, side="right"))
+
+
 class Contacts:
     """The candidate pair list (a Verlet list with a skin) and its history, with the per-pair buffers of a step.
 
@@ -227,6 +243,9 @@ class Contacts:
             self._pair_class_table = wp.array(self._pair_class.reshape(-1), dtype=int, device=self.device)
         self.body_first: wp.array | None = None
         self.pair_first_count = wp.zeros(1, dtype=int, device=self.device)
+        # (1,) how many pairs, first in the thread order, are of costly shapes (COSTLY_FACES), at the last rebuild
+        self.pair_costly = wp.zeros(1, dtype=int, device=self.device)
+        self._costly_from = costly_class_from(model) if self._by_contact else 0
 
     def _inputs(self, body_q: wp.array) -> tuple[wp.array, wp.array]:
         """The poses and radii for the broad phase: as they are (float64 poses are cast in its kernels)."""
@@ -367,6 +386,8 @@ class Contacts:
             pair_turn=self.pair_turn if self._by_contact else None,
             body_first=self.body_first,
             first_count=self.pair_first_count,
+            costly_from=self._costly_from,
+            costly_count=self.pair_costly if self._by_contact else None,
         )
 
     def split_at(self, body_first: wp.array | None) -> int | None:

@@ -131,6 +131,8 @@ class Stepper:
         thread_order: the pair kernel's thread t takes pair ``contacts.pairs.thread[t]`` (the contacts must
             have been made with ``thread_order``); the results do not depend on it.
         mesh_candidates: as for :class:`Simulation` (None: on CUDA).
+        spread: the thread order is grouped by contact, the costliest first (the contacts' default): the pair
+            kernel spreads its first pairs over more lanes (:meth:`set_spread`; on a GPU only by default).
 
     Attributes:
         poly_capacity: room for the vertices of a clipped polygon (grows with :meth:`grow_buffers`).
@@ -157,6 +159,7 @@ class Stepper:
         pair_max_registers: int | None = PAIR_MAX_REGISTERS,
         thread_order: bool = False,
         mesh_candidates: bool | None = None,
+        spread: bool = False,
     ) -> None:
         self.model = model
         self.thread_order = bool(thread_order)
@@ -188,8 +191,12 @@ class Stepper:
         # With the pair threads ordered, a split step's first part launches this many (grown when too few).
         self.first_room = 1024
         self.first_overflow = wp.zeros(1, dtype=int, device=self.device)
-        # The costliest pairs of the thread order spread over more warps, where the launch is a wave or less.
-        self.spread_pairs = spread_room(self.device, pair_max_registers) if self.thread_order else 0
+        # The costliest pairs of the thread order spread over more warps (kernels/forces.py SPREAD_LANES): where
+        # the launch is a wave or less, and the costly shapes' pairs.
+        self._spread_allowed = bool(spread) and self.thread_order
+        self.spread_pairs, self.spread_threads = (0, 0)
+        if self._spread_allowed:
+            self.spread_pairs, self.spread_threads = spread_room(self.device, pair_max_registers)
         self._kernels()
         self._diag: ContactOutputs | None = None
         self._diag_generation: int | None = None
@@ -328,22 +335,27 @@ class Stepper:
         return bool(int(self.poly_overflow.numpy()[0]))
 
     @property
-    def buffer_generation(self) -> tuple[int, int, int, int]:
+    def buffer_generation(self) -> tuple[int, int, int, int, int]:
         """What a captured step depends on besides the pair list: the polygon room, the candidate list's arrays, the
         split's first room and the spread pairs."""
         mesh = 0 if self.mesh_candidates is None else self.mesh_candidates.generation
-        return self.poly_capacity, mesh, self.first_room, self.spread_pairs
+        return self.poly_capacity, mesh, self.first_room, self.spread_pairs, self.spread_threads
 
-    def set_spread(self, pairs: int) -> None:
-        """Spread the first ``pairs`` pairs of the thread order over :data:`~polydem.kernels.forces.SPREAD_LANES`
-        lanes each (0: none; the default: :func:`~polydem.kernels.forces.spread_room`); the same bits either way.
-        Needs the pair threads ordered."""
+    def set_spread(self, pairs: int, threads: int | None = None) -> None:
+        """Spread at most ``pairs`` of the first pairs of the thread order over
+        :data:`~polydem.kernels.forces.SPREAD_LANES` lanes each: as many as a launch of ``threads`` threads leaves
+        room for (None: the device's wave, :func:`~polydem.kernels.forces.spread_room`), or the pairs of costly
+        shapes (0 pairs: none). The same bits either way. Needs the pair threads grouped by contact (the default)."""
         pairs = int(pairs)
         if pairs < 0:
             raise ValueError(f"spread pairs must be >= 0, got {pairs}")
-        if pairs and not self.thread_order:
-            raise ValueError("spreading the pairs needs the pair threads ordered (Simulation(order_pair_threads=True))")
+        if pairs and not self._spread_allowed:
+            raise ValueError(
+                "spreading the pairs needs the pair threads grouped by contact, the costliest first (Simulation's "
+                "default, order_pair_threads=True)"
+            )
         self.spread_pairs = pairs
+        self.spread_threads = spread_room(self.device, self.pair_max_registers)[1] if threads is None else int(threads)
         self._kernels()
 
     def first_bad_step(self) -> int | None:
@@ -558,6 +570,8 @@ class Stepper:
             first_room=self.first_room,
             first_overflow=self.first_overflow,
             spread_pairs=self.spread_pairs,
+            spread_threads=self.spread_threads,
+            costly=getattr(pairs, "pair_costly", None),
         )
 
     def _diag_arrays(self, pairs: int) -> ContactOutputs:
@@ -913,6 +927,7 @@ class Simulation:
             pair_max_registers=pair_max_registers,
             thread_order=self.current_contacts.thread_order,
             mesh_candidates=mesh_candidates,
+            spread=self.current_contacts.thread_grouping == "contact",
         )
         self._speed_limit = settings.tunnel.body_speed_limit[model.body_index]
         self.stepper.body_speed_limit.assign(self._speed_limit.astype(np.float32))
