@@ -120,6 +120,20 @@ def test_the_nccl_exchange_asks_for_a_gpu_and_a_known_name():
     assert ds.exchange == "host"
 
 
+def test_auto_exchange_takes_nccl_only_with_a_gpu_of_its_own_on_every_rank():
+    from polydem.distributed.nccl import auto_exchange, nccl_place
+
+    assert auto_exchange([(True, "GPU-a"), (True, "GPU-b")]) == "nccl"
+    assert auto_exchange([(True, "GPU-a"), (True, "GPU-a")]) == "host"  # two ranks on one GPU: NCCL refuses
+    assert auto_exchange([(True, "GPU-a"), (False, "GPU-b")]) == "host"  # no nccl4py on one rank
+    assert auto_exchange([(True, "GPU-a"), (False, None)]) == "host"  # a CPU rank
+    assert auto_exchange([(True, "GPU-a")]) == "host"  # one rank: nothing to send
+    import warp as wp
+
+    assert nccl_place(wp.get_device("cpu")) == (False, None)
+    assert DistributedSimulation(build("box_pour"), device="cpu", comm=SerialComm()).exchange == "host"
+
+
 def test_without_nccl4py_the_nccl_exchange_says_how_to_install_it(monkeypatch):
     from polydem.distributed import nccl as nccl_module
 

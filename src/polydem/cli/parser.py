@@ -264,10 +264,11 @@ def _add_run(sub, fmt) -> None:
     )
     run.add_argument(
         "--exchange",
-        choices=("host", "nccl"),
-        default="host",
-        help="under mpiexec: how the ranks' ghost rows travel: through host memory over MPI (host, the default) or "
-        'from GPU to GPU with NCCL (nccl: a GPU per rank, pip install "polydem[nccl]"); a run of one process has none',
+        choices=("auto", "host", "nccl"),
+        default="auto",
+        help="under mpiexec: how the ranks' ghost rows travel: through host memory over MPI (host) or from GPU to "
+        'GPU with NCCL (nccl: a GPU per rank, pip install "polydem[nccl]"); auto (the default): nccl where each '
+        "rank has a GPU of its own and nccl4py, else host. A run of one process has none",
     )
     length = run.add_mutually_exclusive_group()
     length.add_argument(

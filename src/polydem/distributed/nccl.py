@@ -33,6 +33,28 @@ def load_nccl() -> Any:
     return nccl
 
 
+def nccl_place(device: wp.Device) -> tuple[bool, str | None]:
+    """(whether NCCL can run on this rank: a GPU and nccl4py installed, the GPU's UUID): what each rank tells the
+    others when the exchange is left to choose (:func:`auto_exchange`)."""
+    if not device.is_cuda:
+        return False, None
+    try:
+        load_nccl()
+    except RuntimeError:
+        return False, device.uuid
+    return True, device.uuid
+
+
+def auto_exchange(places: list[tuple[bool, str | None]]) -> str:
+    """The exchange a decomposed run takes when left to choose, from every rank's :func:`nccl_place`: "nccl" where
+    there are several ranks, NCCL can run on each and each has a GPU of its own (NCCL takes one per rank), else
+    "host"."""
+    gpus = [uuid for ok, uuid in places if ok]
+    if len(places) > 1 and len(gpus) == len(places) and len(set(gpus)) == len(gpus):
+        return "nccl"
+    return "host"
+
+
 class NcclExchange:
     """One NCCL communicator over the ranks of ``comm``, each on its own GPU ``device`` (collective to make).
 

@@ -34,7 +34,7 @@ import warp as wp
 
 from polydem.distributed import partition
 from polydem.distributed.comm import SerialComm, world
-from polydem.distributed.nccl import NcclExchange
+from polydem.distributed.nccl import NcclExchange, auto_exchange, nccl_place
 from polydem.kernels.ghosts import launch_largest_move, launch_pack_rows, launch_step_rows, launch_unpack_rows
 from polydem.kernels.integrate import kinetic_energy
 from polydem.run_settings import run_settings
@@ -97,10 +97,12 @@ class DistributedSimulation:
             is split (:meth:`polydem.Simulation.advance_split`), its first part computes the contacts and forces
             of the bodies it sends and their rows as the step will leave them, and the exchange runs while the
             second part computes the rest. The same bits as without; not with mesh walls (:attr:`split`).
-        exchange: how the ghosts' rows travel: "host" (default) through pinned host memory over MPI, the host
-            waiting for each step's rows before it launches the next step; "nccl" from GPU to GPU with NCCL
-            (nccl4py, :mod:`polydem.distributed.nccl`), enqueued on the GPU's streams and captured in the steps'
-            graphs, so that the host never waits within a chunk. One GPU per rank; the same bits either way.
+        exchange: how the ghosts' rows travel: "host" through pinned host memory over MPI, the host waiting for
+            each step's rows before it launches the next step; "nccl" from GPU to GPU with NCCL (nccl4py,
+            :mod:`polydem.distributed.nccl`), enqueued on the GPU's streams and captured in the steps' graphs, so
+            that the host never waits within a chunk (one GPU per rank); "auto" (default) "nccl" where every rank
+            has a GPU of its own and nccl4py, else "host" (:func:`~polydem.distributed.nccl.auto_exchange`). The
+            same bits either way.
 
     The methods that read the state (:meth:`state`, :meth:`contacts`, :meth:`energy`,
     :meth:`settle_measures`) and :meth:`step` are collective: every rank calls them in the same
@@ -117,6 +119,7 @@ class DistributedSimulation:
         owned: (n,) bool, which local bodies this rank owns.
         cuts: (size + 1,) slab boundaries along ``axis``; partitions: partitions made so far; redone:
             chunks stepped again (an overflow somewhere, or a body past the margin).
+        exchange: "host" or "nccl", the exchange the ranks took (``exchange`` above; :meth:`set_exchange`).
         split: whether this rank's steps are split for the overlap (``overlap``, a Simulation with bodies to
             send, no mesh walls).
         timers: seconds spent per part of the step on this rank: ``compute`` (the local
@@ -145,7 +148,7 @@ class DistributedSimulation:
         root: int = 0,
         chunk: int = CHUNK,
         overlap: bool | None = None,
-        exchange: str = "host",
+        exchange: str = "auto",
     ) -> None:
         self.split = False
         self.comm = comm if comm is not None else world()
@@ -158,6 +161,8 @@ class DistributedSimulation:
         self.exchange = "host"
         self._nccl: NcclExchange | None = None
         self._exchange_graphs: dict[bool, wp.Graph] = {}
+        if exchange == "auto":  # collective: every rank takes the same
+            exchange = auto_exchange(self.comm.allgather(nccl_place(self.device)))
         self.set_exchange(exchange)
         self.use_graph = use_graph
         self.num_bodies = n = scene.num_bodies
@@ -289,7 +294,7 @@ class DistributedSimulation:
         """How the ghosts' rows travel: "host" or "nccl" (the ``exchange`` argument; collective: the first switch to
         "nccl" makes the NCCL communicator)."""
         if exchange not in EXCHANGES:
-            raise ValueError(f"exchange must be one of {EXCHANGES}, got {exchange!r}")
+            raise ValueError(f"exchange must be one of {EXCHANGES} (or 'auto' when constructed), got {exchange!r}")
         if exchange == "nccl" and not self.device.is_cuda:
             raise ValueError(
                 f"exchange='nccl' moves the ghost rows between GPUs, but this rank runs on {self.device}: "
