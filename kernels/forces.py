@@ -85,8 +85,8 @@ PAIR_MAX_REGISTERS = 128
 SPREAD_LANES = 8
 """Lanes a spread pair takes (a power of two; :func:`make_contact_kernels`' ``spread``): one pair every 8 lanes, 4 to a
 warp. A warp runs its lanes' paths through the clipping in lock step, so that 32 different pairs took 1.8x (cubes) to
-5x (64-vertex hulls) one pair's time on an H200; 4 to a warp, 0.8x (cubes) and 0.6x (rocks) of 32 to a warp, where
-the launch is one wave (BENCHMARKS.md 28)."""
+5x (64-vertex hulls) one pair's time on an H200; 4 to a warp, 0.8x (cubes) and 0.6-0.8x (rocks) of 32 to a warp,
+where the launch is one wave (BENCHMARKS.md 28b)."""
 
 
 @wp.struct
