@@ -502,7 +502,8 @@ def _cmd_run_decomposed(args: argparse.Namespace) -> int:
         owned, _ = sim.balance()
         sys.stdout.write(
             f"{scene.name}: decomposed over {ds.size} ranks (slabs along {'xyz'[ds.axis]}, "
-            f"{int(owned.min())} to {int(owned.max())} bodies each)\n"
+            f"{int(owned.min())} to {int(owned.max())} bodies each; ghosts exchanged through "
+            f"{'NCCL, GPU to GPU' if ds.exchange == 'nccl' else 'host memory'})\n"
         )
         code = _run(args, scene, sim, out_dir, resume, checkpoint, criterion)
         return code
