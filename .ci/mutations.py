@@ -180,7 +180,7 @@ FAULTS = (
         "kernels/pairlist.py",
         "        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 2\n",
         "        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 1\n",
-        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-10000000-0]",),
+        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-10000000-55]",),
     ),
     Fault(
         "tunnelling limits: one code's limit given to every body",

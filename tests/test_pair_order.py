@@ -259,13 +259,14 @@ def test_thread_order_is_checked(device):
         Simulation(default_scene(), device, order_pair_threads="fast")
 
 
-@pytest.mark.parametrize("spread, threads", [(37, 10**9), (10**7, 10**9), (10**7, 0)])
+@pytest.mark.parametrize("spread, threads", [(37, 10**9), (10**7, 10**9), (10**7, 55), (10**7, 0)])
 def test_spread_pairs_give_the_same_bits(device, spread, threads):
     """The first pairs of the thread order spread over SPREAD_LANES lanes each (the default on a GPU, none on the
     CPU, whose kernel runs one thread after another): as many as the room of ``threads`` (some pairs, more than
-    the list holds) or, with no room, the pairs of costly shapes (counted at each rebuild, checked against numpy).
-    Every pair is still computed once, by one thread: the run and the contacts it reports are the same bits as
-    without."""
+    the list holds) or, with little room, the pairs of costly shapes (counted at each rebuild, checked against
+    numpy; 55 threads: the list grows from 43 to 109 pairs, within two "waves"), or none (no room, the list longer
+    than two waves of 0). Every pair is still computed once, by one thread: the run and the contacts it reports are
+    the same bits as without."""
     from polydem.kernels.forces import spread_room
 
     from polydem.contacts import COSTLY_FACES

@@ -344,8 +344,9 @@ class Stepper:
     def set_spread(self, pairs: int, threads: int | None = None) -> None:
         """Spread at most ``pairs`` of the first pairs of the thread order over
         :data:`~polydem.kernels.forces.SPREAD_LANES` lanes each: as many as a launch of ``threads`` threads leaves
-        room for (None: the device's wave, :func:`~polydem.kernels.forces.spread_room`), or the pairs of costly
-        shapes (0 pairs: none). The same bits either way. Needs the pair threads grouped by contact (the default)."""
+        room for (None: the device's wave, :func:`~polydem.kernels.forces.spread_room`), or, where the list holds
+        at most twice ``threads`` pairs, the pairs of costly shapes (0 pairs: none). The same bits either way. Needs
+        the pair threads grouped by contact (the default)."""
         pairs = int(pairs)
         if pairs < 0:
             raise ValueError(f"spread pairs must be >= 0, got {pairs}")
