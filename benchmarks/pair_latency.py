@@ -9,6 +9,9 @@ kernel's geometry, ``benchmarks/pair_kernel.py``) that are one wave or less, wit
 * ``same32``: 32 copies of that pair in one warp (the same path: the warp's own latency);
 * ``diff32``: 32 different touching pairs in one warp (their paths' union);
 * ``sortedN``: packedN's pairs sorted by the kind of contact (how many corners of each lie in the other);
+* ``worksortedN``: packedN's pairs sorted by their path through the clipping (the active faces of each body, then the
+  polygon vertices read: the measuring variant's word), and with ``--throughput M`` the same for M pairs, many
+  waves (``throughputM`` against ``throughputM_worksorted``): whether warps of like paths would be faster;
 * ``packedN`` / ``spreadN``: N different touching pairs, packed 32 to a warp or one to a warp (the other 31 lanes
   far apart, leaving at the bounding-sphere test); ``spreadN_lanesL``: one pair every L lanes.
 
@@ -33,16 +36,18 @@ sys.path.insert(0, HERE)
 from _meta import run_meta  # noqa: E402
 
 
-def event_time(shapes, pa, pb, pose_scalar, repeats):
-    """Median GPU milliseconds of the overlap kernel over the pairs (pa, pb), by CUDA events."""
+def event_time(shapes, pa, pb, pose_scalar, repeats, count_work=False):
+    """Median GPU milliseconds of the overlap kernel over the pairs (pa, pb), by CUDA events, and how many touch;
+    with ``count_work`` (the measuring variant) also each pair's path word (make_geometry's ``count_work``)."""
     dev = shapes.device
     n = len(pa)
     np_pose = np.float32 if pose_scalar == wp.float32 else np.float64
     tf = wp.types.transformation(pose_scalar)
     vec3 = wp.types.vector(3, shapes.scalar)
     kernel = make_narrowphase(
-        shapes.scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=128, pose_scalar=pose_scalar
-    ).overlap_kernel
+        shapes.scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=128, pose_scalar=pose_scalar,
+        count_work=count_work,
+    ).overlap_kernel  # fmt: skip
     arrays = [
         wp.zeros(n, dtype=int, device=dev),
         wp.zeros(n, dtype=int, device=dev),
@@ -51,7 +56,7 @@ def event_time(shapes, pa, pb, pose_scalar, repeats):
     ]
     outs = [wp.zeros(n, dtype=shapes.scalar, device=dev)]
     outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
-    overflow = wp.zeros(1, dtype=int, device=dev)
+    overflow = wp.zeros(1 + n if count_work else 1, dtype=int, device=dev)
     launch = {"dim": n, "inputs": [*shapes.kernel_args(), *pair_inputs(kernel, arrays)],
               "outputs": [*outs, overflow], "device": dev, "block_dim": 64}  # fmt: skip
     wp.launch(kernel, **launch)
@@ -69,6 +74,8 @@ def event_time(shapes, pa, pb, pose_scalar, repeats):
             wp.launch(kernel, **launch)
             times.append(1e3 * (time.perf_counter() - t0))
     touching = int((outs[0].numpy() > 0).sum())
+    if count_work:
+        return float(np.median(times)), touching, overflow.numpy()[1:]
     return float(np.median(times)), touching
 
 
@@ -112,6 +119,7 @@ def main():
     ap.add_argument("--sizes", default="256,1024", help="N of packedN and spreadN")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--lanes", default="32", help="lanes per pair of spreadN (32: one pair to a warp)")
+    ap.add_argument("--throughput", type=int, default=0, help="M: also M touching pairs, shuffled and by path")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "issue27", "pair_latency.json"))
     args = ap.parse_args()
     wp.config.quiet = True
@@ -132,10 +140,18 @@ def main():
             "diff32": (pa[:32], pb[:32]),
         }
         kind_b, kind_a = inside_counts(shape, pa, pb)
+        _, _, work = event_time(shapes, pa, pb, wp.float64, 1, count_work=True)
+        faces_1, faces_2, steps = (work >> 1) & 255, (work >> 9) & 255, work >> 17
+        by_work = np.lexsort((steps, faces_2, faces_1))
+        pct = [np.percentile(x, [5, 50, 95]).tolist() for x in (faces_1, faces_2, steps)]
+        print(f"{name}: active faces of body 1 {pct[0]}, of body 2 {pct[1]}, vertices read {pct[2]} "
+              "(5th, 50th, 95th percentile)")  # fmt: skip
         for n in sizes:
             cases[f"packed{n}"] = (pa[:n], pb[:n])
             order = np.lexsort((kind_a[:n], kind_b[:n]))  # the same kinds of contact side by side
             cases[f"sorted{n}"] = (pa[:n][order], pb[:n][order])
+            keep = by_work[by_work < n]  # the first n pairs, in the order of their paths
+            cases[f"worksorted{n}"] = (pa[keep], pb[keep])
             kinds, counts = np.unique(np.stack([kind_b[:n], kind_a[:n]], 1), axis=0, return_counts=True)
             print(
                 f"{name}: kinds of contact (B's corners in A, A's in B): count "
@@ -143,6 +159,15 @@ def main():
             )
             for lanes in [int(x) for x in args.lanes.split(",")]:
                 cases[f"spread{n}" if lanes == 32 else f"spread{n}_lanes{lanes}"] = spread(pa[:n], pb[:n], lanes)
+        if args.throughput:
+            m = args.throughput
+            reps = -(-m // len(pa))  # the touching pairs again, as many times as it takes
+            big_a, big_b = np.tile(pa, (reps, 1))[:m], np.tile(pb, (reps, 1))[:m]
+            big_work = np.tile(work, reps)[:m]
+            w_order = np.lexsort((big_work >> 17, (big_work >> 9) & 255, (big_work >> 1) & 255))
+            shuffle = np.random.default_rng(3).permutation(m)
+            cases[f"throughput{m}"] = (big_a[shuffle], big_b[shuffle])
+            cases[f"throughput{m}_worksorted"] = (big_a[w_order], big_b[w_order])
         for case, (a, b) in cases.items():
             ms, touching = event_time(shapes, a, b, wp.float64, args.repeats)
             rows.append({"shape": name, "case": case, "threads": len(a), "touching": touching, "ms": ms})

@@ -414,6 +414,7 @@ def make_geometry(
     max_faces: int,
     coincident_tol: float | None = None,
     pose_scalar=None,
+    count_work: bool = False,
 ) -> Geometry:
     """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
@@ -427,6 +428,9 @@ def make_geometry(
         coincident_tol: relative tolerance of the coincident-face test (default per precision).
         pose_scalar: precision of the poses taken (default ``scalar``); ``wp.float64`` with a
             ``wp.float32`` ``scalar`` is the mixed mode.
+        count_work: a measuring variant (benchmarks/pair_latency.py): ``overflow`` also carries the pair's path
+            through the clipping, bits 1-8 and 9-16 the active faces of body 1 and body 2 (at most 255), bits
+            17-30 the polygon vertices the Sutherland-Hodgman passes read (at most 16383).
     """
     if pose_scalar is None:
         pose_scalar = scalar
@@ -820,6 +824,8 @@ def make_geometry(
         s_2 = zero3
         m_2 = zero3
         overflow = int(0)
+        if wp.static(count_work):
+            steps = int(0)
         # Clip each active face polygon by the other body's active planes and integrate the
         # surviving piece. This loop is written out here rather than in a helper called per face: a
         # @wp.func takes its arguments by value (a wp.ref[T] argument is read whole wherever one
@@ -912,6 +918,8 @@ def make_geometry(
                 prev = poly[count - 1]
                 s_prev = plane_distance(ncut, dcut, prev)
                 v = poly[0]
+                if wp.static(count_work):
+                    steps += count
                 for k in range(count):
                     ahead = v
                     if k + 1 < count:
@@ -987,6 +995,8 @@ def make_geometry(
         s1_64 = wp.quat_rotate(q1, s1_64)
         s2_64 = wp.quat_rotate(q1, s2_64)
         fb_1 = wp.quat_rotate(q1, fb_1)
+        if wp.static(count_work):
+            overflow = overflow | (wp.min(num_1, 255) << 1) | (wp.min(num_2, 255) << 9) | (wp.min(steps, 16383) << 17)
         if in_a:
             return (
                 vol,

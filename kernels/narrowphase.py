@@ -98,6 +98,7 @@ def make_narrowphase(
     max_registers: int | None = 128,
     pose_scalar=None,
     compound: bool = False,
+    count_work: bool = False,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
@@ -107,8 +108,10 @@ def make_narrowphase(
             :func:`polydem.kernels.geometry.make_geometry`.
         max_registers: CUDA register cap per thread (128 is faster than no cap for 20-vertex rocks
             and slightly slower for cubes; see benchmarks/tune_pair_kernel.py and BENCHMARKS.md).
+        count_work: the measuring variant (:func:`~polydem.kernels.geometry.make_geometry`'s): ``overflow`` is
+            then (N + 1,), entry 1 + i pair i's path word (its bit 0 the pair's own overflow).
     """
-    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar)
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, count_work)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
@@ -139,6 +142,9 @@ def make_narrowphase(
         vol, vol_c, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(
             shapes, pairs.shape_a[i], pairs.shape_b[i], pairs.pose_a[i], pairs.pose_b[i]
         )
+        if wp.static(count_work):
+            overflow[i + 1] = of
+            of = of & 1
         if of != 0:
             wp.atomic_add(overflow, 0, 1)
         pair_volume[i] = vol
