@@ -26,6 +26,7 @@ def cmd_info(args) -> int:
         lines.append(f"  usd-core (OpenUSD) {'.'.join(map(str, Usd.GetVersion()))}")
     except ImportError:
         lines.append("  usd-core: not installed (no USD output)")
+    lines.append(f"  several processes: {_distributed_line()}")
     default = wp.get_device()
     lines.append(f"devices (default {default.alias}):")
     for d in wp.get_devices():
@@ -39,3 +40,22 @@ def cmd_info(args) -> int:
         lines.append(f"  note: {note}")
     sys.stdout.write("\n".join(lines) + "\n")
     return EXIT_OK
+
+
+def _distributed_line() -> str:
+    """What a run over several processes (mpiexec) would have here: mpi4py, and nccl4py for the ghost rows from GPU
+    to GPU (``--exchange auto`` takes it where each rank has a GPU of its own)."""
+    from importlib.util import find_spec
+
+    if find_spec("mpi4py") is None:
+        return 'mpi4py not installed (pip install "polydem[mpi]" to run under mpiexec)'
+    try:
+        nccl = find_spec("nccl.core") is not None
+    except ModuleNotFoundError:
+        nccl = False
+    exchange = (
+        "nccl4py present: ghost rows GPU to GPU with NCCL"
+        if nccl
+        else ('nccl4py not installed: ghost rows through host memory (pip install "polydem[nccl]" for NCCL)')
+    )
+    return f"mpi4py present; {exchange}"
