@@ -1,14 +1,15 @@
 """Ghost rows from GPU to GPU with NCCL, enqueued on the GPU's streams (``DistributedSimulation(exchange="nccl")``).
 
-With the host's exchange (the default, "host") each step's rows go to pinned memory, over MPI and back, and the
+With the host's exchange ("host") each step's rows go to pinned memory, over MPI and back, and the
 host waits for them before it may launch the next step: one round trip of the host per step, which a small
 rank's step cannot hide. NCCL's sends and receives are stream operations: the rows go from one GPU's memory to
 the other's (NVLink or PCIe within a machine) in stream order, so that the host launches step after step without
 waiting, and they are captured in the steps' CUDA graphs like any kernel.
 
 nccl4py (NVIDIA's bindings; ``pip install 'polydem[nccl]'`` installs it with the NCCL of CUDA 13, or
-``pip install 'nccl4py[cu12]'``) is imported only here, and only when a run asks for it. MPI still starts the
-ranks, broadcasts NCCL's id and carries the chunks' agreements and the repartitions.
+``pip install 'nccl4py[cu12]'``) is imported only here: when the ranks of a run on GPUs ask for NCCL or leave the
+choice to "auto" (the default: :func:`auto_exchange`). MPI still starts the ranks, broadcasts NCCL's id and carries
+the chunks' agreements and the repartitions.
 """
 
 from __future__ import annotations
