@@ -375,6 +375,32 @@ split2() {
       -p no:cacheprovider tests/test_distributed.py -k "decomposed and (box_pour-3000-0.004-2-50 or chain-1500-0.05-2)" \
       > $W/log/pytest_mpi.log 2>&1 ) &
 }
+# MODE=nccl: the ghost rows with NCCL on every GPU of the machine (BENCHMARKS.md 28a; nccl4py and the MPICH wheel staged
+# in .gpu3): the NCCL CUDA tests (a rank a GPU), then weak scaling at NCCL_SIZES cubes a GPU (default 1e7) and strong
+# scaling at NCCL_STRONG cubes (default 1e7), the four exchange modes alternating, with the one-rank references
+nccl() {
+  [ "$NGPU" -ge 2 ] || { echo "MODE=nccl needs 2 GPUs or more" >&2; exit 2; }
+  if [ ! -x /tmp/gpu/prefix/bin/mpiexec ]; then
+    python3 -m pip install -q --no-index --no-deps --ignore-installed --prefix /tmp/gpu/prefix /tmp/gpu/mpich-*.whl
+  fi
+  export PATH=/tmp/gpu/prefix/bin:$PATH LD_LIBRARY_PATH=/tmp/gpu/prefix/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+  export NCCL_NVLS_ENABLE=0
+  ( POLYDEM_TEST_DEVICES=cuda:0 timeout $(left) python -m pytest -q -rf --tb=short -p no:cacheprovider \
+      tests/test_distributed.py -k nccl_exchange_is > $W/log/pytest_nccl.log 2>&1
+    for n in ${NCCL_SIZES:-10000000}; do
+      timeout $(left) python -u benchmarks/scaling.py --device cuda --bodies-per-rank $n --warmup 50 --steps 100 \
+        --out $W/res/scaling_weak${n}_r1.json > $W/log/scaling_weak${n}_r1.log 2>&1
+      timeout $(left) mpiexec -n $NGPU python -u benchmarks/scaling.py --device cuda --bodies-per-rank $n --warmup 50 \
+        --steps 100 --overlap both --exchange both --out $W/res/scaling_weak${n}_r$NGPU.json \
+        > $W/log/scaling_weak${n}_r$NGPU.log 2>&1
+    done
+    n=${NCCL_STRONG:-10000000}
+    timeout $(left) python -u benchmarks/scaling.py --device cuda --bodies $n --aspect $NGPU --warmup 50 --steps 100 \
+      --out $W/res/scaling_strong${n}_r1.json > $W/log/scaling_strong${n}_r1.log 2>&1
+    timeout $(left) mpiexec -n $NGPU python -u benchmarks/scaling.py --device cuda --bodies $n --aspect $NGPU \
+      --warmup 50 --steps 100 --overlap both --exchange both --out $W/res/scaling_strong${n}_r$NGPU.json \
+      > $W/log/scaling_strong${n}_r$NGPU.log 2>&1 ) &
+}
 if [ "${MODE:-}" = grouping ] || [ "${MODE:-}" = grouping2 ]; then
   [ "$NGPU" -ge 2 ] || { echo "MODE=$MODE needs 2 GPUs (MODE=grouping1 runs on one)" >&2; exit 2; }
 fi
@@ -400,6 +426,8 @@ elif [ "${MODE:-}" = newtonsap ]; then
   newtonsap
 elif [ "${MODE:-}" = toe1 ]; then
   toe1
+elif [ "${MODE:-}" = nccl ]; then
+  nccl
 elif [ "${MODE:-}" = split ]; then
   split
 elif [ "${MODE:-}" = split2 ]; then
