@@ -142,10 +142,16 @@ def pair_inputs(kernel, arrays):
     return [BatchPairs(*arrays).struct()]
 
 
-def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None, clip="polygon"):
+def time_kernel(
+    shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None, clip="polygon",
+    events=False, count_work=False,
+):  # fmt: skip
     """Median seconds of a launch of the engine's overlap kernel over the pairs, and the outputs.
     ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode).
-    ``clip``: make_geometry's clipping method (only "polygon" exists in trees before it)."""
+    ``clip``: make_geometry's clipping method (only "polygon" exists in trees before it). ``events``: on a GPU,
+    time each launch alone with CUDA events (not the host's clock around a launch and synchronisation).
+    ``count_work``: the measuring variant (make_geometry's ``count_work``); the outputs then end with each pair's
+    path word."""
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
@@ -155,6 +161,8 @@ def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=
     tf = wp.types.transformation(pose_scalar)
     cap, faces = shapes.default_poly_capacity, shapes.max_faces
     extra = {} if clip == "polygon" else {"clip": clip}
+    if count_work:
+        extra["count_work"] = True
     kernel = make_narrowphase(
         scalar, cap, faces, max_registers=max_registers, pose_scalar=pose_scalar, **extra
     ).overlap_kernel
@@ -167,19 +175,28 @@ def time_kernel(shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=
     args = [*shapes.kernel_args(), *pair_inputs(kernel, pair_arrays)]
     outs = [wp.zeros(n, dtype=scalar, device=dev)]
     outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
-    overflow = wp.zeros(1, dtype=int, device=dev)
+    overflow = wp.zeros(1 + n if count_work else 1, dtype=int, device=dev)
     launch = {"dim": n, "inputs": args, "outputs": [*outs, overflow], "device": dev, "block_dim": block_dim}
     wp.launch(kernel, **launch)  # compile, warm
     wp.synchronize_device(dev)
-    times = [0.0]
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        wp.launch(kernel, **launch)
-        wp.synchronize_device(dev)
-        times.append(time.perf_counter() - t0)
+    times = []
+    if events and dev.is_cuda:
+        start, end = wp.Event(dev, enable_timing=True), wp.Event(dev, enable_timing=True)
+        for _ in range(repeats):
+            wp.record_event(start)
+            wp.launch(kernel, **launch)
+            wp.record_event(end)
+            times.append(1e-3 * wp.get_event_elapsed_time(start, end))
+    else:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            wp.launch(kernel, **launch)
+            wp.synchronize_device(dev)
+            times.append(time.perf_counter() - t0)
     if int(overflow.numpy()[0]):
         raise RuntimeError("polygon buffer overflow in the benchmark; raise the capacity")
-    return float(np.median(times)), [o.numpy() for o in outs]
+    work = [overflow.numpy()[1:]] if count_work else []
+    return (float(np.median(times)) if times else 0.0), [o.numpy() for o in outs] + work
 
 
 def reference_errors(shape, poses_a, poses_b, outs, sample):

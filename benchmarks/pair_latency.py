@@ -22,12 +22,10 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import numpy as np
 import warp as wp
-from pair_kernel import make_pairs, pair_inputs, rotate, shape_library
-from polydem.kernels.narrowphase import OVERLAP_OUTPUTS, make_narrowphase
+from pair_kernel import make_pairs, rotate, shape_library, time_kernel
 
 from polydem.shapeset import ShapeSet
 
@@ -37,46 +35,14 @@ from _meta import run_meta  # noqa: E402
 
 
 def event_time(shapes, pa, pb, pose_scalar, repeats, count_work=False):
-    """Median GPU milliseconds of the overlap kernel over the pairs (pa, pb), by CUDA events, and how many touch;
-    with ``count_work`` (the measuring variant) also each pair's path word (make_geometry's ``count_work``)."""
-    dev = shapes.device
-    n = len(pa)
-    np_pose = np.float32 if pose_scalar == wp.float32 else np.float64
-    tf = wp.types.transformation(pose_scalar)
-    vec3 = wp.types.vector(3, shapes.scalar)
-    kernel = make_narrowphase(
-        shapes.scalar, shapes.default_poly_capacity, shapes.max_faces, max_registers=128, pose_scalar=pose_scalar,
-        count_work=count_work,
-    ).overlap_kernel  # fmt: skip
-    arrays = [
-        wp.zeros(n, dtype=int, device=dev),
-        wp.zeros(n, dtype=int, device=dev),
-        wp.array(pa.astype(np_pose), dtype=tf, device=dev),
-        wp.array(pb.astype(np_pose), dtype=tf, device=dev),
-    ]
-    outs = [wp.zeros(n, dtype=shapes.scalar, device=dev)]
-    outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
-    overflow = wp.zeros(1 + n if count_work else 1, dtype=int, device=dev)
-    launch = {"dim": n, "inputs": [*shapes.kernel_args(), *pair_inputs(kernel, arrays)],
-              "outputs": [*outs, overflow], "device": dev, "block_dim": 64}  # fmt: skip
-    wp.launch(kernel, **launch)
-    times = []
-    if dev.is_cuda:
-        start, end = wp.Event(dev, enable_timing=True), wp.Event(dev, enable_timing=True)
-        for _ in range(repeats):
-            wp.record_event(start)
-            wp.launch(kernel, **launch)
-            wp.record_event(end)
-            times.append(wp.get_event_elapsed_time(start, end))
-    else:  # the CPU runs the kernel in the calling thread: the wall time is its time
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            wp.launch(kernel, **launch)
-            times.append(1e3 * (time.perf_counter() - t0))
-    touching = int((outs[0].numpy() > 0).sum())
+    """Median GPU milliseconds of the overlap kernel over the pairs (pa, pb), by CUDA events (the CPU: its wall
+    time), and how many touch; with ``count_work`` (the measuring variant) also each pair's path word."""
+    seconds, outs = time_kernel(shapes, pa, pb, max(repeats, 1), pose_scalar=pose_scalar, events=True,
+                                count_work=count_work)  # fmt: skip
+    touching = int((outs[0] > 0).sum())
     if count_work:
-        return float(np.median(times)), touching, overflow.numpy()[1:]
-    return float(np.median(times)), touching
+        return 1e3 * seconds, touching, outs[-1]
+    return 1e3 * seconds, touching
 
 
 def spread(pa, pb, lanes):

@@ -133,12 +133,18 @@ def pair_cost_classes(model) -> tuple[np.ndarray, int]:
     """(S, S) int32 cost class of each pair of the model's S shapes, and the number of classes: the products of
     the two shapes' face counts (a compound grain: its parts' faces together), ranked. The pair kernel clips
     each face of one shape by the other's planes, so its work grows with that product."""
+    cost = pair_face_products(model)
+    levels, rank = np.unique(cost, return_inverse=True)
+    return rank.reshape(cost.shape).astype(np.int32), len(levels)
+
+
+def pair_face_products(model) -> np.ndarray:
+    """(S, S) int64: the products of the face counts of each pair of the model's S shapes (a compound grain: its
+    parts' faces together), the cost of clipping them (:func:`pair_cost_classes` ranks them)."""
     from polydem.compound import convex_parts
 
     faces = np.array([sum(part.num_faces for part, _, _ in convex_parts(s)) for s in model.shapes.shapes], np.int64)
-    cost = np.outer(faces, faces)
-    levels, rank = np.unique(cost, return_inverse=True)
-    return rank.reshape(cost.shape).astype(np.int32), len(levels)
+    return np.outer(faces, faces)
 
 
 COSTLY_FACES = 64
@@ -150,11 +156,7 @@ pair's time on an H200, cube pairs 1.8x (BENCHMARKS.md 28)."""
 
 def costly_class_from(model) -> int:
     """The first cost class (:func:`pair_cost_classes`' rank) of the pairs of shapes above :data:`COSTLY_FACES`."""
-    from polydem.compound import convex_parts
-
-    faces = np.array([sum(part.num_faces for part, _, _ in convex_parts(s)) for s in model.shapes.shapes], np.int64)
-    levels = np.unique(np.outer(faces, faces))
-    return int(np.searchsorted(levels, COSTLY_FACES, side="right"))
+    return int(np.searchsorted(np.unique(pair_face_products(model)), COSTLY_FACES, side="right"))
 
 
 class Contacts:

@@ -268,7 +268,7 @@ class Stepper:
             report=report,
             thread_order=self.thread_order,
             phased=self.body_first is not None and not diagnostics,
-            spread=self.thread_order and self.body_first is None and self.spread_pairs > 0,
+            spread=self.body_first is None and self.spread_pairs > 0,
         )
 
     def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> MeshKernels | None:

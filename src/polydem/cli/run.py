@@ -536,8 +536,11 @@ def _check_nccl(dev) -> None:
     try:
         load_nccl()
     except RuntimeError as exc:
-        raise CliError(str(exc).replace("exchange='nccl'", "nccl").replace("exchange=", "--exchange "),
-                       key="--exchange") from exc  # fmt: skip
+        raise CliError(
+            "nccl needs nccl4py (NVIDIA's NCCL bindings): pip install 'polydem[nccl]' (NCCL for CUDA 13) or "
+            "pip install 'nccl4py[cu12]' (CUDA 12); or leave --exchange at host",
+            key="--exchange",
+        ) from exc
 
 
 def _user_error(exc: BaseException) -> bool:
