@@ -176,6 +176,13 @@ FAULTS = (
         ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-37-1000000000]",),
     ),
     Fault(
+        "spread variant: launched over buffers too long to spread a pair",
+        "src/polydem/simulation.py",
+        "        if kernels.spread and not spread_fits(pairs.capacity, self.spread_threads):\n",
+        "        if kernels.spread and not spread_fits(pairs.capacity, 10**9):\n",
+        ("tests/test_pair_order.py::test_spread_variant_only_where_the_buffers_could_spread[cpu]",),
+    ),
+    Fault(
         "costly pairs: the touching ones of the last costly class not counted",
         "kernels/pairlist.py",
         "        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 2\n",

@@ -88,6 +88,13 @@ warp. A warp runs its lanes' paths through the clipping in lock step, so that 32
 5x (64-vertex hulls) one pair's time on an H200; 4 to a warp, 0.8x (cubes) and 0.6-0.8x (rocks) of 32 to a warp,
 where the launch is one wave (BENCHMARKS.md 28b)."""
 
+SPREAD_CAPACITY_WAVES = 4
+"""The spread variant of the pair kernel runs while the pair buffers hold at most this many waves of pairs (or
+:data:`SPREAD_MIN_CAPACITY`; :func:`spread_fits`): a list over two waves spreads nothing, and there the variant's idle
+threads and its mapping of threads to pairs cost the long lists of large piles 1.2% (BENCHMARKS.md 28e)."""
+SPREAD_MIN_CAPACITY = 4096
+"""Pair buffers this small never hold a list that is throughput-bound."""
+
 
 @wp.struct
 class ContactSums:
@@ -769,6 +776,13 @@ def spread_room(device: wp.DeviceLike, max_registers: int | None = PAIR_MAX_REGI
         return 0, 0
     wave = dev.sm_count * (65536 // max(int(max_registers or 255), 32))
     return wave // 2 // (SPREAD_LANES - 1), wave
+
+
+def spread_fits(capacity: int, spread_threads: int) -> bool:
+    """Whether the pair kernel's spread variant is worth launching over pair buffers of ``capacity`` pairs with
+    ``spread_threads`` threads a wave (:func:`spread_room`): whether they could hold a list short enough to spread
+    anything (:data:`SPREAD_CAPACITY_WAVES`). The same bits either way."""
+    return int(capacity) <= max(SPREAD_CAPACITY_WAVES * int(spread_threads), SPREAD_MIN_CAPACITY)
 
 
 @wp.kernel(enable_backward=False)

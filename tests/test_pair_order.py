@@ -296,6 +296,45 @@ def test_spread_pairs_give_the_same_bits(device, spread, threads):
             np.testing.assert_array_equal(got[key], value, err_msg=key)
 
 
+def test_spread_variant_only_where_the_buffers_could_spread(device, monkeypatch):
+    """Pair buffers of more than SPREAD_CAPACITY_WAVES waves (and SPREAD_MIN_CAPACITY pairs) never spread a pair: the
+    step launches the plain pair kernel there, without the spread variant's idle threads. The same bits."""
+    from polydem.kernels import forces
+
+    import polydem.simulation as simulation
+
+    wave = 67_584
+    assert forces.spread_fits(forces.SPREAD_CAPACITY_WAVES * wave, wave)
+    assert not forces.spread_fits(forces.SPREAD_CAPACITY_WAVES * wave + 1, wave)
+    floor = forces.SPREAD_MIN_CAPACITY
+    assert forces.spread_fits(floor, 0) and not forces.spread_fits(floor + 1, 0)
+    # The default scene's buffers (1024 pairs) are below the floor: without it, 55 threads a wave are too few.
+    monkeypatch.setattr(forces, "SPREAD_MIN_CAPACITY", 0)
+    launched = []
+    launch = simulation.launch_pair_contacts
+
+    def spy(kernels, **kwargs):
+        launched.append((kernels.spread, kwargs["pairs"].capacity))
+        return launch(kernels, **kwargs)
+
+    monkeypatch.setattr(simulation, "launch_pair_contacts", spy)
+    runs = {}
+    for threads in (10**9, 55):
+        sim = Simulation(default_scene(), device)
+        sim.stepper.set_spread(10**7, threads)
+        assert sim.stepper.kernels.spread
+        launched.clear()
+        sim.step(2600)
+        capacity = sim.current_contacts.capacity
+        assert capacity > 4 * 55 and launched
+        assert {spread for spread, _ in launched} == {threads == 10**9}, (threads, capacity)
+        runs[threads] = sim.state(), sim.contacts()
+    assert len(runs[55][1]["body_a"]) > 10
+    for got, want in zip(runs[55], runs[10**9], strict=True):
+        for key, value in want.items():
+            np.testing.assert_array_equal(got[key], value, err_msg=key)
+
+
 def test_spread_needs_the_thread_order(device):
     for order in (False, "cost"):
         sim = Simulation(default_scene(), device, order_pair_threads=order)

@@ -62,6 +62,7 @@ from polydem.kernels.forces import (
     launch_gather,
     launch_pair_contacts,
     make_contact_kernels,
+    spread_fits,
     spread_room,
 )
 from polydem.kernels.integrate import (
@@ -252,9 +253,9 @@ class Stepper:
         self.kernels = self._contact_kernels()
         self.mesh_kernels = self._mesh_kernels(False)
 
-    def _contact_kernels(self, diagnostics: bool = False, report: bool = False) -> ContactKernels:
+    def _contact_kernels(self, diagnostics: bool = False, report: bool = False, spread: bool = True) -> ContactKernels:
         """The pair and gather kernels of the model at the current polygon capacity: the step's, the
-        diagnostics variant or the report variant."""
+        diagnostics variant or the report variant; ``spread`` False: never the spread variant."""
         m = self.model
         return make_contact_kernels(
             m.law,
@@ -268,7 +269,7 @@ class Stepper:
             report=report,
             thread_order=self.thread_order,
             phased=self.body_first is not None and not diagnostics,
-            spread=self.body_first is None and self.spread_pairs > 0,
+            spread=spread and self.body_first is None and self.spread_pairs > 0,
         )
 
     def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> MeshKernels | None:
@@ -555,6 +556,9 @@ class Stepper:
 
     def _pairs_stage(self, kernels, state, pairs, dt, overflow, out, report_bits, pair_sums, first, phase) -> None:
         # The pair kernel of _force_stage; with the threads ordered for a split step, the part's own range of them.
+        if kernels.spread and not spread_fits(pairs.capacity, self.spread_threads):
+            # Buffers this long never spread a pair: the plain variant (cached), whose launch has no idle threads.
+            kernels = self._contact_kernels(kernels.diagnostics, kernels.report, spread=False)
         launch_pair_contacts(
             kernels,
             model=self.model,
