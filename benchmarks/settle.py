@@ -963,7 +963,7 @@ def add_kernel_options(ap):
         "--spread-pairs",
         default="default",
         help="how many of the costliest pairs the pair kernel spreads over 8 lanes each (Stepper.set_spread): "
-        "default (spread_room: a wave's worth on a GPU, none on the CPU), or a count (0: none)",
+        "default (spread_room: half a wave's worth on a GPU, none on the CPU), or a count (0: none)",
     )
     # the flag of the runs before the default changed (BENCHMARKS.md 17)
     ap.add_argument(

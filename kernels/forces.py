@@ -406,8 +406,7 @@ def make_contact_kernels(
     each, so that a warp runs 4 pairs' paths in lock step, not 32: as many as fit a launch of ``spread_threads``
     threads (the pair kernel's arguments; a wave: below about 1e4 grains the step waits for its slowest warps), or
     more, where the list is at most two such waves, the pairs of costly shapes (``costly[0]``,
-    :func:`polydem.kernels.pairlist.launch_thread_order`), whose paths differ the most, as many as half a wave can
-    idle for; at most ``spread_pairs``.
+    :func:`polydem.kernels.pairlist.launch_thread_order`), whose paths differ the most; at most ``spread_pairs``.
     The same results, bit for bit.
     """
     if spread and not (thread_order and not phased):
@@ -466,12 +465,11 @@ def make_contact_kernels(
             # Threads [0, s L) hold the first s pairs, one every SPREAD_LANES lanes; the rest one pair each.
             listed = pairs.count[0]
             room = wp.max(spread_threads - listed, 0) / wp.static(SPREAD_LANES - 1)
-            # The costly pairs where the list is at most two waves, at most as many as half a wave can idle for:
-            # measured there (a mixed pile of 1e4 grains, 1.25 waves: -36%); a longer list is bound by the GPU's
-            # throughput, which the idle lanes would take.
+            # The costly pairs where the list is at most two waves: measured there (a mixed pile of 1e4 grains,
+            # 1.25 waves: -36%); a longer list is bound by the GPU's throughput, which the idle lanes would take.
             costly_here = int(0)
             if listed <= 2 * spread_threads:
-                costly_here = wp.min(costly[0], spread_threads / wp.static(2 * (SPREAD_LANES - 1)))
+                costly_here = costly[0]
             s = wp.min(wp.min(listed, spread_pairs), wp.max(room, costly_here))
             if p < s * wp.static(SPREAD_LANES):
                 if (p & wp.static(SPREAD_LANES - 1)) != 0:
@@ -771,13 +769,13 @@ def make_contact_kernels(
 def spread_room(device: wp.DeviceLike, max_registers: int | None = PAIR_MAX_REGISTERS) -> tuple[int, int]:
     """(at most how many pairs, threads of a wave) the pair kernel's spread takes on ``device`` (the kernel's
     ``spread_pairs`` and ``spread_threads``): a wave is the threads that its register cap of R leaves resident
-    (65536 / R an SM); at most as many pairs as a wave can idle for (the kernel spreads the costly pairs of a longer
-    list only as many as half a wave can). (0, 0) on the CPU, whose kernels run one thread after another."""
+    (65536 / R an SM); at most as many pairs as half a wave can idle for. (0, 0) on the CPU, whose kernels run one
+    thread after another."""
     dev = wp.get_device(device)
     if not dev.is_cuda:
         return 0, 0
     wave = dev.sm_count * (65536 // max(int(max_registers or 255), 32))
-    return wave // (SPREAD_LANES - 1), wave
+    return wave // 2 // (SPREAD_LANES - 1), wave
 
 
 def spread_fits(capacity: int, spread_threads: int) -> bool:

@@ -264,8 +264,7 @@ def test_spread_pairs_give_the_same_bits(device, spread, threads):
     """The first pairs of the thread order spread over SPREAD_LANES lanes each (the default on a GPU, none on the
     CPU, whose kernel runs one thread after another): as many as the room of ``threads`` (some pairs, more than
     the list holds) or, with little room, the pairs of costly shapes (counted at each rebuild, checked against
-    numpy; 55 threads: the list grows from 43 to 109 pairs, within two "waves", and 3 of them spread, as many as
-    half of 55 threads can idle for), or none (no room, the list longer
+    numpy; 55 threads: the list grows from 43 to 109 pairs, within two "waves"), or none (no room, the list longer
     than two waves of 0). Every pair is still computed once, by one thread: the run and the contacts it reports are
     the same bits as without."""
     from polydem.kernels.forces import spread_room

@@ -346,8 +346,7 @@ class Stepper:
         """Spread at most ``pairs`` of the first pairs of the thread order over
         :data:`~polydem.kernels.forces.SPREAD_LANES` lanes each: as many as a launch of ``threads`` threads leaves
         room for (None: the device's wave, :func:`~polydem.kernels.forces.spread_room`), or, where the list holds
-        at most twice ``threads`` pairs, the pairs of costly shapes, as many as half of ``threads`` can idle for
-        (0 pairs: none). The same bits either way. Needs
+        at most twice ``threads`` pairs, the pairs of costly shapes (0 pairs: none). The same bits either way. Needs
         the pair threads grouped by contact (the default)."""
         pairs = int(pairs)
         if pairs < 0:
