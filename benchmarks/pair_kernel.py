@@ -144,14 +144,14 @@ def pair_inputs(kernel, arrays):
 
 def time_kernel(
     shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None, clip="polygon",
-    events=False, count_work=False,
+    events=False, count_work=False, setup_only=False,
 ):  # fmt: skip
     """Median seconds of a launch of the engine's overlap kernel over the pairs, and the outputs.
     ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode).
     ``clip``: make_geometry's clipping method (only "polygon" exists in trees before it). ``events``: on a GPU,
     time each launch alone with CUDA events (not the host's clock around a launch and synchronisation).
     ``count_work``: the measuring variant (make_geometry's ``count_work``); the outputs then end with each pair's
-    path word."""
+    path word. ``setup_only``: the measuring variant of the pairs' set-up alone (make_geometry's)."""
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
@@ -163,6 +163,8 @@ def time_kernel(
     extra = {} if clip == "polygon" else {"clip": clip}
     if count_work:
         extra["count_work"] = True
+    if setup_only:
+        extra["setup_only"] = True
     kernel = make_narrowphase(
         scalar, cap, faces, max_registers=max_registers, pose_scalar=pose_scalar, **extra
     ).overlap_kernel

@@ -15,6 +15,10 @@ kernel's geometry, ``benchmarks/pair_kernel.py``) that are one wave or less, wit
 * ``packedN`` / ``spreadN``: N different touching pairs, packed 32 to a warp or one to a warp (the other 31 lanes
   far apart, leaving at the bounding-sphere test); ``spreadN_lanesL``: one pair every L lanes.
 
+With ``--setup-only`` each case is timed again with the kernel stopped after the pairs' set-up (the culling of faces
+and planes, the flat contact, the apex and the frame; make_geometry's ``setup_only``): the part of a pair's latency
+that clipping its faces on several lanes would leave.
+
     python benchmarks/pair_latency.py --device cuda:0
 """
 
@@ -34,11 +38,12 @@ sys.path.insert(0, HERE)
 from _meta import run_meta  # noqa: E402
 
 
-def event_time(shapes, pa, pb, pose_scalar, repeats, count_work=False):
+def event_time(shapes, pa, pb, pose_scalar, repeats, count_work=False, setup_only=False):
     """Median GPU milliseconds of the overlap kernel over the pairs (pa, pb), by CUDA events (the CPU: its wall
-    time), and how many touch; with ``count_work`` (the measuring variant) also each pair's path word."""
+    time), and how many touch; with ``count_work`` (the measuring variant) also each pair's path word; with
+    ``setup_only`` the variant that stops after each pair's set-up."""
     seconds, outs = time_kernel(shapes, pa, pb, max(repeats, 1), pose_scalar=pose_scalar, events=True,
-                                count_work=count_work)  # fmt: skip
+                                count_work=count_work, setup_only=setup_only)  # fmt: skip
     touching = int((outs[0] > 0).sum())
     if count_work:
         return 1e3 * seconds, touching, outs[-1]
@@ -86,6 +91,10 @@ def main():
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--lanes", default="32", help="lanes per pair of spreadN (32: one pair to a warp)")
     ap.add_argument("--throughput", type=int, default=0, help="M: also M touching pairs, shuffled and by path")
+    ap.add_argument(
+        "--setup-only", action="store_true",
+        help="also time each case with the kernel stopped after the pairs' set-up (make_geometry's setup_only)",
+    )  # fmt: skip
     ap.add_argument("--out", default=os.path.join(HERE, "results", "issue27", "pair_latency.json"))
     args = ap.parse_args()
     wp.config.quiet = True
@@ -136,8 +145,13 @@ def main():
             cases[f"throughput{m}_worksorted"] = (big_a[w_order], big_b[w_order])
         for case, (a, b) in cases.items():
             ms, touching = event_time(shapes, a, b, wp.float64, args.repeats)
-            rows.append({"shape": name, "case": case, "threads": len(a), "touching": touching, "ms": ms})
-            print(f"{name:8s} {case:12s} threads {len(a):7d} touching {touching:5d}: {1e3 * ms:8.1f} us")
+            row = {"shape": name, "case": case, "threads": len(a), "touching": touching, "ms": ms}
+            setup = ""
+            if args.setup_only:
+                row["setup_ms"] = event_time(shapes, a, b, wp.float64, args.repeats, setup_only=True)[0]
+                setup = f", set-up alone {1e3 * row['setup_ms']:8.1f} us ({row['setup_ms'] / ms:.0%})"
+            rows.append(row)
+            print(f"{name:8s} {case:12s} threads {len(a):7d} touching {touching:5d}: {1e3 * ms:8.1f} us{setup}")
     record = {"meta": run_meta(dev), "args": vars(args), "rows": rows}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:

@@ -415,6 +415,7 @@ def make_geometry(
     coincident_tol: float | None = None,
     pose_scalar=None,
     count_work: bool = False,
+    setup_only: bool = False,
 ) -> Geometry:
     """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
@@ -431,6 +432,10 @@ def make_geometry(
         count_work: a measuring variant (benchmarks/pair_latency.py): ``overflow`` also carries the pair's path
             through the clipping, bits 1-8 and 9-16 the active faces of body 1 and body 2 (at most 255), bits
             17-30 the polygon vertices the Sutherland-Hodgman passes read (at most 16383).
+        setup_only: a measuring variant (benchmarks/pair_latency.py --setup-only): a touching pair's set-up alone
+            (the culling of its faces and planes, the flat contact, the apex and the pair-local frame), none of its
+            clipping; the results are numbers that keep the set-up's work, not its overlap. What the clipping of
+            its faces in parallel could at most save of a pair's latency.
     """
     if pose_scalar is None:
         pose_scalar = scalar
@@ -816,6 +821,9 @@ def make_geometry(
         rot_l = wp.quat_to_matrix(frame) * rot
         off_2 = wp.quat_rotate(frame, pos - apex)  # body 2's centre, pair-local
         tol_c = scalar(tol_rel) * scalar(r2)  # coincident-face tolerance, before the rounding
+        if wp.static(setup_only):
+            kept = to_scalar3(off_2) + vec3(scalar(num_1 + num_2), tol_c, scalar(rot_l[0, 0]))
+            return scalar(1.0), kept, zero3, zero3, zero3, zero3, zero3, 0
 
         vol = scalar(0.0)
         vol_c = zero3

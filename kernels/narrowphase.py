@@ -99,6 +99,7 @@ def make_narrowphase(
     pose_scalar=None,
     compound: bool = False,
     count_work: bool = False,
+    setup_only: bool = False,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
@@ -110,8 +111,9 @@ def make_narrowphase(
             and slightly slower for cubes; see benchmarks/tune_pair_kernel.py and BENCHMARKS.md).
         count_work: the measuring variant (:func:`~polydem.kernels.geometry.make_geometry`'s): ``overflow`` is
             then (N + 1,), entry 1 + i pair i's path word (its bit 0 the pair's own overflow).
+        setup_only: the measuring variant of the pairs' set-up alone (make_geometry's).
     """
-    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, count_work)
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, count_work, setup_only)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
