@@ -91,7 +91,7 @@ where the launch is one wave (BENCHMARKS.md 28b)."""
 SPREAD_CAPACITY_WAVES = 4
 """The spread variant of the pair kernel runs while the pair buffers hold at most this many waves of pairs (or
 :data:`SPREAD_MIN_CAPACITY`; :func:`spread_fits`): a list over two waves spreads nothing, and there the variant's idle
-threads and its mapping of threads to pairs cost the long lists of large piles 1.2% (BENCHMARKS.md 28e)."""
+threads and its mapping of threads to pairs cost the long lists of large piles 1.2% (BENCHMARKS.md 29)."""
 SPREAD_MIN_CAPACITY = 4096
 """Pair buffers this small never hold a list that is throughput-bound."""
 
