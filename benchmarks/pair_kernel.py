@@ -27,6 +27,7 @@ import time
 
 import numpy as np
 import warp as wp
+from polydem.kernels.geometry import SHARED_POLY_BLOCK
 from polydem.kernels.narrowphase import OVERLAP_OUTPUTS, make_narrowphase
 
 from polydem import ConvexShape
@@ -144,14 +145,15 @@ def pair_inputs(kernel, arrays):
 
 def time_kernel(
     shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None, clip="polygon",
-    events=False, count_work=False, setup_only=False,
+    events=False, count_work=False, setup_only=False, shared_poly=False,
 ):  # fmt: skip
     """Median seconds of a launch of the engine's overlap kernel over the pairs, and the outputs.
     ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode).
     ``clip``: make_geometry's clipping method (only "polygon" exists in trees before it). ``events``: on a GPU,
     time each launch alone with CUDA events (not the host's clock around a launch and synchronisation).
     ``count_work``: the measuring variant (make_geometry's ``count_work``); the outputs then end with each pair's
-    path word. ``setup_only``: the measuring variant of the pairs' set-up alone (make_geometry's)."""
+    path word. ``setup_only``: the measuring variant of the pairs' set-up alone (make_geometry's). ``shared_poly``: the
+    polygon buffer in the block's shared memory (make_geometry's; blocks of NARROWPHASE_BLOCK_DIM threads)."""
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
@@ -165,6 +167,10 @@ def time_kernel(
         extra["count_work"] = True
     if setup_only:
         extra["setup_only"] = True
+    if shared_poly:
+        extra["shared_poly"] = True
+        if block_dim != SHARED_POLY_BLOCK:
+            raise ValueError(f"the shared polygon buffer needs blocks of {SHARED_POLY_BLOCK} threads, not {block_dim}")
     kernel = make_narrowphase(
         scalar, cap, faces, max_registers=max_registers, pose_scalar=pose_scalar, **extra
     ).overlap_kernel
@@ -231,8 +237,10 @@ def main():
     ap.add_argument("--shapes", default="cube,tetrahedron,rock20,hull64")
     ap.add_argument("--depths", default="0.001,0.01,0.1", help="depths of the touching half; 'flat': flat contacts")
     ap.add_argument(
-        "--clips", default="polygon", help="comma-separated clipping methods (make_geometry's clip: polygon, edges)"
-    )
+        "--clips", default="polygon",
+        help="comma-separated clipping methods: polygon, shared (its buffer in the block's shared memory, float32 "
+        "clipping only), or an older tree's make_geometry clip (edges)",
+    )  # fmt: skip
     ap.add_argument("--out", default=os.path.join(HERE, "results", "pair_kernel.json"))
     args = ap.parse_args()
 
@@ -261,7 +269,11 @@ def main():
                 pa, pb = cases[name, depth]
                 first = None
                 for clip in args.clips.split(","):
-                    t, outs = time_kernel(shapes, pa, pb, repeats, clip=clip)
+                    if clip == "shared" and prec == "float64":
+                        continue  # float32 clipping only
+                    shared = clip == "shared"
+                    method = "polygon" if shared else clip
+                    t, outs = time_kernel(shapes, pa, pb, repeats, clip=method, shared_poly=shared)
                     # The largest difference from the first method's outputs, over the size's power of each.
                     size = 2.0 * shape.radius
                     diff = 0.0

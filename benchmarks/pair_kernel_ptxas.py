@@ -66,6 +66,10 @@ def main():
     ap.add_argument("--precisions", default="float32,mixed")
     ap.add_argument("--arch", type=int, default=90)
     ap.add_argument("--ptx-version", default="9.0", help="PTX .version to write for ptxas ('' keeps NVRTC's)")
+    ap.add_argument(
+        "--shared-poly", action="store_true",
+        help="also the overlap kernel with its polygon buffer in shared memory (make_geometry's shared_poly)",
+    )  # fmt: skip
     args = ap.parse_args()
 
     wp.config.quiet = True
@@ -79,6 +83,9 @@ def main():
             scalar = wp.float64 if prec == "float64" else wp.float32
             pose_scalar = wp.float64 if prec == "mixed" else scalar
             kernels = [("overlap", make_narrowphase(scalar, cap, faces, pose_scalar=pose_scalar).overlap_kernel)]
+            if args.shared_poly and scalar == wp.float32:
+                shared = make_narrowphase(scalar, cap, faces, pose_scalar=pose_scalar, shared_poly=True)
+                kernels.append(("overlap_shm", shared.overlap_kernel))
             contact = make_contact_kernels("hertz", True, cap, faces, precision=prec)
             kernels.append(("pair_contact", contact.pair_contact_kernel))
             for label, kernel in kernels:

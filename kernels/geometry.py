@@ -407,6 +407,13 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
     )
 
 
+SHARED_POLY_BLOCK = 64
+"""Threads a block of a kernel built with make_geometry's ``shared_poly`` (the pair kernels' block,
+:data:`polydem.kernels.narrowphase.NARROWPHASE_BLOCK_DIM`): each thread has its rows of the block's buffer."""
+SHARED_POLY_BYTES = 48 * 1024
+"""The static shared memory a CUDA block may hold."""
+
+
 @functools.cache
 def make_geometry(
     scalar,
@@ -416,6 +423,7 @@ def make_geometry(
     pose_scalar=None,
     count_work: bool = False,
     setup_only: bool = False,
+    shared_poly: bool = False,
 ) -> Geometry:
     """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
@@ -436,7 +444,16 @@ def make_geometry(
             (the culling of its faces and planes, the flat contact, the apex and the pair-local frame), none of its
             clipping; the results are numbers that keep the set-up's work, not its overlap. What the clipping of
             its faces in parallel could at most save of a pair's latency.
+        shared_poly: a variant (benchmarks/pair_kernel.py --poly shared) whose polygon buffer lies in the block's
+            shared memory on a GPU (:data:`SHARED_POLY_BLOCK` threads a block, each with its own rows: the same
+            arithmetic and results), not in per-thread local memory, which the pair kernel's throughput waits
+            on (BENCHMARKS.md section 1). float32 clipping only; on the CPU a per-thread static buffer.
     """
+    if shared_poly and (scalar != wp.float32 or 3 * 4 * max_poly * SHARED_POLY_BLOCK > SHARED_POLY_BYTES):
+        raise ValueError(
+            f"the shared polygon buffer needs float32 clipping and at most {SHARED_POLY_BYTES} bytes a block "
+            f"(got {scalar.__name__}, {max_poly} vertices a polygon)"
+        )
     if pose_scalar is None:
         pose_scalar = scalar
     prim = make_primitives(scalar, pose_scalar)
@@ -473,6 +490,35 @@ def make_geometry(
     pose_to_f64 = prim.pose_to_f64
     projected_area = prim.projected_area
     zero3d = wp.constant(vec3d(0.0, 0.0, 0.0))
+
+    # The shared variant's polygon buffer: row k of this thread's polygon, read (write 0) or written (write 1, which
+    # returns v). Component c of row k of thread t lies at (c max_poly + k) B + t: a warp's threads read 32
+    # consecutive words. A __shared__ variable of a device function is one per block, whichever call reaches it. On
+    # the CPU, whose kernels run one thread after another, one static buffer (Warp's CPU JIT has no thread_local).
+    poly_rw = finish_pass_shared = None
+    poly_rw_code = f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ float polydem_poly[3 * {max_poly} * {SHARED_POLY_BLOCK}];
+    float* row = polydem_poly + k * {SHARED_POLY_BLOCK} + threadIdx.x;
+    const int stride = {max_poly} * {SHARED_POLY_BLOCK};
+#else
+    static float polydem_poly[3 * {max_poly}];
+    float* row = polydem_poly + k;
+    const int stride = {max_poly};
+#endif
+    if (write) {{
+        row[0] = v[0];
+        row[stride] = v[1];
+        row[2 * stride] = v[2];
+        return v;
+    }}
+    return wp::vec3(row[0], row[stride], row[2 * stride]);
+"""
+
+    if shared_poly:
+
+        @wp.func_native(poly_rw_code)
+        def poly_rw(k: int, v: wp.vec3, write: int) -> wp.vec3: ...
 
     # The entries of the face lists, written and read through these (an entry is a value, the lists stay
     # where they are declared): entry n is lane n & ids_lane of word n >> ids_log.
@@ -673,6 +719,39 @@ def make_geometry(
             out[i] = spare[i]
         return n_out, full
 
+    if shared_poly:
+
+        @wp.func
+        def finish_pass_shared(
+            count: int, k0: int, n_out: int, prev: vec3, s_prev: scalar, v: vec3, ncut: vec3, dcut: scalar,
+        ):  # fmt: skip
+            # finish_pass for the shared polygon buffer (shared_poly).
+            spare = poly_t()
+            for i in range(n_out):
+                spare[i] = poly_rw(i, v, 0)
+            full = int(0)
+            for k in range(k0, count):
+                if k > k0:
+                    v = poly_rw(k, v, 0)
+                sk = plane_distance(ncut, dcut, v)
+                if crosses(s_prev, sk):
+                    if n_out >= max_poly:
+                        full = 1
+                        break
+                    spare[n_out] = edge_cut(prev, s_prev, v, sk)
+                    n_out += 1
+                if sk <= scalar(0.0):
+                    if n_out >= max_poly:
+                        full = 1
+                        break
+                    spare[n_out] = v
+                    n_out += 1
+                prev = v
+                s_prev = sk
+            for i in range(n_out):
+                poly_rw(i, spare[i], 1)
+            return n_out, full
+
     @wp.func
     def pair_pieces(
         shapes: Shapes, s1: int, s2: int, in_a: bool, xa64: vec3d, xb64: vec3d, q1: quatd, r2: wp.float64,
@@ -686,7 +765,8 @@ def make_geometry(
         # assignment next to that is the same fill (a later one was a second).
         ids_1 = ids_t()
         ids_2 = ids_t()
-        poly = poly_t()
+        if wp.static(not shared_poly):
+            poly = poly_t()
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         rot_ct = wp.transpose(rot_c)
         # Separating face planes, by bounding spheres first and exactly (all of the other body's
@@ -867,7 +947,10 @@ def make_geometry(
             else:
                 centre = to_scalar3(rot_l * c64 + off_2)
             for k in range(count):
-                poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
+                if wp.static(shared_poly):
+                    poly_rw(k, face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex), 1)
+                else:
+                    poly[k] = face_vertex(shapes, face_is_1, begin + k, turned, frame, rot_l, off_2, apex)
             weight = scalar(1.0)
             alive = bool(True)
             for t in range(num_planes):
@@ -923,33 +1006,51 @@ def make_geometry(
                 dcut = pl[3]
                 n_out = int(0)
                 full = int(0)
-                prev = poly[count - 1]
+                if wp.static(shared_poly):
+                    prev = poly_rw(count - 1, zero3, 0)
+                else:
+                    prev = poly[count - 1]
                 s_prev = plane_distance(ncut, dcut, prev)
-                v = poly[0]
+                if wp.static(shared_poly):
+                    v = poly_rw(0, zero3, 0)
+                else:
+                    v = poly[0]
                 if wp.static(count_work):
                     steps += count
                 for k in range(count):
                     ahead = v
                     if k + 1 < count:
-                        ahead = poly[k + 1]
+                        if wp.static(shared_poly):
+                            ahead = poly_rw(k + 1, zero3, 0)
+                        else:
+                            ahead = poly[k + 1]
                     sk = plane_distance(ncut, dcut, v)
                     cut = crosses(s_prev, sk)
                     keep = sk <= scalar(0.0)
                     if n_out < count and k + 2 < count and n_out + int(cut) + int(keep) > k + 2:
-                        n_out, full = finish_pass(poly, poly, count, k, n_out, prev, s_prev, v, ncut, dcut)
+                        if wp.static(shared_poly):
+                            n_out, full = finish_pass_shared(count, k, n_out, prev, s_prev, v, ncut, dcut)
+                        else:
+                            n_out, full = finish_pass(poly, poly, count, k, n_out, prev, s_prev, v, ncut, dcut)
                         break
                     if cut:
                         if n_out >= max_poly:
                             full = 1
                             break
-                        poly[n_out] = edge_cut(prev, s_prev, v, sk)
+                        if wp.static(shared_poly):
+                            poly_rw(n_out, edge_cut(prev, s_prev, v, sk), 1)
+                        else:
+                            poly[n_out] = edge_cut(prev, s_prev, v, sk)
                         n_out += 1
                     if keep:
                         if n_out >= max_poly:
                             full = 1
                             break
                         if n_out != k:
-                            poly[n_out] = v
+                            if wp.static(shared_poly):
+                                poly_rw(n_out, v, 1)
+                            else:
+                                poly[n_out] = v
                         n_out += 1
                     prev = v
                     s_prev = sk
@@ -966,10 +1067,17 @@ def make_geometry(
             # triangle's second vertex is the previous one's third).
             sum_a2 = scalar(0.0)
             sum_c = zero3
-            p0 = poly[0]
-            p1 = poly[1]
+            if wp.static(shared_poly):
+                p0 = poly_rw(0, zero3, 0)
+                p1 = poly_rw(1, zero3, 0)
+            else:
+                p0 = poly[0]
+                p1 = poly[1]
             for k in range(1, count - 1):
-                p2 = poly[k + 1]
+                if wp.static(shared_poly):
+                    p2 = poly_rw(k + 1, zero3, 0)
+                else:
+                    p2 = poly[k + 1]
                 sum_a2, sum_c = fan_add(p0, p1, p2, nf, sum_a2, sum_c)
                 p1 = p2
             area, area_c = fan_close(sum_a2, sum_c, weight)

@@ -100,6 +100,7 @@ def make_narrowphase(
     compound: bool = False,
     count_work: bool = False,
     setup_only: bool = False,
+    shared_poly: bool = False,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
@@ -112,8 +113,10 @@ def make_narrowphase(
         count_work: the measuring variant (:func:`~polydem.kernels.geometry.make_geometry`'s): ``overflow`` is
             then (N + 1,), entry 1 + i pair i's path word (its bit 0 the pair's own overflow).
         setup_only: the measuring variant of the pairs' set-up alone (make_geometry's).
+        shared_poly: the polygon buffer in the block's shared memory (make_geometry's); launch the kernel with
+            :data:`NARROWPHASE_BLOCK_DIM` threads a block.
     """
-    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, count_work, setup_only)
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, count_work, setup_only, shared_poly)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes

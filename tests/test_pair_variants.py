@@ -61,7 +61,7 @@ def random_pairs(shapes, rng, n):
     return sa, sb, pa, pb
 
 
-def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device):
+def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device, shared_poly=False, max_poly=None):
     scalar = shapes.scalar
     tf = wp.types.transformation(pose_scalar)
     np_pose = np.float64 if pose_scalar == wp.float64 else np.float32
@@ -72,8 +72,9 @@ def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device):
     overflow = wp.zeros(1, dtype=int, device=device)
     # Room for the largest clipped facet: no overflow, so one launch per cap.
     ns = make_narrowphase(
-        scalar, shapes.max_poly_bound, shapes.max_faces, max_registers=max_registers, pose_scalar=pose_scalar
-    )
+        scalar, max_poly or shapes.max_poly_bound, shapes.max_faces, max_registers=max_registers,
+        pose_scalar=pose_scalar, shared_poly=shared_poly,
+    )  # fmt: skip
     assert ns.overlap_kernel.options.get("cuda_max_registers") == max_registers
     wp.launch(
         ns.overlap_kernel,
@@ -114,6 +115,34 @@ def test_register_caps_agree_bit_for_bit(device, shape_set, precision):
             # Compared as raw bytes: equal bits, not merely equal values (-0.0 == 0.0).
             same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
             assert same.all(), f"cap {cap}: {name} differs from cap {CAPS[0]} in {np.flatnonzero(~same)[:10]}"
+
+
+@pytest.mark.parametrize("precision", ["float32", "mixed"])
+@pytest.mark.parametrize("shape_set", sorted(SETS))
+def test_shared_polygon_buffer_agrees_bit_for_bit(device, shape_set, precision):
+    """make_geometry's shared_poly variant (the polygon buffer in the block's shared memory on a GPU, each thread
+    its own rows; benchmarks/pair_kernel.py --clips polygon,shared) computes the same bits as the per-thread buffer,
+    on the same pairs as the register caps; too large a buffer for a block is a clear error."""
+    from polydem.kernels.geometry import SHARED_POLY_BLOCK
+
+    assert NARROWPHASE_BLOCK_DIM == SHARED_POLY_BLOCK  # the buffer's rows are laid out for the pair kernels' block
+    shapes_list = SETS[shape_set]()
+    shapes = ShapeSet(shapes_list, device=device, precision="float32")
+    pose_scalar = wp.float32 if precision == "float32" else wp.float64
+    sa, sb, pa, pb = random_pairs(shapes_list, np.random.default_rng(7), 1024)
+    room = min(shapes.max_poly_bound, 64)  # 64 rows of 64 threads fill the 48 KB a CUDA block may hold statically
+    ref = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device, max_poly=room)
+    got = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device, shared_poly=True, max_poly=room)
+    assert (ref["pair_volume"] > 0.0).sum() > 0.3 * len(sa)
+    for name in OVERLAP_OUTPUTS:
+        a = got[name].reshape(len(sa), -1)
+        b = ref[name].reshape(len(sa), -1)
+        same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
+        assert same.all(), f"shared polygon buffer: {name} differs in {np.flatnonzero(~same)[:10]}"
+    with pytest.raises(ValueError, match="shared polygon buffer needs float32 clipping and at most 49152 bytes"):
+        make_narrowphase(wp.float32, 65, shapes.max_faces, shared_poly=True)
+    with pytest.raises(ValueError, match="shared polygon buffer needs float32 clipping"):
+        make_narrowphase(wp.float64, 20, shapes.max_faces, shared_poly=True)
 
 
 def test_simulation_builds_and_steps_with_its_register_cap(device):
