@@ -68,7 +68,7 @@ def main():
     ap.add_argument("--ptx-version", default="9.0", help="PTX .version to write for ptxas ('' keeps NVRTC's)")
     ap.add_argument(
         "--shared-poly", action="store_true",
-        help="also the overlap kernel with its polygon buffer in shared memory (make_geometry's shared_poly)",
+        help="also the overlap and pair kernels with the polygon buffer in shared memory (make_geometry's shared_poly)",
     )  # fmt: skip
     args = ap.parse_args()
 
@@ -88,6 +88,9 @@ def main():
                 kernels.append(("overlap_shm", shared.overlap_kernel))
             contact = make_contact_kernels("hertz", True, cap, faces, precision=prec)
             kernels.append(("pair_contact", contact.pair_contact_kernel))
+            if args.shared_poly and scalar == wp.float32:
+                contact = make_contact_kernels("hertz", True, cap, faces, precision=prec, shared_poly=True)
+                kernels.append(("pair_cont_shm", contact.pair_contact_kernel))
             for label, kernel in kernels:
                 regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version)
                 print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}", flush=True)

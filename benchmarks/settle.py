@@ -640,7 +640,7 @@ def run_size(n, args, device, record, save):
         # In units of the cube's bounding radius; 0 turns the Verlet list off (rebuild every step).
         skin = args.skin * scene.shapes["cube"].radius
     sim = Simulation(scene, device=device, skin=skin, tree_rebuild=args.tree_rebuild, **kernel_options(args))
-    apply_spread(sim, args)
+    apply_stepper_options(sim, args)
     wp.synchronize_device(device)
     t2 = time.perf_counter()
     warmup = args.warmup if args.warmup is not None else max(CHUNK, math.ceil(args.warmup_time / sim.dt))
@@ -654,6 +654,7 @@ def run_size(n, args, device, record, save):
             "order_pair_threads": sim.stepper.thread_order,
             "pair_thread_grouping": sim.current_contacts.thread_grouping,
             "spread_pairs": sim.stepper.spread_pairs,
+            "shared_poly": sim.stepper.kernels.shared_poly,
             "dt": sim.dt,
             "skin": sim.skin,
             "use_graph": sim.use_graph,
@@ -824,7 +825,8 @@ def graph_off(sim, scene, args, record, warmup):
     """
     n = record["grains"]
     if args.fresh_no_graph:
-        other = apply_spread(Simulation(scene, device=sim.device, use_graph=False, **kernel_options(args)), args)
+        other = Simulation(scene, device=sim.device, use_graph=False, **kernel_options(args))
+        other = apply_stepper_options(other, args)
         other.step(warmup)
         seconds, host_builds, _ = timed_steps(other, args.steps)
         del other
@@ -965,17 +967,24 @@ def add_kernel_options(ap):
         help="how many of the costliest pairs the pair kernel spreads over 8 lanes each (Stepper.set_spread): "
         "default (spread_room: half a wave's worth on a GPU, none on the CPU), or a count (0: none)",
     )
+    ap.add_argument(
+        "--shared-poly", action="store_true",
+        help="the pair kernel's polygon buffer in the block's shared memory where it fits (Stepper.set_shared_poly)",
+    )  # fmt: skip
     # the flag of the runs before the default changed (BENCHMARKS.md 17)
     ap.add_argument(
         "--order-pair-threads", dest="pair_thread_order", action="store_const", const="cost", help=argparse.SUPPRESS
     )
 
 
-def apply_spread(sim, args):
-    """``--spread-pairs`` on a built Simulation (before its first step: its graphs are captured afterwards)."""
+def apply_stepper_options(sim, args):
+    """``--spread-pairs`` and ``--shared-poly`` on a built Simulation (before its first step: its graphs are captured
+    afterwards)."""
     value = getattr(args, "spread_pairs", "default")
     if value != "default" and sim.stepper.thread_order:
         sim.stepper.set_spread(int(value))
+    if getattr(args, "shared_poly", False):
+        sim.stepper.set_shared_poly(True)
     return sim
 
 

@@ -44,7 +44,7 @@ from polydem.cli.diagnostics import body_volumes, relative_depths, relative_over
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _meta import activity_ms_per_step, run_meta  # noqa: E402
-from settle import SHAPE_SETS, add_pile_options, apply_spread, kernel_options, make_scene, scene_options  # noqa: E402
+from settle import SHAPE_SETS, add_pile_options, apply_stepper_options, kernel_options, make_scene, scene_options  # noqa: E402
 
 EDGE = 0.01  # cube edge [m]
 
@@ -78,7 +78,8 @@ def run_size(n, args, device, dt_scale=1.0):
     ts = scene.time_step()
     scene.dt = dt_scale * ts.recommended
     t0 = time.perf_counter()
-    sim = apply_spread(Simulation(scene, device=device, tree_rebuild=args.tree_rebuild, **kernel_options(args)), args)
+    sim = Simulation(scene, device=device, tree_rebuild=args.tree_rebuild, **kernel_options(args))
+    sim = apply_stepper_options(sim, args)
     e0 = sim.energy()
     sim.step(1)  # kernels compiled, graph captured
     wp.synchronize_device(sim.device)
@@ -116,6 +117,7 @@ def run_size(n, args, device, dt_scale=1.0):
         "order": args.order,
         "tree_rebuild": sim.tree_rebuild,
         "spread_pairs": sim.stepper.spread_pairs,
+        "shared_poly": sim.stepper.kernels.shared_poly,
         "tree_rebuilds": sim.current_contacts.broadphase.num_tree_rebuilds,
         "dt": sim.dt,
         "dt_scale": dt_scale,

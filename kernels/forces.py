@@ -135,6 +135,7 @@ class ContactKernels:
     thread_order: bool
     phased: bool
     spread: bool
+    shared_poly: bool
     geometry: Any  # polydem.kernels.geometry.Geometry
     body_geometry: Any  # polydem.kernels.compound.BodyGeometry
     respond: Any
@@ -375,6 +376,7 @@ def make_contact_kernels(
     thread_order: bool = False,
     phased: bool = False,
     spread: bool = False,
+    shared_poly: bool = False,
 ) -> ContactKernels:
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -408,6 +410,9 @@ def make_contact_kernels(
     more, where the list is at most two such waves, the pairs of costly shapes (``costly[0]``,
     :func:`polydem.kernels.pairlist.launch_thread_order`), whose paths differ the most; at most ``spread_pairs``.
     The same results, bit for bit.
+    ``shared_poly``: the pair kernel's polygon buffer in the block's shared memory on a GPU
+    (:func:`polydem.kernels.geometry.make_geometry`'s; float32 clipping, at most 64 vertices); the wall kernels keep
+    theirs per thread. The same results, bit for bit.
     """
     if spread and not (thread_order and not phased):
         raise ValueError("spread needs thread_order and not phased")
@@ -419,6 +424,11 @@ def make_contact_kernels(
     wall_contact = make_wall_contact(law, friction, diagnostics, precision, report)
     geom = make_geometry(C, max_poly, max_faces, pose_scalar=S)
     body_geom = make_body_geometry(geom, compound)
+    # The pair kernel's own clipping: the shared buffer is laid out for the blocks it is launched with, not the
+    # mesh walk's.
+    pair_geom = body_geom
+    if shared_poly:
+        pair_geom = make_body_geometry(make_geometry(C, max_poly, max_faces, pose_scalar=S, shared_poly=True), compound)
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
@@ -489,7 +499,7 @@ def make_contact_kernels(
                 return
         xa = bodies.q[a]
         xb = bodies.q[b]
-        vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = body_geom.pair_geometry(
+        vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = pair_geom.pair_geometry(
             shapes, model.shape[a], model.shape[b], xa, xb
         )
         if of != 0:
@@ -751,6 +761,7 @@ def make_contact_kernels(
         thread_order=thread_order,
         phased=phased,
         spread=spread,
+        shared_poly=shared_poly,
         geometry=geom,
         body_geometry=body_geom,
         respond=resp.respond,

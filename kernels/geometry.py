@@ -414,6 +414,11 @@ SHARED_POLY_BYTES = 48 * 1024
 """The static shared memory a CUDA block may hold."""
 
 
+def shared_poly_fits(scalar, max_poly: int) -> bool:
+    """Whether make_geometry's ``shared_poly`` takes clipping in ``scalar`` with polygons of ``max_poly`` vertices."""
+    return scalar == wp.float32 and 3 * 4 * int(max_poly) * SHARED_POLY_BLOCK <= SHARED_POLY_BYTES
+
+
 @functools.cache
 def make_geometry(
     scalar,
@@ -449,7 +454,7 @@ def make_geometry(
             arithmetic and results), not in per-thread local memory, which the pair kernel's throughput waits
             on (BENCHMARKS.md section 1). float32 clipping only; on the CPU a per-thread static buffer.
     """
-    if shared_poly and (scalar != wp.float32 or 3 * 4 * max_poly * SHARED_POLY_BLOCK > SHARED_POLY_BYTES):
+    if shared_poly and not shared_poly_fits(scalar, max_poly):
         raise ValueError(
             f"the shared polygon buffer needs float32 clipping and at most {SHARED_POLY_BYTES} bytes a block "
             f"(got {scalar.__name__}, {max_poly} vertices a polygon)"

@@ -145,9 +145,9 @@ def test_shared_polygon_buffer_agrees_bit_for_bit(device, shape_set, precision):
         make_narrowphase(wp.float64, 20, shapes.max_faces, shared_poly=True)
 
 
-def test_simulation_builds_and_steps_with_its_register_cap(device):
+def thrown_scene(precision="mixed"):
     # Cubes and rocks thrown at each other over a floor plane: pair and wall contacts.
-    scene = Scene(dt="auto")
+    scene = Scene(dt="auto", precision=precision)
     scene.add_material("m", density=1000.0, law="hertz", k=1.0e6, restitution=0.5, friction=0.5)
     scene.add_shape("cube", ConvexShape.box(0.1))
     scene.add_shape("rock", ConvexShape.rock(n_points=20, size=0.1, seed=3))
@@ -158,6 +158,11 @@ def test_simulation_builds_and_steps_with_its_register_cap(device):
             ("cube", "rock")[i % 2], "m", position=(0.18 * i, 0.0, 0.1), orientation=q,
             velocity=(0.5 * (-1.0) ** i, 0.0, 0.0), angular_velocity=(0.0, 3.0, 0.0),
         )  # fmt: skip
+    return scene
+
+
+def test_simulation_builds_and_steps_with_its_register_cap(device):
+    scene = thrown_scene()
     assert Simulation(scene, device).stepper.kernels.pair_contact_kernel.options["cuda_max_registers"] == 128
     runs = []
     for cap in CAPS:
@@ -172,3 +177,23 @@ def test_simulation_builds_and_steps_with_its_register_cap(device):
             assert np.array_equal(state[k], state0[k]), k
         for k in contacts0:
             assert np.array_equal(contacts[k], contacts0[k]), k
+
+
+@pytest.mark.parametrize("precision", ["mixed", "float64"])
+def test_simulation_steps_alike_with_the_shared_polygon_buffer(device, precision):
+    """Stepper.set_shared_poly: the pair kernel clips with its polygon buffer in shared memory where it fits (float32
+    clipping; float64 keeps the per-thread buffer), and the run is the same bits."""
+    scene = thrown_scene(precision)
+    runs = []
+    for on in (False, True):
+        sim = Simulation(scene, device)
+        sim.stepper.set_shared_poly(on)
+        assert sim.stepper.kernels.shared_poly is (on and precision == "mixed")
+        sim.step(400)
+        runs.append((sim.state(), sim.contacts()))
+    (state0, contacts0), (state1, contacts1) = runs
+    assert len(contacts0["volume"]) >= 3
+    for k in state0:
+        assert np.array_equal(state1[k], state0[k]), k
+    for k in contacts0:
+        assert np.array_equal(contacts1[k], contacts0[k]), k

@@ -65,6 +65,7 @@ from polydem.kernels.forces import (
     spread_fits,
     spread_room,
 )
+from polydem.kernels.geometry import shared_poly_fits
 from polydem.kernels.integrate import (
     kinetic_energy,
     launch_check_state,
@@ -81,7 +82,7 @@ from polydem.kernels.meshwall import (
     make_mesh_kernels,
 )
 from polydem.kernels.motion import LANES, launch_drive_bodies, launch_drive_walls, launch_measure_motions
-from polydem.kernels.precision import numpy_dtype
+from polydem.kernels.precision import numpy_dtype, scalars
 from polydem.kernels.structs import (
     bodies_struct,
     filled,
@@ -195,6 +196,7 @@ class Stepper:
         # The costliest pairs of the thread order spread over more warps (kernels/forces.py SPREAD_LANES): where
         # the launch is a wave or less, and the costly shapes' pairs.
         self._spread_allowed = bool(spread) and self.thread_order
+        self.shared_poly = False  # set_shared_poly
         self.spread_pairs, self.spread_threads = (0, 0)
         if self._spread_allowed:
             self.spread_pairs, self.spread_threads = spread_room(self.device, pair_max_registers)
@@ -270,6 +272,7 @@ class Stepper:
             thread_order=self.thread_order,
             phased=self.body_first is not None and not diagnostics,
             spread=spread and self.body_first is None and self.spread_pairs > 0,
+            shared_poly=self.shared_poly and shared_poly_fits(scalars(m.precision)[1], self.poly_capacity),
         )
 
     def _mesh_kernels(self, diagnostics: bool, report: bool = False) -> MeshKernels | None:
@@ -358,6 +361,14 @@ class Stepper:
             )
         self.spread_pairs = pairs
         self.spread_threads = spread_room(self.device, self.pair_max_registers)[1] if threads is None else int(threads)
+        self._kernels()
+
+    def set_shared_poly(self, on: bool) -> None:
+        """Clip in the pair kernel with its polygon buffer in the block's shared memory (make_geometry's
+        ``shared_poly``; benchmarks/settle.py --shared-poly) wherever it fits: float32 clipping (precision
+        "float32" or "mixed"), at most 64 vertices a polygon (else as by default). On the CPU, whose kernels run one
+        thread after another, one static buffer. The same bits either way."""
+        self.shared_poly = bool(on)
         self._kernels()
 
     def first_bad_step(self) -> int | None:
