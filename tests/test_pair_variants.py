@@ -183,6 +183,10 @@ def test_simulation_builds_and_steps_with_its_register_cap(device):
 def test_simulation_steps_alike_with_the_shared_polygon_buffer(device, precision):
     """Stepper.set_shared_poly: the pair kernel clips with its polygon buffer in shared memory where it fits (float32
     clipping; float64 keeps the per-thread buffer), and the run is the same bits."""
+    from polydem.kernels.geometry import shared_poly_fits
+
+    assert shared_poly_fits(wp.float32, 64) and not shared_poly_fits(wp.float32, 65)
+    assert not shared_poly_fits(wp.float64, 8)  # and a grown polygon capacity falls back to the per-thread buffer
     scene = thrown_scene(precision)
     runs = []
     for on in (False, True):
