@@ -449,10 +449,11 @@ def make_geometry(
             (the culling of its faces and planes, the flat contact, the apex and the pair-local frame), none of its
             clipping; the results are numbers that keep the set-up's work, not its overlap. What the clipping of
             its faces in parallel could at most save of a pair's latency.
-        shared_poly: a variant (benchmarks/pair_kernel.py --poly shared) whose polygon buffer lies in the block's
-            shared memory on a GPU (:data:`SHARED_POLY_BLOCK` threads a block, each with its own rows: the same
-            arithmetic and results), not in per-thread local memory, which the pair kernel's throughput waits
-            on (BENCHMARKS.md section 1). float32 clipping only; on the CPU a per-thread static buffer.
+        shared_poly: a variant (benchmarks/pair_kernel.py --clips polygon,shared) whose polygon buffer lies in the
+            block's shared memory on a GPU (blocks of :data:`SHARED_POLY_BLOCK` threads, each with its own rows: the
+            same arithmetic and results), not in per-thread local memory, which the pair kernel's throughput waits
+            on (BENCHMARKS.md section 1b); :func:`shared_poly_fits` says where it applies. On the CPU one static
+            buffer.
     """
     if shared_poly and not shared_poly_fits(scalar, max_poly):
         raise ValueError(
@@ -501,7 +502,8 @@ def make_geometry(
     # consecutive words. A __shared__ variable of a device function is one per block, whichever call reaches it. On
     # the CPU, whose kernels run one thread after another, one static buffer (Warp's CPU JIT has no thread_local).
     poly_rw = finish_pass_shared = None
-    poly_rw_code = f"""
+    if shared_poly:
+        poly_rw_code = f"""
 #if defined(__CUDA_ARCH__)
     __shared__ float polydem_poly[3 * {max_poly} * {SHARED_POLY_BLOCK}];
     float* row = polydem_poly + k * {SHARED_POLY_BLOCK} + threadIdx.x;
@@ -519,8 +521,6 @@ def make_geometry(
     }}
     return wp::vec3(row[0], row[stride], row[2 * stride]);
 """
-
-    if shared_poly:
 
         @wp.func_native(poly_rw_code)
         def poly_rw(k: int, v: wp.vec3, write: int) -> wp.vec3: ...

@@ -152,6 +152,8 @@ class Stepper:
             force to, or None.
         body_first: (N,) int32, the bodies whose contacts and new state :meth:`step_part` 1 computes (None:
             the step is not split; :meth:`split_at`).
+        shared_poly: the pair kernel clips with its polygon buffer in shared memory where it fits
+            (:meth:`set_shared_poly`; ``kernels.shared_poly`` says whether it does now).
     """
 
     def __init__(
