@@ -173,7 +173,7 @@ FAULTS = (
         "kernels/forces.py",
         "                p = p - s * wp.static(SPREAD_LANES - 1)\n",
         "                p = p - s * wp.static(SPREAD_LANES)\n",
-        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-37-1000000000]",),
+        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-37-1000000000-False]",),
     ),
     Fault(
         "spread variant: launched over buffers too long to spread a pair",
@@ -190,11 +190,18 @@ FAULTS = (
         ("tests/test_pair_variants.py::test_shared_polygon_buffer_agrees_bit_for_bit[cpu-cube_rock-float32]",),
     ),
     Fault(
+        "spread lanes: a round's faces not added before the next",
+        "kernels/geometry.py",
+        "                if j > 0 and j % lanes == 0:\n",
+        "                if j > 1 and j % lanes == 0:\n",
+        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-37-1000000000-True]",),
+    ),
+    Fault(
         "costly pairs: the touching ones of the last costly class not counted",
         "kernels/pairlist.py",
         "        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 2\n",
         "        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 1\n",
-        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-10000000-55]",),
+        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-10000000-55-False]",),
     ),
     Fault(
         "tunnelling limits: one code's limit given to every body",

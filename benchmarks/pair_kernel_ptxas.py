@@ -67,6 +67,10 @@ def main():
     ap.add_argument("--arch", type=int, default=90)
     ap.add_argument("--ptx-version", default="9.0", help="PTX .version to write for ptxas ('' keeps NVRTC's)")
     ap.add_argument(
+        "--lanes", action="store_true",
+        help="also the overlap kernel with 8 lanes a pair, and the spread pair kernel with and without lanes clipping",
+    )  # fmt: skip
+    ap.add_argument(
         "--shared-poly", action="store_true",
         help="also the overlap and pair kernels with the polygon buffer in shared memory (make_geometry's shared_poly)",
     )  # fmt: skip
@@ -91,6 +95,14 @@ def main():
             if args.shared_poly and scalar == wp.float32:
                 contact = make_contact_kernels("hertz", True, cap, faces, precision=prec, shared_poly=True)
                 kernels.append(("pair_cont_shm", contact.pair_contact_kernel))
+            if args.lanes:
+                lanes8 = make_narrowphase(scalar, cap, faces, pose_scalar=pose_scalar, lanes=8)
+                kernels.append(("overlap_l8", lanes8.overlap_kernel))
+                for label, on in (("pair_spread", False), ("pair_spr_lanes", True)):
+                    contact = make_contact_kernels(
+                        "hertz", True, cap, faces, precision=prec, thread_order=True, spread=True, spread_lanes=on
+                    )
+                    kernels.append((label, contact.pair_contact_kernel))
             for label, kernel in kernels:
                 regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version)
                 print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}", flush=True)

@@ -199,6 +199,7 @@ class Stepper:
         # the launch is a wave or less, and the costly shapes' pairs.
         self._spread_allowed = bool(spread) and self.thread_order
         self.shared_poly = False  # set_shared_poly
+        self.spread_lanes = False  # set_spread
         self.spread_pairs, self.spread_threads = (0, 0)
         if self._spread_allowed:
             self.spread_pairs, self.spread_threads = spread_room(self.device, pair_max_registers)
@@ -261,6 +262,7 @@ class Stepper:
         """The pair and gather kernels of the model at the current polygon capacity: the step's, the
         diagnostics variant or the report variant; ``spread`` False: never the spread variant."""
         m = self.model
+        spread = spread and self.body_first is None and self.spread_pairs > 0
         return make_contact_kernels(
             m.law,
             m.friction,
@@ -273,7 +275,8 @@ class Stepper:
             report=report,
             thread_order=self.thread_order,
             phased=self.body_first is not None and not diagnostics,
-            spread=spread and self.body_first is None and self.spread_pairs > 0,
+            spread=spread,
+            spread_lanes=spread and self.spread_lanes,
             shared_poly=self.shared_poly and shared_poly_fits(scalars(m.precision)[1], self.poly_capacity),
         )
 
@@ -347,12 +350,13 @@ class Stepper:
         mesh = 0 if self.mesh_candidates is None else self.mesh_candidates.generation
         return self.poly_capacity, mesh, self.first_room, self.spread_pairs, self.spread_threads
 
-    def set_spread(self, pairs: int, threads: int | None = None) -> None:
+    def set_spread(self, pairs: int, threads: int | None = None, lanes: bool | None = None) -> None:
         """Spread at most ``pairs`` of the first pairs of the thread order over
         :data:`~polydem.kernels.forces.SPREAD_LANES` lanes each: as many as a launch of ``threads`` threads leaves
         room for (None: the device's wave, :func:`~polydem.kernels.forces.spread_room`), or, where the list holds
-        at most twice ``threads`` pairs, the pairs of costly shapes (0 pairs: none). The same bits either way. Needs
-        the pair threads grouped by contact (the default)."""
+        at most twice ``threads`` pairs, the pairs of costly shapes (0 pairs: none). ``lanes`` True: a spread pair's
+        other lanes each clip some of its faces, not idle (make_contact_kernels' ``spread_lanes``; None: as it was,
+        at first False). The same bits either way. Needs the pair threads grouped by contact (the default)."""
         pairs = int(pairs)
         if pairs < 0:
             raise ValueError(f"spread pairs must be >= 0, got {pairs}")
@@ -362,6 +366,8 @@ class Stepper:
                 "default, order_pair_threads=True)"
             )
         self.spread_pairs = pairs
+        if lanes is not None:
+            self.spread_lanes = bool(lanes)
         self.spread_threads = spread_room(self.device, self.pair_max_registers)[1] if threads is None else int(threads)
         self._kernels()
 
