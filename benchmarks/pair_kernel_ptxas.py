@@ -6,6 +6,11 @@ memory that holds the polygon, plane and face buffers) and spill bytes. Static f
 what each thread holds, not how often it is touched (ncu on a GPU measures the traffic).
 
     python benchmarks/pair_kernel_ptxas.py --shapes cube,rock20 --precisions mixed
+    python benchmarks/pair_kernel_ptxas.py --ptx-out /tmp/ptx_new   # then the same in the old tree, diff -r
+
+``--ptx-out`` writes each kernel's PTX without comments, line records and hashes: two trees whose texts agree
+compile the same code (how a change that should not touch the default kernels is checked; BENCHMARKS.md 29).
+``--shared-poly`` and ``--lanes`` add the variants of section 29.
 
 Needs ptxas on the PATH (the CUDA toolkit). When ptxas is older than Warp's NVRTC, the PTX's
 .version line is lowered to --ptx-version (the kernels use no newer PTX feature). The pair-kernel
@@ -35,14 +40,25 @@ SHAPES = {
 }
 
 
-def ptxas_stats(kernel, arch, ptx_version):
-    """ptxas -v figures of one kernel's module: registers, stack frame, spill stores and loads [bytes]."""
+def normalised_ptx(ptx):
+    """PTX without its comments, source lines and file table, and with Warp's hashes in names replaced: the same text
+    for the same code from two trees (``--ptx-out``)."""
+    keep = (line for line in ptx.splitlines() if not line.lstrip().startswith(("//", ".loc", ".file")))
+    return re.sub(r"_[0-9a-f]{7,16}", "_H", "\n".join(keep)) + "\n"
+
+
+def ptxas_stats(kernel, arch, ptx_version, ptx_out=None):
+    """ptxas -v figures of one kernel's module: registers, stack frame, spill stores and loads [bytes]. ``ptx_out``:
+    also write its normalised PTX there."""
     module = kernel.module
     with tempfile.TemporaryDirectory() as tmp:
         module._compile(device=None, output_dir=tmp, output_arch=arch, use_ptx=True)
         (path,) = glob.glob(os.path.join(tmp, "*.ptx"))
         with open(path, "rb") as f:
             ptx = f.read().replace(b"\0", b"").decode()
+        if ptx_out:
+            with open(ptx_out, "w") as f:
+                f.write(normalised_ptx(ptx))
         if ptx_version:
             ptx = re.sub(r"^\.version \S+", f".version {ptx_version}", ptx, count=1, flags=re.M)
         fixed = os.path.join(tmp, "kernel.ptx")
@@ -66,6 +82,11 @@ def main():
     ap.add_argument("--precisions", default="float32,mixed")
     ap.add_argument("--arch", type=int, default=90)
     ap.add_argument("--ptx-version", default="9.0", help="PTX .version to write for ptxas ('' keeps NVRTC's)")
+    ap.add_argument(
+        "--ptx-out",
+        default="",
+        help="DIR: also write each kernel's normalised PTX there (diff -r two trees' DIRs: the same code or not)",
+    )
     ap.add_argument(
         "--lanes", action="store_true",
         help="also the overlap kernel with 8 lanes a pair, and the spread pair kernel with and without lanes clipping",
@@ -104,7 +125,11 @@ def main():
                     )
                     kernels.append((label, contact.pair_contact_kernel))
             for label, kernel in kernels:
-                regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version)
+                out = ""
+                if args.ptx_out:
+                    os.makedirs(args.ptx_out, exist_ok=True)
+                    out = os.path.join(args.ptx_out, f"{name}_{prec}_{label}.ptx")
+                regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version, out)
                 print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}", flush=True)
 
 
