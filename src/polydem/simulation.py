@@ -154,6 +154,7 @@ class Stepper:
             the step is not split; :meth:`split_at`).
         shared_poly: the pair kernel clips with its polygon buffer in shared memory where it fits
             (:meth:`set_shared_poly`; ``kernels.shared_poly`` says whether it does now).
+        spread_lanes: a spread pair's lanes each clip some of its faces (:meth:`set_spread`'s ``lanes``).
     """
 
     def __init__(
