@@ -777,7 +777,9 @@ def make_geometry(
         def finish_pass_shared(
             count: int, k0: int, n_out: int, prev: vec3, s_prev: scalar, v: vec3, ncut: vec3, dcut: scalar,
         ):  # fmt: skip
-            # finish_pass for the shared polygon buffer (shared_poly).
+            # finish_pass for the shared polygon buffer (shared_poly), its reads and writes through poly_rw: written
+            # out again because finish_pass on a per-thread copy of the rows put two polygons on every thread's
+            # stack (ptxas: a rock pair's 560 B frame became 1016 B), which the shared buffer is there to avoid.
             spare = poly_t()
             for i in range(n_out):
                 spare[i] = poly_rw(i, v, 0)

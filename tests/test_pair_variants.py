@@ -96,6 +96,17 @@ def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device, shared_poly=
     return {name: a.numpy() for name, a in zip(OVERLAP_OUTPUTS, out, strict=True)}
 
 
+def assert_same_bits(got, ref, what):
+    """Every output of ``got`` the same bits as ``ref``'s, pair by pair: compared as raw bytes, not merely equal
+    values (-0.0 == 0.0)."""
+    for name in OVERLAP_OUTPUTS:
+        n = len(ref[name])
+        a = got[name].reshape(n, -1)
+        b = ref[name].reshape(n, -1)
+        same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
+        assert same.all(), f"{what}: {name} differs in pairs {np.flatnonzero(~same)[:10]}"
+
+
 @pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
 @pytest.mark.parametrize("shape_set", sorted(SETS))
 def test_register_caps_agree_bit_for_bit(device, shape_set, precision):
@@ -109,12 +120,7 @@ def test_register_caps_agree_bit_for_bit(device, shape_set, precision):
     assert (np.linalg.norm(ref["pair_fallback_a"], axis=1) > 0.0).sum() > 10  # enclosed pairs
     for cap in CAPS[1:]:
         got = run(shapes, sa, sb, pa, pb, cap, pose_scalar, device)
-        for name in OVERLAP_OUTPUTS:
-            a = got[name].reshape(len(sa), -1)
-            b = ref[name].reshape(len(sa), -1)
-            # Compared as raw bytes: equal bits, not merely equal values (-0.0 == 0.0).
-            same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
-            assert same.all(), f"cap {cap}: {name} differs from cap {CAPS[0]} in {np.flatnonzero(~same)[:10]}"
+        assert_same_bits(got, ref, f"cap {cap} against cap {CAPS[0]}")
 
 
 @pytest.mark.parametrize("precision", ["float32", "mixed"])
@@ -134,11 +140,7 @@ def test_shared_polygon_buffer_agrees_bit_for_bit(device, shape_set, precision):
     ref = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device, max_poly=room)
     got = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device, shared_poly=True, max_poly=room)
     assert (ref["pair_volume"] > 0.0).sum() > 0.3 * len(sa)
-    for name in OVERLAP_OUTPUTS:
-        a = got[name].reshape(len(sa), -1)
-        b = ref[name].reshape(len(sa), -1)
-        same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
-        assert same.all(), f"shared polygon buffer: {name} differs in {np.flatnonzero(~same)[:10]}"
+    assert_same_bits(got, ref, "shared polygon buffer")
     with pytest.raises(ValueError, match="shared polygon buffer needs float32 clipping and at most 49152 bytes"):
         make_narrowphase(wp.float32, 65, shapes.max_faces, shared_poly=True)
     with pytest.raises(ValueError, match="shared polygon buffer needs float32 clipping"):
@@ -161,11 +163,7 @@ def test_lanes_agree_bit_for_bit(device, shape_set, precision):
     assert (ref["pair_volume"] > 0.0).sum() > 0.3 * len(sa)
     for lanes in (8, LANES_MAX):
         got = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device, lanes=lanes)
-        for name in OVERLAP_OUTPUTS:
-            a = got[name].reshape(len(sa), -1)
-            b = ref[name].reshape(len(sa), -1)
-            same = np.all(a.view(np.uint8) == b.view(np.uint8), axis=1)
-            assert same.all(), f"{lanes} lanes: {name} differs in {np.flatnonzero(~same)[:10]}"
+        assert_same_bits(got, ref, f"{lanes} lanes")
     with pytest.raises(ValueError, match="lanes must be a power of two from 1 to 32, got 6"):
         make_narrowphase(wp.float32, 20, shapes.max_faces, lanes=6)
 
