@@ -1,33 +1,37 @@
 #!/bin/bash
 # One GPU: a pair-kernel variant against the default, in one call (BENCHMARKS.md 29). From the repository root,
-# polydem importable; writes $OUT/variant_$VARIANT.tgz (or ./...).
+# polydem importable.
 #   VARIANT=shared  the polygon buffer in the block's shared memory (--shared-poly): its CUDA tests, the overlap
 #                   kernel's throughput both ways (pair_kernel.py --clips polygon,shared), the cube and mixed piles'
 #                   step at SIZES (default "100000 1000000") with and without, alternating.
 #   VARIANT=lanes   a spread pair's lanes each clipping some of its faces (--spread-lanes): its CUDA tests, one
 #                   wave's latency (pair_latency.py --clip-lanes 8,32 --setup-only), time to settled at 1e3 cubes and
 #                   the step of the mixed and cube piles at SIZES (default 10000) with and without.
+# Results go straight to $OUT/variant_$VARIANT/ (or ./...), so that a run stopped at BUDGET seconds (default 540)
+# keeps what it measured; every job's timeout is cut to what is left.
 set -u
 VARIANT=${VARIANT:-shared}
-R=/tmp/variant_$VARIANT; rm -rf $R; mkdir -p $R
+R=${OUT:-.}/variant_$VARIANT; rm -rf $R; mkdir -p $R; END=$((SECONDS + ${BUDGET:-540}))
+# never 0 or less: `timeout 0` means no limit at all
+cap() { local l=$((END - SECONDS)); [ $l -lt 5 ] && l=5; [ $l -gt $1 ] && l=$1; echo $l; }
 if [ "$VARIANT" = shared ]; then
   FLAG=--shared-poly; TESTS="tests/test_pair_variants.py -k shared"; SIZES=${SIZES:-100000 1000000}
 else
   FLAG=--spread-lanes; TESTS="tests/test_pair_variants.py tests/test_pair_order.py -k lanes or spread"
   SIZES=${SIZES:-10000}
 fi
-POLYDEM_TEST_DEVICES=cuda:0 timeout 240 python3 -m pytest -q -rf -p no:cacheprovider ${TESTS%% -k *} \
+POLYDEM_TEST_DEVICES=cuda:0 timeout $(cap 240) python3 -m pytest -q -rf -p no:cacheprovider ${TESTS%% -k *} \
   -k "${TESTS#* -k }" > $R/pytest.log 2>&1; tail -3 $R/pytest.log
 if [ "$VARIANT" = shared ]; then
-  timeout 200 python3 benchmarks/pair_kernel.py --device cuda:0 --precisions float32 --shapes cube,rock20,hull64 \
+  timeout $(cap 200) python3 benchmarks/pair_kernel.py --device cuda:0 --precisions float32 --shapes cube,rock20,hull64 \
     --depths 0.01,flat --clips polygon,shared,polygon,shared --sample 16 --out $R/pair_kernel_shared.json \
     > $R/pair_kernel.log 2>&1; grep -E "^(cube|rock|hull)" $R/pair_kernel.log
 else
-  timeout 200 python3 benchmarks/pair_latency.py --device cuda:0 --shapes cube,rock20 --sizes 1024 \
+  timeout $(cap 200) python3 benchmarks/pair_latency.py --device cuda:0 --shapes cube,rock20 --sizes 1024 \
     --lanes 8,32 --clip-lanes 8,32 --setup-only --out $R/pair_latency_lanes.json > $R/pair_latency.log 2>&1
   grep -E "packed|spread|one " $R/pair_latency.log
   for flag in "" $FLAG "" $FLAG; do
-    timeout 90 python3 benchmarks/time_to_settle.py --device cuda:0 --sizes 1000 --dt-scales 4 --k-rule volume \
+    timeout $(cap 90) python3 benchmarks/time_to_settle.py --device cuda:0 --sizes 1000 --dt-scales 4 --k-rule volume \
       --speed-fraction off $flag --out $R/tts_1e3${flag:+_lanes}_$RANDOM.json > $R/tts.log 2>&1
     echo "tts 1e3 ${flag:-default}: $(grep -E '^ +1000 ' $R/tts.log | tail -1)"
   done
@@ -35,11 +39,10 @@ fi
 for shapes in ${SHAPES:-mixed cube}; do
   for n in $SIZES; do
     for flag in "" $FLAG "" $FLAG; do
-      timeout 150 python3 benchmarks/settle.py --device cuda:0 --sizes $n --shapes $shapes --precision mixed \
+      timeout $(cap 150) python3 benchmarks/settle.py --device cuda:0 --sizes $n --shapes $shapes --precision mixed \
         --no-graph-compare --k-rule volume --warmup-time 0.3 --steps 200 $flag \
         --out $R/settle_${shapes}_${n}${flag:+_$VARIANT}_$RANDOM.json > $R/settle.log 2>&1
       echo "settle $shapes $n ${flag:-default}: $(grep -E "^ +$n " $R/settle.log | tail -1)"
     done
   done
 done
-tar czf ${OUT:-.}/variant_$VARIANT.tgz -C $R .
