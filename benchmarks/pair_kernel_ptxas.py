@@ -28,7 +28,7 @@ import tempfile
 
 import warp as wp
 from polydem.kernels.forces import make_contact_kernels
-from polydem.kernels.narrowphase import make_narrowphase
+from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM, make_narrowphase
 
 from polydem import ConvexShape
 from polydem.shapeset import ShapeSet
@@ -48,11 +48,13 @@ def normalised_ptx(ptx):
 
 
 def ptxas_stats(kernel, arch, ptx_version, ptx_out=None):
-    """ptxas -v figures of one kernel's module: registers, stack frame, spill stores and loads [bytes]. ``ptx_out``:
-    also write its normalised PTX there."""
+    """ptxas -v figures of one kernel's module: registers, stack frame, spill stores and loads, static shared memory
+    [bytes]. ``ptx_out``: also write its normalised PTX there."""
     module = kernel.module
     with tempfile.TemporaryDirectory() as tmp:
-        module._compile(device=None, output_dir=tmp, output_arch=arch, use_ptx=True)
+        # the block the pair kernels launch with: Warp sizes its static tile storage (one word a thread) by it
+        options = module.resolve_options(wp.config, block_dim=NARROWPHASE_BLOCK_DIM)
+        module._compile(device=None, output_dir=tmp, output_arch=arch, use_ptx=True, options=options)
         (path,) = glob.glob(os.path.join(tmp, "*.ptx"))
         with open(path, "rb") as f:
             ptx = f.read().replace(b"\0", b"").decode()
@@ -73,7 +75,9 @@ def ptxas_stats(kernel, arch, ptx_version, ptx_out=None):
     forward = text[text.index("_cuda_kernel_forward") :]
     frame = re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads", forward)
     regs = re.search(r"Used (\d+) registers", forward)
-    return int(regs.group(1)), int(frame.group(1)), int(frame.group(2)), int(frame.group(3))
+    smem = re.search(r"Used \d+ registers.*?(\d+) bytes smem", forward)
+    shared = int(smem.group(1)) if smem else 0
+    return int(regs.group(1)), int(frame.group(1)), int(frame.group(2)), int(frame.group(3)), shared
 
 
 def main():
@@ -99,7 +103,7 @@ def main():
 
     wp.config.quiet = True
     wp.init()
-    print(f"{'shape':<8}{'prec':>9}  {'kernel':<13}{'regs':>5}{'stack B':>9}{'spill st':>9}{'spill ld':>9}")
+    print(f"{'shape':<8}{'prec':>9}  {'kernel':<13}{'regs':>5}{'stack B':>9}{'spill st':>9}{'spill ld':>9}{'smem B':>8}")
     for name in args.shapes.split(","):
         shapes = ShapeSet([SHAPES[name]()], device="cpu", precision="float32")
         cap, faces = shapes.default_poly_capacity, shapes.max_faces
@@ -129,8 +133,8 @@ def main():
                 if args.ptx_out:
                     os.makedirs(args.ptx_out, exist_ok=True)
                     out = os.path.join(args.ptx_out, f"{name}_{prec}_{label}.ptx")
-                regs, frame, st, ld = ptxas_stats(kernel, args.arch, args.ptx_version, out)
-                print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}", flush=True)
+                regs, frame, st, ld, shared = ptxas_stats(kernel, args.arch, args.ptx_version, out)
+                print(f"{name:<8}{prec:>9}  {label:<13}{regs:>5}{frame:>9}{st:>9}{ld:>9}{shared:>8}", flush=True)
 
 
 if __name__ == "__main__":

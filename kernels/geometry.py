@@ -410,8 +410,9 @@ def make_primitives(scalar, pose_scalar=None) -> Primitives:
 SHARED_POLY_BLOCK = 64
 """Threads a block of a kernel built with make_geometry's ``shared_poly`` (the pair kernels' block,
 :data:`polydem.kernels.narrowphase.NARROWPHASE_BLOCK_DIM`): each thread has its rows of the block's buffer."""
-SHARED_POLY_BYTES = 48 * 1024
-"""The static shared memory a CUDA block may hold."""
+SHARED_POLY_BYTES = 48 * 1024 - 4 * SHARED_POLY_BLOCK
+"""The static shared memory a CUDA block may hold (48 KB) less Warp's tile storage, one word a thread, which every
+kernel declares (ptxas refused a 64-vertex buffer, 49152 B, by those 256 B: BENCHMARKS.md section 30)."""
 
 
 def shared_poly_fits(scalar, max_poly: int) -> bool:
