@@ -103,7 +103,8 @@ def main():
 
     wp.config.quiet = True
     wp.init()
-    print(f"{'shape':<8}{'prec':>9}  {'kernel':<13}{'regs':>5}{'stack B':>9}{'spill st':>9}{'spill ld':>9}{'smem B':>8}")
+    head = f"{'shape':<8}{'prec':>9}  {'kernel':<13}{'regs':>5}{'stack B':>9}{'spill st':>9}{'spill ld':>9}"
+    print(f"{head}{'smem B':>8}")
     for name in args.shapes.split(","):
         shapes = ShapeSet([SHAPES[name]()], device="cpu", precision="float32")
         cap, faces = shapes.default_poly_capacity, shapes.max_faces
