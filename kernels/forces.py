@@ -413,7 +413,7 @@ def make_contact_kernels(
     :func:`polydem.kernels.pairlist.launch_thread_order`), whose paths differ the most; at most ``spread_pairs``.
     The same results, bit for bit.
     ``shared_poly``: the pair kernel's polygon buffer in the block's shared memory on a GPU
-    (:func:`polydem.kernels.geometry.make_geometry`'s; float32 clipping, at most 64 vertices); the wall kernels keep
+    (:func:`polydem.kernels.geometry.make_geometry`'s; float32 clipping, at most 63 vertices); the wall kernels keep
     theirs per thread. The same results, bit for bit.
     ``spread_lanes`` (with ``spread``): a spread pair's lanes are not idle: on a GPU each clips some of its faces
     (make_geometry's ``lanes`` variant, the faces' sums passed between the lanes by warp shuffles and added in the

@@ -357,7 +357,8 @@ class Stepper:
         room for (None: the device's wave, :func:`~polydem.kernels.forces.spread_room`), or, where the list holds
         at most twice ``threads`` pairs, the pairs of costly shapes (0 pairs: none). ``lanes`` True: a spread pair's
         other lanes each clip some of its faces, not idle (make_contact_kernels' ``spread_lanes``; None: as it was,
-        at first False). The same bits either way. Needs the pair threads grouped by contact (the default)."""
+        at first False): measured slower on an H200 (BENCHMARKS.md section 30: each lane repeats the pair's set-up),
+        kept for measuring. The same bits either way. Needs the pair threads grouped by contact (the default)."""
         pairs = int(pairs)
         if pairs < 0:
             raise ValueError(f"spread pairs must be >= 0, got {pairs}")
@@ -375,7 +376,7 @@ class Stepper:
     def set_shared_poly(self, on: bool) -> None:
         """Clip in the pair kernel with its polygon buffer in the block's shared memory (make_geometry's
         ``shared_poly``; benchmarks/settle.py --shared-poly) wherever it fits: float32 clipping (precision
-        "float32" or "mixed"), at most 64 vertices a polygon (else as by default). On the CPU, whose kernels run one
+        "float32" or "mixed"), at most 63 vertices a polygon (else as by default). On the CPU, whose kernels run one
         thread after another, one static buffer. The same bits either way."""
         self.shared_poly = bool(on)
         self._kernels()
