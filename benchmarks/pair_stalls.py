@@ -1,0 +1,188 @@
+"""Where a pair's latency goes: Nsight Compute's warp-state sampling of the overlap kernel, by reason and by line.
+
+At small sizes the step waits on one pair's latency (BENCHMARKS.md sections 27b, 30: a cube pair alone 85 us on an
+H200, 53 us of it the set-up). This script launches the engine's overlap kernel (the pair kernel's geometry, as
+``pair_latency.py`` does) under ``ncu`` with its warp-state statistics and its per-instruction sampling, the
+kernel compiled with line information (``wp.config.lineinfo``: Warp's ``#line`` directives name the Python lines
+of kernels/geometry.py), and reports:
+
+* the share of the sampled warp states by stall reason (long scoreboard: a wait on global or local memory; wait: a
+  fixed-latency dependency; short scoreboard: shared memory and special functions; ...);
+* the source lines with the most samples, from ncu's source page.
+
+Each case is one launch: ``one`` (a single touching pair), ``spreadN`` (N touching pairs one to a warp),
+``packedN`` (N touching pairs, 32 to a warp). The reports (``.ncu-rep``), ncu's CSV pages and a JSON summary go to
+``--out``. Needs ``ncu`` on the PATH and permission to read the GPU's counters; without them it says so and stops.
+
+    python benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 --cases one,spread1024 --out DIR
+"""
+
+import argparse
+import csv
+import io
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import warp as wp
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from _meta import run_meta  # noqa: E402
+from pair_kernel import make_pairs, shape_library, time_kernel  # noqa: E402
+from pair_latency import spread  # noqa: E402
+
+from polydem.shapeset import ShapeSet  # noqa: E402
+
+SECTIONS = ("LaunchStats", "Occupancy", "SpeedOfLight", "WarpStateStats", "SourceCounters")
+
+
+def case_pairs(shape, case, depth, device):
+    """The poses (xyz, xyzw float64) of one case's pairs: ``one``, ``spreadN`` or ``packedN``."""
+    kind = re.fullmatch(r"(one)|(spread|packed)(\d+)", case)
+    if kind is None:
+        raise SystemExit(f"pair_stalls: unknown case {case!r}: one, spreadN or packedN (N touching pairs)")
+    n = 1 if kind.group(1) else int(kind.group(3))
+    pa, pb = make_pairs(shape, 2 * max(n, 32), depth, np.random.default_rng(7), device)
+    pa, pb = pa[:n], pb[:n]  # the touching half
+    return spread(pa, pb, 32) if case.startswith("spread") else (pa, pb)
+
+
+def child(args):
+    """Under ncu: the launches of one case (the first compiles and warms up; ncu profiles a later one)."""
+    wp.config.quiet = True
+    wp.config.lineinfo = True
+    data = np.load(args.child)
+    shape = shape_library()[args.shapes]
+    shapes = ShapeSet([shape], device=args.device, precision="float32")
+    time_kernel(shapes, data["pa"], data["pb"], 3, pose_scalar=wp.float64, events=True)
+
+
+def ncu_csv(ncu, report, *page):
+    """Rows of one of ncu's CSV pages of ``report`` (a list of dicts), and the text."""
+    proc = subprocess.run([ncu, "-i", report, "--csv", *page], capture_output=True, text=True, timeout=600)
+    text = proc.stdout
+    start = text.find('"')  # ncu prints notes before the table
+    rows = list(csv.DictReader(io.StringIO(text[start:]))) if start >= 0 else []
+    return rows, text + proc.stderr
+
+
+def number(value):
+    try:
+        return float(str(value).replace(",", ""))
+    except ValueError:
+        return None
+
+
+def stall_shares(raw_rows):
+    """{reason: share of the sampled warp states} from the raw page's smsp__pcsamp_warps_issue_stalled_* counts."""
+    counts = {}
+    for row in raw_rows:
+        for key, value in row.items():
+            if key and key.startswith("smsp__pcsamp_warps_issue_stalled_") and not key.endswith("_not_issued"):
+                v = number(value)
+                if v is not None:
+                    counts[key.removeprefix("smsp__pcsamp_warps_issue_stalled_")] = v
+    total = sum(counts.values())
+    return {k: v / total for k, v in sorted(counts.items(), key=lambda kv: -kv[1])} if total else {}
+
+
+def top_lines(source_rows, top):
+    """The source page's rows with the most samples: (samples, share, location, source text)."""
+    if not source_rows:
+        return []
+    keys = list(source_rows[0])
+    sample_key = next((k for k in keys if "Sampling" in k and "All" in k), None)
+    sample_key = sample_key or next((k for k in keys if "Samples" in k or "Sampling" in k), None)
+    if sample_key is None:
+        return []
+    text_key = next((k for k in keys if k.strip() in ("Source", "Source Line")), keys[1] if len(keys) > 1 else keys[0])
+    where_key = next((k for k in keys if k.strip() in ("#", "Line", "Address", "Line Number")), keys[0])
+    rows = [(number(r.get(sample_key)) or 0.0, r.get(where_key, ""), (r.get(text_key) or "").strip())
+            for r in source_rows]  # fmt: skip
+    total = sum(s for s, _, _ in rows) or 1.0
+    rows.sort(key=lambda r: -r[0])
+    return [{"samples": s, "share": s / total, "at": w, "source": t[:160]} for s, w, t in rows[:top] if s > 0]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--shapes", default="cube,rock20")
+    ap.add_argument("--cases", default="one,spread1024", help="one, spreadN, packedN")
+    ap.add_argument("--depth", type=float, default=0.01, help="depth of the touching pairs (fraction of the size)")
+    ap.add_argument("--top", type=int, default=30, help="source lines to report")
+    ap.add_argument("--sampling-interval", default="0", help="ncu's: 0 samples every 2^5 cycles")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "issue27", "pair_stalls"))
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(args)
+        return
+    ncu = shutil.which("ncu") or next(
+        (p for p in ("/usr/local/cuda/bin/ncu", "/opt/nvidia/nsight-compute/ncu") if os.path.exists(p)), None
+    )
+    if ncu is None:
+        sys.exit("pair_stalls: ncu (Nsight Compute's command line) is not on the PATH; it runs where the CUDA "
+                 "toolkit is installed with a GPU")  # fmt: skip
+    wp.config.quiet = True
+    dev = wp.get_device(args.device)
+    if not dev.is_cuda:
+        sys.exit(f"pair_stalls: --device {args.device} is not a CUDA device; ncu samples GPU kernels only")
+    os.makedirs(args.out, exist_ok=True)
+    lib = shape_library()
+    record = {"meta": run_meta(dev), "args": vars(args), "cases": []}
+    for name in args.shapes.split(","):
+        for case in args.cases.split(","):
+            pa, pb = case_pairs(lib[name], case, args.depth, dev)
+            stem = os.path.join(args.out, f"{name}_{case}")
+            np.savez(stem + "_poses.npz", pa=pa, pb=pb)
+            cmd = [ncu, "-f", "-o", stem, "--import-source", "yes", "--sampling-interval", args.sampling_interval,
+                   "--kernel-name", "regex:overlap_kernel", "--launch-skip", "1", "--launch-count", "1"]  # fmt: skip
+            for section in SECTIONS:
+                cmd += ["--section", section]
+            cmd += [sys.executable, os.path.abspath(__file__), "--child", stem + "_poses.npz", "--shapes", name,
+                    "--device", args.device]  # fmt: skip
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+            entry = {"shape": name, "case": case, "threads": len(pa), "command": " ".join(cmd)}
+            report = stem + ".ncu-rep"
+            if proc.returncode != 0 or not os.path.exists(report):
+                entry["error"] = (proc.stdout + proc.stderr)[-3000:]
+                record["cases"].append(entry)
+                print(f"{name} {case}: ncu failed (rc {proc.returncode}):\n{entry['error'][-800:]}")
+                continue
+            raw, raw_text = ncu_csv(ncu, report, "--page", "raw")
+            details, details_text = ncu_csv(ncu, report, "--page", "details")
+            for label, page in (("sass", "sass"), ("python", "cuda")):
+                rows, text = ncu_csv(ncu, report, "--page", "source", "--print-source", page)
+                with open(f"{stem}_source_{label}.csv", "w") as f:
+                    f.write(text)
+                entry[f"top_{label}"] = top_lines(rows, args.top)
+            with open(stem + "_raw.csv", "w") as f:
+                f.write(raw_text)
+            with open(stem + "_details.csv", "w") as f:
+                f.write(details_text)
+            entry["stall_shares"] = stall_shares(raw)
+            for row in details:
+                if row.get("Metric Name") in ("Duration", "Warp Cycles Per Issued Instruction", "Executed Ipc Active"):
+                    entry[row["Metric Name"]] = f"{row.get('Metric Value')} {row.get('Metric Unit', '')}".strip()
+            record["cases"].append(entry)
+            figures = [f"{k} {entry[k]}" for k in ("Duration", "Warp Cycles Per Issued Instruction") if k in entry]
+            print(f"== {name} {case} ({len(pa)} threads): " + ", ".join(figures))
+            for reason, share in list(entry["stall_shares"].items())[:8]:
+                print(f"   {reason:<28s} {share:6.1%}")
+            for label in ("python", "sass"):
+                for line in entry[f"top_{label}"][:12]:
+                    print(f"   {label:6s} {line['share']:6.1%} {line['at']:>8} {line['source'][:90]}")
+    path = os.path.join(args.out, "pair_stalls.json")
+    with open(path, "w") as f:
+        json.dump(record, f, indent=1)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
