@@ -39,6 +39,8 @@ from pair_latency import spread  # noqa: E402
 from polydem.shapeset import ShapeSet  # noqa: E402
 
 SECTIONS = ("LaunchStats", "Occupancy", "SpeedOfLight", "WarpStateStats", "SourceCounters")
+# ncu locks the clocks (to base, by default): cycles, not the duration, compare with a run's events
+SUMMARY = ("Elapsed Cycles", "SM Frequency", "Duration", "Warp Cycles Per Issued Instruction", "Executed Ipc Active")
 
 
 def case_pairs(shape, case, depth, device):
@@ -168,10 +170,10 @@ def main():
                 f.write(details_text)
             entry["stall_shares"] = stall_shares(raw)
             for row in details:
-                if row.get("Metric Name") in ("Duration", "Warp Cycles Per Issued Instruction", "Executed Ipc Active"):
+                if row.get("Metric Name") in SUMMARY:
                     entry[row["Metric Name"]] = f"{row.get('Metric Value')} {row.get('Metric Unit', '')}".strip()
             record["cases"].append(entry)
-            figures = [f"{k} {entry[k]}" for k in ("Duration", "Warp Cycles Per Issued Instruction") if k in entry]
+            figures = [f"{k} {entry[k]}" for k in SUMMARY if k in entry]
             print(f"== {name} {case} ({len(pa)} threads): " + ", ".join(figures))
             for reason, share in list(entry["stall_shares"].items())[:8]:
                 print(f"   {reason:<28s} {share:6.1%}")
