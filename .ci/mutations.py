@@ -190,6 +190,13 @@ FAULTS = (
         ("tests/test_pair_variants.py::test_shared_polygon_buffer_agrees_bit_for_bit[cpu-cube_rock-float32]",),
     ),
     Fault(
+        "shared polygon buffer: Warp's own shared memory not counted",
+        "kernels/geometry.py",
+        "SHARED_POLY_BYTES = 48 * 1024 - 4 * SHARED_POLY_BLOCK\n",
+        "SHARED_POLY_BYTES = 48 * 1024\n",
+        ("tests/test_pair_variants.py::test_the_largest_shared_polygon_buffer_compiles_for_a_gpu",),
+    ),
+    Fault(
         "spread lanes: a round's faces not added before the next",
         "kernels/geometry.py",
         "                if j > 0 and j % lanes == 0:\n",

@@ -147,6 +147,31 @@ def test_shared_polygon_buffer_agrees_bit_for_bit(device, shape_set, precision):
         make_narrowphase(wp.float64, 20, shapes.max_faces, shared_poly=True)
 
 
+def cuda_binary(kernel, arch=90):
+    """Compile ``kernel``'s module for sm_``arch`` with Warp's NVRTC (no GPU needed), at the pair kernels' block."""
+    import tempfile
+
+    module = kernel.module
+    with tempfile.TemporaryDirectory() as tmp:
+        # Warp's own static shared memory (its tile storage) is sized by the block the module compiles for
+        options = module.resolve_options(wp.config, block_dim=NARROWPHASE_BLOCK_DIM)
+        module._compile(device=None, output_dir=tmp, output_arch=arch, use_ptx=False, options=options)
+
+
+def test_the_largest_shared_polygon_buffer_compiles_for_a_gpu():
+    """The most rows :func:`shared_poly_fits` allows compile for an H100/H200 (sm_90) with Warp's own static shared
+    memory beside them: on an H200 ptxas refused a 64-vertex buffer, 49,152 B, by Warp's 256 B of tile storage
+    (BENCHMARKS.md section 30). Compiled by Warp's NVRTC, which needs no GPU; skipped where it cannot compile."""
+    from polydem.kernels.geometry import shared_poly_fits
+
+    rows = max(k for k in range(1, 256) if shared_poly_fits(wp.float32, k))
+    try:
+        cuda_binary(make_narrowphase(wp.float32, 8, 6).overlap_kernel)
+    except Exception as e:  # a Warp build without NVRTC (no CUDA toolkit in the wheel)
+        pytest.skip(f"Warp cannot compile CUDA here: {e}")
+    cuda_binary(make_narrowphase(wp.float32, rows, 64, shared_poly=True).overlap_kernel)
+
+
 @pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
 @pytest.mark.parametrize("shape_set", sorted(SETS))
 def test_lanes_agree_bit_for_bit(device, shape_set, precision):
