@@ -11,10 +11,13 @@ of kernels/geometry.py), and reports:
 * the source lines with the most samples, from ncu's source page.
 
 Each case is one launch: ``one`` (a single touching pair), ``spreadN`` (N touching pairs one to a warp),
-``packedN`` (N touching pairs, 32 to a warp). The reports (``.ncu-rep``), ncu's CSV pages and a JSON summary go to
-``--out``. Needs ``ncu`` on the PATH and permission to read the GPU's counters; without them it says so and stops.
+``packedN`` (N touching pairs, 32 to a warp) of the overlap kernel, each shape of ``--shapes``; or ``pileN``: the
+step's pair kernel in time_to_settle.py's pour of N grains (``--pile-shapes``, 4 dt_rec, the volume rule's k, the
+default kernels), ``--pile-steps`` steps in (the launches before it run unprofiled, without graphs). The reports
+(``.ncu-rep``), ncu's CSV pages and a JSON summary go to ``--out``. Needs ``ncu`` on the PATH and permission to
+read the GPU's counters; without them it says so and stops.
 
-    python benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 --cases one,spread1024 --out DIR
+    python benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 --cases one,spread1024,pile1000 --out DIR
 """
 
 import argparse
@@ -43,21 +46,45 @@ SECTIONS = ("LaunchStats", "Occupancy", "SpeedOfLight", "WarpStateStats", "Sourc
 SUMMARY = ("Elapsed Cycles", "SM Frequency", "Duration", "Warp Cycles Per Issued Instruction", "Executed Ipc Active")
 
 
+def case_kind(case):
+    """("one", 1), ("spread"|"packed"|"pile", N) of a case's name."""
+    kind = re.fullmatch(r"(one)|(spread|packed|pile)(\d+)", case)
+    if kind is None:
+        raise SystemExit(f"pair_stalls: unknown case {case!r}: one, spreadN, packedN (N touching pairs) or pileN")
+    return ("one", 1) if kind.group(1) else (kind.group(2), int(kind.group(3)))
+
+
 def case_pairs(shape, case, depth, device):
     """The poses (xyz, xyzw float64) of one case's pairs: ``one``, ``spreadN`` or ``packedN``."""
-    kind = re.fullmatch(r"(one)|(spread|packed)(\d+)", case)
-    if kind is None:
-        raise SystemExit(f"pair_stalls: unknown case {case!r}: one, spreadN or packedN (N touching pairs)")
-    n = 1 if kind.group(1) else int(kind.group(3))
+    n = case_kind(case)[1]
     pa, pb = make_pairs(shape, 2 * max(n, 32), depth, np.random.default_rng(7), device)
     pa, pb = pa[:n], pb[:n]  # the touching half
     return spread(pa, pb, 32) if case.startswith("spread") else (pa, pb)
+
+
+def pile_child(args, n):
+    """Under ncu: time_to_settle.py's pour of ``n`` grains, ``--pile-steps`` steps and a few more."""
+    from settle import make_scene, scene_options
+    from time_to_settle import EDGE
+
+    from polydem import Simulation
+
+    options = scene_options(edge=EDGE, precision="mixed", k_rule="volume", shapes=args.pile_shapes)
+    scene, _ = make_scene(n, options, seed=0)
+    scene.dt = 4.0 * scene.time_step().recommended
+    sim = Simulation(scene, device=args.device, use_graph=False)
+    sim.step(args.pile_steps + 3)
+    wp.synchronize_device(sim.device)
 
 
 def child(args):
     """Under ncu: the launches of one case (the first compiles and warms up; ncu profiles a later one)."""
     wp.config.quiet = True
     wp.config.lineinfo = True
+    kind, n = case_kind(args.case)
+    if kind == "pile":
+        pile_child(args, n)
+        return
     data = np.load(args.child)
     shape = shape_library()[args.shapes]
     shapes = ShapeSet([shape], device=args.device, precision="float32")
@@ -111,6 +138,38 @@ def top_lines(source_rows, top):
     return [{"samples": s, "share": s / total, "at": w, "source": t[:160]} for s, w, t in rows[:top] if s > 0]
 
 
+def profile(ncu, stem, kernel, skip, child_args, args):
+    """One launch of ``kernel`` (a regex) after ``skip`` others, under ncu, in a child running this script with
+    ``child_args``; the report at ``stem``.ncu-rep, its pages as CSV beside it. The summary as a dict."""
+    cmd = [ncu, "-f", "-o", stem, "--import-source", "yes", "--sampling-interval", args.sampling_interval,
+           "--kernel-name", kernel, "--launch-skip", str(skip), "--launch-count", "1"]  # fmt: skip
+    for section in SECTIONS:
+        cmd += ["--section", section]
+    cmd += [sys.executable, os.path.abspath(__file__), *child_args]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    entry = {"command": " ".join(cmd)}
+    report = stem + ".ncu-rep"
+    if proc.returncode != 0 or not os.path.exists(report):
+        entry["error"] = f"rc {proc.returncode}: " + (proc.stdout + proc.stderr)[-3000:]
+        return entry
+    raw, raw_text = ncu_csv(ncu, report, "--page", "raw")
+    details, details_text = ncu_csv(ncu, report, "--page", "details")
+    for label, page in (("sass", "sass"), ("python", "cuda")):
+        rows, text = ncu_csv(ncu, report, "--page", "source", "--print-source", page)
+        with open(f"{stem}_source_{label}.csv", "w") as f:
+            f.write(text)
+        entry[f"top_{label}"] = top_lines(rows, args.top)
+    with open(stem + "_raw.csv", "w") as f:
+        f.write(raw_text)
+    with open(stem + "_details.csv", "w") as f:
+        f.write(details_text)
+    entry["stall_shares"] = stall_shares(raw)
+    for row in details:
+        if row.get("Metric Name") in SUMMARY:
+            entry[row["Metric Name"]] = f"{row.get('Metric Value')} {row.get('Metric Unit', '')}".strip()
+    return entry
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda:0")
@@ -120,7 +179,12 @@ def main():
     ap.add_argument("--top", type=int, default=30, help="source lines to report")
     ap.add_argument("--sampling-interval", default="0", help="ncu's: 0 samples every 2^5 cycles")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "issue27", "pair_stalls"))
+    ap.add_argument("--pile-shapes", default="cube", help="the pileN cases' grains: cube or mixed")
+    ap.add_argument(
+        "--pile-steps", type=int, default=6000, help="the pileN cases' profiled step (6,720 settle 1e3 cubes)"
+    )
     ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--case", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         child(args)
@@ -138,48 +202,37 @@ def main():
     os.makedirs(args.out, exist_ok=True)
     lib = shape_library()
     record = {"meta": run_meta(dev), "args": vars(args), "cases": []}
-    for name in args.shapes.split(","):
-        for case in args.cases.split(","):
+    runs = []
+    for case in args.cases.split(","):
+        if case_kind(case)[0] == "pile":
+            runs.append((args.pile_shapes, case))
+        else:
+            runs += [(name, case) for name in args.shapes.split(",")]
+    for name, case in runs:
+        stem = os.path.join(args.out, f"{name}_{case}")
+        child_args = ["--case", case, "--device", args.device]
+        if case_kind(case)[0] == "pile":
+            threads = None
+            kernel, skip = "regex:pair_contact_kernel", args.pile_steps
+            child_args += ["--child", "-", "--pile-shapes", name, "--pile-steps", str(args.pile_steps)]
+        else:
             pa, pb = case_pairs(lib[name], case, args.depth, dev)
-            stem = os.path.join(args.out, f"{name}_{case}")
+            threads = len(pa)
             np.savez(stem + "_poses.npz", pa=pa, pb=pb)
-            cmd = [ncu, "-f", "-o", stem, "--import-source", "yes", "--sampling-interval", args.sampling_interval,
-                   "--kernel-name", "regex:overlap_kernel", "--launch-skip", "1", "--launch-count", "1"]  # fmt: skip
-            for section in SECTIONS:
-                cmd += ["--section", section]
-            cmd += [sys.executable, os.path.abspath(__file__), "--child", stem + "_poses.npz", "--shapes", name,
-                    "--device", args.device]  # fmt: skip
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-            entry = {"shape": name, "case": case, "threads": len(pa), "command": " ".join(cmd)}
-            report = stem + ".ncu-rep"
-            if proc.returncode != 0 or not os.path.exists(report):
-                entry["error"] = (proc.stdout + proc.stderr)[-3000:]
-                record["cases"].append(entry)
-                print(f"{name} {case}: ncu failed (rc {proc.returncode}):\n{entry['error'][-800:]}")
-                continue
-            raw, raw_text = ncu_csv(ncu, report, "--page", "raw")
-            details, details_text = ncu_csv(ncu, report, "--page", "details")
-            for label, page in (("sass", "sass"), ("python", "cuda")):
-                rows, text = ncu_csv(ncu, report, "--page", "source", "--print-source", page)
-                with open(f"{stem}_source_{label}.csv", "w") as f:
-                    f.write(text)
-                entry[f"top_{label}"] = top_lines(rows, args.top)
-            with open(stem + "_raw.csv", "w") as f:
-                f.write(raw_text)
-            with open(stem + "_details.csv", "w") as f:
-                f.write(details_text)
-            entry["stall_shares"] = stall_shares(raw)
-            for row in details:
-                if row.get("Metric Name") in SUMMARY:
-                    entry[row["Metric Name"]] = f"{row.get('Metric Value')} {row.get('Metric Unit', '')}".strip()
-            record["cases"].append(entry)
-            figures = [f"{k} {entry[k]}" for k in SUMMARY if k in entry]
-            print(f"== {name} {case} ({len(pa)} threads): " + ", ".join(figures))
-            for reason, share in list(entry["stall_shares"].items())[:8]:
-                print(f"   {reason:<28s} {share:6.1%}")
-            for label in ("python", "sass"):
-                for line in entry[f"top_{label}"][:12]:
-                    print(f"   {label:6s} {line['share']:6.1%} {line['at']:>8} {line['source'][:90]}")
+            kernel, skip = "regex:overlap_kernel", 1
+            child_args += ["--child", stem + "_poses.npz", "--shapes", name]
+        entry = {"shape": name, "case": case, "threads": threads, **profile(ncu, stem, kernel, skip, child_args, args)}
+        record["cases"].append(entry)
+        if "error" in entry:
+            print(f"{name} {case}: ncu failed:\n{entry['error'][-800:]}")
+            continue
+        figures = [f"{k} {entry[k]}" for k in SUMMARY if k in entry]
+        print(f"== {name} {case} ({threads or 'the step'} threads): " + ", ".join(figures))
+        for reason, share in list(entry["stall_shares"].items())[:8]:
+            print(f"   {reason:<28s} {share:6.1%}")
+        for label in ("python", "sass"):
+            for line in entry[f"top_{label}"][:12]:
+                print(f"   {label:6s} {line['share']:6.1%} {line['at']:>8} {line['source'][:90]}")
     path = os.path.join(args.out, "pair_stalls.json")
     with open(path, "w") as f:
         json.dump(record, f, indent=1)
