@@ -12,9 +12,10 @@ of kernels/geometry.py), and reports:
 
 Each case is one launch: ``one`` (a single touching pair), ``spreadN`` (N touching pairs one to a warp),
 ``packedN`` (N touching pairs, 32 to a warp) of the overlap kernel, each shape of ``--shapes``; or ``pileN``: the
-step's pair kernel in time_to_settle.py's pour of N grains (``--pile-shapes``, 4 dt_rec, the volume rule's k, the
-default kernels), ``--pile-steps`` steps in (the launches before it run unprofiled, without graphs). The reports
-(``.ncu-rep``), ncu's CSV pages and a JSON summary go to ``--out``. Needs ``ncu`` on the PATH and permission to
+step's pair kernel and gather kernel (``--pile-kernels``) in time_to_settle.py's pour of N grains
+(``--pile-shapes``, 4 dt_rec, the volume rule's k, the default kernels), ``--pile-steps`` steps in (the launches
+before it run unprofiled, without graphs). The reports (``.ncu-rep``), ncu's CSV pages and a JSON summary go to
+``--out``. Needs ``ncu`` on the PATH and permission to
 read the GPU's counters; without them it says so and stops.
 
     python benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 --cases one,spread1024,pile1000 --out DIR
@@ -183,6 +184,7 @@ def main():
     ap.add_argument(
         "--pile-steps", type=int, default=6000, help="the pileN cases' profiled step (6,720 settle 1e3 cubes)"
     )
+    ap.add_argument("--pile-kernels", default="pair_contact_kernel,gather_kernel", help="the pileN cases' kernels")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--case", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -205,15 +207,17 @@ def main():
     runs = []
     for case in args.cases.split(","):
         if case_kind(case)[0] == "pile":
-            runs.append((args.pile_shapes, case))
+            runs += [(args.pile_shapes, case, kernel) for kernel in args.pile_kernels.split(",")]
         else:
-            runs += [(name, case) for name in args.shapes.split(",")]
-    for name, case in runs:
+            runs += [(name, case, "overlap_kernel") for name in args.shapes.split(",")]
+    for name, case, kernel_name in runs:
         stem = os.path.join(args.out, f"{name}_{case}")
         child_args = ["--case", case, "--device", args.device]
         if case_kind(case)[0] == "pile":
             threads = None
-            kernel, skip = "regex:pair_contact_kernel", args.pile_steps
+            stem += f"_{kernel_name}"
+            # one launch of each a step (a step whose lists are rebuilt launches them once too)
+            kernel, skip = f"regex:{kernel_name}", args.pile_steps
             child_args += ["--child", "-", "--pile-shapes", name, "--pile-steps", str(args.pile_steps)]
         else:
             pa, pb = case_pairs(lib[name], case, args.depth, dev)
@@ -221,13 +225,14 @@ def main():
             np.savez(stem + "_poses.npz", pa=pa, pb=pb)
             kernel, skip = "regex:overlap_kernel", 1
             child_args += ["--child", stem + "_poses.npz", "--shapes", name]
-        entry = {"shape": name, "case": case, "threads": threads, **profile(ncu, stem, kernel, skip, child_args, args)}
+        entry = {"shape": name, "case": case, "kernel": kernel_name, "threads": threads}
+        entry.update(profile(ncu, stem, kernel, skip, child_args, args))
         record["cases"].append(entry)
         if "error" in entry:
-            print(f"{name} {case}: ncu failed:\n{entry['error'][-800:]}")
+            print(f"{name} {case} {kernel_name}: ncu failed:\n{entry['error'][-800:]}")
             continue
         figures = [f"{k} {entry[k]}" for k in SUMMARY if k in entry]
-        print(f"== {name} {case} ({threads or 'the step'} threads): " + ", ".join(figures))
+        print(f"== {name} {case} {kernel_name} ({threads or 'the step'} threads): " + ", ".join(figures))
         for reason, share in list(entry["stall_shares"].items())[:8]:
             print(f"   {reason:<28s} {share:6.1%}")
         for label in ("python", "sass"):
