@@ -15,8 +15,8 @@ Each case is one launch: ``one`` (a single touching pair), ``spreadN`` (N touchi
 step's pair kernel and gather kernel (``--pile-kernels``) in time_to_settle.py's pour of N grains
 (``--pile-shapes``, 4 dt_rec, the volume rule's k, the default kernels), ``--pile-steps`` steps in (the launches
 before it run unprofiled, without graphs). The reports (``.ncu-rep``), ncu's CSV pages and a JSON summary go to
-``--out``. Needs ``ncu`` on the PATH and permission to
-read the GPU's counters; without them it says so and stops.
+``--out``. Needs ``ncu`` on the PATH and permission to read the GPU's counters; without them it says so and
+stops.
 
     python benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 --cases one,spread1024,pile1000 --out DIR
 """
