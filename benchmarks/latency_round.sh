@@ -1,0 +1,41 @@
+#!/bin/bash
+# One GPU, one call: what a small pile's step waits on (BENCHMARKS.md 30: at 1e3 cubes Newton is 1.10x ahead and
+# polydem's step is one pair's latency). From the repository root, polydem importable; ncu on the PATH or in
+# /usr/local/cuda/bin. Every job's timeout is cut to what is left of BUDGET seconds (default 540); the results
+# (/tmp/latency_round) are packed into $OUT/latency_round.tgz (or ./...).
+#   1. pair_stalls.py: ncu's warp-state sampling of the overlap kernel (one cube or rock pair alone, 1024 one to a
+#      warp) and of the 1e3 cube pour's own pair and gather kernels 6,000 steps in: the stall reasons and the
+#      Python lines they fall on.
+#   2. time_to_settle.py at 1e3 cubes with --profile-steps 500: the step's wall time against its graph's GPU time
+#      (the host's share) and each kernel's GPU time with graphs off, then the same with --shared-poly.
+set -u
+R=/tmp/latency_round; rm -rf $R; mkdir -p $R; END=$((SECONDS + ${BUDGET:-540}))
+# never 0 or less: `timeout 0` means no limit at all
+cap() { local l=$((END - SECONDS)); [ $l -lt 5 ] && l=5; [ $l -gt $1 ] && l=$1; echo $l; }
+export PATH=$PATH:/usr/local/cuda/bin
+timeout $(cap 330) python3 benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 \
+  --cases one,spread1024,pile1000 --out $R/stalls > $R/stalls.log 2>&1
+grep -E "^==|^   " $R/stalls.log | head -90
+# the reports are large: keep the CSV pages and the summary
+mkdir -p $R/reports && mv $R/stalls/*.ncu-rep $R/reports/ 2>/dev/null
+for flag in "" --shared-poly; do
+  log=$R/tts_1e3${flag:+_shared}
+  timeout $(cap 100) python3 benchmarks/time_to_settle.py --device cuda:0 --sizes 1000 --dt-scales 4 --k-rule volume \
+    --speed-fraction off --profile-steps 500 $flag --out $log.json > $log.log 2>&1
+  echo "tts 1e3 ${flag:-default}: $(grep -E '^ +1000 ' $log.log | tail -1)"
+  python3 - "$log.json" <<'EOF'
+import json, sys
+try:
+    r = json.load(open(sys.argv[1]))["runs"][0]["profile"]
+except Exception as e:  # the run was cut
+    sys.exit(f"   no profile: {e!r}")
+graphs = r.get("graphs_ms_per_step") or {}
+print(f"   wall {r['wall_ms_per_step']:.4f} ms a step; graphs' GPU {sum(graphs.values()):.4f} ms a step")
+kernels = r.get("kernels_ms_per_step") or {}
+for name, ms in sorted(kernels.items(), key=lambda kv: -kv[1])[:8]:
+    print(f"   {ms:8.4f} ms  {name}")
+EOF
+done
+mkdir -p ${OUT:-.}
+tar czf ${OUT:-.}/latency_round.tgz -C $R --exclude reports . ; tar czf ${OUT:-.}/latency_reports.tgz -C $R reports
+ls -la ${OUT:-.}/latency_*.tgz
