@@ -108,15 +108,24 @@ def number(value):
         return None
 
 
+STALL_METRIC = re.compile(
+    r"smsp__(pcsamp_warps|average_warps|average_warp_latency)_issue_stalled_(\w+?)"
+    r"(_per_issue_active\.ratio|_per_warp_active\.pct|\.sum|\.ratio)?"
+)
+
+
 def stall_shares(raw_rows):
-    """{reason: share of the sampled warp states} from the raw page's smsp__pcsamp_warps_issue_stalled_* counts."""
-    counts = {}
+    """{reason: share} of the warps' stalls from the raw page: the sampled counts (smsp__pcsamp_warps_issue_stalled_*)
+    where ncu gives them, else WarpStateStats' cycles a warp spent stalled per issued instruction, by reason."""
+    families = {}
     for row in raw_rows:
         for key, value in row.items():
-            if key and key.startswith("smsp__pcsamp_warps_issue_stalled_") and not key.endswith("_not_issued"):
-                v = number(value)
-                if v is not None:
-                    counts[key.removeprefix("smsp__pcsamp_warps_issue_stalled_")] = v
+            found = STALL_METRIC.fullmatch(key or "")
+            v = number(value)
+            if found is None or v is None or found.group(2).endswith("not_issued"):
+                continue
+            families.setdefault(found.group(1), {})[found.group(2)] = v
+    counts = families.get("pcsamp_warps") or families.get("average_warps") or families.get("average_warp_latency") or {}
     total = sum(counts.values())
     return {k: v / total for k, v in sorted(counts.items(), key=lambda kv: -kv[1])} if total else {}
 
