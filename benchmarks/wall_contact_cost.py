@@ -100,6 +100,19 @@ def time_steps(sim, steps, repeats):
     return statistics.median(times)
 
 
+def candidate_counts(sim):
+    """Through the candidate list: the (body, cell) candidates a free body and those whose overlap is not empty (the
+    clippings a step does, and those that count), or None (the walk)."""
+    cand = sim.stepper.mesh_candidates
+    if cand is None:
+        return None
+    c = cand.candidates
+    total = int(c.total.numpy()[0])
+    overlapping = int((c.volume.numpy()[:total] > 0.0).sum())
+    free = int((sim.model.body_flags_np == 0).sum())
+    return {"candidates_per_body": total / free, "overlapping_per_body": overlapping / free}
+
+
 def kernel_profile(scene, device, mesh_candidates, join, steps):
     """GPU milliseconds per step of each kernel (Warp's activity timing; the host loop, no graph), largest first."""
     sim = Simulation(scene, device=device, use_graph=False, mesh_candidates=mesh_candidates, join_flat_cells=join)
@@ -170,8 +183,8 @@ def main():
                 row_cells = sim.model.mesh_cells[0].num_cells
             t = time_steps(sim, args.steps, args.repeats)
             c = sim.contacts()
-            res[lifted] = (t, len(c["volume"]))
-        (t_on, contacts), (t_off, _) = res[False], res[True]
+            res[lifted] = (t, len(c["volume"]), candidate_counts(sim))
+        (t_on, contacts, counts), (t_off, _, _) = res[False], res[True]
         row = {
             "kind": (kind if path in (None, "default") else f"{kind}/{path}") + ("" if join else "/tri"),
             "mesh_path": path,
@@ -181,6 +194,8 @@ def main():
             "contacts": contacts,
             "per_contact_s": (t_on - t_off) / max(contacts, 1),
         }
+        if counts:
+            row.update(counts)
         if kind == "meshT":
             row["triangles"] = row_triangles
             row["mesh_cells"] = row_cells
@@ -197,7 +212,9 @@ def main():
         print(
             f"{row['kind']:>14}: step {t_on * 1e3:9.4f} ms, lifted {t_off * 1e3:9.4f} ms, {contacts} contacts, "
             f"{row['per_contact_s'] * 1e9:9.1f} ns per contact"
-        )
+            + (f"; a body's cells: {counts['candidates_per_body']:.2f} listed, {counts['overlapping_per_body']:.2f} "
+               "overlapping" if counts else "")
+        )  # fmt: skip
     ref = next((r for r in rows if r["kind"] == "pair"), None)
     if ref:
         for r in rows:
