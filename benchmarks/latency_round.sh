@@ -4,8 +4,8 @@
 # /usr/local/cuda/bin. Every job's timeout is cut to what is left of BUDGET seconds (default 540); the results
 # (/tmp/latency_round) are packed into $OUT/latency_round.tgz (or ./...).
 #   1. pair_stalls.py: ncu's warp-state sampling of the overlap kernel (one cube or rock pair alone, 1024 one to a
-#      warp) and of the 1e3 cube pour's own pair and gather kernels 6,000 steps in: the stall reasons and the
-#      Python lines they fall on.
+#      warp, and 65,536 packed: the throughput the pair kernel's 2x row asks of it) and of the 1e3 cube pour's own
+#      pair and gather kernels 6,000 steps in: the stall reasons and the Python lines they fall on.
 #   2. time_to_settle.py at 1e3 cubes with --profile-steps 500: the step's wall time against its graph's GPU time
 #      (the host's share) and each kernel's GPU time with graphs off, then the same with --shared-poly.
 set -u
@@ -13,8 +13,8 @@ R=/tmp/latency_round; rm -rf $R; mkdir -p $R; END=$((SECONDS + ${BUDGET:-540}))
 # never 0 or less: `timeout 0` means no limit at all
 cap() { local l=$((END - SECONDS)); [ $l -lt 5 ] && l=5; [ $l -gt $1 ] && l=$1; echo $l; }
 export PATH=$PATH:/usr/local/cuda/bin
-timeout $(cap 330) python3 benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 \
-  --cases one,spread1024,pile1000 --out $R/stalls > $R/stalls.log 2>&1
+timeout $(cap 350) python3 benchmarks/pair_stalls.py --device cuda:0 --shapes cube,rock20 \
+  --cases one,spread1024,packed65536,pile1000 --out $R/stalls > $R/stalls.log 2>&1
 grep -E "^==|^   " $R/stalls.log | head -90
 # the reports are large: keep the CSV pages and the summary
 mkdir -p $R/reports && mv $R/stalls/*.ncu-rep $R/reports/ 2>/dev/null
