@@ -151,7 +151,8 @@ def top_lines(source_rows, top):
 def profile(ncu, stem, kernel, skip, child_args, args):
     """One launch of ``kernel`` (a regex) after ``skip`` others, under ncu, in a child running this script with
     ``child_args``; the report at ``stem``.ncu-rep, its pages as CSV beside it. The summary as a dict."""
-    cmd = [ncu, "-f", "-o", stem, "--import-source", "yes", "--sampling-interval", args.sampling_interval,
+    cmd = [ncu, "-f", "-o", stem, "--target-processes", "all", "--import-source", "yes",
+           "--sampling-interval", args.sampling_interval,
            "--kernel-name", kernel, "--launch-skip", str(skip), "--launch-count", "1"]  # fmt: skip
     for section in SECTIONS:
         cmd += ["--section", section]
