@@ -167,6 +167,8 @@ def profile(ncu, stem, kernel, skip, child_args, args):
     details, details_text = ncu_csv(ncu, report, "--page", "details")
     for label, page in (("sass", "sass"), ("python", "cuda")):
         rows, text = ncu_csv(ncu, report, "--page", "source", "--print-source", page)
+        if not rows and label == "sass":  # an ncu without --print-source: its source page as it prints it
+            rows, text = ncu_csv(ncu, report, "--page", "source")
         with open(f"{stem}_source_{label}.csv", "w") as f:
             f.write(text)
         entry[f"top_{label}"] = top_lines(rows, args.top)
