@@ -4,7 +4,7 @@
 #   VARIANT=shared  the polygon buffer in the block's shared memory (--shared-poly): its CUDA tests, the overlap
 #                   kernel's throughput both ways (pair_kernel.py --clips polygon,shared; PAIR=0 leaves it out), time
 #                   to settled at 1e3 cubes (TTS=0 leaves it out) and the step of the SHAPES piles (default "mixed
-#                   cube") at SIZES (default "100000 1000000") with and without, alternating.
+#                   cube") at SIZES (default "10000 100000") with and without, alternating.
 #   VARIANT=lanes   a spread pair's lanes each clipping some of its faces (--spread-lanes): its CUDA tests, one
 #                   wave's latency (pair_latency.py --clip-lanes 8,32 --setup-only), time to settled at 1e3 cubes and
 #                   the step of the piles at SIZES (default 10000) with and without.
@@ -17,7 +17,7 @@ R=/tmp/variant_$VARIANT; rm -rf $R; mkdir -p $R; END=$((SECONDS + ${BUDGET:-540}
 # never 0 or less: `timeout 0` means no limit at all
 cap() { local l=$((END - SECONDS)); [ $l -lt 5 ] && l=5; [ $l -gt $1 ] && l=$1; echo $l; }
 if [ "$VARIANT" = shared ]; then
-  FLAG=--shared-poly; TESTS="tests/test_pair_variants.py -k shared"; SIZES=${SIZES:-100000 1000000}
+  FLAG=--shared-poly; TESTS="tests/test_pair_variants.py -k shared"; SIZES=${SIZES:-10000 100000}
 else
   FLAG=--spread-lanes; TESTS="tests/test_pair_variants.py tests/test_pair_order.py -k lanes or spread"
   SIZES=${SIZES:-10000}
