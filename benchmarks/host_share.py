@@ -24,10 +24,8 @@ import warp as wp
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 from _meta import run_meta  # noqa: E402
-from settle import make_scene, scene_options  # noqa: E402
-from time_to_settle import EDGE  # noqa: E402
+from time_to_settle import default_pour  # noqa: E402
 
-from polydem import Simulation  # noqa: E402
 from polydem.simulation import CHUNK_STEPS  # noqa: E402
 
 
@@ -41,10 +39,7 @@ def timed(sim, run, steps):
 
 
 def measure(n, args, device):
-    options = scene_options(edge=EDGE, precision="mixed", k_rule="volume", shapes=args.shapes)
-    scene, _ = make_scene(n, options, seed=0)
-    scene.dt = 4.0 * scene.time_step().recommended
-    sim = Simulation(scene, device=device)
+    sim = default_pour(n, device, args.shapes)
     sim.step(max(1, round(args.warmup / sim.dt)))
     steps = args.chunks * CHUNK_STEPS
     rows = {"step": [], "advance": [], "settle_measures": []}

@@ -65,15 +65,9 @@ def case_pairs(shape, case, depth, device):
 
 def pile_child(args, n):
     """Under ncu: time_to_settle.py's pour of ``n`` grains, ``--pile-steps`` steps and a few more."""
-    from settle import make_scene, scene_options
-    from time_to_settle import EDGE
+    from time_to_settle import default_pour
 
-    from polydem import Simulation
-
-    options = scene_options(edge=EDGE, precision="mixed", k_rule="volume", shapes=args.pile_shapes)
-    scene, _ = make_scene(n, options, seed=0)
-    scene.dt = 4.0 * scene.time_step().recommended
-    sim = Simulation(scene, device=args.device, use_graph=False)
+    sim = default_pour(n, args.device, args.pile_shapes, use_graph=False)
     sim.step(args.pile_steps + 3)
     wp.synchronize_device(sim.device)
 

@@ -49,6 +49,15 @@ from settle import SHAPE_SETS, add_pile_options, apply_stepper_options, kernel_o
 EDGE = 0.01  # cube edge [m]
 
 
+def default_pour(n, device, shapes="cube", use_graph=None):
+    """A Simulation of this benchmark's pour of ``n`` grains at its defaults (mixed precision, the volume rule's k,
+    4 x the recommended step), for the scripts that time or profile pieces of it (host_share.py, pair_stalls.py)."""
+    options = scene_options(edge=EDGE, precision="mixed", k_rule="volume", shapes=shapes)
+    scene, _ = make_scene(n, options, seed=0)
+    scene.dt = 4.0 * scene.time_step().recommended
+    return Simulation(scene, device=device, use_graph=use_graph)
+
+
 def _largest(values):
     return float(np.max(values)) if len(values) else 0.0
 
