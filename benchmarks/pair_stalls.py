@@ -22,8 +22,6 @@ stops.
 """
 
 import argparse
-import csv
-import io
 import json
 import os
 import re
@@ -39,6 +37,7 @@ sys.path.insert(0, HERE)
 from _meta import run_meta  # noqa: E402
 from pair_kernel import make_pairs, shape_library, time_kernel  # noqa: E402
 from pair_latency import spread  # noqa: E402
+from sass_lines import attribute, read_disassembly, read_page, table  # noqa: E402
 
 from polydem.shapeset import ShapeSet  # noqa: E402
 
@@ -90,8 +89,7 @@ def ncu_csv(ncu, report, *page):
     """Rows of one of ncu's CSV pages of ``report`` (a list of dicts), and the text."""
     proc = subprocess.run([ncu, "-i", report, "--csv", *page], capture_output=True, text=True, timeout=600)
     text = proc.stdout
-    start = text.find('"')  # ncu prints notes before the table
-    rows = list(csv.DictReader(io.StringIO(text[start:]))) if start >= 0 else []
+    _, rows = read_page(text)  # the source page names its kernel on a line of its own above the header
     return rows, text + proc.stderr
 
 
@@ -128,7 +126,7 @@ def top_lines(source_rows, top):
     """The source page's rows with the most samples: (samples, share, location, source text)."""
     if not source_rows:
         return []
-    keys = list(source_rows[0])
+    keys = [k for k in source_rows[0] if k]
     sample_key = next((k for k in keys if "Sampling" in k and "All" in k), None)
     sample_key = sample_key or next((k for k in keys if "Samples" in k or "Sampling" in k), None)
     if sample_key is None:
@@ -146,7 +144,7 @@ def profile(ncu, stem, kernel, skip, child_args, args):
     """One launch of ``kernel`` (a regex) after ``skip`` others, under ncu, in a child running this script with
     ``child_args``; the report at ``stem``.ncu-rep, its pages as CSV beside it. The summary as a dict."""
     cmd = [ncu, "-f", "-o", stem, "--target-processes", "all", "--import-source", "yes",
-           "--sampling-interval", args.sampling_interval,
+           "--warp-sampling-interval", args.sampling_interval,
            "--kernel-name", kernel, "--launch-skip", str(skip), "--launch-count", "1"]  # fmt: skip
     for section in SECTIONS:
         cmd += ["--section", section]
@@ -166,6 +164,7 @@ def profile(ncu, stem, kernel, skip, child_args, args):
         with open(f"{stem}_source_{label}.csv", "w") as f:
             f.write(text)
         entry[f"top_{label}"] = top_lines(rows, args.top)
+    entry.update(python_lines(stem, args))
     with open(stem + "_raw.csv", "w") as f:
         f.write(raw_text)
     with open(stem + "_details.csv", "w") as f:
@@ -175,6 +174,40 @@ def profile(ncu, stem, kernel, skip, child_args, args):
         if row.get("Metric Name") in SUMMARY:
             entry[row["Metric Name"]] = f"{row.get('Metric Value')} {row.get('Metric Unit', '')}".strip()
     return entry
+
+
+def find_cubin(kernel_name, cache_dir):
+    """The cubin in Warp's kernel cache that holds ``kernel_name`` (the newest), or None."""
+    found = []
+    for root, _, files in os.walk(cache_dir):
+        for name in files:
+            if name.endswith(".cubin"):
+                path = os.path.join(root, name)
+                with open(path, "rb") as f:
+                    if kernel_name.encode() in f.read():
+                        found.append(path)
+    return max(found, key=os.path.getmtime) if found else None
+
+
+def python_lines(stem, args):
+    """The SASS page's samples and instructions by Python line and function (sass_lines.py), from the profiled
+    kernel's cubin in Warp's kernel cache disassembled with nvdisasm -gi (kept as ``stem``.sass); {} without
+    nvdisasm or the cubin."""
+    tool = shutil.which("nvdisasm") or "/usr/local/cuda/bin/nvdisasm"
+    try:
+        with open(f"{stem}_source_sass.csv") as f:
+            kernel, rows = read_page(f.read())
+    except OSError:
+        return {}
+    cubin = find_cubin(kernel, wp.config.kernel_cache_dir) if kernel and rows else None
+    if cubin is None or not os.path.exists(tool):
+        return {"lines_missing": f"cubin {cubin}, nvdisasm {tool if os.path.exists(tool) else 'absent'}"}
+    text = subprocess.run([tool, "-gi", "-c", cubin], capture_output=True, text=True, timeout=600).stdout
+    with open(stem + ".sass", "w") as f:
+        f.write(text)
+    roots = [os.path.join(HERE, "..", "kernels"), os.path.join(HERE, "..", "src", "polydem")]
+    _, by_line, by_def, differ = attribute(read_disassembly(text), kernel, rows, "inner", roots)
+    return {"opcodes_differ": differ, "by_line": table(by_line, args.top), "by_function": table(by_def, args.top)}
 
 
 def main():
@@ -241,6 +274,11 @@ def main():
         print(f"== {name} {case} {kernel_name} ({threads or 'the step'} threads): " + ", ".join(figures))
         for reason, share in list(entry["stall_shares"].items())[:8]:
             print(f"   {reason:<28s} {share:6.1%}")
+        for e in entry.get("by_function", [])[:10]:
+            print(f"   def    {e['samples']:6.1%} {e['instructions']:6.1%} instr. {e['at'][0]}:{e['at'][1]}")
+        for e in entry.get("by_line", [])[:15]:
+            at = f"{os.path.basename(e['at'][0])}:{e['at'][1]}"
+            print(f"   line   {e['samples']:6.1%} {e['instructions']:6.1%} instr. {at}")
         for label in ("python", "sass"):
             for line in entry[f"top_{label}"][:12]:
                 print(f"   {label:6s} {line['share']:6.1%} {line['at']:>8} {line['source'][:90]}")
