@@ -9,7 +9,7 @@
 #   2. host_share.py at 1e3 and 1e4 cubes: Simulation.step's chunks (their checks and copies) against the bare
 #      graph launches of advance(), alternating: the GPU's idle share of a small pile's step.
 #   3. time_to_settle.py at 1e3 cubes with --profile-steps 500: the step's wall time against its graph's GPU time
-#      and each kernel's GPU time with graphs off, then the same with --shared-poly.
+#      and each kernel's GPU time with graphs off, then the same with --no-shared-poly (the per-thread buffer).
 set -u
 R=/tmp/latency_round; rm -rf $R; mkdir -p $R; END=$((SECONDS + ${BUDGET:-540}))
 # never 0 or less: `timeout 0` means no limit at all
@@ -22,8 +22,8 @@ grep -E "^==|^   " $R/stalls.log | head -90
 mkdir -p $R/reports && mv $R/stalls/*.ncu-rep $R/reports/ 2>/dev/null
 timeout $(cap 70) python3 benchmarks/host_share.py --device cuda:0 --sizes 1000,10000 --out $R/host_share.json \
   > $R/host_share.log 2>&1; tail -4 $R/host_share.log
-for flag in "" --shared-poly; do
-  log=$R/tts_1e3${flag:+_shared}
+for flag in "" --no-shared-poly; do
+  log=$R/tts_1e3${flag:+_thread}
   timeout $(cap 80) python3 benchmarks/time_to_settle.py --device cuda:0 --sizes 1000 --dt-scales 4 --k-rule volume \
     --speed-fraction off --profile-steps 500 $flag --out $log.json > $log.log 2>&1
   echo "tts 1e3 ${flag:-default}: $(grep -E '^ +1000 ' $log.log | tail -1)"

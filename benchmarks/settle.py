@@ -973,8 +973,9 @@ def add_kernel_options(ap):
         help="a spread pair's lanes each clip some of its faces, not idle (Stepper.set_spread(lanes=True))",
     )  # fmt: skip
     ap.add_argument(
-        "--shared-poly", action="store_true",
-        help="the pair kernel's polygon buffer in the block's shared memory where it fits (Stepper.set_shared_poly)",
+        "--shared-poly", action=argparse.BooleanOptionalAction, default=None,
+        help="the pair kernel's polygon buffer in the block's shared memory where it fits (Stepper.set_shared_poly; "
+        "default: the library's, on); --no-shared-poly: the per-thread buffer",
     )  # fmt: skip
     # the flag of the runs before the default changed (BENCHMARKS.md 17)
     ap.add_argument(
@@ -983,14 +984,15 @@ def add_kernel_options(ap):
 
 
 def apply_stepper_options(sim, args):
-    """``--spread-pairs``, ``--spread-lanes`` and ``--shared-poly`` on a built Simulation (before its first step: its
-    graphs are captured afterwards)."""
+    """``--spread-pairs``, ``--spread-lanes`` and ``--[no-]shared-poly`` on a built Simulation (before its first
+    step: its graphs are captured afterwards)."""
     value = getattr(args, "spread_pairs", "default")
     lanes = True if getattr(args, "spread_lanes", False) else None
     if (value != "default" or lanes) and sim.stepper.thread_order:
         sim.stepper.set_spread(sim.stepper.spread_pairs if value == "default" else int(value), lanes=lanes)
-    if getattr(args, "shared_poly", False):
-        sim.stepper.set_shared_poly(True)
+    shared = getattr(args, "shared_poly", None)
+    if shared is not None and shared != sim.stepper.shared_poly:
+        sim.stepper.set_shared_poly(shared)
     return sim
 
 

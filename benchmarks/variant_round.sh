@@ -1,7 +1,8 @@
 #!/bin/bash
 # One GPU: a pair-kernel variant against the default, in one call (BENCHMARKS.md 29, 30). From the repository root,
 # polydem importable.
-#   VARIANT=shared  the polygon buffer in the block's shared memory (--shared-poly): its CUDA tests, the overlap
+#   VARIANT=shared  the polygon buffer in the block's shared memory (the default since section 31) against the
+#                   per-thread buffer (--no-shared-poly, files marked _thread): its CUDA tests, the overlap
 #                   kernel's throughput both ways (pair_kernel.py --clips polygon,shared; PAIR=0 leaves it out), time
 #                   to settled at 1e3 cubes (TTS=0 leaves it out) and the step of the SHAPES piles (default "mixed
 #                   cube") at SIZES (default "10000 100000") with and without, alternating.
@@ -17,9 +18,9 @@ R=/tmp/variant_$VARIANT; rm -rf $R; mkdir -p $R; END=$((SECONDS + ${BUDGET:-540}
 # never 0 or less: `timeout 0` means no limit at all
 cap() { local l=$((END - SECONDS)); [ $l -lt 5 ] && l=5; [ $l -gt $1 ] && l=$1; echo $l; }
 if [ "$VARIANT" = shared ]; then
-  FLAG=--shared-poly; TESTS="tests/test_pair_variants.py -k shared"; SIZES=${SIZES:-10000 100000}
+  FLAG=--no-shared-poly; LABEL=thread; TESTS="tests/test_pair_variants.py -k shared"; SIZES=${SIZES:-10000 100000}
 else
-  FLAG=--spread-lanes; TESTS="tests/test_pair_variants.py tests/test_pair_order.py -k lanes or spread"
+  FLAG=--spread-lanes; LABEL=lanes; TESTS="tests/test_pair_variants.py tests/test_pair_order.py -k lanes or spread"
   SIZES=${SIZES:-10000}
 fi
 POLYDEM_TEST_DEVICES=cuda:0 timeout $(cap 240) python3 -m pytest -q -rf -p no:cacheprovider ${TESTS%% -k *} \
@@ -36,7 +37,7 @@ if [ "$VARIANT" = lanes ]; then
 fi
 if [ "${TTS:-1}" = 1 ]; then
   for flag in "" $FLAG "" $FLAG; do
-    log=$R/tts_1e3${flag:+_$VARIANT}_$RANDOM
+    log=$R/tts_1e3${flag:+_$LABEL}_$RANDOM
     timeout $(cap 90) python3 benchmarks/time_to_settle.py --device cuda:0 --sizes 1000 --dt-scales 4 --k-rule volume \
       --speed-fraction off $flag --out $log.json > $log.log 2>&1
     echo "tts 1e3 ${flag:-default}: $(grep -E '^ +1000 ' $log.log | tail -1)"
@@ -45,7 +46,7 @@ fi
 for shapes in ${SHAPES:-mixed cube}; do
   for n in $SIZES; do
     for flag in "" $FLAG "" $FLAG; do
-      log=$R/settle_${shapes}_${n}${flag:+_$VARIANT}_$RANDOM
+      log=$R/settle_${shapes}_${n}${flag:+_$LABEL}_$RANDOM
       timeout $(cap 150) python3 benchmarks/settle.py --device cuda:0 --sizes $n --shapes $shapes --precision mixed \
         --no-graph-compare --k-rule volume --warmup-time ${WARMUP:-0.3} --steps 200 $flag --out $log.json \
         > $log.log 2>&1

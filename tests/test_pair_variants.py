@@ -236,6 +236,7 @@ def test_simulation_steps_alike_with_the_shared_polygon_buffer(device, precision
     assert shared_poly_fits(wp.float32, 63) and not shared_poly_fits(wp.float32, 64)
     assert not shared_poly_fits(wp.float64, 8)  # and a grown polygon capacity falls back to the per-thread buffer
     scene = thrown_scene(precision)
+    assert Simulation(scene, device).stepper.shared_poly  # the default
     runs = []
     for on in (False, True):
         sim = Simulation(scene, device)

@@ -152,8 +152,8 @@ class Stepper:
             force to, or None.
         body_first: (N,) int32, the bodies whose contacts and new state :meth:`step_part` 1 computes (None:
             the step is not split; :meth:`split_at`).
-        shared_poly: the pair kernel clips with its polygon buffer in shared memory where it fits
-            (:meth:`set_shared_poly`; ``kernels.shared_poly`` says whether it does now).
+        shared_poly: the pair kernel clips with its polygon buffer in shared memory where it fits (the default;
+            :meth:`set_shared_poly`; ``kernels.shared_poly`` says whether it does now).
         spread_lanes: a spread pair's lanes each clip some of its faces (:meth:`set_spread`'s ``lanes``).
     """
 
@@ -199,7 +199,8 @@ class Stepper:
         # The costliest pairs of the thread order spread over more warps (kernels/forces.py SPREAD_LANES): where
         # the launch is a wave or less, and the costly shapes' pairs.
         self._spread_allowed = bool(spread) and self.thread_order
-        self.shared_poly = False  # set_shared_poly
+        # set_shared_poly: on by default, measured faster on an H200 (BENCHMARKS.md section 31)
+        self.shared_poly = True
         self.spread_lanes = False  # set_spread
         self.spread_pairs, self.spread_threads = (0, 0)
         if self._spread_allowed:
@@ -375,9 +376,11 @@ class Stepper:
 
     def set_shared_poly(self, on: bool) -> None:
         """Clip in the pair kernel with its polygon buffer in the block's shared memory (make_geometry's
-        ``shared_poly``; benchmarks/settle.py --shared-poly) wherever it fits: float32 clipping (precision
-        "float32" or "mixed"), at most 63 vertices a polygon (else as by default). On the CPU, whose kernels run one
-        thread after another, one static buffer. The same bits either way."""
+        ``shared_poly``; the default; benchmarks/settle.py --no-shared-poly turns it off) wherever it fits: float32
+        clipping (precision "float32" or "mixed"), at most 63 vertices a polygon (else the per-thread buffer in
+        local memory). On the CPU, whose kernels run one thread after another, one static buffer. The same bits
+        either way; on an H200 the shared buffer is 2-5% faster in mixed and cube piles of 1e4 and 1e5 grains and
+        gives the pair kernel 5% more pairs a second (BENCHMARKS.md sections 30 and 31)."""
         self.shared_poly = bool(on)
         self._kernels()
 
