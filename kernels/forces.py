@@ -598,13 +598,58 @@ def make_contact_kernels(
                     add_to_sums(pair_sums, p, wp.vec3d(force), wp.vec3d(ft), wp.float64(fn), wp.vec3d(world_point))
 
     @wp.func
-    def friction_dashpot(model: T.BodyModel, materials: T.Materials, a: int, b: int):
-        # The dashpot of pair (a, b) as the pair kernel takes it (0 without friction: no tangential force)
+    def dashpot_inputs(model: T.BodyModel, materials: T.Materials, a: int, b: int):
+        # What the dashpot of pair (a, b) is made of: friction, tangential stiffness, restitution, inverse mass
         mat = model.material[a] * materials.count + model.material[b]
+        return materials.mu[mat], materials.kt[mat], materials.e[mat], C(model.inv_mass[a] + model.inv_mass[b])
+
+    @wp.func
+    def dashpot_of(mu: C, kt: C, e: C, inv_mass: C):
+        # The dashpot as the pair kernel takes it (0 without friction: no tangential force)
         ct = C(0.0)
-        if materials.mu[mat] > C(0.0):
-            ct = resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[a] + model.inv_mass[b]))
+        if mu > C(0.0):
+            ct = resp.dashpot(kt, e, inv_mass)
         return ct
+
+    @wp.func
+    def friction_dashpot(model: T.BodyModel, materials: T.Materials, a: int, b: int):
+        # The dashpot of pair (a, b) as the pair kernel takes it
+        mu, kt, e, inv_mass = dashpot_inputs(model, materials, a, b)
+        return dashpot_of(mu, kt, e, inv_mass)
+
+    @wp.func
+    def add_pair_a(
+        f: vec3s, t: vec3s, lost: S, load_total: C, want_load: bool,
+        force: vec3c, torque: vec3c, dissipated: C, flags_b: int, turn: C, mu: C, kt: C, e: C, inv_mass: C,
+    ):  # fmt: skip
+        # A pair's terms on its body A, from what the gather read of it
+        f += vec3s(force)
+        t += vec3s(torque)
+        share = S(0.5)
+        if flags_b != 0:
+            share = S(1.0)
+        lost += share * S(dissipated)
+        if want_load and turn > C(0.0):
+            load_total += dashpot_of(mu, kt, e, inv_mass)
+        return f, t, lost, load_total
+
+    @wp.func
+    def add_pair_b(
+        f: vec3s, t: vec3s, lost: S, load_total: C, want_load: bool, xi_pos: vec3s, xa_pos: vec3s,
+        force: vec3c, torque: vec3c, dissipated: C, flags_a: int, turn: C, mu: C, kt: C, e: C, inv_mass: C,
+    ):  # fmt: skip
+        # A pair's terms on its body B (the reaction, and the torque about B's centre)
+        fa = vec3s(force)
+        r_ab = xi_pos - xa_pos
+        f -= fa
+        t += wp.cross(r_ab, fa) - vec3s(torque)
+        share = S(0.5)
+        if flags_a != 0:
+            share = S(1.0)
+        lost += share * S(dissipated)
+        if want_load and turn > C(0.0):
+            load_total += dashpot_of(mu, kt, e, inv_mass)
+        return f, t, lost, load_total
 
     @wp.func
     def wall_dashpot(model: T.BodyModel, materials: T.Materials, i: int, wall_mat: int):
@@ -677,30 +722,68 @@ def make_contact_kernels(
         # it skips its pairs (one thread would walk them all), and its free partners book the
         # energy lost in full.
         if wp.static(not diagnostics) and model.flags[i] == 0:
+            # Two pairs an iteration, both read before either is summed: each pair's reads wait on global memory
+            # (its partner's flags and material behind its index), and the second pair's overlap the first's.
+            # The same sums in the same order: the same bits as one pair an iteration.
             ra = pairs.ranges_a[i]
-            for p in range(ra[0], ra[1]):
-                f += vec3s(pairs.force[p])
-                t += vec3s(pairs.torque_a[p])
-                share = S(0.5)
-                if model.flags[pairs.b[p]] != 0:
-                    share = S(1.0)
-                lost += share * S(pairs.dissipated[p])
-                if want_load and pairs.turn[p] > C(0.0):
-                    load_total += friction_dashpot(model, materials, i, pairs.b[p])
+            p = ra[0]
+            while p < ra[1]:
+                q = wp.min(p + 1, ra[1] - 1)
+                b_p = pairs.b[p]
+                b_q = pairs.b[q]
+                mu_p, kt_p, e_p, im_p = dashpot_inputs(model, materials, i, b_p)
+                mu_q, kt_q, e_q, im_q = dashpot_inputs(model, materials, i, b_q)
+                force_p = pairs.force[p]
+                force_q = pairs.force[q]
+                torque_p = pairs.torque_a[p]
+                torque_q = pairs.torque_a[q]
+                lost_p = pairs.dissipated[p]
+                lost_q = pairs.dissipated[q]
+                turn_p = pairs.turn[p]
+                turn_q = pairs.turn[q]
+                flags_p = model.flags[b_p]
+                flags_q = model.flags[b_q]
+                f, t, lost, load_total = add_pair_a(
+                    f, t, lost, load_total, want_load, force_p, torque_p, lost_p, flags_p, turn_p, mu_p, kt_p, e_p,
+                    im_p,
+                )  # fmt: skip
+                if q > p:
+                    f, t, lost, load_total = add_pair_a(
+                        f, t, lost, load_total, want_load, force_q, torque_q, lost_q, flags_q, turn_q, mu_q, kt_q,
+                        e_q, im_q,
+                    )  # fmt: skip
+                p += 2
             rb = pairs.ranges_b[i]
-            for k in range(rb[0], rb[1]):
-                p = pairs.by_b[k]
-                fa = vec3s(pairs.force[p])
-                a = pairs.a[p]
-                r_ab = xi_pos - wp.transform_get_translation(bodies.q[a])
-                f -= fa
-                t += wp.cross(r_ab, fa) - vec3s(pairs.torque_a[p])
-                share = S(0.5)
-                if model.flags[a] != 0:
-                    share = S(1.0)
-                lost += share * S(pairs.dissipated[p])
-                if want_load and pairs.turn[p] > C(0.0):
-                    load_total += friction_dashpot(model, materials, a, i)
+            k = rb[0]
+            while k < rb[1]:
+                pb_1 = pairs.by_b[k]
+                pb_2 = pairs.by_b[wp.min(k + 1, rb[1] - 1)]
+                a_1 = pairs.a[pb_1]
+                a_2 = pairs.a[pb_2]
+                mu_1, kt_1, e_1, im_1 = dashpot_inputs(model, materials, a_1, i)
+                mu_2, kt_2, e_2, im_2 = dashpot_inputs(model, materials, a_2, i)
+                xa_1 = wp.transform_get_translation(bodies.q[a_1])
+                xa_2 = wp.transform_get_translation(bodies.q[a_2])
+                force_1 = pairs.force[pb_1]
+                force_2 = pairs.force[pb_2]
+                torque_1 = pairs.torque_a[pb_1]
+                torque_2 = pairs.torque_a[pb_2]
+                lost_1 = pairs.dissipated[pb_1]
+                lost_2 = pairs.dissipated[pb_2]
+                turn_1 = pairs.turn[pb_1]
+                turn_2 = pairs.turn[pb_2]
+                flags_1 = model.flags[a_1]
+                flags_2 = model.flags[a_2]
+                f, t, lost, load_total = add_pair_b(
+                    f, t, lost, load_total, want_load, xi_pos, xa_1, force_1, torque_1, lost_1, flags_1, turn_1,
+                    mu_1, kt_1, e_1, im_1,
+                )  # fmt: skip
+                if k + 1 < rb[1]:
+                    f, t, lost, load_total = add_pair_b(
+                        f, t, lost, load_total, want_load, xi_pos, xa_2, force_2, torque_2, lost_2, flags_2, turn_2,
+                        mu_2, kt_2, e_2, im_2,
+                    )  # fmt: skip
+                k += 2
         if model.flags[i] == 0:
             xa = bodies.q[i]
             s = model.shape[i]

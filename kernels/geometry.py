@@ -1131,7 +1131,9 @@ def make_geometry(
                     sk = plane_distance(ncut, dcut, v)
                     cut = crosses(s_prev, sk)
                     keep = sk <= scalar(0.0)
-                    if n_out < count and k + 2 < count and n_out + int(cut) + int(keep) > k + 2:
+                    # The output would overrun the next row not yet read (row k + 2; row k + 1 is in `ahead`):
+                    # before step k n_out <= k + 1, so only where this step writes two rows and n_out is k + 1.
+                    if k + 2 < count and cut and keep and n_out > k:
                         if wp.static(shared_poly):
                             n_out, full = finish_pass_shared(count, k, n_out, prev, s_prev, v, ncut, dcut)
                         else:
