@@ -169,11 +169,18 @@ FAULTS = (
         ("tests/test_pair_order.py::test_pair_threads_grouped_by_contact_give_the_same_bits[cpu-default]",),
     ),
     Fault(
+        "the integration's check in one launch: the step before its count",
+        "kernels/integrate.py",
+        "        check_body(model, body_speed_limit, step[0] + 1, bodies, i, bad_step, body_peak_speed, too_fast)\n",
+        "        check_body(model, body_speed_limit, step[0], bodies, i, bad_step, body_peak_speed, too_fast)\n",
+        ("tests/test_simulation.py::test_nonfinite_state_names_step_and_body[cpu]",),
+    ),
+    Fault(
         "spread pairs skip the lanes' rest",
         "kernels/forces.py",
         "                p = p - s * wp.static(SPREAD_LANES - 1)\n",
         "                p = p - s * wp.static(SPREAD_LANES)\n",
-        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-37-1000000000-False]",),
+        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-37-1000000000]",),
     ),
     Fault(
         "spread variant: launched over buffers too long to spread a pair",
@@ -197,18 +204,11 @@ FAULTS = (
         ("tests/test_pair_variants.py::test_the_largest_shared_polygon_buffer_compiles_for_a_gpu",),
     ),
     Fault(
-        "spread lanes: a round's faces not added before the next",
-        "kernels/geometry.py",
-        "                if j > 0 and j % lanes == 0:\n",
-        "                if j > 1 and j % lanes == 0:\n",
-        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-37-1000000000-True]",),
-    ),
-    Fault(
         "costly pairs: the touching ones of the last costly class not counted",
         "kernels/pairlist.py",
         "        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 2\n",
         "        below = 2 * (int(num_classes) - 1 - int(costly_from)) + 1\n",
-        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-10000000-55-False]",),
+        ("tests/test_pair_order.py::test_spread_pairs_give_the_same_bits[cpu-10000000-55]",),
     ),
     Fault(
         "tunnelling limits: one code's limit given to every body",

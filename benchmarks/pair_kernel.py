@@ -145,7 +145,7 @@ def pair_inputs(kernel, arrays):
 
 def time_kernel(
     shapes, poses_a, poses_b, repeats, max_registers=128, block_dim=64, pose_scalar=None, clip="polygon",
-    events=False, count_work=False, setup_only=False, shared_poly=False, lanes=1,
+    events=False, count_work=False, setup_only=False, shared_poly=False,
 ):  # fmt: skip
     """Median seconds of a launch of the engine's overlap kernel over the pairs, and the outputs.
     ``pose_scalar``: the poses' precision (default the shapes'; float64 with float32 shapes is the mixed mode).
@@ -153,8 +153,7 @@ def time_kernel(
     time each launch alone with CUDA events (not the host's clock around a launch and synchronisation).
     ``count_work``: the measuring variant (make_geometry's ``count_work``); the outputs then end with each pair's
     path word. ``setup_only``: the measuring variant of the pairs' set-up alone (make_geometry's). ``shared_poly``: the
-    polygon buffer in the block's shared memory (make_geometry's; blocks of NARROWPHASE_BLOCK_DIM threads). ``lanes``:
-    threads a pair (make_narrowphase's), each clipping some of its faces."""
+    polygon buffer in the block's shared memory (make_geometry's; blocks of NARROWPHASE_BLOCK_DIM threads)."""
     dev = shapes.device
     n = len(poses_a)
     scalar = shapes.scalar
@@ -168,8 +167,6 @@ def time_kernel(
         extra["count_work"] = True
     if setup_only:
         extra["setup_only"] = True
-    if lanes > 1:
-        extra["lanes"] = lanes
     if shared_poly:
         extra["shared_poly"] = True
         if block_dim != SHARED_POLY_BLOCK:
@@ -187,7 +184,7 @@ def time_kernel(
     outs = [wp.zeros(n, dtype=scalar, device=dev)]
     outs += [wp.zeros(n, dtype=vec3, device=dev) for _ in OVERLAP_OUTPUTS[1:]]
     overflow = wp.zeros(1 + n if count_work else 1, dtype=int, device=dev)
-    launch = {"dim": n * lanes, "inputs": args, "outputs": [*outs, overflow], "device": dev, "block_dim": block_dim}
+    launch = {"dim": n, "inputs": args, "outputs": [*outs, overflow], "device": dev, "block_dim": block_dim}
     wp.launch(kernel, **launch)  # compile, warm
     wp.synchronize_device(dev)
     times = []

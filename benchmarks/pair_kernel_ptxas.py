@@ -92,10 +92,6 @@ def main():
         help="DIR: also write each kernel's normalised PTX there (diff -r two trees' DIRs: the same code or not)",
     )
     ap.add_argument(
-        "--lanes", action="store_true",
-        help="also the overlap kernel with 8 lanes a pair, and the spread pair kernel with and without lanes clipping",
-    )  # fmt: skip
-    ap.add_argument(
         "--shared-poly", action="store_true",
         help="also the overlap and pair kernels with the polygon buffer in shared memory (make_geometry's shared_poly)",
     )  # fmt: skip
@@ -121,14 +117,14 @@ def main():
             if args.shared_poly and scalar == wp.float32:
                 contact = make_contact_kernels("hertz", True, cap, faces, precision=prec, shared_poly=True)
                 kernels.append(("pair_cont_shm", contact.pair_contact_kernel))
-            if args.lanes:
-                lanes8 = make_narrowphase(scalar, cap, faces, pose_scalar=pose_scalar, lanes=8)
-                kernels.append(("overlap_l8", lanes8.overlap_kernel))
-                for label, on in (("pair_spread", False), ("pair_spr_lanes", True)):
-                    contact = make_contact_kernels(
-                        "hertz", True, cap, faces, precision=prec, thread_order=True, spread=True, spread_lanes=on
-                    )
-                    kernels.append((label, contact.pair_contact_kernel))
+            # the GPU's default step: the pairs ordered by cost, the costly ones spread one to a warp
+            spread = make_contact_kernels("hertz", True, cap, faces, precision=prec, thread_order=True, spread=True)
+            kernels.append(("pair_spread", spread.pair_contact_kernel))
+            if args.shared_poly and scalar == wp.float32:
+                spread = make_contact_kernels(
+                    "hertz", True, cap, faces, precision=prec, thread_order=True, spread=True, shared_poly=True
+                )
+                kernels.append(("pair_spr_shm", spread.pair_contact_kernel))
             for label, kernel in kernels:
                 out = ""
                 if args.ptx_out:

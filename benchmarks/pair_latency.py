@@ -13,8 +13,7 @@ kernel's geometry, ``benchmarks/pair_kernel.py``) that are one wave or less, wit
   polygon vertices read: the measuring variant's word), and with ``--throughput M`` the same for M pairs, many
   waves (``throughputM`` against ``throughputM_worksorted``): whether warps of like paths would be faster;
 * ``packedN`` / ``spreadN``: N different touching pairs, packed 32 to a warp or one to a warp (the other 31 lanes
-  far apart, leaving at the bounding-sphere test); ``spreadN_lanesL``: one pair every L lanes;
-  ``packedN_clipL`` (``--clip-lanes L``): one pair every L lanes, each lane clipping some of its faces.
+  far apart, leaving at the bounding-sphere test); ``spreadN_lanesL``: one pair every L lanes.
 
 With ``--setup-only`` each case is timed again with the kernel stopped after the pairs' set-up (the culling of faces
 and planes, the flat contact, the apex and the frame; make_geometry's ``setup_only``): the part of a pair's latency
@@ -39,13 +38,12 @@ sys.path.insert(0, HERE)
 from _meta import run_meta  # noqa: E402
 
 
-def event_time(shapes, pa, pb, pose_scalar, repeats, count_work=False, setup_only=False, lanes=1):
+def event_time(shapes, pa, pb, pose_scalar, repeats, count_work=False, setup_only=False):
     """Median GPU milliseconds of the overlap kernel over the pairs (pa, pb), by CUDA events (the CPU: its wall
     time), and how many touch; with ``count_work`` (the measuring variant) also each pair's path word; with
-    ``setup_only`` the variant that stops after each pair's set-up; ``lanes`` threads a pair, each clipping some
-    of its faces (make_narrowphase's ``lanes``)."""
+    ``setup_only`` the variant that stops after each pair's set-up."""
     seconds, outs = time_kernel(shapes, pa, pb, max(repeats, 1), pose_scalar=pose_scalar, events=True,
-                                count_work=count_work, setup_only=setup_only, lanes=lanes)  # fmt: skip
+                                count_work=count_work, setup_only=setup_only)  # fmt: skip
     touching = int((outs[0] > 0).sum())
     if count_work:
         return 1e3 * seconds, touching, outs[-1]
@@ -94,10 +92,6 @@ def main():
     ap.add_argument("--lanes", default="32", help="lanes per pair of spreadN (32: one pair to a warp)")
     ap.add_argument("--throughput", type=int, default=0, help="M: also M touching pairs, shuffled and by path")
     ap.add_argument(
-        "--clip-lanes", default="",
-        help="L,...: also packedN's pairs with L lanes each clipping some of a pair's faces (casesN_clipL)",
-    )  # fmt: skip
-    ap.add_argument(
         "--setup-only", action="store_true",
         help="also time each case with the kernel stopped after the pairs' set-up (make_geometry's setup_only)",
     )  # fmt: skip
@@ -140,8 +134,6 @@ def main():
             )
             for lanes in [int(x) for x in args.lanes.split(",")]:
                 cases[f"spread{n}" if lanes == 32 else f"spread{n}_lanes{lanes}"] = spread(pa[:n], pb[:n], lanes)
-            for lanes in [int(x) for x in args.clip_lanes.split(",") if x]:
-                cases[f"packed{n}_clip{lanes}"] = (pa[:n], pb[:n], lanes)
         if args.throughput:
             m = args.throughput
             reps = -(-m // len(pa))  # the touching pairs again, as many times as it takes
@@ -151,12 +143,11 @@ def main():
             shuffle = np.random.default_rng(3).permutation(m)
             cases[f"throughput{m}"] = (big_a[shuffle], big_b[shuffle])
             cases[f"throughput{m}_worksorted"] = (big_a[w_order], big_b[w_order])
-        for case, (a, b, *clip) in cases.items():
-            lanes = clip[0] if clip else 1
-            ms, touching = event_time(shapes, a, b, wp.float64, args.repeats, lanes=lanes)
-            row = {"shape": name, "case": case, "threads": len(a) * lanes, "touching": touching, "ms": ms}
+        for case, (a, b) in cases.items():
+            ms, touching = event_time(shapes, a, b, wp.float64, args.repeats)
+            row = {"shape": name, "case": case, "threads": len(a), "touching": touching, "ms": ms}
             setup = ""
-            if args.setup_only and not clip:
+            if args.setup_only:
                 row["setup_ms"] = event_time(shapes, a, b, wp.float64, args.repeats, setup_only=True)[0]
                 setup = f", set-up alone {1e3 * row['setup_ms']:8.1f} us ({row['setup_ms'] / ms:.0%})"
             rows.append(row)

@@ -11,7 +11,9 @@ the script checks each instruction's opcode against the page and says how many d
 The cubin: Warp's kernel cache on the GPU machine (``pair_stalls.py`` disassembles it there where nvdisasm is
 present), or compiled here for the same architecture with Warp's NVRTC and ``wp.config.lineinfo`` (the same
 Warp version gives the same cubin; the kernel's name in both, e.g. ``..._8ca9ec3e_cuda_kernel_forward``, says so).
-nvdisasm ships with the CUDA toolkit and in PyPI's ``nvidia-cuda-nvdisasm`` wheel.
+nvdisasm ships with the CUDA toolkit and in PyPI's ``nvidia-cuda-nvdisasm`` wheel. The lines' text and the ``def``
+around them are read from ``--roots``: give the tree that was compiled (``git archive REV kernels | tar x``), as a
+later edit moves the lines.
 
     python benchmarks/sass_lines.py --page cube_one_source_sass.csv --sass overlap.sass [--level inner] [--top 30]
     python benchmarks/sass_lines.py --page ... --cubin kernel.sm90.cubin --nvdisasm /path/to/nvdisasm

@@ -655,7 +655,6 @@ def run_size(n, args, device, record, save):
             "pair_thread_grouping": sim.current_contacts.thread_grouping,
             "spread_pairs": sim.stepper.spread_pairs,
             "shared_poly": sim.stepper.kernels.shared_poly,
-            "spread_lanes": sim.stepper.kernels.spread_lanes,
             "dt": sim.dt,
             "skin": sim.skin,
             "use_graph": sim.use_graph,
@@ -969,10 +968,6 @@ def add_kernel_options(ap):
         "default (spread_room: half a wave's worth on a GPU, none on the CPU), or a count (0: none)",
     )
     ap.add_argument(
-        "--spread-lanes", action="store_true",
-        help="a spread pair's lanes each clip some of its faces, not idle (Stepper.set_spread(lanes=True))",
-    )  # fmt: skip
-    ap.add_argument(
         "--shared-poly", action=argparse.BooleanOptionalAction, default=None,
         help="the pair kernel's polygon buffer in the block's shared memory where it fits (Stepper.set_shared_poly; "
         "default: the library's, on); --no-shared-poly: the per-thread buffer",
@@ -984,12 +979,11 @@ def add_kernel_options(ap):
 
 
 def apply_stepper_options(sim, args):
-    """``--spread-pairs``, ``--spread-lanes`` and ``--[no-]shared-poly`` on a built Simulation (before its first
-    step: its graphs are captured afterwards)."""
+    """``--spread-pairs`` and ``--[no-]shared-poly`` on a built Simulation (before its first step: its graphs are
+    captured afterwards)."""
     value = getattr(args, "spread_pairs", "default")
-    lanes = True if getattr(args, "spread_lanes", False) else None
-    if (value != "default" or lanes) and sim.stepper.thread_order:
-        sim.stepper.set_spread(sim.stepper.spread_pairs if value == "default" else int(value), lanes=lanes)
+    if value != "default" and sim.stepper.thread_order:
+        sim.stepper.set_spread(int(value))
     shared = getattr(args, "shared_poly", None)
     if shared is not None and shared != sim.stepper.shared_poly:
         sim.stepper.set_shared_poly(shared)

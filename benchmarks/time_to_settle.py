@@ -127,7 +127,6 @@ def run_size(n, args, device, dt_scale=1.0):
         "tree_rebuild": sim.tree_rebuild,
         "spread_pairs": sim.stepper.spread_pairs,
         "shared_poly": sim.stepper.kernels.shared_poly,
-        "spread_lanes": sim.stepper.kernels.spread_lanes,
         "tree_rebuilds": sim.current_contacts.broadphase.num_tree_rebuilds,
         "dt": sim.dt,
         "dt_scale": dt_scale,

@@ -6,9 +6,8 @@
 #                   kernel's throughput both ways (pair_kernel.py --clips polygon,shared; PAIR=0 leaves it out), time
 #                   to settled at 1e3 cubes (TTS=0 leaves it out) and the step of the SHAPES piles (default "mixed
 #                   cube") at SIZES (default "10000 100000") with and without, alternating.
-#   VARIANT=lanes   a spread pair's lanes each clipping some of its faces (--spread-lanes): its CUDA tests, one
-#                   wave's latency (pair_latency.py --clip-lanes 8,32 --setup-only), time to settled at 1e3 cubes and
-#                   the step of the piles at SIZES (default 10000) with and without.
+#   (VARIANT=lanes, a spread pair's lanes each clipping some of its faces, went with that variant: git tag
+#   pair-lanes-30, BENCHMARKS.md sections 30 and 31.) For two trees rather than two flags: ab_round.sh.
 # WARMUP: the piles' simulated warm-up in seconds (default 0.3; at 1e6 it takes more than a minute).
 # Every job's timeout is cut to what is left of BUDGET seconds (default 540); then the results (/tmp/variant_$VARIANT)
 # are packed into $OUT/variant_$VARIANT.tgz (or ./...): one file, as the device returns a limited count.
@@ -17,23 +16,16 @@ VARIANT=${VARIANT:-shared}
 R=/tmp/variant_$VARIANT; rm -rf $R; mkdir -p $R; END=$((SECONDS + ${BUDGET:-540}))
 # never 0 or less: `timeout 0` means no limit at all
 cap() { local l=$((END - SECONDS)); [ $l -lt 5 ] && l=5; [ $l -gt $1 ] && l=$1; echo $l; }
-if [ "$VARIANT" = shared ]; then
-  FLAG=--no-shared-poly; LABEL=thread; TESTS="tests/test_pair_variants.py -k shared"; SIZES=${SIZES:-10000 100000}
-else
-  FLAG=--spread-lanes; LABEL=lanes; TESTS="tests/test_pair_variants.py tests/test_pair_order.py -k lanes or spread"
-  SIZES=${SIZES:-10000}
+if [ "$VARIANT" != shared ]; then
+  echo "variant_round: VARIANT must be shared (the lanes variant is at git tag pair-lanes-30)"; exit 2
 fi
+FLAG=--no-shared-poly; LABEL=thread; TESTS="tests/test_pair_variants.py -k shared"; SIZES=${SIZES:-10000 100000}
 POLYDEM_TEST_DEVICES=cuda:0 timeout $(cap 240) python3 -m pytest -q -rf -p no:cacheprovider ${TESTS%% -k *} \
   -k "${TESTS#* -k }" > $R/pytest.log 2>&1; tail -3 $R/pytest.log
 if [ "$VARIANT" = shared ] && [ "${PAIR:-1}" = 1 ]; then
   timeout $(cap 200) python3 benchmarks/pair_kernel.py --device cuda:0 --precisions float32 --shapes cube,rock20,hull64 \
     --depths 0.01,flat --clips polygon,shared,polygon,shared --sample 16 --out $R/pair_kernel_shared.json \
     > $R/pair_kernel.log 2>&1; grep -E "^(cube|rock|hull)" $R/pair_kernel.log
-fi
-if [ "$VARIANT" = lanes ]; then
-  timeout $(cap 200) python3 benchmarks/pair_latency.py --device cuda:0 --shapes cube,rock20 --sizes 1024 \
-    --lanes 8,32 --clip-lanes 8,32 --setup-only --out $R/pair_latency_lanes.json > $R/pair_latency.log 2>&1
-  grep -E "packed|spread|one " $R/pair_latency.log
 fi
 if [ "${TTS:-1}" = 1 ]; then
   for flag in "" $FLAG "" $FLAG; do

@@ -75,10 +75,7 @@ def make_body_geometry(geom, compound: bool) -> BodyGeometry:
         return C(0.0), zero3, zero3, zero3, zero3
 
     @wp.func
-    def pair_geometry(
-        shapes: Shapes, sa: int, sb: int, xa: transform_p, xb: transform_p, lane: int = 0, lanes: int = 1
-    ):
-        # lane, lanes: the lanes variant's (make_geometry's); each lane of a compound pair takes all its part pairs.
+    def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform_p, xb: transform_p):
         vol, first_moment, s_a, m_a, fb_a = no_overlap()
         s_b = zero3
         m_b = zero3

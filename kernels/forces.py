@@ -65,7 +65,7 @@ from typing import Any, Protocol, Self
 
 import warp as wp
 from polydem.kernels.compound import make_body_geometry
-from polydem.kernels.geometry import lanes_here, make_geometry
+from polydem.kernels.geometry import make_geometry
 from polydem.kernels.narrowphase import NARROWPHASE_BLOCK_DIM
 from polydem.kernels.precision import scalars
 from polydem.kernels.response import DAMPING_SHARE, make_response
@@ -136,7 +136,6 @@ class ContactKernels:
     phased: bool
     spread: bool
     shared_poly: bool
-    spread_lanes: bool
     geometry: Any  # polydem.kernels.geometry.Geometry
     body_geometry: Any  # polydem.kernels.compound.BodyGeometry
     respond: Any
@@ -378,7 +377,6 @@ def make_contact_kernels(
     phased: bool = False,
     spread: bool = False,
     shared_poly: bool = False,
-    spread_lanes: bool = False,
 ) -> ContactKernels:
     """Kernels for one contact law ("linear", "hertz" or "power"), with or without friction.
 
@@ -415,14 +413,9 @@ def make_contact_kernels(
     ``shared_poly``: the pair kernel's polygon buffer in the block's shared memory on a GPU
     (:func:`polydem.kernels.geometry.make_geometry`'s; float32 clipping, at most 63 vertices); the wall kernels keep
     theirs per thread. The same results, bit for bit.
-    ``spread_lanes`` (with ``spread``): a spread pair's lanes are not idle: on a GPU each clips some of its faces
-    (make_geometry's ``lanes`` variant, the faces' sums passed between the lanes by warp shuffles and added in the
-    one-thread order) and its first lane goes on alone. The same results, bit for bit.
     """
     if spread and not (thread_order and not phased):
         raise ValueError("spread needs thread_order and not phased")
-    if spread_lanes and not spread:
-        raise ValueError("spread_lanes needs spread")
     S, C = scalars(precision)
     vec3s = wp.types.vector(3, S)
     vec3c = wp.types.vector(3, C)
@@ -434,10 +427,8 @@ def make_contact_kernels(
     # The pair kernel's own clipping: the shared buffer is laid out for the blocks it is launched with, not the
     # mesh walk's.
     pair_geom = body_geom
-    if shared_poly or spread_lanes:
-        pair_geom = make_body_geometry(
-            make_geometry(C, max_poly, max_faces, pose_scalar=S, shared_poly=shared_poly, lanes=spread_lanes), compound
-        )
+    if shared_poly:
+        pair_geom = make_body_geometry(make_geometry(C, max_poly, max_faces, pose_scalar=S, shared_poly=True), compound)
     zero3 = wp.constant(vec3c(C(0.0), C(0.0), C(0.0)))
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
@@ -473,9 +464,6 @@ def make_contact_kernels(
         diagnostics variant (run on request only) writes what energy() reports, at the current
         state, and changes nothing; the report variant steps and reports (see the factory)."""
         p = wp.tid()
-        if wp.static(spread_lanes):
-            lane = int(0)  # of the lanes that take pair p
-            lanes = int(1)
         if wp.static(phased and thread_order):
             # Phase 1's pairs come first in the thread order (Contacts.split_at): each phase takes its own range.
             if phase == 1:
@@ -494,13 +482,7 @@ def make_contact_kernels(
                 costly_here = costly[0]
             s = wp.min(wp.min(listed, spread_pairs), wp.max(room, costly_here))
             if p < s * wp.static(SPREAD_LANES):
-                if wp.static(spread_lanes):
-                    # Lanes of the pair (on the CPU only the first: lanes_here).
-                    lanes = lanes_here(wp.static(SPREAD_LANES))
-                    lane = p & wp.static(SPREAD_LANES - 1)
-                    if lane >= lanes:
-                        return
-                elif (p & wp.static(SPREAD_LANES - 1)) != 0:
+                if (p & wp.static(SPREAD_LANES - 1)) != 0:
                     return
                 p = p >> wp.static(SPREAD_LANES.bit_length() - 1)
             else:
@@ -517,16 +499,9 @@ def make_contact_kernels(
                 return
         xa = bodies.q[a]
         xb = bodies.q[b]
-        if wp.static(spread_lanes):
-            vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = pair_geom.pair_geometry(
-                shapes, model.shape[a], model.shape[b], xa, xb, lane, lanes
-            )
-            if lane != 0:
-                return  # the pair's first lane has the same and goes on alone
-        else:
-            vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = pair_geom.pair_geometry(
-                shapes, model.shape[a], model.shape[b], xa, xb
-            )
+        vol, first_moment, s_a, m_a, s_b, m_b, fb_a, of = pair_geom.pair_geometry(
+            shapes, model.shape[a], model.shape[b], xa, xb
+        )
         if of != 0:
             wp.atomic_max(overflow, 0, 1)
         mat = model.material[a] * materials.count + model.material[b]
@@ -870,7 +845,6 @@ def make_contact_kernels(
         phased=phased,
         spread=spread,
         shared_poly=shared_poly,
-        spread_lanes=spread_lanes,
         geometry=geom,
         body_geometry=body_geom,
         respond=resp.respond,

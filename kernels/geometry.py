@@ -420,22 +420,6 @@ def shared_poly_fits(scalar, max_poly: int) -> bool:
     return scalar == wp.float32 and 3 * 4 * int(max_poly) * SHARED_POLY_BLOCK <= SHARED_POLY_BYTES
 
 
-LANES_MAX = 32
-"""The most lanes of a warp that one pair takes in make_geometry's ``lanes`` variant."""
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    return n;
-#else
-    return 1;
-#endif
-""")
-def lanes_here(n: int) -> int:
-    """``n`` on a GPU, 1 on the CPU, whose kernels run one thread after another: the lanes a pair may take."""
-    ...
-
-
 @functools.cache
 def make_geometry(
     scalar,
@@ -446,7 +430,6 @@ def make_geometry(
     count_work: bool = False,
     setup_only: bool = False,
     shared_poly: bool = False,
-    lanes: bool = False,
 ) -> Geometry:
     """:func:`pair_geometry` and :func:`pair_depth` for one precision and polygon capacity.
 
@@ -472,17 +455,7 @@ def make_geometry(
             same arithmetic and results), not in per-thread local memory, which the pair kernel's throughput waits
             on (BENCHMARKS.md section 1b); :func:`shared_poly_fits` says where it applies. On the CPU one static
             buffer.
-        lanes: a variant whose :func:`pair_geometry` takes ``lane`` and ``lanes`` (:data:`LANES_MAX` at most, a
-            power of two): the ``lanes`` consecutive threads of a warp that take one pair (their ``lane`` 0, 1, ...)
-            each run its set-up and clip the active faces j with j mod lanes = lane; after each round of ``lanes``
-            faces they pass each face's fan sums, weight and plane to one another with warp shuffles and every lane
-            adds them in face order, as one thread does alone: the same expressions on the same values, so the same
-            bits as ``lanes`` = 1. On the CPU, whose kernels run one thread after another, every thread takes
-            ``lanes`` = 1 (:func:`lanes_here`).
     """
-    if lanes and (count_work or setup_only):
-        raise ValueError("the lanes variant is not a measuring variant")
-    lanes_variant = lanes  # the functions' own `lanes` is the lane count
     if shared_poly and not shared_poly_fits(scalar, max_poly):
         raise ValueError(
             f"the shared polygon buffer needs float32 clipping and at most {SHARED_POLY_BYTES} bytes a block "
@@ -552,26 +525,6 @@ def make_geometry(
 
         @wp.func_native(poly_rw_code)
         def poly_rw(k: int, v: wp.vec3, write: int) -> wp.vec3: ...
-
-    # The lanes variant's exchange: lane q's value of a group of `lanes` consecutive lanes of the warp (a group's
-    # lanes are aligned: lanes divides 32). One lane alone exchanges with itself; on the CPU there is no other lane.
-    shfl_f = shfl_i = flush_round = None
-    if lanes:
-        shfl_code = """
-#if defined(__CUDA_ARCH__)
-    const unsigned me = threadIdx.x & 31;
-    const unsigned mask = (lanes >= 32) ? 0xffffffffu : (((1u << lanes) - 1u) << (me & ~(unsigned)(lanes - 1)));
-    return __shfl_sync(mask, v, q, lanes);
-#else
-    return v;
-#endif
-"""
-
-        @wp.func_native(shfl_code)
-        def shfl_f(v: scalar, q: int, lanes: int) -> scalar: ...
-
-        @wp.func_native(shfl_code)
-        def shfl_i(v: int, q: int, lanes: int) -> int: ...
 
     # The entries of the face lists, written and read through these (an entry is a value, the lists stay
     # where they are declared): entry n is lane n & ids_lane of word n >> ids_log.
@@ -807,45 +760,12 @@ def make_geometry(
                 poly_rw(i, spare[i], 1)
             return n_out, full
 
-    if lanes:
-
-        @wp.func
-        def flush_round(
-            lanes: int, valid: int, is_1: int, sum_a2: scalar, sum_c: vec3, weight: scalar, plane: vec4,
-            vol: scalar, vol_c: vec3, s_1: vec3, m_1: vec3, s_2: vec3, m_2: vec3,
-        ):  # fmt: skip
-            # The lanes variant: the round's faces, lane 0's first, added as the one-thread loop adds them.
-            zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
-            for q in range(lanes):
-                valid_q = shfl_i(valid, q, lanes)
-                is_1_q = shfl_i(is_1, q, lanes)
-                a2 = shfl_f(sum_a2, q, lanes)
-                c = vec3(shfl_f(sum_c[0], q, lanes), shfl_f(sum_c[1], q, lanes), shfl_f(sum_c[2], q, lanes))
-                w = shfl_f(weight, q, lanes)
-                pl = vec4(
-                    shfl_f(plane[0], q, lanes), shfl_f(plane[1], q, lanes), shfl_f(plane[2], q, lanes),
-                    shfl_f(plane[3], q, lanes),
-                )  # fmt: skip
-                if valid_q != 0:
-                    nf = vec3(pl[0], pl[1], pl[2])
-                    area, area_c = fan_close(a2, c, w)
-                    dv, dv_c = cone(area, area_c, pl, zero3)
-                    vol += dv
-                    vol_c += dv_c
-                    if is_1_q != 0:
-                        s_1 += area * nf
-                        m_1 += wp.cross(area_c, nf)
-                    else:
-                        s_2 += area * nf
-                        m_2 += wp.cross(area_c, nf)
-            return vol, vol_c, s_1, m_1, s_2, m_2
-
     @wp.func
     def pair_pieces(
         shapes: Shapes, s1: int, s2: int, in_a: bool, xa64: vec3d, xb64: vec3d, q1: quatd, r2: wp.float64,
         pos: vec3d, rot: mat33d, pos_c: vec3, rot_c: mat33, r1_c: scalar, r2_c: scalar, slack: scalar,
         uc: vec3, lo_c: scalar, hi_c: scalar, f10: int, f11: int, f20: int, f21: int,
-        v10: int, v11: int, v20: int, v21: int, lane: int = 0, lanes: int = 1,
+        v10: int, v11: int, v20: int, v21: int,
     ):  # fmt: skip
         # pair_geometry past its bounding-sphere and slab tests: the culling of faces and planes, the
         # pair-local frame, the clipping, and the results in world axes.
@@ -1002,14 +922,6 @@ def make_geometry(
         overflow = int(0)
         if wp.static(count_work):
             steps = int(0)
-        if wp.static(lanes_variant):
-            # This lane's face of the round, waiting for the round's end (flush_round).
-            pend = int(0)
-            pend_1 = int(0)
-            pend_a2 = scalar(0.0)
-            pend_c = zero3
-            pend_w = scalar(0.0)
-            pend_plane = vec4()
         # Clip each active face polygon by the other body's active planes and integrate the
         # surviving piece. This loop is written out here rather than in a helper called per face: a
         # @wp.func takes its arguments by value (a wp.ref[T] argument is read whole wherever one
@@ -1017,14 +929,6 @@ def make_geometry(
         # call per face copied them again each time. One polygon buffer (declared above) serves
         # every face, and each Sutherland-Hodgman pass clips it in place.
         for j in range(num_1 + num_2):
-            if wp.static(lanes_variant):
-                if j > 0 and j % lanes == 0:
-                    vol, vol_c, s_1, m_1, s_2, m_2 = flush_round(
-                        lanes, pend, pend_1, pend_a2, pend_c, pend_w, pend_plane, vol, vol_c, s_1, m_1, s_2, m_2
-                    )
-                    pend = 0
-                if j % lanes != lane:
-                    continue
             face_is_1 = j < num_1
             face = int(0)
             num_planes = int(0)
@@ -1186,33 +1090,16 @@ def make_geometry(
                     p2 = poly[k + 1]
                 sum_a2, sum_c = fan_add(p0, p1, p2, nf, sum_a2, sum_c)
                 p1 = p2
-            if wp.static(lanes_variant):
-                pend = 1
-                pend_1 = int(face_is_1)
-                pend_a2 = sum_a2
-                pend_c = sum_c
-                pend_w = weight
-                pend_plane = plane
+            area, area_c = fan_close(sum_a2, sum_c, weight)
+            dv, dv_c = cone(area, area_c, plane, zero3)
+            vol += dv
+            vol_c += dv_c
+            if face_is_1:
+                s_1 += area * nf
+                m_1 += wp.cross(area_c, nf)
             else:
-                area, area_c = fan_close(sum_a2, sum_c, weight)
-                dv, dv_c = cone(area, area_c, plane, zero3)
-                vol += dv
-                vol_c += dv_c
-                if face_is_1:
-                    s_1 += area * nf
-                    m_1 += wp.cross(area_c, nf)
-                else:
-                    s_2 += area * nf
-                    m_2 += wp.cross(area_c, nf)
-        if wp.static(lanes_variant):
-            vol, vol_c, s_1, m_1, s_2, m_2 = flush_round(
-                lanes, pend, pend_1, pend_a2, pend_c, pend_w, pend_plane, vol, vol_c, s_1, m_1, s_2, m_2
-            )
-            # A polygon that overflowed any lane's buffer: the pair's, every lane's.
-            any_overflow = int(0)
-            for q in range(lanes):
-                any_overflow = any_overflow | shfl_i(overflow, q, lanes)
-            overflow = any_overflow
+                s_2 += area * nf
+                m_2 += wp.cross(area_c, nf)
 
         # Enclosed: the fallback area vector of body 1 (module docstring), body 1's frame.
         fb_1 = zero3d
@@ -1261,7 +1148,7 @@ def make_geometry(
         )
 
     @wp.func
-    def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform, lane: int = 0, lanes: int = 1):
+    def pair_geometry(shapes: Shapes, sa: int, sb: int, xa: transform, xb: transform):
         """Overlap geometry of shape ``sa`` at pose ``xa`` and shape ``sb`` at pose ``xb``.
 
         Returns ``(V, first moment of V, S_A, M_A, S_B, M_B, fallback_A, overflow)``, with vectors
@@ -1278,9 +1165,6 @@ def make_geometry(
         within the smaller body: the numbers that meet in the clipping are of the size of the
         smaller body, and a depth of 1e-8 m under a floor box whose centre is 0.5 m away is not
         lost to the rounding of 0.5 m.
-
-        ``lane``, ``lanes``: the lanes variant's (make_geometry's ``lanes``): this thread is lane ``lane`` of the
-        ``lanes`` that take the pair, and all of them return the same; other variants ignore them.
         """
         zero3 = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         # Body 1 is the larger (its frame is the pair's), body 2 the smaller.
@@ -1352,7 +1236,7 @@ def make_geometry(
         return pair_pieces(
             shapes, s1, s2, in_a, xa64, xb64, q1, r2, pos, rot,
             pos_c, rot_c, r1_c, r2_c, slack, uc, lo_c, hi_c,
-            f10, f11, f20, f21, v10, v11, v20, v21, lane, lanes,
+            f10, f11, f20, f21, v10, v11, v20, v21,
         )  # fmt: skip
 
     @wp.func

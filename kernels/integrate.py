@@ -118,6 +118,7 @@ class Integrator:
     angular_velocity: Any
     body_kinetic_energy: Any
     free_body_step: Any
+    integrate_body: Any
     integrate_bodies_kernel: Any
     kinetic_energy_kernel: Any
 
@@ -227,10 +228,9 @@ def make_integrator(scalar) -> Integrator:
     # -----------------------------------------------------------------------------------------
     # Kernels
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def integrate_bodies_kernel(model: BodyModel, gravity: vec3, dt: scalar, bodies: Bodies):
-        # In place: the pose and velocities of each body (from its force and torque); one thread a body.
-        i = wp.tid()
+    @wp.func
+    def integrate_body(model: BodyModel, gravity: vec3, dt: scalar, bodies: Bodies, i: int):
+        # In place: the pose and velocities of body i (from its force and torque).
         flag = model.flags[i]
         if flag == BODY_FIXED:
             return
@@ -259,6 +259,11 @@ def make_integrator(scalar) -> Integrator:
         bodies.v[i] = v_new
         bodies.q[i] = tf_new
         bodies.w[i] = w_new
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def integrate_bodies_kernel(model: BodyModel, gravity: vec3, dt: scalar, bodies: Bodies):
+        # One thread a body.
+        integrate_body(model, gravity, dt, bodies, wp.tid())
 
     @wp.func
     def body_kinetic_energy(inv_mass: scalar, inertia: vec3, q: transform, v: vec3, w: vec3):
@@ -291,6 +296,7 @@ def make_integrator(scalar) -> Integrator:
         angular_velocity=angular_velocity,
         body_kinetic_energy=body_kinetic_energy,
         free_body_step=free_body_step,
+        integrate_body=integrate_body,
         integrate_bodies_kernel=integrate_bodies_kernel,
         kinetic_energy_kernel=kinetic_energy_kernel,
     )
@@ -305,8 +311,42 @@ body_momentum = make_integrator(wp.float32).body_momentum
 
 
 @functools.cache
+def make_check_body(scalar):
+    """The check of one body's state in ``scalar`` (a ``wp.func``): see :func:`make_check_state_kernel`."""
+
+    @wp.func
+    def check_body(
+        model: body_model_struct(scalar),
+        body_speed_limit: wp.array(dtype=float),
+        step_now: int,
+        bodies: bodies_struct(scalar),
+        i: int,
+        bad_step: wp.array(dtype=int),
+        body_peak_speed: wp.array(dtype=float),
+        too_fast: wp.array(dtype=int),
+    ):
+        speed = float(wp.length(bodies.v[i]) + wp.length(bodies.w[i]) * scalar(model.radius[i]))
+        # One thread per body: a plain running maximum, no atomics.
+        if speed > body_peak_speed[i]:
+            body_peak_speed[i] = speed
+        if speed > body_speed_limit[i]:
+            wp.atomic_max(too_fast, 0, 1)
+        q = bodies.q[i]
+        p = wp.transform_get_translation(q)
+        r = wp.transform_get_rotation(q)
+        v = bodies.v[i]
+        w = bodies.w[i]
+        total = p[0] + p[1] + p[2] + r[0] + r[1] + r[2] + r[3] + v[0] + v[1] + v[2] + w[0] + w[1] + w[2]
+        if not wp.isfinite(total):
+            wp.atomic_min(bad_step, 0, step_now)
+
+    return check_body
+
+
+@functools.cache
 def make_check_state_kernel(scalar):
     """The check of a state in ``scalar``: finiteness, and each body's peak speed against its limit."""
+    check_body = make_check_body(scalar)
 
     @wp.kernel(enable_backward=False, module="unique")
     def check_state_kernel(
@@ -323,23 +363,39 @@ def make_check_state_kernel(scalar):
     ):
         """Records (atomic min) the first step at which a body's state is not finite, each body's
         largest speed of its fastest point (|v| + |w| r), and whether one went above its speed limit."""
-        i = wp.tid()
-        speed = float(wp.length(bodies.v[i]) + wp.length(bodies.w[i]) * scalar(model.radius[i]))
-        # One thread per body: a plain running maximum, no atomics.
-        if speed > body_peak_speed[i]:
-            body_peak_speed[i] = speed
-        if speed > body_speed_limit[i]:
-            wp.atomic_max(too_fast, 0, 1)
-        q = bodies.q[i]
-        p = wp.transform_get_translation(q)
-        r = wp.transform_get_rotation(q)
-        v = bodies.v[i]
-        w = bodies.w[i]
-        total = p[0] + p[1] + p[2] + r[0] + r[1] + r[2] + r[3] + v[0] + v[1] + v[2] + w[0] + w[1] + w[2]
-        if not wp.isfinite(total):
-            wp.atomic_min(bad_step, 0, step[0])
+        check_body(model, body_speed_limit, step[0], bodies, wp.tid(), bad_step, body_peak_speed, too_fast)
 
     return check_state_kernel
+
+
+@functools.cache
+def make_integrate_check_kernel(scalar):
+    """The integration and the check of a step in one kernel (a launch less a step; the same bits as
+    integrate_bodies_kernel, the step's count, then check_state_kernel): for a step with nothing between them (no
+    motion driving bodies). The check records the step as the count will be, ``step[0] + 1``."""
+    ig = make_integrator(scalar)
+    check_body = make_check_body(scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def integrate_check_kernel(
+        # Model
+        model: body_model_struct(scalar),
+        gravity: ig.vec3,
+        dt: scalar,
+        body_speed_limit: wp.array(dtype=float),
+        # State in/out
+        bodies: bodies_struct(scalar),
+        step: wp.array(dtype=int),
+        # Out
+        bad_step: wp.array(dtype=int),
+        body_peak_speed: wp.array(dtype=float),
+        too_fast: wp.array(dtype=int),
+    ):
+        i = wp.tid()
+        ig.integrate_body(model, gravity, dt, bodies, i)
+        check_body(model, body_speed_limit, step[0] + 1, bodies, i, bad_step, body_peak_speed, too_fast)
+
+    return integrate_check_kernel
 
 
 @functools.cache
@@ -533,6 +589,32 @@ def launch_check_state(
         make_check_state_kernel(_pose_scalar(bodies.q)),
         dim=bodies.q.shape[0],
         inputs=[model.bodies, body_speed_limit, step_count, bodies],
+        outputs=[bad_step, body_peak_speed, too_fast],
+        device=bodies.q.device,
+    )
+
+
+def launch_integrate_and_check(
+    *,
+    model: BodyModel,
+    state: BodyMotion,
+    dt: float,
+    step_count: wp.array,
+    body_speed_limit: wp.array,
+    bad_step: wp.array,
+    body_peak_speed: wp.array,
+    too_fast: wp.array,
+) -> None:
+    """:func:`launch_integrate` and then :func:`launch_check_state` in one launch, the check taking the step as
+    ``step_count[0] + 1`` (what :func:`launch_count_step`, launched after this, makes it): for a step that moves
+    no body between the two (no motions). The same bits as the two launches."""
+    bodies = state.bodies
+    ig = _integrator(bodies.q)
+    gravity = ig.vec3(*[ig.scalar(float(g)) for g in model.gravity])
+    wp.launch(
+        make_integrate_check_kernel(_pose_scalar(bodies.q)),
+        dim=bodies.q.shape[0],
+        inputs=[model.bodies, gravity, ig.scalar(float(dt)), body_speed_limit, bodies, step_count],
         outputs=[bad_step, body_peak_speed, too_fast],
         device=bodies.q.device,
     )

@@ -12,7 +12,7 @@ from typing import Any, Protocol
 
 import warp as wp
 from polydem.kernels.compound import make_body_geometry
-from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, LANES_MAX, lanes_here, make_geometry
+from polydem.kernels.geometry import COINCIDENT_TOL, COORDINATE_NOISE, make_geometry
 from polydem.kernels.structs import arrays, filled, make_struct
 
 __all__ = [
@@ -101,7 +101,6 @@ def make_narrowphase(
     count_work: bool = False,
     setup_only: bool = False,
     shared_poly: bool = False,
-    lanes: int = 1,
 ) -> Narrowphase:
     """Build the batch overlap kernel for one precision and polygon capacity.
 
@@ -116,14 +115,8 @@ def make_narrowphase(
         setup_only: the measuring variant of the pairs' set-up alone (make_geometry's).
         shared_poly: the polygon buffer in the block's shared memory (make_geometry's); launch the kernel with
             :data:`NARROWPHASE_BLOCK_DIM` threads a block.
-        lanes: threads a pair (a power of two, at most 32; make_geometry's ``lanes`` variant where more than 1):
-            launch ``lanes`` threads a pair, thread i taking pair i // lanes; on the CPU the first alone.
     """
-    if lanes < 1 or lanes > LANES_MAX or lanes & (lanes - 1):
-        raise ValueError(f"lanes must be a power of two from 1 to {LANES_MAX}, got {lanes}")
-    geom = make_geometry(
-        scalar, max_poly, max_faces, coincident_tol, pose_scalar, count_work, setup_only, shared_poly, lanes > 1
-    )
+    geom = make_geometry(scalar, max_poly, max_faces, coincident_tol, pose_scalar, count_work, setup_only, shared_poly)
     vec3 = geom.vec3
     transform = geom.transform
     Shapes = geom.shapes
@@ -151,21 +144,9 @@ def make_narrowphase(
         overflow: wp.array(dtype=int),
     ):
         i = wp.tid()
-        if wp.static(lanes > 1):
-            here = lanes_here(wp.static(lanes))
-            lane = i & wp.static(lanes - 1)
-            if lane >= here:
-                return
-            i = i >> wp.static(lanes.bit_length() - 1)
-            vol, vol_c, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(
-                shapes, pairs.shape_a[i], pairs.shape_b[i], pairs.pose_a[i], pairs.pose_b[i], lane, here
-            )
-            if lane != 0:
-                return
-        else:
-            vol, vol_c, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(
-                shapes, pairs.shape_a[i], pairs.shape_b[i], pairs.pose_a[i], pairs.pose_b[i]
-            )
+        vol, vol_c, s_a, m_a, s_b, m_b, fb_a, of = pair_geometry(
+            shapes, pairs.shape_a[i], pairs.shape_b[i], pairs.pose_a[i], pairs.pose_b[i]
+        )
         if wp.static(count_work):
             overflow[i + 1] = of
             of = of & 1

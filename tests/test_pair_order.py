@@ -259,19 +259,14 @@ def test_thread_order_is_checked(device):
         Simulation(default_scene(), device, order_pair_threads="fast")
 
 
-@pytest.mark.parametrize(
-    "spread, threads, lanes",
-    [(37, 10**9, False), (10**7, 10**9, False), (10**7, 55, False), (10**7, 0, False), (37, 10**9, True),
-     (10**7, 10**9, True)],
-)  # fmt: skip
-def test_spread_pairs_give_the_same_bits(device, spread, threads, lanes):
+@pytest.mark.parametrize("spread, threads", [(37, 10**9), (10**7, 10**9), (10**7, 55), (10**7, 0)])
+def test_spread_pairs_give_the_same_bits(device, spread, threads):
     """The first pairs of the thread order spread over SPREAD_LANES lanes each (the default on a GPU, none on the
     CPU, whose kernel runs one thread after another): as many as the room of ``threads`` (some pairs, more than
     the list holds) or, with little room, the pairs of costly shapes (counted at each rebuild, checked against
     numpy; 55 threads: the list grows from 43 to 109 pairs, within two "waves"), or none (no room, the list longer
-    than two waves of 0). Every pair's results are still one thread's: the run and the contacts it reports are the
-    same bits as without. With ``lanes`` a spread pair's lanes each clip some of its faces and add the faces' sums
-    in the one-thread order (on a GPU; on the CPU its first lane takes all of them, through the same sums)."""
+    than two waves of 0). Every pair is still computed once, by one thread: the run and the contacts it reports are
+    the same bits as without."""
     from polydem.kernels.forces import spread_room
 
     from polydem.contacts import COSTLY_FACES
@@ -283,9 +278,8 @@ def test_spread_pairs_give_the_same_bits(device, spread, threads, lanes):
     runs = {}
     for pairs in (0, spread):
         sim = Simulation(default_scene(), device)
-        sim.stepper.set_spread(pairs, threads, lanes=lanes)
+        sim.stepper.set_spread(pairs, threads)
         assert sim.stepper.kernels.spread is (pairs > 0)
-        assert sim.stepper.kernels.spread_lanes is (lanes and pairs > 0)
         sim.step(2600)  # the grains meet after some 2000 steps
         runs[pairs] = sim.state(), sim.contacts()
         contacts = sim.current_contacts

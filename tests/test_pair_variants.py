@@ -61,7 +61,7 @@ def random_pairs(shapes, rng, n):
     return sa, sb, pa, pb
 
 
-def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device, shared_poly=False, max_poly=None, lanes=1):
+def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device, shared_poly=False, max_poly=None):
     scalar = shapes.scalar
     tf = wp.types.transformation(pose_scalar)
     np_pose = np.float64 if pose_scalar == wp.float64 else np.float32
@@ -73,12 +73,12 @@ def run(shapes, sa, sb, pa, pb, max_registers, pose_scalar, device, shared_poly=
     # Room for the largest clipped facet: no overflow, so one launch per cap.
     ns = make_narrowphase(
         scalar, max_poly or shapes.max_poly_bound, shapes.max_faces, max_registers=max_registers,
-        pose_scalar=pose_scalar, shared_poly=shared_poly, lanes=lanes,
+        pose_scalar=pose_scalar, shared_poly=shared_poly,
     )  # fmt: skip
     assert ns.overlap_kernel.options.get("cuda_max_registers") == max_registers
     wp.launch(
         ns.overlap_kernel,
-        dim=n * lanes,
+        dim=n,
         inputs=[
             *shapes.kernel_args(),
             BatchPairs(
@@ -170,27 +170,6 @@ def test_the_largest_shared_polygon_buffer_compiles_for_a_gpu():
     except Exception as e:  # a Warp build without NVRTC (no CUDA toolkit in the wheel)
         pytest.skip(f"Warp cannot compile CUDA here: {e}")
     cuda_binary(make_narrowphase(wp.float32, rows, 64, shared_poly=True).overlap_kernel)
-
-
-@pytest.mark.parametrize("precision", ["float32", "mixed", "float64"])
-@pytest.mark.parametrize("shape_set", sorted(SETS))
-def test_lanes_agree_bit_for_bit(device, shape_set, precision):
-    """make_narrowphase(lanes=L): L threads a pair, each clipping some of its faces and adding the faces' sums, passed
-    between them by warp shuffles, in the one-thread order (on a GPU; on the CPU the first lane alone, through the
-    same sums): the same bits as one thread a pair, on the register caps' pairs."""
-    from polydem.kernels.geometry import LANES_MAX
-
-    shapes_list = SETS[shape_set]()
-    shapes = ShapeSet(shapes_list, device=device, precision="float64" if precision == "float64" else "float32")
-    pose_scalar = wp.float32 if precision == "float32" else wp.float64
-    sa, sb, pa, pb = random_pairs(shapes_list, np.random.default_rng(7), 512)
-    ref = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device)
-    assert (ref["pair_volume"] > 0.0).sum() > 0.3 * len(sa)
-    for lanes in (8, LANES_MAX):
-        got = run(shapes, sa, sb, pa, pb, CAPS[0], pose_scalar, device, lanes=lanes)
-        assert_same_bits(got, ref, f"{lanes} lanes")
-    with pytest.raises(ValueError, match="lanes must be a power of two from 1 to 32, got 6"):
-        make_narrowphase(wp.float32, 20, shapes.max_faces, lanes=6)
 
 
 def thrown_scene(precision="mixed"):

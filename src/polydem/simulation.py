@@ -71,6 +71,7 @@ from polydem.kernels.integrate import (
     launch_check_state,
     launch_count_step,
     launch_integrate,
+    launch_integrate_and_check,
     launch_settle_measures,
 )
 from polydem.kernels.meshwall import (
@@ -154,7 +155,6 @@ class Stepper:
             the step is not split; :meth:`split_at`).
         shared_poly: the pair kernel clips with its polygon buffer in shared memory where it fits (the default;
             :meth:`set_shared_poly`; ``kernels.shared_poly`` says whether it does now).
-        spread_lanes: a spread pair's lanes each clip some of its faces (:meth:`set_spread`'s ``lanes``).
     """
 
     def __init__(
@@ -201,7 +201,6 @@ class Stepper:
         self._spread_allowed = bool(spread) and self.thread_order
         # set_shared_poly: on by default, measured faster on an H200 (BENCHMARKS.md section 31)
         self.shared_poly = True
-        self.spread_lanes = False  # set_spread
         self.spread_pairs, self.spread_threads = (0, 0)
         if self._spread_allowed:
             self.spread_pairs, self.spread_threads = spread_room(self.device, pair_max_registers)
@@ -278,7 +277,6 @@ class Stepper:
             thread_order=self.thread_order,
             phased=self.body_first is not None and not diagnostics,
             spread=spread,
-            spread_lanes=spread and self.spread_lanes,
             shared_poly=self.shared_poly and shared_poly_fits(scalars(m.precision)[1], self.poly_capacity),
         )
 
@@ -352,14 +350,14 @@ class Stepper:
         mesh = 0 if self.mesh_candidates is None else self.mesh_candidates.generation
         return self.poly_capacity, mesh, self.first_room, self.spread_pairs, self.spread_threads
 
-    def set_spread(self, pairs: int, threads: int | None = None, lanes: bool | None = None) -> None:
+    def set_spread(self, pairs: int, threads: int | None = None) -> None:
         """Spread at most ``pairs`` of the first pairs of the thread order over
         :data:`~polydem.kernels.forces.SPREAD_LANES` lanes each: as many as a launch of ``threads`` threads leaves
         room for (None: the device's wave, :func:`~polydem.kernels.forces.spread_room`), or, where the list holds
-        at most twice ``threads`` pairs, the pairs of costly shapes (0 pairs: none). ``lanes`` True: a spread pair's
-        other lanes each clip some of its faces, not idle (make_contact_kernels' ``spread_lanes``; None: as it was,
-        at first False): measured slower on an H200 (BENCHMARKS.md section 30: each lane repeats the pair's set-up),
-        kept for measuring. The same bits either way. Needs the pair threads grouped by contact (the default)."""
+        at most twice ``threads`` pairs, the pairs of costly shapes (0 pairs: none). The spread pair's other lanes
+        idle: sharing its faces among them was slower for cubes, rocks and 64-vertex hulls on an H200 (each lane
+        repeats the pair's set-up; BENCHMARKS.md sections 30 and 31; that variant is at git tag ``pair-lanes-30``).
+        The same bits either way. Needs the pair threads grouped by contact (the default)."""
         pairs = int(pairs)
         if pairs < 0:
             raise ValueError(f"spread pairs must be >= 0, got {pairs}")
@@ -369,8 +367,6 @@ class Stepper:
                 "default, order_pair_threads=True)"
             )
         self.spread_pairs = pairs
-        if lanes is not None:
-            self.spread_lanes = bool(lanes)
         self.spread_threads = spread_room(self.device, self.pair_max_registers)[1] if threads is None else int(threads)
         self._kernels()
 
@@ -504,7 +500,19 @@ class Stepper:
     def integrate(self, state: State, dt: float) -> None:
         """Move the bodies by ``dt`` under their forces and gravity; count the step; check it is finite."""
         m = self.model
-        launch_integrate(model=m, state=state, dt=dt)
+        checks = {
+            "step_count": state.step_count,
+            "body_speed_limit": self.body_speed_limit,
+            "bad_step": self.bad_step,
+            "body_peak_speed": self.body_peak_speed,
+            "too_fast": self.too_fast,
+        }
+        if not m.has_motions:
+            # Nothing moves a body between the integration and the check: one launch for both (a launch less a
+            # step, which a small pile's step waits on; BENCHMARKS.md section 31).
+            launch_integrate_and_check(model=m, state=state, dt=dt, **checks)
+        else:
+            launch_integrate(model=m, state=state, dt=dt)
         if self.mesh_kernels is not None and m.mesh_moves:
             launch_advance_meshes(self.mesh_kernels.advance, meshes=m.meshes, dt=dt, mesh_q=state.mesh_q)
         launch_count_step(state.step_count)
@@ -516,15 +524,8 @@ class Stepper:
             )
         # The walls' poses at the end of this step too, for what reads the state between steps (pictures, USD).
         self.drive_walls(state, dt, 0)
-        launch_check_state(
-            model=m,
-            state=state,
-            step_count=state.step_count,
-            body_speed_limit=self.body_speed_limit,
-            bad_step=self.bad_step,
-            body_peak_speed=self.body_peak_speed,
-            too_fast=self.too_fast,
-        )
+        if m.has_motions:
+            launch_check_state(model=m, state=state, **checks)
 
     def _force_stage(
         self,
