@@ -169,6 +169,13 @@ FAULTS = (
         ("tests/test_pair_order.py::test_pair_threads_grouped_by_contact_give_the_same_bits[cpu-default]",),
     ),
     Fault(
+        "the material table's damping factor off by 1e-4",
+        "kernels/response.py",
+        "        out[i] = damping_factor(e[i])\n",
+        "        out[i] = damping_factor(e[i]) * scalar(1.0001)\n",
+        ("tests/test_damping_load.py::test_the_material_tables_damping_factor_gives_the_dashpots_bits[cpu-float32]",),
+    ),
+    Fault(
         "the integration's check in one launch: the step before its count",
         "kernels/integrate.py",
         "        check_body(model, body_speed_limit, step[0] + 1, bodies, i, bad_step, body_peak_speed, too_fast)\n",

@@ -574,28 +574,29 @@ def make_contact_kernels(
 
     @wp.func
     def dashpot_inputs(model: T.BodyModel, materials: T.Materials, a: int, b: int):
-        # What the dashpot of pair (a, b) is made of: friction, tangential stiffness, restitution, inverse mass
+        # What the dashpot of pair (a, b) is made of: friction, tangential stiffness, the restitution's damping
+        # factor (the table's: no logarithm a contact), inverse mass
         mat = model.material[a] * materials.count + model.material[b]
-        return materials.mu[mat], materials.kt[mat], materials.e[mat], C(model.inv_mass[a] + model.inv_mass[b])
+        return (materials.mu[mat], materials.kt[mat], materials.damping[mat], C(model.inv_mass[a] + model.inv_mass[b]))
 
     @wp.func
-    def dashpot_of(mu: C, kt: C, e: C, inv_mass: C):
-        # The dashpot as the pair kernel takes it (0 without friction: no tangential force)
+    def dashpot_of(mu: C, kt: C, factor: C, inv_mass: C):
+        # The dashpot as the pair kernel takes it, the same bits (0 without friction: no tangential force)
         ct = C(0.0)
         if mu > C(0.0):
-            ct = resp.dashpot(kt, e, inv_mass)
+            ct = resp.dashpot_factored(factor, kt, inv_mass)
         return ct
 
     @wp.func
     def friction_dashpot(model: T.BodyModel, materials: T.Materials, a: int, b: int):
         # The dashpot of pair (a, b) as the pair kernel takes it
-        mu, kt, e, inv_mass = dashpot_inputs(model, materials, a, b)
-        return dashpot_of(mu, kt, e, inv_mass)
+        mu, kt, factor, inv_mass = dashpot_inputs(model, materials, a, b)
+        return dashpot_of(mu, kt, factor, inv_mass)
 
     @wp.func
     def add_pair_a(
         f: vec3s, t: vec3s, lost: S, load_total: C, want_load: bool,
-        force: vec3c, torque: vec3c, dissipated: C, flags_b: int, turn: C, mu: C, kt: C, e: C, inv_mass: C,
+        force: vec3c, torque: vec3c, dissipated: C, flags_b: int, turn: C, mu: C, kt: C, factor: C, inv_mass: C,
     ):  # fmt: skip
         # A pair's terms on its body A, from what the gather read of it
         f += vec3s(force)
@@ -605,13 +606,13 @@ def make_contact_kernels(
             share = S(1.0)
         lost += share * S(dissipated)
         if want_load and turn > C(0.0):
-            load_total += dashpot_of(mu, kt, e, inv_mass)
+            load_total += dashpot_of(mu, kt, factor, inv_mass)
         return f, t, lost, load_total
 
     @wp.func
     def add_pair_b(
         f: vec3s, t: vec3s, lost: S, load_total: C, want_load: bool, xi_pos: vec3s, xa_pos: vec3s,
-        force: vec3c, torque: vec3c, dissipated: C, flags_a: int, turn: C, mu: C, kt: C, e: C, inv_mass: C,
+        force: vec3c, torque: vec3c, dissipated: C, flags_a: int, turn: C, mu: C, kt: C, factor: C, inv_mass: C,
     ):  # fmt: skip
         # A pair's terms on its body B (the reaction, and the torque about B's centre)
         fa = vec3s(force)
@@ -623,7 +624,7 @@ def make_contact_kernels(
             share = S(1.0)
         lost += share * S(dissipated)
         if want_load and turn > C(0.0):
-            load_total += dashpot_of(mu, kt, e, inv_mass)
+            load_total += dashpot_of(mu, kt, factor, inv_mass)
         return f, t, lost, load_total
 
     @wp.func
@@ -632,7 +633,7 @@ def make_contact_kernels(
         mat = model.material[i] * materials.count + wall_mat
         ct = C(0.0)
         if materials.mu[mat] > C(0.0):
-            ct = resp.dashpot(materials.kt[mat], materials.e[mat], C(model.inv_mass[i]))
+            ct = resp.dashpot_factored(materials.damping[mat], materials.kt[mat], C(model.inv_mass[i]))
         return ct
 
     @wp.func

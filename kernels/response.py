@@ -73,6 +73,33 @@ class Frame:
     contact_frame: Any  # (V, V centroid, S_A, M_A, fallback, r_ab, r_min) -> (kind, normal, point, S, M, |S|)
 
 
+@functools.cache
+def make_damping(scalar) -> tuple[Any, Any]:
+    """``damping_factor(e)``, twice the damping ratio that restitution e gives a linear oscillator (a ``wp.func`` in
+    ``scalar``), and a kernel filling a table of it, ``damping_factor_kernel(e, out)``: the tangential dashpot's
+    factor of each material pair, computed once where the model is built by the expression :func:`make_response`'s
+    ``dashpot`` uses, so that a dashpot from the table has the same bits as one from e (the gather reads the
+    table: a logarithm and a square root less a contact)."""
+
+    @wp.func
+    def damping_factor(e: scalar):
+        ln_e = wp.log(wp.max(e, scalar(1.0e-6)))
+        zeta = -ln_e / wp.sqrt(ln_e * ln_e + scalar(9.8696044))
+        return scalar(2.0) * zeta
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def damping_factor_kernel(e: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
+        i = wp.tid()
+        out[i] = damping_factor(e[i])
+
+    return damping_factor, damping_factor_kernel
+
+
+def fill_damping_factors(e: wp.array, out: wp.array) -> None:
+    """``out`` (M*M,) the damping factor of each entry of ``e`` (:func:`make_damping`), on their device."""
+    wp.launch(make_damping(e.dtype)[1], dim=e.shape[0], inputs=[e], outputs=[out], device=e.device)
+
+
 @dataclass(frozen=True)
 class Response:
     """The contact law's :func:`kept_energy` and :func:`respond` of one precision, law, friction setting
@@ -85,6 +112,7 @@ class Response:
     frame: Frame
     kept_energy: Any  # (turn, k, m, e, dt, area, r_min, inv_mass) -> what an opening contact kept [J]
     dashpot: Any  # (kt, e, inv_mass) -> the tangential dashpot's coefficient [N s/m]
+    dashpot_factored: Any  # (damping_factor(e), kt, inv_mass) -> the same, from the material table's factor
     respond: Any  # (overlap, motion, material, history, step) -> (force, torque, xi, turn, energy, lost, n, ...)
 
 
@@ -270,15 +298,23 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
         vc = toe_volume(k, m, e, toe_dt, area, r_min, inv_mass)
         return (scalar(1.0) - e * e) * law_energy(turn, k, m, vc)
 
+    damping_factor = make_damping(scalar)[0]
+
     @wp.func
     def dashpot(kt: scalar, e: scalar, inv_mass: scalar):
         # The tangential dashpot [N s/m]: the damping ratio that e gives a linear oscillator, on the spring kt
         # and the pair's translational mass (1 / inv_mass); none without a mass.
         ct = scalar(0.0)
         if inv_mass > scalar(0.0):
-            ln_e = wp.log(wp.max(e, scalar(1.0e-6)))
-            zeta = -ln_e / wp.sqrt(ln_e * ln_e + scalar(9.8696044))
-            ct = scalar(2.0) * zeta * wp.sqrt(kt / wp.max(inv_mass, scalar(1.0e-30)))
+            ct = damping_factor(e) * wp.sqrt(kt / wp.max(inv_mass, scalar(1.0e-30)))
+        return ct
+
+    @wp.func
+    def dashpot_factored(factor: scalar, kt: scalar, inv_mass: scalar):
+        # dashpot(kt, e, inv_mass) from factor = damping_factor(e) (the material table's): the same bits
+        ct = scalar(0.0)
+        if inv_mass > scalar(0.0):
+            ct = factor * wp.sqrt(kt / wp.max(inv_mass, scalar(1.0e-30)))
         return ct
 
     @wp.func
@@ -456,7 +492,7 @@ def make_response(scalar, law: str, friction: bool, diagnostics: bool = False) -
             lost -= wp.dot(tr, w_t) * dt
         return force, torque, xi_new, turn_new, energy, lost, n, point, fn, ft
 
-    return Response(scalar, law, friction, diagnostics, frame, kept_energy, dashpot, respond)
+    return Response(scalar, law, friction, diagnostics, frame, kept_energy, dashpot, dashpot_factored, respond)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -69,8 +69,9 @@ def materials_struct(C: Any) -> Any:
     """The material table: ``count`` materials M, the law's exponent ``law_m``, the step ``toe_dt`` [s] whose
     resolved toe the laws with one take (the larger of the run's and the recommended step: response.toe_volume), the
     (M*M,) mixed pair properties in C, row-major by (A's material, B's): stiffness ``k``, restitution ``e``,
-    friction ``mu`` and tangential stiffness ``kt``."""
-    return make_struct("Materials", count=int, law_m=C, toe_dt=C, **arrays(k=C, e=C, mu=C, kt=C))
+    friction ``mu``, tangential stiffness ``kt`` and the tangential dashpot's factor of e, ``damping``
+    (kernels/response.py ``make_damping``)."""
+    return make_struct("Materials", count=int, law_m=C, toe_dt=C, **arrays(k=C, e=C, mu=C, kt=C, damping=C))
 
 
 @functools.cache

@@ -162,3 +162,52 @@ def test_no_friction_no_load(device):
     assert not sim.model.friction
     assert len(sim.contacts()["body_a"]) > 0
     assert not np.any(sim.current_state.body_damping.numpy())
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_the_material_tables_damping_factor_gives_the_dashpots_bits(device, precision):
+    """The gather and the wall contacts take each dashpot's factor of e from the material table (kernels/response.py
+    make_damping, filled where the model is built): factor x sqrt(kt / (1/m)) is the same bits as the pair kernel's
+    dashpot(kt, e, 1/m) and as the expression both were written as before the table, on this device's compiler."""
+    import warp as wp
+    from polydem.kernels.response import fill_damping_factors, make_response
+
+    scalar = wp.float32 if precision == "float32" else wp.float64
+    resp = make_response(scalar, "hertz", True)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def dashpots(
+        e: wp.array(dtype=scalar),
+        factor: wp.array(dtype=scalar),
+        kt: wp.array(dtype=scalar),
+        inv_mass: wp.array(dtype=scalar),
+        out: wp.array2d(dtype=scalar),
+    ):
+        i = wp.tid()
+        # the expression of kernels/response.py's dashpot before the table
+        old = scalar(0.0)
+        if inv_mass[i] > scalar(0.0):
+            ln_e = wp.log(wp.max(e[i], scalar(1.0e-6)))
+            zeta = -ln_e / wp.sqrt(ln_e * ln_e + scalar(9.8696044))
+            old = scalar(2.0) * zeta * wp.sqrt(kt[i] / wp.max(inv_mass[i], scalar(1.0e-30)))
+        out[i, 0] = old
+        out[i, 1] = resp.dashpot(kt[i], e[i], inv_mass[i])
+        out[i, 2] = resp.dashpot_factored(factor[i], kt[i], inv_mass[i])
+
+    rng = np.random.default_rng(5)
+    n = 4096
+    dtype = np.float32 if precision == "float32" else np.float64
+    e_np = np.concatenate([[0.0, 1e-9, 1e-6, 0.1, 0.5, 0.9, 1.0], rng.uniform(0.0, 1.0, n - 7)]).astype(dtype)
+    kt_np = 10.0 ** rng.uniform(2.0, 9.0, n)
+    im_np = np.where(np.arange(n) % 97 == 0, 0.0, 10.0 ** rng.uniform(-2.0, 6.0, n))
+    e = wp.array(e_np, dtype=scalar, device=device)
+    factor = wp.empty_like(e)
+    fill_damping_factors(e, factor)
+    out = wp.zeros((n, 3), dtype=scalar, device=device)
+    args = [e, factor, wp.array(kt_np.astype(dtype), dtype=scalar, device=device)]
+    inv_mass = wp.array(im_np.astype(dtype), dtype=scalar, device=device)
+    wp.launch(dashpots, dim=n, inputs=[*args, inv_mass, out], device=device)
+    got = out.numpy()
+    assert (got[:, 0] > 0).sum() > n // 2
+    np.testing.assert_array_equal(got[:, 1], got[:, 0])
+    np.testing.assert_array_equal(got[:, 2], got[:, 0])

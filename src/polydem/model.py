@@ -13,6 +13,7 @@ import warp as wp
 
 from polydem.kernels.motion import Motions
 from polydem.kernels.precision import Precision, numpy_dtype, scalars
+from polydem.kernels.response import fill_damping_factors
 from polydem.kernels.structs import (
     body_model_struct,
     filled,
@@ -79,6 +80,8 @@ class Model:
         material_k, material_e, material_mu, material_kt: (M*M,) C mixed pair properties,
             row-major by (material of A, material of B): stiffness (units of the law),
             restitution, friction coefficient, tangential stiffness [N/m].
+        material_damping: (M*M,) C the tangential dashpot's factor of each pair's restitution (twice its damping
+            ratio, kernels/response.py ``make_damping``), computed on the device [1].
         law: "linear", "hertz" or "power"; law_m: its exponent m (W = k V^m / m).
         plane_normal: (P,) S vec3 outward unit normals of the walls; plane_offset: (P,) S [m]
             (the wall is n.x <= offset); plane_material: (P,) int32.
@@ -200,6 +203,9 @@ class Model:
         self.material_e = arr(np.asarray(table["restitution"], dtype=c_np).ravel(), c)
         self.material_mu = arr(np.asarray(table["friction"], dtype=c_np).ravel(), c)
         self.material_kt = arr(kt.astype(c_np).ravel(), c)
+        # The dashpot's factor of each pair's restitution, on the device by the kernels' own expression.
+        self.material_damping = wp.empty_like(self.material_e)
+        fill_damping_factors(self.material_e, self.material_damping)
         self.materials = filled(
             materials_struct(c),
             count=self.num_materials,
@@ -209,6 +215,7 @@ class Model:
             e=self.material_e,
             mu=self.material_mu,
             kt=self.material_kt,
+            damping=self.material_damping,
         )
         self.bodies = filled(
             body_model_struct(self.scalar),
