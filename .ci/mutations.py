@@ -45,8 +45,8 @@ FAULTS = (
     Fault(
         "reaction 1e-4 short",
         "kernels/forces.py",
-        "                f -= fa\n",
-        "                f -= fa * S(1.0 - 1.0e-4)\n",
+        "        f -= fa\n",
+        "        f -= fa * S(1.0 - 1.0e-4)\n",
         ("tests/test_simulation.py::test_momentum_conserved_without_walls[cpu-mixed]",),
     ),
     Fault(
