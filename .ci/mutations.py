@@ -169,6 +169,13 @@ FAULTS = (
         ("tests/test_pair_order.py::test_pair_threads_grouped_by_contact_give_the_same_bits[cpu-default]",),
     ),
     Fault(
+        "in-place clipping: the output overruns the input (no hand-over to finish_pass)",
+        "kernels/geometry.py",
+        "                    if k + 2 < count and cut and keep and n_out > k:\n",
+        "                    if k + 2 < count and cut and keep and n_out > k + 1:\n",
+        ("tests/test_contact.py::test_a_polygon_that_crosses_a_plane_more_than_twice_is_clipped_whole[cpu-0]",),
+    ),
+    Fault(
         "the material table's damping factor off by 1e-4",
         "kernels/response.py",
         "        out[i] = damping_factor(e[i])\n",
