@@ -42,17 +42,7 @@ damping or gather or momentum or bit_identical or shared or pour_settles or regr
       run_side $side timeout $(cap 90) python3 benchmarks/time_to_settle.py --device cuda:0 --sizes 1000 \
         --dt-scales 4 --k-rule volume --speed-fraction off --profile-steps 500 --out $log.json > $log.log 2>&1
       echo "tts 1e3 $side: $(grep -E '^ +1000 ' $log.log | tail -1)"
-      python3 - "$log.json" <<'EOF'
-import json, sys
-try:
-    r = json.load(open(sys.argv[1]))["runs"][0]["profile"]
-except Exception as e:  # the run was cut
-    sys.exit(f"   no profile: {e!r}")
-graphs = r.get("graphs_ms_per_step") or {}
-kernels = sorted((r.get("kernels_ms_per_step") or {}).items(), key=lambda kv: -kv[1])[:4]
-print(f"   wall {r['wall_ms_per_step']:.4f} ms a step; graphs' GPU {sum(graphs.values()):.4f}; "
-      + "; ".join(f"{name.split('__')[-1][:28]} {ms:.4f}" for name, ms in kernels))
-EOF
+      python3 benchmarks/profile_summary.py "$log.json" --top 4 --one-line
     done ;;
   settle)
     for shapes in ${SHAPES:-cube mixed}; do

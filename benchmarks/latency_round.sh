@@ -27,18 +27,7 @@ for flag in "" --no-shared-poly; do
   timeout $(cap 80) python3 benchmarks/time_to_settle.py --device cuda:0 --sizes 1000 --dt-scales 4 --k-rule volume \
     --speed-fraction off --profile-steps 500 $flag --out $log.json > $log.log 2>&1
   echo "tts 1e3 ${flag:-default}: $(grep -E '^ +1000 ' $log.log | tail -1)"
-  python3 - "$log.json" <<'EOF'
-import json, sys
-try:
-    r = json.load(open(sys.argv[1]))["runs"][0]["profile"]
-except Exception as e:  # the run was cut
-    sys.exit(f"   no profile: {e!r}")
-graphs = r.get("graphs_ms_per_step") or {}
-print(f"   wall {r['wall_ms_per_step']:.4f} ms a step; graphs' GPU {sum(graphs.values()):.4f} ms a step")
-kernels = r.get("kernels_ms_per_step") or {}
-for name, ms in sorted(kernels.items(), key=lambda kv: -kv[1])[:8]:
-    print(f"   {ms:8.4f} ms  {name}")
-EOF
+  python3 benchmarks/profile_summary.py "$log.json"
 done
 mkdir -p ${OUT:-.}
 tar czf ${OUT:-.}/latency_round.tgz -C $R --exclude reports . ; tar czf ${OUT:-.}/latency_reports.tgz -C $R reports

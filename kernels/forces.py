@@ -594,6 +594,21 @@ def make_contact_kernels(
         return dashpot_of(mu, kt, factor, inv_mass)
 
     @wp.func
+    def add_loss_and_load(
+        lost: S, load_total: C, want_load: bool, dissipated: C, flags_other: int, turn: C, mu: C, kt: C, factor: C,
+        inv_mass: C,
+    ):  # fmt: skip
+        # A pair's energy lost, half to each body (all of it where the partner is fixed or kinematic: it books
+        # none), and its dashpot in the body's damping load while in contact
+        share = S(0.5)
+        if flags_other != 0:
+            share = S(1.0)
+        lost += share * S(dissipated)
+        if want_load and turn > C(0.0):
+            load_total += dashpot_of(mu, kt, factor, inv_mass)
+        return lost, load_total
+
+    @wp.func
     def add_pair_a(
         f: vec3s, t: vec3s, lost: S, load_total: C, want_load: bool,
         force: vec3c, torque: vec3c, dissipated: C, flags_b: int, turn: C, mu: C, kt: C, factor: C, inv_mass: C,
@@ -601,12 +616,9 @@ def make_contact_kernels(
         # A pair's terms on its body A, from what the gather read of it
         f += vec3s(force)
         t += vec3s(torque)
-        share = S(0.5)
-        if flags_b != 0:
-            share = S(1.0)
-        lost += share * S(dissipated)
-        if want_load and turn > C(0.0):
-            load_total += dashpot_of(mu, kt, factor, inv_mass)
+        lost, load_total = add_loss_and_load(
+            lost, load_total, want_load, dissipated, flags_b, turn, mu, kt, factor, inv_mass
+        )
         return f, t, lost, load_total
 
     @wp.func
@@ -619,12 +631,9 @@ def make_contact_kernels(
         r_ab = xi_pos - xa_pos
         f -= fa
         t += wp.cross(r_ab, fa) - vec3s(torque)
-        share = S(0.5)
-        if flags_a != 0:
-            share = S(1.0)
-        lost += share * S(dissipated)
-        if want_load and turn > C(0.0):
-            load_total += dashpot_of(mu, kt, factor, inv_mass)
+        lost, load_total = add_loss_and_load(
+            lost, load_total, want_load, dissipated, flags_a, turn, mu, kt, factor, inv_mass
+        )
         return f, t, lost, load_total
 
     @wp.func
